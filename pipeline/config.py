@@ -1,0 +1,244 @@
+"""Scan configuration: typed models, TOML loading and feasibility checks.
+
+A configuration has five tables: ``[source]``, ``[optics]``, ``[motion]``,
+``[processing]`` and ``[output]`` (see README, "Configuration reference"). Every error
+names the field, for example ``optics.pixel_um``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+CONFIG_VERSION = 1
+
+
+class ConfigError(ValueError):
+    """An invalid or impossible configuration; the message names the field."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class SourceConfig(_Model):
+    kind: Literal["sim"] = Field("sim", description="Frame source: 'sim' = simulated scanner")
+    seed: int = Field(0, description="Seed of the simulated world texture and sensor noise")
+    world: Literal["plate", "sinusoid"] = Field(
+        "plate", description="Simulated world: characterisation plate or sinusoidal surface"
+    )
+    plate_length_mm: float = Field(60.0, gt=0, description="Length of the simulated plate, mm")
+    plate_width_mm: float = Field(9.0, gt=0, description="Width of the simulated plate, mm")
+
+
+class OpticsConfig(_Model):
+    width_px: int = Field(1280, ge=32, description="Frame width (along the motion), px")
+    height_px: int = Field(1024, ge=32, description="Frame height (across the motion), px")
+    pixel_um: float = Field(8.5, gt=0, description="Object-side pixel scale, µm/px")
+    n_levels: int = Field(50, ge=3, le=255, description="Focus levels N of the lens staircase")
+    z_min_um: float = Field(0.0, description="Height in focus at level 0, µm")
+    z_step_um: float = Field(200.0, gt=0, description="Height step between focus levels, µm")
+    fps: float = Field(150.0, gt=0, description="Camera frame rate, frames/s")
+    bit_depth: Literal[8, 10] = Field(10, description="8 -> uint8 frames, 10 -> 10-bit in uint16")
+    psf_s0_px: float = Field(0.6, ge=0, description="Sim: PSF sigma in focus, px")
+    psf_c_px_per_um: float = Field(0.004, gt=0, description="Sim: PSF sigma growth, px per µm")
+    sigma_max_px: float = Field(16.0, gt=0, description="Sim: largest PSF sigma rendered, px")
+    noise_sigma: float = Field(0.005, ge=0, description="Sim: sensor noise std, full scale")
+
+    @property
+    def dtype(self) -> str:
+        return "uint8" if self.bit_depth == 8 else "uint16"
+
+    @property
+    def max_value(self) -> float:
+        return 255.0 if self.bit_depth == 8 else 1023.0
+
+    def focus_heights_um(self) -> list[float]:
+        return [self.z_min_um + k * self.z_step_um for k in range(self.n_levels)]
+
+
+class MotionConfig(_Model):
+    speed_mm_s: float = Field(15.0, gt=0, description="Stage speed, mm/s")
+    x_start_mm: float = Field(0.0, description="Start of the strip to cover completely, mm")
+    x_end_mm: float = Field(60.0, description="End of the strip to cover completely, mm")
+    y_start_mm: float = Field(0.0, description="World y of the first pass's first row, mm")
+    passes: int = Field(1, ge=1, description="Parallel passes, stepped along y")
+    pass_overlap: float = Field(0.15, ge=0, lt=1, description="Overlap of adjacent passes, fraction")
+    serpentine: bool = Field(True, description="Alternate the direction of successive passes")
+    wobble_along_px: float = Field(0.0, ge=0, description="Sim: stage wobble amplitude along, ±px")
+    wobble_across_px: float = Field(0.0, ge=0, description="Sim: stage wobble amplitude across, ±px")
+    wobble_period_mm: float = Field(2.0, gt=0, description="Sim: wobble period, mm of travel")
+
+
+class ProcessingConfig(_Model):
+    focus_operator: Literal["glvm", "tenv"] = Field("glvm", description="Focus measure operator")
+    window: int = Field(9, ge=3, description="Focus measure window k (odd), px")
+    depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc"] = Field(
+        "spc", description="Focus curve -> depth method"
+    )
+    median_size: int = Field(11, ge=3, description="SPC median filter size (odd), px")
+    registration: bool = Field(True, description="Refine speed offsets by phase correlation")
+    backend: Literal["opencv", "torch"] = Field("opencv", description="Focus measure backend")
+    device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
+    queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
+    block_columns: int = Field(64, ge=1, description="Columns reduced to depth at once")
+
+    @field_validator("window", "median_size")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"must be odd, got {v}")
+        return v
+
+    @property
+    def edge_margin_px(self) -> int:
+        """Frame border excluded from the focus volume (the focus window's half width + 1)."""
+        return self.window // 2 + 1
+
+
+class OutputConfig(_Model):
+    path: str = Field("sffscan-mosaic.zarr", description="Zarr v3 group of the height mosaic")
+    chunk_px: int = Field(256, ge=16, description="Chunk edge of the mosaic arrays, px")
+    overwrite: bool = Field(False, description="Replace an existing mosaic at path")
+
+
+class ScanConfig(_Model):
+    version: Literal[1] = Field(CONFIG_VERSION, description="Configuration format version")
+    source: SourceConfig = Field(default_factory=SourceConfig)
+    optics: OpticsConfig = Field(default_factory=OpticsConfig)
+    motion: MotionConfig = Field(default_factory=MotionConfig)
+    processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+
+# --- derived quantities -------------------------------------------------------------------
+
+
+def shift_per_frame_px(cfg: ScanConfig) -> float:
+    """Stage travel between two frames, px: speed / (fps * pixel scale)."""
+    return cfg.motion.speed_mm_s * 1000.0 / (cfg.optics.fps * cfg.optics.pixel_um)
+
+
+def usable_width_px(cfg: ScanConfig) -> float:
+    """Frame width along the motion that enters the focus volume, px.
+
+    The focus-measure margin is excluded at both edges, and so are the along-motion wobble
+    amplitude and one pixel of rounding, since positions are integer.
+    """
+    return (cfg.optics.width_px - 2 * cfg.processing.edge_margin_px
+            - 2 * (cfg.motion.wobble_along_px + 1.0))
+
+
+def max_speed_sliding_mm_s(cfg: ScanConfig) -> float:
+    """Largest speed at which every world column is seen at all N levels, mm/s.
+
+    A column stays inside the usable width for at least floor(usable / shift) consecutive
+    frames, and N consecutive frames hold every focus level once, so shift <= usable / N.
+    """
+    o = cfg.optics
+    return usable_width_px(cfg) / o.n_levels * o.fps * o.pixel_um / 1000.0
+
+
+def max_speed_thesis_mm_s(cfg: ScanConfig, *, overlap: float = 0.0) -> float:
+    """The thesis' per-stack limit s = (r / N) * l with l = (w - w P) / 2 (eq. 6.1-6.3), mm/s."""
+    o = cfg.optics
+    w_mm = o.width_px * o.pixel_um / 1000.0
+    return o.fps / o.n_levels * (w_mm - w_mm * overlap) / 2.0
+
+
+def pass_pitch_px(cfg: ScanConfig) -> float:
+    """Distance between adjacent passes along y, px."""
+    usable_h = cfg.optics.height_px - 2 * cfg.processing.edge_margin_px
+    return usable_h * (1.0 - cfg.motion.pass_overlap)
+
+
+def check_feasible(cfg: ScanConfig) -> None:
+    """Raise :class:`ConfigError` for a configuration that cannot measure its strip."""
+    if usable_width_px(cfg) < cfg.optics.n_levels:
+        raise ConfigError(
+            f"optics.width_px = {cfg.optics.width_px} px leaves {usable_width_px(cfg):.0f} px "
+            f"after margins and wobble: fewer than optics.n_levels = {cfg.optics.n_levels}"
+        )
+    vmax = max_speed_sliding_mm_s(cfg)
+    if cfg.motion.speed_mm_s > vmax:
+        raise ConfigError(
+            f"motion.speed_mm_s = {cfg.motion.speed_mm_s:g} mm/s exceeds the limit "
+            f"{vmax:.2f} mm/s at which every column is still seen at all {cfg.optics.n_levels} "
+            f"focus levels ({cfg.optics.fps:g} fps, {cfg.optics.width_px} px x "
+            f"{cfg.optics.pixel_um:g} µm/px)"
+        )
+    if cfg.motion.x_end_mm <= cfg.motion.x_start_mm:
+        raise ConfigError(
+            f"motion.x_end_mm = {cfg.motion.x_end_mm:g} must be greater than "
+            f"motion.x_start_mm = {cfg.motion.x_start_mm:g}"
+        )
+    if cfg.processing.median_size > cfg.optics.height_px:
+        raise ConfigError("processing.median_size is larger than optics.height_px")
+    if not math.isfinite(cfg.optics.z_min_um):
+        raise ConfigError("optics.z_min_um must be finite")
+
+
+# --- loading ------------------------------------------------------------------------------
+
+
+def _format_validation(err: ValidationError, origin: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        got = f" (got {e['input']!r})" if "input" in e and not isinstance(e["input"], dict) else ""
+        lines.append(f"{origin}: {loc}: {e['msg']}{got}")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict[str, Any], *, origin: str = "configuration") -> ScanConfig:
+    """Validate a nested dict into a :class:`ScanConfig`, then check feasibility."""
+    try:
+        cfg = ScanConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation(err, origin)) from None
+    check_feasible(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> ScanConfig:
+    """Read a TOML scan configuration; errors name the file and the field."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{p}: not valid TOML: {err}") from None
+    return config_from_dict(data, origin=str(p))
+
+
+def demo_config(*, passes: int = 1, **sections: dict[str, Any]) -> ScanConfig:
+    """The built-in simulated scan: the characterisation plate at 15 mm/s (thesis optics)."""
+    data: dict[str, Any] = {
+        "source": {"kind": "sim", "world": "plate", "plate_length_mm": 40.0,
+                   "plate_width_mm": 8.0 * passes},
+        "motion": {"x_start_mm": 0.0, "x_end_mm": 40.0, "passes": passes},
+    }
+    for name, table in sections.items():
+        data.setdefault(name, {}).update(table)
+    return config_from_dict(data, origin="demo")
+
+
+def config_to_toml(cfg: ScanConfig) -> str:
+    """Render a configuration as TOML (the inverse of :func:`load_config`)."""
+    out: list[str] = [f"version = {cfg.version}", ""]
+    for name in ("source", "optics", "motion", "processing", "output"):
+        out.append(f"[{name}]")
+        for key, value in getattr(cfg, name).model_dump().items():
+            if isinstance(value, bool):
+                out.append(f"{key} = {'true' if value else 'false'}")
+            elif isinstance(value, str):
+                out.append(f'{key} = "{value}"')
+            else:
+                out.append(f"{key} = {value!r}")
+        out.append("")
+    return "\n".join(out)

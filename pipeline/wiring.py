@@ -1,0 +1,166 @@
+"""Wiring: a scan configuration becomes a running pipeline, a mosaic and a summary.
+
+    source -> speed_shift -> registration -> focus_measure -> depth -> mosaic
+           q1            q2              q3               q4       q5
+
+Every queue ``q*`` is bounded (``processing.queue_capacity``) and blocks when full, so no
+frame is ever dropped; the summary reports the drops counted anyway (0).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from pipeline.config import ScanConfig
+from pipeline.evaluate import Accuracy, mosaic_accuracy
+from pipeline.messages import Frame
+from pipeline.plan import frame_count, pass_direction, scan_extent_px
+from pipeline.runtime import Pipeline, PipelineResult, Stage, StageStats
+from stages.focus_measure import FocusMeasureStage
+from stages.focus_volume import DepthStage
+from stages.frame_source import SourceStage
+from stages.mosaic import MosaicStage, MosaicWriter
+from stages.registration import RegistrationStage
+from stages.speed_shift import SpeedShiftStage
+
+
+def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
+    o, p, m = cfg.optics, cfg.processing, cfg.motion
+    slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
+    stages: list[Stage] = [
+        SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels),
+        SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
+                        x_start_um=m.x_start_mm * 1000.0),
+    ]
+    if p.registration:
+        stages.append(RegistrationStage(n_levels=o.n_levels))
+    stages += [
+        FocusMeasureStage(operator=p.focus_operator, window=p.window, backend=p.backend,
+                          device=p.device, max_value=o.max_value),
+        DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
+                   focus_heights_um=o.focus_heights_um(), margin=p.edge_margin_px,
+                   method=p.depth_method, median_size=p.median_size,
+                   block_columns=p.block_columns,
+                   directions=[pass_direction(cfg, i) for i in range(m.passes)],
+                   slack_px=slack),
+        MosaicStage(writer),
+    ]
+    return stages
+
+
+def open_writer(cfg: ScanConfig, *, path: str | Path | None = None,
+                overwrite: bool | None = None) -> MosaicWriter:
+    x0, y0, x1, y1 = scan_extent_px(cfg)
+    o, p = cfg.optics, cfg.processing
+    return MosaicWriter(
+        path if path is not None else cfg.output.path,
+        origin_px=(x0, y0), shape=(y1 - y0, x1 - x0), pixel_um=o.pixel_um,
+        chunk_px=cfg.output.chunk_px,
+        overwrite=cfg.output.overwrite if overwrite is None else overwrite,
+        attrs={
+            "processing": {"focus_operator": p.focus_operator, "window": p.window,
+                           "depth_method": p.depth_method, "median_size": p.median_size,
+                           "registration": p.registration, "backend": p.backend},
+            "focus_heights_um": o.focus_heights_um(),
+            "scan_config": cfg.model_dump(mode="json"),
+        },
+    )
+
+
+class Progress:
+    """Progress and throughput on one line (or a line every few seconds if not a tty)."""
+
+    def __init__(self, total: int, *, stream: TextIO | None = None, every_s: float = 5.0) -> None:
+        self.total = total
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty()
+        self.every_s = every_s
+        self._last = 0.0
+
+    def __call__(self, stats: list[StageStats], elapsed: float) -> None:
+        if not self.tty and elapsed - self._last < self.every_s:
+            return
+        self._last = elapsed
+        done = stats[-2].frames if len(stats) > 1 else stats[0].frames
+        src = stats[0].frames
+        rate = done / elapsed if elapsed > 0 else 0.0
+        pct = 100.0 * done / self.total if self.total else 0.0
+        eta = (self.total - done) / rate if rate > 0 else float("inf")
+        line = (f"frames {done}/{self.total} ({pct:4.1f} %)  acquired {src}  "
+                f"{rate:6.1f} frames/s  elapsed {elapsed:5.1f} s  eta {eta:5.0f} s")
+        if self.tty:
+            self.stream.write("\r" + line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+@dataclass
+class ScanReport:
+    config: ScanConfig
+    output: Path
+    frames: int
+    result: PipelineResult
+    accuracy: Accuracy | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | None = None,
+             overwrite: bool | None = None, progress: bool = True) -> ScanReport:
+    """Run the whole pipeline over ``frames``; the mosaic goes to ``output``."""
+    writer = open_writer(cfg, path=output, overwrite=overwrite)
+    stages = build_stages(cfg, frames, writer)
+    prog = Progress(frame_count(cfg)) if progress else None
+    pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog)
+    try:
+        result = pipe.run()
+    finally:
+        if prog is not None:
+            prog.close()
+    return ScanReport(cfg, writer.path, result.stages[0].frames, result)
+
+
+def evaluate_sim(report: ScanReport, world: Any) -> Accuracy:
+    """Accuracy of a simulated scan's mosaic against the world's true surface."""
+    o = report.config.optics
+    t0 = time.perf_counter()
+    acc = mosaic_accuracy(report.output, world, max_depth=(o.n_levels - 1) * o.z_step_um)
+    report.extras["evaluation_s"] = time.perf_counter() - t0
+    report.accuracy = acc
+    return acc
+
+
+def format_summary(report: ScanReport) -> str:
+    r = report.result
+    lines = [
+        f"mosaic      {report.output}",
+        f"frames      {report.frames} in {r.wall_s:.1f} s: "
+        f"{report.frames / r.wall_s if r.wall_s else 0:.1f} frames/s end to end",
+        f"dropped     {r.dropped} frames",
+        "stage            frames  busy s   frames/s (own busy time)",
+    ]
+    for s in r.stages:
+        lines.append(f"  {s.name:<14} {s.frames:>6}  {s.busy_s:6.2f}  {s.frames_per_s:9.1f}")
+    lines.append("queue                       capacity  max fill  mean fill  dropped")
+    for q in r.queues:
+        lines.append(f"  {q.name:<26} {q.capacity:>8}  {q.max_fill:>8}  {q.mean_fill:>9.2f}"
+                     f"  {q.dropped:>7}")
+    for name, extra in r.extras.items():
+        if extra:
+            lines.append(f"{name:<12}" + ", ".join(f"{k} {v}" for k, v in extra.items()))
+    if report.accuracy is not None:
+        a = report.accuracy
+        lines.append(f"accuracy    RMSE {a.rmse_um:.1f} µm, CORR {a.corr:.4f}, "
+                     f"PSNR {a.psnr_db:.1f} dB over {a.pixels} valid pixels "
+                     "(against the simulation's true surface)")
+    return "\n".join(lines)

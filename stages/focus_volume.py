@@ -1,0 +1,321 @@
+"""Streaming focus volume in world coordinates, and the depth stage built on it.
+
+Because the lens staircase repeats, any N consecutive frames hold every focus level once:
+a world column is complete as soon as it has been seen at all N levels, whatever stack
+boundary it crossed. :class:`FocusVolume` keeps a ring buffer of the world columns that
+are in view or waiting (a fixed number, so memory does not grow with the scan): each
+frame's focus measure is written into the columns it covers, for each column and level
+only the first observation (so a column's curve comes from N consecutive frames). Columns
+are reduced to depth in blocks, in the order the motion completes them, once they and a
+halo for the SPC median filter are complete, or can no longer be completed because they
+left the view (those are returned invalid: NaN height, zero confidence, never filled in).
+
+Motion along -x is handled by mirroring: internally columns are numbered so that they
+always complete in increasing order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame
+from pipeline.runtime import Stage
+from stages.depth import depth_from_focus, levels_to_height
+
+
+class BlockResult(NamedTuple):
+    """A reduced block of world columns (see :meth:`FocusVolume.reduce`)."""
+
+    x0: int
+    y0: int
+    height_um: np.ndarray
+    texture: np.ndarray
+    confidence: np.ndarray
+    complete: int
+
+
+class FocusVolume:
+    """Ring buffer of per-column focus curves for one pass.
+
+    Parameters
+    ----------
+    n_levels : int
+        Focus levels N.
+    frame_shape : (int, int)
+        Frame (height, width), px.
+    focus_heights_um : sequence of float
+        Height in focus at each level, µm (length N).
+    margin : int
+        Frame border excluded on every side, px (focus-window half width + 1).
+    direction : {+1, -1}
+        Direction of the motion along x for this pass.
+    method : str
+        Depth method (see :func:`stages.depth.depth_from_focus`).
+    median_size : int
+        SPC median filter size; also sets the halo of columns kept around a block.
+    block_columns : int
+        Number of completed columns reduced at once.
+    row_slack : int
+        Rows allowed for across-motion wobble above and below the first frame, px.
+    """
+
+    def __init__(
+        self,
+        *,
+        n_levels: int,
+        frame_shape: tuple[int, int],
+        focus_heights_um: Sequence[float],
+        margin: int,
+        direction: int = 1,
+        method: str = "spc",
+        median_size: int = 11,
+        block_columns: int = 64,
+        row_slack: int = 8,
+        col_slack: int = 8,
+    ) -> None:
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction}")
+        self.n = n_levels
+        self.h, self.w = frame_shape
+        self.heights = np.asarray(focus_heights_um, dtype=np.float64)
+        self.margin = margin
+        self.direction = direction
+        self.method = method
+        self.median_size = median_size
+        self.halo = median_size // 2 + 1
+        self.block = block_columns
+        self.row_slack = row_slack
+        self.col_slack = col_slack
+        self.rows = self.h + 2 * row_slack
+        self.ring = self.w + 2 * self.halo + 2 * block_columns + 2 * col_slack
+        self.fv = np.zeros((self.n, self.rows, self.ring), np.float32)
+        self.filled = np.zeros((self.n, self.ring), bool)
+        self.count = np.zeros(self.ring, np.int32)
+        self.row_lo = np.zeros((self.n, self.ring), np.int32)
+        self.row_hi = np.zeros((self.n, self.ring), np.int32)
+        self.best = np.full((self.rows, self.ring), -1.0, np.float32)
+        self.tex = np.zeros((self.rows, self.ring), np.float32)
+        self.y0: int | None = None  # world row of accumulator row 0
+        self.next_u: int | None = None  # first internal column not yet reduced
+        self.first_u = 0  # first internal column ever stored
+        self.end_u = 0  # one past the last internal column stored
+        self.dead_below = -(2**62)  # internal columns below this cannot be completed
+
+    # -- coordinates ----------------------------------------------------------------------
+    def _to_internal(self, x: int) -> int:
+        """Internal index of the frame's first column (after mirroring for -x)."""
+        return x if self.direction == 1 else -x - self.w + 1
+
+    def _block_x0(self, u0: int, u1: int) -> int:
+        return u0 if self.direction == 1 else -(u1 - 1)
+
+    # -- streaming ------------------------------------------------------------------------
+    def add(self, focus: np.ndarray, image01: np.ndarray, *, x: int, y: int,
+            level: int) -> list[BlockResult]:
+        """Add one frame at world position (x, y) px; return the blocks it completed.
+
+        Parameters
+        ----------
+        focus : ndarray, float32, (H, W)
+            Focus measure of the frame.
+        image01 : ndarray, float32, (H, W)
+            The frame scaled to 0..1 (for the all-in-focus texture).
+        x, y : int
+            World position of the frame's first pixel, px.
+        level : int
+            Focus level of the frame, 0..N-1.
+
+        Returns
+        -------
+        list of BlockResult
+            Reduced blocks, in the order the motion completed them (see :meth:`reduce`).
+        """
+        if self.direction == -1:
+            focus, image01 = focus[:, ::-1], image01[:, ::-1]
+        u_frame = self._to_internal(x)
+        m = self.margin
+        if self.y0 is None:
+            self.y0 = y - self.row_slack
+        if self.next_u is None:
+            self.next_u = self.first_u = self.end_u = u_frame + m
+        # rows of this frame inside the accumulator
+        r0 = max(y - self.y0 + m, 0)
+        r1 = min(y - self.y0 + self.h - m, self.rows)
+        if r1 <= r0:
+            return []
+        fr0 = r0 - (y - self.y0)
+        # columns: valid frame columns [m, w - m) -> internal u_frame + j
+        u_lo = max(u_frame + m, self.next_u)
+        u_hi = u_frame + self.w - m
+        # make room: columns that would not fit in the ring are given up (left the view)
+        done: list[BlockResult] = []
+        self.dead_below = max(self.dead_below, u_frame + m - self.col_slack)
+        if u_hi - self.first_u > self.ring:
+            force = u_hi - self.ring + self.block + 2 * self.halo
+            self.dead_below = max(self.dead_below, force)
+            done += [self.reduce(*r) for r in self._advance(force_to=force)]
+            self._release(min(self.next_u - self.halo, self.end_u))
+            if u_hi - self.first_u > self.ring:  # a jump past everything stored
+                done += [self.reduce(*r) for r in self.flush()]
+                self._release(self.end_u)
+                self.next_u = self.first_u = self.end_u = max(u_lo, self.end_u)
+            u_lo = max(u_lo, self.next_u)
+        if u_hi > u_lo:
+            us = np.arange(u_lo, u_hi)
+            slots = us % self.ring
+            new = ~self.filled[level, slots]
+            if new.any():
+                us, slots = us[new], slots[new]
+                cols = us - u_frame
+                fm = focus[fr0:fr0 + (r1 - r0), cols]
+                self.fv[level][r0:r1, slots] = fm
+                self.filled[level, slots] = True
+                self.count[slots] += 1
+                self.row_lo[level, slots] = r0
+                self.row_hi[level, slots] = r1
+                best = self.best[r0:r1, slots]
+                sharper = fm > best
+                self.best[r0:r1, slots] = np.where(sharper, fm, best)
+                self.tex[r0:r1, slots] = np.where(
+                    sharper, image01[fr0:fr0 + (r1 - r0), cols], self.tex[r0:r1, slots])
+                self.end_u = max(self.end_u, int(us[-1]) + 1)
+        done += [self.reduce(*r) for r in self._advance()]
+        return done
+
+    def _advance(self, force_to: int | None = None) -> list[tuple[int, int]]:
+        """Ranges of columns whose own state and halo are final."""
+        assert self.next_u is not None
+        us = np.arange(self.next_u, self.end_u)
+        final = (self.count[us % self.ring] == self.n) | (us < self.dead_below)
+        open_ = np.flatnonzero(~final)
+        final_end = self.next_u + (int(open_[0]) if open_.size else us.size)
+        stop = final_end - self.halo  # columns [next_u, final_end) are complete or dead
+        if force_to is not None:
+            stop = max(stop, min(force_to, self.end_u))
+        out = []
+        while stop - self.next_u >= self.block or (force_to is not None and stop > self.next_u):
+            u1 = min(self.next_u + self.block, stop)
+            out.append((self.next_u, u1))
+            self.next_u = u1
+        return out
+
+    def finish(self) -> list[BlockResult]:
+        """Reduce every remaining column (end of pass or stream)."""
+        return [self.reduce(*r) for r in self.flush()]
+
+    def flush(self) -> list[tuple[int, int]]:
+        """Ranges of all remaining columns, final now."""
+        if self.next_u is None or self.next_u >= self.end_u:
+            return []
+        out = []
+        while self.next_u < self.end_u:
+            u1 = min(self.next_u + self.block, self.end_u)
+            out.append((self.next_u, u1))
+            self.next_u = u1
+        return out
+
+    def reduce(self, u0: int, u1: int) -> BlockResult:
+        """Depth of internal columns [u0, u1), then release the columns left behind.
+
+        Returns
+        -------
+        x0, y0 : int
+            World position of the block's first column and row, px.
+        height_um, texture, confidence : ndarray, float32, (rows, u1 - u0)
+            NaN height / texture and zero confidence where a pixel's curve lacks levels.
+        complete : int
+            Number of columns seen at all N levels.
+        """
+        assert self.y0 is not None
+        a0 = max(u0 - self.halo, self.first_u)
+        a1 = min(u1 + self.halo, self.end_u)
+        slots = np.arange(a0, a1) % self.ring
+        vol = self.fv[:, :, slots]
+        depth, conf = depth_from_focus(vol, method=self.method, median_size=self.median_size)
+        inner = slice(u0 - a0, u1 - a0)
+        islots = slots[inner]
+        depth, conf = depth[:, inner], conf[:, inner]
+        complete = self.count[islots] == self.n
+        lo = self.row_lo[:, islots].max(axis=0)
+        hi = self.row_hi[:, islots].min(axis=0)
+        rows = np.arange(self.rows)[:, None]
+        valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
+        height = levels_to_height(depth, focus_heights_um=self.heights).astype(np.float32)
+        height[~valid] = np.nan
+        conf = np.where(valid, conf, 0.0).astype(np.float32)
+        tex = np.where(valid, self.tex[:, islots], np.nan).astype(np.float32)
+        self._release(u0 - self.halo)
+        if self.direction == -1:
+            height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
+        x0 = self._block_x0(u0, u1)
+        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()))
+
+    def _release(self, below: int) -> None:
+        """Free ring slots of columns below ``below`` (they will not be read again)."""
+        if below <= self.first_u:
+            return
+        slots = np.arange(self.first_u, below) % self.ring
+        self.fv[:, :, slots] = 0.0
+        self.filled[:, slots] = False
+        self.count[slots] = 0
+        self.best[:, slots] = -1.0
+        self.tex[:, slots] = 0.0
+        self.first_u = below
+
+
+class DepthStage(Stage):
+    """Accumulates focus frames per pass and emits completed blocks of depth."""
+
+    name = "depth"
+
+    def __init__(self, *, n_levels: int, frame_shape: tuple[int, int],
+                 focus_heights_um: Sequence[float], margin: int, method: str = "spc",
+                 median_size: int = 11, block_columns: int = 64,
+                 directions: Sequence[int] = (1,), slack_px: int = 8) -> None:
+        self.kwargs = dict(n_levels=n_levels, frame_shape=frame_shape,
+                           focus_heights_um=focus_heights_um, margin=margin, method=method,
+                           median_size=median_size, block_columns=block_columns,
+                           row_slack=slack_px, col_slack=slack_px)
+        self.directions = list(directions)
+        self.volume: FocusVolume | None = None
+        self.pass_index: int | None = None
+        self.complete_columns = 0
+        self.incomplete_columns = 0
+
+    def _direction(self, pass_index: int) -> int:
+        return self.directions[pass_index % len(self.directions)]
+
+    def _blocks(self, results: list[BlockResult]) -> Iterator[DepthBlock]:
+        assert self.pass_index is not None
+        for r in results:
+            width = r.height_um.shape[1]
+            self.complete_columns += r.complete
+            self.incomplete_columns += width - r.complete
+            hdr = DepthBlockHeader(x0_px=r.x0, y0_px=r.y0, width_px=width,
+                                   height_px=r.height_um.shape[0], pass_index=self.pass_index,
+                                   complete_columns=r.complete,
+                                   incomplete_columns=width - r.complete)
+            yield DepthBlock(hdr, r.height_um, r.texture, r.confidence)
+
+    def process(self, item: FocusFrame) -> Iterator[DepthBlock]:
+        hdr = item.placed.header
+        if self.volume is None or hdr.pass_index != self.pass_index:
+            yield from self.finish()
+            self.pass_index = hdr.pass_index
+            self.volume = FocusVolume(direction=self._direction(hdr.pass_index),
+                                      **self.kwargs)  # type: ignore[arg-type]
+        x, y = item.placed.offset_px
+        yield from self._blocks(
+            self.volume.add(item.focus, item.image01, x=x, y=y, level=hdr.focus_index))
+
+    def finish(self) -> Iterator[DepthBlock]:
+        if self.volume is not None:
+            yield from self._blocks(self.volume.finish())
+            self.volume = None
+
+    def extra_stats(self) -> dict[str, int]:
+        return {"complete_columns": self.complete_columns,
+                "incomplete_columns": self.incomplete_columns}

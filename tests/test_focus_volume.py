@@ -1,0 +1,87 @@
+"""Streaming focus volume: columns complete at all N levels, in world coordinates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.focus_volume import FocusVolume
+
+N, H, W = 12, 48, 96
+HEIGHTS = [100.0 * k for k in range(N)]
+
+
+def _true_depth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Depth in levels of world pixel (x, y): a smooth ramp with a bump, 2..9 levels."""
+    return 2.0 + 7.0 * (0.5 + 0.5 * np.sin(x / 37.0)) * (0.8 + 0.2 * np.cos(y / 11.0))
+
+
+def _frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.mgrid[y0:y0 + H, x0:x0 + W].astype(float)
+    d = _true_depth(xx, yy)
+    fm = np.exp(-((level - d) ** 2) / (2 * 1.5**2)).astype(np.float32)
+    return fm, (0.5 + 0.01 * level + 0 * fm).astype(np.float32)
+
+
+def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "gauss3"):
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      direction=direction, method=method, median_size=3, block_columns=16)
+    ring_bytes = vol.fv.nbytes
+    blocks = []
+    for k in range(n_frames):
+        x = 200 + direction * k * step
+        fm, img = _frame(x, 30, k % N)
+        blocks += vol.add(fm, img, x=x, y=30, level=k % N)
+    blocks += vol.finish()
+    assert vol.fv.nbytes == ring_bytes  # fixed memory
+    return blocks
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_columns_complete_and_recover_depth(direction: int) -> None:
+    blocks = _scan(direction)
+    if direction == -1:
+        blocks = blocks[::-1]  # blocks come in the order the motion completes them
+    assert all(a.x0 + a.height_um.shape[1] == b.x0 for a, b in zip(blocks, blocks[1:]))
+    xs = np.concatenate([np.arange(b.x0, b.x0 + b.height_um.shape[1]) for b in blocks])
+    heights = np.concatenate([b.height_um for b in blocks], axis=1)
+    y0 = blocks[0].y0
+    yy, xx = np.mgrid[y0:y0 + heights.shape[0], 0:len(xs)]
+    truth = 100.0 * _true_depth(xs[xx].astype(float), yy.astype(float))
+    valid = np.isfinite(heights)
+    complete = sum(b.complete for b in blocks)
+    # frames move 5 px, the usable width is 90 px: a column is seen >= 18 frames >= N
+    assert complete >= 79 * 5 - W
+    err = heights[valid] - truth[valid]
+    assert np.abs(err).max() < 1.0  # µm (100 µm per level): Gaussian curves, exact fit
+    # the rows outside the frame's margins are invalid, the rows inside valid
+    rows_valid = valid.any(axis=1)
+    assert rows_valid.sum() == H - 2 * 3
+
+
+def test_incomplete_columns_are_invalid_not_filled() -> None:
+    # 30 px per frame: a column is seen only 3 times, far fewer than N = 12 levels
+    blocks = _scan(1, step=30, n_frames=30)
+    assert sum(b.complete for b in blocks) == 0
+    for b in blocks:
+        assert np.isnan(b.height_um).all()
+        assert (b.confidence == 0).all()
+
+
+def test_dropped_frame_is_made_up_by_a_later_frame_of_its_level() -> None:
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      method="gauss3", median_size=3, block_columns=16)
+    blocks = []
+    for k in range(60):
+        if k == 30:
+            continue  # lost frame: its level comes N frames later for the columns in view
+        fm, img = _frame(k * 5, 0, k % N)
+        blocks += vol.add(fm, img, x=k * 5, y=0, level=k % N)
+    blocks += vol.finish()
+    by_col = {b.x0 + c: b.height_um[H // 2, c] for b in blocks
+              for c in range(b.height_um.shape[1])}
+    entered_at_30 = range(30 * 5 + W - 3 - 5, 30 * 5 + W - 3)
+    for x in entered_at_30:
+        assert np.isfinite(by_col[x])
+        y = np.float64(blocks[0].y0 + H // 2)
+        assert by_col[x] == pytest.approx(100 * _true_depth(np.float64(x), y), abs=1.0)
