@@ -67,10 +67,10 @@ class MotionConfig(_Model):
     x_end_mm: float = Field(60.0, description="End of the strip to cover completely, mm")
     y_start_mm: float = Field(0.0, description="World y of the first pass's first row, mm")
     passes: int = Field(1, ge=1, description="Parallel passes, stepped along y")
-    pass_overlap: float = Field(0.15, ge=0, lt=1, description="Overlap of adjacent passes, fraction")
+    pass_overlap: float = Field(0.15, ge=0, lt=1, description="Pass overlap, fraction")
     serpentine: bool = Field(True, description="Alternate the direction of successive passes")
-    wobble_along_px: float = Field(0.0, ge=0, description="Sim: stage wobble amplitude along, ±px")
-    wobble_across_px: float = Field(0.0, ge=0, description="Sim: stage wobble amplitude across, ±px")
+    wobble_along_px: float = Field(0.0, ge=0, description="Sim: wobble along, ±px")
+    wobble_across_px: float = Field(0.0, ge=0, description="Sim: wobble across, ±px")
     wobble_period_mm: float = Field(2.0, gt=0, description="Sim: wobble period, mm of travel")
 
 
@@ -82,6 +82,8 @@ class ProcessingConfig(_Model):
     )
     median_size: int = Field(11, ge=3, description="SPC median filter size (odd), px")
     registration: bool = Field(True, description="Refine speed offsets by phase correlation")
+    registration_scale: int = Field(
+        4, ge=1, le=16, description="Image reduction for registration (4 = quarter resolution)")
     backend: Literal["opencv", "torch"] = Field("opencv", description="Focus measure backend")
     device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
     queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
@@ -96,8 +98,14 @@ class ProcessingConfig(_Model):
 
     @property
     def edge_margin_px(self) -> int:
-        """Frame border excluded from the focus volume (the focus window's half width + 1)."""
-        return self.window // 2 + 1
+        """Frame border the scan plan leaves unused, px.
+
+        The focus window's half width + 1, plus 2 px when registration is on. The focus
+        volume itself keeps every pixel whose window lies inside the frame (half width
+        k // 2), so a frame that registration places up to 3 px off (measured: at most 2 px
+        without any wobble) still covers the planned strip at every focus level.
+        """
+        return self.window // 2 + 1 + (2 if self.registration else 0)
 
 
 class OutputConfig(_Model):
@@ -107,12 +115,12 @@ class OutputConfig(_Model):
 
 
 class ScanConfig(_Model):
-    version: Literal[1] = Field(CONFIG_VERSION, description="Configuration format version")
-    source: SourceConfig = Field(default_factory=SourceConfig)
-    optics: OpticsConfig = Field(default_factory=OpticsConfig)
-    motion: MotionConfig = Field(default_factory=MotionConfig)
-    processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
-    output: OutputConfig = Field(default_factory=OutputConfig)
+    version: Literal[1] = Field(1, description="Configuration format version")
+    source: SourceConfig = Field(default_factory=lambda: SourceConfig())
+    optics: OpticsConfig = Field(default_factory=lambda: OpticsConfig())
+    motion: MotionConfig = Field(default_factory=lambda: MotionConfig())
+    processing: ProcessingConfig = Field(default_factory=lambda: ProcessingConfig())
+    output: OutputConfig = Field(default_factory=lambda: OutputConfig())
 
 
 # --- derived quantities -------------------------------------------------------------------

@@ -16,6 +16,9 @@ from typing import Any, Protocol
 import numpy as np
 import zarr
 
+from pipeline.messages import MosaicAttrs
+from stages.mosaic import mosaic_array
+
 
 class HeightWorld(Protocol):
     def height_um(self, x0: float, y0: float, width: int, height: int) -> np.ndarray: ...
@@ -98,8 +101,8 @@ def mosaic_accuracy(path: str | Path, world: HeightWorld, *, max_depth: float,
     then the finite fraction of it); by default every finite mosaic pixel counts.
     """
     group = zarr.open_group(str(path), mode="r")
-    height = group["height"]
-    ox, oy = (int(v) for v in group.attrs["origin_px"])  # type: ignore[union-attr]
+    height = mosaic_array(group, "height")
+    ox, oy = MosaicAttrs.model_validate(group.attrs.asdict()).origin_px
     rows, cols = height.shape
     c0, c1, r0, r1 = 0, cols, 0, rows
     if region_px is not None:

@@ -38,12 +38,12 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
                         x_start_um=m.x_start_mm * 1000.0),
     ]
     if p.registration:
-        stages.append(RegistrationStage(n_levels=o.n_levels))
+        stages.append(RegistrationStage(n_levels=o.n_levels, scale=p.registration_scale))
     stages += [
         FocusMeasureStage(operator=p.focus_operator, window=p.window, backend=p.backend,
                           device=p.device, max_value=o.max_value),
         DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-                   focus_heights_um=o.focus_heights_um(), margin=p.edge_margin_px,
+                   focus_heights_um=o.focus_heights_um(), margin=p.window // 2,
                    method=p.depth_method, median_size=p.median_size,
                    block_columns=p.block_columns,
                    directions=[pass_direction(cfg, i) for i in range(m.passes)],
@@ -65,7 +65,8 @@ def open_writer(cfg: ScanConfig, *, path: str | Path | None = None,
         attrs={
             "processing": {"focus_operator": p.focus_operator, "window": p.window,
                            "depth_method": p.depth_method, "median_size": p.median_size,
-                           "registration": p.registration, "backend": p.backend},
+                           "registration": p.registration,
+                           "registration_scale": p.registration_scale, "backend": p.backend},
             "focus_heights_um": o.focus_heights_um(),
             "scan_config": cfg.model_dump(mode="json"),
         },

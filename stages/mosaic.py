@@ -80,6 +80,14 @@ class _Band:
     conf: np.ndarray
 
 
+def mosaic_array(group: zarr.Group, name: str) -> zarr.Array:
+    """One array of a mosaic group; a clear error if it is missing or not an array."""
+    node = group.get(name)
+    if not isinstance(node, zarr.Array):
+        raise ValueError(f"{group.store}: mosaic has no array '{name}'")
+    return node
+
+
 class MosaicWriter:
     """Owns a mosaic Zarr group: creates it, blends blocks in, marks its status.
 
@@ -133,10 +141,10 @@ class MosaicWriter:
         self.blocks_written = 0
 
     def _ensure(self, r1: int, c1: int) -> None:
-        rows, cols = self.group["height"].shape
+        rows, cols = mosaic_array(self.group, "height").shape
         if r1 > rows or c1 > cols:
             for name in ARRAYS:
-                self.group[name].resize((max(rows, r1), max(cols, c1)))  # type: ignore[union-attr]
+                mosaic_array(self.group, name).resize((max(rows, r1), max(cols, c1)))
 
     def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0)."""
@@ -147,9 +155,10 @@ class MosaicWriter:
                              f"{self.origin}; widen the scan area in the configuration")
         self._ensure(r0 + rows, c0 + cols)
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
-        old = {name: np.asarray(self.group[name][sel]) for name in ARRAYS}
+        arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
+        old = {name: np.asarray(arr[sel]) for name, arr in arrays.items()}
         for name, value in blend(old, new).items():
-            self.group[name][sel] = value
+            arrays[name][sel] = value
         self.blocks_written += 1
 
     def set_status(self, status: str, **extra: Any) -> None:

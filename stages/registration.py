@@ -1,31 +1,35 @@
-"""Registration: phase correlation refines the speed-based frame positions.
+"""Registration: phase correlation at quarter resolution refines the speed-based positions.
 
 The stage moves at constant commanded speed, but a real stage wobbles (stepper motor,
 flexible coupling). Each frame's true position is its predicted position plus an unknown
-wobble ``w_k`` (x, y). Two kinds of frame pairs measure differences of wobble:
+wobble ``w_k`` (x, y). Pairs of frames measure differences of wobble:
 
-- consecutive frames (k-1, k): large overlap, but one focus level apart (slightly
-  different blur, so slightly biased);
+- frames a few frames apart (k-1 ... k-4): large overlap, but different focus levels, so
+  the in-focus content differs a little (slightly biased);
 - frames one staircase period apart (k-N, k): the same focus level, so the same blur of
   the same world points (unbiased), but a smaller overlap and only differences across N.
 
-Each pair is measured by phase correlation of the two frames cropped to their predicted
-overlap, first at a quarter of the resolution (robust: few pixels are in focus in any one
-frame), then refined at half resolution around that estimate. All measurements in a
-sliding window of frames go into one weighted least-squares solve for the wobble, with a
-weak prior that the wobble has zero mean and anchors on the frames already emitted, so
-chained biases cannot drift (SFF_NOTES section 4). A frame is emitted once the frame one
-period after it has been measured (latency N + 1 frames).
+Each pair is measured by phase correlation of the two frames, reduced to a quarter of
+their resolution and cropped to their predicted overlap (SFF_NOTES section 4: at full
+resolution few pixels are in focus in any one frame; measured here, half and full
+resolution gave 0.4-1.1 px errors on pairs at different focus levels where a quarter gave
+0.11 px). All measurements in a sliding window go into one least-squares solve for the
+wobble, with a weak prior that the wobble has zero mean and anchors on the frames already
+emitted, so chained biases cannot drift. A frame is emitted once the frame one period
+after it has been measured (latency N + 1 frames). Measured on the default optics with a
+±3 px wobble: 0.25 px RMS error of the recovered wobble (README, "Measured figures").
 """
 
 from __future__ import annotations
 
 import collections
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.fft
 
 from pipeline.messages import PlacedFrame
 from pipeline.runtime import Stage
@@ -49,49 +53,70 @@ def _dft_size_at_most(n: int) -> int:
     return n
 
 
-def phase_correlate(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+def _peak_offset(minus: float, centre: float, plus: float) -> float:
+    """Sub-pixel offset of a peak from three samples: Gaussian fit, else parabola."""
+    if minus > 0 and centre > 0 and plus > 0:
+        lm, l0, lp = np.log(minus), np.log(centre), np.log(plus)
+        curv = lm - 2 * l0 + lp
+        if curv < 0:
+            return float(0.5 * (lm - lp) / curv)
+    curv = minus - 2 * centre + plus
+    return 0.5 * (minus - plus) / curv if curv < 0 else 0.0
+
+
+@functools.lru_cache(maxsize=16)
+def _pc_tables(h: int, w: int, peak_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hann window (h, w) and Gaussian spectral weight (h, w // 2 + 1), float32."""
+    win = cv2.createHanningWindow((w, h), cv2.CV_32F)
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.rfftfreq(w)[None, :]
+    weight = np.exp(-2.0 * np.pi**2 * peak_sigma**2 * (fx * fx + fy * fy)).astype(np.float32)
+    return win, weight
+
+
+def phase_correlate(a: np.ndarray, b: np.ndarray, *, peak_sigma: float = 1.5
+                    ) -> tuple[float, float, float]:
     """Translation of image b relative to image a by phase correlation.
 
-    Both are multiplied by a Hann window; the peak of the normalised cross-power
-    spectrum's inverse is located to sub-pixel precision with Foroosh et al.'s estimator
-    (2002), c1 / (c1 + c0) along each axis, which suits the sinc-like peak better than a
-    centroid. (cv2.phaseCorrelate was not used: with OpenCV 5.0 it reports shifts off by half
-    a pixel whenever its DFT size is odd, and its centroid is biased.)
+    Both images are multiplied by a Hann window. The normalised cross-power spectrum is
+    weighted by a Gaussian, so that the correlation peak is a Gaussian of ``peak_sigma``
+    px whatever the images' blur (frames at different focus levels have no common
+    high-frequency content; there the phase is noise, and an unweighted peak is ragged).
+    The peak is then located with a three-point Gaussian fit. Measured on simulated frames
+    up to 7 focus levels apart with sensor noise: 0.1 px RMS error, against 0.3 px for the
+    unweighted peak with Foroosh's estimator. (cv2.phaseCorrelate is not used: with OpenCV
+    5.0 it reports shifts off by half a pixel whenever its DFT size is odd.)
 
     Parameters
     ----------
     a, b : ndarray, float32, (h, w)
+    peak_sigma : float
+        Width of the correlation peak, px.
 
     Returns
     -------
     (sx, sy, peak)
-        b(p) ~= a(p - s); ``peak`` is the correlation peak height (1 for identical images,
-        near 0 for unrelated ones).
+        b(p) ~= a(p - s), px; ``peak`` is the correlation peak height (about 1 for identical
+        images, near 0 for unrelated ones).
     """
     h, w = a.shape
-    win = cv2.createHanningWindow((w, h), cv2.CV_32F)
-    fa = np.fft.rfft2(a * win)
-    fb = np.fft.rfft2(b * win)
+    win, weight = _pc_tables(h, w, peak_sigma)
+    fa = scipy.fft.rfft2(a * win)
+    fb = scipy.fft.rfft2(b * win)
     cross = fb * np.conj(fa)
-    cross /= np.abs(cross) + 1e-12
-    corr = np.fft.irfft2(cross, s=(h, w))
+    cross /= np.abs(cross) + np.float32(1e-12)
+    cross *= weight
+    corr = scipy.fft.irfft2(cross, s=(h, w))
     py, px = np.unravel_index(int(np.argmax(corr)), corr.shape)
     c0 = float(corr[py, px])
-
-    def subpixel(minus: float, plus: float) -> float:
-        if plus > minus and plus > 0:
-            return plus / (plus + c0)
-        if minus > 0:
-            return -minus / (minus + c0)
-        return 0.0
-
-    sx = px + subpixel(float(corr[py, (px - 1) % w]), float(corr[py, (px + 1) % w]))
-    sy = py + subpixel(float(corr[(py - 1) % h, px]), float(corr[(py + 1) % h, px]))
+    sx = px + _peak_offset(float(corr[py, (px - 1) % w]), c0, float(corr[py, (px + 1) % w]))
+    sy = py + _peak_offset(float(corr[(py - 1) % h, px]), c0, float(corr[(py + 1) % h, px]))
     if sx > w / 2:
         sx -= w
     if sy > h / 2:
         sy -= h
-    return sx, sy, c0
+    # the Gaussian weighting lowers the peak; scale it back to ~1 for identical images
+    return sx, sy, c0 / float(weight.mean())
 
 
 def measure_shift(
@@ -143,36 +168,12 @@ def measure_shift(
     return (ix - sx) * scale, (iy - sy) * scale, peak
 
 
-def measure_pair(
-    a: tuple[np.ndarray, np.ndarray],
-    b: tuple[np.ndarray, np.ndarray],
-    *,
-    predicted_px: tuple[float, float],
-    scales: tuple[int, int] = (4, 2),
-    min_response: float = 0.02,
-) -> tuple[float, float] | None:
-    """Coarse-to-fine relative position of b to a, full-resolution px, or None.
-
-    ``a`` and ``b`` are (coarse, fine) reduced images at ``scales``. The fine estimate is
-    rejected (coarse kept) if it moves by more than one coarse pixel.
-    """
-    coarse = measure_shift(a[0], b[0], predicted_px=predicted_px, scale=scales[0])
-    if coarse is None or coarse[2] < min_response:
-        return None
-    fine = measure_shift(a[1], b[1], predicted_px=coarse[:2], scale=scales[1])
-    if fine is None or fine[2] < min_response or max(
-        abs(fine[0] - coarse[0]), abs(fine[1] - coarse[1])
-    ) > scales[0]:
-        return coarse[0], coarse[1]
-    return fine[0], fine[1]
-
-
 def solve_wobble(
     n: int,
     pairs: list[tuple[int, int, float, float, float]],
     anchors: dict[int, tuple[float, float]],
     *,
-    prior_weight: float = 0.1,
+    prior_weight: float = 0.2,
     anchor_weight: float = 10.0,
 ) -> np.ndarray:
     """Least-squares wobble of ``n`` frames from pairwise differences.
@@ -193,29 +194,31 @@ def solve_wobble(
     ndarray, float64, (n, 2)
         Wobble estimate per frame, px.
     """
-    rows = len(pairs) + n + len(anchors)
-    mat = np.zeros((rows, n))
-    rhs = np.zeros((rows, 2))
-    r = 0
-    for i, j, dx, dy, wt in pairs:
-        mat[r, j], mat[r, i] = wt, -wt
-        rhs[r] = (wt * dx, wt * dy)
-        r += 1
-    mat[r:r + n, :] = np.eye(n) * prior_weight
-    r += n
+    # normal equations, assembled directly: every row touches one or two unknowns
+    ata = np.eye(n) * prior_weight**2
+    atb = np.zeros((n, 2))
+    if pairs:
+        p = np.asarray(pairs, dtype=np.float64)
+        i, j = p[:, 0].astype(np.intp), p[:, 1].astype(np.intp)
+        w2 = p[:, 4] ** 2
+        d = p[:, 2:4] * w2[:, None]
+        np.add.at(ata, (i, i), w2)
+        np.add.at(ata, (j, j), w2)
+        np.add.at(ata, (i, j), -w2)
+        np.add.at(ata, (j, i), -w2)
+        np.add.at(atb, j, d)
+        np.add.at(atb, i, -d)
     for k, (ax, ay) in anchors.items():
-        mat[r, k] = anchor_weight
-        rhs[r] = (anchor_weight * ax, anchor_weight * ay)
-        r += 1
-    sol, *_ = np.linalg.lstsq(mat, rhs, rcond=None)
-    return np.asarray(sol)
+        ata[k, k] += anchor_weight**2
+        atb[k] += (anchor_weight**2 * ax, anchor_weight**2 * ay)
+    return np.linalg.solve(ata, atb)
 
 
 @dataclass
 class _Entry:
     index: int
     placed: PlacedFrame
-    reduced: tuple[np.ndarray, np.ndarray]
+    reduced: np.ndarray
 
 
 class RegistrationStage(Stage):
@@ -223,12 +226,13 @@ class RegistrationStage(Stage):
 
     name = "registration"
 
-    def __init__(self, *, n_levels: int, scales: tuple[int, int] = (4, 2),
-                 period_weight: float = 2.0) -> None:
+    def __init__(self, *, n_levels: int, scale: int = 4, lags: tuple[int, ...] = (1, 2, 3, 4),
+                 min_peak: float = 0.02) -> None:
         self.n_levels = n_levels
-        self.scales = scales
-        self.period_weight = period_weight
-        self.window = 3 * n_levels + 4
+        self.scale = scale
+        self.lags = tuple(lag for lag in lags if lag < n_levels) + (n_levels,)
+        self.min_peak = min_peak
+        self.window = 2 * n_levels + 8
         self._reset()
         self.pairs_measured = 0
         self.pairs_rejected = 0
@@ -244,15 +248,15 @@ class RegistrationStage(Stage):
         self._pairs: list[tuple[int, int, float, float, float]] = []
         self._emitted: dict[int, tuple[float, float]] = {}
 
-    def _measure(self, old: _Entry, new: _Entry, weight: float) -> None:
+    def _measure(self, old: _Entry, new: _Entry) -> None:
         pa, pb = old.placed.predicted_px, new.placed.predicted_px
         pred = (pb[0] - pa[0], pb[1] - pa[1])
-        got = measure_pair(old.reduced, new.reduced, predicted_px=pred, scales=self.scales)
-        if got is None:
+        got = measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale)
+        if got is None or got[2] < self.min_peak:
             self.pairs_rejected += 1
             return
         self.pairs_measured += 1
-        self._pairs.append((old.index, new.index, got[0] - pred[0], got[1] - pred[1], weight))
+        self._pairs.append((old.index, new.index, got[0] - pred[0], got[1] - pred[1], 1.0))
 
     def _emit_oldest(self) -> PlacedFrame:
         entry = self._pending.popleft()
@@ -280,15 +284,14 @@ class RegistrationStage(Stage):
             yield from self.finish()
             self._reset()
         self._pass = item.header.pass_index
-        entry = _Entry(self._count, item, tuple(  # type: ignore[arg-type]
-            downsample(item.image, factor=s) for s in self.scales))
+        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale))
         self._count += 1
-        if self._recent:
-            self._measure(self._recent[-1], entry, 1.0)
-        if len(self._recent) >= self.n_levels:
-            old = self._recent[-self.n_levels]
-            if old.placed.header.focus_index == item.header.focus_index:
-                self._measure(old, entry, self.period_weight)
+        for lag in self.lags:
+            if len(self._recent) >= lag:
+                old = self._recent[-lag]
+                if lag < self.n_levels or (
+                        old.placed.header.focus_index == item.header.focus_index):
+                    self._measure(old, entry)
         self._recent.append(entry)
         self._pending.append(entry)
         while len(self._pending) > self.n_levels + 1:

@@ -31,5 +31,6 @@ def device(request: pytest.FixtureRequest) -> str:
 @pytest.fixture(scope="session")
 def pertuz_dir() -> Path:
     if not (PERTUZ_DIR / "imdata.mat").is_file():
-        pytest.fail(f"pertuz-simu02 dataset not found at {PERTUZ_DIR} (expected ../shared beside the checkout)")
+        pytest.fail(f"pertuz-simu02 dataset not found at {PERTUZ_DIR} "
+                    "(expected ../shared beside the checkout)")
     return PERTUZ_DIR

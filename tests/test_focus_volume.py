@@ -42,7 +42,8 @@ def test_columns_complete_and_recover_depth(direction: int) -> None:
     blocks = _scan(direction)
     if direction == -1:
         blocks = blocks[::-1]  # blocks come in the order the motion completes them
-    assert all(a.x0 + a.height_um.shape[1] == b.x0 for a, b in zip(blocks, blocks[1:]))
+    for a, b in zip(blocks, blocks[1:], strict=False):
+        assert a.x0 + a.height_um.shape[1] == b.x0
     xs = np.concatenate([np.arange(b.x0, b.x0 + b.height_um.shape[1]) for b in blocks])
     heights = np.concatenate([b.height_um for b in blocks], axis=1)
     y0 = blocks[0].y0

@@ -12,8 +12,8 @@ from pipeline.messages import FrameHeader, PlacedFrame
 from stages.registration import (
     RegistrationStage,
     downsample,
-    measure_pair,
     measure_shift,
+    phase_correlate,
     solve_wobble,
 )
 
@@ -26,16 +26,31 @@ def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
 
 @pytest.mark.parametrize(("true", "pred"), [((40, -3), (37.0, 0.0)), ((-120, 5), (-118.4, 2.2)),
                                              ((0, 0), (2.6, -1.7))])
-def test_measure_pair_recovers_true_shift(true: tuple[int, int],
-                                          pred: tuple[float, float]) -> None:
-    world = _texture(700, 900)
-    a = world[100:100 + 256, 200:200 + 320]
-    b = world[100 + true[1]:100 + true[1] + 256, 200 + true[0]:200 + true[0] + 320]
-    red = [(downsample(x, factor=4), downsample(x, factor=2)) for x in (a, b)]
-    got = measure_pair(red[0], red[1], predicted_px=pred)
+def test_measure_shift_at_quarter_resolution(true: tuple[int, int],
+                                             pred: tuple[float, float]) -> None:
+    world = _texture(900, 1100)
+    a = world[100:100 + 512, 200:200 + 640]
+    b = world[100 + true[1]:100 + true[1] + 512, 200 + true[0]:200 + true[0] + 640]
+    got = measure_shift(downsample(a, factor=4), downsample(b, factor=4), predicted_px=pred,
+                        scale=4)
     assert got is not None
-    assert got[0] == pytest.approx(true[0], abs=0.35)
-    assert got[1] == pytest.approx(true[1], abs=0.35)
+    assert got[0] == pytest.approx(true[0], abs=0.25)
+    assert got[1] == pytest.approx(true[1], abs=0.25)
+
+
+def test_phase_correlate_subpixel_and_blur() -> None:
+    world = _texture(600, 600, seed=2)
+    rng = np.random.default_rng(0)
+    errors = []
+    for _ in range(20):
+        t = rng.uniform(-4, 4, 2)
+        m = np.float32([[1, 0, t[0]], [0, 1, t[1]]])
+        moved = cv2.warpAffine(world, m, (600, 600), flags=cv2.INTER_CUBIC)
+        moved = cv2.GaussianBlur(moved, (0, 0), rng.uniform(0.5, 2.0))  # another focus level
+        sx, sy, peak = phase_correlate(world[200:456, 200:456], moved[200:456, 200:456])
+        errors.append((sx - t[0], sy - t[1]))
+        assert 0.0 < peak <= 1.05
+    assert np.sqrt(np.mean(np.square(errors))) < 0.15
 
 
 def test_measure_shift_refuses_tiny_overlap() -> None:

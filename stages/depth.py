@@ -1,0 +1,364 @@
+"""Depth from a focus volume: peak localisation along the focus axis (SFF_NOTES.md section 3).
+
+Conventions
+-----------
+A focus volume is an ``(N, H, W)`` float array of focus-measure values (>= 0); axis 0 is
+the focus level ``k = 0 .. N-1``. A pixel's focus curve is ``y_k = volume[k, row, col]``.
+Depth is returned in *fractional level units* (0 = level 0, 1 = level 1, ...) and mapped to
+height with :func:`levels_to_height`.
+
+Every method also returns the same confidence map
+
+    confidence = |H_1| / H_0,   H_1 = sum_k y_k exp(-2 pi i k / N),   H_0 = sum_k y_k,
+
+i.e. the relative strength of the first DFT harmonic: about 1 for a single narrow peak,
+near 0 for a flat or noisy curve; set to 0 where ``H_0 <= 0`` and clipped to [0, 1].
+
+All functions are pure and vectorised (no Python loops over pixels): the volume is used as
+float32, and the harmonics come from one matrix product with a small (4, N) cos/sin table,
+accumulated in float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "DEPTH_METHODS",
+    "all_in_focus",
+    "depth_from_focus",
+    "levels_to_height",
+    "spc_by_roll",
+]
+
+DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc")
+"""Names accepted by :func:`depth_from_focus` as ``method``."""
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _check_volume(volume: np.ndarray) -> np.ndarray:
+    """Return ``volume`` as (N, H, W) float32 after shape/dtype checks (finiteness separately)."""
+    vol = np.asarray(volume)
+    if vol.ndim != 3:
+        raise ValueError(f"volume must be 3-D (N, H, W), got shape {vol.shape}")
+    if vol.shape[0] < 3:
+        raise ValueError(f"volume needs at least 3 focus levels (axis 0), got {vol.shape[0]}")
+    if not (np.issubdtype(vol.dtype, np.floating) or np.issubdtype(vol.dtype, np.integer)):
+        raise ValueError(f"volume must be a real numeric array, got dtype {vol.dtype}")
+    return np.ascontiguousarray(vol, dtype=np.float32)
+
+
+def _raise_not_finite(vol: np.ndarray) -> None:
+    """Raise a ValueError naming the first level with NaN or inf (or an overflow)."""
+    flat = vol.reshape(vol.shape[0], -1)
+    for kind, test in (("NaN", np.isnan), ("inf", np.isinf)):
+        levels = np.flatnonzero(test(flat).any(axis=1))
+        if levels.size:
+            raise ValueError(f"volume contains {kind} at level {int(levels[0])}")
+    raise ValueError("volume contains values that are not finite")
+
+
+def _check_median_size(median_size: int) -> int:
+    if isinstance(median_size, bool) or not isinstance(median_size, int | np.integer):
+        raise ValueError(f"median_size must be an odd integer >= 1, got {median_size!r}")
+    if median_size < 1 or median_size % 2 == 0:
+        raise ValueError(f"median_size must be an odd integer >= 1, got {median_size}")
+    return int(median_size)
+
+
+# ----------------------------------------------------------------------------- building blocks
+
+
+def _moments(vol: np.ndarray) -> np.ndarray:
+    """``(4, H, W)`` float64: H_0 = sum y, sum k y, Re H_1, Im H_1 of every focus curve.
+
+    One matrix product with a ``(4, N)`` table of 1, k, cos and -sin, accumulated in float64
+    (float32 accumulation costs up to ~1e-3 levels of PC phase on curves whose first harmonic
+    is weak). Done over blocks of columns so the float64 copy of the volume stays in cache.
+    """
+    n = vol.shape[0]
+    k = np.arange(n, dtype=np.float64)
+    theta = 2.0 * np.pi * k / n
+    table = np.stack((np.ones(n), k, np.cos(theta), -np.sin(theta)))
+    flat = vol.reshape(n, -1)
+    out = np.empty((4, flat.shape[1]), dtype=np.float64)
+    block = max(256, (1 << 17) // n)  # ~1 MiB of float64 per block (stays in L2)
+    buf = np.empty((n, min(block, flat.shape[1])), dtype=np.float64)
+    for i in range(0, flat.shape[1], block):
+        cols = min(block, flat.shape[1] - i)
+        buf[:, :cols] = flat[:, i : i + cols]
+        np.matmul(table, buf[:, :cols], out=out[:, i : i + cols])
+    return out.reshape((4, *vol.shape[1:]))
+
+
+def _argmax(vol: np.ndarray) -> np.ndarray:
+    """Index of the first maximum along axis 0, ``(H, W)`` intp (``vol`` free of NaN).
+
+    Same result as ``np.argmax(vol, axis=0)``, about 5x faster on C-ordered (N, H, W) data:
+    a contiguous max-reduction, then one equality pass per level, last level first.
+    """
+    peak = vol.max(axis=0)
+    idx = np.zeros(peak.shape, dtype=np.intp)
+    for k in range(vol.shape[0] - 1, 0, -1):
+        np.copyto(idx, k, where=vol[k] == peak)
+    np.copyto(idx, 0, where=vol[0] == peak)
+    return idx
+
+
+def _median_filter_levels(levels: np.ndarray, size: int, n_levels: int) -> np.ndarray:
+    """Median of integer level indices over size x size windows, replicated borders.
+
+    ``cv2.medianBlur`` on uint8 when the levels fit (N <= 256; it takes any odd size there),
+    otherwise an equivalent (slower) numpy sliding-window median.
+    """
+    if size == 1:
+        return levels
+    if n_levels <= 256:
+        return cv2.medianBlur(levels.astype(np.uint8), size).astype(np.intp)
+    r = size // 2
+    padded = np.pad(levels.astype(np.int32), r, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size))
+    out = np.empty(levels.shape, dtype=np.intp)
+    rows = max(1, (1 << 22) // max(1, levels.shape[1] * size * size))  # bound the temporaries
+    for i in range(0, levels.shape[0], rows):
+        block = windows[i : i + rows].reshape(*windows[i : i + rows].shape[:2], -1)
+        out[i : i + rows] = np.median(block, axis=-1).astype(np.intp)
+    return out
+
+
+def _spc_shift(vol: np.ndarray, median_size: int) -> np.ndarray:
+    """Per-pixel circular shift ``s = round(N/2) - median(argmax)``, ``(H, W)`` intp.
+
+    ``round`` is MATLAB's (halves away from zero): ``round(N/2) = (N + 1) // 2``.
+    """
+    n = vol.shape[0]
+    a_med = _median_filter_levels(_argmax(vol), median_size, n)
+    return (n + 1) // 2 - a_med
+
+
+def _wrap(x: np.ndarray, n: int) -> np.ndarray:
+    """``x mod n`` in [0, n) (``np.mod`` can round a tiny negative ``x`` up to exactly ``n``)."""
+    out = np.mod(x, float(n))
+    out[out >= n] -= n
+    return out
+
+
+def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
+    """Sub-level offset in [-0.5, 0.5] of a 3-point parabola through (a-1, a, a+1).
+
+    On ``log`` values this is the Gaussian fit. Where ``a`` is 0 or N-1, a value is <= 0 (log
+    fit), or the denominator is not negative (flat top), the offset is 0 (argmax fallback).
+    """
+    n = vol.shape[0]
+    pixels = a.size
+    interior = (a > 0) & (a < n - 1)
+    flat = vol.reshape(-1)
+    at = np.clip(a, 1, n - 2) * pixels + np.arange(pixels).reshape(a.shape)  # flat index
+    ym, y0, yp = flat[at - pixels], flat[at], flat[at + pixels]
+    if log:
+        positive = (ym > 0) & (y0 > 0) & (yp > 0)
+        interior &= positive
+        ym, y0, yp = (np.log(np.where(positive, v, 1.0)) for v in (ym, y0, yp))
+    den = ym - 2.0 * y0 + yp
+    valid = interior & (den < 0)
+    offset = 0.5 * (ym - yp) / np.where(valid, den, -1.0)
+    return np.clip(np.where(valid, offset, 0.0), -0.5, 0.5).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def depth_from_focus(
+    volume: np.ndarray, *, method: str = "spc", median_size: int = 11
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-level focus peak and its confidence for every pixel of a focus volume.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus volume (values >= 0), N >= 3 levels along axis 0; read as float32.
+    method : str, keyword-only
+        One of :data:`DEPTH_METHODS`:
+
+        ``"argmax"``
+            Index of the (first) largest value; integer-valued.
+        ``"gauss3"``
+            Gaussian through the argmax and its two neighbours (parabola on log values);
+            exact for a sampled Gaussian.
+        ``"quadratic3"``
+            Parabola through the same three points.
+            Both 3-point fits fall back to the argmax at the ends (argmax 0 or N-1), on a
+            flat top (denominator >= 0) and, for ``gauss3``, on values <= 0.
+        ``"centroid"``
+            ``sum(k y_k) / sum(y_k)`` (argmax where the sum is <= 0).
+        ``"pc"``
+            Phase correlation: ``(-angle(H_1) N / (2 pi)) mod N``, in [0, N).
+        ``"spc"``
+            Shifted phase correlation: argmax, median filtered over ``median_size`` x
+            ``median_size`` pixels (``a_med``); per-pixel shift ``s = round(N/2) - a_med``
+            that would move ``a_med`` to the centre; PC of the shifted curve; minus ``s``.
+            The curve is not rolled: ``np.roll(y, s)`` multiplies ``H_1`` by
+            ``exp(-2 pi i s / N)``, i.e. adds ``-2 pi s / N`` to its angle, so the rotation is
+            applied to the angle directly: ``depth = ((phi + s) mod N) - s`` with
+            ``phi = -angle(H_1) N / (2 pi)``. No modulo after undoing the shift: the result
+            lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
+            filtered argmax. Same result as :func:`spc_by_roll`.
+    median_size : int, keyword-only
+        Odd median-filter size for ``"spc"`` (1 = no filtering). Default 11. The thesis used
+        10 x 10; an even window has no centre pixel (the median would be shifted by half a
+        pixel and an average of two levels), and ``cv2.medianBlur`` requires an odd size, so
+        the nearest odd size above is the default. Validated for every method.
+
+    Returns
+    -------
+    depth : (H, W) ndarray of float32
+        Peak position in fractional level units.
+    confidence : (H, W) ndarray of float32
+        ``|H_1| / H_0`` in [0, 1] (0 where ``H_0 <= 0``), the same for every method.
+
+    Raises
+    ------
+    ValueError
+        If ``volume`` is not 3-D, has fewer than 3 levels, contains NaN or inf (the message
+        names the first such level), or ``method`` / ``median_size`` is invalid.
+    """
+    if method not in DEPTH_METHODS:
+        raise ValueError(f"method must be one of {DEPTH_METHODS}, got {method!r}")
+    median_size = _check_median_size(median_size)
+    vol = _check_volume(volume)
+    n = vol.shape[0]
+
+    h0, hk, re, im = _moments(vol)
+    if not np.isfinite(h0).all():  # NaN / inf anywhere in a curve makes its sum non-finite
+        _raise_not_finite(vol)
+
+    positive = h0 > 0
+    confidence = np.sqrt(re * re + im * im) / np.where(positive, h0, 1.0)
+    confidence = np.clip(np.where(positive, confidence, 0.0), 0.0, 1.0).astype(np.float32)
+
+    if method in ("pc", "spc"):
+        phi = np.arctan2(im, re) * (-n / (2.0 * math.pi))
+        if method == "pc":
+            depth = _wrap(phi, n)
+        else:
+            s = _spc_shift(vol, median_size)
+            depth = _wrap(phi + s, n) - s
+    else:
+        a = _argmax(vol)
+        if method == "argmax":
+            depth = a.astype(np.float32)
+        elif method == "centroid":
+            depth = np.where(positive, hk / np.where(positive, h0, 1.0), a)
+        else:
+            depth = a + _three_point(vol, a, log=method == "gauss3")
+    return depth.astype(np.float32, copy=False), confidence
+
+
+def spc_by_roll(volume: np.ndarray, *, median_size: int = 11) -> np.ndarray:
+    """SPC by its literal definition, for tests: roll every curve, PC by FFT, undo the shift.
+
+    Each pixel's curve is circularly shifted with ``np.roll`` semantics by
+    ``s = round(N/2) - a_med`` (see :func:`depth_from_focus`), its first DFT harmonic is taken
+    with ``np.fft.fft`` in float64, ``d = (-angle(H_1) N / (2 pi)) mod N`` and ``d - s`` is
+    returned. Slow; not for production use.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus volume, as for :func:`depth_from_focus`.
+    median_size : int, keyword-only
+        Odd median-filter size. Default 11.
+
+    Returns
+    -------
+    (H, W) ndarray of float64
+        Depth in fractional level units.
+    """
+    median_size = _check_median_size(median_size)
+    vol = _check_volume(volume)
+    if not np.isfinite(vol).all():
+        _raise_not_finite(vol)
+    n = vol.shape[0]
+    s = _spc_shift(vol, median_size)
+    k = np.arange(n).reshape(n, 1, 1)
+    rolled = np.take_along_axis(vol, (k - s[None]) % n, axis=0)  # rolled[k] = y[k - s]
+    h1 = np.fft.fft(rolled.astype(np.float64), axis=0)[1]
+    d = np.mod(-np.angle(h1) * n / (2.0 * math.pi), n)
+    return d - s
+
+
+def levels_to_height(depth_levels: np.ndarray, *, focus_heights_um: np.ndarray) -> np.ndarray:
+    """Map fractional focus levels to heights by piecewise-linear interpolation.
+
+    Level ``k`` maps to ``focus_heights_um[k]``; between levels the table is interpolated
+    linearly, beyond both ends it is extrapolated linearly with the first / last segment.
+
+    Parameters
+    ----------
+    depth_levels : ndarray of float, any shape
+        Depth in fractional level units; NaN stays NaN.
+    focus_heights_um : (N,) array_like of float
+        Height in focus at each level, µm; N >= 2, finite, strictly increasing or strictly
+        decreasing.
+
+    Returns
+    -------
+    ndarray of float32
+        Heights in µm, same shape as ``depth_levels`` (computed in float64).
+
+    Raises
+    ------
+    ValueError
+        If the table is not 1-D with at least 2 finite, strictly monotonic values.
+    """
+    table = np.asarray(focus_heights_um, dtype=np.float64)
+    if table.ndim != 1 or table.size < 2:
+        raise ValueError(
+            f"focus_heights_um must be 1-D with at least 2 values, got shape {table.shape}"
+        )
+    if not np.isfinite(table).all():
+        raise ValueError("focus_heights_um must be finite")
+    step = np.diff(table)
+    if not ((step > 0).all() or (step < 0).all()):
+        raise ValueError("focus_heights_um must be strictly monotonic")
+    d = np.asarray(depth_levels, dtype=np.float64)
+    finite = np.isfinite(d)
+    i = np.clip(np.floor(np.where(finite, d, 0.0)), 0, table.size - 2).astype(np.intp)
+    height = table[i] + (d - i) * step[i]
+    return height.astype(np.float32)
+
+
+def all_in_focus(stack: np.ndarray, volume: np.ndarray) -> np.ndarray:
+    """All-in-focus image: each pixel's intensity from the level where it is sharpest.
+
+    Parameters
+    ----------
+    stack : (N, H, W) ndarray
+        Image stack, any dtype.
+    volume : (N, H, W) ndarray of float
+        Its focus volume.
+
+    Returns
+    -------
+    (H, W) ndarray, dtype of ``stack``
+        ``stack[argmax_k volume[k], row, col]`` (first maximum on ties).
+
+    Raises
+    ------
+    ValueError
+        If the shapes differ or are not 3-D.
+    """
+    stack = np.asarray(stack)
+    volume = np.asarray(volume)
+    if stack.ndim != 3 or stack.shape != volume.shape:
+        raise ValueError(
+            f"stack and volume must both be (N, H, W) of the same shape, "
+            f"got {stack.shape} and {volume.shape}"
+        )
+    a = _argmax(volume)
+    return np.take_along_axis(stack, a[None], axis=0)[0]

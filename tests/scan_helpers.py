@@ -1,0 +1,113 @@
+"""Small simulated scans shared by the end-to-end tests.
+
+The test optics keep the thesis geometry at half the resolution: 640 x 256 px of 17 µm
+(FOV 10.9 x 4.4 mm), 150 fps, N = 50 levels of 200 µm, 15 mm/s, and register at half of
+that resolution, i.e. on images of the same 34 µm pixels as the default optics at a
+quarter; so a scan of a 20 mm strip takes about 250 frames and a few seconds on 2 cores.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from pipeline.config import ScanConfig, config_from_dict
+from pipeline.evaluate import Accuracy, accuracy
+from pipeline.wiring import ScanReport, run_scan
+from stages.depth import depth_from_focus, levels_to_height
+from stages.focus_measure import focus_measure, to_unit_float
+from stages.sim_camera import render_stack
+from stages.sim_scanner import make_optics, make_world, simulate_frames
+
+SMALL: dict[str, dict[str, Any]] = {
+    "source": {"world": "plate", "plate_length_mm": 24.0, "plate_width_mm": 4.0},
+    "optics": {"width_px": 640, "height_px": 256, "pixel_um": 17.0},
+    "motion": {"x_start_mm": 2.0, "x_end_mm": 22.0},
+    "processing": {"block_columns": 64, "registration_scale": 2},
+    "output": {"chunk_px": 128},
+}
+
+
+def small_config(**sections: dict[str, Any]) -> ScanConfig:
+    data: dict[str, dict[str, Any]] = {k: dict(v) for k, v in SMALL.items()}
+    for name, table in sections.items():
+        data.setdefault(name, {}).update(table)
+    return config_from_dict(data, origin="test")
+
+
+def scan(cfg: ScanConfig, out: Path) -> ScanReport:
+    return run_scan(cfg, frames=simulate_frames(cfg), output=out, progress=False)
+
+
+def max_depth(cfg: ScanConfig) -> float:
+    return (cfg.optics.n_levels - 1) * cfg.optics.z_step_um
+
+
+def strip_region(cfg: ScanConfig) -> tuple[int, int, int, int]:
+    """World px box of the strip that a single pass must cover completely.
+
+    Columns: [x_start, x_end]. Rows: the frame's rows inside the planning margin (one row
+    more than the focus volume needs), less the across-motion wobble amplitude: a row must
+    be seen at all N levels.
+    """
+    o, m = cfg.optics, cfg.motion
+    px = o.pixel_um / 1000.0
+    inset = cfg.processing.edge_margin_px + int(np.ceil(m.wobble_across_px))
+    y = int(round(m.y_start_mm / px))
+    return (int(np.ceil(m.x_start_mm / px)), y + inset, int(np.floor(m.x_end_mm / px)),
+            y + o.height_px - inset)
+
+
+def mosaic_height(path: Path, region: tuple[int, int, int, int]) -> np.ndarray:
+    """The mosaic's height over a world px box (NaN where the mosaic has nothing)."""
+    g = zarr.open_group(str(path), mode="r")
+    ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr]
+    x0, y0, x1, y1 = region
+    return np.asarray(g["height"][y0 - oy:y1 - oy, x0 - ox:x1 - ox])  # type: ignore[index]
+
+
+def truth(cfg: ScanConfig, region: tuple[int, int, int, int]) -> np.ndarray:
+    x0, y0, x1, y1 = region
+    return make_world(cfg).height_um(float(x0), float(y0), x1 - x0, y1 - y0)
+
+
+def score(cfg: ScanConfig, est: np.ndarray, region: tuple[int, int, int, int],
+          mask: np.ndarray | None = None) -> Accuracy:
+    return accuracy(est, truth(cfg, region), max_depth=max_depth(cfg), mask=mask)
+
+
+def stationary_height(cfg: ScanConfig, region: tuple[int, int, int, int]) -> np.ndarray:
+    """Stop-and-go reference: stationary stacks of fields tiling ``region``, same processing.
+
+    Each field is the camera standing still over the surface, one frame per focus level
+    (the same optics, noise and operators as the scan). Only each field's interior (the
+    focus-window margin and the median halo excluded) is kept, and the fields are placed so
+    that their interiors tile the region's columns; rows outside one field's interior stay
+    NaN.
+    """
+    o, p = cfg.optics, cfg.processing
+    world = make_world(cfg)
+    optics = make_optics(cfg)
+    rng = np.random.default_rng(cfg.source.seed + 7)
+    heights = np.asarray(o.focus_heights_um())
+    m = p.edge_margin_px + p.median_size
+    x0, y0, x1, y1 = region
+    step = o.width_px - 2 * m
+    h = min(o.height_px - 2 * m, y1 - y0)
+    fy = y0 + (y1 - y0 - h) // 2 - m
+    est = np.full((y1 - y0, x1 - x0), np.nan, np.float32)
+    for fx in range(x0 - m, x1 - m, step):
+        stack = render_stack(world, x0=float(fx), y0=float(fy), focus_heights_um=heights,
+                             optics=optics, rng=rng)
+        vol = np.stack([focus_measure(to_unit_float(img, max_value=o.max_value),
+                                      operator=p.focus_operator, window=p.window)
+                        for img in stack])
+        depth, _ = depth_from_focus(vol, method=p.depth_method, median_size=p.median_size)
+        height = levels_to_height(depth, focus_heights_um=heights)
+        w = min(step, x1 - fx - m)
+        r = fy + m - y0
+        est[r:r + h, fx + m - x0:fx + m - x0 + w] = height[m:m + h, m:m + w]
+    return est

@@ -1,0 +1,292 @@
+"""Tests of stages.depth: peak localisation, SPC identity, height mapping, pertuz depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import scipy.io
+from scipy import ndimage
+
+from stages.depth import (
+    DEPTH_METHODS,
+    _argmax,
+    _median_filter_levels,
+    all_in_focus,
+    depth_from_focus,
+    levels_to_height,
+    spc_by_roll,
+)
+from stages.focus_measure import focus_measure, to_unit_float
+
+# Largest |depth - true peak| on clean sampled Gaussians (sigma 2 at N = 30, 3 at N = 50,
+# zero baseline, peaks at least 4 sigma from both ends), in levels. Measured worst cases:
+# argmax 0.49992 (quantisation), gauss3 2e-6 (exact for a Gaussian; float32 logs),
+# quadratic3 0.012 (sigma 2) / 0.005 (sigma 3), centroid 2.4e-4, pc and spc 1.6e-4 (the
+# Gaussian tails cut off beyond the ends).
+PEAK_TOL = {
+    "argmax": 0.5,
+    "gauss3": 1e-4,
+    "quadratic3": 0.02,
+    "centroid": 1e-3,
+    "pc": 1e-3,
+    "spc": 1e-3,
+}
+
+
+def gaussian_volume(peaks: np.ndarray, n: int, sigma: float) -> np.ndarray:
+    """(n, *peaks.shape) float32 volume of sampled Gaussians exp(-(k - c)^2 / (2 sigma^2))."""
+    k = np.arange(n, dtype=np.float64).reshape((n,) + (1,) * peaks.ndim)
+    return np.exp(-((k - peaks) ** 2) / (2.0 * sigma**2)).astype(np.float32)
+
+
+def circular_diff(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """a - b reduced to [-n/2, n/2): the difference of two positions on a circle of n levels."""
+    return np.mod(a - b + n / 2.0, n) - n / 2.0
+
+
+# ----------------------------------------------------------------------------- peak recovery
+
+
+@pytest.mark.parametrize("method", DEPTH_METHODS)
+@pytest.mark.parametrize(("n", "sigma"), [(30, 2.0), (50, 3.0)])
+def test_recovers_gaussian_peak(method: str, n: int, sigma: float) -> None:
+    # a smooth surface: peaks ramp across the columns at fractional positions, so the median
+    # filtered argmax of spc is each pixel's own argmax up to a level
+    margin = 4.0 * sigma
+    cols = np.linspace(margin, n - 1 - margin, 97) + 0.123
+    peaks = np.broadcast_to(cols, (13, cols.size)) + np.linspace(0, 0.05, 13)[:, None]
+    depth, confidence = depth_from_focus(gaussian_volume(peaks, n, sigma), method=method)
+    assert depth.dtype == np.float32 and depth.shape == peaks.shape
+    assert confidence.dtype == np.float32 and confidence.shape == peaks.shape
+    err = np.abs(depth - peaks).max()
+    assert err <= PEAK_TOL[method], f"{method}: max error {err:.3g} levels"
+    if method == "argmax":
+        np.testing.assert_array_equal(depth, np.rint(peaks))
+
+
+def test_three_point_fallbacks() -> None:
+    n = 10
+    vol = np.zeros((n, 1, 4), np.float32)
+    vol[:, 0, 0] = np.linspace(1.0, 0.1, n)  # maximum at level 0
+    vol[:, 0, 1] = np.linspace(0.1, 1.0, n)  # maximum at level N-1
+    vol[:, 0, 2] = 0.5
+    vol[4:7, 0, 2] = 1.0  # flat top of three equal values: first index 4
+    vol[:, 0, 3] = 0.0
+    vol[5, 0, 3] = 1.0  # zero neighbours: log undefined, parabola fine
+    for method in ("gauss3", "quadratic3"):
+        depth, _ = depth_from_focus(vol, method=method)
+        assert depth[0, 0] == 0 and depth[0, 1] == n - 1
+    g, _ = depth_from_focus(vol, method="gauss3")
+    q, _ = depth_from_focus(vol, method="quadratic3")
+    assert g[0, 3] == 5 and q[0, 3] == 5  # symmetric neighbours
+    assert g[0, 2] == 4.5 and q[0, 2] == 4.5  # left neighbour equals the max: halfway
+
+
+def test_centroid_and_pc_values() -> None:
+    vol = np.zeros((8, 1, 2), np.float32)
+    vol[2, 0, 0], vol[3, 0, 0] = 1.0, 3.0  # centroid 2.75
+    vol[0, 0, 1] = 1.0  # a single spike at level 0: pc exactly 0, not 8
+    c, _ = depth_from_focus(vol, method="centroid")
+    assert c[0, 0] == pytest.approx(2.75, abs=1e-6)
+    p, conf = depth_from_focus(vol, method="pc")
+    assert p[0, 1] == 0.0 and conf[0, 1] == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------- SPC identity
+
+
+def spc_shift_independent(volume: np.ndarray, median_size: int) -> np.ndarray:
+    """s = round(N/2) - median(argmax), with scipy's median filter (replicated borders)."""
+    n = volume.shape[0]
+    a_med = ndimage.median_filter(np.argmax(volume, axis=0), size=median_size, mode="nearest")
+    return np.floor(n / 2 + 0.5).astype(int) - a_med
+
+
+def random_volumes() -> list[np.ndarray]:
+    rng = np.random.default_rng(7)
+    vols = [rng.random((n, 48, 40), dtype=np.float32) for n in (30, 31, 50)]
+    for n, sigma in ((30, 2.0), (50, 3.0)):  # Gaussian peaks anywhere (also near the ends)
+        peaks = rng.uniform(0, n - 1, (48, 40))
+        noise = 0.05 * rng.random((n, 48, 40), dtype=np.float32)
+        vols.append(gaussian_volume(peaks, n, sigma) + noise)
+    return vols
+
+
+@pytest.mark.parametrize("median_size", [1, 5, 11])
+def test_spc_equals_literal_roll(median_size: int) -> None:
+    """The phase rotation gives what rolling the curves gives.
+
+    Both return ``d_s - s`` with ``d_s`` the PC of the rolled curve in [0, N); they can only
+    differ by N where ``d_s`` lies within round-off of the wrap point 0 == N, since one side
+    may land on 0 + eps and the other on N - eps. So: equal on the circle everywhere, equal
+    outright wherever ``d_s`` is 1e-3 away from the wrap point, and both inside
+    [-s, N - s), the interval that unwraps around the filtered argmax.
+    """
+    for vol in random_volumes():
+        n = vol.shape[0]
+        fast, _ = depth_from_focus(vol, method="spc", median_size=median_size)
+        slow = spc_by_roll(vol, median_size=median_size)
+        s = spc_shift_independent(vol, median_size)
+        assert np.abs(circular_diff(fast, slow, n)).max() <= 1e-4
+        d_s = slow + s
+        away = np.minimum(d_s, n - d_s) > 1e-3
+        assert away.mean() > 0.99
+        assert np.abs(fast - slow)[away].max() <= 1e-4
+        assert (fast >= -s - 1e-4).all() and (fast < n - s + 1e-4).all()
+
+
+def test_spc_unwraps_around_filtered_argmax() -> None:
+    n, sigma = 30, 2.0
+    peaks = np.full((15, 15), 0.2)  # a plane just above level 0 ...
+    peaks[7, 7] = 29.0  # ... with an outlier at the other end, which the median removes
+    vol = gaussian_volume(peaks, n, sigma) + np.float32(0.01)
+    pc, _ = depth_from_focus(vol, method="pc")
+    spc, _ = depth_from_focus(vol, method="spc", median_size=5)
+    assert (pc >= 0).all() and (pc < n).all()
+    # the same phase: spc only picks which turn of the circle, the one in [a_med - 15, a_med + 15)
+    assert np.abs(circular_diff(spc, pc, n)).max() <= 1e-4
+    mask = np.ones(peaks.shape, bool)
+    mask[7, 7] = False
+    np.testing.assert_allclose(spc[mask], pc[mask], atol=1e-5)
+    assert pc[7, 7] > 27  # PC: near level 29 (biased inwards: the curve is cut at level 29)
+    assert spc[7, 7] == pytest.approx(pc[7, 7] - n, abs=1e-4)  # SPC: next to its neighbours
+
+
+# ----------------------------------------------------------------------------- confidence
+
+
+def test_confidence_range_and_order() -> None:
+    rng = np.random.default_rng(3)
+    n = 40
+    peaked = gaussian_volume(rng.uniform(10, 30, (20, 20)), n, 2.0)
+    flat = np.float32(1.0) + 0.1 * rng.random((n, 20, 20), dtype=np.float32)
+    for method in DEPTH_METHODS:
+        _, c_peak = depth_from_focus(peaked, method=method)
+        _, c_flat = depth_from_focus(flat, method=method)
+        for c in (c_peak, c_flat):
+            assert ((c >= 0) & (c <= 1)).all()
+        assert c_peak.min() > 0.5 > 0.05 > c_flat.max()
+    zero = np.zeros((5, 3, 3), np.float32)
+    for method in DEPTH_METHODS:
+        depth, conf = depth_from_focus(zero, method=method)
+        assert np.isfinite(depth).all() and not conf.any()
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def test_argmax_matches_numpy_with_ties() -> None:
+    vol = np.random.default_rng(5).integers(0, 3, (20, 30, 40)).astype(np.float32)
+    np.testing.assert_array_equal(_argmax(vol), np.argmax(vol, axis=0))
+
+
+def test_median_filter_paths_agree() -> None:
+    levels = np.random.default_rng(6).integers(0, 255, (37, 29))
+    expected = ndimage.median_filter(levels, size=11, mode="nearest")
+    np.testing.assert_array_equal(_median_filter_levels(levels, 11, 255), expected)  # cv2
+    np.testing.assert_array_equal(_median_filter_levels(levels, 11, 300), expected)  # numpy
+
+
+def test_levels_to_height() -> None:
+    table = np.array([100.0, 110.0, 130.0, 160.0])
+    levels = np.array([[0.0, 1.5, 2.25, 3.0], [-1.0, 4.0, np.nan, 1.0]])
+    expected = np.array([[100.0, 120.0, 137.5, 160.0], [90.0, 190.0, np.nan, 110.0]])
+    out = levels_to_height(levels, focus_heights_um=table)
+    assert out.dtype == np.float32 and out.shape == levels.shape
+    np.testing.assert_array_equal(out, expected.astype(np.float32))
+    out = levels_to_height(levels, focus_heights_um=table[::-1])  # decreasing table
+    np.testing.assert_array_equal(out[0], np.array([160.0, 120.0, 107.5, 100.0], np.float32))
+    np.testing.assert_array_equal(out[1, :2], np.array([190.0, 90.0], np.float32))
+
+
+@pytest.mark.parametrize(
+    ("table", "match"),
+    [
+        ([1.0, 2.0, 2.0], "monotonic"),
+        ([3.0, 1.0, 2.0], "monotonic"),
+        ([1.0], "at least 2"),
+        ([1.0, np.nan], "finite"),
+        ([[1.0, 2.0]], "1-D"),
+    ],
+)
+def test_levels_to_height_rejects(table: list[float], match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        levels_to_height(np.zeros(3), focus_heights_um=np.array(table))
+
+
+def test_all_in_focus() -> None:
+    rng = np.random.default_rng(8)
+    stack = rng.integers(0, 1024, (6, 5, 7)).astype(np.uint16)
+    best = rng.integers(0, 6, (5, 7))
+    volume = rng.random((6, 5, 7)).astype(np.float32)
+    np.put_along_axis(volume, best[None], 2.0, axis=0)
+    out = all_in_focus(stack, volume)
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out, np.take_along_axis(stack, best[None], axis=0)[0])
+    with pytest.raises(ValueError, match="same shape"):
+        all_in_focus(stack[:5], volume)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def test_validation_errors() -> None:
+    vol = np.ones((6, 4, 4), np.float32)
+    with pytest.raises(ValueError, match="3-D"):
+        depth_from_focus(vol[0])
+    with pytest.raises(ValueError, match="at least 3 focus levels"):
+        depth_from_focus(vol[:2])
+    bad = vol.copy()
+    bad[3, 1, 2] = np.nan
+    bad[4, 0, 0] = np.inf
+    with pytest.raises(ValueError, match="volume contains NaN at level 3"):
+        depth_from_focus(bad)
+    bad[3, 1, 2] = 1.0
+    with pytest.raises(ValueError, match="volume contains inf at level 4"):
+        depth_from_focus(bad, method="argmax")
+    with pytest.raises(ValueError, match="NaN at level 3"):
+        spc_by_roll(np.where(np.arange(6)[:, None, None] == 3, np.nan, vol))
+    with pytest.raises(ValueError, match=r"method must be one of \('argmax', .*'spc'\)"):
+        depth_from_focus(vol, method="wavr")
+    for size in (0, 10, -1, 3.0):
+        with pytest.raises(ValueError, match="median_size"):
+            depth_from_focus(vol, median_size=size)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- pertuz data
+
+
+def test_pertuz_depth_rmse(pertuz_dir: Path) -> None:
+    mat = scipy.io.loadmat(pertuz_dir / "imdata.mat", squeeze_me=True, struct_as_record=False)
+    imdata = mat["imdata"]
+    images = []
+    for i in range(1, 31):
+        raw = cv2.imread(str(pertuz_dir / f"im_{i:02d}.tif"), cv2.IMREAD_UNCHANGED)
+        assert raw is not None, f"cannot read im_{i:02d}.tif"
+        images.append(to_unit_float(raw, max_value=255))
+    stack = np.stack(images)
+    focus_m = np.asarray(imdata.focus, dtype=np.float64)
+    x, y, w, h = (int(v) for v in imdata.ROI)
+    roi = (slice(y - 1, y - 1 + h), slice(x - 1, x - 1 + w))
+    truth = np.asarray(imdata.z, dtype=np.float64)[roi]
+
+    volume = focus_measure(stack, operator="glvm", window=9)
+    rmse = {}
+    for method in DEPTH_METHODS:
+        levels, _ = depth_from_focus(volume, method=method)
+        z = levels_to_height(levels, focus_heights_um=focus_m * 1e6).astype(np.float64) / 1e6
+        rmse[method] = float(np.sqrt(np.mean((z[roi] - truth) ** 2)))
+
+    step = float(np.mean(np.diff(focus_m)))
+    print("\npertuz-simu02, GLVM 9, ROI RMSE")
+    for method, value in rmse.items():
+        print(f"  {method:<11s} {value:.4f} m  ({value / step:.2f} focus steps)")
+
+    assert 0.030 <= rmse["argmax"] <= 0.045  # toolbox figure: about 0.036 m
+    for method in ("gauss3", "quadratic3"):  # barely different from argmax (notes, section 3)
+        assert abs(rmse[method] - rmse["argmax"]) <= 0.05 * rmse["argmax"]
+    assert rmse["spc"] < rmse["pc"]  # the shift keeps the phase away from its wrap-around
+    assert max(rmse.values()) < 0.1

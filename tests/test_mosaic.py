@@ -1,0 +1,85 @@
+"""Mosaic writer: Zarr v3 layout, attributes, blending of overlaps by confidence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline.messages import DepthBlock, DepthBlockHeader, MosaicAttrs
+from stages.mosaic import MosaicStage, MosaicWriter, blend
+
+
+def _block(x0: int, y0: int, height: np.ndarray, conf: float, pass_index: int) -> DepthBlock:
+    rows, cols = height.shape
+    hdr = DepthBlockHeader(x0_px=x0, y0_px=y0, width_px=cols, height_px=rows,
+                           pass_index=pass_index, complete_columns=cols, incomplete_columns=0)
+    return DepthBlock(hdr, height.astype(np.float32), np.full_like(height, 0.5, np.float32),
+                      np.full(height.shape, conf, np.float32))
+
+
+def test_blend_is_the_confidence_weighted_mean() -> None:
+    old = {"height": np.array([[np.nan, 10.0]]), "texture": np.array([[np.nan, 0.2]]),
+           "confidence": np.array([[0.0, 0.5]]), "weight": np.array([[0.0, 0.5]])}
+    new = {"height": np.array([[1.5 * 20.0, 1.5 * 20.0]]), "texture": np.array([[0.3, 0.3]]),
+           "confidence": np.array([[1.5, 1.5]]), "weight": np.array([[1.5, 1.5]])}
+    out = blend(old, new)
+    assert out["height"][0, 0] == pytest.approx(20.0)
+    assert out["height"][0, 1] == pytest.approx((10 * 0.5 + 20 * 1.5) / 2.0)
+    assert out["weight"][0, 1] == pytest.approx(2.0)
+    assert out["confidence"][0, 1] == pytest.approx(1.5)
+
+
+def test_two_passes_blend_and_attributes(tmp_path: Path) -> None:
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(-10, -5), shape=(40, 64), pixel_um=8.5,
+                          chunk_px=16, attrs={"processing": {"depth_method": "spc"}})
+    stage = MosaicStage(writer)
+    rows = 20
+    a = np.full((rows, 8), 100.0)
+    b = np.full((rows, 8), 200.0)
+    for x0 in range(0, 48, 8):  # pass 0 at rows 0..19, confidence 0.2
+        list(stage.process(_block(x0, 0, a, 0.2, 0)))
+    for x0 in range(40, -8, -8):  # pass 1 at rows 10..29, moving -x, confidence 0.6
+        list(stage.process(_block(x0, 10, b, 0.6, 1)))
+    list(stage.finish())
+    stage.close(failed=False)
+    g = zarr.open_group(str(path), mode="r")
+    attrs = MosaicAttrs.model_validate(g.attrs.asdict())
+    assert attrs.status == "complete" and attrs.origin_px == (-10, -5)
+    assert attrs.units["height"] == "µm"
+    h = np.asarray(g["height"])
+    assert h.shape == (40, 64) and g["height"].chunks == (16, 16)
+    r = lambda y: y + 5  # noqa: E731 - world row -> array row
+    c = lambda x: x + 10  # noqa: E731
+    assert h[r(5), c(3)] == pytest.approx(100.0)  # pass 0 alone
+    assert h[r(25), c(3)] == pytest.approx(200.0)  # pass 1 alone
+    assert h[r(15), c(3)] == pytest.approx((100 * 0.2 + 200 * 0.6) / 0.8)  # overlap
+    assert np.isnan(h[r(33), c(3)]) and np.isnan(h[r(5), c(50)])  # never measured
+    assert np.asarray(g["weight"])[r(15), c(3)] == pytest.approx(0.8)
+
+
+def test_failed_run_keeps_what_was_complete(tmp_path: Path) -> None:
+    path = tmp_path / "m.zarr"
+    stage = MosaicStage(MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5,
+                                     chunk_px=16))
+    list(stage.process(_block(0, 0, np.full((16, 8), 7.0), 0.5, 0)))
+    stage.close(failed=True)
+    g = zarr.open_group(str(path), mode="r")
+    assert g.attrs["status"] == "failed"
+    assert np.asarray(g["height"])[3, 3] == pytest.approx(7.0)
+
+
+def test_existing_mosaic_is_not_overwritten_and_origin_is_enforced(tmp_path: Path) -> None:
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 16), pixel_um=8.5, chunk_px=16)
+    with pytest.raises(FileExistsError, match="m.zarr"):
+        MosaicWriter(path, origin_px=(0, 0), shape=(16, 16), pixel_um=8.5)
+    with pytest.raises(ValueError, match="before the mosaic origin"):
+        writer.write_region(-4, 0, {k: np.zeros((2, 2)) for k in
+                                    ("height", "texture", "weight", "confidence")})
+    writer.write_region(10, 12, {"height": np.ones((8, 8)), "texture": np.ones((8, 8)),
+                                 "weight": np.ones((8, 8)), "confidence": np.ones((8, 8))})
+    assert zarr.open_group(str(path), mode="r")["height"].shape == (20, 18)  # grew

@@ -1,0 +1,124 @@
+"""End to end: passes and seams, bounded memory, bad input, the command line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tracemalloc
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline.cli import main
+from pipeline.config import config_to_toml, pass_pitch_px
+from pipeline.messages import Frame
+from pipeline.runtime import StageFailed
+from pipeline.wiring import run_scan
+from stages.sim_scanner import simulate_frames
+from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
+
+
+def test_three_passes_blend_without_seams(tmp_path: Path) -> None:
+    # the sinusoidal world has the same relief statistics everywhere, so that the bands
+    # between passes and the rest can be compared (the plate puts its features mid-plate)
+    cfg = small_config(source={"world": "sinusoid", "plate_width_mm": 12.0},
+                       motion={"passes": 3})
+    out = tmp_path / "passes.zarr"
+    report = scan(cfg, out)
+    assert report.result.dropped == 0
+    o, m = cfg.optics, cfg.processing.edge_margin_px
+    pitch = pass_pitch_px(cfg)
+    x0, y0, x1, y1 = strip_region(cfg)
+    y1 = int(2 * pitch) + o.height_px - m
+    region = (x0, y0, x1, y1)
+    est = mosaic_height(out, region)
+    assert np.isfinite(est).mean() == 1.0  # the passes tile the plate without gaps
+    rows = np.arange(y0, y1)
+    # overlap bands: rows seen by two passes
+    overlap = np.zeros(rows.shape, bool)
+    for p in (1, 2):
+        top = p * pitch + m
+        bottom = (p - 1) * pitch + o.height_px - m
+        overlap |= (rows >= top) & (rows < bottom)
+    band = np.repeat(overlap[:, None], est.shape[1], axis=1)
+    in_band = score(cfg, est, region, band)
+    away = score(cfg, est, region, ~band)
+    print(f"\n3 passes: RMSE in overlap bands {in_band.rmse_um:.1f} µm, away from them "
+          f"{away.rmse_um:.1f} µm, ratio {in_band.rmse_um / away.rmse_um:.3f}")
+    assert in_band.pixels > 1000 and away.pixels > 1000
+    assert in_band.rmse_um <= 1.10 * away.rmse_um
+
+
+def _traced_peak(cfg, out: Path) -> int:  # noqa: ANN001
+    tracemalloc.start()
+    try:
+        scan(cfg, out)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_memory_is_flat_in_scan_length(tmp_path: Path) -> None:
+    short = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 15.0})
+    long = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 28.0})
+    p_short = _traced_peak(short, tmp_path / "short.zarr")
+    p_long = _traced_peak(long, tmp_path / "long.zarr")
+    print(f"\npeak traced memory: 13 mm strip {p_short / 1e6:.1f} MB, 26 mm strip "
+          f"{p_long / 1e6:.1f} MB")
+    assert p_long <= 1.10 * p_short
+
+
+def _with_bad_frame(frames: Iterator[Frame], at: int, kind: str) -> Iterator[Frame]:
+    for f in frames:
+        if f.header.frame_id == at:
+            if kind == "shape":
+                f = Frame(f.header, f.image[:-1])
+            elif kind == "dtype":
+                f = Frame(f.header, f.image.astype(np.float32))
+            else:
+                img = f.image.astype(np.float32)
+                img[3, 4] = np.nan
+                f = Frame(f.header, img)
+        yield f
+
+
+@pytest.mark.parametrize(("kind", "message"), [("shape", "shape"), ("dtype", "dtype"),
+                                               ("nan", "NaN")])
+def test_bad_frame_stops_with_its_id_and_keeps_what_was_written(
+        tmp_path: Path, kind: str, message: str) -> None:
+    cfg = small_config()
+    out = tmp_path / "bad.zarr"
+    frames = _with_bad_frame(simulate_frames(cfg), 200, kind)
+    with pytest.raises(StageFailed, match=f"frame_id 200.*{message}") as info:
+        run_scan(cfg, frames=frames, output=out, progress=False)
+    assert info.value.stage == "source"
+    g = zarr.open_group(str(out), mode="r")
+    assert g.attrs["status"] == "failed"
+    assert np.isfinite(np.asarray(g["height"])).sum() > 1000  # the completed part is kept
+
+
+def test_cli_scan_from_toml_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    cfg = small_config(motion={"x_end_mm": 8.0})
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    out = tmp_path / "cli.zarr"
+    assert main(["scan", "--config", str(toml), "-o", str(out), "-q"]) == 0
+    text = capsys.readouterr().out
+    assert "dropped     0 frames" in text and "RMSE" in text and "PSNR" in text
+    assert zarr.open_group(str(out), mode="r").attrs["status"] == "complete"
+    # an existing mosaic is not overwritten
+    assert main(["scan", "--config", str(toml), "-o", str(out), "-q"]) == 2
+    assert "exists" in capsys.readouterr().err
+    # impossible speed: exit 2, the field named
+    assert main(["scan", "--config", str(toml), "-o", str(tmp_path / "x.zarr"), "--speed",
+                 "99"]) == 2
+    assert "motion.speed_mm_s" in capsys.readouterr().err
+
+
+def test_console_script_help() -> None:
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "demo", "--help"],
+                         capture_output=True, text=True, check=False)
+    assert res.returncode == 0 and "15 mm/s" in res.stdout
