@@ -127,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(("end to end", label, e2e, f"{e2e / base:.1f}x baseline"))
             for s in r.stages:
                 if s.name != "source":
-                    rows.append((f"stage ({label})", s.name, s.frames_per_s, "own busy time"))
+                    rows.append((f"stage ({label})", s.name, s.frames_per_s,
+                                 f"{s.unit}/s, own busy time"))
             results[f"e2e {label}"] = {"fps": e2e, "stages": {s.name: s.frames_per_s
                                                              for s in r.stages}}
             print(f"{label}: {e2e:.1f} frames/s end to end", file=sys.stderr)

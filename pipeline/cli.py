@@ -77,7 +77,12 @@ def _run(cfg: ScanConfig, *, evaluate: bool, progress: bool) -> int:
     return EXIT_OK
 
 
+DEMO_OUTPUT = "sffscan-demo.zarr"
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
+    if args.output is None:  # the demo's own default output is replaced on every run
+        args.output, args.overwrite = DEMO_OUTPUT, True
     cfg = demo_config(passes=args.passes)
     cfg = _override(cfg, args)
     return _run(cfg, evaluate=True, progress=not args.quiet)
@@ -125,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def scan_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("-o", "--output", help="mosaic path (Zarr v3 group)")
+        p.add_argument("-o", "--output",
+                       help="mosaic path, a Zarr v3 group (demo: sffscan-demo.zarr, replaced)")
         p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
         p.add_argument("--speed", type=float, help="stage speed, mm/s")
         p.add_argument("--wobble", type=float, help="sim: stage wobble, ± px along and across")
@@ -143,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the mosaic's accuracy against the true surface.")
     p.add_argument("--passes", type=int, default=1, help="parallel passes (default 1)")
     scan_options(p)
-    p.set_defaults(func=cmd_demo, output="sffscan-demo.zarr")
+    p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("scan", help="run the pipeline from a TOML configuration")
     p.add_argument("--config", required=True, help="TOML file (see 'sffscan config')")

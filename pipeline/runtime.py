@@ -144,14 +144,15 @@ class BoundedQueue:
 @dataclass
 class StageStats:
     name: str
+    unit: str = "frames"
     items_in: int = 0
     items_out: int = 0
-    frames: int = 0
+    frames: int = 0  # input items handled (frames for most stages; see ``unit``)
     busy_s: float = 0.0
 
     @property
     def frames_per_s(self) -> float:
-        """Frames handled per second of this stage's own busy time."""
+        """Items handled per second of this stage's own busy time."""
         return self.frames / self.busy_s if self.busy_s > 0 else 0.0
 
 
@@ -165,8 +166,8 @@ class Stage:
     """
 
     name = "stage"
-    #: Whether items through this stage count as frames in the statistics.
-    counts_frames = True
+    #: What one input item of this stage is, for the statistics ("frames", "blocks").
+    unit = "frames"
 
     def process(self, item: Any) -> Iterable[Any]:
         raise NotImplementedError
@@ -238,7 +239,7 @@ class Pipeline:
             )
             for a, b in zip(stages[:-1], stages[1:], strict=True)
         ]
-        self.stats = [StageStats(s.name) for s in stages]
+        self.stats = [StageStats(s.name, s.unit) for s in stages]
         self.on_progress = on_progress
         self.progress_s = progress_s
         self._errors: list[tuple[str, BaseException]] = []
@@ -276,8 +277,7 @@ class Pipeline:
                     t0 = time.perf_counter()
                     outputs = list(stage.process(item))
                     stats.busy_s += time.perf_counter() - t0
-                    if stage.counts_frames:
-                        stats.frames += 1
+                    stats.frames += 1
                     self._emit(index, outputs)
             t0 = time.perf_counter()
             tail = list(stage.finish())

@@ -164,26 +164,45 @@ class FocusVolume:
                 self.next_u = self.first_u = self.end_u = max(u_lo, self.end_u)
             u_lo = max(u_lo, self.next_u)
         if u_hi > u_lo:
-            us = np.arange(u_lo, u_hi)
-            slots = us % self.ring
-            new = ~self.filled[level, slots]
-            if new.any():
-                us, slots = us[new], slots[new]
-                cols = us - u_frame
-                fm = focus[fr0:fr0 + (r1 - r0), cols]
-                self.fv[level][r0:r1, slots] = fm
-                self.filled[level, slots] = True
-                self.count[slots] += 1
-                self.row_lo[level, slots] = r0
-                self.row_hi[level, slots] = r1
-                best = self.best[r0:r1, slots]
-                sharper = fm > best
-                self.best[r0:r1, slots] = np.where(sharper, fm, best)
-                self.tex[r0:r1, slots] = np.where(
-                    sharper, image01[fr0:fr0 + (r1 - r0), cols], self.tex[r0:r1, slots])
-                self.end_u = max(self.end_u, int(us[-1]) + 1)
+            new = ~self.filled[level, np.arange(u_lo, u_hi) % self.ring]
+            edges = np.flatnonzero(np.diff(np.concatenate(([0], new.view(np.int8), [0]))))
+            for a, b in zip(edges[::2], edges[1::2], strict=True):
+                for v0, v1, s0 in self._pieces(u_lo + int(a), u_lo + int(b)):
+                    self._write(level, v0, v1, s0, focus, image01, u_frame, r0, r1, fr0)
         done += [self.reduce(*r) for r in self._advance()]
         return done
+
+    def _pieces(self, u0: int, u1: int) -> Iterator[tuple[int, int, int]]:
+        """Split internal columns [u0, u1) into (v0, v1, first slot) runs contiguous in the
+        ring, so that they are read and written as slices, not gathered."""
+        while u0 < u1:
+            s0 = u0 % self.ring
+            v1 = min(u1, u0 + self.ring - s0)
+            yield u0, v1, s0
+            u0 = v1
+
+    def _write(self, level: int, v0: int, v1: int, s0: int, focus: np.ndarray,
+               image01: np.ndarray, u_frame: int, r0: int, r1: int, fr0: int) -> None:
+        """Store one frame's focus measure for columns [v0, v1) (ring slots from s0)."""
+        cs = slice(s0, s0 + (v1 - v0))
+        fc = slice(v0 - u_frame, v1 - u_frame)
+        fr = slice(fr0, fr0 + (r1 - r0))
+        fm = focus[fr, fc]
+        self.fv[level, r0:r1, cs] = fm
+        self.filled[level, cs] = True
+        self.count[cs] += 1
+        self.row_lo[level, cs] = r0
+        self.row_hi[level, cs] = r1
+        best = self.best[r0:r1, cs]
+        sharper = fm > best
+        np.copyto(best, fm, where=sharper)
+        np.copyto(self.tex[r0:r1, cs], image01[fr, fc], where=sharper)
+        self.end_u = max(self.end_u, v1)
+
+    def _gather(self, arr: np.ndarray, u0: int, u1: int) -> np.ndarray:
+        """``arr[..., columns u0..u1)`` from the ring: a view unless it wraps."""
+        parts = [arr[..., s0:s0 + (v1 - v0)] for v0, v1, s0 in self._pieces(u0, u1)]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
 
     def _advance(self, force_to: int | None = None) -> list[tuple[int, int]]:
         """Ranges of columns whose own state and halo are final."""
@@ -232,21 +251,19 @@ class FocusVolume:
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
-        slots = np.arange(a0, a1) % self.ring
-        vol = self.fv[:, :, slots]
+        vol = self._gather(self.fv, a0, a1)
         depth, conf = depth_from_focus(vol, method=self.method, median_size=self.median_size)
         inner = slice(u0 - a0, u1 - a0)
-        islots = slots[inner]
         depth, conf = depth[:, inner], conf[:, inner]
-        complete = self.count[islots] == self.n
-        lo = self.row_lo[:, islots].max(axis=0)
-        hi = self.row_hi[:, islots].min(axis=0)
+        complete = self._gather(self.count, u0, u1) == self.n
+        lo = self._gather(self.row_lo, u0, u1).max(axis=0)
+        hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
         valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
         height = levels_to_height(depth, focus_heights_um=self.heights).astype(np.float32)
         height[~valid] = np.nan
         conf = np.where(valid, conf, 0.0).astype(np.float32)
-        tex = np.where(valid, self.tex[:, islots], np.nan).astype(np.float32)
+        tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32)
         self._release(u0 - self.halo)
         if self.direction == -1:
             height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
@@ -254,15 +271,19 @@ class FocusVolume:
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()))
 
     def _release(self, below: int) -> None:
-        """Free ring slots of columns below ``below`` (they will not be read again)."""
+        """Free ring slots of columns below ``below`` (they will not be read again).
+
+        The focus values themselves are not cleared: a slot's levels are valid only once
+        its ``filled`` flag is set again, and a pixel whose curve lacks a level is invalid.
+        """
         if below <= self.first_u:
             return
-        slots = np.arange(self.first_u, below) % self.ring
-        self.fv[:, :, slots] = 0.0
-        self.filled[:, slots] = False
-        self.count[slots] = 0
-        self.best[:, slots] = -1.0
-        self.tex[:, slots] = 0.0
+        for v0, v1, s0 in self._pieces(self.first_u, below):
+            cs = slice(s0, s0 + (v1 - v0))
+            self.filled[:, cs] = False
+            self.count[cs] = 0
+            self.best[:, cs] = -1.0
+            self.tex[:, cs] = 0.0
         self.first_u = below
 
 

@@ -170,6 +170,7 @@ class MosaicStage(Stage):
     """Gathers depth blocks into chunk-wide bands and writes them into the mosaic."""
 
     name = "mosaic"
+    unit = "blocks"
 
     def __init__(self, writer: MosaicWriter) -> None:
         self.writer = writer
