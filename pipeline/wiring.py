@@ -159,7 +159,7 @@ def format_summary(report: ScanReport) -> str:
                      f"  {q.dropped:>7}")
     for name, extra in r.extras.items():
         if extra:
-            lines.append(f"{name:<12}" + ", ".join(f"{k} {v}" for k, v in extra.items()))
+            lines.append(f"{name:<12} " + ", ".join(f"{k} {v}" for k, v in extra.items()))
     if report.accuracy is not None:
         a = report.accuracy
         lines.append(f"accuracy    RMSE {a.rmse_um:.1f} µm, CORR {a.corr:.4f}, "

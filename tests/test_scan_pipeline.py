@@ -13,11 +13,11 @@ import pytest
 import zarr
 
 from pipeline.cli import main
-from pipeline.config import config_to_toml, pass_pitch_px
+from pipeline.config import ScanConfig, config_to_toml, pass_pitch_px
 from pipeline.messages import Frame
 from pipeline.runtime import StageFailed
 from pipeline.wiring import run_scan
-from stages.sim_scanner import simulate_frames
+from stages.sim_scanner import make_world, simulate_frames
 from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
 
 
@@ -52,10 +52,13 @@ def test_three_passes_blend_without_seams(tmp_path: Path) -> None:
     assert in_band.rmse_um <= 1.10 * away.rmse_um
 
 
-def _traced_peak(cfg, out: Path) -> int:  # noqa: ANN001
+def _traced_peak(cfg: ScanConfig, out: Path) -> int:
+    """Peak of numpy/Python allocations during a scan, after the world's one-off set-up."""
+    world = make_world(cfg)
+    assert world.texture_tile.size  # built before tracing: a fixed cost, not the scan's
     tracemalloc.start()
     try:
-        scan(cfg, out)
+        run_scan(cfg, frames=simulate_frames(cfg, world=world), output=out, progress=False)
         return tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
