@@ -148,7 +148,8 @@ class StageStats:
     items_in: int = 0
     items_out: int = 0
     frames: int = 0  # input items handled (frames for most stages; see ``unit``)
-    busy_s: float = 0.0
+    busy_s: float = 0.0  # wall time inside the stage's own code
+    cpu_s: float = 0.0  # CPU time of the stage's thread inside its own code
 
     @property
     def frames_per_s(self) -> float:
@@ -259,12 +260,13 @@ class Pipeline:
             if index == 0:
                 it = iter(stage.produce())
                 while not self.stop.is_set():
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     try:
                         item = next(it)
                     except StopIteration:
                         break
                     stats.busy_s += time.perf_counter() - t0
+                    stats.cpu_s += time.thread_time() - c0
                     stats.frames += 1
                     self._emit(index, (item,))
             else:
@@ -274,14 +276,16 @@ class Pipeline:
                     if item is END_OF_STREAM:
                         break
                     stats.items_in += 1
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     outputs = list(stage.process(item))
                     stats.busy_s += time.perf_counter() - t0
+                    stats.cpu_s += time.thread_time() - c0
                     stats.frames += 1
                     self._emit(index, outputs)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             tail = list(stage.finish())
             stats.busy_s += time.perf_counter() - t0
+            stats.cpu_s += time.thread_time() - c0
             self._emit(index, tail)
             if index < len(self.queues):
                 self.queues[index].put(END_OF_STREAM)
