@@ -87,7 +87,7 @@ class ProcessingConfig(_Model):
     backend: Literal["opencv", "torch"] = Field("opencv", description="Focus measure backend")
     device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
     queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
-    block_columns: int = Field(64, ge=1, description="Columns reduced to depth at once")
+    block_columns: int = Field(128, ge=1, description="Columns reduced to depth at once")
 
     @field_validator("window", "median_size")
     @classmethod

@@ -77,11 +77,13 @@ class PlacedFrame:
 
 @dataclass(slots=True)
 class FocusFrame:
-    """A placed frame with its focus measure (float32, (H, W)) and unit-scaled image."""
+    """A placed frame with the focus measure and unit-scaled image of columns
+    [col0, col0 + w) (float32, (H, w)): the columns that can still add to the volume."""
 
     placed: PlacedFrame
     image01: np.ndarray
     focus: np.ndarray
+    col0: int = 0
 
 
 @dataclass(slots=True)

@@ -32,6 +32,7 @@ from stages.speed_shift import SpeedShiftStage
 def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
+    directions = [pass_direction(cfg, i) for i in range(m.passes)]
     stages: list[Stage] = [
         SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels),
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
@@ -41,12 +42,13 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
         stages.append(RegistrationStage(n_levels=o.n_levels, scale=p.registration_scale))
     stages += [
         FocusMeasureStage(operator=p.focus_operator, window=p.window, backend=p.backend,
-                          device=p.device, max_value=o.max_value),
+                          device=p.device, max_value=o.max_value, margin=p.window // 2,
+                          directions=directions),
         DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
                    focus_heights_um=o.focus_heights_um(), margin=p.window // 2,
                    method=p.depth_method, median_size=p.median_size,
                    block_columns=p.block_columns,
-                   directions=[pass_direction(cfg, i) for i in range(m.passes)],
+                   directions=directions,
                    slack_px=slack),
         MosaicStage(writer),
     ]

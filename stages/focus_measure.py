@@ -22,7 +22,7 @@ is the thin pipeline stage around them.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from pipeline.messages import FocusFrame, PlacedFrame
 from pipeline.runtime import Stage
+from stages.focus_volume import new_columns
 
 __all__ = [
     "FOCUS_OPERATORS",
@@ -407,26 +408,58 @@ def focus_measure(
 class FocusMeasureStage(Stage):
     """Scales each placed frame to 0..1 and computes its focus measure.
 
+    Only the columns that can still add to the focus volume are measured (see
+    :func:`stages.focus_volume.new_columns`), with enough neighbouring columns that the
+    result equals the whole frame's focus measure there.
+
     Parameters
     ----------
     operator, window, backend, device
         See :func:`focus_measure`.
     max_value : float
         Full scale of the raw frames (255 for uint8, 1023 for 10-bit in uint16).
+    margin : int
+        Border the focus volume excludes on each side, px.
+    directions : sequence of {+1, -1}
+        Direction of motion of each pass (cycled).
     """
 
     name = "focus_measure"
 
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
-                 device: str = "cpu", max_value: float = 255.0) -> None:
+                 device: str = "cpu", max_value: float = 255.0, margin: int = 4,
+                 directions: Sequence[int] = (1,)) -> None:
         self.operator = operator
         self.window = _check_window(window)
         self.backend = backend
         self.device = device
         self.max_value = max_value
+        self.margin = margin
+        self.directions = list(directions)
+        self.halo = 2 * (self.window // 2) + 1  # GLVM: two box filters; TENV: Sobel + box
+        self._pass: int | None = None
+        self._prev_x: dict[int, int] = {}
+        self.columns_measured = 0
+        self.columns_total = 0
 
     def process(self, item: PlacedFrame) -> Iterator[FocusFrame]:
-        image01 = to_unit_float(item.image, max_value=self.max_value)
+        hdr = item.header
+        if hdr.pass_index != self._pass:
+            self._pass, self._prev_x = hdr.pass_index, {}
+        h, w = item.image.shape
+        x = item.offset_px[0]
+        c0, c1 = new_columns(x, self._prev_x.get(hdr.focus_index), width=w,
+                             margin=self.margin,
+                             direction=self.directions[hdr.pass_index % len(self.directions)])
+        self._prev_x[hdr.focus_index] = x
+        a0, a1 = max(c0 - self.halo, 0), min(c1 + self.halo, w)
+        image01 = to_unit_float(item.image[:, a0:a1], max_value=self.max_value)
         fm = focus_measure(image01, operator=self.operator, window=self.window,
                            backend=self.backend, device=self.device)
-        yield FocusFrame(item, image01, fm)
+        self.columns_measured += c1 - c0
+        self.columns_total += w
+        yield FocusFrame(item, image01[:, c0 - a0:c1 - a0], fm[:, c0 - a0:c1 - a0], c0)
+
+    def extra_stats(self) -> dict[str, float]:
+        share = self.columns_measured / self.columns_total if self.columns_total else 0.0
+        return {"measured_column_share": round(share, 3)}

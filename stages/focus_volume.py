@@ -26,6 +26,36 @@ from pipeline.runtime import Stage
 from stages.depth import depth_from_focus, levels_to_height
 
 
+def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,
+                slack: int = 4) -> tuple[int, int]:
+    """Frame columns [c0, c1) that can hold (column, level) pairs not yet seen.
+
+    The focus volume keeps the first observation of each world column at each level. The
+    previous frame at the same level (one staircase period earlier, at world x
+    ``prev_x``) already covered the columns the two frames share, so only the columns
+    beyond it along the motion can be new: the focus measure need not be computed for the
+    others (about half of each frame at the default speed). ``slack`` px more are kept for
+    registration corrections. Without a previous frame (start of a pass) every usable
+    column is new.
+
+    Parameters
+    ----------
+    x, prev_x : int or None
+        World x of this frame and of the previous frame at the same level, px.
+    width, margin : int
+        Frame width and the border excluded on each side, px.
+    direction : {+1, -1}
+        Direction of the motion along x.
+    """
+    lo, hi = margin, width - margin
+    if prev_x is not None:
+        if direction == 1:
+            lo = max(lo, prev_x + width - margin - x - slack)
+        else:
+            hi = min(hi, prev_x + margin - x + slack)
+    return lo, max(lo, hi)
+
+
 class BlockResult(NamedTuple):
     """A reduced block of world columns (see :meth:`FocusVolume.reduce`)."""
 
@@ -114,19 +144,22 @@ class FocusVolume:
 
     # -- streaming ------------------------------------------------------------------------
     def add(self, focus: np.ndarray, image01: np.ndarray, *, x: int, y: int,
-            level: int) -> list[BlockResult]:
+            level: int, col0: int = 0) -> list[BlockResult]:
         """Add one frame at world position (x, y) px; return the blocks it completed.
 
         Parameters
         ----------
-        focus : ndarray, float32, (H, W)
-            Focus measure of the frame.
-        image01 : ndarray, float32, (H, W)
-            The frame scaled to 0..1 (for the all-in-focus texture).
+        focus : ndarray, float32, (H, w)
+            Focus measure of the frame's columns [col0, col0 + w) (all of them, or the
+            ones :func:`new_columns` says can still be new).
+        image01 : ndarray, float32, (H, w)
+            The same columns of the frame scaled to 0..1 (for the all-in-focus texture).
         x, y : int
             World position of the frame's first pixel, px.
         level : int
             Focus level of the frame, 0..N-1.
+        col0 : int
+            Frame column of ``focus[:, 0]``.
 
         Returns
         -------
@@ -135,6 +168,7 @@ class FocusVolume:
         """
         if self.direction == -1:
             focus, image01 = focus[:, ::-1], image01[:, ::-1]
+            col0 = self.w - (col0 + focus.shape[1])
         u_frame = self._to_internal(x)
         m = self.margin
         if self.y0 is None:
@@ -147,18 +181,18 @@ class FocusVolume:
         if r1 <= r0:
             return []
         fr0 = r0 - (y - self.y0)
-        # columns: valid frame columns [m, w - m) -> internal u_frame + j
-        u_lo = max(u_frame + m, self.next_u)
-        u_hi = u_frame + self.w - m
+        # columns: valid frame columns [m, w - m) that were given -> internal u_frame + j
+        u_lo = max(u_frame + max(m, col0), self.next_u)
+        u_hi = u_frame + min(self.w - m, col0 + focus.shape[1])
         # make room: columns that would not fit in the ring are given up (left the view)
         done: list[BlockResult] = []
         self.dead_below = max(self.dead_below, u_frame + m - self.col_slack)
-        if u_hi - self.first_u > self.ring:
-            force = u_hi - self.ring + self.block + 2 * self.halo
+        if u_frame + self.w - m - self.first_u > self.ring:
+            force = u_frame + self.w - m - self.ring + self.block + 2 * self.halo
             self.dead_below = max(self.dead_below, force)
             done += [self.reduce(*r) for r in self._advance(force_to=force)]
             self._release(min(self.next_u - self.halo, self.end_u))
-            if u_hi - self.first_u > self.ring:  # a jump past everything stored
+            if u_frame + self.w - m - self.first_u > self.ring:  # a jump past all stored
                 done += [self.reduce(*r) for r in self.flush()]
                 self._release(self.end_u)
                 self.next_u = self.first_u = self.end_u = max(u_lo, self.end_u)
@@ -168,7 +202,8 @@ class FocusVolume:
             edges = np.flatnonzero(np.diff(np.concatenate(([0], new.view(np.int8), [0]))))
             for a, b in zip(edges[::2], edges[1::2], strict=True):
                 for v0, v1, s0 in self._pieces(u_lo + int(a), u_lo + int(b)):
-                    self._write(level, v0, v1, s0, focus, image01, u_frame, r0, r1, fr0)
+                    self._write(level, v0, v1, s0, focus, image01, u_frame + col0, r0, r1,
+                                fr0)
         done += [self.reduce(*r) for r in self._advance()]
         return done
 
@@ -329,8 +364,8 @@ class DepthStage(Stage):
             self.volume = FocusVolume(direction=self._direction(hdr.pass_index),
                                       **self.kwargs)  # type: ignore[arg-type]
         x, y = item.placed.offset_px
-        yield from self._blocks(
-            self.volume.add(item.focus, item.image01, x=x, y=y, level=hdr.focus_index))
+        yield from self._blocks(self.volume.add(item.focus, item.image01, x=x, y=y,
+                                                level=hdr.focus_index, col0=item.col0))
 
     def finish(self) -> Iterator[DepthBlock]:
         if self.volume is not None:

@@ -65,8 +65,11 @@ def _traced_peak(cfg: ScanConfig, out: Path) -> int:
 
 
 def test_memory_is_flat_in_scan_length(tmp_path: Path) -> None:
-    short = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 15.0})
-    long = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 28.0})
+    # small queues: what is in flight depends on thread timing; the test is about growth
+    short = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 15.0},
+                         processing={"queue_capacity": 2})
+    long = small_config(source={"plate_length_mm": 40.0}, motion={"x_end_mm": 28.0},
+                        processing={"queue_capacity": 2})
     p_short = _traced_peak(short, tmp_path / "short.zarr")
     p_long = _traced_peak(long, tmp_path / "long.zarr")
     print(f"\npeak traced memory: 13 mm strip {p_short / 1e6:.1f} MB, 26 mm strip "
