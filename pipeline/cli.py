@@ -90,8 +90,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_scan(args: argparse.Namespace) -> int:
     cfg = _override(load_config(args.config), args)
-    if cfg.source.kind != "sim":  # pragma: no cover - only 'sim' exists so far
-        raise ConfigError(f"source.kind = {cfg.source.kind!r} is not available")
     return _run(cfg, evaluate=not args.no_evaluate, progress=not args.quiet)
 
 

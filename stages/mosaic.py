@@ -30,8 +30,6 @@ import zarr
 from pipeline.messages import DepthBlock, MosaicAttrs
 from pipeline.runtime import Stage
 
-MOSAIC_FORMAT = "sffscan-mosaic"
-MOSAIC_VERSION = 1
 ARRAYS = ("height", "texture", "confidence", "weight")
 MIN_WEIGHT = 1e-3
 
