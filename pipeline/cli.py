@@ -1,7 +1,8 @@
 """Command line: ``sffscan demo | scan | config | schemas``.
 
 Exit codes: 0 success; 1 a pipeline stage failed (its name and cause are printed, what was
-already written stays readable); 2 bad configuration, bad input or bad usage.
+already written stays readable); 2 bad configuration, bad input or bad usage; 130
+interrupted (Ctrl-C; the mosaic keeps what was completed).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pipeline.config import (
 )
 from pipeline.runtime import StageFailed
 
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
 def _override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
@@ -71,6 +72,10 @@ def _run(cfg: ScanConfig, *, evaluate: bool, progress: bool) -> int:
         print(f"sffscan: the mosaic at {cfg.output.path} holds what was completed before the "
               "failure (status 'failed')", file=sys.stderr)
         return EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f"sffscan: interrupted; the mosaic at {cfg.output.path} holds what was "
+              "completed (status 'failed')", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if evaluate:
         evaluate_sim(report, world)
     print(format_summary(report))

@@ -83,7 +83,7 @@ class Progress:
         self.stream = stream if stream is not None else sys.stderr
         self.tty = self.stream.isatty()
         self.every_s = every_s
-        self._last = 0.0
+        self._last = -every_s  # the first report comes at once
 
     def __call__(self, stats: list[StageStats], elapsed: float) -> None:
         if not self.tty and elapsed - self._last < self.every_s:

@@ -86,3 +86,28 @@ def test_dropped_frame_is_made_up_by_a_later_frame_of_its_level() -> None:
         assert np.isfinite(by_col[x])
         y = np.float64(blocks[0].y0 + H // 2)
         assert by_col[x] == pytest.approx(100 * _true_depth(np.float64(x), y), abs=1.0)
+
+
+def test_a_jump_past_the_ring_finishes_what_was_stored_and_goes_on() -> None:
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      method="gauss3", median_size=3, block_columns=16)
+    blocks = []
+    positions = [k * 5 for k in range(30)] + [2000 + k * 5 for k in range(40)]
+    for k, x in enumerate(positions):
+        fm, img = _frame(x, 0, k % N)
+        blocks += vol.add(fm, img, x=x, y=0, level=k % N)
+    blocks += vol.finish()
+    starts = [b.x0 for b in blocks]
+    assert starts == sorted(starts)  # still in order, each column once
+    ends = [b.x0 + b.height_um.shape[1] for b in blocks]
+    assert all(e <= s for e, s in zip(ends, starts[1:], strict=False))
+    before = [b for b in blocks if b.x0 < 1000]
+    after = [b for b in blocks if b.x0 >= 2000]
+    assert sum(b.complete for b in before) > 0 and sum(b.complete for b in after) > 0
+    y = blocks[0].y0 + H // 2
+    for b in after:
+        for c in range(b.height_um.shape[1]):
+            v = b.height_um[H // 2, c]
+            if np.isfinite(v):
+                assert v == pytest.approx(100 * _true_depth(np.float64(b.x0 + c), np.float64(y)),
+                                          abs=1.0)

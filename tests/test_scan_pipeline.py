@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import tracemalloc
@@ -128,3 +129,26 @@ def test_console_script_help() -> None:
     res = subprocess.run([sys.executable, "-m", "pipeline.cli", "demo", "--help"],
                          capture_output=True, text=True, check=False)
     assert res.returncode == 0 and "15 mm/s" in res.stdout
+
+
+def test_interrupt_leaves_a_readable_mosaic(tmp_path: Path) -> None:
+    """Ctrl-C during a scan: exit 130, the mosaic readable with status 'failed'."""
+    cfg = small_config()
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    out = tmp_path / "int.zarr"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "scan", "--config", str(toml),
+                             "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    # wait for the first progress line, then interrupt
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if line.startswith("frames "):
+            break
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    g = zarr.open_group(str(out), mode="r")
+    assert g.attrs["status"] == "failed"
+    np.asarray(g["height"])  # readable
