@@ -14,8 +14,6 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-CONFIG_VERSION = 1
-
 
 class ConfigError(ValueError):
     """An invalid or impossible configuration; the message names the field."""

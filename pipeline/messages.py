@@ -14,8 +14,6 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-FRAME_HEADER_VERSION = 1
-
 
 class FrameHeader(BaseModel):
     """Metadata of one raw camera frame."""

@@ -121,7 +121,9 @@ class FocusVolume:
         self.col_slack = col_slack
         self.rows = self.h + 2 * row_slack
         self.ring = self.w + 2 * self.halo + 2 * block_columns + 2 * col_slack
-        self.fv = np.zeros((self.n, self.rows, self.ring), np.float32)
+        # filled now, so the pages are touched at start-up and not during the scan
+        self.fv = np.empty((self.n, self.rows, self.ring), np.float32)
+        self.fv.fill(0.0)
         self.filled = np.zeros((self.n, self.ring), bool)
         self.count = np.zeros(self.ring, np.int32)
         self.row_lo = np.zeros((self.n, self.ring), np.int32)
