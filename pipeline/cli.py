@@ -177,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ConfigError, FileExistsError, FileNotFoundError) as err:
+    except (ConfigError, OSError) as err:  # bad configuration, or an unusable path
         print(f"sffscan: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

@@ -7,6 +7,7 @@ names the field, for example ``optics.pixel_um``.
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from pathlib import Path
@@ -20,7 +21,7 @@ class ConfigError(ValueError):
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class SourceConfig(_Model):
@@ -95,15 +96,27 @@ class ProcessingConfig(_Model):
         return v
 
     @property
+    def focus_reach_px(self) -> int:
+        """How far the frame border reaches into the focus measure, px.
+
+        GLVM filters twice with the k x k box (reach 2 * (k // 2)); TENV is a 3 x 3 Sobel
+        then the box (reach k // 2 + 1). Columns and rows closer to the border than this
+        see the replicated border and are not used.
+        """
+        if self.focus_operator == "glvm":
+            return 2 * (self.window // 2)
+        return self.window // 2 + 1
+
+    @property
     def edge_margin_px(self) -> int:
         """Frame border the scan plan leaves unused, px.
 
-        The focus window's half width + 1, plus 2 px when registration is on. The focus
-        volume itself keeps every pixel whose window lies inside the frame (half width
-        k // 2), so a frame that registration places up to 3 px off (measured: at most 2 px
-        without any wobble) still covers the planned strip at every focus level.
+        The focus measure's reach + 1, plus 2 px when registration is on: the focus volume
+        keeps every pixel beyond the reach, so a frame that registration places up to 3 px
+        off (measured: at most 2 px without any wobble) still covers the planned strip at
+        every focus level.
         """
-        return self.window // 2 + 1 + (2 if self.registration else 0)
+        return self.focus_reach_px + 1 + (2 if self.registration else 0)
 
 
 class OutputConfig(_Model):
@@ -243,7 +256,7 @@ def config_to_toml(cfg: ScanConfig) -> str:
             if isinstance(value, bool):
                 out.append(f"{key} = {'true' if value else 'false'}")
             elif isinstance(value, str):
-                out.append(f'{key} = "{value}"')
+                out.append(f"{key} = {json.dumps(value)}")  # JSON escapes are TOML's
             else:
                 out.append(f"{key} = {value!r}")
         out.append("")

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class FrameHeader(BaseModel):
     """Metadata of one raw camera frame."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     frame_id: int = Field(ge=0, description="Frame counter of the camera, from 0")
     timestamp_ns: int = Field(ge=0, description="Exposure time stamp, ns (device clock)")

@@ -55,6 +55,13 @@ def pass_bounds_px(cfg: ScanConfig, pass_index: int) -> tuple[float, float, int]
     return first, first - (n - 1) * d, n
 
 
+def pass_start_px(cfg: ScanConfig, pass_index: int) -> tuple[float, float, int]:
+    """World (x, y) px of a pass's first frame, and its direction of travel."""
+    y0 = cfg.motion.y_start_mm * 1000.0 / cfg.optics.pixel_um
+    return (pass_bounds_px(cfg, pass_index)[0], y0 + pass_index * pass_pitch_px(cfg),
+            pass_direction(cfg, pass_index))
+
+
 def plan_frames(cfg: ScanConfig) -> Iterator[PlannedFrame]:
     """Every frame of the scan, in acquisition order."""
     o = cfg.optics

@@ -325,7 +325,7 @@ class Pipeline:
             self.stop.set()  # anything upstream still waiting leaves now
             for t in threads:
                 t.join()
-        except KeyboardInterrupt:
+        except BaseException:  # Ctrl-C, or the progress display failing: stop cleanly
             self.stop.set()
             for t in threads:
                 t.join()

@@ -9,6 +9,8 @@ frame is ever dropped; the summary reports the drops counted anyway (0).
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -19,7 +21,7 @@ from typing import Any, TextIO
 from pipeline.config import ScanConfig
 from pipeline.evaluate import Accuracy, mosaic_accuracy
 from pipeline.messages import Frame
-from pipeline.plan import frame_count, pass_direction, scan_extent_px
+from pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from pipeline.runtime import Pipeline, PipelineResult, Stage, StageStats
 from stages.focus_measure import FocusMeasureStage
 from stages.focus_volume import DepthStage
@@ -34,18 +36,20 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     directions = [pass_direction(cfg, i) for i in range(m.passes)]
     stages: list[Stage] = [
-        SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels),
+        SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels,
+                    max_value=int(o.max_value), passes=m.passes,
+                    area_um=tuple(v * o.pixel_um for v in scan_extent_px(cfg))),  # type: ignore[arg-type]
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
-                        x_start_um=m.x_start_mm * 1000.0),
+                        pass_start=lambda i: pass_start_px(cfg, i)),
     ]
     if p.registration:
         stages.append(RegistrationStage(n_levels=o.n_levels, scale=p.registration_scale))
     stages += [
         FocusMeasureStage(operator=p.focus_operator, window=p.window, backend=p.backend,
-                          device=p.device, max_value=o.max_value, margin=p.window // 2,
+                          device=p.device, max_value=o.max_value, margin=p.focus_reach_px,
                           directions=directions),
         DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-                   focus_heights_um=o.focus_heights_um(), margin=p.window // 2,
+                   focus_heights_um=o.focus_heights_um(), margin=p.focus_reach_px,
                    method=p.depth_method, median_size=p.median_size,
                    block_columns=p.block_columns,
                    directions=directions,
@@ -96,16 +100,17 @@ class Progress:
         eta = (self.total - done) / rate if rate > 0 else float("inf")
         line = (f"frames {done}/{self.total} ({pct:4.1f} %)  acquired {src}  "
                 f"{rate:6.1f} frames/s  elapsed {elapsed:5.1f} s  eta {eta:5.0f} s")
-        if self.tty:
-            self.stream.write("\r" + line)
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
+        try:
+            self.stream.write(("\r" + line) if self.tty else (line + "\n"))
+            self.stream.flush()
+        except OSError:  # a closed terminal or pipe must not stop the scan
+            self.stream = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the scan
 
     def close(self) -> None:
         if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+            with contextlib.suppress(OSError):
+                self.stream.write("\n")
+                self.stream.flush()
 
 
 @dataclass

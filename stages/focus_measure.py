@@ -410,7 +410,9 @@ class FocusMeasureStage(Stage):
 
     Only the columns that can still add to the focus volume are measured (see
     :func:`stages.focus_volume.new_columns`), with enough neighbouring columns that the
-    result equals the whole frame's focus measure there.
+    result equals the whole frame's focus measure there. This relies on every frame it
+    passes on reaching the focus volume: the queues after this stage must block, never drop
+    (a frame lost before this stage is fine: it is never counted as seen).
 
     Parameters
     ----------

@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame
+from pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
 from pipeline.runtime import Stage
 from stages.depth import depth_from_focus, levels_to_height
 
@@ -181,7 +181,8 @@ class FocusVolume:
         r0 = max(y - self.y0 + m, 0)
         r1 = min(y - self.y0 + self.h - m, self.rows)
         if r1 <= r0:
-            return []
+            raise ValueError(f"frame at world y = {y} px lies outside the rows of this pass "
+                             f"({self.y0}..{self.y0 + self.rows} px)")
         fr0 = r0 - (y - self.y0)
         # columns: valid frame columns [m, w - m) that were given -> internal u_frame + j
         u_lo = max(u_frame + max(m, col0), self.next_u)
@@ -366,8 +367,12 @@ class DepthStage(Stage):
             self.volume = FocusVolume(direction=self._direction(hdr.pass_index),
                                       **self.kwargs)  # type: ignore[arg-type]
         x, y = item.placed.offset_px
-        yield from self._blocks(self.volume.add(item.focus, item.image01, x=x, y=y,
-                                                level=hdr.focus_index, col0=item.col0))
+        try:
+            results = self.volume.add(item.focus, item.image01, x=x, y=y,
+                                      level=hdr.focus_index, col0=item.col0)
+        except ValueError as err:
+            raise FrameError(f"frame_id {hdr.frame_id}: {err}") from err
+        yield from self._blocks(results)
 
     def finish(self) -> Iterator[DepthBlock]:
         if self.volume is not None:

@@ -10,36 +10,92 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from pipeline.messages import Frame, check_frame
+from pipeline.messages import Frame, FrameError, check_frame
 from pipeline.runtime import Stage
 
 
 class SourceStage(Stage):
     """Any frame iterator as the pipeline's source; every frame is checked on the way in.
 
-    A frame of the wrong shape or dtype, a NaN frame or a focus index out of range stops
-    the pipeline with an error naming the frame_id (:class:`pipeline.messages.FrameError`).
+    Stops the pipeline with an error naming the frame_id
+    (:class:`pipeline.messages.FrameError`) for: a wrong shape or dtype, NaN pixels, values
+    above the bit depth's full scale, a focus index out of range or out of step with the
+    staircase ((frame_id - focus_index) mod N must stay constant), a frame_id that repeats
+    or goes back, a pass index that goes back or exceeds the configured passes, and a stage
+    position outside the planned scan area. Frame-id gaps (lost frames) are counted: their
+    levels are missing, and the columns that needed them are marked invalid downstream.
+
+    Parameters
+    ----------
+    frames : iterator of Frame
+    shape : (int, int)
+        Frame (height, width), px.
+    dtype : str
+        Frame dtype.
+    n_levels : int
+        Focus levels N.
+    max_value : int
+        Largest valid pixel value (255, or 1023 for 10-bit data in uint16).
+    passes : int
+        Configured number of passes.
+    area_um : (x0, y0, x1, y1)
+        Box the commanded stage positions must lie in, µm.
     """
 
     name = "source"
 
     def __init__(self, frames: Iterator[Frame], *, shape: tuple[int, int], dtype: str,
-                 n_levels: int) -> None:
+                 n_levels: int, max_value: int, passes: int,
+                 area_um: tuple[float, float, float, float]) -> None:
         self.frames = frames
         self.shape = shape
         self.dtype = np.dtype(dtype)
         self.n_levels = n_levels
+        self.max_value = max_value
+        self.passes = passes
+        self.area_um = area_um
         self.last_id = -1
+        self.last_pass = 0
+        self.phase: int | None = None
         self.gaps = 0
+        self.lost = 0
+
+    def _check_header(self, frame: Frame) -> None:
+        h = frame.header
+        fid = h.frame_id
+        if fid <= self.last_id:
+            raise FrameError(f"frame_id {fid} arrives after frame_id {self.last_id}: "
+                             "duplicated or out of order")
+        if self.last_id >= 0 and fid != self.last_id + 1:
+            self.gaps += 1
+            self.lost += fid - self.last_id - 1
+        if not self.last_pass <= h.pass_index < self.passes:
+            raise FrameError(f"frame_id {fid}: pass_index {h.pass_index} after pass "
+                             f"{self.last_pass} (configured passes: {self.passes})")
+        phase = (fid - h.focus_index) % self.n_levels
+        if self.phase is None:
+            self.phase = phase
+        elif phase != self.phase:
+            raise FrameError(f"frame_id {fid}: focus_index {h.focus_index} is out of step with "
+                             f"the staircase (expected {(fid - self.phase) % self.n_levels})")
+        x0, y0, x1, y1 = self.area_um
+        for name, v, lo, hi in (("stage_x_um", h.stage_x_um, x0, x1),
+                                ("stage_y_um", h.stage_y_um, y0, y1)):
+            if v is not None and not lo <= v <= hi:
+                raise FrameError(f"frame_id {fid}: {name} = {v:g} µm lies outside the planned "
+                                 f"scan area [{lo:g}, {hi:g}] µm")
+        self.last_id, self.last_pass = fid, h.pass_index
 
     def produce(self) -> Iterator[Frame]:
         for frame in self.frames:
             check_frame(frame, shape=self.shape, dtype=self.dtype, n_levels=self.n_levels)
-            fid = frame.header.frame_id
-            if fid != self.last_id + 1 and self.last_id >= 0:
-                self.gaps += 1
-            self.last_id = fid
+            if self.max_value < np.iinfo(self.dtype).max:
+                top = int(frame.image.max())
+                if top > self.max_value:
+                    raise FrameError(f"frame_id {frame.header.frame_id}: pixel value {top} "
+                                     f"exceeds the full scale {self.max_value} of the bit depth")
+            self._check_header(frame)
             yield frame
 
     def extra_stats(self) -> dict[str, int]:
-        return {"frame_id_gaps": self.gaps}
+        return {"frame_id_gaps": self.gaps, "frames_lost": self.lost}

@@ -86,6 +86,17 @@ def mosaic_array(group: zarr.Group, name: str) -> zarr.Array:
     return node
 
 
+def is_replaceable(path: Path) -> bool:
+    """True for an empty folder or a Zarr group written as an sffscan mosaic."""
+    if path.is_dir() and not any(path.iterdir()):
+        return True
+    try:
+        group = zarr.open_group(str(path), mode="r")
+    except Exception:  # noqa: BLE001 - anything that is not a readable group
+        return False
+    return group.attrs.get("format") == "sffscan-mosaic"
+
+
 class MosaicWriter:
     """Owns a mosaic Zarr group: creates it, blends blocks in, marks its status.
 
@@ -111,8 +122,12 @@ class MosaicWriter:
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
                  overwrite: bool = False) -> None:
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path}: mosaic exists (set output.overwrite or remove it)")
+        if self.path.exists():
+            if not overwrite:
+                raise FileExistsError(f"{self.path}: exists (set output.overwrite or remove it)")
+            if not is_replaceable(self.path):
+                raise FileExistsError(f"{self.path}: exists and is not an sffscan mosaic nor an "
+                                      "empty folder; refusing to overwrite it")
         self.origin = origin_px
         self.chunk = chunk_px
         self.group = zarr.open_group(str(self.path), mode="w")
@@ -233,9 +248,18 @@ class MosaicStage(Stage):
 
     def close(self, *, failed: bool) -> None:
         # On failure, what is already complete is still written: the mosaic stays readable.
-        self.flush()
+        # Each band is tried on its own, and the status is set whatever happens.
+        error: Exception | None = None
+        for cx in sorted(self.bands):
+            try:
+                self._flush_band(cx)
+            except Exception as exc:  # noqa: BLE001 - re-raised below, after the status
+                error = error or exc
+        failed = failed or error is not None
         self.writer.set_status("failed" if failed else "complete",
                                valid_pixels=self.valid_px, blocks=self.blocks)
+        if error is not None:
+            raise error
 
     def extra_stats(self) -> dict[str, int]:
         return {"valid_pixels": self.valid_px, "chunks_written": self.writer.blocks_written}

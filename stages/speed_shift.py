@@ -8,9 +8,9 @@ world pixels and its rounding to integers (frames are placed by whole pixels).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
-from pipeline.messages import Frame, FrameHeader, PlacedFrame
+from pipeline.messages import Frame, FrameError, FrameHeader, PlacedFrame
 from pipeline.runtime import Stage
 
 
@@ -71,22 +71,46 @@ def predicted_position_px(
 
 
 class SpeedShiftStage(Stage):
-    """Places each frame at the integer world position predicted from stage or speed."""
+    """Places each frame at the integer world position predicted from stage or speed.
+
+    Frames that carry a commanded stage position are placed by it. Frames without one use
+    the speed model of their pass: the pass is taken to start at its planned position
+    (``pass_start``) at the time stamp of its first frame, and to move at constant speed in
+    the pass's direction. Commanded positions that move against the pass's direction stop
+    the scan with an error naming the frame (the configuration and the source disagree).
+
+    Parameters
+    ----------
+    pixel_um : float
+        Object-side pixel scale, µm/px.
+    speed_mm_s : float
+        Stage speed, mm/s.
+    pass_start : callable
+        Pass index -> (x px, y px, direction) of the pass's first frame.
+    """
 
     name = "speed_shift"
 
-    def __init__(self, *, pixel_um: float, speed_mm_s: float, x_start_um: float,
-                 direction: int = 1) -> None:
+    def __init__(self, *, pixel_um: float, speed_mm_s: float,
+                 pass_start: Callable[[int], tuple[float, float, int]]) -> None:
         self.pixel_um = pixel_um
         self.speed_mm_s = speed_mm_s
-        self.x_start_um = x_start_um
-        self.direction = direction
-        self._t0: int | None = None
+        self.pass_start = pass_start
+        self._pass: int | None = None
+        self._t0 = 0
+        self._last_x: float | None = None
 
     def process(self, item: Frame) -> Iterator[PlacedFrame]:
         h = item.header
-        if self._t0 is None:
-            self._t0 = h.timestamp_ns
-        model = (self._t0, self.x_start_um, self.speed_mm_s, self.direction)
-        x, y = predicted_position_px(h, pixel_um=self.pixel_um, speed_model=model)
+        if h.pass_index != self._pass:
+            self._pass, self._t0, self._last_x = h.pass_index, h.timestamp_ns, None
+        x0, y0, direction = self.pass_start(h.pass_index)
+        model = (self._t0, x0 * self.pixel_um, self.speed_mm_s, direction)
+        x, y = predicted_position_px(h, pixel_um=self.pixel_um, speed_model=model,
+                                     y_default_um=y0 * self.pixel_um)
+        if self._last_x is not None and (x - self._last_x) * direction < -1e-6:
+            raise FrameError(
+                f"frame_id {h.frame_id}: stage_x_um moves {'-' if direction > 0 else '+'}x, "
+                f"against the direction of pass {h.pass_index} in the configuration")
+        self._last_x = x
         yield PlacedFrame(h, item.image, (x, y), (round(x), round(y)))

@@ -30,8 +30,10 @@ def test_defaults_follow_the_thesis() -> None:
     assert shift_per_frame_px(cfg) == pytest.approx(11.7647, abs=1e-4)  # thesis: ~11.6 px
     # thesis eq. 6.1-6.3 with w = 10.88 mm, r = 150 fps, N = 50, P = 0
     assert max_speed_thesis_mm_s(cfg) == pytest.approx(150 / 50 * 10.88 / 2)
-    # sliding window: (1280 - 2*7 - 2) px / 50 levels per frame at 150 fps, 8.5 µm/px
-    assert max_speed_sliding_mm_s(cfg) == pytest.approx(1264 / 50 * 150 * 8.5 / 1000)
+    # sliding window: (1280 - 2*11 - 2) px / 50 levels per frame at 150 fps, 8.5 µm/px;
+    # margin 11 = GLVM's reach 2*(9//2) + 1 + 2 px kept for registration
+    assert cfg.processing.edge_margin_px == 11
+    assert max_speed_sliding_mm_s(cfg) == pytest.approx(1256 / 50 * 150 * 8.5 / 1000)
 
 
 @pytest.mark.parametrize(
@@ -45,6 +47,8 @@ def test_defaults_follow_the_thesis() -> None:
         ({"optics": {"fps": 0}}, "optics.fps"),
         ({"motion": {"x_start_mm": 5.0, "x_end_mm": 1.0}}, "motion.x_end_mm"),
         ({"optic": {}}, "optic"),
+        ({"motion": {"x_start_mm": float("nan")}}, "motion.x_start_mm"),
+        ({"optics": {"fps": float("inf")}}, "optics.fps"),
     ],
 )
 def test_impossible_configurations_name_the_field(data: dict, field: str) -> None:

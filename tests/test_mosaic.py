@@ -83,3 +83,23 @@ def test_existing_mosaic_is_not_overwritten_and_origin_is_enforced(tmp_path: Pat
     writer.write_region(10, 12, {"height": np.ones((8, 8)), "texture": np.ones((8, 8)),
                                  "weight": np.ones((8, 8)), "confidence": np.ones((8, 8))})
     assert zarr.open_group(str(path), mode="r")["height"].shape == (20, 18)  # grew
+
+
+def test_failing_write_still_sets_the_status(tmp_path: Path) -> None:
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5, chunk_px=16)
+    stage = MosaicStage(writer)
+    list(stage.process(_block(0, 0, np.full((16, 8), 7.0), 0.5, 0)))
+    list(stage.process(_block(40, 0, np.full((16, 8), 9.0), 0.5, 0)))  # flushes the first band
+    real = writer.write_region
+
+    def broken(x0: int, y0: int, new: dict) -> None:
+        raise OSError("disk full")
+
+    writer.write_region = broken  # type: ignore[method-assign]
+    with pytest.raises(OSError, match="disk full"):
+        stage.close(failed=False)
+    writer.write_region = real  # type: ignore[method-assign]
+    g = zarr.open_group(str(path), mode="r")
+    assert g.attrs["status"] == "failed"
+    assert np.asarray(g["height"])[3, 3] == pytest.approx(7.0)  # written before: kept

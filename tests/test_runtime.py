@@ -174,3 +174,27 @@ def test_bad_pipeline_definitions() -> None:
         BoundedQueue("q", 0)
     with pytest.raises(ValueError, match="unique"):
         Pipeline([Numbers(1), Double(), Double()])
+
+
+def test_progress_display_failing_stops_and_closes_everything() -> None:
+    sink = Collect()
+
+    def progress(stats, elapsed):  # noqa: ANN001
+        raise BrokenPipeError("stderr closed")
+
+    class Slow(Stage):
+        name = "slow"
+
+        def __init__(self) -> None:
+            self.stop = threading.Event()
+
+        def produce(self) -> Iterator[int]:
+            for i in range(1000):
+                self.stop.wait(0.01)
+                yield i
+
+    pipe = Pipeline([Slow(), sink], on_progress=progress, progress_s=0.05)
+    with pytest.raises(BrokenPipeError):
+        pipe.run()
+    assert pipe.stop.is_set()
+    assert sink.closed_failed is True

@@ -80,20 +80,36 @@ def test_memory_is_flat_in_scan_length(tmp_path: Path) -> None:
 
 def _with_bad_frame(frames: Iterator[Frame], at: int, kind: str) -> Iterator[Frame]:
     for f in frames:
-        if f.header.frame_id == at:
+        h = f.header
+        if h.frame_id == at:
             if kind == "shape":
-                f = Frame(f.header, f.image[:-1])
+                f = Frame(h, f.image[:-1])
             elif kind == "dtype":
-                f = Frame(f.header, f.image.astype(np.float32))
-            else:
+                f = Frame(h, f.image.astype(np.float32))
+            elif kind == "nan":
                 img = f.image.astype(np.float32)
                 img[3, 4] = np.nan
-                f = Frame(f.header, img)
+                f = Frame(h, img)
+            elif kind == "overflow":
+                img = f.image.copy()
+                img[5, 5] = 4000  # above the 10-bit full scale
+                f = Frame(h, img)
+            elif kind == "level":
+                f = Frame(h.model_copy(update={"focus_index": (h.focus_index + 1) % 50}),
+                          f.image)
+            elif kind == "pass":
+                f = Frame(h.model_copy(update={"pass_index": 5}), f.image)
+            elif kind == "position":
+                f = Frame(h.model_copy(update={"stage_y_um": 1e12}), f.image)
+            elif kind == "duplicate":
+                yield f
         yield f
 
 
-@pytest.mark.parametrize(("kind", "message"), [("shape", "shape"), ("dtype", "dtype"),
-                                               ("nan", "NaN")])
+@pytest.mark.parametrize(("kind", "message"), [
+    ("shape", "shape"), ("dtype", "dtype"), ("nan", "NaN"), ("overflow", "full scale"),
+    ("level", "out of step"), ("pass", "pass_index 5"), ("position", "stage_y_um"),
+    ("duplicate", "duplicated or out of order")])
 def test_bad_frame_stops_with_its_id_and_keeps_what_was_written(
         tmp_path: Path, kind: str, message: str) -> None:
     cfg = small_config()
@@ -152,3 +168,37 @@ def test_interrupt_leaves_a_readable_mosaic(tmp_path: Path) -> None:
     g = zarr.open_group(str(out), mode="r")
     assert g.attrs["status"] == "failed"
     np.asarray(g["height"])  # readable
+
+
+def test_frames_without_stage_positions_follow_the_speed_model(tmp_path: Path) -> None:
+    cfg = small_config(motion={"passes": 2}, source={"plate_width_mm": 8.0})
+    region = strip_region(cfg)
+
+    def no_positions(frames: Iterator[Frame]) -> Iterator[Frame]:
+        for f in frames:
+            yield Frame(f.header.model_copy(update={"stage_x_um": None, "stage_y_um": None}),
+                        f.image)
+
+    scan(cfg, tmp_path / "with.zarr")
+    run_scan(cfg, frames=no_positions(simulate_frames(cfg)), output=tmp_path / "without.zarr",
+             progress=False)
+    with_pos = score(cfg, mosaic_height(tmp_path / "with.zarr", region), region)
+    without = score(cfg, mosaic_height(tmp_path / "without.zarr", region), region)
+    assert without.coverage == with_pos.coverage == 1.0
+    assert without.rmse_um == pytest.approx(with_pos.rmse_um, rel=0.02)
+
+
+def test_overwrite_refuses_what_is_not_a_mosaic(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture) -> None:
+    cfg = small_config(motion={"x_end_mm": 6.0})
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    precious = tmp_path / "thesis"
+    precious.mkdir()
+    (precious / "chapter1.txt").write_text("years of work")
+    assert main(["scan", "--config", str(toml), "-o", str(precious), "--overwrite", "-q"]) == 2
+    assert "not an sffscan mosaic" in capsys.readouterr().err
+    assert (precious / "chapter1.txt").read_text() == "years of work"
+    out = tmp_path / "m.zarr"
+    assert main(["scan", "--config", str(toml), "-o", str(out), "-q"]) == 0
+    assert main(["scan", "--config", str(toml), "-o", str(out), "--overwrite", "-q"]) == 0

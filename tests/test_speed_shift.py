@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.messages import Frame, FrameHeader
+from pipeline.messages import Frame, FrameError, FrameHeader
 from stages.speed_shift import SpeedShiftStage, position_from_speed_px, predicted_position_px
 
 
@@ -25,19 +25,27 @@ def test_stage_position_wins_over_speed_and_is_rounded() -> None:
     hdr = FrameHeader(frame_id=3, timestamp_ns=10**9, focus_index=3, stage_x_um=1000.0,
                       stage_y_um=-17.0)
     assert predicted_position_px(hdr, pixel_um=8.5) == pytest.approx((1000 / 8.5, -2.0))
-    stage = SpeedShiftStage(pixel_um=8.5, speed_mm_s=15.0, x_start_um=0.0)
+    stage = SpeedShiftStage(pixel_um=8.5, speed_mm_s=15.0, pass_start=lambda p: (0.0, 0.0, 1))
     (placed,) = stage.process(Frame(hdr, None))  # type: ignore[arg-type]
     assert placed.offset_px == (118, -2)
+    # a commanded position that goes back against the pass direction is refused
+    back = hdr.model_copy(update={"frame_id": 4, "stage_x_um": 900.0})
+    with pytest.raises(FrameError, match="frame_id 4.*against the direction"):
+        list(stage.process(Frame(back, None)))  # type: ignore[arg-type]
 
 
-def test_headers_without_position_use_the_speed_model() -> None:
-    stage = SpeedShiftStage(pixel_um=10.0, speed_mm_s=10.0, x_start_um=500.0)
+def test_headers_without_position_use_the_speed_model_of_their_pass() -> None:
+    starts = {0: (50.0, 0.0, 1), 1: (300.0, 80.0, -1)}
+    stage = SpeedShiftStage(pixel_um=10.0, speed_mm_s=10.0, pass_start=starts.__getitem__)
     out = []
-    for k in range(3):
-        hdr = FrameHeader(frame_id=k, timestamp_ns=5_000 + k * 10_000_000, focus_index=k)
+    for k in range(6):
+        p = k // 3
+        t = 5_000 + k * 10_000_000 + p * 500_000_000  # half a second between passes
+        hdr = FrameHeader(frame_id=k, timestamp_ns=t, focus_index=k, pass_index=p)
         out += list(stage.process(Frame(hdr, None)))  # type: ignore[arg-type]
-    # 10 mm/s for 10 ms = 100 µm = 10 px per frame, from 50 px at the first frame
-    assert [p.predicted_px[0] for p in out] == pytest.approx([50.0, 60.0, 70.0])
+    # 10 mm/s for 10 ms = 100 µm = 10 px per frame; each pass from its own start and way
+    assert [p.predicted_px[0] for p in out] == pytest.approx([50, 60, 70, 300, 290, 280])
+    assert [p.predicted_px[1] for p in out] == pytest.approx([0, 0, 0, 80, 80, 80])
     with pytest.raises(ValueError, match="frame_id 7"):
         predicted_position_px(FrameHeader(frame_id=7, timestamp_ns=0, focus_index=0),
                               pixel_um=1.0)
