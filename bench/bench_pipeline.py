@@ -68,13 +68,16 @@ def memory_frames(cfg: ScanConfig, bank: list[np.ndarray], n: int) -> Iterator[F
         yield Frame(header_of(cfg, pf), bank[i % len(bank)])
 
 
-def rate(fn, images: list[np.ndarray], *, repeat: int = 1) -> float:  # noqa: ANN001
+def rate(fn, images: list[np.ndarray], *, repeat: int = 3) -> float:  # noqa: ANN001
+    """Frames/s of ``fn`` over ``images``: the best of ``repeat`` passes (this VM is noisy)."""
     fn(images[0])  # warm up
-    t0 = time.perf_counter()
+    best = 0.0
     for _ in range(repeat):
+        t0 = time.perf_counter()
         for img in images:
             fn(img)
-    return repeat * len(images) / (time.perf_counter() - t0)
+        best = max(best, len(images) / (time.perf_counter() - t0))
+    return best
 
 
 def focus_rates(bank01: list[np.ndarray], baseline_frames: int) -> dict[str, float]:
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     bank8 = [(b.astype(np.float32) * (255.0 / 1023.0)).round().astype(np.uint8) for b in bank16]
     bank01 = [b.astype(np.float32) / 1023.0 for b in bank16[:40]]
 
-    fr = focus_rates(bank01, baseline_frames=8)
+    fr = focus_rates(bank01, baseline_frames=10)
     base = fr["thesis torch conv2d GLVM (baseline)"]
     for name, value in fr.items():
         rows.append(("focus measure alone", name, value, f"{value / base:.1f}x baseline"))
