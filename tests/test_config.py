@@ -57,7 +57,7 @@ def test_impossible_configurations_name_the_field(data: dict, field: str) -> Non
 
 
 def test_toml_round_trip_and_file_errors(tmp_path: Path) -> None:
-    cfg = demo_config(passes=2)
+    cfg = demo_config(passes=2, output={"path": 'C:\\scans\\new "plate".zarr'})
     path = tmp_path / "scan.toml"
     path.write_text(config_to_toml(cfg))
     assert load_config(path) == cfg

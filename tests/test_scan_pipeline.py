@@ -139,6 +139,11 @@ def test_cli_scan_from_toml_and_errors(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["scan", "--config", str(toml), "-o", str(tmp_path / "x.zarr"), "--speed",
                  "99"]) == 2
     assert "motion.speed_mm_s" in capsys.readouterr().err
+    # an output path under a regular file: exit 2, the path named
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("x")
+    assert main(["scan", "--config", str(toml), "-o", str(blocker / "m.zarr"), "-q"]) == 2
+    assert "file.txt" in capsys.readouterr().err
 
 
 def test_console_script_help() -> None:
