@@ -35,10 +35,10 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     directions = [pass_direction(cfg, i) for i in range(m.passes)]
+    x0, y0, x1, y1 = (v * o.pixel_um for v in scan_extent_px(cfg))
     stages: list[Stage] = [
         SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels,
-                    max_value=int(o.max_value), passes=m.passes,
-                    area_um=tuple(v * o.pixel_um for v in scan_extent_px(cfg))),  # type: ignore[arg-type]
+                    max_value=int(o.max_value), passes=m.passes, area_um=(x0, y0, x1, y1)),
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
                         pass_start=lambda i: pass_start_px(cfg, i)),
     ]
