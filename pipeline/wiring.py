@@ -155,15 +155,15 @@ def format_summary(report: ScanReport) -> str:
         f"frames      {report.frames} in {r.wall_s:.1f} s: "
         f"{report.frames / r.wall_s if r.wall_s else 0:.1f} frames/s end to end",
         f"dropped     {r.dropped} frames",
-        "stage            items  busy s   cpu s    items/s (own busy time)",
+        "stage             in     out  busy s   cpu s    in/s (own busy time)",
     ]
     for s in r.stages:
-        lines.append(f"  {s.name:<14} {s.frames:>6}  {s.busy_s:6.2f}  {s.cpu_s:6.2f}"
-                     f"  {s.frames_per_s:9.1f}  {s.unit}")
-    lines.append("queue                       capacity  max fill  mean fill  dropped")
+        lines.append(f"  {s.name:<14} {s.frames:>6}  {s.items_out:>6}  {s.busy_s:6.2f}"
+                     f"  {s.cpu_s:6.2f}  {s.frames_per_s:9.1f}  {s.unit}")
+    lines.append("queue                       capacity  when full    max fill  mean fill  dropped")
     for q in r.queues:
-        lines.append(f"  {q.name:<26} {q.capacity:>8}  {q.max_fill:>8}  {q.mean_fill:>9.2f}"
-                     f"  {q.dropped:>7}")
+        lines.append(f"  {q.name:<26} {q.capacity:>8}  {q.policy:<11} {q.max_fill:>8}"
+                     f"  {q.mean_fill:>9.2f}  {q.dropped:>7}")
     for name, extra in r.extras.items():
         if extra:
             lines.append(f"{name:<12} " + ", ".join(f"{k} {v}" for k, v in extra.items()))
