@@ -9,9 +9,9 @@ The mosaic is compared band by band, so memory stays bounded for any mosaic size
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 import zarr
@@ -31,9 +31,6 @@ class Accuracy:
     psnr_db: float
     pixels: int
     coverage: float  # finite fraction of the pixels asked about
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 class _Moments:
