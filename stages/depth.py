@@ -63,12 +63,17 @@ def _raise_not_finite(vol: np.ndarray) -> None:
     raise ValueError("volume contains values that are not finite")
 
 
+def check_odd_size(value: int, *, name: str, minimum: int) -> int:
+    """``value`` as an int if it is an odd integer >= ``minimum``; else ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be an odd integer >= {minimum}, got {value!r}")
+    if value < minimum or value % 2 == 0:
+        raise ValueError(f"{name} must be an odd integer >= {minimum}, got {value}")
+    return int(value)
+
+
 def _check_median_size(median_size: int) -> int:
-    if isinstance(median_size, bool) or not isinstance(median_size, int | np.integer):
-        raise ValueError(f"median_size must be an odd integer >= 1, got {median_size!r}")
-    if median_size < 1 or median_size % 2 == 0:
-        raise ValueError(f"median_size must be an odd integer >= 1, got {median_size}")
-    return int(median_size)
+    return check_odd_size(median_size, name="median_size", minimum=1)
 
 
 # ----------------------------------------------------------------------------- building blocks

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from pipeline.messages import FocusFrame, PlacedFrame
 from pipeline.runtime import Stage
+from stages.depth import check_odd_size
 from stages.focus_volume import new_columns
 
 __all__ = [
@@ -93,11 +94,7 @@ def to_unit_float(image: np.ndarray, *, max_value: float) -> np.ndarray:
 
 
 def _check_window(window: int) -> int:
-    if isinstance(window, bool) or not isinstance(window, int | np.integer):
-        raise ValueError(f"window must be an odd integer >= 3, got {window!r}")
-    if window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be an odd integer >= 3, got {window}")
-    return int(window)
+    return check_odd_size(window, name="window", minimum=3)
 
 
 def _check_tensor(image: torch.Tensor) -> torch.Tensor:
