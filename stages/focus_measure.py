@@ -418,7 +418,10 @@ class FocusMeasureStage(Stage):
     max_value : float
         Full scale of the raw frames (255 for uint8, 1023 for 10-bit in uint16).
     margin : int
-        Border the focus volume excludes on each side, px.
+        The focus measure's reach into the frame border, px
+        (:attr:`pipeline.config.ProcessingConfig.focus_reach_px`): the focus volume leaves
+        out this border, and each measured column range is widened by it, so the result
+        there equals the whole frame's focus measure.
     directions : sequence of {+1, -1}
         Direction of motion of each pass (cycled).
     """
@@ -426,7 +429,7 @@ class FocusMeasureStage(Stage):
     name = "focus_measure"
 
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
-                 device: str = "cpu", max_value: float = 255.0, margin: int = 4,
+                 device: str = "cpu", max_value: float = 255.0, margin: int,
                  directions: Sequence[int] = (1,)) -> None:
         self.operator = operator
         self.window = _check_window(window)
@@ -435,7 +438,6 @@ class FocusMeasureStage(Stage):
         self.max_value = max_value
         self.margin = margin
         self.directions = list(directions)
-        self.halo = 2 * (self.window // 2) + 1  # GLVM: two box filters; TENV: Sobel + box
         self._pass: int | None = None
         self._prev_x: dict[int, int] = {}
         self.columns_measured = 0
@@ -451,7 +453,7 @@ class FocusMeasureStage(Stage):
                              margin=self.margin,
                              direction=self.directions[hdr.pass_index % len(self.directions)])
         self._prev_x[hdr.focus_index] = x
-        a0, a1 = max(c0 - self.halo, 0), min(c1 + self.halo, w)
+        a0, a1 = max(c0 - self.margin, 0), min(c1 + self.margin, w)
         image01 = to_unit_float(item.image[:, a0:a1], max_value=self.max_value)
         fm = focus_measure(image01, operator=self.operator, window=self.window,
                            backend=self.backend, device=self.device)
