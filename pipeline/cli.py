@@ -1,4 +1,5 @@
-"""Command line: ``sffscan demo | scan | config | schemas``.
+"""Command line: ``sffscan demo | scan | config | schemas`` and the commands of
+:data:`COMMAND_MODULES`.
 
 Exit codes: 0 success; 1 a pipeline stage failed (its name and cause are printed, what was
 already written stays readable); 2 bad configuration, bad input or bad usage; 130
@@ -8,78 +9,39 @@ interrupted (Ctrl-C; the mosaic keeps what was completed).
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.config import (
-    ConfigError,
-    ScanConfig,
-    config_from_dict,
-    config_to_toml,
-    demo_config,
-    load_config,
-    max_speed_sliding_mm_s,
-    max_speed_thesis_mm_s,
+from pipeline.cli_common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+    describe,
+    override,
+    run_and_report,
+    scan_options,
+    viewer_sink,
 )
-from pipeline.runtime import StageFailed
+from pipeline.config import ConfigError, ScanConfig, config_to_toml, demo_config, load_config
 
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
-
-
-def _override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
-    """Apply command-line overrides, re-validating the whole configuration."""
-    data = cfg.model_dump()
-    if getattr(args, "output", None):
-        data["output"]["path"] = str(args.output)
-    if getattr(args, "overwrite", False):
-        data["output"]["overwrite"] = True
-    if getattr(args, "speed", None) is not None:
-        data["motion"]["speed_mm_s"] = args.speed
-    if getattr(args, "wobble", None) is not None:
-        data["motion"]["wobble_along_px"] = args.wobble
-        data["motion"]["wobble_across_px"] = args.wobble
-    if getattr(args, "no_registration", False):
-        data["processing"]["registration"] = False
-    if getattr(args, "method", None):
-        data["processing"]["depth_method"] = args.method
-    if getattr(args, "operator", None):
-        data["processing"]["focus_operator"] = args.operator
-    if getattr(args, "seed", None) is not None:
-        data["source"]["seed"] = args.seed
-    return config_from_dict(data, origin="command line")
+#: Modules that add sub-commands; each defines ``register(sub)``.
+COMMAND_MODULES: tuple[str, ...] = ()
 
 
-def _describe(cfg: ScanConfig) -> str:
-    o, m = cfg.optics, cfg.motion
-    return (f"scan: {m.passes} pass(es) over x {m.x_start_mm:g}..{m.x_end_mm:g} mm at "
-            f"{m.speed_mm_s:g} mm/s; {o.width_px}x{o.height_px} px, {o.pixel_um:g} µm/px, "
-            f"{o.fps:g} fps, N = {o.n_levels} levels of {o.z_step_um:g} µm; speed limit "
-            f"{max_speed_sliding_mm_s(cfg):.1f} mm/s (sliding window), thesis per-stack "
-            f"limit {max_speed_thesis_mm_s(cfg):.1f} mm/s")
+def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:
+    from pipeline.sources import open_feed
 
+    print(describe(cfg), file=sys.stderr)
+    feed = open_feed(cfg, source=getattr(args, "source", None))
+    sinks = [k for k in (viewer_sink(cfg, args.viewer, default=viewer_default),) if k]
+    if getattr(args, "record", None):
+        from stages.recorder import recorder_sink
 
-def _run(cfg: ScanConfig, *, evaluate: bool, progress: bool) -> int:
-    from pipeline.wiring import evaluate_sim, format_summary, run_scan
-    from stages.sim_scanner import make_world, simulate_frames
-
-    print(_describe(cfg), file=sys.stderr)
-    world = make_world(cfg)
-    try:
-        report = run_scan(cfg, frames=simulate_frames(cfg, world=world), progress=progress)
-    except StageFailed as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        print(f"sffscan: the mosaic at {cfg.output.path} holds what was completed before the "
-              "failure (status 'failed')", file=sys.stderr)
-        return EXIT_FAILED
-    except KeyboardInterrupt:
-        print(f"sffscan: interrupted; the mosaic at {cfg.output.path} holds what was "
-              "completed (status 'failed')", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    if evaluate:
-        evaluate_sim(report, world)
-    print(format_summary(report))
-    return EXIT_OK
+        sinks.append(recorder_sink(cfg, args.record))
+    return run_and_report(cfg, feed.frames, world=feed.world if evaluate else None,
+                          progress=not args.quiet, sinks=sinks)
 
 
 DEMO_OUTPUT = "sffscan-demo.zarr"
@@ -88,14 +50,13 @@ DEMO_OUTPUT = "sffscan-demo.zarr"
 def cmd_demo(args: argparse.Namespace) -> int:
     if args.output is None:  # the demo's own default output is replaced on every run
         args.output, args.overwrite = DEMO_OUTPUT, True
-    cfg = demo_config(passes=args.passes)
-    cfg = _override(cfg, args)
-    return _run(cfg, evaluate=True, progress=not args.quiet)
+    cfg = override(demo_config(passes=args.passes), args)
+    return _run(cfg, args, evaluate=True, viewer_default="off")
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
-    cfg = _override(load_config(args.config), args)
-    return _run(cfg, evaluate=not args.no_evaluate, progress=not args.quiet)
+    cfg = override(load_config(args.config), args)
+    return _run(cfg, args, evaluate=not args.no_evaluate, viewer_default="off")
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -132,20 +93,6 @@ def build_parser() -> argparse.ArgumentParser:
                     "write a Zarr height mosaic.")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def scan_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("-o", "--output",
-                       help="mosaic path, a Zarr v3 group (demo: sffscan-demo.zarr, replaced)")
-        p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
-        p.add_argument("--speed", type=float, help="stage speed, mm/s")
-        p.add_argument("--wobble", type=float, help="sim: stage wobble, ± px along and across")
-        p.add_argument("--no-registration", action="store_true",
-                       help="place frames by speed only")
-        p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
-                                            "spc"], help="depth method (default spc)")
-        p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
-        p.add_argument("--seed", type=int, help="sim: seed of texture and noise")
-        p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
-
     p = sub.add_parser("demo", help="simulated scan of the characterisation plate at 15 mm/s",
                        description="Simulated scan of the characterisation plate (thesis optics: "
                                    "1280x1024 px, 8.5 µm/px, 150 fps, N = 50, 15 mm/s), then "
@@ -170,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dir", default="schemas", help="schema folder (default schemas)")
     p.add_argument("--check", action="store_true", help="fail if the files differ")
     p.set_defaults(func=cmd_schemas)
+    for module in COMMAND_MODULES:
+        importlib.import_module(module).register(sub)
     return parser
 
 

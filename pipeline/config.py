@@ -15,6 +15,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from pipeline.hardware_config import CameraConfig, DaqConfig
+
 
 class ConfigError(ValueError):
     """An invalid or impossible configuration; the message names the field."""
@@ -25,7 +27,11 @@ class _Model(BaseModel):
 
 
 class SourceConfig(_Model):
-    kind: Literal["sim"] = Field("sim", description="Frame source: 'sim' = simulated scanner")
+    kind: Literal["sim", "camera", "tcp"] = Field(
+        "sim", description="Frame source: 'sim' = simulated scanner, 'camera' = GenICam camera "
+        "([camera] table), 'tcp' = frames sent by 'sffscan grab' to source.address")
+    address: str = Field("tcp://127.0.0.1:5555", description="zmq address of 'sffscan grab' "
+                         "(tcp:// or ipc://), for kind 'tcp'")
     seed: int = Field(0, description="Seed of the simulated world texture and sensor noise")
     world: Literal["plate", "sinusoid"] = Field(
         "plate", description="Simulated world: characterisation plate or sinusoidal surface"
@@ -132,6 +138,8 @@ class ScanConfig(_Model):
     motion: MotionConfig = Field(default_factory=lambda: MotionConfig())
     processing: ProcessingConfig = Field(default_factory=lambda: ProcessingConfig())
     output: OutputConfig = Field(default_factory=lambda: OutputConfig())
+    camera: CameraConfig = Field(default_factory=lambda: CameraConfig())
+    daq: DaqConfig = Field(default_factory=lambda: DaqConfig())
 
 
 # --- derived quantities -------------------------------------------------------------------
@@ -250,10 +258,12 @@ def demo_config(*, passes: int = 1, **sections: dict[str, Any]) -> ScanConfig:
 def config_to_toml(cfg: ScanConfig) -> str:
     """Render a configuration as TOML (the inverse of :func:`load_config`)."""
     out: list[str] = [f"version = {cfg.version}", ""]
-    for name in ("source", "optics", "motion", "processing", "output"):
+    for name in ("source", "optics", "motion", "processing", "output", "camera", "daq"):
         out.append(f"[{name}]")
         for key, value in getattr(cfg, name).model_dump().items():
-            if isinstance(value, bool):
+            if value is None:  # TOML has no null: an absent key takes the default (None)
+                out.append(f"# {key} = (not set)")
+            elif isinstance(value, bool):
                 out.append(f"{key} = {'true' if value else 'false'}")
             elif isinstance(value, str):
                 out.append(f"{key} = {json.dumps(value)}")  # JSON escapes are TOML's

@@ -6,6 +6,12 @@ whose policy when full is declared (``block`` by default; ``drop_oldest`` and
 ``drop_newest`` count every drop). Every put and get waits with a timeout and re-checks
 the pipeline's stop flag between waits; nothing sleeps to poll.
 
+Side branches: a :class:`Sink` (the raw-stream recorder, the live viewer) receives the
+outputs of the stages it names as :class:`Tapped` items through its own bounded queue, in
+its own thread, with its own full policy (a viewer drops the oldest; a recorder blocks, and
+the time the pipeline spent waiting for it is reported). Sinks get the end of stream after
+the main chain has finished.
+
 Shutdown: the source ends with :data:`END_OF_STREAM`; each stage drains its input, runs
 its ``finish`` (flushing what it still holds), forwards the end-of-stream and stops. A stage
 that raises stops the whole pipeline: the others leave at their next wait, every stage's
@@ -189,6 +195,40 @@ class Stage:
         return {}
 
 
+@dataclass(frozen=True, slots=True)
+class Tapped:
+    """An output of stage ``stage``, as a sink receives it (``item`` is shared: read only)."""
+
+    stage: str
+    item: Any
+
+
+@dataclass(frozen=True, slots=True)
+class StatsSnapshot:
+    """The pipeline's statistics at ``elapsed_s``, sent to sinks with ``wants_stats``."""
+
+    elapsed_s: float
+    stages: tuple[StageStats, ...]
+    queues: tuple[QueueStats, ...]
+
+
+class Sink(Stage):
+    """A side branch: consumes :class:`Tapped` outputs of the stages named in ``taps``.
+
+    A sink implements :meth:`Stage.process` (its outputs are discarded), :meth:`finish`
+    and :meth:`close` like any stage. If it raises, the pipeline stops like for any stage.
+    """
+
+    #: Names of the stages whose outputs this sink receives.
+    taps: tuple[str, ...] = ()
+    #: Capacity and full policy of the sink's own input queue.
+    capacity: int = 64
+    policy: FullPolicy = FullPolicy.BLOCK
+    #: Receive a :class:`StatsSnapshot` about every ``progress_s`` seconds.
+    wants_stats: bool = False
+    unit = "items"
+
+
 @dataclass
 class PipelineResult:
     wall_s: float
@@ -214,6 +254,8 @@ class Pipeline:
     on_progress : callable, optional
         Called from the runner thread about every ``progress_s`` seconds with the stage
         statistics, for progress display.
+    sinks : list of Sink, optional
+        Side branches fed from the outputs of the stages they tap, each by its own queue.
     """
 
     def __init__(
@@ -224,12 +266,19 @@ class Pipeline:
         policies: dict[str, FullPolicy] | None = None,
         on_progress: Callable[[list[StageStats], float], None] | None = None,
         progress_s: float = 1.0,
+        sinks: list[Sink] | None = None,
     ) -> None:
         if not stages:
             raise ValueError("a pipeline needs at least a source stage")
+        self.sinks = list(sinks or [])
         names = [s.name for s in stages]
-        if len(set(names)) != len(names):
-            raise ValueError(f"stage names must be unique, got {names}")
+        all_names = names + [k.name for k in self.sinks]
+        if len(set(all_names)) != len(all_names):
+            raise ValueError(f"stage and sink names must be unique, got {all_names}")
+        for k in self.sinks:
+            unknown = set(k.taps) - set(names)
+            if unknown:
+                raise ValueError(f"sink '{k.name}' taps unknown stages {sorted(unknown)}")
         self.stages = stages
         self.stop = threading.Event()
         policies = policies or {}
@@ -243,6 +292,16 @@ class Pipeline:
             for a, b in zip(stages[:-1], stages[1:], strict=True)
         ]
         self.stats = [StageStats(s.name, s.unit) for s in stages]
+        self.sink_queues = [BoundedQueue(f"{'+'.join(k.taps) or 'stats'}->{k.name}", k.capacity,
+                                         policy=k.policy, stop=self.stop) for k in self.sinks]
+        self.sink_stats = [StageStats(k.name, k.unit) for k in self.sinks]
+        #: for each main stage, the queues of the sinks that tap it
+        self._taps: list[list[BoundedQueue]] = [
+            [q for k, q in zip(self.sinks, self.sink_queues, strict=True) if s.name in k.taps]
+            for s in stages
+        ]
+        #: seconds each stage spent waiting for a blocking sink queue (a sink falling behind)
+        self.sink_wait_s: dict[str, float] = {k.name: 0.0 for k in self.sinks}
         self.on_progress = on_progress
         self.progress_s = progress_s
         self._errors: list[tuple[str, BaseException]] = []
@@ -251,8 +310,18 @@ class Pipeline:
     def _emit(self, index: int, outputs: Iterable[Any]) -> None:
         stats = self.stats[index]
         out_q = self.queues[index] if index < len(self.queues) else None
+        taps = self._taps[index]
+        name = self.stages[index].name
         for out in outputs:
             stats.items_out += 1
+            for q in taps:
+                t0 = time.perf_counter()
+                q.put(Tapped(name, out))
+                waited = time.perf_counter() - t0
+                if waited > 1e-3:
+                    with self._lock:
+                        sink = q.name.rsplit("->", 1)[1]
+                        self.sink_wait_s[sink] += waited
             if out_q is not None:
                 out_q.put(out)
 
@@ -298,6 +367,39 @@ class Pipeline:
                 self._errors.append((stage.name, exc))
             self.stop.set()
 
+    def _run_sink(self, index: int) -> None:
+        sink, stats, in_q = self.sinks[index], self.sink_stats[index], self.sink_queues[index]
+        try:
+            while True:
+                item = in_q.get()
+                if item is END_OF_STREAM:
+                    break
+                stats.items_in += 1
+                t0, c0 = time.perf_counter(), time.thread_time()
+                for _ in sink.process(item):
+                    pass
+                stats.busy_s += time.perf_counter() - t0
+                stats.cpu_s += time.thread_time() - c0
+                stats.frames += 1
+            t0, c0 = time.perf_counter(), time.thread_time()
+            for _ in sink.finish():
+                pass
+            stats.busy_s += time.perf_counter() - t0
+            stats.cpu_s += time.thread_time() - c0
+        except PipelineStopped:
+            return
+        except BaseException as exc:  # noqa: BLE001 - reported with the sink's name
+            with self._lock:
+                self._errors.append((sink.name, exc))
+            self.stop.set()
+
+    def _snapshot(self, elapsed: float) -> None:
+        snap = StatsSnapshot(elapsed, tuple(self.stats + self.sink_stats),
+                             tuple(q.stats for q in self.queues + self.sink_queues))
+        for k, q in zip(self.sinks, self.sink_queues, strict=True):
+            if k.wants_stats and q.policy is not FullPolicy.BLOCK:
+                q.put(snap)
+
     def run(self) -> PipelineResult:
         """Run to the end of the stream; raise :class:`StageFailed` if a stage failed.
 
@@ -314,20 +416,33 @@ class Pipeline:
             threading.Thread(target=self._run_stage, args=(i,), name=f"stage-{s.name}", daemon=True)
             for i, s in enumerate(self.stages)
         ]
-        for t in threads:
+        sink_threads = [
+            threading.Thread(target=self._run_sink, args=(i,), name=f"sink-{k.name}", daemon=True)
+            for i, k in enumerate(self.sinks)
+        ]
+        for t in threads + sink_threads:
             t.start()
         try:
             last = threads[-1]
             while last.is_alive():
                 last.join(self.progress_s)
-                if self.on_progress is not None and last.is_alive():
-                    self.on_progress(self.stats, time.perf_counter() - t_start)
+                if last.is_alive():
+                    elapsed = time.perf_counter() - t_start
+                    if self.on_progress is not None:
+                        self.on_progress(self.stats, elapsed)
+                    self._snapshot(elapsed)
+            if not self.stop.is_set():
+                self._snapshot(time.perf_counter() - t_start)
+                for q in self.sink_queues:  # the sinks drain what they hold, then end
+                    q.put(END_OF_STREAM)
+                for t in sink_threads:
+                    t.join()
             self.stop.set()  # anything upstream still waiting leaves now
-            for t in threads:
+            for t in threads + sink_threads:
                 t.join()
         except BaseException:  # Ctrl-C, or the progress display failing: stop cleanly
             self.stop.set()
-            for t in threads:
+            for t in threads + sink_threads:
                 t.join()
             self._close_all(failed=True)
             raise
@@ -338,16 +453,19 @@ class Pipeline:
             raise StageFailed(name, exc) from exc
         if close_error is not None:
             raise StageFailed(*close_error) from close_error[1]
+        extras = {s.name: s.extra_stats() for s in self.stages + self.sinks}
+        for name, waited in self.sink_wait_s.items():
+            extras[name] = {**extras[name], "pipeline_waited_s": round(waited, 3)}
         return PipelineResult(
             wall_s=time.perf_counter() - t_start,
-            stages=self.stats,
-            queues=[q.stats for q in self.queues],
-            extras={s.name: s.extra_stats() for s in self.stages},
+            stages=self.stats + self.sink_stats,
+            queues=[q.stats for q in self.queues + self.sink_queues],
+            extras=extras,
         )
 
     def _close_all(self, *, failed: bool) -> tuple[str, BaseException] | None:
         first: tuple[str, BaseException] | None = None
-        for stage in self.stages:
+        for stage in self.stages + self.sinks:
             try:
                 stage.close(failed=failed)
             except Exception as exc:  # noqa: BLE001 - every stage gets its close

@@ -22,7 +22,7 @@ from pipeline.config import ScanConfig
 from pipeline.evaluate import Accuracy, mosaic_accuracy
 from pipeline.messages import Frame
 from pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
-from pipeline.runtime import Pipeline, PipelineResult, Stage, StageStats
+from pipeline.runtime import Pipeline, PipelineResult, Sink, Stage, StageStats
 from stages.focus_measure import FocusMeasureStage
 from stages.focus_volume import DepthStage
 from stages.frame_source import SourceStage
@@ -124,12 +124,15 @@ class ScanReport:
 
 
 def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | None = None,
-             overwrite: bool | None = None, progress: bool = True) -> ScanReport:
-    """Run the whole pipeline over ``frames``; the mosaic goes to ``output``."""
+             overwrite: bool | None = None, progress: bool = True,
+             sinks: list[Sink] | None = None) -> ScanReport:
+    """Run the whole pipeline over ``frames``; the mosaic goes to ``output``; ``sinks``
+    (recorder, viewer) tap the stages they name."""
     writer = open_writer(cfg, path=output, overwrite=overwrite)
     stages = build_stages(cfg, frames, writer)
     prog = Progress(frame_count(cfg)) if progress else None
-    pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog)
+    pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
+                    sinks=sinks)
     try:
         result = pipe.run()
     finally:

@@ -97,5 +97,10 @@ class SourceStage(Stage):
             self._check_header(frame)
             yield frame
 
+    def close(self, *, failed: bool) -> None:
+        close = getattr(self.frames, "close", None)  # a generator releases its device/socket
+        if close is not None:
+            close()
+
     def extra_stats(self) -> dict[str, int]:
         return {"frame_id_gaps": self.gaps, "frames_lost": self.lost}

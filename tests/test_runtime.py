@@ -14,8 +14,10 @@ from pipeline.runtime import (
     FullPolicy,
     Pipeline,
     PipelineStopped,
+    Sink,
     Stage,
     StageFailed,
+    Tapped,
 )
 
 
@@ -198,3 +200,72 @@ def test_progress_display_failing_stops_and_closes_everything() -> None:
         pipe.run()
     assert pipe.stop.is_set()
     assert sink.closed_failed is True
+
+
+class Recorder(Sink):
+    """A sink that keeps what it receives (optionally slowly, or failing at an item)."""
+
+    name = "recorder"
+    taps = ("numbers", "double")
+
+    def __init__(self, *, delay: threading.Event | None = None, fail_at: int = -1) -> None:
+        self.got: list[tuple[str, Any]] = []
+        self.finished = False
+        self.closed_failed: bool | None = None
+        self.delay = delay
+        self.fail_at = fail_at
+
+    def process(self, item: Tapped) -> Iterator[Any]:
+        if self.delay is not None:
+            self.delay.wait(0.002)
+        if len(self.got) == self.fail_at:
+            raise OSError("disk full")
+        self.got.append((item.stage, item.item))
+        return iter(())
+
+    def finish(self) -> Iterator[Any]:
+        self.finished = True
+        return iter(())
+
+    def close(self, *, failed: bool) -> None:
+        self.closed_failed = failed
+
+
+def test_sink_receives_every_tapped_output_in_order_then_finishes() -> None:
+    sink = Recorder(delay=threading.Event())
+    sink.capacity = 2  # small: the chain must wait for it, and the wait is reported
+    collect = Collect()
+    result = Pipeline([Numbers(50), Double(), collect], capacity=4, sinks=[sink]).run()
+    assert [v for s, v in sink.got if s == "numbers"] == list(range(50))
+    assert [v for s, v in sink.got if s == "double"] == [2 * i for i in range(50)]
+    assert collect.items == [2 * i for i in range(50)]
+    assert sink.finished and sink.closed_failed is False
+    assert result.extras["recorder"]["pipeline_waited_s"] > 0
+    assert [s.name for s in result.stages][-1] == "recorder"
+    assert result.stages[-1].frames == 100
+
+
+def test_failing_sink_stops_the_pipeline_with_its_name() -> None:
+    sink = Recorder(fail_at=10)
+    with pytest.raises(StageFailed, match="recorder.*disk full"):
+        Pipeline([Numbers(1000), Double(), Collect()], capacity=2, sinks=[sink]).run()
+    assert sink.closed_failed is True
+    assert len(sink.got) == 10
+
+
+def test_dropping_sink_never_holds_the_chain_and_counts_drops() -> None:
+    sink = Recorder(delay=threading.Event())
+    sink.capacity, sink.policy = 1, FullPolicy.DROP_OLDEST
+    collect = Collect()
+    result = Pipeline([Numbers(300), Double(), collect], capacity=4, sinks=[sink]).run()
+    assert collect.items == [2 * i for i in range(300)]
+    sink_q = result.queues[-1]
+    assert sink_q.dropped > 0
+    assert len(sink.got) + sink_q.dropped == 600
+
+
+def test_sink_tapping_an_unknown_stage_is_refused() -> None:
+    sink = Recorder()
+    sink.taps = ("nope",)
+    with pytest.raises(ValueError, match="unknown stages"):
+        Pipeline([Numbers(3), Collect()], sinks=[sink])

@@ -1,0 +1,52 @@
+"""Frame feeds: where a scan's frames come from, chosen by configuration alone.
+
+``source.kind`` picks the simulated scanner (default), a GenICam camera (harvesters) or
+frames sent over zmq by ``sffscan grab``; ``--source tcp://...`` on the command line
+overrides it. Replay of a recording has its own command (``sffscan replay``). Every feed
+is a plain iterator of :class:`pipeline.messages.Frame`; generators release their device
+or socket when closed (the source stage closes them, on failure too).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from pipeline.config import ConfigError, ScanConfig
+from pipeline.messages import Frame
+
+
+@dataclass
+class FrameFeed:
+    """A scan's frames and what the summary needs to know about them."""
+
+    frames: Iterator[Frame]
+    description: str
+    #: the simulated world (only for ``kind = "sim"``): lets the scan be scored
+    world: Any | None = None
+
+
+def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
+    """The frame feed of ``cfg`` (``source``, a zmq address, overrides ``source.kind``)."""
+    if source is not None:
+        if not source.startswith(("tcp://", "ipc://")):
+            raise ConfigError(f"--source {source!r}: expected a zmq address tcp://HOST:PORT or "
+                              "ipc://PATH")
+        from pipeline.transport import receive_frames
+
+        return FrameFeed(receive_frames(source, cfg), f"frames from {source}")
+    kind = cfg.source.kind
+    if kind == "sim":
+        from stages.sim_scanner import make_world, simulate_frames
+
+        world = make_world(cfg)
+        return FrameFeed(simulate_frames(cfg, world=world), "simulated scanner", world)
+    if kind == "camera":
+        from stages.camera_source import camera_frames
+
+        return FrameFeed(camera_frames(cfg), "GenICam camera")
+    from pipeline.transport import receive_frames
+
+    return FrameFeed(receive_frames(cfg.source.address, cfg),
+                     f"frames from {cfg.source.address}")
