@@ -34,6 +34,8 @@ def processing_options(p: argparse.ArgumentParser) -> None:
                                         "spc"], help="depth method (default spc)")
     p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
     p.add_argument("--window", type=int, help="focus measure window k, odd, px")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration JSON ('sffscan calibrate'): focus level -> µm")
     p.add_argument("--viewer", nargs="+", metavar="MODE", default=None,
                    help=f"live view in Rerun: {VIEWER_CHOICES}")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
@@ -75,6 +77,8 @@ def override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
         data["processing"]["focus_operator"] = args.operator
     if getattr(args, "window", None) is not None:
         data["processing"]["window"] = args.window
+    if getattr(args, "calibration", None):
+        data["processing"]["calibration"] = str(args.calibration)
     if getattr(args, "seed", None) is not None:
         data["source"]["seed"] = args.seed
     return config_from_dict(data, origin="command line")

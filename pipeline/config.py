@@ -91,6 +91,9 @@ class ProcessingConfig(_Model):
         4, ge=1, le=16, description="Image reduction for registration (4 = quarter resolution)")
     backend: Literal["opencv", "torch"] = Field("opencv", description="Focus measure backend")
     device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
+    calibration: str | None = Field(
+        None, description="Calibration file (JSON, 'sffscan calibrate'): its z response maps "
+        "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um")
     queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
     block_columns: int = Field(128, ge=1, description="Columns reduced to depth at once")
 

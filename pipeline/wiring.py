@@ -31,6 +31,17 @@ from stages.registration import RegistrationStage
 from stages.speed_shift import SpeedShiftStage
 
 
+def focus_heights_um(cfg: ScanConfig) -> list[float]:
+    """Height in focus at each level, µm: from the calibration file's z response when
+    ``processing.calibration`` is set, else the nominal optics table."""
+    if cfg.processing.calibration:
+        from pipeline.calibration import calibrated_focus_heights, load_calibration
+
+        cal = load_calibration(cfg.processing.calibration)
+        return [float(v) for v in calibrated_focus_heights(cal, cfg.optics.n_levels)]
+    return cfg.optics.focus_heights_um()
+
+
 def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
@@ -49,7 +60,7 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
                           device=p.device, max_value=o.max_value, margin=p.focus_reach_px,
                           directions=directions),
         DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-                   focus_heights_um=o.focus_heights_um(), margin=p.focus_reach_px,
+                   focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
                    method=p.depth_method, median_size=p.median_size,
                    block_columns=p.block_columns,
                    directions=directions,
@@ -72,8 +83,9 @@ def open_writer(cfg: ScanConfig, *, path: str | Path | None = None,
             "processing": {"focus_operator": p.focus_operator, "window": p.window,
                            "depth_method": p.depth_method, "median_size": p.median_size,
                            "registration": p.registration,
-                           "registration_scale": p.registration_scale, "backend": p.backend},
-            "focus_heights_um": o.focus_heights_um(),
+                           "registration_scale": p.registration_scale, "backend": p.backend,
+                           "calibration": p.calibration},
+            "focus_heights_um": focus_heights_um(cfg),
             "scan_config": cfg.model_dump(mode="json"),
         },
     )

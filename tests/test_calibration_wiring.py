@@ -1,0 +1,53 @@
+"""The pipeline applies a calibration file's z response to the mosaic heights."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline.calibration import Calibration, ZResponse, save_calibration
+from pipeline.cli import main
+from pipeline.config import ConfigError, config_to_toml
+from tests.scan_helpers import scan, small_config
+
+
+def _calibration(path: Path) -> Path:
+    z = ZResponse(um_per_level=190.0, intercept_um=100.0, pearson_r=1.0,
+                  heights_um=[100.0, 9410.0], peak_levels=[0.0, 49.0], residuals_um=[0.0, 0.0])
+    return save_calibration(Calibration(description="test", z_response=z), path)
+
+
+def test_scan_heights_follow_the_calibrated_z_response(tmp_path: Path) -> None:
+    cal = _calibration(tmp_path / "cal.json")
+    nominal = scan(small_config(), tmp_path / "nominal.zarr")
+    calibrated = scan(small_config(processing={"calibration": str(cal)}),
+                      tmp_path / "calibrated.zarr")
+    h_nom = np.asarray(zarr.open_group(str(nominal.output), mode="r")["height"][:])
+    g = zarr.open_group(str(calibrated.output), mode="r")
+    h_cal = np.asarray(g["height"][:])
+    assert np.array_equal(np.isnan(h_nom), np.isnan(h_cal))
+    valid = np.isfinite(h_nom)
+    assert valid.sum() > 10_000
+    # nominal: 200 µm per level from 0; calibrated: 190 µm per level from 100 µm
+    np.testing.assert_allclose(h_cal[valid], 100.0 + 0.95 * h_nom[valid], atol=0.05)
+    attrs = dict(g.attrs)
+    assert attrs["processing"]["calibration"] == str(cal)
+    assert attrs["focus_heights_um"][:2] == [100.0, 290.0]
+
+
+def test_missing_or_bad_calibration_file_is_refused_naming_it(tmp_path: Path) -> None:
+    from pipeline.wiring import focus_heights_um
+
+    with pytest.raises(ConfigError, match="nope.json"):
+        focus_heights_um(small_config(processing={"calibration": str(tmp_path / "nope.json")}))
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "sffscan-calibration", "format_version": 1, "noise_um": -1}')
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(small_config()), encoding="utf-8")
+    code = main(["scan", "--config", str(toml), "-o", str(tmp_path / "m.zarr"), "-q",
+                 "--calibration", str(bad)])
+    assert code == 2
+    assert not (tmp_path / "m.zarr").exists()
