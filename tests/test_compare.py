@@ -1,0 +1,117 @@
+"""Tests of pipeline.compare and ``sffscan compare``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.ndimage
+
+from pipeline.cli import main
+from pipeline.compare import (
+    CompareReport,
+    HeightMap,
+    compare_height_maps,
+    fit_plane,
+    overlap_by_origin,
+)
+from stages.mosaic import MosaicWriter
+
+
+def _surface(shape: tuple[int, int] = (80, 90), seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return scipy.ndimage.gaussian_filter(rng.normal(size=shape), 3) * 500.0 + 1000.0
+
+
+def test_metrics_against_direct_formulas() -> None:
+    ref = _surface()
+    est = ref + np.random.default_rng(1).normal(0, 20.0, ref.shape) + 7.0
+    est[5:9, 5:9] = np.nan
+    r = compare_height_maps(est, ref, max_depth_um=2000.0, bins=16)
+    ok = np.isfinite(est)
+    d = (est - ref)[ok]
+    rmse = math.sqrt(float(np.mean(d**2)))
+    assert r.rmse_um == pytest.approx(rmse, rel=1e-9)
+    assert r.corr == pytest.approx(float(np.corrcoef(est[ok], ref[ok])[0, 1]), rel=1e-9)
+    assert r.psnr_db == pytest.approx(20 * math.log10(2000.0) - 10 * math.log10(rmse**2))
+    assert r.mean_error_um == pytest.approx(float(d.mean()))
+    assert r.pixels == ok.sum() and r.coverage == pytest.approx(ok.mean())
+    h = r.histogram
+    assert sum(h.counts) + h.below + h.above == r.pixels
+    assert len(h.edges_um) == 17 and h.edges_um[0] == -h.edges_um[-1]
+
+
+def test_identical_maps() -> None:
+    ref = _surface()
+    r = compare_height_maps(ref, ref, max_depth_um=1.0)
+    assert r.rmse_um == 0.0 and r.corr == pytest.approx(1.0) and r.psnr_db is None  # infinite
+
+
+def test_align_offset_and_plane() -> None:
+    ref = _surface()
+    yy, xx = np.indices(ref.shape)
+    tilted = ref + 30.0 + 0.5 * xx - 0.25 * yy
+    assert fit_plane(tilted - ref) == pytest.approx((30.0, 0.5, -0.25))
+    none = compare_height_maps(tilted, ref, max_depth_um=2000.0)
+    off = compare_height_maps(tilted, ref, max_depth_um=2000.0, align="offset")
+    plane = compare_height_maps(tilted, ref, max_depth_um=2000.0, align="plane")
+    assert none.rmse_um is not None and off.rmse_um is not None and plane.rmse_um is not None
+    assert off.rmse_um < none.rmse_um
+    assert plane.rmse_um < 1e-9
+    assert plane.plane_um == pytest.approx((30.0, 0.5, -0.25))
+
+
+def test_align_shift_recovers_a_known_shift() -> None:
+    big = _surface((120, 130), seed=4)
+    ref = big[10:100, 10:110]
+    est = big[10 + 2:100 + 2, 10 + 3:110 + 3] + 12.0  # est[p] = ref[p + (3, 2)]
+    r = compare_height_maps(est, ref, max_depth_um=2000.0, align="shift")
+    assert r.shift_px == (-3, -2)
+    assert r.rmse_um is not None and r.rmse_um < 1e-9
+    assert r.pixels == (90 - 2) * (100 - 3)
+
+
+def test_bad_input() -> None:
+    with pytest.raises(ValueError, match="same shape"):
+        compare_height_maps(np.zeros((3, 3)), np.zeros((3, 4)), max_depth_um=1.0)
+    with pytest.raises(ValueError, match="align"):
+        compare_height_maps(np.zeros((3, 3)), np.zeros((3, 3)), max_depth_um=1.0, align="x")
+    with pytest.raises(ValueError, match="max_depth"):
+        compare_height_maps(np.zeros((3, 3)), np.zeros((3, 3)), max_depth_um=0.0)
+
+
+def test_overlap_by_origin() -> None:
+    a = HeightMap(np.arange(20.0).reshape(4, 5), "a", 1.0, (10, 20))
+    b = HeightMap(np.arange(30.0).reshape(5, 6), "b", 1.0, (12, 18))
+    ea, eb, origin = overlap_by_origin(a, b)
+    assert origin == (12, 20) and ea.shape == eb.shape == (3, 3)
+    np.testing.assert_array_equal(ea, a.height_um[0:3, 2:5])
+    np.testing.assert_array_equal(eb, b.height_um[2:5, 0:3])
+    with pytest.raises(ValueError, match="do not overlap"):
+        overlap_by_origin(a, HeightMap(np.zeros((2, 2)), "c", 1.0, (100, 100)))
+
+
+def _mosaic(path: Path, height: np.ndarray, origin: tuple[int, int]) -> None:
+    w = MosaicWriter(path, origin_px=origin, shape=height.shape, pixel_um=8.5,
+                     attrs={"focus_heights_um": [0.0, 1000.0, 2000.0]})
+    one = np.ones(height.shape, np.float32)
+    w.write_region(origin[0], origin[1], {"height": height, "texture": one * 0.5,
+                                          "weight": one, "confidence": one})
+    w.set_status("complete")
+
+
+def test_compare_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ref = _surface((60, 70))
+    _mosaic(tmp_path / "a.zarr", ref[:, :50], (100, 200))  # world x 100..150
+    _mosaic(tmp_path / "b.zarr", ref[:, 20:] + 5.0, (120, 200))  # world x 120..170
+    np.save(tmp_path / "r.npy", ref)
+    assert main(["compare", str(tmp_path / "b.zarr"), str(tmp_path / "a.zarr"),
+                 "--json", str(tmp_path / "c.json")]) == 0
+    r = CompareReport.model_validate_json((tmp_path / "c.json").read_text())
+    assert r.pixels == 60 * 30  # the world overlap x 120..150
+    assert r.rmse_um == pytest.approx(5.0) and r.max_depth_um == 2000.0
+    assert "RMSE" in capsys.readouterr().out
+    assert main(["compare", str(tmp_path / "a.zarr"), str(tmp_path / "r.npy")]) == 2  # shapes
+    assert main(["compare", str(tmp_path / "r.npy"), str(tmp_path / "missing.npy")]) == 2

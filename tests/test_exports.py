@@ -1,0 +1,164 @@
+"""Tests of pipeline.exports (PLY, x3p) and pipeline.areal (Sa, Sq, Sz, Ssk, Sku)."""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.stats
+import x3pio
+
+from pipeline.areal import areal_parameters, level_surface
+from pipeline.cli import main
+from pipeline.exports import read_region, write_ply, write_x3p
+from stages.mosaic import MosaicWriter
+
+PX = 8.5
+ORIGIN = (300, 40)
+
+
+@pytest.fixture()
+def mosaic(tmp_path: Path) -> tuple[Path, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    h = rng.uniform(100.0, 900.0, (30, 40)).astype(np.float32)
+    t = rng.uniform(0.0, 1.0, (30, 40)).astype(np.float32)
+    h[3, 4] = h[10:12, 20:25] = np.nan
+    path = tmp_path / "m.zarr"
+    w = MosaicWriter(path, origin_px=ORIGIN, shape=h.shape, pixel_um=PX,
+                     attrs={"focus_heights_um": [0.0, 500.0, 1000.0],
+                            "processing": {"mode": "test"}})
+    ok = np.isfinite(h)
+    wt = ok.astype(np.float32)
+    w.write_region(*ORIGIN, {"height": np.where(ok, h, 0) * wt, "texture": t * wt,
+                             "weight": wt, "confidence": wt})
+    w.set_status("complete")
+    return path, np.where(ok, h, np.nan), np.where(ok, t, np.nan)
+
+
+def _parse_ply(path: Path) -> tuple[list[str], np.ndarray]:
+    """Independent minimal reader: header lines, then (n, 4) float64 rows x y z grey."""
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    lines = head.decode("ascii").splitlines()
+    n = int(next(line for line in lines if line.startswith("element vertex")).split()[-1])
+    rec = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("g", "u1")])
+    assert len(body) == n * 13
+    arr = np.frombuffer(body, rec)
+    return lines, np.column_stack([arr["x"], arr["y"], arr["z"], arr["g"]]).astype(np.float64)
+
+
+def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
+    path, h, t = mosaic
+    out = tmp_path / "a.ply"
+    info = write_ply(out, path, band_rows=7)  # several bands
+    lines, v = _parse_ply(out)
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
+    assert "property uchar grey" in lines
+    rows, cols = np.nonzero(np.isfinite(h))
+    assert info["points"] == rows.size == v.shape[0] and info["no_texture"] == 0
+    np.testing.assert_allclose(v[:, 0], (ORIGIN[0] + cols) * PX / 1000, rtol=1e-6)
+    np.testing.assert_allclose(v[:, 1], (ORIGIN[1] + rows) * PX / 1000, rtol=1e-6)
+    np.testing.assert_allclose(v[:, 2], h[rows, cols] / 1000, rtol=1e-6)
+    np.testing.assert_array_equal(v[:, 3], np.rint(t[rows, cols] * 255))
+
+
+def test_ply_region(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
+    path, h, _ = mosaic
+    box = (ORIGIN[0] + 5, ORIGIN[1] + 2, ORIGIN[0] + 25, ORIGIN[1] + 12)
+    info = write_ply(tmp_path / "r.ply", path, box)
+    assert info["points"] == int(np.isfinite(h[2:12, 5:25]).sum())
+    _, v = _parse_ply(tmp_path / "r.ply")
+    assert v[:, 0].min() == pytest.approx(box[0] * PX / 1000)
+    with pytest.raises(ValueError, match="outside the mosaic"):
+        write_ply(tmp_path / "x.ply", path, (0, 0, 10, 10))
+
+
+def test_x3p_export_reads_back(mosaic: tuple[Path, np.ndarray, np.ndarray],
+                               tmp_path: Path) -> None:
+    path, h, _ = mosaic
+    out = tmp_path / "a.x3p"
+    info = write_x3p(out, path)
+    assert info == {"rows": 30, "cols": 40, "missing": int(np.isnan(h).sum())}
+    with zipfile.ZipFile(out) as archive:  # ISO 25178-72 container: main.xml + binary data
+        assert "main.xml" in archive.namelist()
+    f = x3pio.read(out)  # checks the MD5 checksums too
+    z = f.layers[0].z
+    np.testing.assert_array_equal(np.isnan(z), np.isnan(h))
+    np.testing.assert_allclose(z[np.isfinite(z)], h[np.isfinite(h)] * 1e-6, rtol=1e-7)
+    assert f.header.x.increment == pytest.approx(PX * 1e-6)
+    assert f.header.y.increment == pytest.approx(PX * 1e-6)
+    np.testing.assert_allclose(f.layers[0].placement.offset,
+                               [ORIGIN[0] * PX * 1e-6, ORIGIN[1] * PX * 1e-6, 0.0])
+    assert f.metadata is not None
+    assert f.metadata.probing_system.type == x3pio.ProbingType.NON_CONTACTING
+    assert json.loads(f.metadata.comment or "{}")["processing"] == {"mode": "test"}
+
+
+# ----------------------------------------------------------------------------- areal
+
+
+def test_areal_known_answer_sinusoid() -> None:
+    a, period = 50.0, 64
+    x = np.arange(8 * period)
+    z = np.tile(a * np.sin(2 * np.pi * x / period), (32, 1)) + 1000.0
+    p = areal_parameters(z, level="mean")  # whole periods: the mean is the offset
+    assert p.sq_um == pytest.approx(a / math.sqrt(2), rel=1e-3)
+    assert p.sa_um == pytest.approx(2 * a / math.pi, rel=1e-3)
+    assert p.sz_um == pytest.approx(2 * a, rel=1e-3)
+    assert p.ssk == pytest.approx(0.0, abs=1e-3)
+    assert p.sku == pytest.approx(1.5, rel=1e-3)
+
+
+def test_areal_matches_independent_implementation() -> None:
+    rng = np.random.default_rng(5)
+    yy, xx = np.indices((50, 60))
+    z = rng.gamma(2.0, 10.0, (50, 60)) + 0.3 * xx - 0.2 * yy + 400.0  # skewed, tilted
+    z[7, 7] = np.nan
+    p = areal_parameters(z)
+    # independent: plane by numpy.polynomial-free normal equations, moments by fsum / scipy
+    ok = np.isfinite(z)
+    a = np.column_stack([np.ones(ok.sum()), xx[ok], yy[ok]]).astype(np.float64)
+    coef = np.linalg.solve(a.T @ a, a.T @ z[ok])
+    r = z[ok] - a @ coef
+    n = r.size
+    sq = math.sqrt(math.fsum(v * v for v in r) / n)
+    assert p.sq_um == pytest.approx(sq, rel=1e-10)
+    assert p.sa_um == pytest.approx(math.fsum(abs(v) for v in r) / n, rel=1e-10)
+    assert p.sz_um == pytest.approx(float(r.max() - r.min()), rel=1e-10)
+    assert p.ssk == pytest.approx(float(scipy.stats.skew(r, bias=True)), rel=1e-8)
+    assert p.sku == pytest.approx(float(scipy.stats.kurtosis(r, fisher=False, bias=True)),
+                                  rel=1e-8)
+    assert p.pixels == n and p.missing == 1
+    assert p.ssk > 0.5  # the gamma surface is skewed: the test can tell
+
+
+def test_areal_levels_and_errors() -> None:
+    z = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_allclose(level_surface(z, level="none"), z)
+    assert abs(float(level_surface(z, level="mean").mean())) < 1e-12
+    assert areal_parameters(z).sq_um == pytest.approx(0.0, abs=1e-9)  # exactly a plane
+    with pytest.raises(ValueError, match="no finite"):
+        areal_parameters(np.full((3, 3), np.nan), level="mean")
+    with pytest.raises(ValueError, match="level"):
+        areal_parameters(z, level="cubic")
+
+
+def test_export_command(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path,
+                        capsys: pytest.CaptureFixture[str]) -> None:
+    path, h, _ = mosaic
+    assert main(["export", str(path), "--ply", str(tmp_path / "a.ply"), "--x3p",
+                 str(tmp_path / "a.x3p"), "--json", str(tmp_path / "p.json")]) == 0
+    out = capsys.readouterr().out
+    assert "Sa" in out and "Sku" in out
+    params = json.loads((tmp_path / "p.json").read_text())
+    assert params["sq_um"] == pytest.approx(areal_parameters(h).sq_um)
+    assert (tmp_path / "a.ply").is_file() and (tmp_path / "a.x3p").is_file()
+    region = read_region(path, (ORIGIN[0], ORIGIN[1], ORIGIN[0] + 10, ORIGIN[1] + 10))
+    assert region.height_um.shape == (10, 10)
+    assert main(["export", str(path), "--region", "0,0,5,5"]) == 2
+    assert main(["export", str(path), "--region", "1,2,3"]) == 2
+    assert main(["export", str(tmp_path / "a.ply")]) == 2  # not a mosaic

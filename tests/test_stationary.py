@@ -1,0 +1,184 @@
+"""Tests of stages.stationary: reconstruction of one field from a focus stack."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+import scipy.ndimage
+import zarr
+
+from pipeline.cli import main
+from stages.depth import depth_from_focus, levels_to_height
+from stages.focus_measure import focus_measure, to_unit_float
+from stages.sim_camera import Optics, focus_heights, render_stack
+from stages.sim_world import sinusoid_world
+from stages.stationary import (
+    StackSettings,
+    confidence_weighted_median,
+    read_focus_positions,
+    read_image_stack,
+    read_zarr_stack,
+    reconstruct_field,
+)
+
+# ----------------------------------------------------------------------------- filter
+
+
+def test_weighted_median_with_equal_weights_is_the_median() -> None:
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(40, 53)).astype(np.float32)
+    out = confidence_weighted_median(z, np.ones_like(z), size=7)
+    ref = scipy.ndimage.median_filter(z, size=7, mode="nearest")  # independent implementation
+    np.testing.assert_array_equal(out, ref)
+
+
+def test_weighted_median_follows_the_weights() -> None:
+    z = np.zeros((15, 15), np.float32)
+    w = np.full((15, 15), 0.1, np.float32)
+    z[:, :5] = 100.0  # a third of the window, but nearly all of its weight
+    w[:, :5] = 1.0
+    out = confidence_weighted_median(z, w, size=15)
+    assert out[7, 7] == 100.0
+    assert confidence_weighted_median(z, np.ones_like(w), size=15)[7, 7] == 0.0
+
+
+def test_weighted_median_removes_outlier_and_fills_nothing() -> None:
+    z = np.full((21, 21), 5.0, np.float32)
+    z[10, 10] = 1e4  # a low-confidence outlier
+    z[3, 3] = np.nan  # a missing pixel
+    w = np.ones_like(z)
+    w[10, 10] = 0.01
+    out = confidence_weighted_median(z, w, size=5)
+    assert out[10, 10] == 5.0
+    assert np.isnan(out[3, 3]) and np.isfinite(out).sum() == np.isfinite(z).sum()
+    np.testing.assert_array_equal(out[np.isfinite(out)], 5.0)  # NaN never used as a value
+
+
+def test_weighted_median_size_one_and_errors() -> None:
+    z = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_array_equal(confidence_weighted_median(z, np.ones_like(z), size=1), z)
+    with pytest.raises(ValueError, match="size"):
+        confidence_weighted_median(z, np.ones_like(z), size=4)
+    with pytest.raises(ValueError, match="weights"):
+        confidence_weighted_median(z, -np.ones_like(z), size=3)
+    with pytest.raises(ValueError, match="same shape"):
+        confidence_weighted_median(z, np.ones((3, 3)), size=3)
+
+
+# ----------------------------------------------------------------------------- reconstruction
+
+ZS = focus_heights(n_levels=20, z_step_um=400.0)
+
+
+@pytest.fixture(scope="module")
+def sim_stack() -> tuple[np.ndarray, np.ndarray]:
+    world = sinusoid_world(pixel_um=17.0, amplitude_um=2500.0, period_px=200.0,
+                           offset_um=3800.0)
+    optics = Optics(width=120, height=96, pixel_um=17.0)
+    stack = render_stack(world, x0=10.0, y0=5.0, focus_heights_um=ZS, optics=optics,
+                         rng=np.random.default_rng(3))
+    return stack, world.height_um(10.0, 5.0, 120, 96)
+
+
+def test_reconstruct_reuses_the_pipeline_functions(sim_stack: tuple[np.ndarray, np.ndarray]
+                                                   ) -> None:
+    stack, _ = sim_stack
+    s = StackSettings(method="spc", filter_size=1)
+    r = reconstruct_field(stack, focus_heights_um=ZS, settings=s, max_value=1023)
+    img = np.stack([to_unit_float(i, max_value=1023) for i in stack])
+    levels, conf = depth_from_focus(focus_measure(img, operator="glvm", window=9), method="spc")
+    np.testing.assert_array_equal(r.levels, levels)
+    np.testing.assert_array_equal(r.confidence, conf)
+    np.testing.assert_array_equal(r.height_um, levels_to_height(levels, focus_heights_um=ZS))
+    assert r.texture.dtype == np.float32 and 0 <= r.texture.min() and r.texture.max() <= 1
+
+
+def test_reconstruct_accuracy_on_sim_stack(sim_stack: tuple[np.ndarray, np.ndarray]) -> None:
+    stack, truth = sim_stack
+    r = reconstruct_field(stack, focus_heights_um=ZS, max_value=1023)
+    rmse = float(np.sqrt(np.mean((r.height_um - truth) ** 2)))
+    raw = float(np.sqrt(np.mean((r.raw_height_um - truth) ** 2)))
+    print(f"\nsim sinusoid stack (N=20, 400 µm): RMSE raw {raw:.1f} µm, filtered {rmse:.1f} µm")
+    assert rmse < 0.25 * 400.0  # a quarter of a focus step
+    assert rmse <= raw
+
+
+def test_min_confidence_marks_invalid(sim_stack: tuple[np.ndarray, np.ndarray]) -> None:
+    stack, _ = sim_stack
+    base = reconstruct_field(stack, focus_heights_um=ZS, max_value=1023)
+    thr = float(np.quantile(base.confidence, 0.2))
+    r = reconstruct_field(stack, focus_heights_um=ZS, max_value=1023,
+                          settings=StackSettings(min_confidence=thr))
+    low = base.confidence < thr
+    assert low.any() and np.isnan(r.height_um[low]).all()
+    np.testing.assert_array_equal(r.height_um[~low], base.height_um[~low])
+
+
+def test_reconstruct_rejects_bad_input(sim_stack: tuple[np.ndarray, np.ndarray]) -> None:
+    stack, _ = sim_stack
+    with pytest.raises(ValueError, match="19 values for 20 images"):
+        reconstruct_field(stack, focus_heights_um=ZS[:-1])
+    with pytest.raises(ValueError, match="image 0: values up to"):
+        reconstruct_field(stack, focus_heights_um=ZS, max_value=255)
+    bad = stack.astype(np.float32) / 1023
+    bad[4, 2, 2] = np.nan
+    with pytest.raises(ValueError, match="image 4: image contains NaN"):
+        reconstruct_field(bad, focus_heights_um=ZS)
+    with pytest.raises(ValueError, match="filter_size"):
+        StackSettings(filter_size=4)
+    with pytest.raises(ValueError, match="method"):
+        StackSettings(method="best")
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def test_read_stacks_and_focus_files(tmp_path: Path) -> None:
+    imgs = (np.arange(3 * 8 * 9) % 251).astype(np.uint8).reshape(3, 8, 9)
+    paths = []
+    for i, im in enumerate(imgs):
+        paths.append(tmp_path / f"im{i}.png")
+        cv2.imwrite(str(paths[-1]), im)
+    np.testing.assert_array_equal(read_image_stack(paths), imgs)
+    cv2.imwrite(str(tmp_path / "odd.png"), np.zeros((5, 5), np.uint8))
+    with pytest.raises(ValueError, match="odd.png: shape"):
+        read_image_stack([*paths, tmp_path / "odd.png"])
+    (tmp_path / "f.txt").write_text("# mm\n0.1, 0.2\n0.3\n")
+    np.testing.assert_allclose(read_focus_positions(tmp_path / "f.txt", scale_to_um=1000),
+                               [100, 200, 300])
+    (tmp_path / "g.txt").write_text("1\nx2\n")
+    with pytest.raises(ValueError, match="g.txt:2"):
+        read_focus_positions(tmp_path / "g.txt")
+    arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=imgs.shape, dtype="uint8")
+    arr[...] = imgs
+    arr.attrs["focus_heights_um"] = [1.0, 2.0, 3.0]
+    stack, table = read_zarr_stack(tmp_path / "s.zarr")
+    np.testing.assert_array_equal(stack, imgs)
+    np.testing.assert_array_equal(table, [1.0, 2.0, 3.0])
+
+
+def test_stack_command(sim_stack: tuple[np.ndarray, np.ndarray], tmp_path: Path) -> None:
+    stack, truth = sim_stack
+    arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=stack.shape, dtype="uint16")
+    arr[...] = stack
+    arr.attrs["focus_heights_um"] = ZS.tolist()
+    out = tmp_path / "f.zarr"
+    args = ["stack", "--zarr", str(tmp_path / "s.zarr"), "--pixel-um", "17", "--bit-depth", "10",
+            "-o", str(out)]
+    assert main(args) == 0
+    g: Any = zarr.open_group(str(out), mode="r")
+    assert g.attrs["status"] == "complete" and g.attrs["processing"]["mode"] == "stationary"
+    h = np.asarray(g["height"][...])
+    assert float(np.sqrt(np.mean((h - truth) ** 2))) < 100.0
+    tex = np.asarray(g["texture"][...])
+    assert 0.0 <= tex.min() and tex.max() <= 1.0
+    assert main(args) == 2  # exists, no --overwrite
+    assert main([*args, "--overwrite", "--focus-start", "0", "--focus-step", "1"]) == 0
+    assert main(["stack", "--zarr", str(tmp_path / "s.zarr"), "--pixel-um", "17",
+                 "--focus-file", str(tmp_path / "missing.txt"), "-o", str(tmp_path / "x")]) == 2
+    assert main(["stack", str(tmp_path / "nope.tif"), "a", "b", "--pixel-um", "1",
+                 "--focus-start", "0", "--focus-step", "1", "-o", str(tmp_path / "y")]) == 2
