@@ -105,14 +105,15 @@ def viewer_sink(cfg: ScanConfig, viewer: list[str] | None, *, default: str = "of
 
 def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | None,
                    progress: bool, sinks: list[Sink] | None = None,
-                   what_is_kept: str = "") -> int:
-    """Run a scan over ``frames``, print its summary (scored against ``world`` if given) and
-    return the exit code; failures print the stage, the cause and what was kept."""
+                   writer: Any | None = None, kept: str = "") -> int:
+    """Run a scan over ``frames`` (into ``writer`` if given), print its summary (scored
+    against ``world`` if given) and return the exit code; failures print the stage, the
+    cause and what was kept (``kept`` replaces the default sentence)."""
     from pipeline.wiring import evaluate_sim, format_summary, run_scan
 
-    kept = f"the mosaic at {cfg.output.path} holds what was completed" + what_is_kept
+    kept = kept or f"the mosaic at {cfg.output.path} holds what was completed"
     try:
-        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks)
+        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks, writer=writer)
     except StageFailed as err:
         print(f"sffscan: {err}", file=sys.stderr)
         print(f"sffscan: {kept} before the failure (status 'failed')", file=sys.stderr)

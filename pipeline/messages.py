@@ -139,3 +139,17 @@ class MosaicAttrs(BaseModel):
     scan_config: dict[str, Any] = Field(description="The scan configuration (scan_config schema)")
     valid_pixels: int | None = Field(default=None, ge=0)
     blocks: int | None = Field(default=None, ge=0)
+    codec: str | None = Field(default=None, description="Codec of the arrays, informative")
+    writes_done: int = Field(
+        default=0, ge=0, description="Journal: region writes completed, in stream order (each "
+        "blends one chunk-wide band of a pass into all four arrays)")
+    writing: tuple[int, int, int, int] | None = Field(
+        default=None, description="Journal: world px box (x0, y0, width, height) of the write "
+        "in progress; not null after a crash: the tiles (chunks) it covers may be torn")
+    rebuild: list[tuple[int, int, int, int]] = Field(
+        default_factory=list, description="World px boxes reset by 'replay --resume' that are "
+        "being rebuilt from the writes before 'writes_done'; their tiles are incomplete")
+    recording: dict[str, Any] | None = Field(
+        default=None, description="The recording this mosaic was replayed from (path, frames, "
+        "defects found), null for a live scan")
+    resumed: int = Field(default=0, ge=0, description="Times 'replay --resume' continued it")

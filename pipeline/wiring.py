@@ -137,10 +137,12 @@ class ScanReport:
 
 def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | None = None,
              overwrite: bool | None = None, progress: bool = True,
-             sinks: list[Sink] | None = None) -> ScanReport:
-    """Run the whole pipeline over ``frames``; the mosaic goes to ``output``; ``sinks``
-    (recorder, viewer) tap the stages they name."""
-    writer = open_writer(cfg, path=output, overwrite=overwrite)
+             sinks: list[Sink] | None = None, writer: MosaicWriter | None = None) -> ScanReport:
+    """Run the whole pipeline over ``frames``; the mosaic goes to ``output`` (or into an
+    already open ``writer``, e.g. one reopened to resume); ``sinks`` (recorder, viewer) tap
+    the stages they name."""
+    if writer is None:
+        writer = open_writer(cfg, path=output, overwrite=overwrite)
     stages = build_stages(cfg, frames, writer)
     prog = Progress(frame_count(cfg)) if progress else None
     pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
@@ -180,6 +182,10 @@ def format_summary(report: ScanReport) -> str:
         lines.append(f"  {q.name:<26} {q.capacity:>8}  {q.policy:<11} {q.max_fill:>8}"
                      f"  {q.mean_fill:>9.2f}  {q.dropped:>7}")
     for name, extra in r.extras.items():
+        waited = extra.get("pipeline_waited_s", 0) if extra else 0
+        if waited:
+            lines.append(f"WARNING     the sink '{name}' fell behind and held the pipeline back "
+                         f"{waited:.2f} s in all")
         if extra:
             lines.append(f"{name:<12} " + ", ".join(f"{k} {v}" for k, v in extra.items()))
     if report.accuracy is not None:

@@ -14,6 +14,16 @@ the one mosaic; where passes overlap, height and texture are the weighted mean w
 weight = max(confidence, 1e-3) over valid pixels. Blocks are gathered in memory per
 chunk-wide column band and written when the motion has left the band, so each chunk is
 written once per pass and memory stays bounded.
+
+Crash safety (a journal in the attributes): each band write covers several chunks of four
+arrays and can be torn by a crash. Before a write the writer records its box in
+``writing``; after it, ``writes_done`` (the number of writes completed, in stream order)
+and ``writing = null``. Zarr's local store replaces each file atomically, so on reopening
+(:func:`tile_states`) every tile (chunk) is either complete, empty, or known to be
+incomplete (it meets the box of the torn write). :meth:`MosaicWriter.reopen` continues
+such a mosaic from a replay of its recording (``sffscan replay --resume``): it resets the
+torn box, skips the writes already done (re-applying, inside the reset box only, those that
+touched it) and journals the rest; the result is bit for bit the uninterrupted mosaic.
 """
 
 from __future__ import annotations
@@ -26,12 +36,40 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.codecs import BloscCodec, BloscShuffle
 
 from pipeline.messages import DepthBlock, MosaicAttrs
 from pipeline.runtime import Stage
 
 ARRAYS = ("height", "texture", "confidence", "weight")
 MIN_WEIGHT = 1e-3
+FILL = {"height": np.nan, "texture": np.nan, "confidence": 0.0, "weight": 0.0}
+#: codec of the mosaic arrays (measured in bench/recorder_results.md)
+DEFAULT_CODEC = "blosc-lz4"
+#: tile states of :func:`tile_states`
+TILE_EMPTY, TILE_COMPLETE, TILE_INCOMPLETE = 0, 1, 2
+
+Box = tuple[int, int, int, int]  # world px (x0, y0, width, height)
+
+
+def mosaic_codecs(name: str) -> list[Any]:
+    """Zarr v3 compressors of the mosaic arrays: ``blosc-lz4`` (byte shuffle, float32),
+    ``zstd`` (zarr's default) or ``none``."""
+    if name == "blosc-lz4":
+        return [BloscCodec(cname="lz4", clevel=5, shuffle=BloscShuffle.shuffle, typesize=4)]
+    if name == "zstd":
+        from zarr.codecs import ZstdCodec
+
+        return [ZstdCodec(level=0)]
+    if name == "none":
+        return []
+    raise ValueError(f"unknown mosaic codec {name!r} (blosc-lz4, zstd, none)")
+
+
+def _intersect(a: Box, b: Box) -> Box | None:
+    x0, y0 = max(a[0], b[0]), max(a[1], b[1])
+    x1, y1 = min(a[0] + a[2], b[0] + b[2]), min(a[1] + a[3], b[1] + b[3])
+    return (x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
 
 
 def blend(
@@ -113,14 +151,16 @@ class MosaicWriter:
     chunk_px : int
         Chunk edge, px.
     attrs : dict
-        Extra attributes (the scan configuration, processing settings).
+        Extra attributes (the scan configuration, processing settings, the recording).
     overwrite : bool
         Replace an existing group; otherwise an existing path is an error.
+    codec : str
+        Compressor of the arrays (:func:`mosaic_codecs`).
     """
 
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, codec: str = DEFAULT_CODEC) -> None:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
@@ -130,11 +170,12 @@ class MosaicWriter:
                                       "empty folder; refusing to overwrite it")
         self.origin = origin_px
         self.chunk = chunk_px
+        compressors = mosaic_codecs(codec)
         self.group = zarr.open_group(str(self.path), mode="w")
         for name in ARRAYS:
-            fill = np.nan if name in ("height", "texture") else 0.0
             self.group.create_array(name=name, shape=shape, chunks=(chunk_px, chunk_px),
-                                    dtype="float32", fill_value=fill, dimension_names=("y", "x"))
+                                    dtype="float32", fill_value=FILL[name],
+                                    compressors=compressors, dimension_names=("y", "x"))
         attrs = dict(attrs or {})
         header = MosaicAttrs(
             status="writing",
@@ -147,36 +188,190 @@ class MosaicWriter:
             processing=attrs.pop("processing", {}),
             focus_heights_um=attrs.pop("focus_heights_um", []),
             scan_config=attrs.pop("scan_config", {}),
+            recording=attrs.pop("recording", None),
+            codec=codec,
         )
         if attrs:
             raise ValueError(f"unknown mosaic attributes: {sorted(attrs)}")
-        self.group.attrs.update(header.model_dump(mode="json"))
+        self.group.update_attributes(header.model_dump(mode="json"))
         self.blocks_written = 0
+        self.writes = 0  # write_region calls so far, in stream order
+        self.done = 0  # writes already in the mosaic when it was reopened
+        self.rebuild: list[Box] = []
+
+    @classmethod
+    def reopen(cls, path: str | Path, *, scan_config: dict[str, Any]) -> MosaicWriter:
+        """Continue an interrupted mosaic (status ``writing`` or ``failed``).
+
+        The mosaic must have been made with ``scan_config`` (its ``output`` table aside).
+        The box of a torn write (and any box a previous resume was still rebuilding) is
+        reset to the fill values and recorded in ``rebuild`` before anything else, so a
+        crash during the resume is itself resumable.
+        """
+        p = Path(path)
+        try:
+            group = zarr.open_group(str(p), mode="r+")
+        except Exception as exc:  # noqa: BLE001 - anything that is not a group
+            raise ValueError(f"{p}: cannot resume, not a readable Zarr group ({exc})") from exc
+        if group.attrs.get("format") != "sffscan-mosaic":
+            raise ValueError(f"{p}: cannot resume, not an sffscan mosaic")
+        attrs = MosaicAttrs.model_validate(group.attrs.asdict())
+        if attrs.status == "complete":
+            raise ValueError(f"{p}: the mosaic is complete already; nothing to resume")
+        old = {k: v for k, v in attrs.scan_config.items() if k != "output"}
+        new = {k: v for k, v in scan_config.items() if k != "output"}
+        if old != new:
+            diff = sorted(f"{t}.{k}" for t in set(old) | set(new)
+                          for k in set(old.get(t) or {}) | set(new.get(t) or {})
+                          if (old.get(t) or {}).get(k) != (new.get(t) or {}).get(k))
+            raise ValueError(f"{p}: cannot resume with a different configuration "
+                             f"(differs in {', '.join(diff) or 'its tables'})")
+        self = cls.__new__(cls)
+        self.path, self.group = p, group
+        self.origin = attrs.origin_px
+        h = mosaic_array(group, "height")
+        self.chunk = int(h.chunks[0])
+        self.blocks_written = 0
+        self.writes = 0
+        self.done = attrs.writes_done
+        rebuild = [tuple(b) for b in attrs.rebuild]
+        if attrs.writing is not None and tuple(attrs.writing) not in rebuild:
+            rebuild.append(tuple(attrs.writing))
+        self.rebuild = [(int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in rebuild]
+        # arrays may have been resized unequally when the writer stopped
+        rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)
+        cols = max(mosaic_array(group, n).shape[1] for n in ARRAYS)
+        self._ensure(rows, cols)
+        self._journal(rebuild=[list(b) for b in self.rebuild], writing=None, status="writing",
+                      resumed=attrs.resumed + 1)
+        for box in self.rebuild:
+            self._reset(box)
+        return self
+
+    def _journal(self, **changes: Any) -> None:
+        """Update attributes in one atomic write of the group's metadata."""
+        self.group.update_attributes(changes)
+
+    def _region(self, box: Box) -> tuple[slice, slice] | None:
+        """Array slices of a world box, clipped to the arrays."""
+        rows, cols = mosaic_array(self.group, "height").shape
+        r0, c0 = box[1] - self.origin[1], box[0] - self.origin[0]
+        r1, c1 = min(rows, r0 + box[3]), min(cols, c0 + box[2])
+        r0, c0 = max(0, r0), max(0, c0)
+        return (slice(r0, r1), slice(c0, c1)) if r1 > r0 and c1 > c0 else None
+
+    def _reset(self, box: Box) -> None:
+        sel = self._region(box)
+        if sel is None:
+            return
+        for name in ARRAYS:
+            mosaic_array(self.group, name)[sel] = FILL[name]
 
     def _ensure(self, r1: int, c1: int) -> None:
-        rows, cols = mosaic_array(self.group, "height").shape
-        if r1 > rows or c1 > cols:
+        shapes = [mosaic_array(self.group, n).shape for n in ARRAYS]
+        if any(r1 > r or c1 > c for r, c in shapes) or len(set(shapes)) > 1:
+            rows = max([r1] + [r for r, _ in shapes])
+            cols = max([c1] + [c for _, c in shapes])
             for name in ARRAYS:
-                mosaic_array(self.group, name).resize((max(rows, r1), max(cols, c1)))
+                arr = mosaic_array(self.group, name)
+                if arr.shape != (rows, cols):
+                    arr.resize((rows, cols))
 
-    def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
-        """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0)."""
+    def _blend(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         r0, c0 = y0 - self.origin[1], x0 - self.origin[0]
         rows, cols = new["weight"].shape
-        if r0 < 0 or c0 < 0:
-            raise ValueError(f"block at world px (x={x0}, y={y0}) lies before the mosaic origin "
-                             f"{self.origin}; widen the scan area in the configuration")
         self._ensure(r0 + rows, c0 + cols)
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
         arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
         old = {name: np.asarray(arr[sel]) for name, arr in arrays.items()}
         for name, value in blend(old, new).items():
             arrays[name][sel] = value
+
+    def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
+        """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0).
+
+        Journaled (see the module): ``writing`` before, ``writes_done`` after. When the
+        mosaic was reopened, writes already done are skipped, except inside the boxes being
+        rebuilt.
+        """
+        seq = self.writes
+        self.writes += 1
+        rows, cols = new["weight"].shape
+        if y0 - self.origin[1] < 0 or x0 - self.origin[0] < 0:
+            raise ValueError(f"block at world px (x={x0}, y={y0}) lies before the mosaic origin "
+                             f"{self.origin}; widen the scan area in the configuration")
+        box = (x0, y0, cols, rows)
+        if seq < self.done:  # in the mosaic already, except in the boxes being rebuilt
+            for reset in self.rebuild:
+                part = _intersect(box, reset)
+                if part is not None:
+                    a, b = part[1] - y0, part[0] - x0
+                    self._blend(part[0], part[1], {k: v[a:a + part[3], b:b + part[2]]
+                                                   for k, v in new.items()})
+            return
+        if self.rebuild:  # every earlier write has been re-applied: the boxes are whole again
+            self.rebuild = []
+            self._journal(rebuild=[])
+        self._journal(writing=list(box))
+        self._blend(x0, y0, new)
+        self._journal(writing=None, writes_done=seq + 1)
         self.blocks_written += 1
 
     def set_status(self, status: str, **extra: Any) -> None:
+        if self.rebuild or self.writes < self.done:
+            status = "failed" if status == "complete" else status
+            extra["rebuild"] = [list(b) for b in self.rebuild]
         attrs = MosaicAttrs.model_validate({**self.group.attrs.asdict(), "status": status, **extra})
-        self.group.attrs.update(attrs.model_dump(mode="json"))
+        self.group.update_attributes(attrs.model_dump(mode="json"))
+
+
+def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """The state of every tile (chunk) of a mosaic, as found on reopening it.
+
+    Returns
+    -------
+    states : ndarray, uint8, (tile rows, tile cols)
+        :data:`TILE_EMPTY` (no chunk written), :data:`TILE_COMPLETE` (every write that
+        touched it finished) or :data:`TILE_INCOMPLETE` (a write was in progress or a resume
+        was rebuilding it: its values are not to be trusted; ``replay --resume`` completes it).
+    info : dict
+        ``status``, ``writes_done``, ``writing``, ``rebuild``, and tile counts.
+    """
+    from zarr.core.sync import sync
+
+    group = zarr.open_group(str(path), mode="r")
+    attrs = MosaicAttrs.model_validate(group.attrs.asdict())
+    h = mosaic_array(group, "height")
+    chunk = int(h.chunks[0])
+    rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)
+    cols = max(mosaic_array(group, n).shape[1] for n in ARRAYS)
+    states = np.zeros((-(-rows // chunk), -(-cols // chunk)), np.uint8)
+    for name in ARRAYS:
+        arr = mosaic_array(group, name)
+        sp = arr.store_path
+        prefix = f"{sp.path}/c/"
+
+        async def _list(prefix: str = prefix, sp: Any = sp) -> list[str]:
+            return [k async for k in sp.store.list_prefix(prefix)]
+
+        for key in sync(_list()):
+            parts = key[len(prefix):].split("/")
+            if len(parts) == 2 and all(q.isdigit() for q in parts):
+                r, c = int(parts[0]), int(parts[1])
+                if r < states.shape[0] and c < states.shape[1]:
+                    states[r, c] = TILE_COMPLETE
+    bad = [tuple(b) for b in attrs.rebuild] + ([tuple(attrs.writing)] if attrs.writing else [])
+    ox, oy = attrs.origin_px
+    for x0, y0, w, hgt in bad:
+        r0, c0 = max(0, (y0 - oy) // chunk), max(0, (x0 - ox) // chunk)
+        r1, c1 = (y0 - oy + hgt - 1) // chunk + 1, (x0 - ox + w - 1) // chunk + 1
+        states[r0:r1, c0:c1] = TILE_INCOMPLETE
+    info = {"status": attrs.status, "writes_done": attrs.writes_done,
+            "writing": attrs.writing, "rebuild": attrs.rebuild,
+            "tiles": int(states.size), "complete": int((states == TILE_COMPLETE).sum()),
+            "incomplete": int((states == TILE_INCOMPLETE).sum()),
+            "empty": int((states == TILE_EMPTY).sum())}
+    return states, info
 
 
 class MosaicStage(Stage):

@@ -1,0 +1,158 @@
+"""Recorder and mosaic codecs: write throughput for 1280 x 1024 uint16 frames.
+
+The camera makes 150 frames/s of 1280 x 1024 uint16 = 393 MB/s. For each codec of the
+frames array (and two other chunk layouts), frames go through the recorder's own writer
+(:class:`stages.recorder.RecordingWriter`: one chunk per frame, metadata every 16 frames)
+to a temporary folder; the figure is the best of ``--repeat`` runs: MB/s of raw frame
+data, CPU seconds per frame of the whole process (blosc and zarr use their own threads),
+and the compression ratio. Frames are rendered by the simulator (thesis optics, 10-bit
+data, sensor noise), so the ratios are those of real-looking frames. The mosaic part
+times blending-and-writing a 1024-row band of 256-px chunks of the four float32 arrays.
+
+    python bench/bench_recorder.py [--frames 60] [--repeat 3] [--dir /tmp]
+
+Writes ``bench/recorder_results.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from pipeline.config import demo_config
+from pipeline.messages import Frame
+from stages.mosaic import MosaicWriter, mosaic_codecs
+from stages.recorder import RecordingWriter, frame_codecs
+from stages.sim_scanner import simulate_frames
+
+CAMERA_MB_S = 1280 * 1024 * 2 * 150 / 1e6
+
+
+def _du(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def bench_writer(frames: list[Frame], codec: str, folder: Path, repeat: int) -> dict[str, float]:
+    cfg = demo_config()
+    best = None
+    for k in range(repeat):
+        path = folder / f"rec-{codec}-{k}.zarr"
+        w = RecordingWriter(path, cfg, codec=codec)
+        c0, t0 = time.process_time(), time.perf_counter()
+        for f in frames:
+            w.write(f)
+        w.close()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        size = _du(path / "frames")
+        shutil.rmtree(path)
+        if best is None or wall < best[0]:
+            best = (wall, cpu, size)
+    assert best is not None
+    wall, cpu, size = best
+    raw = sum(f.image.nbytes for f in frames)
+    return {"MB/s": raw / wall / 1e6, "fps": len(frames) / wall,
+            "cpu_ms": 1e3 * cpu / len(frames), "ratio": raw / size}
+
+
+def bench_layout(frames: list[Frame], chunks: tuple[int, int, int], folder: Path,
+                 repeat: int) -> dict[str, float]:
+    """Plain zarr writes of the frames array alone with another chunk layout (blosc-lz4),
+    frames written in groups of chunks[0]."""
+    best = None
+    n = len(frames) // chunks[0] * chunks[0]
+    stack = np.stack([f.image for f in frames[:n]])
+    for k in range(repeat):
+        path = folder / f"lay-{k}.zarr"
+        arr = zarr.create_array(str(path), shape=stack.shape, chunks=chunks, dtype="uint16",
+                                compressors=frame_codecs("blosc-lz4"))
+        t0 = time.perf_counter()
+        for a in range(0, n, chunks[0]):
+            arr[a:a + chunks[0]] = stack[a:a + chunks[0]]
+        wall = time.perf_counter() - t0
+        shutil.rmtree(path)
+        best = wall if best is None else min(best, wall)
+    assert best is not None
+    return {"MB/s": stack.nbytes / best / 1e6, "fps": n / best}
+
+
+def bench_mosaic(codec: str, folder: Path, repeat: int) -> dict[str, float]:
+    rng = np.random.default_rng(0)
+    rows, cols = 1024, 256
+    w = rng.uniform(0.1, 1.0, (rows, cols))
+    new: dict[str, np.ndarray] = {"height": rng.uniform(0, 9800, (rows, cols)) * w,
+                                  "texture": rng.uniform(0, 1, (rows, cols)) * w,
+                                  "weight": w, "confidence": w.astype(np.float32)}
+    best = None
+    for k in range(repeat):
+        path = folder / f"mos-{codec}-{k}.zarr"
+        mw = MosaicWriter(path, origin_px=(0, 0), shape=(rows, cols * 8), pixel_um=8.5,
+                          codec=codec)
+        c0, t0 = time.process_time(), time.perf_counter()
+        for b in range(8):
+            mw.write_region(b * cols, 0, new)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        size = sum(_du(path / n) for n in ("height", "texture", "confidence", "weight"))
+        shutil.rmtree(path)
+        if best is None or wall < best[0]:
+            best = (wall, cpu, size)
+    assert best is not None
+    wall, cpu, size = best
+    return {"ms_band": 1e3 * wall / 8, "cpu_ms_band": 1e3 * cpu / 8,
+            "ratio": 8 * 4 * rows * cols * 4 / size}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--dir", default=None, help="folder to write in (default: system temp)")
+    ap.add_argument("--out", default=str(Path(__file__).with_name("recorder_results.md")))
+    args = ap.parse_args()
+    cfg = demo_config()
+    frames = []
+    for f in simulate_frames(cfg):
+        frames.append(f)
+        if len(frames) == args.frames:
+            break
+    folder = Path(tempfile.mkdtemp(dir=args.dir))
+    try:
+        lines = [f"# Recorder and mosaic codecs ({args.frames} simulated 1280x1024 uint16 frames, "
+                 f"best of {args.repeat}; {os.cpu_count()} CPU(s), load average "
+                 f"{os.getloadavg()[0]:.1f} at the start; folder {folder.parent})", "",
+                 f"Camera: 150 frames/s = {CAMERA_MB_S:.0f} MB/s.", "",
+                 "| frames codec (1 frame/chunk, recorder's writer) | MB/s | frames/s | "
+                 "CPU ms/frame | ratio |", "|---|---|---|---|---|"]
+        for codec in ("none", "blosc-lz4", "blosc-zstd", "zstd"):
+            r = bench_writer(frames, codec, folder, args.repeat)
+            lines.append(f"| {codec} | {r['MB/s']:.0f} | {r['fps']:.0f} | {r['cpu_ms']:.1f} | "
+                         f"{r['ratio']:.2f} |")
+            print(lines[-1], flush=True)
+        lines += ["", "| frames chunk layout (blosc-lz4, plain zarr) | MB/s | frames/s |",
+                  "|---|---|---|"]
+        for chunks in ((1, 1024, 1280), (4, 1024, 1280), (1, 256, 1280)):
+            r = bench_layout(frames, chunks, folder, args.repeat)
+            lines.append(f"| {chunks} | {r['MB/s']:.0f} | {r['fps']:.0f} |")
+            print(lines[-1], flush=True)
+        lines += ["", "| mosaic codec (4 float32 arrays, 1024 x 256 band, journaled) | ms/band | "
+                  "CPU ms/band | ratio |", "|---|---|---|---|"]
+        for codec in ("zstd", "blosc-lz4", "none"):
+            mosaic_codecs(codec)
+            r = bench_mosaic(codec, folder, args.repeat)
+            lines.append(f"| {codec} | {r['ms_band']:.1f} | {r['cpu_ms_band']:.1f} | "
+                         f"{r['ratio']:.2f} |")
+            print(lines[-1], flush=True)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    Path(args.out).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

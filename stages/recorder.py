@@ -1,0 +1,303 @@
+"""Raw-stream recorder: tees the source's frames into a recording while the scan runs.
+
+:class:`RecordingWriter` writes the layout of :mod:`pipeline.recording`; the sink
+(:func:`recorder_sink`) taps the ``source`` stage through its own blocking queue, so no
+frame is ever skipped: if the disk is slower than the camera, the pipeline waits, and
+that is reported loudly (a warning on stderr while it happens, the recorder's busy share
+and the pipeline's waiting time in the summary).
+
+Crash safety: each frame is one chunk, written when it arrives; the per-frame metadata is
+buffered and written every ``flush_every`` frames, ``frame_id`` last, so an entry with a
+``frame_id`` always has its frame and all its metadata. Zarr's local store replaces files
+atomically (temporary file, then rename): a SIGKILL at any moment leaves every chunk either
+as it was or as it is meant to be, and the reader replays up to the last flushed frame.
+The arrays grow in steps of :data:`GROW` frames; the unwritten tail has ``frame_id`` -1.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import errno
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec, BloscShuffle
+
+from pipeline.config import ScanConfig
+from pipeline.messages import Frame
+from pipeline.recording import META_CHUNK, PER_FRAME, RecordingAttrs
+from pipeline.runtime import FullPolicy, Sink, Tapped
+
+#: arrays grow by this many frames at a time
+GROW = 1024
+#: default codec of the frames array (see bench/recorder_results.md)
+DEFAULT_CODEC = "blosc-lz4"
+#: the recorder's queue holds up to this many bytes of frames (within 16..1024 frames)
+QUEUE_BYTES = 512 * 2**20
+
+
+def frame_codecs(name: str) -> list[Any]:
+    """Zarr v3 compressors for the frames array: ``blosc-lz4`` (byte shuffle),
+    ``blosc-zstd`` (level 1), ``zstd`` (zarr's default, level 0) or ``none``."""
+    if name == "blosc-lz4":
+        return [BloscCodec(cname="lz4", clevel=5, shuffle=BloscShuffle.shuffle)]
+    if name == "blosc-zstd":
+        return [BloscCodec(cname="zstd", clevel=1, shuffle=BloscShuffle.shuffle)]
+    if name == "zstd":
+        from zarr.codecs import ZstdCodec
+
+        return [ZstdCodec(level=0)]
+    if name == "none":
+        return []
+    raise ValueError(f"unknown recording codec {name!r} (blosc-lz4, blosc-zstd, zstd, none)")
+
+
+class RecorderError(OSError):
+    """The recording cannot be written (disk full, path unusable); the message says what
+    was kept."""
+
+
+class RecordingWriter:
+    """Writes a recording group: frames one chunk each, metadata in batches.
+
+    Parameters
+    ----------
+    path : str or Path
+        The recording's Zarr v3 group; must not exist (a recording is never overwritten).
+    cfg : ScanConfig
+        Stored in the attributes; gives the frame shape and dtype.
+    codec : str
+        See :func:`frame_codecs`.
+    flush_every, flush_s : int, float
+        Metadata is written every ``flush_every`` frames or ``flush_s`` seconds, whichever
+        comes first (and at the end): a crash loses at most that much of the stream.
+    """
+
+    def __init__(self, path: str | Path, cfg: ScanConfig, *, codec: str = DEFAULT_CODEC,
+                 flush_every: int = 16, flush_s: float = 0.25) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path}: exists; a recording is never overwritten, "
+                                  "choose another path")
+        o = cfg.optics
+        self.shape = (o.height_px, o.width_px)
+        self.dtype = np.dtype(o.dtype)
+        self.codec = codec
+        frame_codecs(codec)  # an unknown codec fails now, not at the first frame
+        self.flush_every = max(1, flush_every)
+        self.flush_s = flush_s
+        self._flushed_at = 0.0
+        self.attrs = RecordingAttrs(
+            status="recording", frame_shape=self.shape, dtype=str(self.dtype),  # type: ignore[arg-type]
+            scan_config=cfg.model_dump(mode="json"), codec=codec,
+            created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), writer="sffscan")
+        self.group: zarr.Group | None = None
+        self.capacity = 0
+        self.count = 0  # frames whose chunk is written
+        self.committed = 0  # frames whose metadata is written too
+        self.bytes = 0
+        self.last_id: int | None = None
+        self._pending: list[tuple[int, int, int, float, float, int]] = []
+        self.closed = False
+
+    def _open(self) -> zarr.Group:
+        """Create the group at the first frame (a scan that fails to start leaves nothing)."""
+        if self.group is not None:
+            return self.group
+        group = zarr.open_group(str(self.path), mode="w-")
+        self.frames = group.create_array(
+            name="frames", shape=(0, *self.shape), chunks=(1, *self.shape), dtype=self.dtype,
+            fill_value=0, compressors=frame_codecs(self.codec),
+            dimension_names=("frame", "y", "x"))
+        self.meta = {
+            name: group.create_array(name=name, shape=(0,), chunks=(META_CHUNK,), dtype=dtype,
+                                     fill_value=fill, compressors=None,
+                                     dimension_names=("frame",))
+            for name, (dtype, fill, _) in PER_FRAME.items()
+        }
+        group.update_attributes(self.attrs.model_dump(mode="json"))
+        self.group = group
+        return group
+
+    def _grow(self, n: int) -> None:
+        if n <= self.capacity:
+            return
+        cap = (n + GROW - 1) // GROW * GROW
+        self.frames.resize((cap, *self.shape))
+        for arr in self.meta.values():
+            arr.resize((cap,))
+        self.capacity = cap
+
+    def write(self, frame: Frame) -> None:
+        """Write one frame's chunk now; its metadata with the next flush."""
+        h = frame.header
+        self._open()
+        self._grow(self.count + 1)
+        self.frames[self.count] = frame.image
+        self.count += 1
+        self.bytes += frame.image.nbytes
+        self.last_id = h.frame_id
+        nan = float("nan")
+        self._pending.append((h.frame_id, h.timestamp_ns, h.focus_index,
+                              nan if h.stage_x_um is None else h.stage_x_um,
+                              nan if h.stage_y_um is None else h.stage_y_um, h.pass_index))
+        now = time.perf_counter()
+        if len(self._pending) >= self.flush_every or now - self._flushed_at >= self.flush_s:
+            self.flush()
+            self._flushed_at = now
+
+    def flush(self) -> None:
+        """Write the pending metadata; ``frame_id`` last (it marks the entries complete)."""
+        if not self._pending:
+            return
+        a, b = self.committed, self.committed + len(self._pending)
+        cols = list(zip(*self._pending, strict=True))
+        names = list(PER_FRAME)
+        for k in [1, 2, 3, 4, 5, 0]:  # frame_id last
+            self.meta[names[k]][a:b] = np.asarray(cols[k], dtype=PER_FRAME[names[k]][0])
+        self.committed = b
+        self._pending.clear()
+
+    def close(self, *, status: str = "complete", error: str | None = None) -> None:
+        """Flush, trim the arrays to the frames written (when complete) and set the status."""
+        if self.closed:
+            return
+        self.closed = True
+        if self.group is None:  # no frame arrived: nothing to keep
+            return
+        self.flush()
+        if status == "complete":
+            self.frames.resize((self.committed, *self.shape))
+            for arr in self.meta.values():
+                arr.resize((self.committed,))
+        attrs = self.attrs.model_copy(update={"status": status, "frames": self.committed,
+                                              "error": error})
+        self.group.update_attributes(attrs.model_dump(mode="json"))
+        self.attrs = attrs
+
+
+class RecorderSink(Sink):
+    """Tees the ``source`` stage's frames into a :class:`RecordingWriter`.
+
+    While the recorder is busy more than ``behind_share`` of the time (over windows of
+    ``window_s``) it is the bottleneck: a warning goes to stderr (at most every 5 s) and the
+    summary says it fell behind; the runtime adds ``pipeline_waited_s``, the time the
+    pipeline waited for it.
+    """
+
+    name = "recorder"
+    taps = ("source",)
+    policy = FullPolicy.BLOCK
+    unit = "frames"
+
+    def __init__(self, writer: RecordingWriter, *, fps: float, capacity: int,
+                 behind_share: float = 0.9, window_s: float = 2.0) -> None:
+        self.writer = writer
+        self.fps = fps
+        self.capacity = capacity
+        self.behind_share = behind_share
+        self.window_s = window_s
+        self.busy_s = 0.0
+        self.t_first: float | None = None
+        self._win = (0.0, 0.0, 0)  # window start, busy in window, frames in window
+        self.behind_windows = 0
+        self.worst_fps: float | None = None
+        self._warned_at = -1e9
+        self.finished = False
+        self.error: str | None = None
+
+    def process(self, item: Any) -> Iterator[None]:
+        if not isinstance(item, Tapped) or not isinstance(item.item, Frame):
+            return iter(())
+        t0 = time.perf_counter()
+        if self.t_first is None:
+            self.t_first = t0
+            self._win = (t0, 0.0, 0)
+        try:
+            self.writer.write(item.item)
+        except OSError as exc:
+            raise self._error(exc, item.item.header.frame_id) from exc
+        dt = time.perf_counter() - t0
+        self.busy_s += dt
+        self._watch(t0 + dt, dt)
+        return iter(())
+
+    def _watch(self, now: float, dt: float) -> None:
+        start, busy, n = self._win
+        busy, n = busy + dt, n + 1
+        span = now - start
+        if span < self.window_s:
+            self._win = (start, busy, n)
+            return
+        self._win = (now, 0.0, 0)
+        if busy / span < self.behind_share:
+            return
+        self.behind_windows += 1
+        rate = n / busy if busy > 0 else 0.0
+        self.worst_fps = rate if self.worst_fps is None else min(self.worst_fps, rate)
+        if now - self._warned_at >= 5.0:
+            self._warned_at = now
+            mb = rate * self.writer.shape[0] * self.writer.shape[1] * self.writer.dtype.itemsize
+            print(f"\nsffscan: WARNING: the recorder is falling behind: busy "
+                  f"{100 * busy / span:.0f} % of the last {span:.1f} s, writing {rate:.0f} "
+                  f"frames/s ({mb / 1e6:.0f} MB/s; the camera makes {self.fps:g}); the pipeline "
+                  "waits for it", file=sys.stderr, flush=True)
+
+    def _error(self, exc: OSError, frame_id: int) -> RecorderError:
+        w = self.writer
+        what = "disk full" if exc.errno == errno.ENOSPC else f"write failed ({exc})"
+        self.error = f"{what} at frame_id {frame_id}"
+        err = RecorderError(f"recording {w.path}: {what} at frame_id {frame_id}; the scan "
+                            f"stops. The recording keeps the frames before it, readable with "
+                            f"'sffscan info {w.path}'")
+        err.errno = exc.errno
+        return err
+
+    def finish(self) -> Iterator[None]:
+        try:
+            self.writer.close(status="complete")
+        except OSError as exc:
+            raise self._error(exc, self.writer.last_id or 0) from exc
+        self.finished = True
+        if self.behind_windows:
+            print(f"sffscan: WARNING: the recorder fell behind the stream in "
+                  f"{self.behind_windows} window(s) of {self.window_s:g} s (slowest "
+                  f"{self.worst_fps:.0f} frames/s against the camera's {self.fps:g} fps); "
+                  "see 'pipeline_waited_s' in the summary", file=sys.stderr, flush=True)
+        return iter(())
+
+    def close(self, *, failed: bool) -> None:
+        if self.writer.closed:
+            return
+        # stopped early: keep what is written readable (metadata flushed, status 'failed')
+        self.writer.close(status="failed",
+                          error=self.error or "the scan stopped before the end of stream")
+
+    def extra_stats(self) -> dict[str, Any]:
+        w = self.writer
+        mb = w.bytes / 1e6
+        out: dict[str, Any] = {"frames_recorded": w.committed, "MB": round(mb, 1),
+                               "MB/s (own busy time)": round(mb / self.busy_s, 1)
+                               if self.busy_s else 0.0}
+        if self.behind_windows:
+            out["FELL BEHIND"] = (f"in {self.behind_windows} window(s), slowest "
+                                  f"{self.worst_fps:.0f} frames/s < {self.fps:g} fps")
+        return out
+
+
+def queue_capacity(cfg: ScanConfig) -> int:
+    """Frames the recorder's queue holds: :data:`QUEUE_BYTES` worth, within 16..1024."""
+    o = cfg.optics
+    frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
+    return int(min(1024, max(16, QUEUE_BYTES // frame_bytes)))
+
+
+def recorder_sink(cfg: ScanConfig, path: str, *, codec: str = DEFAULT_CODEC) -> Sink:
+    """The sink that records the raw stream of a scan into ``path`` (``--record PATH``)."""
+    writer = RecordingWriter(path, cfg, codec=codec)
+    return RecorderSink(writer, fps=cfg.optics.fps, capacity=queue_capacity(cfg))

@@ -1,0 +1,231 @@
+"""Surviving a crash: SIGKILL of the recorder and of the mosaic writer, and a full disk.
+
+The processes killed are children started from a multiprocessing fork server that has the
+pipeline imported already (a fresh interpreter would spend ~2 s importing torch), each
+running the command line's ``main`` exactly as ``sffscan`` does.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import multiprocessing as mp
+import os
+import random
+import signal
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline.cli import main
+from pipeline.config import ScanConfig, config_to_toml
+from pipeline.recording import open_recording
+from stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
+from stages.sim_scanner import simulate_frames
+from tests.crash_children import quiet_main, torn_replay
+from tests.scan_helpers import small_config
+
+
+def _cfg(passes: int = 1) -> ScanConfig:
+    return small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0, "passes": passes},
+                        processing={"registration": False})
+
+
+def _ctx() -> Any:
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["tests.crash_children", "pipeline.wiring", "stages.recorder",
+                                "pipeline.cmd_record"])
+    return ctx
+
+
+def _kill_after(proc: Any, ready: Path, delay_s: float, timeout_s: float = 30.0) -> bool:
+    """Wait for ``ready`` to exist, then SIGKILL ``proc`` after ``delay_s``; True if the
+    kill landed before the process ended by itself."""
+    t_end = time.monotonic() + timeout_s
+    while not ready.exists() and proc.is_alive() and time.monotonic() < t_end:
+        time.sleep(0.005)
+    proc.join(delay_s)
+    alive = bool(proc.is_alive())
+    if alive:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.join(timeout_s)
+    proc.close()
+    return alive
+
+
+def _attrs(path: Path) -> dict[str, Any]:
+    return zarr.open_group(str(path), mode="r").attrs.asdict()
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    g = zarr.open_group(str(path), mode="r")
+    return {n: np.asarray(g[n]) for n in ARRAYS}
+
+
+def test_recorder_killed_at_random_moments_keeps_every_complete_frame(tmp_path: Path) -> None:
+    cfg = _cfg()
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    reference = list(simulate_frames(cfg))
+    rng = random.Random(3)
+    ctx = _ctx()
+    kills, recovered, interrupted = 0, [], None
+    for trial in range(12):
+        rec = tmp_path / f"rec{trial}.zarr"
+        proc = ctx.Process(target=quiet_main, args=([
+            "scan", "--config", str(toml), "-o", str(tmp_path / f"m{trial}.zarr"),
+            "--record", str(rec), "-q", "--no-evaluate"],))
+        proc.start()
+        kills += _kill_after(proc, rec / "frames" / "c", rng.uniform(0.0, 0.5))
+        if not (rec / "frame_id" / "c").exists():  # killed before the first metadata flush
+            recovered.append(0)
+            continue
+        r = open_recording(rec)
+        n = r.report.frames
+        recovered.append(n)
+        # nothing lost or altered before the last complete frame: frames 0..n-1, in order
+        assert r.report.defects == 0, r.report.lines()
+        assert r.report.first_id == 0 and r.report.last_id == n - 1
+        for got, want in zip(r.frames(), reference[:n], strict=True):
+            assert got.header == want.header
+            assert np.array_equal(got.image, want.image)
+        if r.attrs.status == "recording" and (interrupted is None or n > interrupted[1]):
+            interrupted = (rec, n)
+    assert kills >= 10, f"only {kills} of 12 kills landed while the scan ran"
+    assert sum(1 for n in recovered if 0 < n < len(reference)) >= 8, recovered
+    # one interrupted recording replays up to its last complete frame
+    assert interrupted is not None, recovered
+    rec, n = interrupted
+    out = tmp_path / "replayed.zarr"
+    assert main(["replay", str(rec), "-o", str(out), "-q"]) == 0
+    assert _attrs(out)["recording"]["frames"] == n
+
+
+@pytest.fixture(scope="module")
+def two_pass(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A two-pass recording and its uninterrupted replay (the reference mosaic)."""
+    d = tmp_path_factory.mktemp("twopass")
+    toml = d / "scan.toml"
+    toml.write_text(config_to_toml(_cfg(passes=2)))
+    rec, ref = d / "rec.zarr", d / "ref.zarr"
+    assert main(["scan", "--config", str(toml), "-o", str(d / "live.zarr"), "--record",
+                 str(rec), "-q", "--no-evaluate"]) == 0
+    assert main(["replay", str(rec), "-o", str(ref), "-q"]) == 0
+    return rec, ref
+
+
+def test_torn_mosaic_tiles_are_known_and_resume_completes_bit_for_bit(
+        tmp_path: Path, two_pass: tuple[Path, Path]) -> None:
+    rec, ref = two_pass
+    reference = _arrays(ref)
+    writes = int(_attrs(ref)["writes_done"])
+    # a write of the second pass: its band overlaps bands of the first pass already written
+    kill_at = writes - 3
+    out = tmp_path / "torn.zarr"
+    ctx = _ctx()
+    proc = ctx.Process(target=torn_replay, args=(["replay", str(rec), "-o", str(out), "-q"],
+                                                  kill_at))
+    proc.start()
+    proc.join(60)
+    assert proc.exitcode == -signal.SIGKILL
+    proc.close()
+    states, info = tile_states(out)
+    assert info["status"] == "writing" and info["writes_done"] == kill_at
+    assert info["writing"] is not None and info["incomplete"] > 0
+    box = info["writing"]
+    chunk = int(zarr.open_group(str(out), mode="r")["height"].chunks[0])  # type: ignore[union-attr]
+    ox, oy = _attrs(out)["origin_px"]
+    rows = range((box[1] - oy) // chunk, (box[1] - oy + box[3] - 1) // chunk + 1)
+    cols = range((box[0] - ox) // chunk, (box[0] - ox + box[2] - 1) // chunk + 1)
+    assert {(r, c) for r in rows for c in cols} == set(zip(*np.nonzero(
+        states == TILE_INCOMPLETE), strict=True))
+    assert main(["info", str(out)]) == 0
+    assert main(["replay", str(rec), "-o", str(out), "-q", "--resume"]) == 0
+    resumed = _arrays(out)
+    for name in ARRAYS:
+        assert np.array_equal(resumed[name], reference[name], equal_nan=True), name
+    states, info = tile_states(out)
+    assert info["status"] == "complete" and info["incomplete"] == 0
+    assert info["writes_done"] == writes
+    # a complete mosaic is not resumed again
+    assert main(["replay", str(rec), "-o", str(out), "-q", "--resume"]) == 2
+
+
+def test_mosaic_writer_killed_at_random_moments_resumes(
+        tmp_path: Path, two_pass: tuple[Path, Path]) -> None:
+    rec, ref = two_pass
+    reference = _arrays(ref)
+    rng = random.Random(5)
+    ctx = _ctx()
+    for trial in range(2):
+        out = tmp_path / f"m{trial}.zarr"
+        proc = ctx.Process(target=quiet_main,
+                           args=(["replay", str(rec), "-o", str(out), "-q"],))
+        proc.start()
+        _kill_after(proc, out / "weight", rng.uniform(0.1, 1.5))
+        states, info = tile_states(out)
+        assert set(np.unique(states)) <= {0, TILE_COMPLETE, TILE_INCOMPLETE}
+        if info["status"] == "complete":
+            continue
+        assert main(["replay", str(rec), "-o", str(out), "-q", "--resume"]) == 0
+        resumed = _arrays(out)
+        for name in ARRAYS:
+            assert np.array_equal(resumed[name], reference[name], equal_nan=True), name
+
+
+def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    from stages import recorder
+
+    cfg = _cfg()
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    orig = recorder.RecordingWriter.write
+
+    def full(self: recorder.RecordingWriter, frame: Any) -> None:
+        if frame.header.frame_id == 37:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        orig(self, frame)
+
+    monkeypatch.setattr(recorder.RecordingWriter, "write", full)
+    rec = tmp_path / "rec.zarr"
+    code = main(["scan", "--config", str(toml), "-o", str(tmp_path / "m.zarr"), "--record",
+                 str(rec), "-q", "--no-evaluate"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "recorder" in err and "disk full at frame_id 37" in err
+    r = open_recording(rec)
+    assert r.attrs.status == "failed" and "disk full at frame_id 37" in str(r.attrs.error)
+    assert r.report.frames == 37 and r.report.defects == 0
+    for got, want in zip(r.frames(), simulate_frames(cfg), strict=False):
+        assert got.header == want.header and np.array_equal(got.image, want.image)
+    assert zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs["status"] == "failed"
+
+
+def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mnt)],
+                          capture_output=True, check=False)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.decode().strip()}")
+    try:
+        toml = tmp_path / "scan.toml"
+        toml.write_text(config_to_toml(_cfg()))
+        rec = mnt / "rec.zarr"
+        code = main(["scan", "--config", str(toml), "-o", str(tmp_path / "m.zarr"), "--record",
+                     str(rec), "-q", "--no-evaluate"])
+        err = capsys.readouterr().err
+        assert code == 1 and "disk full at frame_id" in err
+        r = open_recording(rec)
+        assert 0 < r.report.frames < 115 and r.report.defects == 0
+        assert r.attrs.status in ("failed", "recording")
+        assert sum(1 for _ in r.frames()) == r.report.frames
+    finally:
+        with contextlib.suppress(Exception):
+            subprocess.run(["umount", str(mnt)], check=False)

@@ -1,0 +1,134 @@
+"""Replay: bit for bit with the live run, overrides recorded, other writers' recordings,
+lost frames marked invalid, real-time pacing, ``sffscan info``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline.cli import main
+from pipeline.config import config_to_toml
+from pipeline.recording import open_recording
+from stages.mosaic import ARRAYS
+from tests.scan_helpers import small_config
+from tests.test_recording import plain_recording
+
+
+def _attrs(path: Path) -> dict[str, Any]:
+    return zarr.open_group(str(path), mode="r").attrs.asdict()
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    g = zarr.open_group(str(path), mode="r")
+    return {n: np.asarray(g[n]) for n in ARRAYS}
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A live scan (registration on, wobble) recorded with --record: (recording, mosaic)."""
+    d = tmp_path_factory.mktemp("live")
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0, "wobble_along_px": 1.0,
+                               "wobble_across_px": 1.0})
+    (d / "scan.toml").write_text(config_to_toml(cfg))
+    rec, mosaic = d / "rec.zarr", d / "live.zarr"
+    assert main(["scan", "--config", str(d / "scan.toml"), "-o", str(mosaic), "--record",
+                 str(rec), "-q", "--no-evaluate"]) == 0
+    return rec, mosaic
+
+
+def test_replay_reproduces_the_live_mosaic_bit_for_bit(live: tuple[Path, Path],
+                                                       tmp_path: Path) -> None:
+    rec, mosaic = live
+    out = tmp_path / "replay.zarr"
+    assert main(["replay", str(rec), "-o", str(out), "-q"]) == 0
+    want, got = _arrays(mosaic), _arrays(out)
+    assert np.isfinite(want["height"]).sum() > 50_000
+    for name in ARRAYS:
+        assert np.array_equal(got[name], want[name], equal_nan=True), name
+    attrs = _attrs(out)
+    assert attrs["status"] == "complete"
+    assert attrs["recording"]["frames"] == open_recording(rec).report.frames
+    assert attrs["processing"] == _attrs(mosaic)["processing"]
+
+
+def test_overrides_are_applied_and_recorded(live: tuple[Path, Path], tmp_path: Path) -> None:
+    rec, mosaic = live
+    out = tmp_path / "tenv.zarr"
+    assert main(["replay", str(rec), "-o", str(out), "-q", "--operator", "tenv", "--window",
+                 "7", "--method", "argmax", "--no-registration"]) == 0
+    p = _attrs(out)["processing"]
+    assert p["focus_operator"] == "tenv" and p["window"] == 7
+    assert p["depth_method"] == "argmax" and p["registration"] is False
+    assert not np.array_equal(_arrays(out)["height"], _arrays(mosaic)["height"], equal_nan=True)
+    # the recording is evidence: replay never changes it
+    assert open_recording(rec).config.processing.focus_operator == "glvm"
+
+
+def test_a_recording_written_with_plain_zarr_calls_replays(live: tuple[Path, Path],
+                                                           tmp_path: Path) -> None:
+    rec, mosaic = live
+    r = open_recording(rec)
+    plain = tmp_path / "plain.zarr"
+    plain_recording(plain, r.config, list(r.frames()))
+    out = tmp_path / "plain-replay.zarr"
+    assert main(["replay", str(plain), "-o", str(out), "-q"]) == 0
+    for name, want in _arrays(mosaic).items():
+        assert np.array_equal(_arrays(out)[name], want, equal_nan=True), name
+
+
+def test_lost_frames_leave_invalid_columns_never_filled(live: tuple[Path, Path], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture) -> None:
+    rec, mosaic = live
+    r = open_recording(rec)
+    frames = [f for f in r.frames() if not 50 <= f.header.frame_id < 58]
+    gappy = tmp_path / "gappy.zarr"
+    plain_recording(gappy, r.config, frames)
+    out = tmp_path / "gappy-replay.zarr"
+    assert main(["replay", str(gappy), "-o", str(out), "-q"]) == 0
+    text = capsys.readouterr()
+    assert "gaps        1 (8 frames lost): 50..57" in text.err
+    assert "frame_id_gaps 1, frames_lost 8" in text.out
+    got, want = _arrays(out), _arrays(mosaic)
+    lost = np.isnan(got["height"]) & np.isfinite(want["height"])
+    assert lost.sum() > 500  # columns that missed levels are invalid ...
+    assert (got["confidence"][np.isnan(got["height"])] == 0).all()  # ... and not filled
+    rec_attr = _attrs(out)["recording"]
+    assert rec_attr["frames_lost"] == 8 and rec_attr["gaps"] == [[50, 8]]
+    assert main(["replay", str(gappy), "-o", str(tmp_path / "strict.zarr"), "-q",
+                 "--strict"]) == 2
+
+
+def test_realtime_paces_frames_by_their_time_stamps(live: tuple[Path, Path]) -> None:
+    rec, _ = live
+    r = open_recording(rec)
+    now = [100.0]
+    sleeps: list[float] = []
+
+    def sleep(dt: float) -> None:
+        sleeps.append(dt)
+        now[0] += dt
+
+    frames = r.frames(realtime=True, clock=lambda: now[0], sleep=sleep)
+    ts = [f.header.timestamp_ns for _, f in zip(range(20), frames, strict=False)]
+    assert len(sleeps) == 19
+    assert sum(sleeps) == pytest.approx((ts[-1] - ts[0]) * 1e-9, abs=1e-9)
+    assert sleeps[0] == pytest.approx(1 / 150, rel=1e-3)
+
+
+def test_info_summarises_a_recording_and_refuses_what_is_not_one(
+        live: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    rec, mosaic = live
+    n = open_recording(rec).report.frames
+    assert main(["info", str(rec), "--verify"]) == 0
+    out = capsys.readouterr().out
+    assert f"frames      {n} usable of {n} entries" in out
+    assert "150.0 frames/s" in out and "codec blosc-lz4" in out and "0 corrupt" in out
+    assert main(["info", str(mosaic)]) == 0
+    assert "tiles" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "nothing.zarr")]) == 2
+    assert main(["replay", str(mosaic), "-o", str(tmp_path / "x.zarr")]) == 2
+    assert "not an sffscan recording" in capsys.readouterr().err
