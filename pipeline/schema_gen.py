@@ -12,14 +12,22 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from pipeline.calibration import Calibration
+from pipeline.compare import CompareReport
 from pipeline.config import ScanConfig
 from pipeline.messages import DepthBlockHeader, FrameHeader, MosaicAttrs
+from pipeline.recording import RecordingAttrs
+from pipeline.transport import TransportMessage
 
 SCHEMAS: dict[str, type[BaseModel]] = {
     "frame_header.v1.json": FrameHeader,
     "depth_block_header.v1.json": DepthBlockHeader,
     "scan_config.v1.json": ScanConfig,
     "mosaic_attrs.v1.json": MosaicAttrs,
+    "calibration.v1.json": Calibration,
+    "recording_attrs.v1.json": RecordingAttrs,
+    "transport_message.v1.json": TransportMessage,
+    "compare_report.v1.json": CompareReport,
 }
 
 
