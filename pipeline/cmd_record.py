@@ -104,7 +104,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def _info_mosaic(path: Path) -> int:
     from stages.mosaic import tile_states
 
-    _, info = tile_states(path)
+    try:
+        _, info = tile_states(path)
+    except (ValueError, KeyError) as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     print(f"mosaic      {path} (status {info['status']})")
     print(f"tiles       {info['tiles']}: {info['complete']} complete, {info['incomplete']} "

@@ -128,7 +128,7 @@ class RecordingReport:
     def as_dict(self) -> dict[str, Any]:
         """A JSON-able summary, stored in the attributes of a mosaic replayed from it."""
         return {"path": self.path, "status": self.status, "frames": self.frames,
-                "entries": self.entries, "frames_lost": self.lost,
+                "entries": self.entries, "frames_lost": self.lost + len(self.corrupt),
                 "gaps": [list(g) for g in self.gaps[:100]], "duplicates": self.duplicates[:100],
                 "out_of_order": self.out_of_order[:100],
                 "missing_metadata": self.missing_metadata[:100],
@@ -162,13 +162,38 @@ def _chunk_keys(arr: zarr.Array) -> set[str]:
     return {k[len(prefix):] for k in sync(_list())}
 
 
-def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int]) -> np.ndarray:
-    """Read entries [0, n) chunk by chunk; entries of an unreadable chunk become ``fill`` and
-    their indexes go to ``bad``."""
-    chunk = int(arr.chunks[0])
+def _stored(arr: zarr.Array) -> tuple[int, ...]:
+    """Shape of one stored object of ``arr`` (its shard if sharded, else its chunk)."""
+    return tuple(int(c) for c in (arr.shards or arr.chunks))
+
+
+def _same_fill(arr: zarr.Array, fill: Any) -> bool:
+    a = arr.fill_value
+    if isinstance(fill, float) and np.isnan(fill):
+        return bool(np.isnan(a)) if np.asarray(a).dtype.kind == "f" else False
+    return bool(a == fill)
+
+
+def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
+                    required: bool) -> np.ndarray:
+    """Read entries [0, n) chunk by chunk; entries of an unreadable chunk become ``fill``
+    and their indexes go to ``bad``.
+
+    Zarr stores no chunk equal to the array's fill value and reads an absent chunk as that
+    value, so a lost chunk cannot be told from one that was all fill. For a required array
+    whose fill value is not the documented one (-1, "not written"), an absent chunk would
+    read as real metadata (focus level 0, time stamp 0): its entries go to ``bad`` instead.
+    """
+    chunk = _stored(arr)[0]
+    keys = _chunk_keys(arr)
+    enc = arr.metadata.encode_chunk_key  # type: ignore[union-attr]
+    doubt_absent = required and not _same_fill(arr, fill)
     out = np.full(n, fill, dtype=arr.dtype)
     for a in range(0, n, chunk):
         b = min(n, a + chunk)
+        if doubt_absent and enc((a // chunk,)) not in keys:
+            bad.update(range(a, b))
+            continue
         try:
             out[a:b] = np.asarray(arr[a:b])
         except Exception:  # noqa: BLE001 - any decode failure is a corrupt chunk
@@ -221,6 +246,7 @@ class Recording:
             except Exception:  # noqa: BLE001 - undecodable or truncated chunk
                 if header.frame_id not in self.report.corrupt:
                     self.report.corrupt.append(header.frame_id)
+                    self.report.frames -= 1  # not usable after all
                 continue
             if realtime:
                 if t_wall0 is None:
@@ -319,7 +345,8 @@ def open_recording(path: str | Path) -> Recording:
     meta: dict[str, np.ndarray] = {}
     for name, (dtype, fill, _) in PER_FRAME.items():
         if name in arrays:
-            meta[name] = _read_per_frame(arrays[name], n, fill, bad).astype(dtype)
+            meta[name] = _read_per_frame(arrays[name], n, fill, bad,
+                                         required=PER_FRAME[name][2]).astype(dtype)
         else:
             meta[name] = np.full(n, 0 if name == "pass_index" else fill, dtype)
     fid = meta["frame_id"]
@@ -327,18 +354,28 @@ def open_recording(path: str | Path) -> Recording:
     written &= meta["pass_index"] >= 0
     written[list(bad)] = False
     idx = np.flatnonzero(written)
-    last_written = int(idx[-1]) + 1 if idx.size else 0
+    # entries up to the last written one, an unreadable one or the count the writer stated
+    # when it closed are expected: those without metadata are defects, not an unwritten tail
+    last_written = max(int(idx[-1]) + 1 if idx.size else 0, max(bad) + 1 if bad else 0,
+                       attrs.frames or 0)
+    if attrs.frames is not None and attrs.frames > n:
+        report.notes.append(f"attribute frames says {attrs.frames} but the arrays hold "
+                            f"{n} entries")
     report.entries = last_written
-    report.unwritten = n - last_written
-    report.missing_metadata = [i for i in range(last_written) if not written[i]]
+    report.unwritten = max(0, n - last_written)
+    report.missing_metadata = [i for i in range(last_written) if i >= n or not written[i]]
     if longer:
         report.notes.append("arrays longer than the per-frame metadata (entries beyond "
                             f"{n} have no metadata and are not replayed): " + ", ".join(longer))
     # frames whose chunk is absent (another writer, or a lost file) are not replayed
+    # (every chunk of the frame: a frame split over several chunks must be whole)
     keys = _chunk_keys(frames)
     enc = frames.metadata.encode_chunk_key  # type: ignore[union-attr]
-    per_chunk = int(frames.chunks[0])
-    present = np.array([enc((int(i) // per_chunk, 0, 0)) in keys for i in idx], dtype=bool)
+    per_chunk, cy, cx = _stored(frames)
+    tiles = [(y, x) for y in range(-(-attrs.frame_shape[0] // cy))
+             for x in range(-(-attrs.frame_shape[1] // cx))]
+    present = np.array([all(enc((int(i) // per_chunk, y, x)) in keys for y, x in tiles)
+                        for i in idx], dtype=bool)
     report.missing_chunks = [int(fid[i]) for i in idx[~present]]
     idx = idx[present]
     # storage order -> frame_id order; the first copy of a repeated frame_id is kept

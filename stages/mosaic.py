@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from pydantic import ValidationError
 from zarr.codecs import BloscCodec, BloscShuffle
 
 from pipeline.messages import DepthBlock, MosaicAttrs
@@ -215,7 +216,7 @@ class MosaicWriter:
             raise ValueError(f"{p}: cannot resume, not a readable Zarr group ({exc})") from exc
         if group.attrs.get("format") != "sffscan-mosaic":
             raise ValueError(f"{p}: cannot resume, not an sffscan mosaic")
-        attrs = MosaicAttrs.model_validate(group.attrs.asdict())
+        attrs = read_mosaic_attrs(group, path)
         if attrs.status == "complete":
             raise ValueError(f"{p}: the mosaic is complete already; nothing to resume")
         old = {k: v for k, v in attrs.scan_config.items() if k != "output"}
@@ -325,6 +326,17 @@ class MosaicWriter:
         self.group.update_attributes(attrs.model_dump(mode="json"))
 
 
+def read_mosaic_attrs(group: zarr.Group, path: str | Path) -> MosaicAttrs:
+    """A mosaic group's attributes, validated; ``ValueError`` names the file and the field."""
+    try:
+        return MosaicAttrs.model_validate(group.attrs.asdict())
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(v) for v in first["loc"]) or "(attributes)"
+        raise ValueError(f"{path}: not a valid sffscan mosaic: attribute '{where}': "
+                         f"{first['msg']} ({len(err.errors())} problem(s))") from None
+
+
 def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     """The state of every tile (chunk) of a mosaic, as found on reopening it.
 
@@ -340,7 +352,7 @@ def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     from zarr.core.sync import sync
 
     group = zarr.open_group(str(path), mode="r")
-    attrs = MosaicAttrs.model_validate(group.attrs.asdict())
+    attrs = read_mosaic_attrs(group, path)
     h = mosaic_array(group, "height")
     chunk = int(h.chunks[0])
     rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)

@@ -113,7 +113,10 @@ class RecordingWriter:
         self.frames = group.create_array(
             name="frames", shape=(0, *self.shape), chunks=(1, *self.shape), dtype=self.dtype,
             fill_value=0, compressors=frame_codecs(self.codec),
-            dimension_names=("frame", "y", "x"))
+            dimension_names=("frame", "y", "x"),
+            # a chunk equal to the fill value (an all-black frame) must be stored too: the
+            # reader takes an absent chunk for a lost frame
+            config={"write_empty_chunks": True})
         self.meta = {
             name: group.create_array(name=name, shape=(0,), chunks=(META_CHUNK,), dtype=dtype,
                                      fill_value=fill, compressors=None,
@@ -136,6 +139,13 @@ class RecordingWriter:
     def write(self, frame: Frame) -> None:
         """Write one frame's chunk now; its metadata with the next flush."""
         h = frame.header
+        image = frame.image
+        if image.shape != self.shape or image.dtype != self.dtype:
+            # never cast (70000 would wrap in uint16) nor reshape: the recording is evidence
+            raise ValueError(f"recording {self.path}: frame_id {h.frame_id}: image dtype "
+                             f"{image.dtype} shape {image.shape}, the configuration says "
+                             f"{self.dtype} {self.shape} (optics.bit_depth, height_px, "
+                             "width_px)")
         self._open()
         self._grow(self.count + 1)
         self.frames[self.count] = frame.image
@@ -170,15 +180,28 @@ class RecordingWriter:
         self.closed = True
         if self.group is None:  # no frame arrived: nothing to keep
             return
-        self.flush()
-        if status == "complete":
-            self.frames.resize((self.committed, *self.shape))
-            for arr in self.meta.values():
-                arr.resize((self.committed,))
+        failure: BaseException | None = None
+        try:
+            self.flush()
+            if status == "complete":
+                self.frames.resize((self.committed, *self.shape))
+                for arr in self.meta.values():
+                    arr.resize((self.committed,))
+        except BaseException as exc:  # the status must still say that it did not complete
+            failure = exc
+            status, error = "failed", f"{error + '; ' if error else ''}closing: {exc}"
         attrs = self.attrs.model_copy(update={"status": status, "frames": self.committed,
                                               "error": error})
-        self.group.update_attributes(attrs.model_dump(mode="json"))
-        self.attrs = attrs
+        try:
+            self.group.update_attributes(attrs.model_dump(mode="json"))
+            self.attrs = attrs
+        except OSError:
+            if failure is None:
+                raise
+            # the disk refuses even the status: it stays 'recording', which readers treat
+            # as not complete; the first error is the one reported
+        if failure is not None:
+            raise failure
 
 
 class RecorderSink(Sink):

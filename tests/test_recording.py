@@ -166,3 +166,115 @@ def test_recording_attrs_schema_is_generated_and_names_the_field() -> None:
     with pytest.raises(ValueError, match="dtype"):
         RecordingAttrs.model_validate({"frame_shape": [2, 2], "dtype": "float32",
                                        "scan_config": {}})
+
+
+def test_an_all_black_frame_is_recorded_not_lost(tmp_path: Path) -> None:
+    # zarr skips chunks equal to the fill value unless told otherwise: a dark frame (all 0)
+    # must still be in the recording, not reported as a lost frame
+    frames = _frames(4)
+    frames[2] = Frame(frames[2].header, np.zeros((H, W), np.uint16))
+    w = RecordingWriter(tmp_path / "r.zarr", small_config())
+    for f in frames:
+        w.write(f)
+    w.close()
+    r = open_recording(tmp_path / "r.zarr")
+    assert r.report.defects == 0 and r.report.frames == 4, r.report.lines()
+    assert np.array_equal(list(r.frames())[2].image, frames[2].image)
+
+
+@pytest.mark.parametrize(("image", "message"), [
+    (np.full((H, W), 70_000, np.int32), "frame_id 0: image dtype int32"),
+    (np.full((H, W), 3.7), "frame_id 0: image dtype float64"),
+    (np.zeros((H, W // 2), np.uint16), r"frame_id 0: image dtype uint16 shape \(256, 320\)"),
+])
+def test_the_writer_refuses_frames_that_disagree_with_the_configuration(
+        tmp_path: Path, image: np.ndarray, message: str) -> None:
+    # never cast (70000 would wrap to 4464 in uint16) nor store a frame of another shape
+    w = RecordingWriter(tmp_path / "r.zarr", small_config())
+    with pytest.raises(ValueError, match=message):
+        w.write(Frame(_frames(1)[0].header, image))
+
+
+def test_a_missing_part_of_a_frame_split_over_chunks_is_reported_not_filled(
+        tmp_path: Path) -> None:
+    g = zarr.open_group(str(tmp_path / "r.zarr"), mode="w")
+    g.attrs.update({"format": "sffscan-recording", "format_version": 1, "frame_shape": [H, W],
+                    "dtype": "uint16", "scan_config": small_config().model_dump(mode="json")})
+    a = g.create_array("frames", shape=(3, H, W), chunks=(1, H // 2, W), dtype="uint16")
+    for i in range(3):
+        a[i] = 5
+    for name in ("frame_id", "timestamp_ns", "focus_index"):
+        g.create_array(name, data=np.arange(3, dtype="int64"))
+    (tmp_path / "r.zarr" / "frames" / "c" / "1" / "1" / "0").unlink()  # lower half of frame 1
+    r = open_recording(tmp_path / "r.zarr")
+    assert r.report.missing_chunks == [1]
+    assert [f.header.frame_id for f in r.frames()] == [0, 2]
+    assert all((f.image == 5).all() for f in r.frames())
+
+
+def _chunked_metadata(path: Path, n: int, *, status: str = "complete") -> None:
+    """A plain-zarr recording of ``n`` frames, metadata in chunks of 4 with zarr's default
+    fill value (0)."""
+    g = zarr.open_group(str(path), mode="w")
+    g.attrs.update({"format": "sffscan-recording", "format_version": 1, "frame_shape": [H, W],
+                    "dtype": "uint16", "scan_config": small_config().model_dump(mode="json"),
+                    "status": status, "frames": n})
+    a = g.create_array("frames", shape=(n, H, W), chunks=(1, H, W), dtype="uint16")
+    for i in range(n):
+        a[i] = i + 1
+    for name in ("frame_id", "timestamp_ns", "focus_index"):
+        g.create_array(name, data=np.arange(n, dtype="int64") + 1, chunks=(4,))
+
+
+def test_lost_or_corrupt_metadata_chunks_are_defects_never_zeros_nor_an_unwritten_tail(
+        tmp_path: Path) -> None:
+    path = tmp_path / "r.zarr"
+    # the last frame_id chunk corrupt: not a crash tail ("not written"), a defect
+    _chunked_metadata(path, 10)
+    (path / "frame_id" / "c" / "2").write_bytes(b"xx")
+    rep = open_recording(path).report
+    assert rep.missing_metadata == [8, 9] and rep.defects == 2 and rep.unwritten == 0
+    # the last frame_id chunk deleted from a complete recording: a defect too
+    _chunked_metadata(path, 10)
+    (path / "frame_id" / "c" / "2").unlink()
+    rep = open_recording(path).report
+    assert rep.missing_metadata == [8, 9] and rep.duplicates == [], rep.lines()
+    # a focus_index chunk deleted: its entries are missing, not focus level 0 (the fill value)
+    _chunked_metadata(path, 10)
+    (path / "focus_index" / "c" / "1").unlink()
+    r = open_recording(path)
+    assert r.report.missing_metadata == [4, 5, 6, 7]
+    assert [f.header.focus_index for f in r.frames()] == [1, 2, 3, 4, 9, 10]
+
+
+def test_frames_found_corrupt_while_replaying_are_counted_as_lost(tmp_path: Path) -> None:
+    path = tmp_path / "r.zarr"
+    _chunked_metadata(path, 6)
+    (path / "frames" / "c" / "3" / "0" / "0").write_bytes(b"\x00garbage")
+    r = open_recording(path)
+    assert len(list(r.frames())) == 5
+    summary = r.report.as_dict()
+    assert r.report.corrupt == [4] and summary["frames"] == 5 and summary["frames_lost"] == 1
+    assert "frames      5 usable" in "\n".join(r.report.lines())
+    list(r.frames())  # reading again counts nothing twice
+    assert r.report.frames == 5 and r.report.as_dict()["frames_lost"] == 1
+
+
+def test_a_failing_final_flush_still_marks_the_recording_failed(tmp_path: Path) -> None:
+    from stages.sim_scanner import simulate_frames
+
+    cfg = small_config()
+    writer = RecordingWriter(tmp_path / "rec.zarr", cfg)
+    frames = simulate_frames(cfg)
+    for _ in range(3):
+        writer.write(next(frames))
+
+    def broken_flush() -> None:
+        raise OSError(28, "No space left on device")
+
+    writer.flush = broken_flush  # type: ignore[method-assign]
+    with pytest.raises(OSError, match="No space"):
+        writer.close()
+    attrs = zarr.open_group(str(tmp_path / "rec.zarr"), mode="r").attrs.asdict()
+    assert attrs["status"] == "failed"
+    assert "No space left" in attrs["error"]

@@ -132,3 +132,13 @@ def test_info_summarises_a_recording_and_refuses_what_is_not_one(
     assert main(["info", str(tmp_path / "nothing.zarr")]) == 2
     assert main(["replay", str(mosaic), "-o", str(tmp_path / "x.zarr")]) == 2
     assert "not an sffscan recording" in capsys.readouterr().err
+
+
+def test_info_on_a_mosaic_with_invalid_attributes_names_the_attribute(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "bad.zarr"
+    g = zarr.open_group(str(bad), mode="w")
+    g.attrs.update({"format": "sffscan-mosaic", "status": "weird"})
+    assert main(["info", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.zarr" in err and "attribute 'status'" in err
