@@ -80,15 +80,28 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
     scale = UNIT_TO_UM[args.focus_unit]
     if args.focus_file:
         table = read_focus_positions(args.focus_file, scale_to_um=scale)
+        source = str(args.focus_file)
     elif args.focus_start is not None and args.focus_step is not None:
         table = (args.focus_start + args.focus_step * np.arange(n)) * scale
+        source = "--focus-start/--focus-step"
     elif from_zarr is not None:
         table = from_zarr
+        source = f"{args.zarr}: attribute focus_heights_um"
     else:
         raise ValueError("focus positions missing: give --focus-file, or --focus-start and "
                          "--focus-step (or a Zarr stack with a focus_heights_um attribute)")
     if table.size != n:
-        raise ValueError(f"{table.size} focus positions for {n} images")
+        raise ValueError(f"{source}: {table.size} focus positions for {n} images")
+    # checked here, before the stack is processed, so that the message names the source
+    bad = np.flatnonzero(~np.isfinite(table))
+    if bad.size:
+        raise ValueError(f"{source}: focus position {bad[0]} is not a number ({table[bad[0]]})")
+    step = np.diff(table)
+    if not ((step > 0).all() or (step < 0).all()):
+        k = int(np.flatnonzero(np.sign(step) != np.sign(step[0]) if step[0] != 0
+                               else step == 0)[0]) + 1
+        raise ValueError(f"{source}: focus positions must be strictly monotonic; position "
+                         f"{k} ({table[k]:g} µm) follows {table[k - 1]:g} µm")
     return table
 
 
@@ -309,7 +322,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="remove an offset, a plane, or a lateral shift and a plane first")
     p.add_argument("--max-shift-px", type=int, default=10, help="shift search range, px")
     p.add_argument("--region", help="score only this box X0,Y0,X1,Y1 (world px; array px "
-                                    "for maps without a world origin)")
+                                    "when neither map has a world origin)")
     p.add_argument("--max-depth-um", type=float, help="MAX_d of the PSNR, µm")
     p.add_argument("--bins", type=int, default=20, help="histogram bins (default 20)")
     p.add_argument("--range-um", type=float, nargs=2, metavar=("LO", "HI"),

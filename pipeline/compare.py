@@ -150,14 +150,17 @@ def overlap_by_origin(est: HeightMap, ref: HeightMap
     """The two maps over the world pixels both cover (same-shape arrays), and the world
     (x, y) px of their element [0, 0].
 
-    Maps without a world origin are taken as placed at (0, 0) and must have the same shape.
+    A map without a world origin must have the same shape as the other and is taken as
+    covering the same pixels: the origin returned is the placed map's (or (0, 0) when
+    neither is placed), so a region in world px means the same with either argument order.
     """
     if est.origin_px is None or ref.origin_px is None:
         if est.height_um.shape != ref.height_um.shape:
             raise ValueError(f"{est.source} is {est.height_um.shape} and {ref.source} is "
                              f"{ref.height_um.shape}: maps without a world origin must have "
                              "the same shape")
-        return est.height_um, ref.height_um, (0, 0)
+        origin = est.origin_px or ref.origin_px or (0, 0)
+        return est.height_um, ref.height_um, (int(origin[0]), int(origin[1]))
     if est.pixel_um is not None and ref.pixel_um is not None and not math.isclose(
             est.pixel_um, ref.pixel_um, rel_tol=1e-9):
         raise ValueError(f"pixel sizes differ: {est.source} {est.pixel_um} µm, {ref.source} "

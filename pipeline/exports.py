@@ -100,7 +100,8 @@ def _ply_header(count: int, comment: str) -> bytes:
     lines += [f"comment {c}" for c in comment.splitlines() if c]
     lines += [f"element vertex {count}", "property float x", "property float y",
               "property float z", "property uchar grey", "end_header"]
-    return ("\n".join(lines) + "\n").encode("ascii")
+    # PLY headers are ASCII: other characters (a mosaic named "Prüfkörper") are escaped
+    return ("\n".join(lines) + "\n").encode("ascii", errors="backslashreplace")
 
 
 def ply_vertices(height_um: np.ndarray, texture: np.ndarray, *, x0_px: int, y0_px: int,
@@ -148,17 +149,24 @@ def write_ply(path: str | Path, mosaic: str | Path,
     comment = (f"source {Path(mosaic).name} region x {x0}..{x1} y {y0}..{y1} px, "
                f"pixel {attrs.pixel_um} um")
     no_tex = written = 0
-    with open(path, "wb") as f:
-        f.write(_ply_header(count, comment))
-        for a, b in bands:
-            h = np.asarray(height[a - oy:b - oy, cs])
-            t = np.asarray(texture[a - oy:b - oy, cs])
-            rec = ply_vertices(h, t, x0_px=x0, y0_px=a, pixel_um=attrs.pixel_um)
-            no_tex += int((~np.isfinite(t[np.isfinite(h)])).sum())
-            written += rec.size
-            f.write(rec.tobytes())
-    if written != count:  # the mosaic changed between the passes
-        raise ValueError(f"{mosaic}: changed while exporting ({count} then {written} points)")
+    out = Path(path)
+    part = out.with_name(out.name + ".part")  # renamed when whole: no half-written PLY
+    try:
+        with open(part, "wb") as f:
+            f.write(_ply_header(count, comment))
+            for a, b in bands:
+                h = np.asarray(height[a - oy:b - oy, cs])
+                t = np.asarray(texture[a - oy:b - oy, cs])
+                rec = ply_vertices(h, t, x0_px=x0, y0_px=a, pixel_um=attrs.pixel_um)
+                no_tex += int((~np.isfinite(t[np.isfinite(h)])).sum())
+                written += rec.size
+                f.write(rec.tobytes())
+        if written != count:  # the mosaic changed between the passes
+            raise ValueError(f"{mosaic}: changed while exporting ({count} then {written} "
+                             "points)")
+        part.replace(out)
+    finally:
+        part.unlink(missing_ok=True)
     return {"points": written, "no_texture": no_tex}
 
 

@@ -115,3 +115,20 @@ def test_compare_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "RMSE" in capsys.readouterr().out
     assert main(["compare", str(tmp_path / "a.zarr"), str(tmp_path / "r.npy")]) == 2  # shapes
     assert main(["compare", str(tmp_path / "r.npy"), str(tmp_path / "missing.npy")]) == 2
+
+
+def test_region_is_in_world_px_when_only_one_map_is_placed(tmp_path: Path) -> None:
+    """A mosaic compared with an unplaced array (.npy of the same shape): ``--region`` is in
+    the mosaic's world pixels, as documented, not in array pixels."""
+    ref = _surface((60, 70))
+    est = ref.copy()
+    est[10:20, 30:40] += 100.0  # world x 130..140, y 210..220 with the origin (100, 200)
+    _mosaic(tmp_path / "e.zarr", est.astype(np.float32), (100, 200))
+    np.save(tmp_path / "r.npy", ref)
+    json_path = tmp_path / "c.json"
+    for est_path, ref_path in (("e.zarr", "r.npy"), ("r.npy", "e.zarr")):
+        assert main(["compare", str(tmp_path / est_path), str(tmp_path / ref_path),
+                     "--region", "130,210,140,220", "--json", str(json_path)]) == 0
+        r = CompareReport.model_validate_json(json_path.read_text())
+        assert r.pixels == 100
+        assert r.rmse_um == pytest.approx(100.0, rel=1e-5)

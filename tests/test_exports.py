@@ -162,3 +162,65 @@ def test_export_command(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: P
     assert main(["export", str(path), "--region", "0,0,5,5"]) == 2
     assert main(["export", str(path), "--region", "1,2,3"]) == 2
     assert main(["export", str(tmp_path / "a.ply")]) == 2  # not a mosaic
+
+
+def test_x3p_and_areal_parameters_against_surfalize(tmp_path: Path) -> None:
+    """A third-party implementation (surfalize, MIT: its own x3p reader, its own levelling
+    and ISO 25178-2 height parameters) reads the exported x3p and gets the same surface,
+    scale and Sa, Sq, Sp, Sv, Sz, Ssk, Sku as pipeline.areal on the mosaic region."""
+    from surfalize import Surface  # imported here: about 3 s, for this test only
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.indices((50, 60))
+    h = (rng.gamma(2.0, 10.0, (50, 60)) + 0.3 * xx - 0.2 * yy + 400.0).astype(np.float32)
+    h[7, 7] = np.nan
+    h[20:22, 30:35] = np.nan
+    path = tmp_path / "g.zarr"
+    w = MosaicWriter(path, origin_px=ORIGIN, shape=h.shape, pixel_um=PX,
+                     attrs={"focus_heights_um": [0.0, 1000.0]})
+    ok = np.isfinite(h)
+    wt = ok.astype(np.float32)
+    w.write_region(*ORIGIN, {"height": np.where(ok, h, 0) * wt, "texture": wt * 0.5,
+                             "weight": wt, "confidence": wt})
+    w.set_status("complete")
+    write_x3p(tmp_path / "g.x3p", path)
+
+    s = Surface.load(str(tmp_path / "g.x3p"))  # surfalize's reader, µm
+    assert s.step_x == pytest.approx(PX) and s.step_y == pytest.approx(PX)
+    assert s.data.shape == h.shape
+    np.testing.assert_array_equal(np.isnan(s.data), ~ok)
+    np.testing.assert_allclose(s.data[ok], h[ok], rtol=1e-6)
+    # surfalize refuses NaN: give them a value and mask them (left out of fit and parameters)
+    masked = Surface(np.nan_to_num(s.data, nan=0.0), s.step_x, s.step_y, mask=~ok)
+    theirs = masked.level().height_parameters()
+    ours = areal_parameters(read_region(path).height_um, level="plane")
+    assert ours.pixels == int(ok.sum()) and ours.missing == int((~ok).sum())
+    for name, value in (("Sa", ours.sa_um), ("Sq", ours.sq_um), ("Sp", ours.sp_um),
+                        ("Sv", ours.sv_um), ("Sz", ours.sz_um), ("Ssk", ours.ssk),
+                        ("Sku", ours.sku)):
+        assert value == pytest.approx(float(theirs[name]), rel=1e-6), name
+    assert ours.ssk > 0.5  # skewed: Ssk's sign and size are tested, not just 0 == 0
+
+
+def test_ply_of_a_mosaic_with_a_non_ascii_name(mosaic: tuple[Path, np.ndarray, np.ndarray],
+                                               tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The PLY header is ASCII: a mosaic named 'Prüfkörper' is still exported (its name
+    escaped in the comment), and a failed export leaves no half-written file."""
+    path, h, _ = mosaic
+    named = tmp_path / "Prüfkörper.zarr"
+    path.rename(named)
+    out = tmp_path / "p.ply"
+    assert main(["export", str(named), "--ply", str(out)]) == 0
+    lines, v = _parse_ply(out)
+    assert v.shape[0] == int(np.isfinite(h).sum())
+    assert any("Pr\\xfcfk\\xf6rper.zarr" in line for line in lines)
+    out.unlink()
+
+    def broken(*args: object, **kwargs: object) -> np.ndarray:
+        raise OSError("disk full")
+
+    monkeypatch.setattr("pipeline.exports.ply_vertices", broken)
+    with pytest.raises(OSError, match="disk full"):
+        write_ply(out, named)
+    assert not list(tmp_path.glob("*.ply*"))  # no truncated PLY left behind

@@ -182,3 +182,26 @@ def test_stack_command(sim_stack: tuple[np.ndarray, np.ndarray], tmp_path: Path)
                  "--focus-file", str(tmp_path / "missing.txt"), "-o", str(tmp_path / "x")]) == 2
     assert main(["stack", str(tmp_path / "nope.tif"), "a", "b", "--pixel-um", "1",
                  "--focus-start", "0", "--focus-step", "1", "-o", str(tmp_path / "y")]) == 2
+
+
+def test_stack_command_names_a_bad_focus_table(sim_stack: tuple[np.ndarray, np.ndarray],
+                                               tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A focus table that is not strictly monotonic is refused before any processing, the
+    message naming the file (or the option) and the first bad position."""
+    stack, _ = sim_stack
+    arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=stack.shape, dtype="uint16")
+    arr[...] = stack
+    table = ZS.copy()
+    table[7] = table[6]
+    focus = tmp_path / "focus.txt"
+    focus.write_text("\n".join(str(v) for v in table))
+    base = ["stack", "--zarr", str(tmp_path / "s.zarr"), "--pixel-um", "17", "-o",
+            str(tmp_path / "f.zarr")]
+    capsys.readouterr()
+    assert main([*base, "--focus-file", str(focus)]) == 2
+    err = capsys.readouterr().err
+    assert "focus.txt" in err and "position 7" in err
+    assert main([*base, "--focus-start", "0", "--focus-step", "0"]) == 2
+    assert "--focus-step" in capsys.readouterr().err
+    assert not (tmp_path / "f.zarr").exists()
