@@ -33,8 +33,6 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.config import ConfigError
-from stages.depth import depth_from_focus, levels_to_height
-from stages.focus_measure import focus_measure, to_unit_float
 
 __all__ = [
     "Calibration",
@@ -159,6 +157,8 @@ def load_calibration(path: str | Path) -> Calibration:
 def focus_volume_of(stack: np.ndarray, *, max_value: float, operator: str = "glvm",
                     window: int = 9) -> np.ndarray:
     """Focus volume of a raw stack, (N, H, W) -> (N, H, W) float32 (stages.focus_measure)."""
+    from stages.focus_measure import focus_measure, to_unit_float  # torch: load late
+
     frames = np.stack([to_unit_float(img, max_value=max_value) for img in np.asarray(stack)])
     return focus_measure(frames, operator=operator, window=window)
 
@@ -209,6 +209,8 @@ def peak_level(stack: np.ndarray, *, max_value: float, patch_px: int = 64,
     curve), then its peak is located: ``"symmetric"`` (default, :func:`symmetric_peak`) or
     any ``stages.depth.depth_from_focus`` method (``"gauss3"``...).
     """
+    from stages.depth import depth_from_focus
+
     curve = patch_focus_curve(focus_volume_of(stack, max_value=max_value, operator=operator,
                                               window=window), patch_px=patch_px)
     if method == "symmetric":
@@ -388,6 +390,8 @@ def measure_height(stack: np.ndarray, *, focus_heights_um: np.ndarray, max_value
                    operator: str = "glvm", window: int = 9, method: str = "spc",
                    median_size: int = 11) -> tuple[np.ndarray, np.ndarray]:
     """Height map (µm) and depth (levels) of one stationary stack, (H, W) float32 each."""
+    from stages.depth import depth_from_focus, levels_to_height
+
     vol = focus_volume_of(stack, max_value=max_value, operator=operator, window=window)
     depth, _ = depth_from_focus(vol, method=method, median_size=median_size)
     return levels_to_height(depth, focus_heights_um=focus_heights_um), depth

@@ -27,7 +27,8 @@ from pipeline.cli_common import (
 from pipeline.config import ConfigError, ScanConfig, config_to_toml, demo_config, load_config
 
 #: Modules that add sub-commands; each defines ``register(sub)``.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = ("pipeline.cmd_record", "pipeline.cmd_hardware",
+                                    "pipeline.cmd_calibrate", "pipeline.cmd_metrology")
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:
@@ -51,7 +52,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.output is None:  # the demo's own default output is replaced on every run
         args.output, args.overwrite = DEMO_OUTPUT, True
     cfg = override(demo_config(passes=args.passes), args)
-    return _run(cfg, args, evaluate=True, viewer_default="off")
+    return _run(cfg, args, evaluate=True, viewer_default="auto")
 
 
 def cmd_scan(args: argparse.Namespace) -> int:

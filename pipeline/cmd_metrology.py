@@ -32,9 +32,13 @@ def _fail(msg: str) -> int:
 
 
 def _settings_options(p: argparse.ArgumentParser) -> None:
+    import types
+    from dataclasses import fields
+
     from stages.stationary import StackSettings
 
-    d = StackSettings()
+    # the defaults without an instance (validating one would load torch for '--help')
+    d = types.SimpleNamespace(**{f.name: f.default for f in fields(StackSettings)})
     p.add_argument("--operator", choices=["glvm", "tenv"], default=d.operator,
                    help=f"focus measure operator (default {d.operator})")
     p.add_argument("--window", type=int, default=d.window,

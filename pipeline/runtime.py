@@ -235,10 +235,14 @@ class PipelineResult:
     stages: list[StageStats]
     queues: list[QueueStats]
     extras: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: names of the sinks (their stats and queues come last in ``stages`` and ``queues``)
+    sinks: tuple[str, ...] = ()
 
     @property
     def dropped(self) -> int:
-        return sum(q.dropped for q in self.queues)
+        """Items dropped between the main stages (a sink's own drops are not frames lost)."""
+        return sum(q.dropped for q in self.queues
+                   if q.name.rsplit("->", 1)[-1] not in self.sinks)
 
 
 class Pipeline:
@@ -318,7 +322,7 @@ class Pipeline:
                 t0 = time.perf_counter()
                 q.put(Tapped(name, out))
                 waited = time.perf_counter() - t0
-                if waited > 1e-3:
+                if waited > 1e-3 and q.policy is FullPolicy.BLOCK:
                     with self._lock:
                         sink = q.name.rsplit("->", 1)[1]
                         self.sink_wait_s[sink] += waited
@@ -461,6 +465,7 @@ class Pipeline:
             stages=self.stats + self.sink_stats,
             queues=[q.stats for q in self.queues + self.sink_queues],
             extras=extras,
+            sinks=tuple(k.name for k in self.sinks),
         )
 
     def _close_all(self, *, failed: bool) -> tuple[str, BaseException] | None:

@@ -36,7 +36,6 @@ from stages.depth import (
     depth_from_focus,
     levels_to_height,
 )
-from stages.focus_measure import FOCUS_OPERATORS, focus_measure, to_unit_float
 
 __all__ = [
     "FieldResult",
@@ -89,6 +88,8 @@ class StackSettings:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
+        from stages.focus_measure import FOCUS_OPERATORS  # torch loads with the first use
+
         if self.operator not in FOCUS_OPERATORS:
             raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {self.operator!r}")
         if self.method not in DEPTH_METHODS:
@@ -250,6 +251,8 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     if heights.size != stack.shape[0]:
         raise ValueError(f"focus_heights_um has {heights.size} values for {stack.shape[0]} "
                          "images")
+    from stages.focus_measure import focus_measure, to_unit_float
+
     full = default_max_value(stack.dtype) if max_value is None else float(max_value)
     images = np.empty(stack.shape, dtype=np.float32)
     for i, img in enumerate(stack):

@@ -1,0 +1,513 @@
+"""Live view in Rerun: a side-branch sink that shows the scan while it runs.
+
+One :class:`VizSink` owns one ``rerun.RecordingStream`` (never the global one) and taps the
+placed frames (``registration``, or ``speed_shift`` with registration off), the focus
+measure and the depth blocks; with ``wants_stats`` it also gets the pipeline's statistics.
+Its input queue drops the oldest item when full (and counts the drops), so the viewer
+never holds the pipeline back.
+
+Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time stamp):
+
+- ``scan/camera/image``: camera frames, every ``frame_step``-th frame_id, reduced by
+  ``frame_scale``, JPEG; ``scan/focus/measure``: the focus measure of the same frames
+  (the columns that were measured, sqrt-scaled grey, JPEG);
+- ``scan/depth/height`` and ``scan/depth/confidence``: each completed depth block, reduced;
+- ``scan/mosaic/height/tile_NNNN`` (µm, colour-mapped, 0 where invalid) and
+  ``scan/mosaic/texture/tile_NNNN`` (all in focus), with ``scan/mosaic/fov`` (the camera's
+  field of view): the growing mosaic, rebuilt from the depth blocks by the mosaic's own
+  weighted blend on cells of ``factor`` x ``factor`` px, in column tiles of ``tile_cells``
+  cells (each placed by a static translation); only the tiles that changed are logged, so
+  the data rate does not grow with the scan's length;
+- ``scan/surface/points/tile_NNNN``: the same tiles as a 3D point cloud in mm, coloured by
+  texture, decimated;
+- ``stats/rate/<stage>`` (items/s), ``stats/queue_fill/<stage>`` (mean fill of the stage's
+  input queue), ``stats/dropped/<stage>`` (``viewer`` = what the viewer dropped) and
+  ``registration/correction_px/{x,y}``;
+- static: ``scan/calibration`` (pixel scale, focus table), ``scan/config`` (the TOML).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import sys
+import time
+import urllib.parse
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from pipeline.config import ConfigError, ScanConfig, config_to_toml
+from pipeline.messages import DepthBlock, FocusFrame, PlacedFrame
+from pipeline.plan import scan_extent_px
+from pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
+
+MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
+MODES = "spawn | serve | save PATH | auto | off"
+
+
+def cell_sums(values: np.ndarray, *, offset: tuple[int, int], factor: int) -> np.ndarray:
+    """Sum ``values`` (rows, cols) over ``factor`` x ``factor`` cells of the mosaic grid.
+
+    ``offset`` is the (row, col) of ``values[0, 0]`` on the full-resolution grid; the result
+    covers cells ``offset // factor`` onwards, float64, shape (ceil, ceil).
+    """
+    r0, c0 = offset
+    pr, pc = r0 % factor, c0 % factor
+    rows, cols = values.shape
+    nr, nc = -(-(pr + rows) // factor), -(-(pc + cols) // factor)
+    pad = np.zeros((nr * factor, nc * factor), np.float64)
+    pad[pr:pr + rows, pc:pc + cols] = values
+    return pad.reshape(nr, factor, nc, factor).sum(axis=(1, 3))
+
+
+def downsample_mosaic(height: np.ndarray, texture: np.ndarray, weight: np.ndarray, *,
+                      factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean of a mosaic's height and texture over ``factor`` x ``factor`` cells.
+
+    Parameters
+    ----------
+    height, texture, weight : ndarray, (rows, cols)
+        The mosaic arrays (µm, 0..1, blending weight), as in the Zarr group.
+    factor : int
+        Cell edge, px.
+
+    Returns
+    -------
+    height, texture : ndarray, float32, (ceil(rows / factor), ceil(cols / factor))
+        sum(w * v) / sum(w) per cell; NaN where the cell has no weight.
+    """
+    w = np.where(np.isfinite(height), weight.astype(np.float64), 0.0)
+    sw = cell_sums(w, offset=(0, 0), factor=factor)
+    out = []
+    for v in (height, texture):
+        s = cell_sums(np.where(w > 0, v, 0.0) * w, offset=(0, 0), factor=factor)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out.append(np.where(sw > 0, s / sw, np.nan).astype(np.float32))
+    return out[0], out[1]
+
+
+class MosaicPreview:
+    """The mosaic at reduced resolution, blended from depth blocks as the mosaic stage does.
+
+    Cell (i, j) holds sum(w * h) / sum(w) over the full-resolution pixels of rows
+    [i f, (i + 1) f) and columns [j f, (j + 1) f) of the mosaic (origin ``origin_px``), with
+    w = max(confidence, 1e-3) for valid pixels: the same as :func:`downsample_mosaic` of
+    the Zarr mosaic, whatever the order of the blocks.
+    """
+
+    def __init__(self, *, origin_px: tuple[int, int], shape: tuple[int, int], factor: int,
+                 tile: int = 256) -> None:
+        self.origin, self.factor, self.tile = origin_px, factor, tile
+        n = (-(-shape[0] // factor), -(-shape[1] // factor))
+        self.sums = np.zeros((3, *n), np.float64)  # sum w*h, sum w*t, sum w
+        self.blocks = 0
+        #: tiles (column bands of ``tile`` cells) changed since :meth:`take_dirty`
+        self.dirty: set[int] = set()
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.sums.shape[1], self.sums.shape[2]
+
+    @property
+    def tiles(self) -> int:
+        return -(-self.sums.shape[2] // self.tile)
+
+    def add(self, block: DepthBlock) -> None:
+        h = block.header
+        r0, c0 = h.y0_px - self.origin[1], h.x0_px - self.origin[0]
+        if r0 < 0 or c0 < 0:
+            raise ValueError(f"depth block at world px (x={h.x0_px}, y={h.y0_px}) lies before "
+                             f"the mosaic origin {self.origin}")
+        valid = np.isfinite(block.height_um)
+        w = np.where(valid, np.maximum(block.confidence, MIN_WEIGHT), 0.0)
+        parts = [np.where(valid, block.height_um, 0.0) * w,
+                 np.where(valid, block.texture, 0.0) * w, w]
+        f = self.factor
+        cells = [cell_sums(p, offset=(r0, c0), factor=f) for p in parts]
+        i0, j0 = r0 // f, c0 // f
+        i1, j1 = i0 + cells[0].shape[0], j0 + cells[0].shape[1]
+        if i1 > self.sums.shape[1] or j1 > self.sums.shape[2]:  # the mosaic grows too
+            if i1 > self.sums.shape[1]:  # every tile gets taller
+                self.dirty.update(range(self.tiles))
+            grown = np.zeros((3, max(i1, self.sums.shape[1]), max(j1, self.sums.shape[2])))
+            grown[:, :self.sums.shape[1], :self.sums.shape[2]] = self.sums
+            self.sums = grown
+        for k in range(3):
+            self.sums[k, i0:i1, j0:j1] += cells[k]
+        self.dirty.update(range(j0 // self.tile, (j1 - 1) // self.tile + 1))
+        self.blocks += 1
+
+    def take_dirty(self) -> list[int]:
+        """The tiles changed since the last call, in order; forgets them."""
+        out, self.dirty = sorted(self.dirty), set()
+        return out
+
+    def images(self, tile: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Height (µm) and texture (0..1), float32, NaN where nothing was measured: of the
+        whole preview, or of tile ``tile`` (cell columns [tile T, (tile + 1) T))."""
+        sums = self.sums
+        if tile is not None:
+            sums = sums[:, :, tile * self.tile:(tile + 1) * self.tile]
+        sw = sums[2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return tuple(np.where(sw > 0, sums[k] / sw, np.nan).astype(np.float32)
+                         for k in (0, 1))  # type: ignore[return-value]
+
+
+def point_stride(cells: int, max_points: int) -> int:
+    """The common row and column stride that leaves at most ``max_points`` of ``cells``."""
+    return max(1, math.ceil(math.sqrt(cells / max(max_points, 1))))
+
+
+def surface_points(height: np.ndarray, texture: np.ndarray, *, pixel_um: float, factor: int,
+                   origin_px: tuple[int, int], stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """A reduced mosaic as a point cloud: positions (n, 3) in mm, grey colours (n, 3) uint8.
+
+    Cell (i, j) lies at world pixel origin + (j + 0.5, i + 0.5) * factor - 0.5; every
+    ``stride``-th cell along rows and columns is kept, NaN cells are left out.
+    """
+    h, t = height[::stride, ::stride], texture[::stride, ::stride]
+    ii, jj = np.nonzero(np.isfinite(h))
+    px_mm = pixel_um / 1000.0
+    x = (origin_px[0] + (jj * stride + 0.5) * factor - 0.5) * px_mm
+    y = (origin_px[1] + (ii * stride + 0.5) * factor - 0.5) * px_mm
+    pos = np.stack([x, y, h[ii, jj] / 1000.0], axis=1).astype(np.float32)
+    grey = np.clip(np.nan_to_num(t[ii, jj]) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return pos, np.repeat(grey[:, None], 3, axis=1)
+
+
+def shown(height_um: np.ndarray) -> np.ndarray:
+    """Heights as logged: float32 µm with 0 where invalid (NaN), Rerun's "no depth" value."""
+    return np.nan_to_num(height_um.astype(np.float32), nan=0.0)
+
+
+def to_u8(image: np.ndarray, *, scale: float, reduce: int) -> np.ndarray:
+    """An image times ``scale`` as uint8 (clipped, NaN 0), reduced ``reduce`` times by area."""
+    img = np.nan_to_num(image.astype(np.float32) * scale)
+    if reduce > 1:
+        h, w = img.shape
+        img = cv2.resize(img, (max(1, w // reduce), max(1, h // reduce)),
+                         interpolation=cv2.INTER_AREA)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class VizOptions:
+    """How much the viewer shows (the rest is decimated away to keep it light)."""
+
+    frame_hz: float = 10.0  # camera frames logged per second of device time
+    frame_scale: int = 2  # camera and focus images reduced by this
+    block_scale: int = 4  # depth blocks reduced by this
+    mosaic_max_px: int = 2048  # longest side of the mosaic preview
+    mosaic_every_s: float = 2.0  # wall time between mosaic updates (and one at the end)
+    tile_cells: int = 256  # the mosaic is logged in column tiles this wide, changed ones only
+    max_points: int = 50_000  # points of the 3D surface
+    capacity: int = 64  # the viewer's own queue (drop oldest)
+
+
+def blueprint() -> rrb.Blueprint:
+    """The view layout: camera and focus, the growing mosaic and surface, the statistics."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="scan/camera", name="Camera (decimated)"),
+                rrb.Spatial2DView(origin="scan/focus", name="Focus measure"),
+                rrb.Spatial2DView(origin="scan/depth", contents="scan/depth/height",
+                                  name="Last depth block (µm)"),
+            ),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="scan/mosaic",
+                                  contents=["scan/mosaic/height/**", "scan/mosaic/fov"],
+                                  name="Mosaic height (µm) and camera view"),
+                rrb.Spatial2DView(origin="scan/mosaic", contents="scan/mosaic/texture/**",
+                                  name="Mosaic texture (all in focus)"),
+                rrb.Spatial3DView(origin="scan/surface", name="Surface (mm)"),
+                row_shares=[1, 1, 2],
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="stats/rate", name="Items/s per stage"),
+                rrb.TimeSeriesView(origin="stats/queue_fill", name="Queue fill (mean)"),
+                rrb.TimeSeriesView(origin="stats/dropped", name="Dropped (viewer = by the view)"),
+                rrb.TimeSeriesView(origin="registration", name="Registration correction (px)"),
+            ),
+            column_shares=[1, 2, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+class VizSink(Sink):
+    """Logs what the pipeline does into ``rec``; see the module docstring for the paths."""
+
+    name = "viewer"
+    policy = FullPolicy.DROP_OLDEST
+    wants_stats = True
+
+    def __init__(self, cfg: ScanConfig, rec: rr.RecordingStream, *,
+                 options: VizOptions | None = None, wait_at_end: str | None = None) -> None:
+        self.cfg, self.rec = cfg, rec
+        self.opt = options or VizOptions()
+        self.capacity = self.opt.capacity
+        self.wait_at_end = wait_at_end  # an address to keep serving at, until Enter
+        placed = "registration" if cfg.processing.registration else "speed_shift"
+        self.taps = (placed, "focus_measure", "depth")
+        o = cfg.optics
+        self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
+        x0, y0, x1, y1 = scan_extent_px(cfg)
+        self.factor = max(1, -(-max(x1 - x0, y1 - y0) // self.opt.mosaic_max_px))
+        self.preview = MosaicPreview(origin_px=(x0, y0), shape=(y1 - y0, x1 - x0),
+                                     factor=self.factor, tile=self.opt.tile_cells)
+        self._stride = point_stride(self.preview.shape[0] * self.preview.shape[1],
+                                    self.opt.max_points)
+        self._tiles_placed: set[int] = set()
+        self.depth_range = (min(o.focus_heights_um()), max(o.focus_heights_um()))
+        self.frames_logged = 0
+        self.mosaics_logged = 0
+        self.tiles_logged = 0
+        self.viewer_dropped = 0
+        self._now: tuple[int, int] | None = None  # (frame_id, timestamp_ns) last seen
+        self._last_mosaic = time.perf_counter()
+        self._prev: dict[str, tuple[float, float, float]] = {}
+        self._styled: set[str] = set()
+        self._log_static()
+
+    # -- logging helpers ---------------------------------------------------------------
+    def _log_static(self) -> None:
+        o, rec = self.cfg.optics, self.rec
+        table = "\n".join(f"| {i} | {z:g} |" for i, z in enumerate(o.focus_heights_um()))
+        rec.log("scan/calibration", rr.TextDocument(
+            f"pixel scale {o.pixel_um:g} µm/px, {o.width_px} x {o.height_px} px, {o.fps:g} fps, "
+            f"N = {o.n_levels} levels\n\nmosaic preview: 1 cell = {self.factor} x "
+            f"{self.factor} px; camera frames every {self.frame_step}th\n\n"
+            f"| level | height in focus, µm |\n|---|---|\n{table}",
+            media_type="text/markdown"), static=True)
+        rec.log("scan/calibration", rr.AnyValues(pixel_um=o.pixel_um, fps=o.fps,
+                                                 mosaic_factor=self.factor,
+                                                 focus_heights_um=o.focus_heights_um()),
+                static=True)
+        rec.log("scan/config", rr.TextDocument(config_to_toml(self.cfg)), static=True)
+        rec.log("scan/surface", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    def _set_time(self, at: tuple[int, int] | None = None) -> None:
+        """Log at frame ``at`` = (frame_id, timestamp_ns), by default the newest frame seen."""
+        at = at if at is not None else self._now
+        if at is not None:
+            self.rec.set_time("frame", sequence=at[0])
+            self.rec.set_time("device_time", duration=np.timedelta64(at[1], "ns"))
+
+    def _scalar(self, path: str, value: float, label: str) -> None:
+        if path not in self._styled:
+            self.rec.log(path, rr.SeriesLines(names=label), static=True)
+            self._styled.add(path)
+        self.rec.log(path, rr.Scalars(value))
+
+    # -- items ---------------------------------------------------------------------------
+    def process(self, item: Any) -> tuple[()]:
+        if isinstance(item, StatsSnapshot):
+            self._stats(item)
+        elif isinstance(item, Tapped):
+            payload = item.item
+            if isinstance(payload, PlacedFrame):
+                self._placed(payload)
+            elif isinstance(payload, FocusFrame):
+                self._focus(payload)
+            elif isinstance(payload, DepthBlock):
+                self._block(payload)
+        waited = time.perf_counter() - self._last_mosaic
+        if self.preview.dirty and waited >= self.opt.mosaic_every_s:
+            self._mosaic()
+        return ()
+
+    def _placed(self, p: PlacedFrame) -> None:
+        hdr = p.header
+        self._now = (hdr.frame_id, hdr.timestamp_ns)
+        self._set_time()
+        if self.cfg.processing.registration:
+            self._scalar("registration/correction_px/x", p.correction_px[0], "x (along)")
+            self._scalar("registration/correction_px/y", p.correction_px[1], "y (across)")
+        if hdr.frame_id % self.frame_step:
+            return
+        scale = 255.0 / self.cfg.optics.max_value
+        img = to_u8(p.image, scale=scale, reduce=self.opt.frame_scale)
+        self.rec.log("scan/camera/image", rr.Image(img, color_model="L").compress(jpeg_quality=80))
+        ox, oy = self.preview.origin
+        f, (h, w) = self.factor, p.image.shape
+        self.rec.log("scan/mosaic/fov", rr.Boxes2D(
+            mins=[(p.offset_px[0] - ox) / f, (p.offset_px[1] - oy) / f], sizes=[w / f, h / f],
+            labels=f"frame {hdr.frame_id}, level {hdr.focus_index}", colors=(255, 64, 64)))
+        self.frames_logged += 1
+
+    def _focus(self, ff: FocusFrame) -> None:
+        hdr = ff.placed.header
+        if hdr.frame_id % self.frame_step or ff.focus.size == 0:
+            return
+        self._set_time((hdr.frame_id, hdr.timestamp_ns))  # behind the newest placed frame
+        root = np.sqrt(np.maximum(ff.focus, 0.0))
+        peak = float(root.max())
+        img = to_u8(root, scale=255.0 / peak if peak > 0 else 0.0, reduce=self.opt.frame_scale)
+        self.rec.log("scan/focus/measure",
+                     rr.Image(img, color_model="L").compress(jpeg_quality=80))
+        self._set_time()
+
+    def _block(self, b: DepthBlock) -> None:
+        self.preview.add(b)
+        s = self.opt.block_scale
+        self.rec.log("scan/depth/height", rr.DepthImage(
+            shown(b.height_um[::s, ::s]), meter=1e6, colormap="turbo",
+            depth_range=self.depth_range))
+        self.rec.log("scan/depth/confidence",
+                     rr.Image(to_u8(b.confidence[::s, ::s], scale=255.0, reduce=1),
+                              color_model="L"))
+
+    def _mosaic(self) -> None:
+        """Log the mosaic tiles that changed since the last time (image and 3D points)."""
+        t, f, (ox, oy) = self.opt.tile_cells, self.factor, self.preview.origin
+        for k in self.preview.take_dirty():
+            name = f"tile_{k:04d}"
+            if k not in self._tiles_placed:  # where the tile lies in the preview, once
+                for kind in ("height", "texture"):
+                    self.rec.log(f"scan/mosaic/{kind}/{name}",
+                                 rr.Transform3D(translation=[k * t, 0.0, 0.0]), static=True)
+                self._tiles_placed.add(k)
+            height, texture = self.preview.images(k)
+            self.rec.log(f"scan/mosaic/height/{name}", rr.DepthImage(
+                shown(height), meter=1e6, colormap="turbo", depth_range=self.depth_range))
+            self.rec.log(f"scan/mosaic/texture/{name}",
+                         rr.Image(to_u8(texture, scale=255.0, reduce=1), color_model="L"))
+            pos, col = surface_points(height, texture, pixel_um=self.cfg.optics.pixel_um,
+                                      factor=f, origin_px=(ox + k * t * f, oy),
+                                      stride=self._stride)
+            self.rec.log(f"scan/surface/points/{name}", rr.Points3D(pos, colors=col,
+                                                                     radii=-2.0))
+            self.tiles_logged += 1
+        self._last_mosaic = time.perf_counter()
+        self.mosaics_logged += 1
+
+    def _stats(self, snap: StatsSnapshot) -> None:
+        if self._now is None:  # shown on the frame timeline: wait for the first frame
+            return
+        self._set_time()
+        for s in snap.stages:
+            prev = self._prev.get("stage:" + s.name, (0.0, 0.0, 0.0))
+            dt = snap.elapsed_s - prev[0]
+            if dt > 0 and s.name != self.name:
+                self._scalar(f"stats/rate/{s.name}", (s.frames - prev[1]) / dt,
+                             f"{s.name} ({s.unit}/s)")
+            self._prev["stage:" + s.name] = (snap.elapsed_s, float(s.frames), 0.0)
+        for q in snap.queues:
+            into = q.name.rsplit("->", 1)[-1]
+            prev = self._prev.get("queue:" + q.name, (0.0, 0.0, 0.0))
+            puts = q.puts - prev[1]
+            if puts > 0:
+                self._scalar(f"stats/queue_fill/{into}", (q.fill_sum - prev[2]) / puts,
+                             f"into {into} (of {q.capacity})")
+            self._scalar(f"stats/dropped/{into}", float(q.dropped), f"dropped before {into}")
+            if into == self.name:
+                self.viewer_dropped = q.dropped
+            self._prev["queue:" + q.name] = (snap.elapsed_s, float(q.puts), float(q.fill_sum))
+
+    def finish(self) -> tuple[()]:
+        self._set_time()
+        if self.preview.dirty:
+            self._mosaic()
+        return ()
+
+    def close(self, *, failed: bool) -> None:
+        self.rec.flush()
+        if self.wait_at_end and not failed and sys.stdin.isatty():
+            print(f"sffscan: scan done; the live view stays at {self.wait_at_end} until you "
+                  "press Enter", file=sys.stderr)
+            try:
+                input()
+            except (EOFError, KeyboardInterrupt):
+                pass
+        self.rec.disconnect()
+
+    def extra_stats(self) -> dict[str, int]:
+        return {"frames_logged": self.frames_logged, "mosaic_updates": self.mosaics_logged,
+                "mosaic_tiles_logged": self.tiles_logged,
+                "dropped_by_viewer": self.viewer_dropped}
+
+
+# -- opening a viewer ------------------------------------------------------------------------
+def native_viewer_possible() -> bool:
+    """True where a native window can open (a display on Linux; always on macOS/Windows)."""
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def free_port(preferred: int) -> int:
+    """``preferred`` if nothing listens there on this machine, else a free port."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("0.0.0.0", preferred))
+            return preferred
+        except OSError:
+            s.bind(("127.0.0.1", 0))
+            return int(s.getsockname()[1])
+
+
+def web_viewer_url(grpc_url: str, *, web_port: int) -> str:
+    """The address a browser opens to watch ``grpc_url`` in the web viewer."""
+    return f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(grpc_url, safe='')}"
+
+
+def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
+    """Check the ``--viewer`` words: ("spawn" | "serve" | "auto", None) or ("save", path)."""
+    if mode and mode[0] == "save":
+        if len(mode) != 2:
+            raise ConfigError(f"--viewer save: expected one PATH (an .rrd file), got {mode[1:]}")
+        path = Path(mode[1])
+        if not path.parent.is_dir():
+            raise ConfigError(f"--viewer save {path}: folder {path.parent} does not exist")
+        return "save", path
+    if len(mode) == 1 and mode[0] in ("spawn", "serve", "auto"):
+        return mode[0], None
+    raise ConfigError(f"--viewer {' '.join(mode)}: expected one of {MODES}")
+
+
+def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
+    """A new recording stream connected as the ``--viewer`` words ``mode`` ask, and the web
+    viewer's address when it serves one (printed on stderr)."""
+    kind, path = parse_mode(mode)
+    if kind == "auto":
+        kind = "spawn" if native_viewer_possible() else "serve"
+    elif kind == "spawn" and not native_viewer_possible():
+        raise ConfigError("--viewer spawn: no display to open the native viewer on (neither "
+                          "DISPLAY nor WAYLAND_DISPLAY is set); use '--viewer serve' or "
+                          "'--viewer save PATH'")
+    rec = rr.RecordingStream("sffscan")
+    bp = blueprint()
+    if kind == "save":
+        rec.save(str(path), default_blueprint=bp)
+        return rec, None
+    if kind == "spawn":
+        rec.spawn(port=free_port(9876), default_blueprint=bp)
+        return rec, None
+    grpc_url = rec.serve_grpc(grpc_port=free_port(9876), default_blueprint=bp)
+    web_port = free_port(9090)
+    rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
+    address = web_viewer_url(grpc_url, web_port=web_port)
+    print(f"sffscan: live view at {address}", file=sys.stderr)
+    return rec, address
+
+
+def viz_sink_for(cfg: ScanConfig, mode: list[str], *,
+                 options: VizOptions | None = None) -> Sink:
+    """The live-view sink for the ``--viewer`` words ``mode``, its viewer opened.
+
+    ``spawn`` starts the native viewer; ``serve`` serves the web viewer on this machine
+    (ports 9876 gRPC / 9090 http, or free ones), prints its address and, after the scan,
+    keeps serving until Enter when run from a terminal; ``save PATH`` writes an .rrd
+    recording; ``auto`` spawns where a native window can open, else serves.
+    """
+    rec, address = open_recording(mode)
+    return VizSink(cfg, rec, options=options, wait_at_end=address)
