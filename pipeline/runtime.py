@@ -22,6 +22,7 @@ that raises stops the whole pipeline: the others leave at their next wait, every
 from __future__ import annotations
 
 import collections
+import copy
 import enum
 import threading
 import time
@@ -398,8 +399,8 @@ class Pipeline:
             self.stop.set()
 
     def _snapshot(self, elapsed: float) -> None:
-        snap = StatsSnapshot(elapsed, tuple(self.stats + self.sink_stats),
-                             tuple(q.stats for q in self.queues + self.sink_queues))
+        snap = StatsSnapshot(elapsed, tuple(copy.copy(s) for s in self.stats + self.sink_stats),
+                             tuple(copy.copy(q.stats) for q in self.queues + self.sink_queues))
         for k, q in zip(self.sinks, self.sink_queues, strict=True):
             if k.wants_stats and q.policy is not FullPolicy.BLOCK:
                 q.put(snap)

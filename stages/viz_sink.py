@@ -22,13 +22,12 @@ Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time
   texture, decimated;
 - ``stats/rate/<stage>`` (items/s), ``stats/queue_fill/<stage>`` (mean fill of the stage's
   input queue), ``stats/dropped/<stage>`` (``viewer`` = what the viewer dropped) and
-  ``registration/correction_px/{x,y}``;
+  ``registration/correction_px/{x,y}``; the view's own drops have a panel of their own;
 - static: ``scan/calibration`` (pixel scale, focus table), ``scan/config`` (the TOML).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import socket
 import sys
@@ -38,7 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -47,155 +45,10 @@ from pipeline.config import ConfigError, ScanConfig, config_to_toml
 from pipeline.messages import DepthBlock, FocusFrame, PlacedFrame
 from pipeline.plan import scan_extent_px
 from pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
+from pipeline.wiring import focus_heights_um
+from stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 
-MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
 MODES = "spawn | serve | save PATH | auto | off"
-
-
-def cell_sums(values: np.ndarray, *, offset: tuple[int, int], factor: int) -> np.ndarray:
-    """Sum ``values`` (rows, cols) over ``factor`` x ``factor`` cells of the mosaic grid.
-
-    ``offset`` is the (row, col) of ``values[0, 0]`` on the full-resolution grid; the result
-    covers cells ``offset // factor`` onwards, float64, shape (ceil, ceil).
-    """
-    r0, c0 = offset
-    pr, pc = r0 % factor, c0 % factor
-    rows, cols = values.shape
-    nr, nc = -(-(pr + rows) // factor), -(-(pc + cols) // factor)
-    pad = np.zeros((nr * factor, nc * factor), np.float64)
-    pad[pr:pr + rows, pc:pc + cols] = values
-    return pad.reshape(nr, factor, nc, factor).sum(axis=(1, 3))
-
-
-def downsample_mosaic(height: np.ndarray, texture: np.ndarray, weight: np.ndarray, *,
-                      factor: int) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted mean of a mosaic's height and texture over ``factor`` x ``factor`` cells.
-
-    Parameters
-    ----------
-    height, texture, weight : ndarray, (rows, cols)
-        The mosaic arrays (µm, 0..1, blending weight), as in the Zarr group.
-    factor : int
-        Cell edge, px.
-
-    Returns
-    -------
-    height, texture : ndarray, float32, (ceil(rows / factor), ceil(cols / factor))
-        sum(w * v) / sum(w) per cell; NaN where the cell has no weight.
-    """
-    w = np.where(np.isfinite(height), weight.astype(np.float64), 0.0)
-    sw = cell_sums(w, offset=(0, 0), factor=factor)
-    out = []
-    for v in (height, texture):
-        s = cell_sums(np.where(w > 0, v, 0.0) * w, offset=(0, 0), factor=factor)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out.append(np.where(sw > 0, s / sw, np.nan).astype(np.float32))
-    return out[0], out[1]
-
-
-class MosaicPreview:
-    """The mosaic at reduced resolution, blended from depth blocks as the mosaic stage does.
-
-    Cell (i, j) holds sum(w * h) / sum(w) over the full-resolution pixels of rows
-    [i f, (i + 1) f) and columns [j f, (j + 1) f) of the mosaic (origin ``origin_px``), with
-    w = max(confidence, 1e-3) for valid pixels: the same as :func:`downsample_mosaic` of
-    the Zarr mosaic, whatever the order of the blocks.
-    """
-
-    def __init__(self, *, origin_px: tuple[int, int], shape: tuple[int, int], factor: int,
-                 tile: int = 256) -> None:
-        self.origin, self.factor, self.tile = origin_px, factor, tile
-        n = (-(-shape[0] // factor), -(-shape[1] // factor))
-        self.sums = np.zeros((3, *n), np.float64)  # sum w*h, sum w*t, sum w
-        self.blocks = 0
-        #: tiles (column bands of ``tile`` cells) changed since :meth:`take_dirty`
-        self.dirty: set[int] = set()
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.sums.shape[1], self.sums.shape[2]
-
-    @property
-    def tiles(self) -> int:
-        return -(-self.sums.shape[2] // self.tile)
-
-    def add(self, block: DepthBlock) -> None:
-        h = block.header
-        r0, c0 = h.y0_px - self.origin[1], h.x0_px - self.origin[0]
-        if r0 < 0 or c0 < 0:
-            raise ValueError(f"depth block at world px (x={h.x0_px}, y={h.y0_px}) lies before "
-                             f"the mosaic origin {self.origin}")
-        valid = np.isfinite(block.height_um)
-        w = np.where(valid, np.maximum(block.confidence, MIN_WEIGHT), 0.0)
-        parts = [np.where(valid, block.height_um, 0.0) * w,
-                 np.where(valid, block.texture, 0.0) * w, w]
-        f = self.factor
-        cells = [cell_sums(p, offset=(r0, c0), factor=f) for p in parts]
-        i0, j0 = r0 // f, c0 // f
-        i1, j1 = i0 + cells[0].shape[0], j0 + cells[0].shape[1]
-        if i1 > self.sums.shape[1] or j1 > self.sums.shape[2]:  # the mosaic grows too
-            if i1 > self.sums.shape[1]:  # every tile gets taller
-                self.dirty.update(range(self.tiles))
-            grown = np.zeros((3, max(i1, self.sums.shape[1]), max(j1, self.sums.shape[2])))
-            grown[:, :self.sums.shape[1], :self.sums.shape[2]] = self.sums
-            self.sums = grown
-        for k in range(3):
-            self.sums[k, i0:i1, j0:j1] += cells[k]
-        self.dirty.update(range(j0 // self.tile, (j1 - 1) // self.tile + 1))
-        self.blocks += 1
-
-    def take_dirty(self) -> list[int]:
-        """The tiles changed since the last call, in order; forgets them."""
-        out, self.dirty = sorted(self.dirty), set()
-        return out
-
-    def images(self, tile: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Height (µm) and texture (0..1), float32, NaN where nothing was measured: of the
-        whole preview, or of tile ``tile`` (cell columns [tile T, (tile + 1) T))."""
-        sums = self.sums
-        if tile is not None:
-            sums = sums[:, :, tile * self.tile:(tile + 1) * self.tile]
-        sw = sums[2]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return tuple(np.where(sw > 0, sums[k] / sw, np.nan).astype(np.float32)
-                         for k in (0, 1))  # type: ignore[return-value]
-
-
-def point_stride(cells: int, max_points: int) -> int:
-    """The common row and column stride that leaves at most ``max_points`` of ``cells``."""
-    return max(1, math.ceil(math.sqrt(cells / max(max_points, 1))))
-
-
-def surface_points(height: np.ndarray, texture: np.ndarray, *, pixel_um: float, factor: int,
-                   origin_px: tuple[int, int], stride: int) -> tuple[np.ndarray, np.ndarray]:
-    """A reduced mosaic as a point cloud: positions (n, 3) in mm, grey colours (n, 3) uint8.
-
-    Cell (i, j) lies at world pixel origin + (j + 0.5, i + 0.5) * factor - 0.5; every
-    ``stride``-th cell along rows and columns is kept, NaN cells are left out.
-    """
-    h, t = height[::stride, ::stride], texture[::stride, ::stride]
-    ii, jj = np.nonzero(np.isfinite(h))
-    px_mm = pixel_um / 1000.0
-    x = (origin_px[0] + (jj * stride + 0.5) * factor - 0.5) * px_mm
-    y = (origin_px[1] + (ii * stride + 0.5) * factor - 0.5) * px_mm
-    pos = np.stack([x, y, h[ii, jj] / 1000.0], axis=1).astype(np.float32)
-    grey = np.clip(np.nan_to_num(t[ii, jj]) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return pos, np.repeat(grey[:, None], 3, axis=1)
-
-
-def shown(height_um: np.ndarray) -> np.ndarray:
-    """Heights as logged: float32 µm with 0 where invalid (NaN), Rerun's "no depth" value."""
-    return np.nan_to_num(height_um.astype(np.float32), nan=0.0)
-
-
-def to_u8(image: np.ndarray, *, scale: float, reduce: int) -> np.ndarray:
-    """An image times ``scale`` as uint8 (clipped, NaN 0), reduced ``reduce`` times by area."""
-    img = np.nan_to_num(image.astype(np.float32) * scale)
-    if reduce > 1:
-        h, w = img.shape
-        img = cv2.resize(img, (max(1, w // reduce), max(1, h // reduce)),
-                         interpolation=cv2.INTER_AREA)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
 @dataclass(frozen=True)
@@ -234,8 +87,12 @@ def blueprint() -> rrb.Blueprint:
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="stats/rate", name="Items/s per stage"),
                 rrb.TimeSeriesView(origin="stats/queue_fill", name="Queue fill (mean)"),
-                rrb.TimeSeriesView(origin="stats/dropped", name="Dropped (viewer = by the view)"),
+                rrb.TimeSeriesView(origin="stats/dropped",
+                                   contents=["$origin/**", "- stats/dropped/viewer"],
+                                   name="Dropped between stages"),
+                rrb.TimeSeriesView(origin="stats/dropped/viewer", name="Dropped by the view"),
                 rrb.TimeSeriesView(origin="registration", name="Registration correction (px)"),
+                row_shares=[2, 2, 2, 1, 2],
             ),
             column_shares=[1, 2, 1],
         ),
@@ -267,7 +124,9 @@ class VizSink(Sink):
         self._stride = point_stride(self.preview.shape[0] * self.preview.shape[1],
                                     self.opt.max_points)
         self._tiles_placed: set[int] = set()
-        self.depth_range = (min(o.focus_heights_um()), max(o.focus_heights_um()))
+        # the table the depth stage uses: calibrated where a calibration is given
+        self.focus_heights = focus_heights_um(cfg)
+        self.depth_range = (min(self.focus_heights), max(self.focus_heights))
         self.frames_logged = 0
         self.mosaics_logged = 0
         self.tiles_logged = 0
@@ -280,17 +139,18 @@ class VizSink(Sink):
 
     # -- logging helpers ---------------------------------------------------------------
     def _log_static(self) -> None:
-        o, rec = self.cfg.optics, self.rec
-        table = "\n".join(f"| {i} | {z:g} |" for i, z in enumerate(o.focus_heights_um()))
+        o, rec, heights = self.cfg.optics, self.rec, self.focus_heights
+        table = "\n".join(f"| {i} | {z:g} |" for i, z in enumerate(heights))
+        source = self.cfg.processing.calibration or "nominal optics"
         rec.log("scan/calibration", rr.TextDocument(
             f"pixel scale {o.pixel_um:g} µm/px, {o.width_px} x {o.height_px} px, {o.fps:g} fps, "
             f"N = {o.n_levels} levels\n\nmosaic preview: 1 cell = {self.factor} x "
             f"{self.factor} px; camera frames every {self.frame_step}th\n\n"
-            f"| level | height in focus, µm |\n|---|---|\n{table}",
+            f"| level | height in focus, µm ({source}) |\n|---|---|\n{table}",
             media_type="text/markdown"), static=True)
         rec.log("scan/calibration", rr.AnyValues(pixel_um=o.pixel_um, fps=o.fps,
                                                  mosaic_factor=self.factor,
-                                                 focus_heights_um=o.focus_heights_um()),
+                                                 focus_heights_um=heights),
                 static=True)
         rec.log("scan/config", rr.TextDocument(config_to_toml(self.cfg)), static=True)
         rec.log("scan/surface", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -349,7 +209,9 @@ class VizSink(Sink):
         if hdr.frame_id % self.frame_step or ff.focus.size == 0:
             return
         self._set_time((hdr.frame_id, hdr.timestamp_ns))  # behind the newest placed frame
-        root = np.sqrt(np.maximum(ff.focus, 0.0))
+        # on the frame's full width (only columns col0.. were measured): one image size
+        root = np.zeros(ff.placed.image.shape, np.float32)
+        root[:, ff.col0:ff.col0 + ff.focus.shape[1]] = np.sqrt(np.maximum(ff.focus, 0.0))
         peak = float(root.max())
         img = to_u8(root, scale=255.0 / peak if peak > 0 else 0.0, reduce=self.opt.frame_scale)
         self.rec.log("scan/focus/measure",
@@ -408,7 +270,8 @@ class VizSink(Sink):
             if puts > 0:
                 self._scalar(f"stats/queue_fill/{into}", (q.fill_sum - prev[2]) / puts,
                              f"into {into} (of {q.capacity})")
-            self._scalar(f"stats/dropped/{into}", float(q.dropped), f"dropped before {into}")
+            label = "dropped by the view" if into == self.name else f"dropped before {into}"
+            self._scalar(f"stats/dropped/{into}", float(q.dropped), label)
             if into == self.name:
                 self.viewer_dropped = q.dropped
             self._prev["queue:" + q.name] = (snap.elapsed_s, float(q.puts), float(q.fill_sum))
@@ -444,14 +307,14 @@ def native_viewer_possible() -> bool:
     return True
 
 
-def free_port(preferred: int) -> int:
-    """``preferred`` if nothing listens there on this machine, else a free port."""
+def free_port(preferred: int, *, host: str = "127.0.0.1") -> int:
+    """``preferred`` if it can be bound at ``host``, else a free port there."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         try:
-            s.bind(("0.0.0.0", preferred))
+            s.bind((host, preferred))
             return preferred
         except OSError:
-            s.bind(("127.0.0.1", 0))
+            s.bind((host, 0))
             return int(s.getsockname()[1])
 
 
@@ -468,6 +331,8 @@ def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
         path = Path(mode[1])
         if not path.parent.is_dir():
             raise ConfigError(f"--viewer save {path}: folder {path.parent} does not exist")
+        if path.is_dir():
+            raise ConfigError(f"--viewer save {path}: is a folder; give an .rrd file name")
         return "save", path
     if len(mode) == 1 and mode[0] in ("spawn", "serve", "auto"):
         return mode[0], None
@@ -486,15 +351,24 @@ def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
                           "'--viewer save PATH'")
     rec = rr.RecordingStream("sffscan")
     bp = blueprint()
-    if kind == "save":
-        rec.save(str(path), default_blueprint=bp)
-        return rec, None
-    if kind == "spawn":
-        rec.spawn(port=free_port(9876), default_blueprint=bp)
-        return rec, None
-    grpc_url = rec.serve_grpc(grpc_port=free_port(9876), default_blueprint=bp)
-    web_port = free_port(9090)
-    rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
+    words = f"--viewer {' '.join(mode)}"
+    try:  # Rerun reports an unusable file, port or viewer as RuntimeError
+        if kind == "save":
+            rec.save(str(path), default_blueprint=bp)
+            return rec, None
+        if kind == "spawn":
+            rec.spawn(port=free_port(9876), default_blueprint=bp)
+            return rec, None
+        # the scan's data on loopback only (the web viewer's page, which holds no data,
+        # listens on all interfaces: rerun-sdk 0.41's serve_web_viewer takes no address)
+        server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=free_port(9876))
+        rec.set_sinks(server, default_blueprint=bp)
+        grpc_url = server.uri
+        web_port = free_port(9090, host="0.0.0.0")
+        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
+    except RuntimeError as err:
+        rec.disconnect()
+        raise ConfigError(f"{words}: {err}") from err
     address = web_viewer_url(grpc_url, web_port=web_port)
     print(f"sffscan: live view at {address}", file=sys.stderr)
     return rec, address

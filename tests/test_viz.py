@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import time
+import urllib.parse
 import urllib.request
 from collections import defaultdict
 from contextlib import redirect_stderr
@@ -27,16 +28,8 @@ from pipeline.messages import DepthBlock, DepthBlockHeader
 from pipeline.wiring import ScanReport, run_scan
 from stages.mosaic import MosaicStage, MosaicWriter
 from stages.sim_scanner import simulate_frames
-from stages.viz_sink import (
-    MosaicPreview,
-    VizOptions,
-    VizSink,
-    downsample_mosaic,
-    parse_mode,
-    point_stride,
-    surface_points,
-    viz_sink_for,
-)
+from stages.viz_preview import MosaicPreview, downsample_mosaic, point_stride, surface_points
+from stages.viz_sink import VizOptions, VizSink, parse_mode, viz_sink_for
 from tests.scan_helpers import small_config
 
 Rows = dict[str, list[dict[str, Any]]]
@@ -281,6 +274,11 @@ def test_serve_mode_serves_the_web_viewer_on_loopback(mode: list[str],
         with urllib.request.urlopen(url.split("?", 1)[0], timeout=10) as resp:
             assert resp.status == 200
             assert b"rerun" in resp.read().lower()
+        # the scan's data (gRPC) is served on loopback only, not to the network
+        grpc = urllib.parse.unquote(url.split("?url=", 1)[1])
+        grpc_port = int(grpc.rsplit(":", 1)[1].split("/", 1)[0])
+        if Path("/proc/net/tcp").exists():
+            assert listening_addresses(grpc_port) == {"127.0.0.1"}
     finally:
         sink.close(failed=False)
 
@@ -323,3 +321,119 @@ def test_served_view_stays_until_enter_in_a_terminal(monkeypatch: pytest.MonkeyP
     assert stdin.tell() == 1  # the Enter was read
     _, static, _ = read_rrd(tmp_path / "w.rrd")
     assert "/scan/calibration" in static
+
+
+def test_downsample_mosaic_known_answer() -> None:
+    """The reference the read-back test compares with, against a plain loop over cells."""
+    rng = np.random.default_rng(5)
+    h = rng.uniform(0, 900, (11, 14))
+    h[rng.uniform(size=h.shape) < 0.3] = np.nan
+    h[:3, :3] = np.nan  # one cell with no valid pixel
+    t, w = rng.uniform(0, 1, h.shape), rng.uniform(0.01, 2, h.shape)
+    got_h, got_t = downsample_mosaic(h, t, w, factor=3)
+    assert got_h.shape == got_t.shape == (4, 5) and got_h.dtype == np.float32
+    for i in range(4):
+        for j in range(5):
+            cell = (slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3))
+            ok = np.isfinite(h[cell])
+            if not ok.any():
+                assert np.isnan(got_h[i, j]) and np.isnan(got_t[i, j])
+                continue
+            ww = w[cell][ok]
+            assert got_h[i, j] == pytest.approx((ww * h[cell][ok]).sum() / ww.sum(), rel=1e-6)
+            assert got_t[i, j] == pytest.approx((ww * t[cell][ok]).sum() / ww.sum(), rel=1e-6)
+    assert np.isnan(got_h[0, 0])
+
+
+def static_row(path: Path, entity: str) -> dict[str, Any]:
+    """The static row logged at ``entity`` (one chunk)."""
+    rows = [c.to_record_batch().to_pylist()[0] for c in RrdReader(path).stream()
+            if c.is_static and c.entity_path == entity
+            and "focus_heights_um" in c.to_record_batch().schema.names]
+    assert len(rows) == 1
+    return rows[0]
+
+
+def test_calibrated_focus_table_is_shown(tmp_path: Path) -> None:
+    """With a calibration, the view's focus table and colour range are the calibrated
+    heights the depth stage uses, not the nominal optics table."""
+    import rerun as rr
+
+    from pipeline.calibration import Calibration, ZResponse, save_calibration
+    from pipeline.wiring import focus_heights_um
+
+    z = ZResponse(um_per_level=150.0, intercept_um=2000.0, pearson_r=1.0,
+                  heights_um=[2000.0, 9350.0], peak_levels=[0.0, 49.0], residuals_um=[0.0, 0.0])
+    cal = save_calibration(Calibration(description="test", z_response=z), tmp_path / "cal.json")
+    cfg = small_config(processing={"calibration": str(cal)})
+    want = focus_heights_um(cfg)
+    assert want[0] == 2000.0 and want != cfg.optics.focus_heights_um()
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(tmp_path / "c.rrd"))
+    sink = VizSink(cfg, rec)
+    sink.close(failed=False)
+    assert sink.depth_range == (min(want), max(want))
+    assert static_row(tmp_path / "c.rrd", "/scan/calibration")["focus_heights_um"] == want
+
+
+@pytest.mark.parametrize("where", ["dir", "unwritable"])
+def test_viewer_save_to_an_unusable_path_exits_2(tmp_path: Path, where: str) -> None:
+    """``--viewer save PATH`` where PATH is a folder or cannot be created: exit 2, named."""
+    path = tmp_path if where == "dir" else Path("/proc/sffscan-test.rrd")
+    err = io.StringIO()
+    with redirect_stderr(err):
+        code = main(["demo", "-o", str(tmp_path / "d.zarr"), "-q", "--viewer", "save",
+                     str(path)])
+    assert code == 2 and f"--viewer save {path}" in err.getvalue()
+
+
+def listening_addresses(port: int) -> set[str]:
+    """IPv4 addresses this machine listens on at TCP ``port`` (Linux /proc/net/tcp)."""
+    out = set()
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        local, state = line.split()[1], line.split()[3]
+        addr, hexport = local.split(":")
+        if state == "0A" and int(hexport, 16) == port:
+            out.add(".".join(str(int(addr[i:i + 2], 16)) for i in (6, 4, 2, 0)))
+    return out
+
+
+def jpeg_shape(row: dict[str, Any], component: str = "EncodedImage:blob") -> tuple[int, ...]:
+    import cv2
+
+    blob = np.frombuffer(bytes(row[component][0]), np.uint8)
+    return tuple(cv2.imdecode(blob, cv2.IMREAD_UNCHANGED).shape)
+
+
+def test_focus_images_keep_the_frame_shape(recorded: tuple[ScanReport, VizSink, Path]) -> None:
+    """The focus measure covers only the columns that can still add to the volume; it is
+    logged on the frame's full width (columns placed at col0, the rest 0) so the viewer gets
+    one image size (Rerun treats a compressed image stream that changes size as an error)."""
+    _, _, rrd = recorded
+    rows, _, _ = read_rrd(rrd)
+    camera = {jpeg_shape(r) for r in rows["/scan/camera/image"]}
+    focus = {jpeg_shape(r) for r in rows["/scan/focus/measure"]}
+    assert len(camera) == 1 and focus == camera
+
+
+def test_blueprint_shows_the_views_own_drops_apart() -> None:
+    """The view's own drop count has a view of its own (a legend of six queues is cut)."""
+    import rerun.blueprint as rrb
+
+    from stages.viz_sink import blueprint
+
+    views: list[Any] = []
+
+    def walk(node: Any) -> None:
+        if isinstance(node, rrb.TimeSeriesView):
+            views.append(node)
+        for child in getattr(node, "contents", None) or []:
+            if not isinstance(child, str):
+                walk(child)
+
+    walk(blueprint().root_container)
+    own = [v for v in views if "stats/dropped/viewer" in str(v.origin) + str(v.contents)
+           and "- stats/dropped/viewer" not in v.contents]
+    assert len(own) == 1 and str(own[0].origin) == "stats/dropped/viewer"
+    others = [v for v in views if str(v.origin) == "stats/dropped"]
+    assert len(others) == 1 and "- stats/dropped/viewer" in others[0].contents
