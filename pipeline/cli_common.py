@@ -117,7 +117,10 @@ def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | Non
     except StageFailed as err:
         print(f"sffscan: {err}", file=sys.stderr)
         print(f"sffscan: {kept} before the failure (status 'failed')", file=sys.stderr)
-        return EXIT_FAILED
+        from pipeline.daq import DaqNotFoundError
+
+        # hardware that is not there is a set-up problem, like a bad configuration
+        return EXIT_BAD_INPUT if isinstance(err.cause, DaqNotFoundError) else EXIT_FAILED
     except KeyboardInterrupt:
         print(f"sffscan: interrupted; {kept} (status 'failed')", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -98,11 +98,12 @@ class NidaqmxDaq:
             import nidaqmx
             from nidaqmx.constants import AcquisitionType, Edge, RegenerationMode
             from nidaqmx.errors import DaqNotFoundError as NiNotFound
+            from nidaqmx.errors import DaqNotSupportedError as NiNotSupported
         except ImportError as err:  # the Python package itself is missing
             raise _not_found(err) from None
         try:
             task = nidaqmx.Task("sffscan-lens-trigger")
-        except NiNotFound as err:  # not a DaqError: the driver library is missing
+        except (NiNotFound, NiNotSupported) as err:  # not DaqErrors: no driver library
             raise _not_found(err) from None
         self._task = task
         try:

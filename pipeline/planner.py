@@ -52,7 +52,7 @@ class RulePlan:
     rule: str
     max_speed_mm_s: float
     speed_mm_s: float
-    max_exposure_us: float
+    max_exposure_us: float  # min(pixel scale / speed, half a staircase step)
     pass_length_mm: float
     frames_per_pass: int
     pass_time_s: float
@@ -160,6 +160,11 @@ def plan_scan(*, fov_mm: tuple[float, float], fps: float, n_levels: int, overlap
                     exposure_window_us(fps), thesis, sliding)
 
 
+def _max_exposure(pixel_um: float, speed: float, fps: float) -> float:
+    """Longest exposure, µs: no smear over a pixel, and within half a staircase step."""
+    return min(max_exposure_us(pixel_um, speed), exposure_window_us(fps))
+
+
 def _refusal(rule: str, speed: float, vmax: float) -> str:
     return (f"speed {speed:g} mm/s exceeds the {rule} limit {vmax:.2f} mm/s")
 
@@ -175,7 +180,7 @@ def _thesis_plan(along: float, across: float, *, fps: float, n_levels: int, over
     pitch = strip * (1.0 - overlap)
     passes = _passes(area_mm[1], strip, pitch)
     pass_time = length / s
-    return RulePlan("thesis", vmax, s, max_exposure_us(pixel_um, s), length,
+    return RulePlan("thesis", vmax, s, _max_exposure(pixel_um, s, fps), length,
                     math.ceil(pass_time * fps), pass_time, pitch, passes, passes * pass_time,
                     refused)
 
@@ -194,7 +199,7 @@ def _sliding_plan(base: ScanConfig, *, area_mm: tuple[float, float], speed: floa
     pitch = pass_pitch_px(cfg) * px_mm
     passes = _passes(area_mm[1], strip, pitch)
     pass_time = frames / o.fps
-    return RulePlan("sliding", vmax, s, max_exposure_us(o.pixel_um, s),
+    return RulePlan("sliding", vmax, s, _max_exposure(o.pixel_um, s, o.fps),
                     abs(last - first) * px_mm, frames, pass_time, pitch, passes,
                     passes * pass_time, refused)
 

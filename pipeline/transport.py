@@ -115,6 +115,8 @@ def decode_message(parts: list[Any]) -> Frame | EndMessage:
     if len(parts) != 2:
         raise TransportError(f"frame_id {fid}: {len(parts)} message parts, expected 2")
     buf = parts[1].buffer if hasattr(parts[1], "buffer") else memoryview(parts[1])
+    if min(msg.shape) < 1:
+        raise TransportError(f"frame_id {fid}: shape {msg.shape} is not an image shape")
     dtype = np.dtype(msg.dtype)
     expected = msg.shape[0] * msg.shape[1] * dtype.itemsize
     if buf.nbytes != expected:
@@ -208,6 +210,7 @@ class ReceiverStats:
     bytes: int = 0
     ended: bool = False
     frames_sent: int | None = None
+    lost: int = 0  # frames the end message says were sent that never arrived here
 
 
 def receive_frames(address: str, cfg: ScanConfig, *, hwm: int | None = None,
@@ -249,6 +252,10 @@ def receive_frames(address: str, cfg: ScanConfig, *, hwm: int | None = None,
             item = decode_message(parts)
             if isinstance(item, EndMessage):
                 st.ended, st.frames_sent = True, item.frames_sent
+                st.lost = max(item.frames_sent - st.frames, 0)
+                if st.lost:  # at a receiver restart; also after the last frame_id seen
+                    print(f"transport: received {st.frames} of the {item.frames_sent} frames "
+                          f"sent: {st.lost} lost in transit", file=sys.stderr)
                 if item.reason != "complete":  # the scan fails, keeping what it measured
                     raise TransportError(f"the sender stopped after {item.frames_sent} "
                                          f"frames: {item.reason}")

@@ -21,7 +21,10 @@ frame_id k was exposed at focus level ``(k + camera.focus_phase) mod N``.
 - timestamp_ns: the device's time stamp relative to the first frame, or, where the device
   has none, the host's monotonic clock at fetch (marked in :class:`CameraStats`).
 - Buffer underruns (GenTL ``STREAM_INFO_NUM_UNDERRUN``) are read at the end and reported.
-- Passes: frames are assigned to passes by the scan plan's frame counts.
+- Passes: frames are assigned to passes by the scan plan's frame counts. The scan ends at
+  the first frame_id past the plan's count; planned frames lost just before it are lost too.
+- Refused before anything starts: an exposure past the trigger-to-next-step window
+  (:func:`check_exposure`), and an untriggered camera with a real DAQ (unsynchronised).
 
 The harvesters-specific code lives in :class:`HarvestersCamera` behind the small
 :class:`Camera` protocol, so tests inject a fake one.
@@ -41,6 +44,7 @@ import numpy as np
 
 from pipeline.config import ConfigError, ScanConfig
 from pipeline.daq import Daq, open_daq, waveform_for
+from pipeline.lens_waveform import exposure_window_us, max_exposure_us
 from pipeline.messages import Frame, FrameHeader
 from pipeline.plan import frame_count, pass_bounds_px
 
@@ -126,6 +130,30 @@ def find_cti(cfg: ScanConfig) -> Path:
     return Path(path)
 
 
+def check_exposure(cfg: ScanConfig, exposure_us: float, *, origin: str) -> list[str]:
+    """Check an exposure against the staircase and the motion; notes for the user.
+
+    With the hardware trigger the exposure starts at a step's centre and must end before
+    the lens's next step (``1 / (2 fps)``, :func:`pipeline.lens_waveform.exposure_window_us`):
+    a longer one mixes two focus levels in one frame and raises :class:`CameraError`
+    naming ``origin``. Longer than pixel scale / speed
+    (:func:`pipeline.lens_waveform.max_exposure_us`) smears a point over more than one
+    pixel: returned as a note, not refused.
+    """
+    o, m = cfg.optics, cfg.motion
+    notes: list[str] = []
+    window = exposure_window_us(o.fps)
+    if cfg.camera.trigger and exposure_us > window:
+        raise CameraError(f"{origin} = {exposure_us:g} µs: longer than the {window:.0f} µs "
+                          f"from the trigger (step centre) to the lens's next step at "
+                          f"{o.fps:g} fps; the frame would mix two focus levels")
+    smear = max_exposure_us(o.pixel_um, m.speed_mm_s)
+    if exposure_us > smear:
+        notes.append(f"{origin} = {exposure_us:g} µs exceeds pixel scale / speed = "
+                     f"{smear:.0f} µs: points smear over {exposure_us / smear:.1f} px")
+    return notes
+
+
 def _set(nm: Any, name: str, value: Any, missing: list[str]) -> bool:
     """Set node ``name`` if the device has it (and it is writable); note it otherwise."""
     if not nm.has_node(name):
@@ -187,9 +215,12 @@ class HarvestersCamera:
             _set(nm, "OffsetX", c.offset_x_px, missing)
         if c.offset_y_px or nm.has_node("OffsetY"):
             _set(nm, "OffsetY", c.offset_y_px, missing)
+        exp_node = "ExposureTime" if nm.has_node("ExposureTime") else "ExposureTimeAbs"
         if c.exposure_us is not None:
-            name = "ExposureTime" if nm.has_node("ExposureTime") else "ExposureTimeAbs"
-            _set(nm, name, c.exposure_us, missing)
+            _set(nm, exp_node, c.exposure_us, missing)
+        elif nm.has_node(exp_node):  # the device's own exposure must fit the step too
+            notes += check_exposure(cfg, float(getattr(nm, exp_node).value),
+                                    origin=f"the camera's {exp_node}")
         triggered = False
         if c.trigger:
             if all(nm.has_node(n) for n in ("TriggerMode", "TriggerSource",
@@ -203,6 +234,12 @@ class HarvestersCamera:
             else:
                 missing += [n for n in ("TriggerSelector", "TriggerMode", "TriggerSource",
                                         "TriggerActivation") if not nm.has_node(n)]
+        if not triggered and cfg.daq.kind != "sim":
+            why = ("camera.trigger = false" if not c.trigger else "the device lacks "
+                   + ", ".join(dict.fromkeys(missing)))
+            raise CameraError(f"the camera is not hardware-triggered ({why}), so its frames "
+                              f"would not be synchronised with the lens staircase of daq.kind "
+                              f"= '{cfg.daq.kind}'; set daq.kind = 'sim' to free-run")
         if not triggered:
             if nm.has_node("AcquisitionFrameRateEnable"):
                 nm.AcquisitionFrameRateEnable.value = True
@@ -324,6 +361,9 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
     cam = camera if camera is not None else open_camera(cfg)
     lens: Daq | None = None
     try:
+        if cfg.camera.exposure_us is not None:
+            st.notes += check_exposure(cfg, cfg.camera.exposure_us,
+                                       origin="camera.exposure_us")
         st.notes += cam.configure(cfg)
         for note in st.notes:
             print(f"camera: {note}", file=sys.stderr)
@@ -334,6 +374,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
         t0_dev: int | None = None
         t0_host = 0
         fetched = 0
+        last_fid = -1
         while True:
             raw = cam.fetch(cfg.camera.fetch_timeout_s)
             host_ns = time.monotonic_ns()
@@ -344,6 +385,10 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
                 fid = unwrap(raw.frame_id)
             fetched += 1
             if fid >= n_total:
+                # planned frames between the last one yielded and the end were lost too
+                missing = n_total - 1 - last_fid
+                if missing > 0:
+                    st.gaps, st.lost = st.gaps + 1, st.lost + missing
                 break
             if fetched == 1:
                 t0_dev, t0_host = raw.timestamp_ns, host_ns
@@ -358,6 +403,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
             pass_index = sum(1 for s in pass_starts if fid >= s)
             st.frames += 1
             st.lost, st.gaps = unwrap.lost, unwrap.gaps
+            last_fid = fid
             yield Frame(FrameHeader(frame_id=fid, timestamp_ns=ts,
                                     focus_index=(fid + cfg.camera.focus_phase) % n_levels,
                                     pass_index=pass_index), raw.image)

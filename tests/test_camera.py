@@ -63,7 +63,7 @@ def test_viky_200_frames_through_the_whole_pipeline(tmp_path: Path) -> None:
     assert report.frames == st.frames >= 200
     by_stage = {s.name: s.frames for s in report.result.stages}
     assert by_stage["focus_measure"] == by_stage["depth"] == st.frames  # the whole pipeline
-    assert st.frames + st.lost <= n  # frame_ids stop at the plan's count
+    assert st.frames + st.lost == n  # every planned frame_id arrived or is counted lost
     # viky has no time stamps and no trigger: the host-clock fallback is marked, and the
     # missing trigger nodes are named
     assert st.timestamps == "host clock" and st.frame_ids == "device"
@@ -247,3 +247,52 @@ def test_find_cti(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.delenv("GENICAM_GENTL64_PATH")
     with pytest.raises(ConfigError, match="no GenTL producer given"):
         find_cti(cfg)
+
+
+# --- review: defects found and fixed ------------------------------------------------------
+
+
+def test_frames_lost_at_the_end_of_the_scan_are_counted() -> None:
+    """The plan wants 12 frames; device counters 11 and 12 (frame_id 10, 11) never arrive,
+    the next frame (frame_id 13) ends the scan: 2 frames lost, not 0."""
+    cfg = viky_config(frames=12)
+    st = CameraStats()
+    frames = list(camera_frames(cfg, camera=FakeCamera(list(range(1, 11)) + [14, 15]),
+                                daq=SimDaq(), stats=st))
+    assert [f.header.frame_id for f in frames] == list(range(10))
+    assert (st.frames, st.gaps, st.lost) == (10, 1, 2)
+    assert st.frames + st.lost == 12
+    assert "2 lost in 1 frame_id gaps" in st.summary()
+
+
+def test_an_exposure_longer_than_half_a_step_is_refused_before_anything_starts() -> None:
+    """The trigger sits at the step's centre: an exposure past 1 / (2 fps) (2500 µs at
+    200 fps) runs into the lens's next step, mixing two focus levels in one frame."""
+    from stages.camera_source import check_exposure
+
+    cfg = viky_config(frames=5, exposure_us=3000.0)
+    cam = FakeCamera(list(range(1, 10)))
+    daq = SimDaq()
+    with pytest.raises(CameraError, match=r"camera.exposure_us = 3000 µs.*2500 µs"):
+        list(camera_frames(cfg, camera=cam, daq=daq))
+    assert "start" not in cam.calls and daq.calls == [] and cam.calls[-1] == "close"
+    # pixel scale / speed: 17 µm at 20 mm/s = 850 µs; longer smears: said, not refused
+    notes = check_exposure(viky_config(), 1000.0, origin="camera.exposure_us")
+    assert len(notes) == 1 and "smear" in notes[0] and "850 µs" in notes[0]
+    assert check_exposure(viky_config(), 800.0, origin="camera.exposure_us") == []
+    # free-run (no trigger): no staircase step to stay inside
+    assert check_exposure(viky_config(trigger=False), 3000.0, origin="x") != []
+
+
+def test_real_daq_with_an_untriggered_camera_is_refused() -> None:
+    """viky has no trigger nodes: with daq.kind = 'nidaqmx' its frames would not be
+    synchronised with the lens staircase; refused (the device released), never a scan
+    with focus levels guessed from the frame count."""
+    base = viky_config().model_dump()
+    base["daq"]["kind"] = "nidaqmx"
+    cfg = config_from_dict(base)
+    with pytest.raises(CameraError, match="not hardware-triggered.*TriggerMode.*daq.kind"):
+        next(camera_frames(cfg))
+    # the device was released: it can be opened again at once
+    st = CameraStats()
+    assert len(list(camera_frames(viky_config(frames=3), stats=st))) == 3

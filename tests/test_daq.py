@@ -99,12 +99,44 @@ def test_sim_daq_is_the_default() -> None:
     assert daq.calls == ["start", "stop", "close"] and not daq.running
 
 
+class _TriggeredCamera:
+    """A camera with a hardware trigger (viky has none, and with daq.kind = 'nidaqmx' an
+    untriggered camera is refused before the DAQ is reached)."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def configure(self, cfg: object) -> list[str]:
+        self.calls.append("configure")
+        return []
+
+    def start(self) -> None:
+        self.calls.append("start")
+
+    def fetch(self, timeout_s: float) -> object:
+        raise AssertionError("no frame may be fetched without the DAQ")
+
+    def underruns(self) -> int | None:
+        return 0
+
+    def stop(self) -> None:
+        self.calls.append("stop")
+
+    def close(self) -> None:
+        self.calls.append("close")
+
+
 def test_grab_without_the_driver_says_so_in_one_sentence(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`sffscan grab` with the real camera (viky.cti) and daq.kind = 'nidaqmx': the camera
-    is opened and released, then the missing driver is reported; exit 2."""
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sffscan grab` with a triggered camera and daq.kind = 'nidaqmx': the camera is
+    configured, armed and released, then the missing driver is reported; exit 2."""
     import genicam
 
+    import stages.camera_source
+
+    cam = _TriggeredCamera()
+    monkeypatch.setattr(stages.camera_source, "open_camera", lambda cfg: cam)
     cfg = config_from_dict({
         "source": {"kind": "camera"},
         "optics": {"width_px": 160, "height_px": 100, "pixel_um": 17.0, "n_levels": 10,
@@ -119,6 +151,19 @@ def test_grab_without_the_driver_says_so_in_one_sentence(
     err = capsys.readouterr().err
     assert "sffscan grab: daq.kind = 'nidaqmx' but the NI-DAQmx driver is not installed" in err
     assert "camera: 0 frames" in err  # the camera was released (its summary printed)
+    assert cam.calls == ["configure", "start", "stop", "close"]
+
+
+def test_an_unsupported_platform_is_one_clear_sentence_too() -> None:
+    """nidaqmx raises DaqNotSupportedError (not a DaqError either) on e.g. macOS."""
+    import nidaqmx.errors
+
+    cfg = _cfg()
+    with mock.patch("nidaqmx.Task", side_effect=nidaqmx.errors.DaqNotSupportedError(
+            "NI-DAQmx Python is not supported on this platform: darwin")):
+        with pytest.raises(DaqNotFoundError, match="daq.kind = 'sim'") as info:
+            open_daq(cfg).start(waveform_for(cfg))
+    assert "\n" not in str(info.value)
 
 
 def test_the_mocked_calls_exist_in_nidaqmx_with_these_arguments() -> None:
@@ -147,3 +192,31 @@ def test_the_mocked_calls_exist_in_nidaqmx_with_these_arguments() -> None:
     assert {c[0] for c in calls} == set(real)
     for name, args, kwargs in calls:
         inspect.signature(real[name]).bind(None, *args, **kwargs)  # raises if wrong
+
+
+def test_scan_without_the_driver_exits_2_like_grab(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sffscan scan` from a triggered camera with daq.kind = 'nidaqmx' and no driver: the
+    missing driver is a set-up problem, exit 2 (not a stage failure, exit 1)."""
+    import genicam
+
+    import stages.camera_source
+
+    cam = _TriggeredCamera()
+    monkeypatch.setattr(stages.camera_source, "open_camera", lambda cfg: cam)
+    cfg = config_from_dict({
+        "source": {"kind": "camera"},
+        "optics": {"width_px": 160, "height_px": 100, "pixel_um": 17.0, "n_levels": 10,
+                   "fps": 200.0, "bit_depth": 8},
+        "motion": {"speed_mm_s": 20.0, "x_end_mm": 10.0},
+        "camera": {"cti": str(Path(genicam.__file__).parent / "viky.cti"),
+                   "pixel_format": "Mono8"},
+        "daq": {"kind": "nidaqmx"}})
+    path = tmp_path / "c.toml"
+    path.write_text(config_to_toml(cfg), encoding="utf-8")
+    assert main(["scan", "--config", str(path), "-o", str(tmp_path / "m.zarr"), "-q",
+                 "--no-evaluate"]) == 2
+    err = capsys.readouterr().err
+    assert "NI-DAQmx driver is not installed" in err
+    assert cam.calls[-1] == "close"

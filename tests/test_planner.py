@@ -85,3 +85,15 @@ def test_plan_command(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["plan", "--speed", "50"]) == 2
     assert "refused" in capsys.readouterr().err
     assert ScanConfig().optics.width_px == 1280  # defaults untouched
+
+
+def test_max_exposure_never_exceeds_half_a_step() -> None:
+    """At 2 mm/s the smear limit is 8.5 µm / 2 mm/s = 4250 µs, but the trigger sits at the
+    step's centre: at 150 fps the exposure must end within 1 / 300 s = 3333 µs, or the
+    frame mixes two focus levels. The plan's maximum is the smaller of the two."""
+    p = plan_scan(**{**THESIS, "speed_mm_s": 2.0})
+    assert p.exposure_window_us == pytest.approx(1e6 / 300)
+    for rp in (p.thesis, p.sliding):
+        assert rp.max_exposure_us == pytest.approx(1e6 / 300)
+    fast = plan_scan(**{**THESIS, "speed_mm_s": 10.0})  # 850 µs: the smear limit binds
+    assert fast.thesis.max_exposure_us == pytest.approx(850.0)

@@ -241,3 +241,62 @@ def test_a_failed_sender_fails_the_receiver() -> None:
             got.append(frame.header.frame_id)
     thread.join(30)
     assert got == [0, 1]
+
+
+def test_frames_lost_in_transit_are_reported_at_the_end(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The end message says 4 frames were sent; 2 arrived (the others were lost at a
+    receiver restart, here after the last one received, where no frame_id gap shows them):
+    the receiver counts and says so instead of ending as if nothing were missing."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    st = ReceiverStats()
+    gen = receive_frames(address, tiny_config(), first_timeout_s=30, stats=st)
+    got: list[int] = []
+
+    def send() -> None:
+        sender = FrameSender(address)
+        try:
+            sender.send(_frame(0))
+            sender.send(_frame(1))
+            sender.sent = 4  # frames 2 and 3 went to a receiver that was stopped
+            sender.end()
+        finally:
+            sender.close()
+
+    thread = threading.Thread(target=send)
+    thread.start()
+    got = [f.header.frame_id for f in gen]
+    thread.join(30)
+    assert got == [0, 1] and st.ended and st.frames_sent == 4
+    assert st.lost == 2
+    assert "received 2 of the 4 frames sent: 2 lost in transit" in capsys.readouterr().err
+
+
+def test_a_negative_shape_is_refused_naming_the_frame() -> None:
+    """(-12, -16) has the same byte count as (12, 16): refused as a bad header, not a
+    numpy ValueError that names nothing."""
+    head, img = encode_frame(_frame(9))
+    meta = json.loads(head)
+    meta["shape"] = [-12, -16]
+    with pytest.raises(TransportError, match="frame_id 9: shape"):
+        decode_message([json.dumps(meta).encode(), img.tobytes()])
+
+
+def test_the_checksum_catches_a_buffer_reused_before_zmq_sent_it() -> None:
+    """What FrameSender.send's read-only flag prevents: a queued zero-copy frame (128 kB,
+    above pyzmq's copy threshold) whose array is overwritten before the receiver is there
+    arrives with other pixels than its CRC-32 says; the receiver refuses it."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    img = np.arange(256 * 256, dtype=np.uint16).reshape(256, 256)
+    head, out = encode_frame(Frame(FrameHeader(frame_id=5, timestamp_ns=0, focus_index=5),
+                                   img))
+    assert out is img and img.nbytes > zmq.COPY_THRESHOLD
+    sender = FrameSender(address)
+    try:
+        sender._send([head, out])  # bypasses send(): the array stays writable
+        img[:] = 7  # a source reusing its buffer for the next frame
+        gen = receive_frames(address, tiny_config(), first_timeout_s=30)
+        with pytest.raises(TransportError, match="frame_id 5: pixel checksum mismatch"):
+            next(gen)
+    finally:
+        sender.close(linger_s=0)
