@@ -24,6 +24,8 @@ from __future__ import annotations
 import collections
 import copy
 import enum
+import functools
+import itertools
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -230,6 +232,10 @@ class Sink(Stage):
     unit = "items"
 
 
+def _process_all(stage: Stage, item: Any) -> list[Any]:
+    return list(stage.process(item))
+
+
 @dataclass
 class PipelineResult:
     wall_s: float
@@ -331,71 +337,54 @@ class Pipeline:
                 out_q.put(out)
 
     def _run_stage(self, index: int) -> None:
-        stage, stats = self.stages[index], self.stats[index]
+        out_q = self.queues[index] if index < len(self.queues) else None
+        self._drive(self.stages[index], self.stats[index],
+                    self.queues[index - 1] if index > 0 else None,
+                    lambda outputs: self._emit(index, outputs), out_q)
+
+    def _run_sink(self, index: int) -> None:
+        self._drive(self.sinks[index], self.sink_stats[index], self.sink_queues[index],
+                    lambda outputs: None, None)
+
+    def _drive(self, stage: Stage, stats: StageStats, in_q: BoundedQueue | None,
+               emit: Callable[[list[Any]], None], out_q: BoundedQueue | None) -> None:
+        """Run a stage (a source when ``in_q`` is None) or a sink to the end of its stream,
+        timing its own code; a failure is recorded with its name and stops the pipeline."""
+
+        def timed(call: Callable[[], list[Any]]) -> list[Any]:
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return call()
+            finally:
+                stats.busy_s += time.perf_counter() - t0
+                stats.cpu_s += time.thread_time() - c0
+
         try:
-            if index == 0:
+            if in_q is None:
                 it = iter(stage.produce())
                 while not self.stop.is_set():
-                    t0, c0 = time.perf_counter(), time.thread_time()
-                    try:
-                        item = next(it)
-                    except StopIteration:
+                    produced = timed(lambda: list(itertools.islice(it, 1)))
+                    if not produced:
                         break
-                    stats.busy_s += time.perf_counter() - t0
-                    stats.cpu_s += time.thread_time() - c0
                     stats.frames += 1
-                    self._emit(index, (item,))
+                    emit(produced)
             else:
-                in_q = self.queues[index - 1]
                 while True:
                     item = in_q.get()
                     if item is END_OF_STREAM:
                         break
                     stats.items_in += 1
-                    t0, c0 = time.perf_counter(), time.thread_time()
-                    outputs = list(stage.process(item))
-                    stats.busy_s += time.perf_counter() - t0
-                    stats.cpu_s += time.thread_time() - c0
+                    outputs = timed(functools.partial(_process_all, stage, item))
                     stats.frames += 1
-                    self._emit(index, outputs)
-            t0, c0 = time.perf_counter(), time.thread_time()
-            tail = list(stage.finish())
-            stats.busy_s += time.perf_counter() - t0
-            stats.cpu_s += time.thread_time() - c0
-            self._emit(index, tail)
-            if index < len(self.queues):
-                self.queues[index].put(END_OF_STREAM)
+                    emit(outputs)
+            emit(timed(lambda: list(stage.finish())))
+            if out_q is not None:
+                out_q.put(END_OF_STREAM)
         except PipelineStopped:
             return
         except BaseException as exc:  # noqa: BLE001 - reported with the stage's name
             with self._lock:
                 self._errors.append((stage.name, exc))
-            self.stop.set()
-
-    def _run_sink(self, index: int) -> None:
-        sink, stats, in_q = self.sinks[index], self.sink_stats[index], self.sink_queues[index]
-        try:
-            while True:
-                item = in_q.get()
-                if item is END_OF_STREAM:
-                    break
-                stats.items_in += 1
-                t0, c0 = time.perf_counter(), time.thread_time()
-                for _ in sink.process(item):
-                    pass
-                stats.busy_s += time.perf_counter() - t0
-                stats.cpu_s += time.thread_time() - c0
-                stats.frames += 1
-            t0, c0 = time.perf_counter(), time.thread_time()
-            for _ in sink.finish():
-                pass
-            stats.busy_s += time.perf_counter() - t0
-            stats.cpu_s += time.thread_time() - c0
-        except PipelineStopped:
-            return
-        except BaseException as exc:  # noqa: BLE001 - reported with the sink's name
-            with self._lock:
-                self._errors.append((sink.name, exc))
             self.stop.set()
 
     def _snapshot(self, elapsed: float) -> None:

@@ -126,11 +126,10 @@ class _TriggeredCamera:
         self.calls.append("close")
 
 
-def test_grab_without_the_driver_says_so_in_one_sentence(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str],
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """`sffscan grab` with a triggered camera and daq.kind = 'nidaqmx': the camera is
-    configured, armed and released, then the missing driver is reported; exit 2."""
+def _triggered_camera_with_ni_daq(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                  ) -> tuple[_TriggeredCamera, Path]:
+    """A fake triggered camera in place of the real one, and a configuration file that
+    asks for it with daq.kind = 'nidaqmx'."""
     import genicam
 
     import stages.camera_source
@@ -147,6 +146,15 @@ def test_grab_without_the_driver_says_so_in_one_sentence(
         "daq": {"kind": "nidaqmx"}})
     path = tmp_path / "c.toml"
     path.write_text(config_to_toml(cfg), encoding="utf-8")
+    return cam, path
+
+
+def test_grab_without_the_driver_says_so_in_one_sentence(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sffscan grab` with a triggered camera and daq.kind = 'nidaqmx': the camera is
+    configured, armed and released, then the missing driver is reported; exit 2."""
+    cam, path = _triggered_camera_with_ni_daq(tmp_path, monkeypatch)
     assert main(["grab", "--config", str(path), "--to", "tcp://127.0.0.1:5599"]) == 2
     err = capsys.readouterr().err
     assert "sffscan grab: daq.kind = 'nidaqmx' but the NI-DAQmx driver is not installed" in err
@@ -199,22 +207,7 @@ def test_scan_without_the_driver_exits_2_like_grab(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """`sffscan scan` from a triggered camera with daq.kind = 'nidaqmx' and no driver: the
     missing driver is a set-up problem, exit 2 (not a stage failure, exit 1)."""
-    import genicam
-
-    import stages.camera_source
-
-    cam = _TriggeredCamera()
-    monkeypatch.setattr(stages.camera_source, "open_camera", lambda cfg: cam)
-    cfg = config_from_dict({
-        "source": {"kind": "camera"},
-        "optics": {"width_px": 160, "height_px": 100, "pixel_um": 17.0, "n_levels": 10,
-                   "fps": 200.0, "bit_depth": 8},
-        "motion": {"speed_mm_s": 20.0, "x_end_mm": 10.0},
-        "camera": {"cti": str(Path(genicam.__file__).parent / "viky.cti"),
-                   "pixel_format": "Mono8"},
-        "daq": {"kind": "nidaqmx"}})
-    path = tmp_path / "c.toml"
-    path.write_text(config_to_toml(cfg), encoding="utf-8")
+    cam, path = _triggered_camera_with_ni_daq(tmp_path, monkeypatch)
     assert main(["scan", "--config", str(path), "-o", str(tmp_path / "m.zarr"), "-q",
                  "--no-evaluate"]) == 2
     err = capsys.readouterr().err
