@@ -28,14 +28,21 @@ import numpy as np
 
 __all__ = [
     "DEPTH_METHODS",
+    "STREAMING_METHODS",
     "all_in_focus",
     "depth_from_focus",
+    "depth_from_harmonics",
+    "harmonic_table",
     "levels_to_height",
     "spc_by_roll",
 ]
 
 DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc")
 """Names accepted by :func:`depth_from_focus` as ``method``."""
+
+STREAMING_METHODS = ("argmax", "centroid", "pc", "spc")
+"""Methods that need only the sums of :func:`harmonic_table` and the argmax of each curve
+(:func:`depth_from_harmonics`), so a streaming accumulator needs no N-level volume."""
 
 
 # ----------------------------------------------------------------------------- validation
@@ -79,17 +86,26 @@ def _check_median_size(median_size: int) -> int:
 # ----------------------------------------------------------------------------- building blocks
 
 
+def harmonic_table(n_levels: int) -> np.ndarray:
+    """``(4, N)`` float64 weights of the curve sums: 1, k, cos(2 pi k / N), -sin(2 pi k / N).
+
+    ``table @ y`` gives H_0 = sum y, sum k y, Re H_1 and Im H_1 of a focus curve ``y``; a
+    streaming accumulator adds ``table[:, k] * y_k`` as level ``k`` arrives.
+    """
+    k = np.arange(n_levels, dtype=np.float64)
+    theta = 2.0 * np.pi * k / n_levels
+    return np.stack((np.ones(n_levels), k, np.cos(theta), -np.sin(theta)))
+
+
 def _moments(vol: np.ndarray) -> np.ndarray:
     """``(4, H, W)`` float64: H_0 = sum y, sum k y, Re H_1, Im H_1 of every focus curve.
 
-    One matrix product with a ``(4, N)`` table of 1, k, cos and -sin, accumulated in float64
+    One matrix product with the ``(4, N)`` :func:`harmonic_table`, accumulated in float64
     (float32 accumulation costs up to ~1e-3 levels of PC phase on curves whose first harmonic
     is weak). Done over blocks of columns so the float64 copy of the volume stays in cache.
     """
     n = vol.shape[0]
-    k = np.arange(n, dtype=np.float64)
-    theta = 2.0 * np.pi * k / n
-    table = np.stack((np.ones(n), k, np.cos(theta), -np.sin(theta)))
+    table = harmonic_table(n)
     flat = vol.reshape(n, -1)
     out = np.empty((4, flat.shape[1]), dtype=np.float64)
     block = max(256, (1 << 17) // n)  # ~1 MiB of float64 per block (stays in L2)
@@ -141,9 +157,12 @@ def _spc_shift(vol: np.ndarray, median_size: int) -> np.ndarray:
 
     ``round`` is MATLAB's (halves away from zero): ``round(N/2) = (N + 1) // 2``.
     """
-    n = vol.shape[0]
-    a_med = _median_filter_levels(_argmax(vol), median_size, n)
-    return (n + 1) // 2 - a_med
+    return _spc_shift_of(_argmax(vol), median_size, vol.shape[0])
+
+
+def _spc_shift_of(argmax: np.ndarray, median_size: int, n: int) -> np.ndarray:
+    """:func:`_spc_shift` from the argmax map."""
+    return (n + 1) // 2 - _median_filter_levels(argmax, median_size, n)
 
 
 def _wrap(x: np.ndarray, n: int) -> np.ndarray:
@@ -241,7 +260,19 @@ def depth_from_focus(
     h0, hk, re, im = _moments(vol)
     if not np.isfinite(h0).all():  # NaN / inf anywhere in a curve makes its sum non-finite
         _raise_not_finite(vol)
+    a = _argmax(vol) if method != "pc" else None
+    if method in STREAMING_METHODS:
+        return _from_harmonics(h0, hk, re, im, a, n, method, median_size)
+    assert a is not None
+    depth, confidence = _from_harmonics(h0, hk, re, im, a, n, "argmax", median_size)
+    depth = a + _three_point(vol, a, log=method == "gauss3")
+    return depth.astype(np.float32, copy=False), confidence
 
+
+def _from_harmonics(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarray,
+                    a: np.ndarray | None, n: int, method: str, median_size: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and confidence from the curve sums and argmax (checked inputs)."""
     positive = h0 > 0
     confidence = np.sqrt(re * re + im * im) / np.where(positive, h0, 1.0)
     confidence = np.clip(np.where(positive, confidence, 0.0), 0.0, 1.0).astype(np.float32)
@@ -251,17 +282,76 @@ def depth_from_focus(
         if method == "pc":
             depth = _wrap(phi, n)
         else:
-            s = _spc_shift(vol, median_size)
+            assert a is not None
+            s = _spc_shift_of(a, median_size, n)
             depth = _wrap(phi + s, n) - s
     else:
-        a = _argmax(vol)
+        assert a is not None
         if method == "argmax":
             depth = a.astype(np.float32)
-        elif method == "centroid":
+        else:  # centroid
             depth = np.where(positive, hk / np.where(positive, h0, 1.0), a)
-        else:
-            depth = a + _three_point(vol, a, log=method == "gauss3")
     return depth.astype(np.float32, copy=False), confidence
+
+
+def depth_from_harmonics(
+    sums: np.ndarray, argmax: np.ndarray | None, *, n_levels: int, method: str = "spc",
+    median_size: int = 11,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and confidence from each curve's sums and argmax, without the curves.
+
+    What :func:`depth_from_focus` computes for the methods in :data:`STREAMING_METHODS`,
+    from the quantities a streaming accumulator can keep as the levels arrive one by one:
+    ``sums = harmonic_table(N) @ y`` and the index of the curve's (first) maximum.
+
+    Parameters
+    ----------
+    sums : (4, H, W) ndarray of float
+        H_0 = sum y, sum k y, Re H_1, Im H_1 of every pixel's curve (see
+        :func:`harmonic_table`). Computed in float32 when given float32 (sums accumulated
+        in float32 hold no more than that), else in float64.
+    argmax : (H, W) ndarray of int, or None
+        Level of each curve's first maximum, 0..N-1; may be None for ``"pc"`` only.
+    n_levels : int, keyword-only
+        Number of focus levels N >= 3.
+    method : {"argmax", "centroid", "pc", "spc"}, keyword-only
+        As in :func:`depth_from_focus`.
+    median_size : int, keyword-only
+        Odd SPC median-filter size, as in :func:`depth_from_focus`.
+
+    Returns
+    -------
+    depth, confidence : (H, W) ndarray of float32
+        As :func:`depth_from_focus`: fractional levels, and ``|H_1| / H_0`` in [0, 1].
+
+    Raises
+    ------
+    ValueError
+        Unknown ``method`` (or one that needs the curve), bad ``median_size``, N < 3, shapes
+        that do not match, non-finite sums, or a missing ``argmax``.
+    """
+    if method not in STREAMING_METHODS:
+        raise ValueError(f"method must be one of {STREAMING_METHODS}, got {method!r}")
+    median_size = _check_median_size(median_size)
+    if n_levels < 3:
+        raise ValueError(f"n_levels must be at least 3, got {n_levels}")
+    sums = np.asarray(sums)
+    if sums.dtype != np.float32:
+        sums = sums.astype(np.float64)
+    if sums.ndim != 3 or sums.shape[0] != 4:
+        raise ValueError(f"sums must be (4, H, W), got shape {sums.shape}")
+    if not np.isfinite(sums).all():
+        raise ValueError("sums contain NaN or inf")
+    a = None
+    if argmax is not None:
+        a = np.asarray(argmax)
+        if a.shape != sums.shape[1:]:
+            raise ValueError(f"argmax shape {a.shape} differs from the sums' {sums.shape[1:]}")
+        a = a.astype(np.intp, copy=False)
+    elif method != "pc":
+        raise ValueError(f"method {method!r} needs the argmax of every curve")
+    h0, hk, re, im = sums
+    return _from_harmonics(h0, hk, re, im, a, n_levels, method, median_size)
 
 
 def spc_by_roll(volume: np.ndarray, *, median_size: int = 11) -> np.ndarray:

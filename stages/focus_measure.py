@@ -23,6 +23,7 @@ is the thin pipeline stage around them.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -36,8 +37,10 @@ from stages.focus_volume import new_columns
 
 __all__ = [
     "FOCUS_OPERATORS",
+    "DeviceFocus",
     "FocusMeasureStage",
     "focus_measure",
+    "focus_measure_raw",
     "glvm",
     "glvm_conv2d_baseline",
     "glvm_cv",
@@ -329,6 +332,74 @@ def tenv_cv(image: np.ndarray, *, window: int = 9) -> np.ndarray:
     return np.maximum(fm, 0.0, out=fm)
 
 
+def glvm_cv_raw(image: np.ndarray, image01: np.ndarray, *, max_value: float,
+                window: int = 9) -> np.ndarray:
+    """GLVM of a raw integer image (CPU fast path); same definition as :func:`glvm_cv`.
+
+    The local mean is box filtered straight from the integer image (OpenCV reads uint8 /
+    uint16 at half the memory traffic of float32), the difference is taken against the
+    image scaled to 0..1, and the second box filter is a separable sum of the squares:
+    about 1.3x faster than :func:`glvm_cv` on the scaled image, equal to float32 round-off.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray of uint8 or uint16
+        Raw image.
+    image01 : (H, W) ndarray of float32
+        The same image scaled to 0..1 (``image / max_value``).
+    max_value : float, keyword-only
+        Full scale of the raw values.
+    window : int, keyword-only
+        Odd window size k >= 3, pixels. Default 9.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Focus measure of ``image01``.
+    """
+    ksize = (window, window)
+    border = cv2.BORDER_REPLICATE
+    mu_raw = cv2.boxFilter(image, cv2.CV_32F, ksize, normalize=True, borderType=border)
+    d = cv2.scaleAdd(mu_raw, -1.0 / float(max_value), image01)
+    cv2.multiply(d, d, dst=d)
+    kernel = np.full(window, 1.0 / window, np.float32)
+    return cv2.sepFilter2D(d, cv2.CV_32F, kernel, kernel, borderType=border)
+
+
+def focus_measure_raw(
+    image: np.ndarray, *, max_value: float, operator: str = "glvm", window: int = 9
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scale a raw camera image to 0..1 and compute its focus measure (OpenCV, CPU).
+
+    What the focus stage does for every frame: :func:`to_unit_float`, then
+    :func:`focus_measure` with the OpenCV backend, fused where that saves memory passes
+    (GLVM: :func:`glvm_cv_raw`). Equal to the two steps to float32 round-off.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray of uint8 or uint16 (float is accepted too)
+        Raw image; may be a strided view (a column range of a frame).
+    max_value : float, keyword-only
+        Full-scale value (255, 1023, ...).
+    operator : {"glvm", "tenv"}, keyword-only
+    window : int, keyword-only
+        Odd window size k >= 3, pixels. Default 9.
+
+    Returns
+    -------
+    image01, focus : (H, W) ndarray of float32
+        The scaled image and its focus measure.
+    """
+    if operator not in FOCUS_OPERATORS:
+        raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {operator!r}")
+    window = _check_window(window)
+    image01 = to_unit_float(image, max_value=max_value)
+    if operator == "glvm" and image.dtype in (np.uint8, np.uint16):
+        return image01, glvm_cv_raw(image, image01, max_value=max_value, window=window)
+    op_cv = glvm_cv if operator == "glvm" else tenv_cv
+    return image01, op_cv(image01, window=window)
+
+
 # ----------------------------------------------------------------------------- dispatch
 
 
@@ -399,6 +470,95 @@ def focus_measure(
         return result.cpu().numpy()
 
 
+# ----------------------------------------------------------------------------- device path
+
+
+class DeviceFocus:
+    """Raw frames to focus measure on a torch device (CUDA, or CPU for tests).
+
+    The raw uint8 / uint16 pixels go up as they are (half or a quarter of float32's bytes)
+    and are converted and scaled on the device. On CUDA the host side copies each frame or
+    batch into one of two page-locked (pinned) staging buffers and uploads it with a
+    non-blocking copy on a side stream; the compute stream waits for that copy only, so
+    the upload of the next batch overlaps the kernels of this one, and a staging buffer is
+    reused only once its earlier copy has finished. Batches of frames (``(B, H, W)``) are
+    measured with one set of kernels. float32 throughout: the depth accuracy tests have not
+    been run in reduced precision, so none is used.
+
+    Parameters
+    ----------
+    device : str or torch.device
+        Torch device.
+    operator : {"glvm", "tenv"}
+    window : int
+        Odd window size k >= 3, px.
+    max_value : float
+        Full scale of the raw values (255, 1023, ...).
+    """
+
+    def __init__(self, *, device: str | torch.device, operator: str = "glvm", window: int = 9,
+                 max_value: float = 255.0) -> None:
+        if operator not in FOCUS_OPERATORS:
+            raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {operator!r}")
+        self.device = torch.device(device)
+        self.op = glvm if operator == "glvm" else tenv
+        self.window = _check_window(window)
+        self.scale = 1.0 / float(max_value)
+        self.cuda = self.device.type == "cuda"
+        self._staging: list[torch.Tensor | None] = [None, None]
+        self._events: list[Any] = [None, None]
+        self._turn = 0
+        self._copy_stream = torch.cuda.Stream(self.device) if self.cuda else None
+
+    def _upload(self, raw: np.ndarray) -> torch.Tensor:
+        if raw.dtype == np.uint16 and (raw.size == 0 or int(raw.max()) < 1 << 15):
+            raw = raw.view(np.int16)  # same bytes; int16 converts on every device
+        elif raw.dtype not in (np.uint8, np.int16):
+            raise ValueError(f"raw frames must be uint8 or uint16, got dtype {raw.dtype}")
+        if not self.cuda:
+            host = np.ascontiguousarray(raw)
+            if not host.flags.writeable:  # torch.from_numpy warns on read-only arrays
+                host = host.copy()
+            return torch.from_numpy(host).to(self.device)
+        i = self._turn
+        self._turn ^= 1
+        buf = self._staging[i]
+        if self._events[i] is not None:
+            self._events[i].synchronize()  # the buffer's previous upload has finished
+        if buf is None or buf.shape != raw.shape or buf.numpy().dtype != raw.dtype:
+            buf = torch.from_numpy(np.empty(raw.shape, raw.dtype)).pin_memory()
+            self._staging[i] = buf
+        np.copyto(buf.numpy(), raw)
+        assert self._copy_stream is not None
+        with torch.cuda.stream(self._copy_stream):
+            dev = buf.to(self.device, non_blocking=True)
+            event = torch.cuda.Event()
+            event.record(self._copy_stream)
+        self._events[i] = event
+        torch.cuda.current_stream(self.device).wait_event(event)
+        dev.record_stream(torch.cuda.current_stream(self.device))
+        return dev
+
+    def measure(self, raw: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scaled image and focus measure of raw frame(s), on the device.
+
+        Parameters
+        ----------
+        raw : (H, W) or (B, H, W) ndarray of uint8 or uint16
+
+        Returns
+        -------
+        image01, focus : torch.Tensor, float32, same shape, on ``device``
+            Asynchronous on CUDA: ``.cpu()`` (or a synchronize) waits for them.
+        """
+        raw = np.asarray(raw)
+        if raw.ndim not in (2, 3):
+            raise ValueError(f"raw must be (H, W) or (B, H, W), got shape {raw.shape}")
+        with torch.inference_mode():
+            image01 = self._upload(raw).to(torch.float32).mul_(self.scale)
+            return image01, self.op(image01, window=self.window)
+
+
 # ----------------------------------------------------------------------------- stage
 
 
@@ -440,6 +600,7 @@ class FocusMeasureStage(Stage):
         self.directions = list(directions)
         self._pass: int | None = None
         self._prev_x: dict[int, int] = {}
+        self._device_focus: DeviceFocus | None = None
         self.columns_measured = 0
         self.columns_total = 0
 
@@ -454,9 +615,15 @@ class FocusMeasureStage(Stage):
                              direction=self.directions[hdr.pass_index % len(self.directions)])
         self._prev_x[hdr.focus_index] = x
         a0, a1 = max(c0 - self.margin, 0), min(c1 + self.margin, w)
-        image01 = to_unit_float(item.image[:, a0:a1], max_value=self.max_value)
-        fm = focus_measure(image01, operator=self.operator, window=self.window,
-                           backend=self.backend, device=self.device)
+        if self.backend == "opencv":
+            image01, fm = focus_measure_raw(item.image[:, a0:a1], max_value=self.max_value,
+                                            operator=self.operator, window=self.window)
+        else:
+            if self._device_focus is None:
+                self._device_focus = DeviceFocus(device=self.device, operator=self.operator,
+                                                 window=self.window, max_value=self.max_value)
+            t01, tfm = self._device_focus.measure(item.image[:, a0:a1])
+            image01, fm = t01.cpu().numpy(), tfm.cpu().numpy()
         self.columns_measured += c1 - c0
         self.columns_total += w
         yield FocusFrame(item, image01[:, c0 - a0:c1 - a0], fm[:, c0 - a0:c1 - a0], c0)

@@ -16,6 +16,8 @@ from stages.depth import (
     _median_filter_levels,
     all_in_focus,
     depth_from_focus,
+    depth_from_harmonics,
+    harmonic_table,
     levels_to_height,
     spc_by_roll,
 )
@@ -290,3 +292,32 @@ def test_pertuz_depth_rmse(pertuz_dir: Path) -> None:
         assert abs(rmse[method] - rmse["argmax"]) <= 0.05 * rmse["argmax"]
     assert rmse["spc"] < rmse["pc"]  # the shift keeps the phase away from its wrap-around
     assert max(rmse.values()) < 0.1
+
+
+@pytest.mark.parametrize("method", ["argmax", "centroid", "pc", "spc"])
+def test_depth_from_harmonics_equals_depth_from_focus(method: str) -> None:
+    rng = np.random.default_rng(11)
+    vol = rng.random((20, 9, 13))
+    sums = np.einsum("mk,khw->mhw", harmonic_table(20), vol)
+    got = depth_from_harmonics(sums, np.argmax(vol, axis=0), n_levels=20, method=method,
+                               median_size=3)
+    want = depth_from_focus(vol, method=method, median_size=3)
+    np.testing.assert_allclose(got[0], want[0], atol=1e-4)
+    np.testing.assert_allclose(got[1], want[1], atol=1e-6)
+
+
+def test_depth_from_harmonics_rejects() -> None:
+    sums = np.ones((4, 3, 5))
+    with pytest.raises(ValueError, match="method"):
+        depth_from_harmonics(sums, np.zeros((3, 5), int), n_levels=8, method="gauss3")
+    with pytest.raises(ValueError, match="argmax"):
+        depth_from_harmonics(sums, None, n_levels=8, method="spc")
+    with pytest.raises(ValueError, match="shape"):
+        depth_from_harmonics(sums, np.zeros((3, 4), int), n_levels=8)
+    with pytest.raises(ValueError, match=r"\(4, H, W\)"):
+        depth_from_harmonics(sums[:3], np.zeros((3, 5), int), n_levels=8)
+    with pytest.raises(ValueError, match="NaN"):
+        depth_from_harmonics(sums * np.nan, np.zeros((3, 5), int), n_levels=8)
+    with pytest.raises(ValueError, match="n_levels"):
+        depth_from_harmonics(sums, np.zeros((3, 5), int), n_levels=2)
+    assert depth_from_harmonics(sums, None, n_levels=8, method="pc")[0].shape == (3, 5)

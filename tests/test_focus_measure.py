@@ -18,6 +18,7 @@ import torch
 from stages.focus_measure import (
     FOCUS_OPERATORS,
     focus_measure,
+    focus_measure_raw,
     glvm,
     glvm_conv2d_baseline,
     glvm_cv,
@@ -243,3 +244,18 @@ def test_to_unit_float_rejects() -> None:
         to_unit_float(np.zeros((2, 4, 5), np.uint8), max_value=255)
     with pytest.raises(ValueError, match="max_value"):
         to_unit_float(np.zeros((4, 5), np.uint8), max_value=0)
+
+
+@pytest.mark.parametrize("operator", FOCUS_OPERATORS)
+@pytest.mark.parametrize(("dtype", "full"), [(np.uint8, 255), (np.uint16, 1023)])
+def test_raw_fast_path_equals_scale_then_measure(operator: str, dtype: type, full: int) -> None:
+    rng = np.random.default_rng(3)
+    frame = rng.integers(0, full + 1, (61, 90)).astype(dtype)
+    view = frame[:, 7:80]  # a strided column range, as the focus stage passes it
+    image01, fm = focus_measure_raw(view, max_value=full, operator=operator, window=9)
+    want01 = to_unit_float(view, max_value=full)
+    want = focus_measure(want01, operator=operator, window=9)
+    np.testing.assert_array_equal(image01, want01)
+    assert fm.dtype == np.float32 and fm.shape == view.shape
+    np.testing.assert_allclose(fm, want, rtol=0, atol=FLOAT32_REL_TOL * np.abs(want).max())
+    assert (fm >= 0).all()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stages.depth import depth_from_focus, levels_to_height
 from stages.focus_volume import FocusVolume
 
 N, H, W = 12, 48, 96
@@ -111,3 +112,57 @@ def test_a_jump_past_the_ring_finishes_what_was_stored_and_goes_on() -> None:
             if np.isfinite(v):
                 assert v == pytest.approx(100 * _true_depth(np.float64(b.x0 + c), np.float64(y)),
                                           abs=1.0)
+
+
+def _reference_volume(positions: list[int], levels: list[int], frame, xs: np.ndarray,
+                      rows: int, margin: int):  # noqa: ANN001
+    """The first observation of every (level, world column) from the frames, by brute force."""
+    vol = np.full((N, rows, xs.size), np.nan, np.float32)
+    for x, level in zip(positions, levels, strict=True):
+        fm, _ = frame(x, 0, level)
+        for j, wx in enumerate(xs):
+            c = wx - x
+            if margin <= c < W - margin and np.isnan(vol[level, 0, j]):
+                vol[level, :, j] = fm[:, c]
+    return vol
+
+
+@pytest.mark.parametrize("method", ["argmax", "centroid", "pc", "spc"])
+@pytest.mark.parametrize(("quantised", "strips"), [(False, False), (True, False), (True, True)])
+def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
+                                                                   quantised: bool,
+                                                                   strips: bool) -> None:
+    """The accumulating path (no N-level ring) gives depth_from_focus's depth and confidence
+    on the curves a ring would have stored; with quantised values (exact ties of the
+    maximum) the argmax still takes the lowest level, as depth_from_focus does."""
+
+    def frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
+        fm, img = _frame(x0, y0, level)
+        return (np.round(fm * 4) / 4 if quantised else fm).astype(np.float32), img
+
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      method=method, median_size=3, block_columns=16, row_slack=0)
+    assert vol.fv is None
+    if strips:  # rows added in strips of 16 (3 per frame), as large frames are
+        vol.strip_bytes = 1024
+    positions = [7 * k for k in range(40)]
+    levels = [(k + 5) % N for k in range(40)]  # the first column starts mid-staircase
+    blocks = []
+    for x, level in zip(positions, levels, strict=True):
+        fm, img = frame(x, 0, level)
+        blocks += vol.add(fm, img, x=x, y=0, level=level)
+    blocks += vol.finish()
+    xs = np.concatenate([np.arange(b.x0, b.x0 + b.height_um.shape[1]) for b in blocks])
+    got_h = np.concatenate([b.height_um for b in blocks], axis=1)
+    got_c = np.concatenate([b.confidence for b in blocks], axis=1)
+    ref = _reference_volume(positions, levels, frame, xs, H, 3)
+    complete = ~np.isnan(ref).any(axis=(0, 1))
+    # columns whose median-filter halo (1 px) is complete too, rows inside the margins
+    inner = complete & np.roll(complete, 1) & np.roll(complete, -1)
+    assert inner.sum() > 100
+    depth, conf = depth_from_focus(np.nan_to_num(ref[:, 3:-3][:, :, inner]), method=method,
+                                   median_size=3)
+    want_h = levels_to_height(depth, focus_heights_um=np.asarray(HEIGHTS))
+    np.testing.assert_allclose(got_h[3:-3][:, inner], want_h, atol=1e-3)  # µm
+    np.testing.assert_allclose(got_c[3:-3][:, inner], conf, atol=1e-5)
+    assert np.isnan(got_h[:, ~complete]).all()

@@ -11,10 +11,12 @@ import pytest
 from pipeline.messages import FrameHeader, PlacedFrame
 from stages.registration import (
     RegistrationStage,
+    correlate_spectra,
     downsample,
     measure_shift,
     phase_correlate,
     solve_wobble,
+    windowed_spectrum,
 )
 
 
@@ -104,3 +106,52 @@ def test_stage_removes_wobble() -> None:
     assert np.sqrt((before ** 2).mean()) > 1.8
     assert np.sqrt((after ** 2).mean()) < 0.6
     assert stage.extra_stats()["pairs_measured"] > 140
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_stage_removes_wobble_with_and_without_shared_spectra(shared: bool) -> None:
+    """Short-lag pairs from each frame's one central-crop spectrum (the default) recover
+    the wobble as well as per-pair crops aligned by the prediction."""
+    world = _texture(600, 2000, seed=5)
+    frames, truth = [], []
+    for k in range(60):
+        pred_x = 50 + k * 7.3  # 512 x 640 frames: shifts below 32 px (lags 1-4) share
+        true_x = int(round(pred_x + 3.0 * math.sin(2 * math.pi * k / 13)))
+        img = (world[40:40 + 512, true_x:true_x + 640] * 200).astype(np.uint8)
+        hdr = FrameHeader(frame_id=k, timestamp_ns=k, focus_index=k % 8, stage_x_um=pred_x,
+                          stage_y_um=40.0)
+        frames.append(PlacedFrame(hdr, img, (pred_x, 40.0), (round(pred_x), 40)))
+        truth.append(true_x)
+    stage = RegistrationStage(n_levels=8, shared_spectra=shared)
+    out = [o for pf in frames for o in stage.process(pf)] + list(stage.finish())
+    before = np.array([pf.offset_px[0] for pf in frames], float) - truth
+    after = np.array([o.offset_px[0] for o in out], float) - truth
+    after -= np.median(after)
+    assert np.sqrt((before ** 2).mean()) > 1.8
+    assert np.sqrt((after ** 2).mean()) < 0.6
+    stats = stage.extra_stats()
+    assert stats["pairs_measured"] > 250
+    assert (stats["pairs_shared_spectrum"] > 200) == shared
+
+
+def test_correlate_spectra_is_phase_correlate() -> None:
+    world = _texture(300, 300, seed=4)
+    a, b = world[20:148, 30:190], world[23:151, 28:188]
+    want = phase_correlate(a, b)
+    got = correlate_spectra(windowed_spectrum(a), windowed_spectrum(b), a.shape)
+    assert got == pytest.approx(want, abs=1e-9)
+    assert want[0] == pytest.approx(2.0, abs=0.15) and want[1] == pytest.approx(-3.0, abs=0.15)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_integer_downsample_equals_area_resize(dtype: type) -> None:
+    rng = np.random.default_rng(2)
+    top = np.iinfo(dtype).max
+    img = rng.integers(0, top + 1, (64, 96)).astype(dtype)
+    want = cv2.resize(img.astype(np.float32), (24, 16), interpolation=cv2.INTER_AREA)
+    got = downsample(img, factor=4)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    odd = img[:63, :95]  # sides that do not divide: the resize path
+    np.testing.assert_array_equal(downsample(odd, factor=4), cv2.resize(
+        odd.astype(np.float32), (23, 15), interpolation=cv2.INTER_AREA))
