@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import multiprocessing as mp
 import os
 import random
@@ -43,13 +44,38 @@ def _ctx() -> Any:
     return ctx
 
 
-def _kill_after(proc: Any, ready: Path, delay_s: float, timeout_s: float = 30.0) -> bool:
-    """Wait for ``ready`` to exist, then SIGKILL ``proc`` after ``delay_s``; True if the
-    kill landed before the process ended by itself."""
+def _kill_at_frame(proc: Any, recording: Path, frames: int, timeout_s: float = 60.0) -> bool:
+    """SIGKILL ``proc`` as soon as ``frames`` frame chunks of the recording exist (one chunk
+    per frame: ``frames/c/<i>/0/0``); True if the kill landed before the process ended."""
+    chunks = recording / "frames" / "c"
     t_end = time.monotonic() + timeout_s
-    while not ready.exists() and proc.is_alive() and time.monotonic() < t_end:
-        time.sleep(0.005)
-    proc.join(delay_s)
+    while proc.is_alive() and time.monotonic() < t_end:
+        with contextlib.suppress(OSError):
+            if len(os.listdir(chunks)) >= frames:
+                break
+        time.sleep(0.001)
+    alive = bool(proc.is_alive())
+    if alive:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.join(timeout_s)
+    proc.close()
+    return alive
+
+
+def _kill_at_write(proc: Any, mosaic: Path, writes: int, timeout_s: float = 60.0) -> bool:
+    """SIGKILL ``proc`` as soon as the mosaic's journal shows ``writes`` band writes done
+    (a moment defined by the work done, not by the machine's speed); True if the kill
+    landed before the process ended by itself."""
+    meta = mosaic / "zarr.json"
+    t_end = time.monotonic() + timeout_s
+    while proc.is_alive() and time.monotonic() < t_end:
+        try:
+            done = json.loads(meta.read_text()).get("attributes", {}).get("writes_done", 0)
+        except (OSError, ValueError):  # not created yet, or being replaced
+            done = 0
+        if done >= writes:
+            break
+        time.sleep(0.001)
     alive = bool(proc.is_alive())
     if alive:
         os.kill(proc.pid, signal.SIGKILL)
@@ -81,7 +107,8 @@ def test_recorder_killed_at_random_moments_keeps_every_complete_frame(tmp_path: 
             "scan", "--config", str(toml), "-o", str(tmp_path / f"m{trial}.zarr"),
             "--record", str(rec), "-q", "--no-evaluate"],))
         proc.start()
-        kills += _kill_after(proc, rec / "frames" / "c", rng.uniform(0.0, 0.5))
+        # killed at a random point of the scan: once a random number of frames is stored
+        kills += _kill_at_frame(proc, rec, rng.randint(1, len(reference) - 2))
         if not (rec / "frame_id" / "c").exists():  # killed before the first metadata flush
             recovered.append(0)
             continue
@@ -160,6 +187,7 @@ def test_mosaic_writer_killed_at_random_moments_resumes(
         tmp_path: Path, two_pass: tuple[Path, Path]) -> None:
     rec, ref = two_pass
     reference = _arrays(ref)
+    writes = int(_attrs(ref)["writes_done"])
     rng = random.Random(5)
     ctx = _ctx()
     resumed_trials = 0
@@ -168,7 +196,8 @@ def test_mosaic_writer_killed_at_random_moments_resumes(
         proc = ctx.Process(target=quiet_main,
                            args=(["replay", str(rec), "-o", str(out), "-q"],))
         proc.start()
-        _kill_after(proc, out / "weight", rng.uniform(0.1, 1.5))
+        # killed at a random point of the writing: once a random number of writes is done
+        _kill_at_write(proc, out, rng.randint(1, writes - 2))
         states, info = tile_states(out)
         assert set(np.unique(states)) <= {0, TILE_COMPLETE, TILE_INCOMPLETE}
         if info["status"] == "complete":
