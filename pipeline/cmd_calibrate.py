@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from pipeline.calibration import (
     noise_by_subtraction,
     save_calibration,
 )
-from pipeline.cli_common import EXIT_OK
+from pipeline.cli_common import EXIT_BAD_INPUT, EXIT_OK
 
 # Simulated lens: nominal 50 levels of 200 µm from 0; the true lens steps 190 µm from 100 µm.
 SIM_TRUE_Z_MIN_UM, SIM_TRUE_STEP_UM = 100.0, 190.0
@@ -161,6 +162,37 @@ def cmd_twostep(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_restrict(args: argparse.Namespace) -> int:
+    from pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
+    from stages.coarse_prior import prior_from_mosaic, restrict_scan, strip_level_range
+
+    cfg = load_config(args.config)
+    try:
+        prior = prior_from_mosaic(args.prior, uncertainty_um=args.uncertainty_um,
+                                  pixel_um=cfg.optics.pixel_um)
+    except ValueError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    levels = strip_level_range(cfg, prior, pad_levels=args.pad_levels)
+    n = cfg.optics.n_levels
+    if levels.size == n:
+        print(f"sffscan: {args.prior} does not cover the planned strip everywhere (or has NaN "
+              "in it): every focus level stays; nothing written", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    restricted = restrict_scan(cfg, levels)
+    o = restricted.optics
+    print(f"levels {int(levels[0])}..{int(levels[-1])} of 0..{n - 1} kept ({levels.size} of "
+          f"{n}, {100 * (1 - levels.size / n):.0f} % fewer per staircase): heights "
+          f"{o.z_min_um:g}..{o.focus_heights_um()[-1]:g} µm (prior ± {args.uncertainty_um:g} µm, "
+          f"pad {args.pad_levels} levels)")
+    print(f"speed limit (sliding window) {max_speed_sliding_mm_s(cfg):.1f} -> "
+          f"{max_speed_sliding_mm_s(restricted):.1f} mm/s; the DAQ staircase runs the kept "
+          "levels only")
+    Path(args.output).write_text(config_to_toml(restricted), encoding="utf-8")
+    print(f"wrote {args.output}", file=sys.stderr)
+    return EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("calibrate", help="calibration: run on simulated targets, show a file")
     cs = p.add_subparsers(dest="calibrate_command", required=True)
@@ -184,3 +216,19 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="levels added beyond the range on each side (default 8)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_twostep)
+
+    p = sub.add_parser("restrict", help="restrict a scan's focus levels by a coarse prior",
+                       description="Two-step scanning for a continuous scan: the previous "
+                                   "layer's mosaic bounds the heights of the planned strip; "
+                                   "write the configuration whose lens staircase runs only "
+                                   "the levels inside that range, the prior's uncertainty and "
+                                   "pad levels (fewer levels: a higher speed limit).")
+    p.add_argument("--config", required=True, help="the scan's TOML configuration")
+    p.add_argument("--prior", required=True, help="previous layer's mosaic (Zarr group)")
+    p.add_argument("--uncertainty-um", type=float, required=True,
+                   help="uncertainty of the prior, µm (added to both ends of the range)")
+    p.add_argument("--pad-levels", type=int, default=8,
+                   help="levels added at each end so every focus curve keeps its peak and "
+                        "flanks (default 8)")
+    p.add_argument("-o", "--output", required=True, help="restricted configuration (TOML)")
+    p.set_defaults(func=cmd_restrict)

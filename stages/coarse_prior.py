@@ -12,8 +12,10 @@ are acquired and processed (SFF_NOTES.md section 5: 43 % fewer images in the the
 * :func:`reconstruct_levels` -- height of a field from the frames of a subset of levels
   (``stages.focus_measure`` and ``stages.depth``; curves are the acquired levels only).
 * :func:`scan_level_range` -- the one staircase a continuous scan can run over the area of
-  its passes, and :func:`restrict_scan` the configuration that runs it (fewer levels, so a
-  higher speed limit).
+  its passes, :func:`strip_level_range` over the strip it must measure, and
+  :func:`restrict_scan` the configuration that runs it (fewer levels, so a higher speed
+  limit); :func:`prior_from_mosaic` takes the previous layer's mosaic as the prior
+  (``sffscan restrict``).
 
 Missing prior data (NaN) is never guessed: a field that touches it gets the full range.
 """
@@ -36,10 +38,12 @@ __all__ = [
     "field_levels",
     "level_range",
     "pass_start_y_px",
+    "prior_from_mosaic",
     "reconstruct_levels",
     "restrict_scan",
     "scan_level_range",
     "simulated_prior",
+    "strip_level_range",
     "TwoStepResult",
     "two_step_fields",
 ]
@@ -249,6 +253,54 @@ def scan_level_range(cfg: ScanConfig, prior: CoarsePrior, *, pad_levels: int = 8
         y0, y1 = math.floor(y_first), math.ceil(y_first + cfg.optics.height_px)
     return field_levels(prior, x0=x0, y0=y0, width=x1 - x0, height=y1 - y0,
                         focus_heights_um=heights, pad_levels=pad_levels)
+
+
+def prior_from_mosaic(path: str, *, uncertainty_um: float,
+                      pixel_um: float | None = None) -> CoarsePrior:
+    """The previous layer's mosaic (an sffscan mosaic Zarr group) as a prior.
+
+    Its ``height`` array on its own world pixels; NaN (unmeasured) stays NaN, so a field or
+    scan that touches it gets the full range. ``pixel_um``, when given, must equal the
+    mosaic's pixel scale (world pixels are only comparable at the same scale).
+    """
+    import zarr
+
+    from stages.mosaic import mosaic_array, read_mosaic_attrs
+
+    try:
+        group = zarr.open_group(str(path), mode="r")
+    except Exception as exc:  # noqa: BLE001 - anything that is not a readable group
+        raise ValueError(f"{path}: not a readable Zarr group ({exc})") from exc
+    attrs = read_mosaic_attrs(group, path)
+    if pixel_um is not None and not math.isclose(attrs.pixel_um, pixel_um, rel_tol=1e-9):
+        raise ValueError(f"{path}: mosaic pixel_um {attrs.pixel_um:g} differs from the "
+                         f"scan's optics.pixel_um {pixel_um:g}")
+    heights = np.asarray(mosaic_array(group, "height")[:])
+    ox, oy = attrs.origin_px
+    return CoarsePrior(heights, origin_px=(float(ox), float(oy)), step_px=1.0,
+                       uncertainty_um=uncertainty_um)
+
+
+def strip_level_range(cfg: ScanConfig, prior: CoarsePrior, *,
+                      pad_levels: int = 8) -> np.ndarray:
+    """Focus levels a continuous scan needs to measure its planned strip, from the prior.
+
+    The strip is what the scan must cover completely: x from ``motion.x_start_mm`` to
+    ``motion.x_end_mm``, y over every pass inside the frame margins. The lens runs one
+    staircase for the scan, so this is one consecutive range of levels; all levels when the
+    prior does not cover the strip or has NaN in it.
+    """
+    from pipeline.plan import pass_start_px
+
+    o, m = cfg.optics, cfg.motion
+    margin = cfg.processing.edge_margin_px
+    x0 = math.ceil(m.x_start_mm * 1000.0 / o.pixel_um)
+    x1 = math.floor(m.x_end_mm * 1000.0 / o.pixel_um)
+    y0 = math.floor(pass_start_px(cfg, 0)[1]) + margin
+    y1 = math.ceil(pass_start_px(cfg, m.passes - 1)[1]) + o.height_px - margin
+    return field_levels(prior, x0=x0, y0=y0, width=x1 - x0, height=y1 - y0,
+                        focus_heights_um=np.asarray(o.focus_heights_um()),
+                        pad_levels=pad_levels)
 
 
 def pass_start_y_px(cfg: ScanConfig, pass_index: int) -> float:

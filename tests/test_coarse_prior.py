@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+import zarr
 
 from pipeline.config import max_speed_sliding_mm_s
 from pipeline.evaluate import accuracy
@@ -126,3 +129,51 @@ def test_continuous_scan_levels_from_the_prior() -> None:
     # a prior that does not cover the scan leaves the full staircase
     small = CoarsePrior(np.full((10, 10), 3000.0, np.float32))
     np.testing.assert_array_equal(scan_level_range(cfg, small), np.arange(50))
+
+
+def test_previous_layer_mosaic_restricts_a_continuous_scan(tmp_path: Path) -> None:
+    """`sffscan restrict`: the previous layer's mosaic bounds the levels of the next scan
+    of the same strip; the written configuration runs fewer levels covering the prior's
+    range over the strip plus the uncertainty, and loads as a valid scan."""
+    from pipeline.cli import main
+    from pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
+    from stages.coarse_prior import prior_from_mosaic, strip_level_range
+    from tests.scan_helpers import scan
+
+    cfg = small_config(source={"world": "sinusoid"})
+    layer = scan(cfg, tmp_path / "layer.zarr").output
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    out = tmp_path / "restricted.toml"
+    assert main(["restrict", "--config", str(toml), "--prior", str(layer),
+                 "--uncertainty-um", "150", "--pad-levels", "3", "-o", str(out)]) == 0
+    restricted = load_config(out)
+    prior = prior_from_mosaic(str(layer), uncertainty_um=150.0)
+    levels = strip_level_range(cfg, prior, pad_levels=3)
+    assert restricted.optics.n_levels == levels.size < cfg.optics.n_levels
+    assert restricted.optics.z_min_um == cfg.optics.focus_heights_um()[int(levels[0])]
+    assert max_speed_sliding_mm_s(restricted) > max_speed_sliding_mm_s(cfg)
+    # the kept heights cover what the previous layer measured over the strip, ± uncertainty
+    h = np.asarray(zarr.open_group(str(layer), mode="r")["height"][:])
+    kept = restricted.optics.focus_heights_um()
+    assert kept[0] <= np.nanmin(h) - 150.0 + 1e-6 or levels[0] == 0
+    assert kept[-1] >= np.nanmax(h) + 150.0 - 1e-6 or levels[-1] == cfg.optics.n_levels - 1
+
+
+def test_a_prior_that_does_not_cover_the_strip_restricts_nothing(tmp_path: Path) -> None:
+    from pipeline.cli import main
+    from pipeline.config import config_to_toml
+    from pipeline.wiring import open_writer
+
+    cfg = small_config()
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    other = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 6.0},
+                         output={"path": str(tmp_path / "small.zarr")})
+    open_writer(other)  # an empty mosaic of a shorter strip: NaN everywhere, smaller
+    out = tmp_path / "r.toml"
+    assert main(["restrict", "--config", str(toml), "--prior", str(tmp_path / "small.zarr"),
+                 "--uncertainty-um", "100", "-o", str(out)]) == 2
+    assert not out.exists()
+    assert main(["restrict", "--config", str(toml), "--prior", str(tmp_path / "none.zarr"),
+                 "--uncertainty-um", "100", "-o", str(out)]) == 2
