@@ -16,6 +16,7 @@ import random
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,44 +45,45 @@ def _ctx() -> Any:
     return ctx
 
 
-def _kill_at_frame(proc: Any, recording: Path, frames: int, timeout_s: float = 60.0) -> bool:
-    """SIGKILL ``proc`` as soon as ``frames`` frame chunks of the recording exist (one chunk
-    per frame: ``frames/c/<i>/0/0``); True if the kill landed before the process ended."""
+def _kill_when(proc: Any, reached: Callable[[], bool], timeout_s: float = 60.0) -> bool:
+    """SIGKILL ``proc`` as soon as ``reached()`` (a moment defined by the work done, not by
+    the machine's speed); True if the kill landed before the process ended by itself."""
+    t_end = time.monotonic() + timeout_s
+    while proc.is_alive() and time.monotonic() < t_end and not reached():
+        time.sleep(0.001)
+    alive = bool(proc.is_alive())
+    if alive:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.join(timeout_s)
+    proc.close()
+    return alive
+
+
+def _kill_at_frame(proc: Any, recording: Path, frames: int) -> bool:
+    """Kill once ``frames`` frame chunks of the recording exist (``frames/c/<i>/0/0``)."""
     chunks = recording / "frames" / "c"
-    t_end = time.monotonic() + timeout_s
-    while proc.is_alive() and time.monotonic() < t_end:
-        with contextlib.suppress(OSError):
-            if len(os.listdir(chunks)) >= frames:
-                break
-        time.sleep(0.001)
-    alive = bool(proc.is_alive())
-    if alive:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.join(timeout_s)
-    proc.close()
-    return alive
 
-
-def _kill_at_write(proc: Any, mosaic: Path, writes: int, timeout_s: float = 60.0) -> bool:
-    """SIGKILL ``proc`` as soon as the mosaic's journal shows ``writes`` band writes done
-    (a moment defined by the work done, not by the machine's speed); True if the kill
-    landed before the process ended by itself."""
-    meta = mosaic / "zarr.json"
-    t_end = time.monotonic() + timeout_s
-    while proc.is_alive() and time.monotonic() < t_end:
+    def reached() -> bool:
         try:
-            done = json.loads(meta.read_text()).get("attributes", {}).get("writes_done", 0)
+            return len(os.listdir(chunks)) >= frames
+        except OSError:  # not created yet
+            return False
+
+    return _kill_when(proc, reached)
+
+
+def _kill_at_write(proc: Any, mosaic: Path, writes: int) -> bool:
+    """Kill once the mosaic's journal shows ``writes`` band writes done."""
+    meta = mosaic / "zarr.json"
+
+    def reached() -> bool:
+        try:
+            attrs = json.loads(meta.read_text()).get("attributes", {})
         except (OSError, ValueError):  # not created yet, or being replaced
-            done = 0
-        if done >= writes:
-            break
-        time.sleep(0.001)
-    alive = bool(proc.is_alive())
-    if alive:
-        os.kill(proc.pid, signal.SIGKILL)
-    proc.join(timeout_s)
-    proc.close()
-    return alive
+            return False
+        return int(attrs.get("writes_done", 0)) >= writes
+
+    return _kill_when(proc, reached)
 
 
 def _attrs(path: Path) -> dict[str, Any]:
