@@ -43,12 +43,11 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from pipeline.config import ScanConfig, demo_config
-from pipeline.messages import Frame
-from pipeline.plan import plan_frames
-from pipeline.wiring import run_scan
-from stages.focus_measure import (
+from sffscan.pipeline.config import ScanConfig, demo_config
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.focus_measure import (
     focus_measure_raw,
     glvm,
     glvm_conv2d_baseline,
@@ -57,7 +56,7 @@ from stages.focus_measure import (
     tenv_cv,
     to_unit_float,
 )
-from stages.sim_scanner import header_of, simulate_frames
+from sffscan.stages.sim.scanner import header_of, simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -227,12 +226,12 @@ def device_rates(raw16: list[np.ndarray], *, device: str = "cuda", batch: int = 
                  reps: int = 20) -> dict[str, Any]:
     """Focus measure + depth accumulation on a torch device, in batches of ``batch`` frames.
 
-    Raw frames go up from pinned memory (:class:`stages.focus_measure.DeviceFocus`) and are
-    added to per-pixel sums and argmax (:func:`stages.focus_volume.accumulate_levels_torch`)
+    Raw frames go up from pinned memory (:class:`sffscan.stages.focus_measure.DeviceFocus`) and are
+    added to per-pixel sums and argmax (:func:`sffscan.stages.focus_volume.accumulate_levels_torch`)
     at levels 0..batch-1; the same frames are sent again and again (throughput only).
     """
-    from stages.focus_measure import DeviceFocus
-    from stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
+    from sffscan.stages.focus_measure import DeviceFocus
+    from sffscan.stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
 
     dev = torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)

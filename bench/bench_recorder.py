@@ -2,7 +2,7 @@
 
 The camera makes 150 frames/s of 1280 x 1024 uint16 = 393 MB/s. For each codec of the
 frames array (and two other chunk layouts), frames go through the recorder's own writer
-(:class:`stages.recorder.RecordingWriter`: one chunk per frame, metadata every 16 frames)
+(:class:`sffscan.stages.recorder.RecordingWriter`: one chunk per frame, metadata every 16 frames)
 to a temporary folder; the figure is the best of ``--repeat`` runs: MB/s of raw frame
 data, CPU seconds per frame of the whole process (blosc and zarr use their own threads),
 and the compression ratio. Frames are rendered by the simulator (thesis optics, 10-bit
@@ -25,12 +25,11 @@ from pathlib import Path
 
 import numpy as np
 import zarr
-
-from pipeline.config import demo_config
-from pipeline.messages import Frame
-from stages.mosaic import MosaicWriter, mosaic_codecs
-from stages.recorder import RecordingWriter, frame_codecs
-from stages.sim_scanner import simulate_frames
+from sffscan.pipeline.config import demo_config
+from sffscan.pipeline.messages import Frame
+from sffscan.stages.mosaic import MosaicWriter, mosaic_codecs
+from sffscan.stages.recorder import RecordingWriter, frame_codecs
+from sffscan.stages.sim.scanner import simulate_frames
 
 CAMERA_MB_S = 1280 * 1024 * 2 * 150 / 1e6
 

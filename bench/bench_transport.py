@@ -5,8 +5,8 @@ One command writes ``bench/transport_results.md``::
     python bench/bench_transport.py [--frames 600] [--repeat 3]
 
 The sender runs in its own process (as ``sffscan grab`` does) and sends through
-:class:`pipeline.transport.FrameSender`; the receiver is
-:func:`pipeline.transport.receive_frames` in this process, as ``sffscan scan --source``
+:class:`sffscan.pipeline.formats.transport.FrameSender`; the receiver is
+:func:`pipeline.formats.transport.receive_frames` in this process, as ``sffscan scan --source``
 uses it. Every frame is a fresh array (a copy of one of 8 distinct 10-bit noise images,
 as the camera source copies each image out of the producer's buffer), so the sender never
 reuses a buffer that zmq may still read. Timing runs from the first frame received to the
@@ -29,10 +29,9 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-
-from pipeline.config import ScanConfig
-from pipeline.messages import Frame, FrameHeader
-from pipeline.transport import FrameSender, ReceiverStats, receive_frames
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.transport import FrameSender, ReceiverStats, receive_frames
+from sffscan.pipeline.messages import Frame, FrameHeader
 
 H, W = 1024, 1280
 

@@ -34,14 +34,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-
-from pipeline.config import ScanConfig, demo_config
-from pipeline.messages import Frame
-from pipeline.plan import plan_frames
-from pipeline.runtime import Sink
-from pipeline.wiring import run_scan
-from stages.sim_scanner import header_of, simulate_frames
-from stages.viz_sink import VizSink, open_recording
+from sffscan.pipeline.config import ScanConfig, demo_config
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.runtime import Sink
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.sim.scanner import header_of, simulate_frames
+from sffscan.stages.viz_sink import VizSink, open_recording
 
 
 def machine() -> str:

@@ -37,10 +37,11 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu",
 
 
 def main() -> int:
-    from pipeline.config import demo_config
-    from pipeline.wiring import run_scan
-    from stages.sim_scanner import simulate_frames
-    from stages.viz_sink import VizSink, open_recording
+    from sffscan.pipeline.config import demo_config
+    from sffscan.pipeline.wiring import run_scan
+    from sffscan.stages.sim.scanner import simulate_frames
+    from sffscan.stages.viz_sink import VizSink, open_recording
+
     from tests.scan_helpers import small_config
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -14,8 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-
-from pipeline.hardware_config import CameraConfig, DaqConfig
+from sffscan.pipeline.hardware.config import CameraConfig, DaqConfig
 
 
 class ConfigError(ValueError):

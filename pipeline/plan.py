@@ -4,7 +4,7 @@ A pass moves the stage at constant speed along x over the strip
 [motion.x_start_mm, motion.x_end_mm]. It starts just before the strip's first column
 enters the usable part of the frame and ends once the strip's last column has been seen
 at all N focus levels (plus a few frames for rounding and wobble). Passes are stepped along
-y by :func:`pipeline.config.pass_pitch_px` and alternate direction when ``serpentine``.
+y by :func:`sffscan.pipeline.config.pass_pitch_px` and alternate direction when ``serpentine``.
 The lens staircase runs continuously: frame k is at focus level k mod N.
 """
 
@@ -14,7 +14,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from pipeline.config import ScanConfig, pass_pitch_px, shift_per_frame_px
+from sffscan.pipeline.config import ScanConfig, pass_pitch_px, shift_per_frame_px
 
 PASS_GAP_S = 0.5  # time between passes (the stage returns or steps across), s
 

@@ -3,7 +3,7 @@
 ``source.kind`` picks the simulated scanner (default), a GenICam camera (harvesters) or
 frames sent over zmq by ``sffscan grab``; ``--source tcp://...`` on the command line
 overrides it. Replay of a recording has its own command (``sffscan replay``). Every feed
-is a plain iterator of :class:`pipeline.messages.Frame`; generators release their device
+is a plain iterator of :class:`sffscan.pipeline.messages.Frame`; generators release their device
 or socket when closed (the source stage closes them, on failure too).
 """
 
@@ -13,8 +13,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.config import ConfigError, ScanConfig
-from pipeline.messages import Frame
+from sffscan.pipeline.config import ConfigError, ScanConfig
+from sffscan.pipeline.messages import Frame
 
 
 @dataclass
@@ -33,20 +33,20 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
         if not source.startswith(("tcp://", "ipc://")):
             raise ConfigError(f"--source {source!r}: expected a zmq address tcp://HOST:PORT or "
                               "ipc://PATH")
-        from pipeline.transport import receive_frames
+        from sffscan.pipeline.formats.transport import receive_frames
 
         return FrameFeed(receive_frames(source, cfg), f"frames from {source}")
     kind = cfg.source.kind
     if kind == "sim":
-        from stages.sim_scanner import make_world, simulate_frames
+        from sffscan.stages.sim.scanner import make_world, simulate_frames
 
         world = make_world(cfg)
         return FrameFeed(simulate_frames(cfg, world=world), "simulated scanner", world)
     if kind == "camera":
-        from stages.camera_source import camera_frames
+        from sffscan.stages.camera_source import camera_frames
 
         return FrameFeed(camera_frames(cfg), "GenICam camera")
-    from pipeline.transport import receive_frames
+    from sffscan.pipeline.formats.transport import receive_frames
 
     return FrameFeed(receive_frames(cfg.source.address, cfg),
                      f"frames from {cfg.source.address}")

@@ -18,24 +18,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from pipeline.config import ScanConfig
-from pipeline.evaluate import Accuracy, mosaic_accuracy
-from pipeline.messages import Frame
-from pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
-from pipeline.runtime import Pipeline, PipelineResult, Sink, Stage, StageStats
-from stages.focus_measure import FocusMeasureStage
-from stages.focus_volume import DepthStage
-from stages.frame_source import SourceStage
-from stages.mosaic import MosaicStage, MosaicWriter
-from stages.registration import RegistrationStage
-from stages.speed_shift import SpeedShiftStage
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.metrology.evaluate import Accuracy, mosaic_accuracy
+from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
+from sffscan.pipeline.runtime import Pipeline, PipelineResult, Sink, Stage, StageStats
+from sffscan.stages.focus_measure import FocusMeasureStage
+from sffscan.stages.focus_volume import DepthStage
+from sffscan.stages.frame_source import SourceStage
+from sffscan.stages.mosaic import MosaicStage, MosaicWriter
+from sffscan.stages.registration import RegistrationStage
+from sffscan.stages.speed_shift import SpeedShiftStage
 
 
 def focus_heights_um(cfg: ScanConfig) -> list[float]:
     """Height in focus at each level, µm: from the calibration file's z response when
     ``processing.calibration`` is set, else the nominal optics table."""
     if cfg.processing.calibration:
-        from pipeline.calibration import calibrated_focus_heights, load_calibration
+        from sffscan.pipeline.metrology.calibration import (
+            calibrated_focus_heights,
+            load_calibration,
+        )
 
         cal = load_calibration(cfg.processing.calibration)
         return [float(v) for v in calibrated_focus_heights(cal, cfg.optics.n_levels)]

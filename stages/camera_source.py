@@ -6,7 +6,7 @@ producer (``camera.cti``, else ``$SFFSCAN_CTI``, else the first entry of
 configured frame size at ``camera.offset_*``), pixel format, exposure and the hardware
 trigger (FrameStart on ``camera.trigger_line``, falling edge) where the device has those
 nodes, and says which nodes are missing. It arms the camera, then starts the DAQ
-(:mod:`pipeline.daq`; a simulated one by default), and copies every image out inside
+(:mod:`pipeline.hardware.daq`; a simulated one by default), and copies every image out inside
 harvesters' ``with fetch(timeout=...)`` block, so the producer's buffer goes back at once.
 
 Synchronisation rule: the camera is armed before the DAQ's first trigger, and the first
@@ -41,12 +41,11 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-
-from pipeline.config import ConfigError, ScanConfig
-from pipeline.daq import Daq, open_daq, waveform_for
-from pipeline.lens_waveform import exposure_window_us, max_exposure_us
-from pipeline.messages import Frame, FrameHeader
-from pipeline.plan import frame_count, pass_bounds_px
+from sffscan.pipeline.config import ConfigError, ScanConfig
+from sffscan.pipeline.hardware.daq import Daq, open_daq, waveform_for
+from sffscan.pipeline.hardware.lens_waveform import exposure_window_us, max_exposure_us
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.plan import frame_count, pass_bounds_px
 
 #: pixel formats the pipeline takes, and the numpy dtype of their unpacked pixels
 PIXEL_DTYPES = {"Mono8": "uint8", "Mono10": "uint16", "Mono12": "uint16", "Mono16": "uint16"}
@@ -134,10 +133,10 @@ def check_exposure(cfg: ScanConfig, exposure_us: float, *, origin: str) -> list[
     """Check an exposure against the staircase and the motion; notes for the user.
 
     With the hardware trigger the exposure starts at a step's centre and must end before
-    the lens's next step (``1 / (2 fps)``, :func:`pipeline.lens_waveform.exposure_window_us`):
+    the lens's next step (``1 / (2 fps)``, :func:`~.lens_waveform.exposure_window_us`):
     a longer one mixes two focus levels in one frame and raises :class:`CameraError`
     naming ``origin``. Longer than pixel scale / speed
-    (:func:`pipeline.lens_waveform.max_exposure_us`) smears a point over more than one
+    (:func:`pipeline.hardware.lens_waveform.max_exposure_us`) smears a point over more than one
     pixel: returned as a note, not refused.
     """
     o, m = cfg.optics, cfg.motion

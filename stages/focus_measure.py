@@ -29,11 +29,10 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-
-from pipeline.messages import FocusFrame, PlacedFrame
-from pipeline.runtime import Stage
-from stages.depth import check_odd_size
-from stages.focus_volume import new_columns
+from sffscan.pipeline.messages import FocusFrame, PlacedFrame
+from sffscan.pipeline.runtime import Stage
+from sffscan.stages.depth import check_odd_size
+from sffscan.stages.focus_volume import new_columns
 
 __all__ = [
     "FOCUS_OPERATORS",
@@ -566,7 +565,7 @@ class FocusMeasureStage(Stage):
     """Scales each placed frame to 0..1 and computes its focus measure.
 
     Only the columns that can still add to the focus volume are measured (see
-    :func:`stages.focus_volume.new_columns`), with enough neighbouring columns that the
+    :func:`sffscan.stages.focus_volume.new_columns`), with enough neighbouring columns that the
     result equals the whole frame's focus measure there. This relies on every frame it
     passes on reaching the focus volume: the queues after this stage must block, never drop
     (a frame lost before this stage is fine: it is never counted as seen).
@@ -579,7 +578,7 @@ class FocusMeasureStage(Stage):
         Full scale of the raw frames (255 for uint8, 1023 for 10-bit in uint16).
     margin : int
         The focus measure's reach into the frame border, px
-        (:attr:`pipeline.config.ProcessingConfig.focus_reach_px`): the focus volume leaves
+        (:attr:`sffscan.pipeline.config.ProcessingConfig.focus_reach_px`): the focus volume leaves
         out this border, and each measured column range is widened by it, so the result
         there equals the whole frame's focus measure.
     directions : sequence of {+1, -1}

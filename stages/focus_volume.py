@@ -12,7 +12,7 @@ left the view (those are returned invalid: NaN height, zero confidence, never fi
 
 What a column keeps depends on the depth method. argmax, centroid, PC and SPC need only
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
-:func:`stages.depth.harmonic_table`) and its argmax, so each frame is *accumulated* into
+:func:`sffscan.stages.depth.harmonic_table`) and its argmax, so each frame is *accumulated* into
 per-pixel sums and a running maximum as it arrives (a few passes of OpenCV arithmetic,
 no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3) need the
 neighbours of the peak: for them the ring stores every level of every pixel.
@@ -29,10 +29,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import torch
-
-from pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
-from pipeline.runtime import Stage
-from stages.depth import (
+from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
+from sffscan.pipeline.runtime import Stage
+from sffscan.stages.depth import (
     STREAMING_METHODS,
     depth_from_focus,
     depth_from_harmonics,
@@ -79,7 +78,7 @@ def new_accumulator_torch(*, n_levels: int, shape: tuple[int, int],
     -------
     dict of torch.Tensor
         ``sums`` (4, H, W) float32: H_0, sum k y, Re H_1, Im H_1 (the rows of
-        :func:`stages.depth.harmonic_table`); ``best`` (H, W) float32 running maximum (-1);
+        :func:`sffscan.stages.depth.harmonic_table`); ``best`` (H, W) float32 running maximum (-1);
         ``argmax`` (H, W) int64 its level; ``table`` (4, N) float32.
     """
     h, w = shape
@@ -99,8 +98,8 @@ def accumulate_levels_torch(acc: dict[str, torch.Tensor], focus: torch.Tensor,
     The device-side counterpart of :class:`FocusVolume`'s accumulation, for frames already
     on one pixel grid (the caller cuts each frame's columns to its place): one matrix
     product adds the batch to the four sums, one max over the batch updates the running
-    maximum, and ties keep the lowest level, as :func:`stages.depth.depth_from_focus`'s
-    argmax does. :func:`stages.depth.depth_from_harmonics` turns the state into depth.
+    maximum, and ties keep the lowest level, as :func:`sffscan.stages.depth.depth_from_focus`'s
+    argmax does. :func:`sffscan.stages.depth.depth_from_harmonics` turns the state into depth.
 
     Parameters
     ----------
@@ -152,8 +151,8 @@ class FocusVolume:
     direction : {+1, -1}
         Direction of the motion along x for this pass.
     method : str
-        Depth method (see :func:`stages.depth.depth_from_focus`). The methods of
-        :data:`stages.depth.STREAMING_METHODS` accumulate sums and the argmax (``fv`` is
+        Depth method (see :func:`sffscan.stages.depth.depth_from_focus`). The methods of
+        :data:`sffscan.stages.depth.STREAMING_METHODS` accumulate sums and the argmax (``fv`` is
         None); gauss3 and quadratic3 store the N-level ring ``fv``.
     median_size : int
         SPC median filter size; also sets the halo of columns kept around a block.
@@ -335,7 +334,7 @@ class FocusVolume:
         than numpy on strided 2-D views, done in strips of rows (about 512 KiB of ``fm``)
         so that a strip is still in cache for its next pass: about 2x faster than whole
         regions, which are memory bound. Ties keep the lowest level, as
-        :func:`stages.depth.depth_from_focus`'s argmax does: a later frame of a lower level
+        :func:`sffscan.stages.depth.depth_from_focus`'s argmax does: a later frame of a lower level
         (the staircase wrapped while the column was in view) wins a tie.
         """
         if fm.strides[1] != 4:

@@ -37,10 +37,9 @@ from typing import Any
 import numpy as np
 import zarr
 from pydantic import ValidationError
+from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
+from sffscan.pipeline.runtime import Stage
 from zarr.codecs import BloscCodec, BloscShuffle
-
-from pipeline.messages import DepthBlock, MosaicAttrs
-from pipeline.runtime import Stage
 
 ARRAYS = ("height", "texture", "confidence", "weight")
 MIN_WEIGHT = 1e-3

@@ -1,6 +1,6 @@
 """Raw-stream recorder: tees the source's frames into a recording while the scan runs.
 
-:class:`RecordingWriter` writes the layout of :mod:`pipeline.recording`; the sink
+:class:`RecordingWriter` writes the layout of :mod:`sffscan.pipeline.formats.recording`; the sink
 (:func:`recorder_sink`) taps the ``source`` stage through its own blocking queue, so no
 frame is ever skipped: if the disk is slower than the camera, the pipeline waits, and
 that is reported loudly (a warning on stderr while it happens, the recorder's busy share
@@ -26,12 +26,11 @@ from typing import Any
 
 import numpy as np
 import zarr
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.recording import META_CHUNK, PER_FRAME, RecordingAttrs
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
 from zarr.codecs import BloscCodec, BloscShuffle
-
-from pipeline.config import ScanConfig
-from pipeline.messages import Frame
-from pipeline.recording import META_CHUNK, PER_FRAME, RecordingAttrs
-from pipeline.runtime import FullPolicy, Sink, Tapped
 
 #: arrays grow by this many frames at a time
 GROW = 1024

@@ -37,9 +37,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.fft
-
-from pipeline.messages import PlacedFrame
-from pipeline.runtime import Stage
+from sffscan.pipeline.messages import PlacedFrame
+from sffscan.pipeline.runtime import Stage
 
 
 def downsample(image: np.ndarray, *, factor: int) -> np.ndarray:

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 
-from pipeline.messages import Frame, FrameError, FrameHeader, PlacedFrame
-from pipeline.runtime import Stage
+from sffscan.pipeline.messages import Frame, FrameError, FrameHeader, PlacedFrame
+from sffscan.pipeline.runtime import Stage
 
 
 def position_from_speed_px(

@@ -4,7 +4,7 @@
 with the mosaic stage's own weighted blend (w = max(confidence, 1e-3) for valid pixels),
 so that it equals :func:`downsample_mosaic` of the Zarr mosaic whatever the order of the
 blocks; :func:`surface_points` turns a reduced mosaic into a point cloud in mm. Used by
-:mod:`stages.viz_sink`; no Rerun here.
+:mod:`sffscan.stages.viz_sink`; no Rerun here.
 """
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ import math
 
 import cv2
 import numpy as np
-
-from pipeline.messages import DepthBlock
+from sffscan.pipeline.messages import DepthBlock
 
 MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
 

@@ -40,13 +40,12 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
-
-from pipeline.config import ConfigError, ScanConfig, config_to_toml
-from pipeline.messages import DepthBlock, FocusFrame, PlacedFrame
-from pipeline.plan import scan_extent_px
-from pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
-from pipeline.wiring import focus_heights_um
-from stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
+from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
+from sffscan.pipeline.messages import DepthBlock, FocusFrame, PlacedFrame
+from sffscan.pipeline.plan import scan_extent_px
+from sffscan.pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
+from sffscan.pipeline.wiring import focus_heights_um
+from sffscan.stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 
 MODES = "spawn | serve | save PATH | auto | off"
 

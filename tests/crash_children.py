@@ -7,8 +7,7 @@ import os
 import signal
 
 import numpy as np
-
-from pipeline.cli import main
+from sffscan.pipeline.cli.main import main
 
 
 def quiet_main(argv: list[str]) -> None:
@@ -22,7 +21,7 @@ def quiet_main(argv: list[str]) -> None:
 def torn_replay(argv: list[str], kill_at: int) -> None:
     """``sffscan ARGV`` (a replay) that dies by SIGKILL in the middle of mosaic write number
     ``kill_at``: after two of the four arrays of its band are written."""
-    from stages import mosaic
+    from sffscan.stages import mosaic
 
     orig = mosaic.MosaicWriter._blend
 

@@ -13,14 +13,13 @@ from typing import Any
 
 import numpy as np
 import zarr
-
-from pipeline.config import ScanConfig, config_from_dict
-from pipeline.evaluate import Accuracy, accuracy
-from pipeline.wiring import ScanReport, run_scan
-from stages.depth import depth_from_focus, levels_to_height
-from stages.focus_measure import focus_measure, to_unit_float
-from stages.sim_camera import render_stack
-from stages.sim_scanner import make_optics, make_world, simulate_frames
+from sffscan.pipeline.config import ScanConfig, config_from_dict
+from sffscan.pipeline.metrology.evaluate import Accuracy, accuracy
+from sffscan.pipeline.wiring import ScanReport, run_scan
+from sffscan.stages.depth import depth_from_focus, levels_to_height
+from sffscan.stages.focus_measure import focus_measure, to_unit_float
+from sffscan.stages.sim.camera import render_stack
+from sffscan.stages.sim.scanner import make_optics, make_world, simulate_frames
 
 SMALL: dict[str, dict[str, Any]] = {
     "source": {"world": "plate", "plate_length_mm": 24.0, "plate_width_mm": 4.0},

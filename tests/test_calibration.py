@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from pipeline.calibration import (
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.formats.schema_gen import SCHEMAS, check_schemas
+from sffscan.pipeline.metrology.calibration import (
     Calibration,
     CalibrationError,
     FieldCurvatureFit,
@@ -29,10 +30,8 @@ from pipeline.calibration import (
     save_calibration,
     symmetric_peak,
 )
-from pipeline.cli import main
-from pipeline.schema_gen import SCHEMAS, check_schemas
-from stages.sim_camera import Optics, focus_heights
-from stages.sim_targets import (
+from sffscan.stages.sim.camera import Optics, focus_heights
+from sffscan.stages.sim.targets import (
     checkerboard_image,
     curved_field_stack,
     gauge_block_stacks,

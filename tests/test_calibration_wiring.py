@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ConfigError, config_to_toml
+from sffscan.pipeline.metrology.calibration import Calibration, ZResponse, save_calibration
 
-from pipeline.calibration import Calibration, ZResponse, save_calibration
-from pipeline.cli import main
-from pipeline.config import ConfigError, config_to_toml
 from tests.scan_helpers import scan, small_config
 
 
@@ -39,7 +39,7 @@ def test_scan_heights_follow_the_calibrated_z_response(tmp_path: Path) -> None:
 
 
 def test_missing_or_bad_calibration_file_is_refused_naming_it(tmp_path: Path) -> None:
-    from pipeline.wiring import focus_heights_um
+    from sffscan.pipeline.wiring import focus_heights_um
 
     with pytest.raises(ConfigError, match="nope.json"):
         focus_heights_um(small_config(processing={"calibration": str(tmp_path / "nope.json")}))

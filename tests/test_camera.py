@@ -1,4 +1,4 @@
-"""Camera source (stages.camera_source): real acquisition from the GenTL producer shipped in
+"""Camera source (sffscan.stages.camera_source): real acquisition from the GenTL producer shipped in
 the genicam wheel (viky.cti: continuous mode only, no trigger, no time stamps), and the
 frame_id / focus-level / time-stamp rules against a fake camera."""
 
@@ -12,14 +12,13 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-
-from pipeline.config import ConfigError, ScanConfig, config_from_dict
-from pipeline.daq import SimDaq
-from pipeline.messages import Frame
-from pipeline.plan import frame_count
-from pipeline.runtime import StageFailed
-from pipeline.wiring import run_scan
-from stages.camera_source import (
+from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
+from sffscan.pipeline.hardware.daq import SimDaq
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.runtime import StageFailed
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.camera_source import (
     CameraError,
     CameraStats,
     FrameIdUnwrapper,
@@ -268,7 +267,7 @@ def test_frames_lost_at_the_end_of_the_scan_are_counted() -> None:
 def test_an_exposure_longer_than_half_a_step_is_refused_before_anything_starts() -> None:
     """The trigger sits at the step's centre: an exposure past 1 / (2 fps) (2500 µs at
     200 fps) runs into the lens's next step, mixing two focus levels in one frame."""
-    from stages.camera_source import check_exposure
+    from sffscan.stages.camera_source import check_exposure
 
     cfg = viky_config(frames=5, exposure_us=3000.0)
     cam = FakeCamera(list(range(1, 10)))

@@ -7,10 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-
-from pipeline.config import max_speed_sliding_mm_s
-from pipeline.evaluate import accuracy
-from stages.coarse_prior import (
+from sffscan.pipeline.config import max_speed_sliding_mm_s
+from sffscan.pipeline.metrology.evaluate import accuracy
+from sffscan.stages.fields.coarse_prior import (
     CoarsePrior,
     field_levels,
     level_range,
@@ -20,8 +19,9 @@ from stages.coarse_prior import (
     simulated_prior,
     two_step_fields,
 )
-from stages.sim_camera import Optics, focus_heights, render_stack
-from stages.sim_world import characterisation_plate, sinusoid_world
+from sffscan.stages.sim.camera import Optics, focus_heights, render_stack
+from sffscan.stages.sim.world import characterisation_plate, sinusoid_world
+
 from tests.scan_helpers import small_config
 
 HEIGHTS = focus_heights(n_levels=50, z_min_um=0.0, z_step_um=200.0)
@@ -135,9 +135,10 @@ def test_previous_layer_mosaic_restricts_a_continuous_scan(tmp_path: Path) -> No
     """`sffscan restrict`: the previous layer's mosaic bounds the levels of the next scan
     of the same strip; the written configuration runs fewer levels covering the prior's
     range over the strip plus the uncertainty, and loads as a valid scan."""
-    from pipeline.cli import main
-    from pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
-    from stages.coarse_prior import prior_from_mosaic, strip_level_range
+    from sffscan.pipeline.cli.main import main
+    from sffscan.pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
+    from sffscan.stages.fields.coarse_prior import prior_from_mosaic, strip_level_range
+
     from tests.scan_helpers import scan
 
     cfg = small_config(source={"world": "sinusoid"})
@@ -161,9 +162,9 @@ def test_previous_layer_mosaic_restricts_a_continuous_scan(tmp_path: Path) -> No
 
 
 def test_a_prior_that_does_not_cover_the_strip_restricts_nothing(tmp_path: Path) -> None:
-    from pipeline.cli import main
-    from pipeline.config import config_to_toml
-    from pipeline.wiring import open_writer
+    from sffscan.pipeline.cli.main import main
+    from sffscan.pipeline.config import config_to_toml
+    from sffscan.pipeline.wiring import open_writer
 
     cfg = small_config()
     toml = tmp_path / "scan.toml"

@@ -1,4 +1,4 @@
-"""Tests of pipeline.compare and ``sffscan compare``."""
+"""Tests of sffscan.pipeline.metrology.compare and ``sffscan compare``."""
 
 from __future__ import annotations
 
@@ -8,16 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.ndimage
-
-from pipeline.cli import main
-from pipeline.compare import (
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.metrology.compare import (
     CompareReport,
     HeightMap,
     compare_height_maps,
     fit_plane,
     overlap_by_origin,
 )
-from stages.mosaic import MosaicWriter
+from sffscan.stages.mosaic import MosaicWriter
 
 
 def _surface(shape: tuple[int, int] = (80, 90), seed: int = 0) -> np.ndarray:

@@ -5,8 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
-from pipeline.config import (
+from sffscan.pipeline.config import (
     ConfigError,
     config_from_dict,
     config_to_toml,
@@ -16,8 +15,8 @@ from pipeline.config import (
     max_speed_thesis_mm_s,
     shift_per_frame_px,
 )
-from pipeline.plan import frame_count, pass_bounds_px, plan_frames, scan_extent_px
-from pipeline.schema_gen import check_schemas
+from sffscan.pipeline.formats.schema_gen import check_schemas
+from sffscan.pipeline.plan import frame_count, pass_bounds_px, plan_frames, scan_extent_px
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
 

@@ -23,12 +23,12 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ScanConfig, config_to_toml
+from sffscan.pipeline.formats.recording import open_recording
+from sffscan.stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
+from sffscan.stages.sim.scanner import simulate_frames
 
-from pipeline.cli import main
-from pipeline.config import ScanConfig, config_to_toml
-from pipeline.recording import open_recording
-from stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
-from stages.sim_scanner import simulate_frames
 from tests.crash_children import quiet_main, torn_replay
 from tests.scan_helpers import small_config
 
@@ -40,8 +40,9 @@ def _cfg(passes: int = 1) -> ScanConfig:
 
 def _ctx() -> Any:
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["tests.crash_children", "pipeline.wiring", "stages.recorder",
-                                "pipeline.cmd_record"])
+    ctx.set_forkserver_preload(["tests.crash_children", "sffscan.pipeline.wiring",
+                                "sffscan.stages.recorder",
+                                "sffscan.pipeline.cli.record"])
     return ctx
 
 
@@ -214,7 +215,7 @@ def test_mosaic_writer_killed_at_random_moments_resumes(
 
 def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
-    from stages import recorder
+    from sffscan.stages import recorder
 
     cfg = _cfg()
     toml = tmp_path / "scan.toml"

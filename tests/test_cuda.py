@@ -9,10 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
-from stages.depth import depth_from_focus, depth_from_harmonics
-from stages.focus_measure import DeviceFocus, focus_measure_raw
-from stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
+from sffscan.stages.depth import depth_from_focus, depth_from_harmonics
+from sffscan.stages.focus_measure import DeviceFocus, focus_measure_raw
+from sffscan.stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
 
 FLOAT32_REL_TOL = 1e-6
 

@@ -8,10 +8,15 @@ from unittest import mock
 import numpy as np
 import pytest
 from nidaqmx.constants import AcquisitionType, Edge, RegenerationMode
-
-from pipeline.cli import main
-from pipeline.config import config_from_dict, config_to_toml
-from pipeline.daq import DaqNotFoundError, NidaqmxDaq, SimDaq, open_daq, waveform_for
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import config_from_dict, config_to_toml
+from sffscan.pipeline.hardware.daq import (
+    DaqNotFoundError,
+    NidaqmxDaq,
+    SimDaq,
+    open_daq,
+    waveform_for,
+)
 
 
 def _cfg(**daq: object):
@@ -131,11 +136,10 @@ def _triggered_camera_with_ni_daq(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     """A fake triggered camera in place of the real one, and a configuration file that
     asks for it with daq.kind = 'nidaqmx'."""
     import genicam
-
-    import stages.camera_source
+    import sffscan.stages.camera_source
 
     cam = _TriggeredCamera()
-    monkeypatch.setattr(stages.camera_source, "open_camera", lambda cfg: cam)
+    monkeypatch.setattr(sffscan.stages.camera_source, "open_camera", lambda cfg: cam)
     cfg = config_from_dict({
         "source": {"kind": "camera"},
         "optics": {"width_px": 160, "height_px": 100, "pixel_um": 17.0, "n_levels": 10,

@@ -1,4 +1,4 @@
-"""Tests of stages.depth: peak localisation, SPC identity, height mapping, pertuz depth."""
+"""Tests of sffscan.stages.depth: peak localisation, SPC identity, height mapping, pertuz depth."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import scipy.io
 from scipy import ndimage
-
-from stages.depth import (
+from sffscan.stages.depth import (
     DEPTH_METHODS,
     _argmax,
     _median_filter_levels,
@@ -21,7 +20,7 @@ from stages.depth import (
     levels_to_height,
     spc_by_roll,
 )
-from stages.focus_measure import focus_measure, to_unit_float
+from sffscan.stages.focus_measure import focus_measure, to_unit_float
 
 # Largest |depth - true peak| on clean sampled Gaussians (sigma 2 at N = 30, 3 at N = 50,
 # zero baseline, peaks at least 4 sigma from both ends), in levels. Measured worst cases:

@@ -18,11 +18,10 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from stages.depth import DEPTH_METHODS, depth_from_focus
-from stages.focus_measure import focus_measure
-from stages.sim_camera import Optics, render_stack
-from stages.sim_world import sinusoid_world
+from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
+from sffscan.stages.focus_measure import focus_measure
+from sffscan.stages.sim.camera import Optics, render_stack
+from sffscan.stages.sim.world import sinusoid_world
 
 N, SIZE, STEP_UM = 60, 300, 100.0
 

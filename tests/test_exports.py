@@ -1,4 +1,4 @@
-"""Tests of pipeline.exports (PLY, x3p) and pipeline.areal (Sa, Sq, Sz, Ssk, Sku)."""
+"""Tests of formats.exports (PLY, x3p) and metrology.areal (Sa, Sq, Sz, Ssk, Sku)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import scipy.stats
 import x3pio
-
-from pipeline.areal import areal_parameters, level_surface
-from pipeline.cli import main
-from pipeline.exports import read_region, write_ply, write_x3p
-from stages.mosaic import MosaicWriter
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.formats.exports import read_region, write_ply, write_x3p
+from sffscan.pipeline.metrology.areal import areal_parameters, level_surface
+from sffscan.stages.mosaic import MosaicWriter
 
 PX = 8.5
 ORIGIN = (300, 40)
@@ -167,7 +166,7 @@ def test_export_command(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: P
 def test_x3p_and_areal_parameters_against_surfalize(tmp_path: Path) -> None:
     """A third-party implementation (surfalize, MIT: its own x3p reader, its own levelling
     and ISO 25178-2 height parameters) reads the exported x3p and gets the same surface,
-    scale and Sa, Sq, Sp, Sv, Sz, Ssk, Sku as pipeline.areal on the mosaic region."""
+    scale and Sa, Sq, Sp, Sv, Sz, Ssk, Sku as pipeline.metrology.areal on the mosaic region."""
     from surfalize import Surface  # imported here: about 3 s, for this test only
 
     rng = np.random.default_rng(5)
@@ -220,7 +219,7 @@ def test_ply_of_a_mosaic_with_a_non_ascii_name(mosaic: tuple[Path, np.ndarray, n
     def broken(*args: object, **kwargs: object) -> np.ndarray:
         raise OSError("disk full")
 
-    monkeypatch.setattr("pipeline.exports.ply_vertices", broken)
+    monkeypatch.setattr("sffscan.pipeline.formats.exports.ply_vertices", broken)
     with pytest.raises(OSError, match="disk full"):
         write_ply(out, named)
     assert not list(tmp_path.glob("*.ply*"))  # no truncated PLY left behind

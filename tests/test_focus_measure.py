@@ -1,4 +1,4 @@
-"""Tests of stages.focus_measure against independent float64 references of the definitions.
+"""Tests of sffscan.stages.focus_measure against independent float64 references of the definitions.
 
 The references follow MATLAB: ``imfilter(I, fspecial('average', 9), 'replicate')`` for the
 box filter and ``fspecial('sobel')`` (correlation) for the gradients, written here as
@@ -14,8 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
-from stages.focus_measure import (
+from sffscan.stages.focus_measure import (
     FOCUS_OPERATORS,
     focus_measure,
     focus_measure_raw,

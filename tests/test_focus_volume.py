@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from stages.depth import depth_from_focus, levels_to_height
-from stages.focus_volume import FocusVolume
+from sffscan.stages.depth import depth_from_focus, levels_to_height
+from sffscan.stages.focus_volume import FocusVolume
 
 N, H, W = 12, 48, 96
 HEIGHTS = [100.0 * k for k in range(N)]

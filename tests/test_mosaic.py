@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-
-from pipeline.messages import DepthBlock, DepthBlockHeader, MosaicAttrs
-from stages.mosaic import MosaicStage, MosaicWriter, blend
+from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, MosaicAttrs
+from sffscan.stages.mosaic import MosaicStage, MosaicWriter, blend
 
 
 def _block(x0: int, y0: int, height: np.ndarray, conf: float, pass_index: int) -> DepthBlock:

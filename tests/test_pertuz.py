@@ -1,7 +1,7 @@
 """pertuz-simu02 (third-party stack with a true depth map): stationary reconstruction accuracy.
 
 Every depth method x focus operator is scored over ALL ROI pixels (217 x 217), without
-and with the confidence-weighted median post-filter (`stages.stationary`); ``pytest -s``
+and with the confidence-weighted median post-filter (`stages.fields.stationary`); ``pytest -s``
 prints the table that the README gives. Focus step 15.5 mm; toolbox figure: GLVM 9 +
 argmax 36.9 mm.
 """
@@ -13,11 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
-
-from pipeline.cli import main
-from stages.depth import DEPTH_METHODS
-from stages.focus_measure import FOCUS_OPERATORS
-from stages.stationary import StackSettings, read_image_stack, reconstruct_field
+from sffscan.pipeline.cli.main import main
+from sffscan.stages.depth import DEPTH_METHODS
+from sffscan.stages.fields.stationary import StackSettings, read_image_stack, reconstruct_field
+from sffscan.stages.focus_measure import FOCUS_OPERATORS
 
 BAR_M = 0.015  # the issue's bar over all ROI pixels
 # Measured 2026-11-23 with the documented settings (GLVM 9, gauss3, weighted median 15):
@@ -96,7 +95,7 @@ def test_pertuz_stack_and_compare_commands(pertuz_dir: Path, pertuz: dict[str, n
     capsys.readouterr()
     assert main(["compare", str(out), str(tmp_path / "truth_um.npy"),
                  "--region", "19,19,236,236", "--json", str(tmp_path / "c.json")]) == 0
-    from pipeline.compare import CompareReport
+    from sffscan.pipeline.metrology.compare import CompareReport
 
     rep = CompareReport.model_validate_json((tmp_path / "c.json").read_text())
     assert rep.pixels == 217 * 217 and rep.coverage == 1.0

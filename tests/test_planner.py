@@ -1,15 +1,14 @@
-"""Scan planner (pipeline.planner, `sffscan plan`): the thesis' figures and refusals."""
+"""Scan planner (pipeline.hardware.planner, `sffscan plan`): the thesis' figures and refusals."""
 
 from __future__ import annotations
 
 from typing import Any
 
 import pytest
-
-from pipeline.cli import main
-from pipeline.config import ScanConfig, config_from_dict, max_speed_sliding_mm_s
-from pipeline.plan import pass_bounds_px
-from pipeline.planner import PlanError, plan_scan
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ScanConfig, config_from_dict, max_speed_sliding_mm_s
+from sffscan.pipeline.hardware.planner import PlanError, plan_scan
+from sffscan.pipeline.plan import pass_bounds_px
 
 THESIS: dict[str, Any] = {"fov_mm": (11.0, 9.0), "fps": 150.0, "n_levels": 50, "overlap": 0.091,
           "pixel_um": 8.5, "area_mm": (100.0, 100.0)}

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.recording import RecordingAttrs, RecordingError, open_recording
+from sffscan.pipeline.formats.schema_gen import SCHEMAS
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.recorder import RecordingWriter
 
-from pipeline.config import ScanConfig
-from pipeline.messages import Frame, FrameHeader
-from pipeline.recording import RecordingAttrs, RecordingError, open_recording
-from pipeline.schema_gen import SCHEMAS
-from stages.recorder import RecordingWriter
 from tests.scan_helpers import small_config
 
 H, W = 256, 640
@@ -261,7 +261,7 @@ def test_frames_found_corrupt_while_replaying_are_counted_as_lost(tmp_path: Path
 
 
 def test_a_failing_final_flush_still_marks_the_recording_failed(tmp_path: Path) -> None:
-    from stages.sim_scanner import simulate_frames
+    from sffscan.stages.sim.scanner import simulate_frames
 
     cfg = small_config()
     writer = RecordingWriter(tmp_path / "rec.zarr", cfg)

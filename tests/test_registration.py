@@ -7,9 +7,8 @@ import math
 import cv2
 import numpy as np
 import pytest
-
-from pipeline.messages import FrameHeader, PlacedFrame
-from stages.registration import (
+from sffscan.pipeline.messages import FrameHeader, PlacedFrame
+from sffscan.stages.registration import (
     RegistrationStage,
     correlate_spectra,
     downsample,

@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import config_to_toml
+from sffscan.pipeline.formats.recording import open_recording
+from sffscan.stages.mosaic import ARRAYS
 
-from pipeline.cli import main
-from pipeline.config import config_to_toml
-from pipeline.recording import open_recording
-from stages.mosaic import ARRAYS
 from tests.scan_helpers import small_config
 from tests.test_recording import plain_recording
 

@@ -7,8 +7,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-
-from pipeline.runtime import (
+from sffscan.pipeline.runtime import (
     END_OF_STREAM,
     BoundedQueue,
     FullPolicy,

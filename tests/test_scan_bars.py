@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sffscan.pipeline.config import max_speed_thesis_mm_s
 
-from pipeline.config import max_speed_thesis_mm_s
 from tests.scan_helpers import (
     mosaic_height,
     scan,

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ScanConfig, config_to_toml, pass_pitch_px
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.runtime import StageFailed
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.sim.scanner import make_world, simulate_frames
 
-from pipeline.cli import main
-from pipeline.config import ScanConfig, config_to_toml, pass_pitch_px
-from pipeline.messages import Frame
-from pipeline.runtime import StageFailed
-from pipeline.wiring import run_scan
-from stages.sim_scanner import make_world, simulate_frames
 from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
 
 
@@ -147,7 +147,7 @@ def test_cli_scan_from_toml_and_errors(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 def test_console_script_help() -> None:
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "demo", "--help"],
+    res = subprocess.run([sys.executable, "-m", "sffscan", "demo", "--help"],
                          capture_output=True, text=True, check=False)
     assert res.returncode == 0 and "15 mm/s" in res.stdout
 
@@ -158,7 +158,7 @@ def test_interrupt_leaves_a_readable_mosaic(tmp_path: Path) -> None:
     toml = tmp_path / "scan.toml"
     toml.write_text(config_to_toml(cfg))
     out = tmp_path / "int.zarr"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "scan", "--config", str(toml),
+    proc = subprocess.Popen([sys.executable, "-m", "sffscan", "scan", "--config", str(toml),
                              "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     # wait for the first progress line, then interrupt

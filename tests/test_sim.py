@@ -1,4 +1,4 @@
-"""Tests of the simulated world (stages.sim_world) and camera (stages.sim_camera)."""
+"""Tests of the simulated world (stages.sim.world) and camera (stages.sim.camera)."""
 
 from __future__ import annotations
 
@@ -8,15 +8,14 @@ import math
 import cv2
 import numpy as np
 import pytest
-
-from stages.sim_camera import (
+from sffscan.stages.sim.camera import (
     Optics,
     blur_bank_sigmas,
     focus_heights,
     render_frame,
     render_stack,
 )
-from stages.sim_world import (
+from sffscan.stages.sim.world import (
     Cylinder,
     Hemisphere,
     PlateWorld,

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import pytest
-
-from pipeline.messages import Frame, FrameError, FrameHeader
-from stages.speed_shift import SpeedShiftStage, position_from_speed_px, predicted_position_px
+from sffscan.pipeline.messages import Frame, FrameError, FrameHeader
+from sffscan.stages.speed_shift import (
+    SpeedShiftStage,
+    position_from_speed_px,
+    predicted_position_px,
+)
 
 
 def test_position_from_speed_matches_the_thesis_figure() -> None:

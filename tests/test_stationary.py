@@ -1,4 +1,4 @@
-"""Tests of stages.stationary: reconstruction of one field from a focus stack."""
+"""Tests of sffscan.stages.fields.stationary: reconstruction of one field from a focus stack."""
 
 from __future__ import annotations
 
@@ -10,13 +10,9 @@ import numpy as np
 import pytest
 import scipy.ndimage
 import zarr
-
-from pipeline.cli import main
-from stages.depth import depth_from_focus, levels_to_height
-from stages.focus_measure import focus_measure, to_unit_float
-from stages.sim_camera import Optics, focus_heights, render_stack
-from stages.sim_world import sinusoid_world
-from stages.stationary import (
+from sffscan.pipeline.cli.main import main
+from sffscan.stages.depth import depth_from_focus, levels_to_height
+from sffscan.stages.fields.stationary import (
     StackSettings,
     confidence_weighted_median,
     read_focus_positions,
@@ -24,6 +20,9 @@ from stages.stationary import (
     read_zarr_stack,
     reconstruct_field,
 )
+from sffscan.stages.focus_measure import focus_measure, to_unit_float
+from sffscan.stages.sim.camera import Optics, focus_heights, render_stack
+from sffscan.stages.sim.world import sinusoid_world
 
 # ----------------------------------------------------------------------------- filter
 

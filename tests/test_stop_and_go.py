@@ -1,4 +1,4 @@
-"""Tests of stages.stop_and_go: grid planning, placement and blending, a simulated grid."""
+"""Tests of stages.fields.stop_and_go: grid planning, placement and blending, a simulated grid."""
 
 from __future__ import annotations
 
@@ -8,19 +8,18 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-
-from pipeline.cli import main
-from stages.mosaic import MosaicWriter, mosaic_array
-from stages.sim_camera import Optics, focus_heights
-from stages.sim_world import sinusoid_world
-from stages.stationary import FieldResult
-from stages.stop_and_go import (
+from sffscan.pipeline.cli.main import main
+from sffscan.stages.fields.stationary import FieldResult
+from sffscan.stages.fields.stop_and_go import (
     SimFieldCamera,
     feather_weights,
     plan_grid,
     run_stop_and_go,
     stitch_field,
 )
+from sffscan.stages.mosaic import MosaicWriter, mosaic_array
+from sffscan.stages.sim.camera import Optics, focus_heights
+from sffscan.stages.sim.world import sinusoid_world
 
 PX = 17.0
 

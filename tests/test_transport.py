@@ -1,4 +1,4 @@
-"""zmq frame transport (pipeline.transport, `sffscan grab`): two processes on loopback."""
+"""zmq frame transport (pipeline.formats.transport, `sffscan grab`): two processes on loopback."""
 
 from __future__ import annotations
 
@@ -16,12 +16,9 @@ import numpy as np
 import pytest
 import zarr
 import zmq
-
-from pipeline.cli import main
-from pipeline.config import ScanConfig, config_from_dict, config_to_toml
-from pipeline.messages import Frame, FrameHeader
-from pipeline.plan import frame_count
-from pipeline.transport import (
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ScanConfig, config_from_dict, config_to_toml
+from sffscan.pipeline.formats.transport import (
     EndMessage,
     FrameSender,
     ReceiverStats,
@@ -31,7 +28,9 @@ from pipeline.transport import (
     receive_frames,
     stream_frames,
 )
-from stages.sim_scanner import simulate_frames
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.plan import frame_count
+from sffscan.stages.sim.scanner import simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,7 +55,7 @@ def free_port() -> int:
 def start_grab(cfg: ScanConfig, tmp: Path, address: str, *extra: str) -> subprocess.Popen:
     path = tmp / "grab.toml"
     path.write_text(config_to_toml(cfg), encoding="utf-8")
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "grab", "--config",
+    return subprocess.Popen([sys.executable, "-m", "sffscan", "grab", "--config",
                              str(path), "--to", address, *extra], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -21,15 +21,20 @@ import pyarrow as pa
 import pytest
 import zarr
 from rerun.chunk import RrdReader
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ConfigError
+from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
+from sffscan.pipeline.wiring import ScanReport, run_scan
+from sffscan.stages.mosaic import MosaicStage, MosaicWriter
+from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.stages.viz_preview import (
+    MosaicPreview,
+    downsample_mosaic,
+    point_stride,
+    surface_points,
+)
+from sffscan.stages.viz_sink import VizOptions, VizSink, parse_mode, viz_sink_for
 
-from pipeline.cli import main
-from pipeline.config import ConfigError
-from pipeline.messages import DepthBlock, DepthBlockHeader
-from pipeline.wiring import ScanReport, run_scan
-from stages.mosaic import MosaicStage, MosaicWriter
-from stages.sim_scanner import simulate_frames
-from stages.viz_preview import MosaicPreview, downsample_mosaic, point_stride, surface_points
-from stages.viz_sink import VizOptions, VizSink, parse_mode, viz_sink_for
 from tests.scan_helpers import small_config
 
 Rows = dict[str, list[dict[str, Any]]]
@@ -291,7 +296,7 @@ def test_demo_shows_the_live_view_by_default(tmp_path: Path,
         seen.append((viewer, default))
         raise ConfigError("stop here")
 
-    monkeypatch.setattr("pipeline.cli.viewer_sink", fake_viewer_sink)
+    monkeypatch.setattr("sffscan.pipeline.cli.main.viewer_sink", fake_viewer_sink)
     with redirect_stderr(io.StringIO()):
         assert main(["demo", "-o", str(tmp_path / "d.zarr"), "-q"]) == 2
         assert main(["demo", "-o", str(tmp_path / "d.zarr"), "-q", "--viewer", "off"]) == 2
@@ -358,9 +363,8 @@ def test_calibrated_focus_table_is_shown(tmp_path: Path) -> None:
     """With a calibration, the view's focus table and colour range are the calibrated
     heights the depth stage uses, not the nominal optics table."""
     import rerun as rr
-
-    from pipeline.calibration import Calibration, ZResponse, save_calibration
-    from pipeline.wiring import focus_heights_um
+    from sffscan.pipeline.metrology.calibration import Calibration, ZResponse, save_calibration
+    from sffscan.pipeline.wiring import focus_heights_um
 
     z = ZResponse(um_per_level=150.0, intercept_um=2000.0, pearson_r=1.0,
                   heights_um=[2000.0, 9350.0], peak_levels=[0.0, 49.0], residuals_um=[0.0, 0.0])
@@ -419,8 +423,7 @@ def test_focus_images_keep_the_frame_shape(recorded: tuple[ScanReport, VizSink, 
 def test_blueprint_shows_the_views_own_drops_apart() -> None:
     """The view's own drop count has a view of its own (a legend of six queues is cut)."""
     import rerun.blueprint as rrb
-
-    from stages.viz_sink import blueprint
+    from sffscan.stages.viz_sink import blueprint
 
     views: list[Any] = []
 

@@ -1,13 +1,12 @@
-"""Lens staircase and camera trigger (pipeline.lens_waveform): known answers."""
+"""Lens staircase and camera trigger (sffscan.pipeline.hardware.lens_waveform): known answers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from pipeline.config import config_from_dict
-from pipeline.daq import waveform_for
-from pipeline.lens_waveform import (
+from sffscan.pipeline.config import config_from_dict
+from sffscan.pipeline.hardware.daq import waveform_for
+from sffscan.pipeline.hardware.lens_waveform import (
     exposure_window_us,
     falling_edges,
     make_waveform,

@@ -1,0 +1,130 @@
+"""What the commands of :mod:`pipeline.cli.main` share: exit codes, scan options and overrides,
+and running a scan with its summary and failure messages.
+
+A command module (``pipeline.cmd_*``) defines ``register(sub)``, which adds its
+sub-commands to the ``sffscan`` parser; :data:`pipeline.cli.main.COMMAND_MODULES` lists them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+from sffscan.pipeline.config import (
+    ScanConfig,
+    config_from_dict,
+    max_speed_sliding_mm_s,
+    max_speed_thesis_mm_s,
+)
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.runtime import Sink, StageFailed
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+VIEWER_CHOICES = "spawn|serve|save PATH|off"
+
+
+def processing_options(p: argparse.ArgumentParser) -> None:
+    """Options that change how frames are processed (scan and replay)."""
+    p.add_argument("--no-registration", action="store_true",
+                   help="place frames by speed only")
+    p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
+                                        "spc"], help="depth method (default spc)")
+    p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
+    p.add_argument("--window", type=int, help="focus measure window k, odd, px")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration JSON ('sffscan calibrate'): focus level -> µm")
+    p.add_argument("--viewer", nargs="+", metavar="MODE", default=None,
+                   help=f"live view in Rerun: {VIEWER_CHOICES}")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+
+
+def scan_options(p: argparse.ArgumentParser) -> None:
+    """Options of the commands that acquire a scan (demo, scan)."""
+    p.add_argument("-o", "--output",
+                   help="mosaic path, a Zarr v3 group (demo: sffscan-demo.zarr, replaced)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
+    p.add_argument("--record", metavar="PATH",
+                   help="also record the raw stream (frames, headers, configuration) into "
+                        "this Zarr v3 group, for 'sffscan replay'")
+    p.add_argument("--speed", type=float, help="stage speed, mm/s")
+    p.add_argument("--wobble", type=float, help="sim: stage wobble, ± px along and across")
+    p.add_argument("--seed", type=int, help="sim: seed of texture and noise")
+    p.add_argument("--source", metavar="ADDRESS",
+                   help="receive frames from 'sffscan grab' at tcp://HOST:PORT or ipc://PATH")
+    processing_options(p)
+
+
+def override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
+    """Apply command-line overrides, re-validating the whole configuration."""
+    data = cfg.model_dump()
+    if getattr(args, "output", None):
+        data["output"]["path"] = str(args.output)
+    if getattr(args, "overwrite", False):
+        data["output"]["overwrite"] = True
+    if getattr(args, "speed", None) is not None:
+        data["motion"]["speed_mm_s"] = args.speed
+    if getattr(args, "wobble", None) is not None:
+        data["motion"]["wobble_along_px"] = args.wobble
+        data["motion"]["wobble_across_px"] = args.wobble
+    if getattr(args, "no_registration", False):
+        data["processing"]["registration"] = False
+    if getattr(args, "method", None):
+        data["processing"]["depth_method"] = args.method
+    if getattr(args, "operator", None):
+        data["processing"]["focus_operator"] = args.operator
+    if getattr(args, "window", None) is not None:
+        data["processing"]["window"] = args.window
+    if getattr(args, "calibration", None):
+        data["processing"]["calibration"] = str(args.calibration)
+    if getattr(args, "seed", None) is not None:
+        data["source"]["seed"] = args.seed
+    return config_from_dict(data, origin="command line")
+
+
+def describe(cfg: ScanConfig) -> str:
+    o, m = cfg.optics, cfg.motion
+    return (f"scan: {m.passes} pass(es) over x {m.x_start_mm:g}..{m.x_end_mm:g} mm at "
+            f"{m.speed_mm_s:g} mm/s; {o.width_px}x{o.height_px} px, {o.pixel_um:g} µm/px, "
+            f"{o.fps:g} fps, N = {o.n_levels} levels of {o.z_step_um:g} µm; speed limit "
+            f"{max_speed_sliding_mm_s(cfg):.1f} mm/s (sliding window), thesis per-stack "
+            f"limit {max_speed_thesis_mm_s(cfg):.1f} mm/s")
+
+
+def viewer_sink(cfg: ScanConfig, viewer: list[str] | None, *, default: str = "off") -> Sink | None:
+    """The live-view sink a ``--viewer`` option asks for, or None for ``off``."""
+    mode = viewer if viewer else [default]
+    if mode == ["off"]:
+        return None
+    from sffscan.stages.viz_sink import viz_sink_for
+
+    return viz_sink_for(cfg, mode)
+
+
+def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | None,
+                   progress: bool, sinks: list[Sink] | None = None,
+                   writer: Any | None = None, kept: str = "") -> int:
+    """Run a scan over ``frames`` (into ``writer`` if given), print its summary (scored
+    against ``world`` if given) and return the exit code; failures print the stage, the
+    cause and what was kept (``kept`` replaces the default sentence)."""
+    from sffscan.pipeline.wiring import evaluate_sim, format_summary, run_scan
+
+    kept = kept or f"the mosaic at {cfg.output.path} holds what was completed"
+    try:
+        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks, writer=writer)
+    except StageFailed as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        print(f"sffscan: {kept} before the failure (status 'failed')", file=sys.stderr)
+        from sffscan.pipeline.hardware.daq import DaqNotFoundError
+
+        # hardware that is not there is a set-up problem, like a bad configuration
+        return EXIT_BAD_INPUT if isinstance(err.cause, DaqNotFoundError) else EXIT_FAILED
+    except KeyboardInterrupt:
+        print(f"sffscan: interrupted; {kept} (status 'failed')", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if world is not None:
+        evaluate_sim(report, world)
+    print(format_summary(report))
+    return EXIT_OK

@@ -1,0 +1,122 @@
+"""Hardware commands: ``sffscan plan`` (scan planner) and ``sffscan grab`` (acquire and
+send frames over zmq to a running ``sffscan scan --source ADDRESS``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict, load_config
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.hardware.planner import PlanError, format_plan, plan_scan
+
+    o = (load_config(args.config) if args.config else ScanConfig()).optics
+    pixel = args.pixel_um if args.pixel_um is not None else o.pixel_um
+    if args.fov is not None:
+        fov = (args.fov[0], args.fov[1])
+    else:
+        w, h = args.fov_px if args.fov_px is not None else (o.width_px, o.height_px)
+        fov = (w * pixel / 1000.0, h * pixel / 1000.0)
+    try:
+        plan = plan_scan(fov_mm=fov, fps=args.fps if args.fps is not None else o.fps,
+                         n_levels=args.levels if args.levels is not None else o.n_levels,
+                         overlap=args.overlap, pixel_um=pixel,
+                         area_mm=(args.area[0], args.area[1]), direction=args.direction,
+                         speed_mm_s=args.speed)
+    except PlanError as err:
+        print(f"sffscan plan: refused: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(format_plan(plan))
+    return EXIT_OK
+
+
+def _grab_config(args: argparse.Namespace) -> ScanConfig:
+    cfg = load_config(args.config)
+    if args.frames is not None:
+        data: dict[str, Any] = cfg.model_dump()
+        data["camera"]["frames"] = args.frames
+        cfg = config_from_dict(data, origin="command line")
+    return cfg
+
+
+def cmd_grab(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.formats.transport import FrameSender, TransportError, stream_frames
+    from sffscan.pipeline.hardware.daq import DaqNotFoundError
+    from sffscan.stages.camera_source import CameraError
+
+    cfg = _grab_config(args)
+    address = args.to or cfg.source.address
+    if cfg.source.kind == "tcp":
+        raise ConfigError("source.kind = 'tcp': 'sffscan grab' acquires frames itself; set "
+                          "source.kind to 'camera' (or 'sim')")
+    if cfg.source.kind == "camera":
+        from sffscan.stages.camera_source import camera_frames
+
+        frames = camera_frames(cfg)
+    else:
+        from sffscan.stages.sim.scanner import simulate_frames
+
+        frames = simulate_frames(cfg)
+    print(f"grab: {cfg.source.kind} frames to {address}", file=sys.stderr)
+    sender = FrameSender(address, hwm=args.hwm, bind=args.bind, checksum=not args.no_checksum)
+    ok = False
+    try:
+        n = stream_frames(frames, sender)
+        ok = True
+    except KeyboardInterrupt:
+        print("sffscan grab: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except DaqNotFoundError as err:
+        print(f"sffscan grab: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (CameraError, TransportError) as err:
+        print(f"sffscan grab: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    finally:
+        sender.close(linger_s=10.0 if ok else 0.0)
+    print(f"grab: sent {n} frames ({sender.bytes / 1e6:.1f} MB), waited "
+          f"{sender.blocked_s:.1f} s for the receiver", file=sys.stderr)
+    return EXIT_OK
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("plan", help="maximum speed, exposure, frames, time and passes of a scan",
+                       description="Plan a continuous-motion scan of an area: the maximum "
+                       "speed under the thesis' per-stack rule (eq. 6.1-6.3) and under "
+                       "sffscan's sliding window, the maximum exposure, frames and time per "
+                       "pass, and passes. Defaults: the thesis optics.")
+    p.add_argument("--config", help="take the optics from this TOML configuration")
+    p.add_argument("--fov", type=float, nargs=2, metavar=("W_MM", "H_MM"),
+                   help="field of view, mm (camera x, y)")
+    p.add_argument("--fov-px", type=int, nargs=2, metavar=("W_PX", "H_PX"),
+                   help="field of view, px (with --pixel-um)")
+    p.add_argument("--pixel-um", type=float, help="object-side pixel scale, µm/px")
+    p.add_argument("--fps", type=float, help="frame rate, frames/s")
+    p.add_argument("--levels", type=int, help="focus levels N")
+    p.add_argument("--overlap", type=float, default=0.15,
+                   help="overlap between stacks and passes, fraction (default 0.15)")
+    p.add_argument("--direction", choices=["x", "y"], default="x",
+                   help="camera axis of the motion (default x)")
+    p.add_argument("--area", type=float, nargs=2, default=[100.0, 100.0],
+                   metavar=("ALONG_MM", "ACROSS_MM"), help="area to cover, mm (default 100 100)")
+    p.add_argument("--speed", type=float, help="requested speed, mm/s (default: each rule's "
+                   "maximum)")
+    p.set_defaults(func=cmd_plan)
+
+    p = sub.add_parser("grab", help="acquire frames and send them to 'sffscan scan --source'",
+                       description="Acquire frames (source.kind 'camera', or 'sim') in this "
+                       "process and send them over zmq to a running 'sffscan scan --source "
+                       "ADDRESS'. The receiver's and sender's high-water marks are the "
+                       "bounded queue between them.")
+    p.add_argument("--config", required=True, help="TOML scan configuration")
+    p.add_argument("--to", metavar="ADDRESS",
+                   help="receiver, tcp://HOST:PORT or ipc://PATH (default source.address)")
+    p.add_argument("--frames", type=int, help="frames to acquire (camera; default: the plan's)")
+    p.add_argument("--hwm", type=int, default=8, help="send high-water mark, frames (default 8)")
+    p.add_argument("--bind", action="store_true", help="bind instead of connecting")
+    p.add_argument("--no-checksum", action="store_true", help="no CRC-32 in the headers")
+    p.set_defaults(func=cmd_grab)

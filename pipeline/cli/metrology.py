@@ -1,0 +1,356 @@
+"""Metrology commands: ``sffscan stack``, ``sffscan stopgo``, ``sffscan compare``,
+``sffscan export``.
+
+- ``stack``: one field from a focus stack (image files with their focus positions, or a Zarr
+  array) -> a mosaic Zarr group (height, all-in-focus texture, confidence, weight);
+- ``stopgo``: a simulated stop-and-go grid of fields stitched into one mosaic;
+- ``compare``: RMSE, CORR, PSNR and the error histogram of two height maps;
+- ``export``: a mosaic region as PLY / x3p, and its areal parameters (Sa, Sq, Sz, Ssk, Sku).
+
+Exit codes as :mod:`sffscan.pipeline.cli.main`: 0 ok, 2 bad input (the message names the file or
+option), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK
+
+UNIT_TO_UM = {"um": 1.0, "mm": 1000.0, "m": 1e6}
+
+
+def _fail(msg: str) -> int:
+    print(f"sffscan: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _settings_options(p: argparse.ArgumentParser) -> None:
+    import types
+    from dataclasses import fields
+
+    from sffscan.stages.fields.stationary import StackSettings
+
+    # the defaults without an instance (validating one would load torch for '--help')
+    d = types.SimpleNamespace(**{f.name: f.default for f in fields(StackSettings)})
+    p.add_argument("--operator", choices=["glvm", "tenv"], default=d.operator,
+                   help=f"focus measure operator (default {d.operator})")
+    p.add_argument("--window", type=int, default=d.window,
+                   help=f"focus measure window k, odd, px (default {d.window})")
+    p.add_argument("--method", default=d.method,
+                   choices=["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc"],
+                   help=f"depth method (default {d.method})")
+    p.add_argument("--median-size", type=int, default=d.median_size,
+                   help=f"SPC median filter size, odd, px (default {d.median_size})")
+    p.add_argument("--filter-size", type=int, default=d.filter_size,
+                   help="confidence-weighted median of the height map, odd, px; 1 = off "
+                        f"(default {d.filter_size})")
+    p.add_argument("--min-confidence", type=float, default=d.min_confidence,
+                   help="mark pixels below this confidence invalid (NaN), 0..1 (default 0)")
+
+
+def _settings(args: argparse.Namespace):  # noqa: ANN202 - StackSettings, imported lazily
+    from sffscan.stages.fields.stationary import StackSettings
+
+    return StackSettings(operator=args.operator, window=args.window, method=args.method,
+                         median_size=args.median_size, filter_size=args.filter_size,
+                         min_confidence=args.min_confidence)
+
+
+def _region(text: str | None) -> tuple[int, int, int, int] | None:
+    if text is None:
+        return None
+    parts = text.replace(",", " ").split()
+    try:
+        x0, y0, x1, y1 = (int(v) for v in parts)
+    except ValueError:
+        raise ValueError(f"--region must be four integers X0,Y0,X1,Y1 (world px), got {text!r}"
+                         ) from None
+    return x0, y0, x1, y1
+
+
+# ----------------------------------------------------------------------------- stack
+
+
+def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None) -> np.ndarray:
+    from sffscan.stages.fields.stationary import read_focus_positions
+
+    scale = UNIT_TO_UM[args.focus_unit]
+    if args.focus_file:
+        table = read_focus_positions(args.focus_file, scale_to_um=scale)
+        source = str(args.focus_file)
+    elif args.focus_start is not None and args.focus_step is not None:
+        table = (args.focus_start + args.focus_step * np.arange(n)) * scale
+        source = "--focus-start/--focus-step"
+    elif from_zarr is not None:
+        table = from_zarr
+        source = f"{args.zarr}: attribute focus_heights_um"
+    else:
+        raise ValueError("focus positions missing: give --focus-file, or --focus-start and "
+                         "--focus-step (or a Zarr stack with a focus_heights_um attribute)")
+    if table.size != n:
+        raise ValueError(f"{source}: {table.size} focus positions for {n} images")
+    # checked here, before the stack is processed, so that the message names the source
+    bad = np.flatnonzero(~np.isfinite(table))
+    if bad.size:
+        raise ValueError(f"{source}: focus position {bad[0]} is not a number ({table[bad[0]]})")
+    step = np.diff(table)
+    if not ((step > 0).all() or (step < 0).all()):
+        k = int(np.flatnonzero(np.sign(step) != np.sign(step[0]) if step[0] != 0
+                               else step == 0)[0]) + 1
+        raise ValueError(f"{source}: focus positions must be strictly monotonic; position "
+                         f"{k} ({table[k]:g} µm) follows {table[k - 1]:g} µm")
+    return table
+
+
+def cmd_stack(args: argparse.Namespace) -> int:
+    from sffscan.stages.fields.stationary import (
+        read_image_stack,
+        read_zarr_stack,
+        reconstruct_field,
+    )
+    from sffscan.stages.fields.stop_and_go import feather_weights, stitch_field
+    from sffscan.stages.mosaic import MosaicWriter
+
+    try:
+        settings = _settings(args)
+        if args.zarr:
+            if args.images:
+                raise ValueError("give image files or --zarr, not both")
+            stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
+        else:
+            stack, zarr_table = read_image_stack(args.images), None
+        table = _focus_table(args, stack.shape[0], zarr_table)
+        max_value = None if args.bit_depth is None else float(2**args.bit_depth - 1)
+        if not args.pixel_um > 0:
+            raise ValueError(f"--pixel-um must be > 0, got {args.pixel_um}")
+        print(f"stack: {stack.shape[0]} images of {stack.shape[2]}x{stack.shape[1]} px "
+              f"{stack.dtype}, focus {table[0]:g} .. {table[-1]:g} µm; {settings.operator} "
+              f"k={settings.window}, {settings.method}, weighted median "
+              f"{settings.filter_size}x{settings.filter_size}", file=sys.stderr)
+        t0 = time.perf_counter()
+        result = reconstruct_field(stack, focus_heights_um=table, settings=settings,
+                                   max_value=max_value)
+        writer = MosaicWriter(args.output, origin_px=(0, 0), shape=result.height_um.shape,
+                              pixel_um=args.pixel_um, overwrite=args.overwrite,
+                              attrs={"processing": {"mode": "stationary", **settings.as_dict()},
+                                     "focus_heights_um": [float(v) for v in table]})
+    except ValueError as err:
+        return _fail(str(err))
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    try:
+        valid = stitch_field(writer, result, x0_px=0, y0_px=0,
+                             feather=feather_weights(result.height_um.shape, overlap_px=0))
+    except BaseException:
+        writer.set_status("failed")
+        raise
+    writer.set_status("complete", valid_pixels=valid, blocks=1)
+    if args.save_npy:
+        np.save(args.save_npy, result.height_um)
+    conf = result.confidence
+    print(f"wrote {args.output}: {valid} of {conf.size} pixels valid, height "
+          f"{np.nanmin(result.height_um):.1f} .. {np.nanmax(result.height_um):.1f} µm, "
+          f"median confidence {float(np.median(conf)):.3f}, {time.perf_counter() - t0:.2f} s")
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- stop-and-go
+
+
+def cmd_stopgo(args: argparse.Namespace) -> int:
+    from sffscan.stages.fields.stop_and_go import (
+        SimFieldCamera,
+        plan_grid,
+        print_progress,
+        run_stop_and_go,
+    )
+    from sffscan.stages.sim.camera import Optics, focus_heights
+    from sffscan.stages.sim.world import characterisation_plate
+
+    try:
+        settings = _settings(args)
+        zs = focus_heights(n_levels=args.levels, z_step_um=args.z_step_um)
+        world = characterisation_plate(seed=args.seed, pixel_um=args.pixel_um,
+                                       length_mm=args.plate_length_mm,
+                                       width_mm=args.plate_width_mm, z_range_um=(0, zs[-1]))
+        optics = Optics(width=args.field[0], height=args.field[1], pixel_um=args.pixel_um)
+        camera = SimFieldCamera(world, optics, zs, seed=args.seed)
+        x0, x1, y0, y1 = args.area_mm
+        grid = plan_grid(x_um=(x0 * 1000, x1 * 1000), y_um=(y0 * 1000, y1 * 1000),
+                         field_px=(optics.width, optics.height), pixel_um=args.pixel_um,
+                         overlap_px=args.overlap_px)
+        print(f"stop-and-go: {len(grid)} fields of {optics.width}x{optics.height} px, overlap "
+              f">= {args.overlap_px} px, N = {zs.size} levels of {args.z_step_um:g} µm",
+              file=sys.stderr)
+        report = run_stop_and_go(camera, grid, args.output, settings=settings,
+                                 overlap_px=args.overlap_px, overwrite=args.overwrite,
+                                 progress=None if args.quiet else print_progress)
+    except ValueError as err:
+        return _fail(str(err))
+    except KeyboardInterrupt:
+        print(f"sffscan: interrupted; {args.output} keeps the fields done (status 'failed')",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    from sffscan.pipeline.metrology.compare import compare_height_maps, read_height_map
+
+    hm = read_height_map(report.path)
+    assert hm.origin_px is not None
+    h, w = hm.height_um.shape
+    truth = world.height_um(float(hm.origin_px[0]), float(hm.origin_px[1]), w, h)
+    cmp = compare_height_maps(hm.height_um, truth, max_depth_um=float(zs[-1] - zs[0]))
+    print(f"wrote {report.path}: {report.fields} fields in {report.seconds:.1f} s; against the "
+          f"true surface: RMSE {cmp.rmse_um:.1f} µm, CORR {cmp.corr:.5f}, PSNR "
+          f"{cmp.psnr_db:.2f} dB, coverage {100 * cmp.coverage:.1f} %")
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- compare
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.metrology.compare import (
+        compare_height_maps,
+        format_report,
+        overlap_by_origin,
+        read_height_map,
+        region_mask,
+    )
+
+    try:
+        est = read_height_map(args.estimate, array=args.array)
+        ref = read_height_map(args.reference, array=args.array)
+        a, b, origin = overlap_by_origin(est, ref)
+        region = _region(args.region)
+        mask = None if region is None else region_mask(a.shape, origin, region)
+        max_depth = args.max_depth_um or est.max_depth_um or ref.max_depth_um
+        note = ""
+        if max_depth is None:
+            finite = b[np.isfinite(b)]
+            if finite.size == 0:
+                raise ValueError(f"{args.reference}: no finite height")
+            max_depth = float(finite.max() - finite.min()) or 1.0
+            note = " (MAX_d = the reference's height range; set --max-depth-um)"
+        report = compare_height_maps(a, b, max_depth_um=max_depth, align=args.align,
+                                     bins=args.bins, range_um=args.range_um,
+                                     max_shift_px=args.max_shift_px, mask=mask,
+                                     names=(str(args.estimate), str(args.reference)))
+    except ValueError as err:
+        return _fail(str(err))
+    print(format_report(report) + note)
+    if args.json:
+        Path(args.json).write_text(report.model_dump_json(indent=2) + "\n", encoding="utf-8")
+        print(f"wrote {args.json}", file=sys.stderr)
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- export
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.formats.exports import read_region, write_ply, write_x3p
+    from sffscan.pipeline.metrology.areal import areal_parameters
+
+    try:
+        region = _region(args.region)
+        if args.ply:
+            n = write_ply(args.ply, args.mosaic, region)
+            print(f"wrote {args.ply}: {n['points']} points (x y z mm, grey)"
+                  + (f", {n['no_texture']} without texture (grey 0)" if n["no_texture"] else ""))
+        if args.x3p:
+            n = write_x3p(args.x3p, args.mosaic, region)
+            print(f"wrote {args.x3p}: {n['rows']}x{n['cols']} surface, {n['missing']} points "
+                  "not measured")
+        reg = read_region(args.mosaic, region)
+        params = areal_parameters(reg.height_um, level=args.level)
+    except ValueError as err:
+        return _fail(str(err))
+    box = (reg.x0_px, reg.y0_px, reg.x0_px + reg.height_um.shape[1],
+           reg.y0_px + reg.height_um.shape[0])
+    print(f"region x {box[0]}..{box[2]} y {box[1]}..{box[3]} px: {params.format()}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"region_px": box, **params.as_dict()}, indent=2)
+                                   + "\n", encoding="utf-8")
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------------------- parser
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("stack", help="reconstruct one field from a focus stack",
+                       description="Height, all-in-focus image and confidence of one field "
+                                   "from a focus stack, written as a mosaic Zarr group.")
+    p.add_argument("images", nargs="*", help="image files, one per focus level, in order")
+    p.add_argument("--zarr", help="read the stack from this Zarr (N, H, W) array or group")
+    p.add_argument("--array", help="array inside the Zarr group given with --zarr")
+    p.add_argument("--focus-file", help="focus positions, one per image (text)")
+    p.add_argument("--focus-start", type=float, help="focus position of the first image")
+    p.add_argument("--focus-step", type=float, help="focus step between images")
+    p.add_argument("--focus-unit", choices=sorted(UNIT_TO_UM), default="um",
+                   help="unit of the focus positions (default um)")
+    p.add_argument("--pixel-um", type=float, required=True, help="object pixel size, µm/px")
+    p.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+    p.add_argument("-o", "--output", required=True, help="mosaic Zarr group to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
+    p.add_argument("--save-npy", help="also save the height map (µm) as .npy")
+    _settings_options(p)
+    p.set_defaults(func=cmd_stack)
+
+    p = sub.add_parser("stopgo", help="simulated stop-and-go grid stitched into a mosaic",
+                       description="Stop-and-go measurement of the simulated characterisation "
+                                   "plate: a grid of stationary fields, blended by stage "
+                                   "position into one mosaic, scored against the true surface.")
+    p.add_argument("-o", "--output", default="sffscan-stopgo.zarr", help="mosaic Zarr group")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--area-mm", type=float, nargs=4, default=[2.0, 22.0, 0.0, 4.0],
+                   metavar=("X0", "X1", "Y0", "Y1"), help="area to cover, mm")
+    p.add_argument("--field", type=int, nargs=2, default=[320, 256], metavar=("W", "H"),
+                   help="field size, px (default 320 256)")
+    p.add_argument("--pixel-um", type=float, default=17.0, help="pixel size, µm (default 17)")
+    p.add_argument("--overlap-px", type=int, default=40, help="least overlap, px (default 40)")
+    p.add_argument("--levels", type=int, default=50, help="focus levels (default 50)")
+    p.add_argument("--z-step-um", type=float, default=200.0, help="focus step, µm")
+    p.add_argument("--plate-length-mm", type=float, default=24.0)
+    p.add_argument("--plate-width-mm", type=float, default=4.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-q", "--quiet", action="store_true")
+    _settings_options(p)
+    p.set_defaults(func=cmd_stopgo)
+
+    p = sub.add_parser("compare", help="RMSE, CORR, PSNR and error histogram of two height maps",
+                       description="Compare a height map (mosaic, Zarr array, .npy or float "
+                                   "TIFF, µm) with a reference; mosaics are lined up by their "
+                                   "world origin.")
+    p.add_argument("estimate")
+    p.add_argument("reference")
+    p.add_argument("--array", default="height", help="array of a Zarr group (default height)")
+    p.add_argument("--align", choices=["none", "offset", "plane", "shift"], default="none",
+                   help="remove an offset, a plane, or a lateral shift and a plane first")
+    p.add_argument("--max-shift-px", type=int, default=10, help="shift search range, px")
+    p.add_argument("--region", help="score only this box X0,Y0,X1,Y1 (world px; array px "
+                                    "when neither map has a world origin)")
+    p.add_argument("--max-depth-um", type=float, help="MAX_d of the PSNR, µm")
+    p.add_argument("--bins", type=int, default=20, help="histogram bins (default 20)")
+    p.add_argument("--range-um", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="histogram range, µm (default +-99.9th percentile of |error|)")
+    p.add_argument("--json", help="write the report (schemas/compare_report.v1.json)")
+    p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser("export", help="export a mosaic region (PLY, x3p) and its Sa, Sq, ...",
+                       description="Export a mosaic region as a binary PLY point cloud (x y z "
+                                   "mm + grey) and/or an ISO 25178-72 x3p surface, and print "
+                                   "its areal parameters Sa, Sq, Sz, Ssk, Sku.")
+    p.add_argument("mosaic")
+    p.add_argument("--region", help="world px box X0,Y0,X1,Y1 (default: whole mosaic)")
+    p.add_argument("--ply", help="write a binary PLY point cloud")
+    p.add_argument("--x3p", help="write an ISO 25178-72 x3p file")
+    p.add_argument("--level", choices=["plane", "mean", "none"], default="plane",
+                   help="reference surface of the areal parameters (default plane)")
+    p.add_argument("--json", help="write the areal parameters as JSON")
+    p.set_defaults(func=cmd_export)

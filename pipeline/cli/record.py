@@ -1,0 +1,181 @@
+"""Commands ``sffscan replay`` and ``sffscan info``: re-process and summarise recordings.
+
+``sffscan scan --record PATH`` writes a recording (:mod:`sffscan.stages.recorder`); ``replay`` runs
+the same pipeline over its frames (as fast as possible, or paced by the recorded time
+stamps with ``--realtime``), with the recorded configuration and the processing options
+given on the command line; ``--resume`` completes an interrupted mosaic. ``info``
+summarises a recording (frames, duration, gaps and other defects, configuration) or a
+mosaic (status, tiles complete / incomplete, journal).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import zarr
+from sffscan.pipeline.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+    describe,
+    override,
+    processing_options,
+    run_and_report,
+    viewer_sink,
+)
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.recording import (
+    Recording,
+    RecordingError,
+    annotate_mosaic,
+    open_recording,
+)
+
+
+def _print_report(rec: Recording) -> None:
+    for line in rec.report.lines():
+        print(line, file=sys.stderr)
+
+
+def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
+            sinks: list[Any]) -> int:
+    """Complete an interrupted mosaic: the whole recording runs through the pipeline again;
+    the writer skips the writes already in the mosaic and rebuilds the torn tiles."""
+    from sffscan.stages.mosaic import MosaicWriter
+
+    try:
+        writer = MosaicWriter.reopen(cfg.output.path, scan_config=cfg.model_dump(mode="json"))
+    except ValueError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"resuming {writer.path}: {writer.done} writes done, {len(writer.rebuild)} torn "
+          "region(s) to rebuild", file=sys.stderr)
+    return run_and_report(cfg, rec.frames(realtime=args.realtime), world=None,
+                          progress=not args.quiet, sinks=sinks, writer=writer,
+                          kept=f"{writer.path} can be resumed again; it holds what was completed")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    try:
+        rec = open_recording(args.recording)
+    except RecordingError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    _print_report(rec)
+    if args.strict and rec.report.defects:
+        print(f"sffscan: {args.recording}: {rec.report.defects} defect(s) and --strict given; "
+              "nothing replayed", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.resume:
+        args.overwrite = False
+    cfg = override(rec.config, args)
+    print(describe(cfg), file=sys.stderr)
+    sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off"),) if k]
+    if args.resume:
+        code = _resume(cfg, rec, args, sinks)
+    else:
+        world = None
+        if args.evaluate and cfg.source.kind == "sim":
+            from sffscan.stages.sim.scanner import make_world
+
+            world = make_world(cfg)
+        frames = rec.frames(realtime=args.realtime)
+        code = run_and_report(cfg, frames, world=world, progress=not args.quiet, sinks=sinks)
+    out = Path(cfg.output.path)
+    if out.exists() and code != EXIT_BAD_INPUT:
+        annotate_mosaic(out, rec)
+    if rec.report.corrupt:  # found while reading the frames
+        print(f"sffscan: {len(rec.report.corrupt)} frame chunk(s) could not be decoded and "
+              f"were left out (lost frames): frame_id "
+              + ", ".join(map(str, rec.report.corrupt[:20])), file=sys.stderr)
+    if args.strict and rec.report.defects and code == EXIT_OK:
+        return EXIT_FAILED
+    return code
+
+
+def _info_mosaic(path: Path) -> int:
+    from sffscan.stages.mosaic import tile_states
+
+    try:
+        _, info = tile_states(path)
+    except (ValueError, KeyError) as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
+    print(f"mosaic      {path} (status {info['status']})")
+    print(f"tiles       {info['tiles']}: {info['complete']} complete, {info['incomplete']} "
+          f"incomplete, {info['empty']} empty")
+    print(f"journal     {info['writes_done']} writes done"
+          + (f"; torn write at world px box {info['writing']}" if info["writing"] else "")
+          + (f"; rebuilding {info['rebuild']}" if info["rebuild"] else ""))
+    print(f"processing  {attrs.get('processing')}")
+    rec = attrs.get("recording")
+    if isinstance(rec, dict):
+        print(f"replayed    from {rec.get('path')} ({rec.get('frames')} frames, "
+              f"{rec.get('frames_lost')} lost)")
+    if info["incomplete"]:
+        print("incomplete tiles hold untrustworthy values: complete them with "
+              "'sffscan replay RECORDING -o MOSAIC --resume'")
+    return EXIT_OK
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    path = Path(args.path)
+    try:
+        fmt = zarr.open_group(str(path), mode="r").attrs.get("format")
+    except Exception:  # noqa: BLE001 - reported by open_recording below
+        fmt = None
+    if fmt == "sffscan-mosaic":
+        return _info_mosaic(path)
+    try:
+        rec = open_recording(path)
+        if args.verify:
+            rec.verify()
+    except RecordingError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    for line in rec.report.lines():
+        print(line)
+    a = rec.attrs
+    rate = (rec.report.frames - 1) / rec.report.duration_s if rec.report.duration_s else 0.0
+    print(f"format      {a.format} v{a.format_version}, frames {list(a.frame_shape)} {a.dtype}, "
+          f"codec {a.codec or 'unknown'}, written by {a.writer or 'unknown'} "
+          f"{a.created or ''}".rstrip())
+    print(f"rate        {rate:.1f} frames/s (from the time stamps)")
+    print(describe(rec.config))
+    p = rec.config.processing
+    print(f"processing  {p.focus_operator} k={p.window}, {p.depth_method}, registration "
+          f"{'on' if p.registration else 'off'}")
+    if args.verify:
+        print(f"verified    every usable frame decoded; {len(rec.report.corrupt)} corrupt")
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("replay", help="re-process a recording into a mosaic",
+                       description="Run the pipeline over a recording made with 'sffscan scan "
+                                   "--record': the recorded configuration, with the processing "
+                                   "options given here. With the same configuration the "
+                                   "mosaic is bit for bit the live run's.")
+    p.add_argument("recording", help="recording (Zarr v3 group)")
+    p.add_argument("-o", "--output", required=True, help="mosaic path (Zarr v3 group)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
+    p.add_argument("--resume", action="store_true",
+                   help="complete an interrupted mosaic at --output (same configuration)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the frames by their recorded time stamps (live monitoring)")
+    p.add_argument("--evaluate", action="store_true",
+                   help="score a simulated recording against the simulation's true surface")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a recording with any defect (gaps, duplicates, corrupt chunks)")
+    processing_options(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("info", help="summarise a recording (or a mosaic)")
+    p.add_argument("path", help="recording or mosaic (Zarr v3 group)")
+    p.add_argument("--verify", action="store_true", help="decode every frame (finds corrupt "
+                                                           "chunks; reads the whole recording)")
+    p.set_defaults(func=cmd_info)

@@ -1,0 +1,235 @@
+"""Exports of a mosaic region: binary PLY point cloud and ISO 25178-72 x3p.
+
+Coordinates are world coordinates: world pixel (x, y) has its centre at
+``(x, y) * pixel_um`` µm (the mosaic's convention), z is the height. Only pixels with a
+finite height are exported; missing pixels are not filled:
+
+- PLY (binary little-endian): one vertex per finite pixel, ``float x, y, z`` in **mm** and
+  ``uchar grey`` = round(255 * texture) (0 where the texture is missing; counted). Written
+  band by band, so memory stays bounded for any region.
+- x3p (ISO 25178-72, through the ``x3pio`` library): a surface on the regular grid of the
+  region, heights in metres (float64), NaN = not measured; x and y increments = the pixel
+  size; the placement's offset is the world position (x, y) of the region's first pixel.
+  Metadata names sffscan as the instrument (non-contacting probing: shape from focus) and
+  keeps the processing settings in the comment.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from sffscan.pipeline.messages import MosaicAttrs
+from sffscan.stages.mosaic import mosaic_array
+
+__all__ = ["MosaicRegion", "PLY_DTYPE", "read_ply", "read_region", "region_box", "write_ply",
+           "write_x3p"]
+
+PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("grey", "u1")])
+"""Record layout of a PLY vertex as written here (13 bytes, little-endian)."""
+
+
+@dataclass
+class MosaicRegion:
+    """A region of a mosaic: arrays (rows, cols) and the world pixel of element [0, 0]."""
+
+    height_um: np.ndarray
+    texture: np.ndarray
+    x0_px: int
+    y0_px: int
+    pixel_um: float
+    attrs: dict[str, Any]
+
+
+def _open(path: str | Path) -> tuple[zarr.Group, MosaicAttrs]:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such mosaic")
+    try:
+        group = zarr.open_group(str(p), mode="r")
+    except Exception as err:  # noqa: BLE001 - not a Zarr group: bad input
+        raise ValueError(f"{p}: not a Zarr mosaic ({err})") from None
+    if group.attrs.get("format") != "sffscan-mosaic":
+        raise ValueError(f"{p}: not an sffscan mosaic (attribute 'format' is "
+                         f"{group.attrs.get('format')!r})")
+    return group, MosaicAttrs.model_validate(group.attrs.asdict())
+
+
+def region_box(path: str | Path, region_px: tuple[int, int, int, int] | None = None
+               ) -> tuple[int, int, int, int]:
+    """The world px box (x0, y0, x1, y1) of ``region_px`` clipped to the mosaic (whole mosaic
+    by default); ValueError if it lies outside."""
+    group, attrs = _open(path)
+    ox, oy = attrs.origin_px
+    rows, cols = mosaic_array(group, "height").shape
+    if region_px is None:
+        return ox, oy, ox + cols, oy + rows
+    x0, y0, x1, y1 = region_px
+    if not (x1 > x0 and y1 > y0):
+        raise ValueError(f"region {region_px} must have x0 < x1 and y0 < y1")
+    box = max(x0, ox), max(y0, oy), min(x1, ox + cols), min(y1, oy + rows)
+    if box[2] <= box[0] or box[3] <= box[1]:
+        raise ValueError(f"region {region_px} lies outside the mosaic "
+                         f"({ox}, {oy}, {ox + cols}, {oy + rows})")
+    return box
+
+
+def read_region(path: str | Path, region_px: tuple[int, int, int, int] | None = None
+                ) -> MosaicRegion:
+    """Height and texture of a world px box (x0, y0, x1, y1) of a mosaic (clipped to it)."""
+    group, attrs = _open(path)
+    x0, y0, x1, y1 = region_box(path, region_px)
+    ox, oy = attrs.origin_px
+    sel = (slice(y0 - oy, y1 - oy), slice(x0 - ox, x1 - ox))
+    return MosaicRegion(np.asarray(mosaic_array(group, "height")[sel]),
+                        np.asarray(mosaic_array(group, "texture")[sel]),
+                        x0, y0, attrs.pixel_um, attrs.model_dump(mode="json"))
+
+
+# ----------------------------------------------------------------------------- PLY
+
+
+def _ply_header(count: int, comment: str) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", "comment sffscan height mosaic export",
+             "comment units: x y z in mm, grey 0..255"]
+    lines += [f"comment {c}" for c in comment.splitlines() if c]
+    lines += [f"element vertex {count}", "property float x", "property float y",
+              "property float z", "property uchar grey", "end_header"]
+    # PLY headers are ASCII: other characters (a mosaic named "Prüfkörper") are escaped
+    return ("\n".join(lines) + "\n").encode("ascii", errors="backslashreplace")
+
+
+def ply_vertices(height_um: np.ndarray, texture: np.ndarray, *, x0_px: int, y0_px: int,
+                 pixel_um: float) -> np.ndarray:
+    """PLY records (:data:`PLY_DTYPE`) of the finite pixels of a (rows, cols) block."""
+    rows, cols = np.nonzero(np.isfinite(height_um))
+    out = np.empty(rows.size, dtype=PLY_DTYPE)
+    mm = pixel_um / 1000.0
+    out["x"] = (x0_px + cols) * mm
+    out["y"] = (y0_px + rows) * mm
+    out["z"] = height_um[rows, cols] / 1000.0
+    t = texture[rows, cols]
+    out["grey"] = np.where(np.isfinite(t), np.clip(np.rint(np.nan_to_num(t) * 255), 0, 255), 0)
+    return out
+
+
+def write_ply(path: str | Path, mosaic: str | Path,
+              region_px: tuple[int, int, int, int] | None = None, *,
+              band_rows: int = 256) -> dict[str, int]:
+    """Write the finite pixels of a mosaic region as a binary PLY point cloud.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.ply`` file.
+    mosaic : str or Path
+        The mosaic (Zarr group).
+    region_px : (x0, y0, x1, y1), optional
+        World px box; the whole mosaic by default.
+    band_rows : int, keyword-only
+        Rows read at once (memory bound).
+
+    Returns
+    -------
+    dict
+        ``points`` written and ``no_texture`` (points whose grey is 0 for lack of a texture).
+    """
+    group, attrs = _open(mosaic)
+    x0, y0, x1, y1 = region_box(mosaic, region_px)
+    ox, oy = attrs.origin_px
+    height, texture = mosaic_array(group, "height"), mosaic_array(group, "texture")
+    bands = [(r, min(r + band_rows, y1)) for r in range(y0, y1, band_rows)]
+    cs = slice(x0 - ox, x1 - ox)
+    count = sum(int(np.isfinite(np.asarray(height[a - oy:b - oy, cs])).sum()) for a, b in bands)
+    comment = (f"source {Path(mosaic).name} region x {x0}..{x1} y {y0}..{y1} px, "
+               f"pixel {attrs.pixel_um} um")
+    no_tex = written = 0
+    out = Path(path)
+    part = out.with_name(out.name + ".part")  # renamed when whole: no half-written PLY
+    try:
+        with open(part, "wb") as f:
+            f.write(_ply_header(count, comment))
+            for a, b in bands:
+                h = np.asarray(height[a - oy:b - oy, cs])
+                t = np.asarray(texture[a - oy:b - oy, cs])
+                rec = ply_vertices(h, t, x0_px=x0, y0_px=a, pixel_um=attrs.pixel_um)
+                no_tex += int((~np.isfinite(t[np.isfinite(h)])).sum())
+                written += rec.size
+                f.write(rec.tobytes())
+        if written != count:  # the mosaic changed between the passes
+            raise ValueError(f"{mosaic}: changed while exporting ({count} then {written} "
+                             "points)")
+        part.replace(out)
+    finally:
+        part.unlink(missing_ok=True)
+    return {"points": written, "no_texture": no_tex}
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """Read a binary little-endian PLY of :data:`PLY_DTYPE` vertices (as written here).
+
+    Returns the records and the header lines.
+    """
+    data = Path(path).read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise ValueError(f"{path}: not a PLY file")
+    header = data[:end].decode("ascii").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise ValueError(f"{path}: not binary little-endian PLY")
+    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
+    props = [tuple(line.split()[1:]) for line in header if line.startswith("property")]
+    if props != [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "grey")]:
+        raise ValueError(f"{path}: unexpected vertex properties {props}")
+    body = data[end + len(b"end_header\n"):]
+    if len(body) != count * PLY_DTYPE.itemsize:
+        raise ValueError(f"{path}: {len(body)} bytes of data for {count} vertices")
+    return np.frombuffer(body, dtype=PLY_DTYPE), header
+
+
+# ----------------------------------------------------------------------------- x3p
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("sffscan")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def write_x3p(path: str | Path, mosaic: str | Path,
+              region_px: tuple[int, int, int, int] | None = None) -> dict[str, int]:
+    """Write a mosaic region as an ISO 25178-72 x3p surface (via ``x3pio``).
+
+    Returns ``rows``, ``cols`` and ``missing`` (NaN, "not measured", points).
+    """
+    import x3pio
+    from x3pio import CoordinateSystem, Metadata, Placement, ProbingType
+
+    region = read_region(mosaic, region_px)
+    z_m = region.height_um.astype(np.float64) * 1e-6
+    px_m = region.pixel_um * 1e-6
+    meta = Metadata.for_software("sffscan", _version())
+    meta.instrument.manufacturer = "sffscan"
+    meta.instrument.model = "shape from focus (sffscan)"
+    meta.probing_system.type = ProbingType.NON_CONTACTING
+    meta.probing_system.identification = (
+        f"shape from focus, {region.pixel_um} um/px, "
+        f"{len(region.attrs.get('focus_heights_um') or [])} focus levels")
+    meta.comment = json.dumps({"source": str(mosaic),
+                               "region_px": [region.x0_px, region.y0_px,
+                                             region.x0_px + z_m.shape[1],
+                                             region.y0_px + z_m.shape[0]],
+                               "processing": region.attrs.get("processing", {})},
+                              ensure_ascii=True, sort_keys=True)
+    placement = Placement.translation(region.x0_px * px_m, region.y0_px * px_m, 0.0)
+    x3pio.write(path, z_m, x_scale=px_m, y_scale=px_m, metadata=meta, placement=placement,
+                coordinate_system=CoordinateSystem.VIEW)
+    return {"rows": int(z_m.shape[0]), "cols": int(z_m.shape[1]),
+            "missing": int((~np.isfinite(z_m)).sum())}

@@ -1,0 +1,410 @@
+"""Raw-stream recordings: the format (a Zarr v3 group) and a validating reader.
+
+Layout (format ``sffscan-recording``, version 1; schema ``schemas/recording_attrs.v1.json``):
+
+- ``frames``: uint8 or uint16 (n, H, W), one frame per chunk;
+- ``frame_id``: int64 (n,), the camera's frame counter; ``-1`` (the fill value) = not written;
+- ``timestamp_ns``: int64 (n,), exposure time stamp, ns;
+- ``focus_index``: int32 (n,), focus level of the lens staircase;
+- ``stage_x_um``, ``stage_y_um``: float64 (n,), commanded stage position, µm; NaN = none
+  (optional arrays: without them frames are placed by the speed model);
+- ``pass_index``: int32 (n,) (optional when the configuration has one pass);
+- group attributes (:class:`RecordingAttrs`): format, version, status, frame shape and dtype,
+  and the whole scan configuration.
+
+Entry ``i`` of every per-frame array describes ``frames[i]``. Arrays may be longer than what
+was written (the recorder grows them in steps): entries whose ``frame_id`` is -1 are not
+frames. The reader (:func:`open_recording`) validates all of it and reports every defect
+with counts and frame ids: frame-id gaps, duplicated and out-of-order frames, corrupt or
+truncated chunks, missing chunks or metadata, a shape or dtype that disagrees with the
+attributes. What is recoverable is reported and left out (never filled); what is not
+raises :class:`RecordingError` naming the array, attribute or frame.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import zarr
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
+from sffscan.pipeline.messages import Frame, FrameHeader
+
+FORMAT = "sffscan-recording"
+FORMAT_VERSION = 1
+#: per-frame arrays: name -> (dtype, fill value, required)
+PER_FRAME: dict[str, tuple[str, Any, bool]] = {
+    "frame_id": ("int64", -1, True),
+    "timestamp_ns": ("int64", -1, True),
+    "focus_index": ("int32", -1, True),
+    "stage_x_um": ("float64", float("nan"), False),
+    "stage_y_um": ("float64", float("nan"), False),
+    "pass_index": ("int32", -1, False),
+}
+#: chunk length of the per-frame arrays written by the recorder, frames (uncompressed)
+META_CHUNK = 1024
+
+
+class RecordingAttrs(BaseModel):
+    """Attributes of a raw-stream recording Zarr group (format ``sffscan-recording``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    format: Literal["sffscan-recording"] = "sffscan-recording"
+    format_version: Literal[1] = 1
+    status: Literal["recording", "complete", "failed"] = Field(
+        "complete", description="'recording' while being written (still so after a crash: "
+        "the frames up to the last complete one are readable); 'complete' after a clean end; "
+        "'failed' if the scan or the recorder stopped on an error")
+    frame_shape: tuple[int, int] = Field(description="Frame (height, width), px")
+    dtype: Literal["uint8", "uint16"] = Field(description="Frame pixel type")
+    scan_config: dict[str, Any] = Field(description="The scan configuration (scan_config "
+                                        "schema) the frames were acquired with")
+    created: str | None = Field(None, description="UTC creation time, ISO 8601")
+    frames: int | None = Field(None, ge=0, description="Frames written (set when closed)")
+    codec: str | None = Field(None, description="Codec of the frames array, informative")
+    writer: str | None = Field(None, description="Program that wrote the recording")
+    error: str | None = Field(None, description="Why the recording stopped, if it failed")
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be replayed; the message names the array, attribute or frame."""
+
+
+@dataclass
+class RecordingReport:
+    """What :func:`open_recording` (and the frame iterator) found in a recording."""
+
+    path: str
+    status: str
+    entries: int = 0  # entries of the per-frame arrays examined
+    frames: int = 0  # usable frames (replayed)
+    unwritten: int = 0  # trailing entries never written (array growth, or a crash)
+    first_id: int | None = None
+    last_id: int | None = None
+    duration_s: float = 0.0
+    gaps: list[tuple[int, int]] = field(default_factory=list)  # (first missing id, count)
+    duplicates: list[int] = field(default_factory=list)  # ids seen again (copies dropped)
+    out_of_order: list[int] = field(default_factory=list)  # frame ids stored out of order (sorted)
+    missing_metadata: list[int] = field(default_factory=list)  # array indexes without metadata
+    missing_chunks: list[int] = field(default_factory=list)  # frame ids without a frame chunk
+    corrupt: list[int] = field(default_factory=list)  # frame ids whose chunk cannot be decoded
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def lost(self) -> int:
+        return sum(n for _, n in self.gaps)
+
+    @property
+    def defects(self) -> int:
+        return (len(self.gaps) + len(self.duplicates) + len(self.out_of_order)
+                + len(self.missing_metadata) + len(self.missing_chunks) + len(self.corrupt))
+
+    def lines(self) -> list[str]:
+        """The report as text, one finding per line (ids listed up to 20)."""
+        out = [f"recording   {self.path} (status {self.status})",
+               f"frames      {self.frames} usable of {self.entries} entries"
+               + (f", {self.unwritten} trailing entries not written" if self.unwritten else "")]
+        if self.first_id is not None:
+            out.append(f"frame_id    {self.first_id}..{self.last_id}, {self.duration_s:.3f} s")
+        if self.gaps:
+            out.append(f"gaps        {len(self.gaps)} ({self.lost} frames lost): "
+                       + _ids([f"{a}..{a + n - 1}" if n > 1 else str(a) for a, n in self.gaps]))
+        for name, ids in (("duplicates", self.duplicates), ("out of order", self.out_of_order),
+                          ("no metadata", self.missing_metadata),
+                          ("no chunk", self.missing_chunks), ("corrupt", self.corrupt)):
+            if ids:
+                what = "array indexes" if name == "no metadata" else "frame_id"
+                out.append(f"{name:<11} {len(ids)}: {what} " + _ids([str(i) for i in ids]))
+        out += [f"note        {n}" for n in self.notes]
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-able summary, stored in the attributes of a mosaic replayed from it."""
+        return {"path": self.path, "status": self.status, "frames": self.frames,
+                "entries": self.entries, "frames_lost": self.lost + len(self.corrupt),
+                "gaps": [list(g) for g in self.gaps[:100]], "duplicates": self.duplicates[:100],
+                "out_of_order": self.out_of_order[:100],
+                "missing_metadata": self.missing_metadata[:100],
+                "missing_chunks": self.missing_chunks[:100], "corrupt": self.corrupt[:100]}
+
+
+def _ids(ids: list[str], limit: int = 20) -> str:
+    more = f" ... (+{len(ids) - limit})" if len(ids) > limit else ""
+    return ", ".join(ids[:limit]) + more
+
+
+def _array(group: zarr.Group, name: str, path: str) -> zarr.Array | None:
+    node = group.get(name)
+    if node is None:
+        return None
+    if not isinstance(node, zarr.Array):
+        raise RecordingError(f"{path}: '{name}' is not an array")
+    return node
+
+
+def _chunk_keys(arr: zarr.Array) -> set[str]:
+    """Keys (relative to the array) of the chunks present in the store."""
+    from zarr.core.sync import sync
+
+    sp = arr.store_path
+    prefix = f"{sp.path}/" if sp.path else ""
+
+    async def _list() -> list[str]:
+        return [k async for k in sp.store.list_prefix(prefix)]
+
+    return {k[len(prefix):] for k in sync(_list())}
+
+
+def _stored(arr: zarr.Array) -> tuple[int, ...]:
+    """Shape of one stored object of ``arr`` (its shard if sharded, else its chunk)."""
+    return tuple(int(c) for c in (arr.shards or arr.chunks))
+
+
+def _same_fill(arr: zarr.Array, fill: Any) -> bool:
+    a = arr.fill_value
+    if isinstance(fill, float) and np.isnan(fill):
+        return bool(np.isnan(a)) if np.asarray(a).dtype.kind == "f" else False
+    return bool(a == fill)
+
+
+def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
+                    required: bool) -> np.ndarray:
+    """Read entries [0, n) chunk by chunk; entries of an unreadable chunk become ``fill``
+    and their indexes go to ``bad``.
+
+    Zarr stores no chunk equal to the array's fill value and reads an absent chunk as that
+    value, so a lost chunk cannot be told from one that was all fill. For a required array
+    whose fill value is not the documented one (-1, "not written"), an absent chunk would
+    read as real metadata (focus level 0, time stamp 0): its entries go to ``bad`` instead.
+    """
+    chunk = _stored(arr)[0]
+    keys = _chunk_keys(arr)
+    enc = arr.metadata.encode_chunk_key  # type: ignore[union-attr]
+    doubt_absent = required and not _same_fill(arr, fill)
+    out = np.full(n, fill, dtype=arr.dtype)
+    for a in range(0, n, chunk):
+        b = min(n, a + chunk)
+        if doubt_absent and enc((a // chunk,)) not in keys:
+            bad.update(range(a, b))
+            continue
+        try:
+            out[a:b] = np.asarray(arr[a:b])
+        except Exception:  # noqa: BLE001 - any decode failure is a corrupt chunk
+            bad.update(range(a, b))
+    return out
+
+
+@dataclass
+class Recording:
+    """An opened, validated recording: attributes, configuration, usable frames in order."""
+
+    path: Path
+    attrs: RecordingAttrs
+    config: ScanConfig
+    report: RecordingReport
+    group: zarr.Group
+    #: array indexes of the usable frames, in replay (frame_id) order
+    order: np.ndarray
+    meta: dict[str, np.ndarray]
+
+    def header(self, index: int) -> FrameHeader:
+        m = self.meta
+        sx, sy = float(m["stage_x_um"][index]), float(m["stage_y_um"][index])
+        return FrameHeader(frame_id=int(m["frame_id"][index]),
+                           timestamp_ns=int(m["timestamp_ns"][index]),
+                           focus_index=int(m["focus_index"][index]),
+                           stage_x_um=None if np.isnan(sx) else sx,
+                           stage_y_um=None if np.isnan(sy) else sy,
+                           pass_index=int(m["pass_index"][index]))
+
+    def frames(self, *, realtime: bool = False, start: int = 0,
+               clock: Callable[[], float] = time.monotonic,
+               sleep: Callable[[float], None] = time.sleep) -> Iterator[Frame]:
+        """The usable frames in frame_id order, from the ``start``-th.
+
+        A frame whose chunk cannot be decoded is left out (a lost frame for the pipeline)
+        and its frame_id added to ``report.corrupt``. ``realtime`` paces the frames by their
+        time stamps (``clock`` and ``sleep`` are replaceable for tests)."""
+        arr = _array(self.group, "frames", str(self.path))
+        assert arr is not None
+        shape = self.attrs.frame_shape
+        t_wall0: float | None = None
+        t_ns0 = 0
+        for index in self.order[start:]:
+            header = self.header(int(index))
+            try:
+                image = np.asarray(arr[int(index)])
+                if image.shape != shape:
+                    raise ValueError(f"shape {image.shape}")
+            except Exception:  # noqa: BLE001 - undecodable or truncated chunk
+                if header.frame_id not in self.report.corrupt:
+                    self.report.corrupt.append(header.frame_id)
+                    self.report.frames -= 1  # not usable after all
+                continue
+            if realtime:
+                if t_wall0 is None:
+                    t_wall0, t_ns0 = clock(), header.timestamp_ns
+                delay = t_wall0 + (header.timestamp_ns - t_ns0) * 1e-9 - clock()
+                if delay > 0:
+                    sleep(delay)
+            yield Frame(header, image)
+
+    def verify(self) -> list[int]:
+        """Decode every usable frame; frame ids of the corrupt ones (also in the report)."""
+        before = len(self.report.corrupt)
+        for _ in self.frames():
+            pass
+        return self.report.corrupt[before:]
+
+
+def open_recording(path: str | Path) -> Recording:
+    """Open and validate a recording.
+
+    Raises
+    ------
+    RecordingError
+        The path is not a recording, an attribute is invalid, the ``frames`` array or a
+        required per-frame array is missing, the frames' shape or dtype disagrees with the
+        attributes or the configuration, or no frame is usable.
+    """
+    p = Path(path)
+    where = str(p)
+    if not p.exists():
+        raise RecordingError(f"{where}: no such recording")
+    try:
+        group = zarr.open_group(where, mode="r")
+    except Exception as exc:  # noqa: BLE001 - anything that is not a readable group
+        raise RecordingError(f"{where}: not a Zarr v3 group ({exc})") from exc
+    raw = group.attrs.asdict()
+    if raw.get("format") != FORMAT:
+        raise RecordingError(f"{where}: attribute 'format' is {raw.get('format')!r}, "
+                             f"expected {FORMAT!r} (not an sffscan recording)")
+    try:
+        attrs = RecordingAttrs.model_validate(raw)
+    except ValidationError as err:
+        e = err.errors()[0]
+        loc = ".".join(str(x) for x in e["loc"])
+        raise RecordingError(f"{where}: attribute '{loc}': {e['msg']}") from err
+    try:
+        cfg = config_from_dict(dict(attrs.scan_config), origin=f"{where} attribute scan_config")
+    except ConfigError as err:
+        raise RecordingError(str(err)) from err
+    o = cfg.optics
+    if tuple(attrs.frame_shape) != (o.height_px, o.width_px):
+        raise RecordingError(f"{where}: attribute frame_shape {list(attrs.frame_shape)} "
+                             f"disagrees with scan_config optics (height_px, width_px) = "
+                             f"[{o.height_px}, {o.width_px}]")
+    if attrs.dtype != o.dtype:
+        raise RecordingError(f"{where}: attribute dtype {attrs.dtype} disagrees with "
+                             f"scan_config optics.bit_depth {o.bit_depth} ({o.dtype})")
+    frames = _array(group, "frames", where)
+    if frames is None:
+        raise RecordingError(f"{where}: array 'frames' is missing")
+    if frames.ndim != 3 or tuple(frames.shape[1:]) != tuple(attrs.frame_shape):
+        raise RecordingError(f"{where}: array 'frames' has shape {list(frames.shape)}, expected "
+                             f"[n, {attrs.frame_shape[0]}, {attrs.frame_shape[1]}] "
+                             "(attribute frame_shape)")
+    if frames.dtype != np.dtype(attrs.dtype):
+        raise RecordingError(f"{where}: array 'frames' has dtype {frames.dtype}, the attribute "
+                             f"dtype says {attrs.dtype}")
+    report = RecordingReport(where, attrs.status)
+    if attrs.status == "recording":
+        report.notes.append("status 'recording': the recorder did not close it (killed or "
+                            "crashed?); replaying up to its last complete frame")
+    elif attrs.status == "failed":
+        report.notes.append(f"status 'failed': {attrs.error or 'the scan stopped on an error'}")
+    arrays: dict[str, zarr.Array] = {}
+    for name, (_, _, required) in PER_FRAME.items():
+        arr = _array(group, name, where)
+        if arr is None:
+            if required or (name == "pass_index" and cfg.motion.passes > 1):
+                raise RecordingError(f"{where}: per-frame array '{name}' is missing")
+            continue
+        if arr.ndim != 1:
+            raise RecordingError(f"{where}: per-frame array '{name}' has shape "
+                                 f"{list(arr.shape)}, expected one dimension")
+        kind = np.dtype(PER_FRAME[name][0]).kind
+        if arr.dtype.kind not in (("i", "u") if kind == "i" else ("f",)):
+            raise RecordingError(f"{where}: per-frame array '{name}' has dtype {arr.dtype}, "
+                                 f"expected {PER_FRAME[name][0]}")
+        arrays[name] = arr
+    for name in ("stage_x_um", "stage_y_um"):
+        if name not in arrays:
+            report.notes.append(f"no '{name}' array: frames are placed by the speed model")
+    n = min([int(frames.shape[0])] + [int(a.shape[0]) for a in arrays.values()])
+    longer = [f"{k} ({a.shape[0]})" for k, a in {"frames": frames, **arrays}.items()
+              if a.shape[0] > n]
+    bad: set[int] = set()
+    meta: dict[str, np.ndarray] = {}
+    for name, (dtype, fill, _) in PER_FRAME.items():
+        if name in arrays:
+            meta[name] = _read_per_frame(arrays[name], n, fill, bad,
+                                         required=PER_FRAME[name][2]).astype(dtype)
+        else:
+            meta[name] = np.full(n, 0 if name == "pass_index" else fill, dtype)
+    fid = meta["frame_id"]
+    written = (fid >= 0) & (meta["timestamp_ns"] >= 0) & (meta["focus_index"] >= 0)
+    written &= meta["pass_index"] >= 0
+    written[list(bad)] = False
+    idx = np.flatnonzero(written)
+    # entries up to the last written one, an unreadable one or the count the writer stated
+    # when it closed are expected: those without metadata are defects, not an unwritten tail
+    last_written = max(int(idx[-1]) + 1 if idx.size else 0, max(bad) + 1 if bad else 0,
+                       attrs.frames or 0)
+    if attrs.frames is not None and attrs.frames > n:
+        report.notes.append(f"attribute frames says {attrs.frames} but the arrays hold "
+                            f"{n} entries")
+    report.entries = last_written
+    report.unwritten = max(0, n - last_written)
+    report.missing_metadata = [i for i in range(last_written) if i >= n or not written[i]]
+    if longer:
+        report.notes.append("arrays longer than the per-frame metadata (entries beyond "
+                            f"{n} have no metadata and are not replayed): " + ", ".join(longer))
+    # frames whose chunk is absent (another writer, or a lost file) are not replayed
+    # (every chunk of the frame: a frame split over several chunks must be whole)
+    keys = _chunk_keys(frames)
+    enc = frames.metadata.encode_chunk_key  # type: ignore[union-attr]
+    per_chunk, cy, cx = _stored(frames)
+    tiles = [(y, x) for y in range(-(-attrs.frame_shape[0] // cy))
+             for x in range(-(-attrs.frame_shape[1] // cx))]
+    present = np.array([all(enc((int(i) // per_chunk, y, x)) in keys for y, x in tiles)
+                        for i in idx], dtype=bool)
+    report.missing_chunks = [int(fid[i]) for i in idx[~present]]
+    idx = idx[present]
+    # storage order -> frame_id order; the first copy of a repeated frame_id is kept
+    ids = fid[idx]
+    running_max = np.maximum.accumulate(ids) if ids.size else ids
+    late = np.flatnonzero(ids[1:] < running_max[:-1]) + 1 if ids.size > 1 else np.array([], int)
+    _, first = np.unique(ids, return_index=True)
+    dup_mask = np.ones(ids.size, bool)
+    dup_mask[first] = False
+    report.duplicates = [int(v) for v in ids[dup_mask]]
+    report.out_of_order = sorted({int(ids[i]) for i in late if not dup_mask[i]})
+    keep = np.sort(first)
+    order = idx[keep][np.argsort(ids[keep], kind="stable")]
+    if order.size == 0:
+        raise RecordingError(f"{where}: no usable frame (entries {n}, written {last_written})")
+    sorted_ids = fid[order]
+    steps = np.diff(sorted_ids)
+    report.gaps = [(int(sorted_ids[i]) + 1, int(steps[i]) - 1) for i in np.flatnonzero(steps > 1)]
+    report.frames = int(order.size)
+    report.first_id, report.last_id = int(sorted_ids[0]), int(sorted_ids[-1])
+    ts = meta["timestamp_ns"][order]
+    report.duration_s = float(ts.max() - ts.min()) * 1e-9
+    return Recording(p, attrs, cfg, report, group, order, meta)
+
+
+def annotate_mosaic(path: str | Path, rec: Recording) -> None:
+    """Record in a mosaic's attributes which recording it was replayed from."""
+    from sffscan.pipeline.messages import MosaicAttrs
+
+    group = zarr.open_group(str(path), mode="r+")
+    attrs = MosaicAttrs.model_validate({**group.attrs.asdict(),
+                                        "recording": rec.report.as_dict()})
+    group.update_attributes(attrs.model_dump(mode="json"))

@@ -1,0 +1,114 @@
+"""Accuracy of a height map against a reference: RMSE, CORR, PSNR (SFF_NOTES section 3).
+
+RMSE = sqrt(mean((D_hat - D)^2)); CORR = Pearson correlation of D_hat and D;
+PSNR = 20 log10(MAX_d) - 10 log10(mean((D_hat - D)^2)), MAX_d the largest representable
+depth (the span of the focus-level table). Only pixels where both maps are finite count.
+The mosaic is compared band by band, so memory stays bounded for any mosaic size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import zarr
+from sffscan.pipeline.messages import MosaicAttrs
+from sffscan.stages.mosaic import mosaic_array
+
+
+class HeightWorld(Protocol):
+    def height_um(self, x0: float, y0: float, width: int, height: int) -> np.ndarray: ...
+
+
+@dataclass
+class Accuracy:
+    rmse_um: float
+    corr: float
+    psnr_db: float
+    pixels: int
+    coverage: float  # finite fraction of the pixels asked about
+
+
+class _Moments:
+    """Streaming sums for RMSE and Pearson correlation."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.asked = 0
+        self.se = self.sx = self.sy = self.sxx = self.syy = self.sxy = 0.0
+
+    def add(self, est: np.ndarray, ref: np.ndarray, asked: np.ndarray | None = None) -> None:
+        ok = np.isfinite(est) & np.isfinite(ref)
+        self.asked += int(ok.size if asked is None else asked.sum())
+        if asked is not None:
+            ok &= asked
+        x = est[ok].astype(np.float64)
+        y = ref[ok].astype(np.float64)
+        self.n += x.size
+        self.se += float(((x - y) ** 2).sum())
+        self.sx += float(x.sum())
+        self.sy += float(y.sum())
+        self.sxx += float((x * x).sum())
+        self.syy += float((y * y).sum())
+        self.sxy += float((x * y).sum())
+
+    def result(self, max_depth: float) -> Accuracy:
+        if self.n == 0:
+            return Accuracy(math.nan, math.nan, math.nan, 0, 0.0)
+        mse = self.se / self.n
+        cov = self.sxy / self.n - (self.sx / self.n) * (self.sy / self.n)
+        vx = self.sxx / self.n - (self.sx / self.n) ** 2
+        vy = self.syy / self.n - (self.sy / self.n) ** 2
+        corr = cov / math.sqrt(vx * vy) if vx > 0 and vy > 0 else math.nan
+        psnr = 20 * math.log10(max_depth) - 10 * math.log10(mse) if mse > 0 else math.inf
+        cover = self.n / self.asked if self.asked else 0.0
+        return Accuracy(math.sqrt(mse), corr, psnr, self.n, cover)
+
+
+def accuracy(estimate: np.ndarray, reference: np.ndarray, *, max_depth: float,
+             mask: np.ndarray | None = None) -> Accuracy:
+    """RMSE, CORR and PSNR of ``estimate`` against ``reference`` (same shape and unit).
+
+    Parameters
+    ----------
+    estimate, reference : ndarray, (H, W)
+        Height maps, same unit (µm here); NaN marks missing pixels.
+    max_depth : float
+        MAX_d of the PSNR, same unit.
+    mask : ndarray of bool, optional
+        Pixels to score; coverage is the finite fraction of them.
+    """
+    if estimate.shape != reference.shape:
+        raise ValueError(f"estimate shape {estimate.shape} != reference shape {reference.shape}")
+    mom = _Moments()
+    mom.add(estimate, reference, mask)
+    return mom.result(max_depth)
+
+
+def mosaic_accuracy(path: str | Path, world: HeightWorld, *, max_depth: float,
+                    region_px: tuple[int, int, int, int] | None = None,
+                    band_rows: int = 256) -> Accuracy:
+    """Compare a mosaic's ``height`` with the true surface of a simulated world.
+
+    ``region_px`` = (x0, y0, x1, y1) world px limits the score to that box (coverage is
+    then the finite fraction of it); by default every finite mosaic pixel counts.
+    """
+    group = zarr.open_group(str(path), mode="r")
+    height = mosaic_array(group, "height")
+    ox, oy = MosaicAttrs.model_validate(group.attrs.asdict()).origin_px
+    rows, cols = height.shape
+    c0, c1, r0, r1 = 0, cols, 0, rows
+    if region_px is not None:
+        c0, r0 = max(region_px[0] - ox, 0), max(region_px[1] - oy, 0)
+        c1, r1 = min(region_px[2] - ox, cols), min(region_px[3] - oy, rows)
+    mom = _Moments()
+    for b0 in range(r0, r1, band_rows):
+        b1 = min(b0 + band_rows, r1)
+        est = np.asarray(height[b0:b1, c0:c1])
+        ref = world.height_um(ox + c0, oy + b0, c1 - c0, b1 - b0)
+        asked = np.ones(est.shape, bool) if region_px is not None else np.isfinite(est)
+        mom.add(est, ref, asked)
+    return mom.result(max_depth)

@@ -1,0 +1,253 @@
+"""The functions of the public API (re-exported by :mod:`sffscan`).
+
+Each one is what a command of the ``sffscan`` CLI does, without the printing: it returns
+the same report object the CLI prints its summary from, and raises instead of choosing an
+exit code. Heavy modules (torch, OpenCV, zarr) are imported by the call, not at import.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sffscan.pipeline.config import ScanConfig, config_from_dict
+
+if TYPE_CHECKING:
+    import xarray
+
+    from sffscan.pipeline.messages import Frame
+    from sffscan.pipeline.runtime import Sink
+    from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.fields.stationary import FieldResult, StackSettings
+
+
+def _with(cfg: ScanConfig, *, output: str | Path | None, overwrite: bool | None,
+          processing: dict[str, Any] | None) -> ScanConfig:
+    data = cfg.model_dump()
+    if output is not None:
+        data["output"]["path"] = str(output)
+    if overwrite is not None:
+        data["output"]["overwrite"] = bool(overwrite)
+    if processing:
+        unknown = set(processing) - set(data["processing"])
+        if unknown:
+            raise ValueError(f"processing: unknown field(s) {sorted(unknown)}")
+        data["processing"].update(processing)
+    return config_from_dict(data, origin="sffscan API")
+
+
+def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
+         overwrite: bool | None = None, frames: Iterable[Frame] | None = None,
+         record: str | Path | None = None, processing: dict[str, Any] | None = None,
+         evaluate: bool = False, progress: bool = False,
+         sinks: Sequence[Sink] = ()) -> ScanReport:
+    """Run a scan through the streaming pipeline into a Zarr mosaic.
+
+    Parameters
+    ----------
+    config : ScanConfig or path-like
+        The scan configuration, or a TOML file (:func:`sffscan.load_config`).
+    output : path-like, keyword-only
+        Mosaic path (a Zarr v3 group); default ``config.output.path``.
+    overwrite : bool, keyword-only
+        Replace an existing mosaic; default ``config.output.overwrite``.
+    frames : iterable of Frame, keyword-only
+        The frames to process; default the feed ``config.source`` names (the simulator,
+        a GenICam camera or a zmq address).
+    record : path-like, keyword-only
+        Also record the raw stream into this Zarr group, for :func:`replay`.
+    processing : dict, keyword-only
+        Fields of ``[processing]`` to override (``{"depth_method": "gauss3"}``...).
+    evaluate : bool, keyword-only
+        Score the mosaic against the simulated true surface (``source.kind = "sim"`` only);
+        fills ``report.accuracy``.
+    progress : bool, keyword-only
+        Show the progress display on stderr.
+    sinks : sequence of Sink, keyword-only
+        Extra side branches (a live viewer, ...).
+
+    Returns
+    -------
+    ScanReport
+        Frames, per-stage and per-queue statistics, accuracy if evaluated; the CLI prints
+        its summary from it (:func:`sffscan.pipeline.wiring.format_summary`).
+
+    Raises
+    ------
+    ConfigError
+        Invalid configuration (the message names the field).
+    StageFailed
+        A stage failed; the message names it and the cause, and the mosaic holds what was
+        completed (status ``failed``).
+    """
+    from sffscan.pipeline.config import load_config
+    from sffscan.pipeline.sources import open_feed
+    from sffscan.pipeline.wiring import evaluate_sim, run_scan
+
+    cfg = config if isinstance(config, ScanConfig) else load_config(config)
+    cfg = _with(cfg, output=output, overwrite=overwrite, processing=processing)
+    world = None
+    if frames is None:
+        feed = open_feed(cfg)
+        frames, world = feed.frames, feed.world
+    all_sinks = list(sinks)
+    if record is not None:
+        from sffscan.stages.recorder import recorder_sink
+
+        all_sinks.append(recorder_sink(cfg, str(record)))
+    report = run_scan(cfg, frames=iter(frames), progress=progress, sinks=all_sinks)
+    if evaluate:
+        if world is None:
+            raise ValueError("evaluate=True needs the simulated source (source.kind = 'sim') "
+                             "and frames=None")
+        evaluate_sim(report, world)
+    return report
+
+
+def replay(recording: str | Path, *, output: str | Path | None = None,
+           overwrite: bool | None = None, processing: dict[str, Any] | None = None,
+           evaluate: bool = False, progress: bool = False) -> ScanReport:
+    """Re-process a recorded raw stream (``sffscan scan --record``) into a mosaic.
+
+    Parameters
+    ----------
+    recording : path-like
+        The recording, a Zarr v3 group.
+    output, overwrite, processing, evaluate, progress
+        As in :func:`scan`; the configuration is the recorded one.
+
+    Returns
+    -------
+    ScanReport
+        As :func:`scan`; ``report.extras["recording"]`` holds the recording's report
+        (frames, gaps, defects, corrupt chunks left out).
+
+    Raises
+    ------
+    RecordingError
+        The path is not a usable recording (the message names the file and the field).
+    StageFailed
+        As in :func:`scan`.
+    """
+    from sffscan.pipeline.formats.recording import annotate_mosaic, open_recording
+    from sffscan.pipeline.wiring import evaluate_sim, run_scan
+
+    rec = open_recording(recording)
+    cfg = _with(rec.config, output=output, overwrite=overwrite, processing=processing)
+    report = run_scan(cfg, frames=rec.frames(), progress=progress)
+    annotate_mosaic(report.output, rec)
+    report.extras["recording"] = rec.report.as_dict()
+    if evaluate:
+        if cfg.source.kind != "sim":
+            raise ValueError("evaluate=True needs a recording of the simulator")
+        from sffscan.stages.sim.scanner import make_world
+
+        evaluate_sim(report, make_world(cfg))
+    return report
+
+
+def reconstruct_stack(stack: np.ndarray, focus_um: Sequence[float] | np.ndarray, *,
+                      settings: StackSettings | None = None, max_value: float | None = None,
+                      **options: Any) -> FieldResult:
+    """Height map of one field from its focus stack (the camera standing still).
+
+    Parameters
+    ----------
+    stack : (N, H, W) ndarray of uint8, uint16 or float
+        One grey image per focus level, N >= 3.
+    focus_um : (N,) array_like of float
+        Height in focus of each image, µm, strictly monotonic.
+    settings : StackSettings, keyword-only
+        Operator, window, depth method, post-filter; default ``StackSettings(**options)``.
+    max_value : float, keyword-only
+        Full scale of the images (1023 for 10-bit data in uint16); default from the dtype.
+    **options
+        Fields of :class:`~sffscan.stages.fields.stationary.StackSettings` (``operator``,
+        ``window``, ``method``, ``filter_size``...), when ``settings`` is not given.
+
+    Returns
+    -------
+    FieldResult
+        ``height_um``, ``raw_height_um``, ``levels``, ``texture``, ``confidence``, all
+        (H, W) float32.
+    """
+    from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
+
+    if settings is not None and options:
+        raise TypeError("give either settings or StackSettings fields, not both")
+    settings = settings if settings is not None else StackSettings(**options)
+    return reconstruct_field(stack, focus_heights_um=focus_um, settings=settings,
+                             max_value=max_value)
+
+
+def focus_measure(image: np.ndarray, *, operator: str = "glvm", window: int = 9,
+                  backend: str = "opencv", device: str = "cpu") -> np.ndarray:
+    """Focus measure of an image (or a batch) scaled to 0..1.
+
+    Parameters
+    ----------
+    image : (H, W) or (B, H, W) ndarray of float
+        Grey image(s), 0..1.
+    operator : str, keyword-only
+        Focus measure operator (``"glvm"``, ``"tenv"``).
+    window : int, keyword-only
+        Odd window size k >= 3, px.
+    backend : {"opencv", "torch"}, keyword-only
+        CPU fast path or torch (on ``device``).
+    device : str, keyword-only
+        Torch device for the torch backend.
+
+    Returns
+    -------
+    ndarray of float32, the shape of ``image``
+    """
+    from sffscan.stages.focus_measure import focus_measure as _focus_measure
+
+    return _focus_measure(image, operator=operator, window=window, backend=backend,
+                          device=device)
+
+
+def open_mosaic(path: str | Path) -> xarray.Dataset:
+    """Open a mosaic lazily as an xarray Dataset with coordinates in µm.
+
+    Parameters
+    ----------
+    path : path-like
+        A mosaic (Zarr v3 group written by a scan, replay or stop-and-go).
+
+    Returns
+    -------
+    xarray.Dataset
+        Variables ``height`` (µm), ``texture`` (0..1), ``confidence`` (0..1) and ``weight``,
+        each (y, x) float32 backed by dask (nothing is read until computed); coordinates
+        ``y`` and ``x`` are the pixel centres in µm; ``attrs`` are the mosaic's attributes.
+
+    Raises
+    ------
+    ValueError
+        The path is not a valid mosaic (the message names the file and the attribute).
+    """
+    import dask.array as da
+    import xarray as xr
+    import zarr
+
+    from sffscan.stages.mosaic import ARRAYS, mosaic_array, read_mosaic_attrs
+
+    p = Path(path)
+    try:
+        group = zarr.open_group(str(p), mode="r")
+    except (FileNotFoundError, ValueError, KeyError) as err:
+        raise ValueError(f"{p}: not a Zarr group ({err})") from None
+    attrs = read_mosaic_attrs(group, p)
+    variables = {}
+    for name in ARRAYS:
+        arr = mosaic_array(group, name)
+        variables[name] = (("y", "x"), da.from_array(arr, chunks=arr.chunks),
+                           {"units": attrs.units.get(name, "")})
+    ny, nx = mosaic_array(group, "height").shape
+    coords = {"y": ("y", attrs.origin_um[1] + attrs.pixel_um * np.arange(ny), {"units": "µm"}),
+              "x": ("x", attrs.origin_um[0] + attrs.pixel_um * np.arange(nx), {"units": "µm"})}
+    return xr.Dataset(variables, coords=coords, attrs=attrs.model_dump(mode="json"))

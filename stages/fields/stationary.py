@@ -1,0 +1,348 @@
+"""Stationary shape from focus: one field reconstructed from a focus stack (SFF_NOTES section 5).
+
+The camera stands still and takes one image per focus height. The reconstruction reuses the
+streaming pipeline's building blocks, nothing is written twice:
+
+1. every image scaled to 0..1 (:func:`sffscan.stages.focus_measure.to_unit_float`);
+2. the focus volume (:func:`sffscan.stages.focus_measure.focus_measure`, GLVM or TENV, window k);
+3. the sub-level focus peak and its confidence (:func:`sffscan.stages.depth.depth_from_focus`);
+4. heights through the focus table (:func:`sffscan.stages.depth.levels_to_height`) and the
+   all-in-focus image (:func:`sffscan.stages.depth.all_in_focus`);
+5. optionally, a post-filter of the height map: the **confidence-weighted median** over a
+   ``size x size`` window (:func:`confidence_weighted_median`). Each finite pixel becomes
+   the weighted median of the finite heights around it, weight = ``max(confidence, 1e-3)``;
+   a NaN pixel stays NaN (nothing is filled) and contributes nothing to its neighbours.
+   Optionally, pixels whose confidence is below ``min_confidence`` are set to NaN (they are
+   then reported as invalid, never filled).
+
+Image stacks are read from image files (:func:`read_image_stack`) or a Zarr array
+(:func:`read_zarr_stack`); focus positions from a text file (:func:`read_focus_positions`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from sffscan.stages.depth import (
+    DEPTH_METHODS,
+    all_in_focus,
+    check_odd_size,
+    depth_from_focus,
+    levels_to_height,
+)
+
+__all__ = [
+    "FieldResult",
+    "StackSettings",
+    "confidence_weighted_median",
+    "default_max_value",
+    "read_focus_positions",
+    "read_image_stack",
+    "read_zarr_stack",
+    "reconstruct_field",
+]
+
+MIN_WEIGHT = 1e-3
+"""Smallest weight of a finite height in the weighted median (confidence 0 still counts)."""
+
+
+@dataclass(frozen=True)
+class StackSettings:
+    """How a focus stack is reduced to a height map.
+
+    The defaults are the settings documented for pertuz-simu02 in the README ("Stationary
+    stacks and metrology"): GLVM, k = 9, Gaussian 3-point fit, confidence-weighted median
+    of 15 x 15 px.
+
+    Parameters
+    ----------
+    operator : {"glvm", "tenv"}
+        Focus measure operator.
+    window : int
+        Focus measure window k (odd, >= 3), px.
+    method : str
+        Depth method, one of :data:`sffscan.stages.depth.DEPTH_METHODS`.
+    median_size : int
+        SPC median filter size (odd), px.
+    filter_size : int
+        Confidence-weighted median window of the height map (odd), px; 1 = no post-filter.
+    min_confidence : float
+        Pixels with confidence below this are set to NaN (invalid), 0..1; 0 keeps all.
+    backend, device : str
+        Focus measure backend (``"opencv"``, ``"torch"``) and torch device.
+    """
+
+    operator: str = "glvm"
+    window: int = 9
+    method: str = "gauss3"
+    median_size: int = 11
+    filter_size: int = 15
+    min_confidence: float = 0.0
+    backend: str = "opencv"
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        from sffscan.stages.focus_measure import FOCUS_OPERATORS  # torch loads with the first use
+
+        if self.operator not in FOCUS_OPERATORS:
+            raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {self.operator!r}")
+        if self.method not in DEPTH_METHODS:
+            raise ValueError(f"method must be one of {DEPTH_METHODS}, got {self.method!r}")
+        check_odd_size(self.window, name="window", minimum=3)
+        check_odd_size(self.median_size, name="median_size", minimum=1)
+        check_odd_size(self.filter_size, name="filter_size", minimum=1)
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"operator": self.operator, "window": self.window, "method": self.method,
+                "median_size": self.median_size, "filter_size": self.filter_size,
+                "min_confidence": self.min_confidence, "backend": self.backend}
+
+
+@dataclass(frozen=True)
+class FieldResult:
+    """One reconstructed field.
+
+    Attributes
+    ----------
+    height_um : (H, W) float32
+        Height, µm, after the post-filter; NaN where invalid.
+    raw_height_um : (H, W) float32
+        Height before the post-filter and the confidence threshold.
+    levels : (H, W) float32
+        Focus peak in fractional level units (before the post-filter).
+    texture : (H, W) float32
+        All-in-focus grey value, 0..1.
+    confidence : (H, W) float32
+        ``|H1| / H0`` of each focus curve, 0..1.
+    settings : StackSettings
+        The settings used.
+    """
+
+    height_um: np.ndarray
+    raw_height_um: np.ndarray
+    levels: np.ndarray
+    texture: np.ndarray
+    confidence: np.ndarray
+    settings: StackSettings = field(default_factory=StackSettings)
+
+
+# ----------------------------------------------------------------------------- filter
+
+
+def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size: int,
+                               block_rows: int = 64) -> np.ndarray:
+    """Weighted median of ``values`` over ``size x size`` windows, weights ``weights``.
+
+    For each finite pixel, the neighbours' finite values are sorted and the first one at
+    which the cumulative weight reaches half of the window's total is returned (the lower
+    weighted median). Borders replicate. NaN pixels stay NaN and carry no weight; nothing
+    is filled.
+
+    Parameters
+    ----------
+    values : (H, W) ndarray of float
+        Height map (any unit); NaN = invalid.
+    weights : (H, W) ndarray of float
+        Weights >= 0 (e.g. the confidence); each is raised to at least ``1e-3``.
+    size : int, keyword-only
+        Odd window size, px; 1 returns a float32 copy.
+    block_rows : int, keyword-only
+        Rows processed at once (bounds the temporary memory: ``block_rows * W * size**2``
+        elements).
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If the shapes differ or are not 2-D, a weight is negative or not finite, or ``size``
+        is not an odd integer >= 1.
+    """
+    size = check_odd_size(size, name="size", minimum=1)
+    z = np.asarray(values, dtype=np.float32)
+    w = np.asarray(weights, dtype=np.float32)
+    if z.ndim != 2 or z.shape != w.shape:
+        raise ValueError(f"values and weights must be 2-D of the same shape, got {z.shape} "
+                         f"and {w.shape}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise ValueError("weights must be finite and >= 0")
+    if size == 1:
+        return z.copy()
+    valid = np.isfinite(z)
+    wz = np.where(valid, np.maximum(w, MIN_WEIGHT), 0.0).astype(np.float32)
+    zz = np.where(valid, z, np.inf).astype(np.float32)  # invalid sort last, with weight 0
+    r = size // 2
+    zp = np.pad(zz, r, mode="edge")
+    wp = np.pad(wz, r, mode="edge")
+    out = np.full(z.shape, np.nan, dtype=np.float32)
+    for i0 in range(0, z.shape[0], block_rows):
+        i1 = min(i0 + block_rows, z.shape[0])
+        zw = np.lib.stride_tricks.sliding_window_view(zp[i0 : i1 + 2 * r], (size, size))
+        ww = np.lib.stride_tricks.sliding_window_view(wp[i0 : i1 + 2 * r], (size, size))
+        zs = zw.reshape(i1 - i0, z.shape[1], size * size)
+        ws = ww.reshape(i1 - i0, z.shape[1], size * size)
+        order = np.argsort(zs, axis=-1)
+        zs = np.take_along_axis(zs, order, axis=-1)
+        cum = np.cumsum(np.take_along_axis(ws, order, axis=-1), axis=-1, dtype=np.float64)
+        k = np.count_nonzero(cum < 0.5 * cum[..., -1:], axis=-1)
+        med = np.take_along_axis(zs, k[..., None], axis=-1)[..., 0]
+        out[i0:i1] = np.where(valid[i0:i1], med, np.nan)
+    return out
+
+
+# ----------------------------------------------------------------------------- reconstruction
+
+
+def default_max_value(dtype: np.dtype) -> float:
+    """Full scale of an image dtype: 255 (uint8), 65535 (uint16), 1.0 (float, 0..1)."""
+    dtype = np.dtype(dtype)
+    if dtype == np.uint8:
+        return 255.0
+    if dtype == np.uint16:
+        return 65535.0
+    if np.issubdtype(dtype, np.floating):
+        return 1.0
+    raise ValueError(f"unsupported image dtype {dtype}: expected uint8, uint16 or float")
+
+
+def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | np.ndarray,
+                      settings: StackSettings | None = None,
+                      max_value: float | None = None) -> FieldResult:
+    """Height, all-in-focus image and confidence of one field from its focus stack.
+
+    Parameters
+    ----------
+    stack : (N, H, W) ndarray of uint8, uint16 or float
+        One image per focus level, N >= 3.
+    focus_heights_um : (N,) array_like of float
+        Height in focus of each image, µm; strictly monotonic.
+    settings : StackSettings, keyword-only
+        Operator, window, depth method, post-filter; default :class:`StackSettings`.
+    max_value : float, keyword-only
+        Full scale of the images (1023 for 10-bit data in uint16); default from the dtype
+        (:func:`default_max_value`).
+
+    Returns
+    -------
+    FieldResult
+
+    Raises
+    ------
+    ValueError
+        If the stack is not (N, H, W) with N >= 3, the focus table does not have N strictly
+        monotonic finite values, an image holds NaN / inf or values above ``max_value`` (the
+        message names the image).
+    """
+    settings = settings or StackSettings()
+    stack = np.asarray(stack)
+    if stack.ndim != 3 or stack.shape[0] < 3:
+        raise ValueError(f"stack must be (N, H, W) with N >= 3 images, got shape {stack.shape}")
+    heights = np.asarray(focus_heights_um, dtype=np.float64).reshape(-1)
+    if heights.size != stack.shape[0]:
+        raise ValueError(f"focus_heights_um has {heights.size} values for {stack.shape[0]} "
+                         "images")
+    from sffscan.stages.focus_measure import focus_measure, to_unit_float
+
+    full = default_max_value(stack.dtype) if max_value is None else float(max_value)
+    images = np.empty(stack.shape, dtype=np.float32)
+    for i, img in enumerate(stack):
+        try:
+            images[i] = to_unit_float(img, max_value=full)
+        except ValueError as err:
+            raise ValueError(f"image {i}: {err}") from None
+        top = float(images[i].max())
+        if top > 1.0 + 1e-6:
+            raise ValueError(f"image {i}: values up to {top * full:g} exceed the full scale "
+                             f"{full:g} (set max_value / --bit-depth)")
+    volume = focus_measure(images, operator=settings.operator, window=settings.window,
+                           backend=settings.backend, device=settings.device)
+    levels, confidence = depth_from_focus(volume, method=settings.method,
+                                          median_size=settings.median_size)
+    raw = levels_to_height(levels, focus_heights_um=heights)
+    texture = all_in_focus(images, volume)
+    height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
+    if settings.min_confidence > 0:
+        height[confidence < settings.min_confidence] = np.nan
+    return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
+                       confidence=confidence, settings=settings)
+
+
+# ----------------------------------------------------------------------------- reading stacks
+
+
+def read_image_stack(paths: Sequence[str | Path]) -> np.ndarray:
+    """Read grey images (TIFF, PNG, ...) into an (N, H, W) stack, in the order given.
+
+    Raises
+    ------
+    ValueError
+        If a file cannot be read, is not single-channel, or differs in shape or dtype from
+        the first (the message names the file).
+    """
+    if len(paths) < 3:
+        raise ValueError(f"a focus stack needs at least 3 images, got {len(paths)}")
+    images: list[np.ndarray] = []
+    for p in paths:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{p}: cannot read as an image")
+        if img.ndim != 2:
+            raise ValueError(f"{p}: expected a single-channel grey image, got shape {img.shape}")
+        if images and (img.shape != images[0].shape or img.dtype != images[0].dtype):
+            raise ValueError(f"{p}: shape {img.shape} {img.dtype} differs from the first image's "
+                             f"{images[0].shape} {images[0].dtype}")
+        images.append(img)
+    return np.stack(images)
+
+
+def read_zarr_stack(path: str | Path, *, array: str | None = None
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read an (N, H, W) focus stack from a Zarr array (or an array inside a Zarr group).
+
+    Returns the stack and the array's ``focus_heights_um`` attribute (None if it has none).
+    """
+    import zarr
+
+    node: Any = zarr.open(str(path), mode="r")
+    if isinstance(node, zarr.Group):
+        if array is None:
+            names = [k for k, v in node.members() if isinstance(v, zarr.Array)]
+            raise ValueError(f"{path}: is a Zarr group; name its stack array with --array "
+                             f"(arrays: {', '.join(names) or 'none'})")
+        node = node.get(array)
+        if not isinstance(node, zarr.Array):
+            raise ValueError(f"{path}: has no array '{array}'")
+    stack = np.asarray(node[...])
+    if stack.ndim != 3:
+        raise ValueError(f"{path}: stack array must be (N, H, W), got shape {stack.shape}")
+    attr = node.attrs.get("focus_heights_um")
+    return stack, (None if attr is None else np.asarray(attr, dtype=np.float64))
+
+
+def read_focus_positions(path: str | Path, *, scale_to_um: float = 1.0) -> np.ndarray:
+    """Focus positions from a text file: numbers separated by newlines, commas or spaces.
+
+    Lines starting with ``#`` are comments. ``scale_to_um`` converts the file's unit to µm
+    (1000 for mm, 1e6 for m).
+    """
+    text = Path(path).read_text(encoding="utf-8")
+    values: list[float] = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0]
+        for token in line.replace(",", " ").split():
+            try:
+                values.append(float(token) * scale_to_um)
+            except ValueError:
+                raise ValueError(f"{path}:{n}: not a number: {token!r}") from None
+    if not values:
+        raise ValueError(f"{path}: no focus positions found")
+    return np.asarray(values, dtype=np.float64)
