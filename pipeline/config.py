@@ -52,6 +52,17 @@ class OpticsConfig(_Model):
     psf_c_px_per_um: float = Field(0.004, gt=0, description="Sim: PSF sigma growth, px per µm")
     sigma_max_px: float = Field(16.0, gt=0, description="Sim: largest PSF sigma rendered, px")
     noise_sigma: float = Field(0.005, ge=0, description="Sim: sensor noise std, full scale")
+    magnification_per_mm: float = Field(
+        0.0, gt=-0.1, lt=0.1, description="Sim: relative change of the magnification per mm of "
+        "focus height, about the optical centre (focus breathing), 1/mm; 0 = telecentric")
+    magnification_ref_um: float | None = Field(
+        None, description="Sim: focus height where the magnification is 1, µm; default the "
+        "middle of the focus range")
+    field_curvature_um: float = Field(
+        0.0, description="Sim: surface of best focus above the nominal focus at the frame "
+        "corner (quadratic in the radius from the centre), µm; 0 = flat field")
+    vignetting: float = Field(0.0, ge=0, lt=1, description="Sim: illumination lost at the "
+                              "frame corner (quadratic in the radius), fraction")
 
     @property
     def dtype(self) -> str:
@@ -63,6 +74,12 @@ class OpticsConfig(_Model):
 
     def focus_heights_um(self) -> list[float]:
         return [self.z_min_um + k * self.z_step_um for k in range(self.n_levels)]
+
+    def magnification_reference_um(self) -> float:
+        """Focus height where the simulated magnification is 1, µm."""
+        if self.magnification_ref_um is not None:
+            return self.magnification_ref_um
+        return self.z_min_um + 0.5 * (self.n_levels - 1) * self.z_step_um
 
 
 class MotionConfig(_Model):
@@ -243,6 +260,14 @@ def load_config(path: str | Path) -> ScanConfig:
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from None
     return config_from_dict(data, origin=str(p))
+
+
+REALISTIC_OPTICS: dict[str, float] = {
+    "magnification_per_mm": 0.002,  # +2 % magnification over the demo's 9.8 mm focus range
+    "field_curvature_um": 150.0,  # best focus 150 µm higher at the frame corner
+    "vignetting": 0.2,  # 20 % less light at the frame corner
+}
+"""``[optics]`` values of a real non-telecentric tunable-lens objective (``demo --realistic``)."""
 
 
 def demo_config(*, passes: int = 1, **sections: dict[str, Any]) -> ScanConfig:

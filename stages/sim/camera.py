@@ -8,6 +8,13 @@ downsampled copy and upsampled), interpolated per pixel between the two bank lev
 bracket its sigma (linearly in log sigma; linearly in sigma below 0.5 px). Then the sensor:
 intensity ``offset + gain * reflectance`` (full scale 1), additive Gaussian noise, and
 quantisation to ``bit_depth`` bits (uint8, or uint16 holding 0..1023).
+
+Real-lens effects (:mod:`sffscan.stages.sim.lens`, all off by default): magnification that
+changes with the focus about the optical centre, a curved surface of best focus, and
+vignetting. With any of them on, the frame is rendered on the world's unit grid around the
+optical axis (the focus of each world pixel displaced by the field curvature at the frame
+pixel it lands on), magnified about the centre with a Lanczos warp, then darkened toward
+the corners before the sensor adds noise and quantises.
 """
 
 from __future__ import annotations
@@ -18,6 +25,12 @@ from functools import cached_property
 
 import cv2
 import numpy as np
+from sffscan.stages.sim.lens import (
+    breathing_pad_px,
+    curvature_map_um,
+    scale_about_centre,
+    vignetting_map,
+)
 from sffscan.stages.sim.world import PlateWorld
 
 BANK_SIGMA0_PX = 0.5  # smallest nonzero bank sigma; the bank grows by sqrt(2) per level
@@ -49,6 +62,16 @@ class Optics:
     gain, offset : float
         Intensity = ``offset + gain * reflectance`` in full-scale units; reflectances
         0.1 .. 0.9 must map inside [0, 1].
+    magnification_per_mm : float
+        Relative change of the magnification per mm of focus height (focus breathing of a
+        non-telecentric objective), 1/mm; 0.002 = +2 % over 10 mm. 0: telecentric.
+    magnification_ref_um : float
+        Focus height at which the magnification is 1 (object-side scale ``pixel_um``), µm.
+    field_curvature_um : float
+        Height of the surface of best focus at the frame corner above the nominal focus, µm
+        (quadratic in the radius from the frame centre). 0: flat field.
+    vignetting : float
+        Illumination lost at the frame corner, fraction in [0, 1) (quadratic in the radius).
     """
 
     width: int = 1280
@@ -61,6 +84,10 @@ class Optics:
     bit_depth: int = 10
     gain: float = 1.0
     offset: float = 0.0
+    magnification_per_mm: float = 0.0
+    magnification_ref_um: float = 0.0
+    field_curvature_um: float = 0.0
+    vignetting: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -74,6 +101,10 @@ class Optics:
             ("sigma_max_px", 0 < self.sigma_max_px <= 64, "in (0, 64]"),
             ("noise_sigma", self.noise_sigma >= 0, ">= 0"),
             ("gain", self.gain > 0, "> 0"),
+            ("magnification_per_mm", abs(self.magnification_per_mm) < 0.1, "in (-0.1, 0.1)"),
+            ("magnification_ref_um", True, "finite"),
+            ("field_curvature_um", True, "finite"),
+            ("vignetting", 0 <= self.vignetting < 1, "in [0, 1)"),
         )
         for name, ok, rule in checks:
             v = getattr(self, name)
@@ -85,6 +116,20 @@ class Optics:
         if not (math.isfinite(self.offset) and lo >= 0 and hi <= 1):
             raise ValueError(f"optics.offset must map reflectance 0.1..0.9 into [0, 1] "
                              f"with gain {self.gain}, got {self.offset} (-> {lo:.3g}..{hi:.3g})")
+
+    def magnification(self, focus_um: float) -> float:
+        """Relative magnification at a focus height: ``1 + k (focus - ref) / 1000``."""
+        m = 1.0 + self.magnification_per_mm * (float(focus_um) - self.magnification_ref_um) / 1e3
+        if not m > 0.5:
+            raise ValueError(f"focus {focus_um} µm gives magnification {m:.3g}: outside the "
+                             "optics' breathing model")
+        return m
+
+    @property
+    def ideal(self) -> bool:
+        """True when no real-lens effect is on (telecentric, flat field, no vignetting)."""
+        return (self.magnification_per_mm == 0 and self.field_curvature_um == 0
+                and self.vignetting == 0)
 
     @cached_property
     def noise_table(self) -> np.ndarray:
@@ -200,6 +245,12 @@ def _render(tex: np.ndarray, heights: np.ndarray, margin: int, focus_um: float,
     ``tex`` (He, We) float32 has ``margin`` px left/top and at least that much right/bottom,
     He and We divisible by 8; ``heights`` (H, W) float32 µm.
     """
+    return _sensor(_blur(tex, heights, margin, focus_um, optics), optics, rng)
+
+
+def _blur(tex: np.ndarray, heights: np.ndarray, margin: int, focus_um: float,
+          optics: Optics) -> np.ndarray:
+    """The space-variant blur of :func:`_render`: (H, W) float32 reflectance."""
     h, w = heights.shape
     he, we = tex.shape
     bank = blur_bank_sigmas(optics)
@@ -253,7 +304,12 @@ def _render(tex: np.ndarray, heights: np.ndarray, margin: int, focus_um: float,
             map_y = u[r0:r1] + (np.arange(r1 - r0, dtype=np.float32) * n_lev)[:, None]
             cv2.remap(src, map_x[r0:r1], map_y, cv2.INTER_LINEAR, dst=img[r0:r1],
                       borderMode=cv2.BORDER_REPLICATE)
+    return img
 
+
+def _sensor(img: np.ndarray, optics: Optics, rng: np.random.Generator | None) -> np.ndarray:
+    """Intensity, noise and quantisation of a (H, W) float32 reflectance image."""
+    h, w = img.shape
     full = float(optics.max_value)
     out_type = cv2.CV_8U if optics.bit_depth == 8 else cv2.CV_16U
     if rng is not None and optics.noise_sigma > 0:
@@ -279,10 +335,11 @@ def _check(world: PlateWorld, optics: Optics, x0: float, y0: float) -> None:
 
 
 def _texture_window(world: PlateWorld, x0: float, y0: float, optics: Optics,
-                    margin: int) -> np.ndarray:
-    """Texture over the frame plus ``margin`` px each side, padded to multiples of 8."""
-    he = optics.height + 2 * margin
-    we = optics.width + 2 * margin
+                    margin: int, *, pad: int = 0) -> np.ndarray:
+    """Texture over the frame (grown by ``pad`` px each side, its first pixel at x0, y0) plus
+    ``margin`` px each side, padded to multiples of 8."""
+    he = optics.height + 2 * pad + 2 * margin
+    we = optics.width + 2 * pad + 2 * margin
     he += -he % 8
     we += -we % 8
     return world.texture(x0 - margin, y0 - margin, we, he)
@@ -299,6 +356,27 @@ def _margin_for(heights: np.ndarray, focus_um: float, optics: Optics) -> int:
     s = min(optics.psf_s0_px + optics.psf_c_px_per_um * dz, optics.sigma_max_px)
     top = bank[min(len(bank) - 1, int(np.searchsorted(bank, s - 1e-6)))]
     return 8 * math.ceil((3.0 * top + 1.0) / 8.0)  # multiple of 8: same pyramid grid
+
+
+def _lens_frame(world: PlateWorld, x0: float, y0: float, focus_um: float, optics: Optics,
+                rng: np.random.Generator | None) -> np.ndarray:
+    """A frame through the real-lens effects (module docstring), sensor included."""
+    shape = (optics.height, optics.width)
+    m = optics.magnification(focus_um)
+    pad = 0 if m == 1.0 else breathing_pad_px(shape, m)
+    heights = world.height_um(x0 - pad, y0 - pad, optics.width + 2 * pad,
+                              optics.height + 2 * pad)
+    if optics.field_curvature_um != 0:
+        heights -= curvature_map_um(shape, field_curvature_um=optics.field_curvature_um,
+                                    scale=m, pad=pad)
+    margin = _margin_for(heights, focus_um, optics)
+    tex = _texture_window(world, x0 - pad, y0 - pad, optics, margin, pad=pad)
+    img = _blur(tex, heights, margin, focus_um, optics)
+    if m != 1.0:
+        img = scale_about_centre(img, m, out_shape=shape, pad=pad)
+    if optics.vignetting != 0:
+        img *= vignetting_map(shape, vignetting=optics.vignetting)
+    return _sensor(img, optics, rng)
 
 
 # ---------------------------------------------------------------------- public
@@ -328,6 +406,8 @@ def render_frame(world: PlateWorld, *, x0: float, y0: float, focus_um: float,
     _check(world, optics, x0, y0)
     if not math.isfinite(focus_um):
         raise ValueError(f"focus_um must be finite, got {focus_um}")
+    if not optics.ideal:
+        return _lens_frame(world, x0, y0, focus_um, optics, rng)
     heights = world.height_um(x0, y0, optics.width, optics.height)
     margin = _margin_for(heights, focus_um, optics)
     tex = _texture_window(world, x0, y0, optics, margin)
@@ -353,6 +433,8 @@ def render_stack(world: PlateWorld, *, x0: float, y0: float, focus_heights_um: n
     zs = np.asarray(focus_heights_um, dtype=np.float64).reshape(-1)
     if zs.size == 0 or not np.all(np.isfinite(zs)):
         raise ValueError("focus_heights_um must be a non-empty array of finite heights")
+    if not optics.ideal:
+        return np.stack([_lens_frame(world, x0, y0, float(z), optics, rng) for z in zs])
     heights = world.height_um(x0, y0, optics.width, optics.height)
     margin = max(_margin_for(heights, float(z), optics) for z in zs)
     tex = _texture_window(world, x0, y0, optics, margin)

@@ -38,7 +38,9 @@ def make_optics(cfg: ScanConfig) -> Optics:
     return Optics(width=o.width_px, height=o.height_px, pixel_um=o.pixel_um,
                   psf_s0_px=o.psf_s0_px, psf_c_px_per_um=o.psf_c_px_per_um,
                   sigma_max_px=o.sigma_max_px, noise_sigma=o.noise_sigma,
-                  bit_depth=o.bit_depth)
+                  bit_depth=o.bit_depth, magnification_per_mm=o.magnification_per_mm,
+                  magnification_ref_um=o.magnification_reference_um(),
+                  field_curvature_um=o.field_curvature_um, vignetting=o.vignetting)
 
 
 def wobble_px(cfg: ScanConfig, travel_px: float) -> tuple[float, float]:
