@@ -13,6 +13,7 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from sffscan.pipeline.formats.ngff import NgffOme
 
 
 class FrameHeader(BaseModel):
@@ -124,7 +125,9 @@ class MosaicAttrs(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-mosaic"] = "sffscan-mosaic"
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = Field(
+        default=2, description="2: an OME-Zarr (NGFF 0.5) image with a resolution pyramid "
+        "(attribute 'ome'); 1: the four arrays only (still read)")
     status: Literal["writing", "complete", "failed"] = Field(
         description="'complete' after a clean end of stream; 'failed' if a stage failed (the "
         "arrays hold every block completed before the failure)")
@@ -153,3 +156,6 @@ class MosaicAttrs(BaseModel):
         default=None, description="The recording this mosaic was replayed from (path, frames, "
         "defects found), null for a live scan")
     resumed: int = Field(default=0, ge=0, description="Times 'replay --resume' continued it")
+    ome: NgffOme | None = Field(
+        default=None, description="OME-Zarr (NGFF 0.5) multiscales metadata: one pyramid per "
+        "array, 'height' first (format version 2); null in version 1")

@@ -210,30 +210,38 @@ def focus_measure(image: np.ndarray, *, operator: str = "glvm", window: int = 9,
                           device=device)
 
 
-def open_mosaic(path: str | Path) -> xarray.Dataset:
+def open_mosaic(path: str | Path, *, level: int = 0) -> xarray.Dataset:
     """Open a mosaic lazily as an xarray Dataset with coordinates in µm.
 
     Parameters
     ----------
     path : path-like
         A mosaic (Zarr v3 group written by a scan, replay or stop-and-go).
+    level : int, keyword-only
+        Level of the resolution pyramid: 0 is the full resolution; level k is the
+        2^k x 2^k reduction (NaN-aware mean of height and texture, mean confidence, summed
+        weight). Version-1 mosaics have level 0 only.
 
     Returns
     -------
     xarray.Dataset
         Variables ``height`` (µm), ``texture`` (0..1), ``confidence`` (0..1) and ``weight``,
-        each (y, x) float32 backed by dask (nothing is read until computed); coordinates
-        ``y`` and ``x`` are the pixel centres in µm; ``attrs`` are the mosaic's attributes.
+        each (y, x) float32 backed by dask with the mosaic's chunks (nothing is read until
+        computed); coordinates ``y`` and ``x`` are the pixel centres in µm (for level k the
+        centres of the 2^k x 2^k blocks); ``attrs`` are the mosaic's attributes plus
+        ``level`` and ``pixel_um_level`` (the level's pixel size, µm).
 
     Raises
     ------
     ValueError
-        The path is not a valid mosaic (the message names the file and the attribute).
+        The path is not a valid mosaic (the message names the file and the attribute), or
+        it has no such level.
     """
     import dask.array as da
     import xarray as xr
     import zarr
 
+    from sffscan.pipeline.formats.ngff import level_path
     from sffscan.stages.mosaic import ARRAYS, mosaic_array, read_mosaic_attrs
 
     p = Path(path)
@@ -242,12 +250,20 @@ def open_mosaic(path: str | Path) -> xarray.Dataset:
     except (FileNotFoundError, ValueError, KeyError) as err:
         raise ValueError(f"{p}: not a Zarr group ({err})") from None
     attrs = read_mosaic_attrs(group, p)
+    levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
+    if not 0 <= level < levels:
+        raise ValueError(f"{p}: no pyramid level {level} (the mosaic has levels 0..{levels - 1})")
     variables = {}
     for name in ARRAYS:
-        arr = mosaic_array(group, name)
+        arr = mosaic_array(group, level_path(name, level))
         variables[name] = (("y", "x"), da.from_array(arr, chunks=arr.chunks),
                            {"units": attrs.units.get(name, "")})
-    ny, nx = mosaic_array(group, "height").shape
-    coords = {"y": ("y", attrs.origin_um[1] + attrs.pixel_um * np.arange(ny), {"units": "µm"}),
-              "x": ("x", attrs.origin_um[0] + attrs.pixel_um * np.arange(nx), {"units": "µm"})}
-    return xr.Dataset(variables, coords=coords, attrs=attrs.model_dump(mode="json"))
+    ny, nx = mosaic_array(group, level_path("height", level)).shape
+    f = 2 ** level
+    step = attrs.pixel_um * f
+    half = (f - 1) / 2 * attrs.pixel_um  # a level-k pixel is centred on its block
+    coords = {"y": ("y", attrs.origin_um[1] + half + step * np.arange(ny), {"units": "µm"}),
+              "x": ("x", attrs.origin_um[0] + half + step * np.arange(nx), {"units": "µm"})}
+    return xr.Dataset(variables, coords=coords,
+                      attrs={**attrs.model_dump(mode="json"), "level": level,
+                             "pixel_um_level": step})

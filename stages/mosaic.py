@@ -1,17 +1,26 @@
 """Mosaic: completed depth blocks, stitched in world coordinates into a Zarr v3 group.
 
-Layout of the group (format ``sffscan-mosaic``, version 1; schema in
+Layout of the group (format ``sffscan-mosaic``, version 2; schema in
 ``schemas/mosaic_attrs.v1.json``):
 
 - ``height``: float32 (y, x), µm, NaN where nothing valid was measured;
 - ``texture``: float32 (y, x), all-in-focus grey value 0..1, NaN where invalid;
 - ``confidence``: float32 (y, x), the largest confidence of the contributions, 0..1;
-- ``weight``: float32 (y, x), the sum of contribution weights used to blend overlaps.
+- ``weight``: float32 (y, x), the sum of contribution weights used to blend overlaps;
+- ``pyramid/<k>/<name>``, k = 1 .. L-1 (L >= 4): the resolution pyramid of each array,
+  level k the 2^k x 2^k reduction of level 0 (:mod:`sffscan.stages.mosaic_pyramid`),
+  updated with every band write.
+
+Each array carries its unit in its own attributes (``units``); the group is an OME-Zarr
+(NGFF 0.5) image (attribute ``ome``, :mod:`sffscan.pipeline.formats.ngff`), so OME-Zarr
+readers and viewers open it. Version 1 mosaics (no pyramid, no ``ome``) are still read and
+resumed.
 
 Pixel (row, col) of the arrays is world pixel (origin_px[1] + row, origin_px[0] + col);
 world pixel (x, y) has its centre at (x, y) * pixel_um µm. All passes of a plate land in
 the one mosaic; where passes overlap, height and texture are the weighted mean with
-weight = max(confidence, 1e-3) over valid pixels. Blocks are gathered in memory per
+weight = max(confidence, 1e-3) over valid pixels; ``valid_pixels`` counts the finite
+heights of the mosaic (a pixel seen by two passes counts once). Blocks are gathered in memory per
 chunk-wide column band and written when the motion has left the band, so each chunk is
 written once per pass and memory stays bounded.
 
@@ -37,13 +46,22 @@ from typing import Any
 import numpy as np
 import zarr
 from pydantic import ValidationError
+from sffscan.pipeline.formats.ngff import mosaic_ngff
 from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
 from sffscan.pipeline.runtime import Stage
+from sffscan.stages.mosaic_pyramid import (
+    create_pyramid,
+    default_levels,
+    pyramid_arrays,
+    resize_pyramid,
+    update_pyramid,
+)
 from zarr.codecs import BloscCodec, BloscShuffle
 
 ARRAYS = ("height", "texture", "confidence", "weight")
 MIN_WEIGHT = 1e-3
 FILL = {"height": np.nan, "texture": np.nan, "confidence": 0.0, "weight": 0.0}
+UNITS = {"height": "µm", "texture": "1 (0..1 grey)", "confidence": "1 (0..1)", "weight": "1"}
 #: codec of the mosaic arrays (measured in bench/recorder_results.md)
 DEFAULT_CODEC = "blosc-lz4"
 #: tile states of :func:`tile_states`
@@ -156,11 +174,15 @@ class MosaicWriter:
         Replace an existing group; otherwise an existing path is an error.
     codec : str
         Compressor of the arrays (:func:`mosaic_codecs`).
+    levels : int, optional
+        Levels of the resolution pyramid, level 0 included (>= 1; 1 = no pyramid); by
+        default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
     """
 
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
-                 overwrite: bool = False, codec: str = DEFAULT_CODEC) -> None:
+                 overwrite: bool = False, codec: str = DEFAULT_CODEC,
+                 levels: int | None = None) -> None:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
@@ -170,17 +192,23 @@ class MosaicWriter:
                                       "empty folder; refusing to overwrite it")
         self.origin = origin_px
         self.chunk = chunk_px
+        levels = default_levels(shape, chunk_px) if levels is None else levels
+        if levels < 1:
+            raise ValueError(f"mosaic pyramid levels must be >= 1, got {levels}")
         compressors = mosaic_codecs(codec)
         self.group = zarr.open_group(str(self.path), mode="w")
         for name in ARRAYS:
             self.group.create_array(name=name, shape=shape, chunks=(chunk_px, chunk_px),
                                     dtype="float32", fill_value=FILL[name],
-                                    compressors=compressors, dimension_names=("y", "x"))
+                                    compressors=compressors, dimension_names=("y", "x"),
+                                    attributes={"units": UNITS[name]})
+        create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
+                       units=UNITS, compressors=compressors)
+        self.pyramid = pyramid_arrays(self.group, ARRAYS, levels)
         attrs = dict(attrs or {})
         header = MosaicAttrs(
             status="writing",
-            units={"height": "µm", "texture": "1 (0..1 grey)", "confidence": "1 (0..1)",
-                   "weight": "1"},
+            units=dict(UNITS),
             pixel_um=pixel_um,
             origin_px=origin_px,
             origin_um=(origin_px[0] * pixel_um, origin_px[1] * pixel_um),
@@ -190,6 +218,7 @@ class MosaicWriter:
             scan_config=attrs.pop("scan_config", {}),
             recording=attrs.pop("recording", None),
             codec=codec,
+            ome=mosaic_ngff(pixel_um=pixel_um, origin_px=origin_px, levels=levels, names=ARRAYS),
         )
         if attrs:
             raise ValueError(f"unknown mosaic attributes: {sorted(attrs)}")
@@ -198,6 +227,7 @@ class MosaicWriter:
         self.writes = 0  # write_region calls so far, in stream order
         self.done = 0  # writes already in the mosaic when it was reopened
         self.rebuild: list[Box] = []
+        self.valid_px = 0  # finite heights in the mosaic (overlaps counted once)
 
     @classmethod
     def reopen(cls, path: str | Path, *, scan_config: dict[str, Any]) -> MosaicWriter:
@@ -234,6 +264,8 @@ class MosaicWriter:
         self.blocks_written = 0
         self.writes = 0
         self.done = attrs.writes_done
+        levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
+        self.pyramid = pyramid_arrays(group, ARRAYS, levels)
         rebuild = [tuple(b) for b in attrs.rebuild]
         if attrs.writing is not None and tuple(attrs.writing) not in rebuild:
             rebuild.append(tuple(attrs.writing))
@@ -244,6 +276,7 @@ class MosaicWriter:
         self._ensure(rows, cols)
         self._journal(rebuild=[list(b) for b in self.rebuild], writing=None, status="writing",
                       resumed=attrs.resumed + 1)
+        self.valid_px = count_valid(mosaic_array(group, "height"))
         for box in self.rebuild:
             self._reset(box)
         return self
@@ -264,8 +297,15 @@ class MosaicWriter:
         sel = self._region(box)
         if sel is None:
             return
+        height = mosaic_array(self.group, "height")
+        self.valid_px -= int(np.isfinite(np.asarray(height[sel])).sum())
         for name in ARRAYS:
             mosaic_array(self.group, name)[sel] = FILL[name]
+        self._update_pyramid(sel)
+
+    def _update_pyramid(self, sel: tuple[slice, slice]) -> None:
+        update_pyramid({name: mosaic_array(self.group, name) for name in ARRAYS}, self.pyramid,
+                       sel)
 
     def _ensure(self, r1: int, c1: int) -> None:
         shapes = [mosaic_array(self.group, n).shape for n in ARRAYS]
@@ -276,6 +316,7 @@ class MosaicWriter:
                 arr = mosaic_array(self.group, name)
                 if arr.shape != (rows, cols):
                     arr.resize((rows, cols))
+            resize_pyramid(self.pyramid, (rows, cols))
 
     def _blend(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         r0, c0 = y0 - self.origin[1], x0 - self.origin[0]
@@ -284,8 +325,11 @@ class MosaicWriter:
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
         arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
         old = {name: np.asarray(arr[sel]) for name, arr in arrays.items()}
-        for name, value in blend(old, new).items():
+        out = blend(old, new)
+        for name, value in out.items():
             arrays[name][sel] = value
+        self.valid_px += int(np.isfinite(out["height"]).sum() - np.isfinite(old["height"]).sum())
+        self._update_pyramid(sel)
 
     def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0).
@@ -334,6 +378,14 @@ def read_mosaic_attrs(group: zarr.Group, path: str | Path) -> MosaicAttrs:
         where = ".".join(str(v) for v in first["loc"]) or "(attributes)"
         raise ValueError(f"{path}: not a valid sffscan mosaic: attribute '{where}': "
                          f"{first['msg']} ({len(err.errors())} problem(s))") from None
+
+
+def count_valid(height: zarr.Array) -> int:
+    """Finite values of a mosaic array, read one row of chunks at a time."""
+    rows = int(height.shape[0])
+    step = int(height.chunks[0])
+    return sum(int(np.isfinite(np.asarray(height[r:r + step])).sum())
+               for r in range(0, rows, step))
 
 
 def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
@@ -395,7 +447,6 @@ class MosaicStage(Stage):
         self.writer = writer
         self.bands: dict[int, _Band] = {}
         self.pass_index: int | None = None
-        self.valid_px = 0
         self.blocks = 0
 
     def _band_for(self, cx: int, y0: int, rows: int) -> _Band:
@@ -422,7 +473,6 @@ class MosaicStage(Stage):
         self.pass_index = h.pass_index
         self.blocks += 1
         valid = np.isfinite(item.height_um)
-        self.valid_px += int(valid.sum())
         weight = np.where(valid, np.maximum(item.confidence, MIN_WEIGHT), 0.0)
         c, ox = self.writer.chunk, self.writer.origin[0]
         first = (h.x0_px - ox) // c
@@ -463,9 +513,10 @@ class MosaicStage(Stage):
                 error = error or exc
         failed = failed or error is not None
         self.writer.set_status("failed" if failed else "complete",
-                               valid_pixels=self.valid_px, blocks=self.blocks)
+                               valid_pixels=self.writer.valid_px, blocks=self.blocks)
         if error is not None:
             raise error
 
     def extra_stats(self) -> dict[str, int]:
-        return {"valid_pixels": self.valid_px, "chunks_written": self.writer.blocks_written}
+        return {"valid_pixels": self.writer.valid_px,
+                "chunks_written": self.writer.blocks_written}

@@ -39,15 +39,17 @@ def mosaic(tmp_path: Path) -> tuple[Path, np.ndarray, np.ndarray]:
 
 
 def _parse_ply(path: Path) -> tuple[list[str], np.ndarray]:
-    """Independent minimal reader: header lines, then (n, 4) float64 rows x y z grey."""
+    """Independent minimal reader: header lines, then (n, 6) float64 rows x y z r g b."""
     data = path.read_bytes()
     head, body = data.split(b"end_header\n", 1)
     lines = head.decode("ascii").splitlines()
     n = int(next(line for line in lines if line.startswith("element vertex")).split()[-1])
-    rec = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("g", "u1")])
-    assert len(body) == n * 13
+    rec = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"),
+                    ("b", "u1")])
+    assert len(body) == n * 15
     arr = np.frombuffer(body, rec)
-    return lines, np.column_stack([arr["x"], arr["y"], arr["z"], arr["g"]]).astype(np.float64)
+    return lines, np.column_stack([arr[k] for k in ("x", "y", "z", "r", "g", "b")]
+                                  ).astype(np.float64)
 
 
 def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
@@ -56,13 +58,35 @@ def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path)
     info = write_ply(out, path, band_rows=7)  # several bands
     lines, v = _parse_ply(out)
     assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
-    assert "property uchar grey" in lines
+    assert lines[-3:] == ["property uchar red", "property uchar green", "property uchar blue"]
     rows, cols = np.nonzero(np.isfinite(h))
     assert info["points"] == rows.size == v.shape[0] and info["no_texture"] == 0
     np.testing.assert_allclose(v[:, 0], (ORIGIN[0] + cols) * PX / 1000, rtol=1e-6)
     np.testing.assert_allclose(v[:, 1], (ORIGIN[1] + rows) * PX / 1000, rtol=1e-6)
     np.testing.assert_allclose(v[:, 2], h[rows, cols] / 1000, rtol=1e-6)
-    np.testing.assert_array_equal(v[:, 3], np.rint(t[rows, cols] * 255))
+    for c in (3, 4, 5):
+        np.testing.assert_array_equal(v[:, c], np.rint(t[rows, cols] * 255))
+
+
+def test_trimesh_loads_the_ply_with_colours(mosaic: tuple[Path, np.ndarray, np.ndarray],
+                                            tmp_path: Path) -> None:
+    """A third-party reader (trimesh) sees the points, in mm, with the texture as colour."""
+    import trimesh
+
+    path, h, t = mosaic
+    out = tmp_path / "c.ply"
+    write_ply(out, path)
+    cloud = trimesh.load(out)
+    assert isinstance(cloud, trimesh.PointCloud)
+    rows, cols = np.nonzero(np.isfinite(h))
+    assert len(cloud.vertices) == rows.size
+    np.testing.assert_allclose(cloud.vertices[:, 2], h[rows, cols] / 1000, rtol=1e-6)
+    colours = np.asarray(cloud.colors)  # (n, 4) RGBA uint8
+    assert colours.shape == (rows.size, 4)
+    grey = np.rint(t[rows, cols] * 255)
+    for c in range(3):
+        np.testing.assert_array_equal(colours[:, c], grey)
+    assert len(np.unique(colours[:, 0])) > 100  # really the texture, not a default colour
 
 
 def test_ply_region(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:

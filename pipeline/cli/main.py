@@ -36,7 +36,8 @@ from sffscan.pipeline.config import (
 #: Modules that add sub-commands; each defines ``register(sub)``.
 COMMAND_MODULES: tuple[str, ...] = (
     "sffscan.pipeline.cli.record", "sffscan.pipeline.cli.hardware",
-    "sffscan.pipeline.cli.calibrate", "sffscan.pipeline.cli.metrology")
+    "sffscan.pipeline.cli.calibrate", "sffscan.pipeline.cli.metrology",
+    "sffscan.pipeline.cli.batch")
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:

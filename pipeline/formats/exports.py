@@ -5,8 +5,10 @@ Coordinates are world coordinates: world pixel (x, y) has its centre at
 finite height are exported; missing pixels are not filled:
 
 - PLY (binary little-endian): one vertex per finite pixel, ``float x, y, z`` in **mm** and
-  ``uchar grey`` = round(255 * texture) (0 where the texture is missing; counted). Written
-  band by band, so memory stays bounded for any region.
+  ``uchar red, green, blue`` = round(255 * texture) each (the all-in-focus grey as a colour
+  that point-cloud tools such as trimesh, open3d, CloudCompare and MeshLab show; 0 where the
+  texture is missing, counted). Units are in the header's comments. Written band by band,
+  so memory stays bounded for any region.
 - x3p (ISO 25178-72, through the ``x3pio`` library): a surface on the regular grid of the
   region, heights in metres (float64), NaN = not measured; x and y increments = the pixel
   size; the placement's offset is the world position (x, y) of the region's first pixel.
@@ -29,8 +31,13 @@ from sffscan.stages.mosaic import mosaic_array
 __all__ = ["MosaicRegion", "PLY_DTYPE", "read_ply", "read_region", "region_box", "write_ply",
            "write_x3p"]
 
-PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("grey", "u1")])
-"""Record layout of a PLY vertex as written here (13 bytes, little-endian)."""
+PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                      ("blue", "u1")])
+"""Record layout of a PLY vertex as written here (15 bytes, little-endian)."""
+_PLY_PROPS = [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "red"),
+              ("uchar", "green"), ("uchar", "blue")]
+#: the first exports' layout (a ``grey`` property that point-cloud tools ignore), still read
+PLY_GREY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("grey", "u1")])
 
 
 @dataclass
@@ -95,10 +102,11 @@ def read_region(path: str | Path, region_px: tuple[int, int, int, int] | None = 
 
 def _ply_header(count: int, comment: str) -> bytes:
     lines = ["ply", "format binary_little_endian 1.0", "comment sffscan height mosaic export",
-             "comment units: x y z in mm, grey 0..255"]
+             "comment units: x y z in mm, red green blue 0..255 (the texture's grey)"]
     lines += [f"comment {c}" for c in comment.splitlines() if c]
     lines += [f"element vertex {count}", "property float x", "property float y",
-              "property float z", "property uchar grey", "end_header"]
+              "property float z", "property uchar red", "property uchar green",
+              "property uchar blue", "end_header"]
     # PLY headers are ASCII: other characters (a mosaic named "Prüfkörper") are escaped
     return ("\n".join(lines) + "\n").encode("ascii", errors="backslashreplace")
 
@@ -113,7 +121,8 @@ def ply_vertices(height_um: np.ndarray, texture: np.ndarray, *, x0_px: int, y0_p
     out["y"] = (y0_px + rows) * mm
     out["z"] = height_um[rows, cols] / 1000.0
     t = texture[rows, cols]
-    out["grey"] = np.where(np.isfinite(t), np.clip(np.rint(np.nan_to_num(t) * 255), 0, 255), 0)
+    grey = np.where(np.isfinite(t), np.clip(np.rint(np.nan_to_num(t) * 255), 0, 255), 0)
+    out["red"] = out["green"] = out["blue"] = grey
     return out
 
 
@@ -136,7 +145,8 @@ def write_ply(path: str | Path, mosaic: str | Path,
     Returns
     -------
     dict
-        ``points`` written and ``no_texture`` (points whose grey is 0 for lack of a texture).
+        ``points`` written and ``no_texture`` (points whose colour is 0 for lack of a
+        texture).
     """
     group, attrs = _open(mosaic)
     x0, y0, x1, y1 = region_box(mosaic, region_px)
@@ -170,7 +180,8 @@ def write_ply(path: str | Path, mosaic: str | Path,
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
-    """Read a binary little-endian PLY of :data:`PLY_DTYPE` vertices (as written here).
+    """Read a binary little-endian PLY of :data:`PLY_DTYPE` vertices (as written here; the
+    first exports' :data:`PLY_GREY_DTYPE` too).
 
     Returns the records and the header lines.
     """
@@ -183,12 +194,16 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
         raise ValueError(f"{path}: not binary little-endian PLY")
     count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
     props = [tuple(line.split()[1:]) for line in header if line.startswith("property")]
-    if props != [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "grey")]:
+    if props == _PLY_PROPS:
+        dtype = PLY_DTYPE
+    elif props == [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "grey")]:
+        dtype = PLY_GREY_DTYPE
+    else:
         raise ValueError(f"{path}: unexpected vertex properties {props}")
     body = data[end + len(b"end_header\n"):]
-    if len(body) != count * PLY_DTYPE.itemsize:
+    if len(body) != count * dtype.itemsize:
         raise ValueError(f"{path}: {len(body)} bytes of data for {count} vertices")
-    return np.frombuffer(body, dtype=PLY_DTYPE), header
+    return np.frombuffer(body, dtype=dtype), header
 
 
 # ----------------------------------------------------------------------------- x3p

@@ -1,0 +1,281 @@
+"""Reprocess many recordings on a Dask distributed cluster (``sffscan batch``).
+
+One task per recording: the task replays the recording (:func:`sffscan.replay`) into its
+own mosaic, on one worker, with the worker's numerical libraries capped to
+``threads`` threads so that concurrent tasks do not fight over the cores. A recording that
+cannot be processed (unreadable, corrupt, a stage failing) gives a ``failed`` row with the
+cause; the other tasks go on. A recording whose mosaic is already ``complete`` is skipped
+(a rerun after an interruption does only what is left); a mosaic left ``writing`` or
+``failed`` by an interrupted run is replaced.
+
+The cluster is a :class:`distributed.LocalCluster` of worker processes on this machine by
+default, or any running Dask scheduler given by its address (``tcp://host:8786``): there,
+every worker must see the recordings and the output folder at the same paths (a shared
+file system) and have sffscan installed.
+
+Results travel back as plain dicts of numbers and strings; nothing of the pipeline crosses
+the process boundary but paths.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import zarr
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BatchError", "BatchRow", "find_recordings", "format_table", "mosaic_path",
+           "process_recording", "run_batch", "write_csv"]
+
+#: statuses of a row: done now, skipped (complete already), failed, or done but incomplete
+STATUSES = ("complete", "skipped", "failed", "incomplete")
+
+
+class BatchError(ValueError):
+    """Bad batch input (nothing found, two recordings mapping to one mosaic)."""
+
+
+@dataclass
+class BatchRow:
+    """One recording's result (a row of the results table)."""
+
+    recording: str
+    mosaic: str
+    status: str
+    frames: int | None = None
+    frames_lost: int | None = None
+    valid_pixels: int | None = None
+    rmse_um: float | None = None
+    coverage: float | None = None
+    wall_s: float | None = None
+    worker: str = ""
+    error: str = ""
+
+
+def _is_recording(path: Path) -> bool:
+    if not (path / "zarr.json").is_file():
+        return False
+    try:
+        return zarr.open_group(str(path), mode="r").attrs.get("format") == "sffscan-recording"
+    except Exception:  # noqa: BLE001 - unreadable: decided by the name below
+        return False
+
+
+def find_recordings(inputs: Sequence[str | Path]) -> list[Path]:
+    """Recordings named by ``inputs``: recording paths, glob patterns, or folders (their
+    children that are recordings or end in ``.zarr``), in order, each once.
+
+    A path named explicitly (or matched by a pattern) is taken even if it does not read as
+    a recording: it is then reported as a failed row, not left out silently.
+    """
+    out: list[Path] = []
+    for item in inputs:
+        text = str(item)
+        if any(c in text for c in "*?["):
+            matches = sorted(Path(m) for m in glob.glob(text))
+            if not matches:
+                raise BatchError(f"{text}: the pattern matches nothing")
+            out += matches
+            continue
+        p = Path(text)
+        if not p.exists():
+            raise BatchError(f"{p}: no such recording or folder")
+        if p.is_dir() and not (p / "zarr.json").exists():  # a folder of layers
+            layers = sorted(c for c in p.iterdir()
+                            if c.is_dir() and (c.suffix == ".zarr" or _is_recording(c)))
+            if not layers:
+                raise BatchError(f"{p}: a folder without recordings")
+            out += layers
+        else:
+            out.append(p)
+    seen: set[Path] = set()
+    unique = []
+    for p in out:
+        if p.resolve() not in seen:
+            seen.add(p.resolve())
+            unique.append(p)
+    return unique
+
+
+def mosaic_path(recording: Path, out_dir: Path) -> Path:
+    """``OUT/<name>.mosaic.zarr`` for a recording ``<name>.zarr`` (or ``<name>``)."""
+    name = recording.name[:-5] if recording.name.endswith(".zarr") else recording.name
+    return out_dir / f"{name}.mosaic.zarr"
+
+
+def _mosaic_status(path: Path) -> dict[str, Any] | None:
+    try:
+        attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
+    except Exception:  # noqa: BLE001 - absent or not a group
+        return None
+    return attrs if attrs.get("format") == "sffscan-mosaic" else None
+
+
+def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any],
+                      evaluate: bool, threads: int) -> dict[str, Any]:
+    """Replay one recording into ``mosaic`` (replaced); the task a worker runs.
+
+    Never raises for a bad recording or a failing stage: the row says ``failed`` and why.
+    Returns a :class:`BatchRow` as a dict.
+    """
+    import socket
+
+    from threadpoolctl import threadpool_limits
+
+    row = BatchRow(recording=recording, mosaic=mosaic, status="failed",
+                   worker=socket.gethostname())
+    t0 = time.perf_counter()
+    try:
+        import torch
+        from sffscan.pipeline.formats.recording import open_recording
+
+        from sffscan.api import replay
+
+        torch.set_num_threads(threads)
+        with threadpool_limits(limits=threads):
+            sim = open_recording(recording).config.source.kind == "sim"
+            report = replay(recording, output=mosaic, overwrite=True,
+                            processing=processing or None, evaluate=evaluate and sim)
+        attrs = zarr.open_group(mosaic, mode="r").attrs.asdict()
+        row.status = str(attrs.get("status"))
+        row.frames = report.frames
+        row.frames_lost = int(report.extras.get("recording", {}).get("frames_lost", 0))
+        valid = attrs.get("valid_pixels")
+        row.valid_pixels = int(valid) if isinstance(valid, int) else None
+        if report.accuracy is not None:
+            row.rmse_um = float(report.accuracy.rmse_um)
+            row.coverage = float(report.accuracy.coverage)
+    except Exception as exc:  # noqa: BLE001 - reported in the row; the batch goes on
+        row.status = "failed"
+        row.error = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
+    row.wall_s = round(time.perf_counter() - t0, 3)
+    return asdict(row)
+
+
+def _skipped(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
+    rec = attrs.get("recording") or {}
+    return BatchRow(recording=str(recording), mosaic=str(mosaic), status="skipped",
+                    frames=rec.get("frames"), frames_lost=rec.get("frames_lost"),
+                    valid_pixels=attrs.get("valid_pixels"))
+
+
+def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | None = None,
+              workers: int = 2, threads: int = 1, processing: dict[str, Any] | None = None,
+              evaluate: bool = True, rerun: bool = False,
+              on_row: Callable[[BatchRow, int, int], None] | None = None) -> list[BatchRow]:
+    """Reprocess ``recordings`` into ``out_dir`` on a Dask cluster.
+
+    Parameters
+    ----------
+    recordings : sequence of Path
+        From :func:`find_recordings`.
+    out_dir : Path
+        Folder of the mosaics (``<name>.mosaic.zarr``), created if missing.
+    scheduler : str, optional
+        Address of a running Dask scheduler; by default a ``LocalCluster`` of ``workers``
+        worker processes, one task at a time each, is started and closed here.
+    workers, threads : int
+        Local worker processes; threads each task's numerical libraries may use.
+    processing : dict, optional
+        ``processing`` fields overriding each recording's own (as ``sffscan replay``).
+    evaluate : bool
+        Score recordings of the simulator against its true surface (RMSE, coverage).
+    rerun : bool
+        Reprocess complete mosaics too instead of skipping them.
+    on_row : callable, optional
+        Called with (row, rows done, rows in all) as each recording finishes (progress).
+
+    Returns
+    -------
+    list of BatchRow
+        One per recording, in the order given.
+    """
+    from distributed import Client, LocalCluster, as_completed
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    targets = [(r, mosaic_path(r, out_dir)) for r in recordings]
+    dupes = {str(m) for _, m in targets if sum(1 for _, n in targets if n == m) > 1}
+    if dupes:
+        raise BatchError(f"recordings with the same name would share a mosaic: {sorted(dupes)}")
+    rows: dict[int, BatchRow] = {}
+    todo = []
+    for i, (rec, mos) in enumerate(targets):
+        attrs = _mosaic_status(mos)
+        if not rerun and attrs is not None and attrs.get("status") == "complete":
+            rows[i] = _skipped(rec, mos, attrs)
+        else:
+            todo.append(i)
+    total, done = len(targets), 0
+    for i in sorted(rows):
+        done += 1
+        if on_row is not None:
+            on_row(rows[i], done, total)
+    if not todo:
+        return [rows[i] for i in range(total)]
+    import dask
+
+    # worker processes that may start processes themselves (the pipeline's parallel stages)
+    with dask.config.set({"distributed.worker.daemon": False}):
+        cluster = (None if scheduler else
+                   LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                dashboard_address=None, memory_limit=0))
+        try:
+            with Client(scheduler or cluster) as client:
+                futures = {client.submit(process_recording, str(targets[i][0]),
+                                         str(targets[i][1]), processing=processing or {},
+                                         evaluate=evaluate, threads=threads, pure=False,
+                                         key=f"sffscan-batch-{i}-{targets[i][0].name}"): i
+                           for i in todo}
+                for fut in as_completed(futures):
+                    i = futures[fut]
+                    try:
+                        row = BatchRow(**fut.result())
+                    except Exception as exc:  # noqa: BLE001 - a worker lost, not the batch
+                        row = BatchRow(recording=str(targets[i][0]), mosaic=str(targets[i][1]),
+                                       status="failed", error=f"{type(exc).__name__}: {exc}")
+                    rows[i] = row
+                    done += 1
+                    if on_row is not None:
+                        on_row(row, done, total)
+        finally:
+            if cluster is not None:
+                cluster.close()
+    return [rows[i] for i in range(total)]
+
+
+def write_csv(rows: Sequence[BatchRow], path: Path) -> None:
+    """The results table as CSV (one row per recording, header first)."""
+    names = [f.name for f in fields(BatchRow)]
+    part = path.with_name(path.name + ".part")
+    with open(part, "w", newline="", encoding="utf-8") as f:
+        w = csv.DictWriter(f, fieldnames=names)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if v is None else v) for k, v in asdict(r).items()})
+    part.replace(path)
+
+
+def format_table(rows: Sequence[BatchRow]) -> str:
+    """The results table for a terminal."""
+    lines = [f"{'recording':<28} {'status':<10} {'frames':>7} {'lost':>5} {'RMSE µm':>8} "
+             f"{'cover':>6} {'s':>7}  error"]
+
+    def num(v: float | int | None, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    for r in rows:
+        lines.append(f"{Path(r.recording).name[:28]:<28} {r.status:<10} "
+                     f"{num(r.frames, 'd'):>7} {num(r.frames_lost, 'd'):>5} "
+                     f"{num(r.rmse_um, '.1f'):>8} {num(r.coverage, '.3f'):>6} "
+                     f"{num(r.wall_s, '.1f'):>7}  {r.error}")
+    counts = {s: sum(1 for r in rows if r.status == s) for s in STATUSES}
+    lines.append(", ".join(f"{n} {s}" for s, n in counts.items() if n) or "nothing")
+    return "\n".join(lines)

@@ -1,0 +1,121 @@
+"""Command ``sffscan batch``: reprocess many recordings on a Dask cluster.
+
+``sffscan batch REC... -o OUT`` replays every recording (paths, glob patterns, or folders of
+layers) into ``OUT/<name>.mosaic.zarr``, one task per recording, on a local cluster of
+worker processes (``--workers``) or on a running Dask scheduler (``--scheduler
+tcp://host:8786``); prints the results table and writes it as CSV (``OUT/batch.csv``).
+Complete mosaics are skipped on a rerun. Exit 0 when every recording is complete, 1 when
+some failed (or ended incomplete), 2 for bad input. See :mod:`sffscan.pipeline.batch`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK
+
+log = logging.getLogger(__name__)
+
+
+def _processing(args: argparse.Namespace) -> dict[str, object]:
+    out: dict[str, object] = {}
+    if args.no_registration:
+        out["registration"] = False
+    if args.method:
+        out["depth_method"] = args.method
+    if args.operator:
+        out["focus_operator"] = args.operator
+    if args.window is not None:
+        out["window"] = args.window
+    if args.calibration:
+        out["calibration"] = str(Path(args.calibration).resolve())
+    return out
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.batch import (
+        BatchError,
+        BatchRow,
+        find_recordings,
+        format_table,
+        run_batch,
+        write_csv,
+    )
+
+    if args.workers < 1 or args.threads < 1:
+        print("sffscan: --workers and --threads must be >= 1", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        recordings = find_recordings(args.recordings)
+    except BatchError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out = Path(args.output)
+    csv_path = Path(args.csv) if args.csv else out / "batch.csv"
+    where = args.scheduler or f"a local cluster of {args.workers} worker process(es)"
+    log.info("batch: %d recording(s) -> %s on %s, %d thread(s) per task", len(recordings), out,
+             where, args.threads)
+
+    def progress(row: BatchRow, done: int, total: int) -> None:
+        extra = f" ({row.error})" if row.error else ""
+        log.info("[%d/%d] %s: %s%s", done, total, Path(row.recording).name, row.status, extra)
+
+    try:
+        rows = run_batch(recordings, out, scheduler=args.scheduler, workers=args.workers,
+                         threads=args.threads, processing=_processing(args),
+                         evaluate=not args.no_evaluate, rerun=args.rerun,
+                         on_row=None if args.quiet else progress)
+    except BatchError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    write_csv(rows, csv_path)
+    print(format_table(rows))
+    print(f"results: {csv_path}")
+    bad = [r for r in rows if r.status not in ("complete", "skipped")]
+    for r in bad:
+        print(f"sffscan: {r.recording}: {r.status}" + (f": {r.error}" if r.error else ""),
+              file=sys.stderr)
+    return EXIT_FAILED if bad else EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser(
+        "batch", help="reprocess many recordings on a Dask cluster",
+        description="Replay many recordings ('sffscan scan --record') into one mosaic each, in "
+                    "parallel on a Dask cluster: a local cluster of worker processes, or a "
+                    "running scheduler (--scheduler). A bad recording is reported and the "
+                    "others complete; complete mosaics are skipped on a rerun; a results "
+                    "table is printed and written as CSV. Exit 1 if any recording failed.",
+        epilog="Several machines: start 'dask scheduler' on one (port 8786), 'dask worker "
+               "tcp://HOST:8786 --nworkers 2 --nthreads 1' on each, with sffscan installed and "
+               "the recordings and OUT on a shared file system at the same paths; then "
+               "'sffscan batch layers/ -o OUT --scheduler tcp://HOST:8786'.")
+    p.add_argument("recordings", nargs="+",
+                   help="recordings (Zarr v3 groups), glob patterns ('layers/*.zarr') or "
+                        "folders of recordings")
+    p.add_argument("-o", "--output", required=True,
+                   help="folder of the mosaics (OUT/<name>.mosaic.zarr) and of batch.csv")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://host:8786) instead of a local cluster")
+    p.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) // 2),
+                   help="worker processes of the local cluster (default: half the cores)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="threads each task's numerical libraries (torch, BLAS) may use")
+    p.add_argument("--csv", metavar="PATH", help="results table (default OUT/batch.csv)")
+    p.add_argument("--rerun", action="store_true",
+                   help="reprocess recordings whose mosaic is complete already")
+    p.add_argument("--no-evaluate", action="store_true",
+                   help="do not score simulated recordings against their true surface")
+    p.add_argument("--no-registration", action="store_true",
+                   help="place frames by speed only")
+    p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
+                                        "spc", "wcentroid"], help="depth method")
+    p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
+    p.add_argument("--window", type=int, help="focus measure window k, odd, px")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration JSON ('sffscan calibrate'): focus level -> µm")
+    p.set_defaults(func=cmd_batch)

@@ -1,0 +1,105 @@
+"""``sffscan batch``: four small recordings on a 2-worker LocalCluster, one corrupt: three
+complete mosaics, one reported failure, exit 1; a rerun skips the three."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.batch import BatchError, find_recordings, mosaic_path
+from sffscan.pipeline.cli.main import main
+from sffscan.stages.recorder import RecordingWriter
+from sffscan.stages.sim.scanner import simulate_frames
+
+from tests.scan_helpers import small_config
+
+
+@pytest.fixture(scope="module")
+def layers(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder of four layer recordings; the last one's metadata is corrupt."""
+    d = tmp_path_factory.mktemp("job") / "layers"
+    d.mkdir()
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 5.0},
+                       processing={"registration": False})
+    writer = RecordingWriter(d / "layer_000.zarr", cfg)
+    for frame in simulate_frames(cfg):
+        writer.write(frame)
+    writer.close()
+    for i in (1, 2, 3):
+        shutil.copytree(d / "layer_000.zarr", d / f"layer_{i:03d}.zarr")
+    (d / "layer_003.zarr" / "zarr.json").write_text("{ this is not JSON")
+    return d
+
+
+def _csv(path: Path) -> dict[str, dict[str, str]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        return {Path(r["recording"]).name: r for r in csv.DictReader(f)}
+
+
+def test_batch_reports_the_bad_recording_completes_the_others_and_resumes(
+        layers: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    code = main(["batch", str(layers), "-o", str(out), "--workers", "2", "--threads", "1"])
+    printed = capsys.readouterr()
+    assert code == 1, printed.err  # some failed
+    rows = _csv(out / "batch.csv")
+    assert sorted(rows) == [f"layer_{i:03d}.zarr" for i in range(4)]
+    assert rows["layer_003.zarr"]["status"] == "failed"
+    assert "layer_003.zarr" in rows["layer_003.zarr"]["error"]
+    assert "layer_003.zarr: failed" in printed.err
+    frames = {int(rows[f"layer_{i:03d}.zarr"]["frames"]) for i in range(3)}
+    assert len(frames) == 1 and frames.pop() > 50
+    for i in range(3):
+        row = rows[f"layer_{i:03d}.zarr"]
+        assert row["status"] == "complete" and row["frames_lost"] == "0"
+        assert 0 < float(row["rmse_um"]) < 200  # a truth exists: the simulated surface
+        g = zarr.open_group(row["mosaic"], mode="r")
+        assert g.attrs["status"] == "complete"
+        assert g.attrs["valid_pixels"] == int(np.isfinite(np.asarray(g["height"])).sum())  # type: ignore[index]
+        assert len(g.attrs["ome"]["multiscales"][0]["datasets"]) >= 4  # type: ignore[index]
+    # the three identical recordings give identical mosaics, whichever worker ran them
+    first = np.asarray(zarr.open_group(rows["layer_000.zarr"]["mosaic"], mode="r")["height"])  # type: ignore[index]
+    for i in (1, 2):
+        other = zarr.open_group(rows[f"layer_{i:03d}.zarr"]["mosaic"], mode="r")["height"]
+        assert np.array_equal(np.asarray(other), first, equal_nan=True)  # type: ignore[arg-type]
+    assert "3 complete, 1 failed" in printed.out
+    stamp = {i: (Path(rows[f"layer_{i:03d}.zarr"]["mosaic"]) / "zarr.json").stat().st_mtime_ns
+             for i in range(3)}
+
+    # the rerun skips the complete mosaics and tries the bad one again
+    code = main(["batch", str(layers / "layer_*.zarr"), "-o", str(out), "--workers", "2"])
+    printed = capsys.readouterr()
+    assert code == 1
+    rows = _csv(out / "batch.csv")
+    assert [rows[f"layer_{i:03d}.zarr"]["status"] for i in range(4)] == [
+        "skipped", "skipped", "skipped", "failed"]
+    assert rows["layer_000.zarr"]["frames"] != ""
+    for i in range(3):
+        assert (Path(rows[f"layer_{i:03d}.zarr"]["mosaic"]) / "zarr.json"
+                ).stat().st_mtime_ns == stamp[i]
+    assert "3 skipped, 1 failed" in printed.out
+
+
+def test_batch_of_good_recordings_exits_0(layers: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    code = main(["batch", str(layers / "layer_000.zarr"), "-o", str(out), "--workers", "1",
+                 "--no-evaluate", "--csv", str(tmp_path / "r.csv")])
+    assert code == 0, capsys.readouterr().err
+    row = _csv(tmp_path / "r.csv")["layer_000.zarr"]
+    assert row["status"] == "complete" and row["rmse_um"] == ""
+
+
+def test_bad_batch_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["batch", str(tmp_path / "none*.zarr"), "-o", str(tmp_path / "o")]) == 2
+    assert "matches nothing" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["batch", str(tmp_path / "empty"), "-o", str(tmp_path / "o")]) == 2
+    assert "without recordings" in capsys.readouterr().err
+    with pytest.raises(BatchError, match="no such"):
+        find_recordings([tmp_path / "missing.zarr"])
+    assert mosaic_path(Path("a/layer_7.zarr"), Path("o")) == Path("o/layer_7.mosaic.zarr")

@@ -1,0 +1,139 @@
+"""The mosaic is an OME-Zarr (NGFF 0.5) image: the ``ome-zarr`` reader and the
+``ome-zarr-models`` package (in their own environment) open and validate a scan's mosaic;
+``sffscan.open_mosaic`` opens every level lazily with µm coordinates; version-1 mosaics
+still read."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import dask.array as da
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.formats.ngff import level_path
+from sffscan.stages.mosaic import ARRAYS
+
+from sffscan import open_mosaic
+from tests.scan_helpers import scan, small_config
+
+ROOT = Path(__file__).resolve().parents[1]
+NGFF_VENV = ROOT / ".venv-ngff"
+REQUIREMENTS = ROOT / "tests" / "ngff-requirements.txt"
+
+
+@pytest.fixture(scope="session")
+def ngff_python() -> Path:
+    """Python of the NGFF tools' own environment, created on first use (about a minute)."""
+    python = NGFF_VENV / "bin" / "python"
+    probe = [str(python), "-c", "import ome_zarr, ome_zarr_models"]
+    if python.exists() and subprocess.run(probe, capture_output=True).returncode == 0:
+        return python
+    steps = [[sys.executable, "-m", "venv", "--clear", str(NGFF_VENV)],
+             [str(python), "-m", "pip", "install", "-q", "-r", str(REQUIREMENTS)]]
+    for step in steps:
+        done = subprocess.run(step, capture_output=True, text=True, timeout=600)
+        if done.returncode != 0:
+            pytest.fail(f"cannot build the NGFF tools' environment ({' '.join(step)}): "
+                        f"{done.stderr[-2000:]}")
+    return python
+
+
+@pytest.fixture(scope="module")
+def mosaic(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small scan's mosaic at the default optics' pixel size, 8.5 µm."""
+    out = tmp_path_factory.mktemp("ngff") / "m.zarr"
+    cfg = small_config(optics={"pixel_um": 8.5},
+                       motion={"x_start_mm": 1.0, "x_end_mm": 5.0})
+    scan(cfg, out)
+    return out
+
+
+def test_ome_zarr_reader_and_ngff_models_open_the_mosaic(mosaic: Path,
+                                                         ngff_python: Path) -> None:
+    done = subprocess.run([str(ngff_python), str(ROOT / "tests" / "ngff_check.py"), str(mosaic)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    seen = json.loads(done.stdout)
+    g = zarr.open_group(str(mosaic), mode="r")
+    ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr]
+    assert seen["nodes"] == 1 and seen["image_nodes"] == 1
+    assert seen["levels"] >= 4
+    assert [a["unit"] for a in seen["axes"]] == ["micrometer", "micrometer"]
+    assert [a["name"] for a in seen["axes"]] == ["y", "x"]
+    scale, translation = seen["transforms"][0]
+    assert scale == {"type": "scale", "scale": [8.5, 8.5]}
+    assert translation["translation"] == pytest.approx([oy * 8.5, ox * 8.5])
+    for k, (s, t) in enumerate(seen["transforms"]):
+        assert s["scale"] == [8.5 * 2 ** k] * 2
+        half = (2 ** k - 1) / 2 * 8.5  # a level-k pixel is centred on its 2^k block
+        assert t["translation"] == pytest.approx([oy * 8.5 + half, ox * 8.5 + half])
+    h = np.asarray(g["height"])  # type: ignore[index]
+    assert seen["shapes"][0] == list(h.shape)
+    assert seen["shapes"][3] == [-(-h.shape[0] // 8), -(-h.shape[1] // 8)]
+    # the reader reads the pixel values we wrote
+    want = np.nanmean(np.asarray(g[level_path("height", 1)]))  # type: ignore[index]
+    assert seen["level1_nanmean"] == pytest.approx(float(want), rel=1e-5)
+    assert seen["model_multiscales"] == list(ARRAYS)
+    assert set(seen["model_levels"]) == {seen["levels"]}
+
+
+def test_open_mosaic_is_lazy_with_micrometre_coordinates(mosaic: Path) -> None:
+    ds = open_mosaic(mosaic)
+    g = zarr.open_group(str(mosaic), mode="r")
+    ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr]
+    assert set(ds.data_vars) == set(ARRAYS)
+    assert all(isinstance(ds[n].data, da.Array) for n in ARRAYS)
+    assert ds["height"].attrs["units"] == "µm" and ds["x"].attrs["units"] == "µm"
+    assert ds["x"].values[0] == pytest.approx(ox * 8.5)
+    assert ds["y"].values[1] - ds["y"].values[0] == pytest.approx(8.5)
+    h = np.asarray(g["height"])  # type: ignore[index]
+    assert np.array_equal(ds["height"].values, h, equal_nan=True)
+    # level 2: 4 x 4 blocks, centred on them
+    l2 = open_mosaic(mosaic, level=2)
+    assert l2["height"].shape == (-(-h.shape[0] // 4), -(-h.shape[1] // 4))
+    assert l2["x"].values[0] == pytest.approx(ox * 8.5 + 1.5 * 8.5)
+    assert l2.attrs["pixel_um_level"] == pytest.approx(34.0)
+    x = float(l2["x"].values[3])  # the level-2 value at a µm position: its block's mean
+    block = ds["height"].sel(x=slice(x - 17, x + 17)).isel(y=slice(0, 4)).values
+    assert block.shape == (4, 4)
+    if np.isfinite(block).any():
+        assert float(l2["height"].values[0, 3]) == pytest.approx(float(np.nanmean(block)),
+                                                                 rel=1e-5)
+    with pytest.raises(ValueError, match="no pyramid level 9"):
+        open_mosaic(mosaic, level=9)
+
+
+def test_lazy_open_of_a_large_mosaic_reads_nothing(tmp_path: Path) -> None:
+    """10^9 pixels open lazily: only metadata is read (nothing is written either)."""
+    from sffscan.stages.mosaic import MosaicWriter
+
+    path = tmp_path / "big.zarr"
+    w = MosaicWriter(path, origin_px=(0, 0), shape=(31_623, 31_623), pixel_um=8.5)
+    w.set_status("complete", valid_pixels=0, blocks=0)
+    ds = open_mosaic(path, level=0)
+    assert ds["height"].size >= 10 ** 9
+    assert ds["height"].data.chunksize == (256, 256)
+    assert sum(1 for _ in path.rglob("c")) == 0  # no chunk was written
+
+
+def test_version_1_mosaics_still_read(mosaic: Path, tmp_path: Path) -> None:
+    """A mosaic in the first format (no pyramid, no 'ome') opens as before."""
+    old = tmp_path / "v1.zarr"
+    src = zarr.open_group(str(mosaic), mode="r")
+    dst = zarr.open_group(str(old), mode="w")
+    for name in ARRAYS:
+        a = src[name]
+        dst.create_array(name=name, data=np.asarray(a), chunks=a.chunks)  # type: ignore[union-attr]
+    attrs = src.attrs.asdict()
+    attrs.pop("ome")
+    attrs["format_version"] = 1
+    dst.update_attributes(attrs)
+    ds = open_mosaic(old)
+    assert ds.attrs["format_version"] == 1
+    assert np.array_equal(ds["height"].values, np.asarray(src["height"]), equal_nan=True)
+    with pytest.raises(ValueError, match="no pyramid level 1"):
+        open_mosaic(old, level=1)

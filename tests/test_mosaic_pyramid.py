@@ -1,0 +1,203 @@
+"""The mosaic's resolution pyramid: level k is the 2^k x 2^k reduction of level 0 while the
+scan streams, after a kill and ``--resume``; ``valid_pixels`` counts overlaps once."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.formats.ngff import level_path
+from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.mosaic import ARRAYS, MosaicStage, MosaicWriter, tile_states
+from sffscan.stages.mosaic_pyramid import default_levels, downsample
+from sffscan.stages.recorder import RecordingWriter
+from sffscan.stages.sim.scanner import simulate_frames
+
+from sffscan.api import replay
+from tests.pyramid_children import torn_replay
+from tests.scan_helpers import small_config
+
+
+def block_reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
+    """Reference: reduce f x f blocks of ``a`` (edge blocks cut by the array's end) with
+    numpy's own nanmean / mean / sum, one block at a time."""
+    rows, cols = a.shape
+    out = np.empty((-(-rows // f), -(-cols // f)), np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of an all-NaN block: NaN
+        for i in range(out.shape[0]):
+            for j in range(out.shape[1]):
+                b = a[i * f:(i + 1) * f, j * f:(j + 1) * f].astype(np.float64)
+                out[i, j] = {"nanmean": np.nanmean, "mean": np.mean, "sum": np.sum}[how](b)
+    return out
+
+
+HOW = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum"}
+
+
+def assert_pyramid_consistent(path: Path) -> int:
+    """Every level k of every array equals the reduction of level 0; returns the levels."""
+    g = zarr.open_group(str(path), mode="r")
+    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])  # type: ignore[index]
+    for name in ARRAYS:
+        base = np.asarray(g[name])  # type: ignore[index]
+        for k in range(1, levels):
+            got = np.asarray(g[level_path(name, k)])  # type: ignore[index]
+            want = block_reduce(base, 2 ** k, HOW[name])
+            assert got.shape == want.shape, (name, k)
+            assert np.array_equal(np.isnan(got), np.isnan(want)), (name, k)
+            np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-6, equal_nan=True,
+                                       err_msg=f"{name} level {k}")
+    return levels
+
+
+def test_downsample_is_the_blockwise_reduction_not_a_mean_of_means() -> None:
+    rng = np.random.default_rng(0)
+    shape = (45, 70)  # not multiples of 8: edge blocks are cut
+    h = rng.normal(100, 20, shape).astype(np.float32)
+    h[rng.random(shape) < 0.4] = np.nan
+    h[:8, :8] = np.nan  # an all-NaN block stays NaN
+    h[8:16, 0:8] = np.nan
+    h[9, 1] = 7.0  # one finite value among 63 NaNs: the level-3 value is that value
+    values = {"height": h, "texture": np.where(np.isfinite(h), 0.5, np.nan).astype(np.float32),
+              "confidence": rng.random(shape).astype(np.float32),
+              "weight": rng.random(shape).astype(np.float32)}
+    levels = downsample(values, 4)
+    assert len(levels) == 3
+    for k, level in enumerate(levels, start=1):
+        for name in ARRAYS:
+            want = block_reduce(values[name], 2 ** k, HOW[name])
+            np.testing.assert_allclose(level[name], want, rtol=2e-6, equal_nan=True)
+    assert np.isnan(levels[2]["height"][0, 0]) and levels[2]["height"][1, 0] == 7.0
+    # a mean of level-1 means would weigh this block's one value like a full pair
+    l1 = levels[0]["height"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean_of_means = np.nanmean(l1[:2, :2])
+    assert not np.isclose(mean_of_means, levels[0 + 1]["height"][0, 0])
+
+
+def test_default_levels() -> None:
+    assert default_levels((300, 700), 128) == 4  # at least 4
+    assert default_levels((12_000, 12_000), 256) == 7  # top level 188 px: about one chunk
+    assert default_levels((10**6, 10**6), 256) == 10  # at most 10
+
+
+def _block(x0: int, y0: int, pass_index: int, rng: np.random.Generator, rows: int = 40,
+           cols: int = 24) -> DepthBlock:
+    h = rng.normal(50, 10, (rows, cols)).astype(np.float32)
+    h[rng.random((rows, cols)) < 0.2] = np.nan
+    header = DepthBlockHeader(x0_px=x0, y0_px=y0, width_px=cols, height_px=rows,
+                              pass_index=pass_index, complete_columns=cols, incomplete_columns=0)
+    return DepthBlock(header, h, np.where(np.isfinite(h), 0.5, np.nan).astype(np.float32),
+                      rng.random((rows, cols)).astype(np.float32))
+
+
+def test_streamed_pyramid_is_current_after_every_band(tmp_path: Path) -> None:
+    """Two overlapping passes of blocks: after each band write, every level of the mosaic
+    equals the reduction of what level 0 holds then (the pyramid is kept current)."""
+    rng = np.random.default_rng(3)
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(-37, -11), shape=(60, 100), pixel_um=8.5,
+                          chunk_px=32, levels=4)
+    stage = MosaicStage(writer)
+    checked = 0
+    orig = writer.write_region
+
+    def checked_write(*args: Any, **kwargs: Any) -> None:
+        nonlocal checked
+        orig(*args, **kwargs)
+        assert_pyramid_consistent(path)
+        checked += 1
+
+    writer.write_region = checked_write  # type: ignore[method-assign]
+    for p, y0 in ((0, -11), (1, 5)):  # the second pass overlaps the first by 24 rows
+        for x0 in range(-37, 150, 24):  # grows the mosaic beyond its initial 100 columns
+            list(stage.process(_block(x0, y0, p, rng)))
+    list(stage.finish())
+    stage.close(failed=False)
+    assert checked >= 10
+    g = zarr.open_group(str(path), mode="r")
+    height = np.asarray(g["height"])  # type: ignore[index]
+    assert height.shape[1] > 100
+    assert g.attrs["valid_pixels"] == int(np.isfinite(height).sum())
+    assert assert_pyramid_consistent(path) == 4
+    for name in ARRAYS:  # each array carries its own unit
+        assert g[name].attrs["units"] == g[level_path(name, 3)].attrs["units"]  # type: ignore[index]
+    assert g["height"].attrs["units"] == "µm"  # type: ignore[index]
+
+
+@pytest.fixture(scope="module")
+def two_pass(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A two-pass recording (the passes overlap) and its uninterrupted replay."""
+    d = tmp_path_factory.mktemp("pyr")
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0, "passes": 2},
+                       processing={"registration": False})
+    rec, ref = d / "rec.zarr", d / "ref.zarr"
+    writer = RecordingWriter(rec, cfg)
+    for frame in simulate_frames(cfg):
+        writer.write(frame)
+    writer.close()
+    replay(rec, output=ref)
+    return rec, ref
+
+
+def test_valid_pixels_count_overlaps_once(two_pass: tuple[Path, Path]) -> None:
+    """Issue 11: a multi-pass mosaic reported more valid pixels than it has finite heights."""
+    _, ref = two_pass
+    g = zarr.open_group(str(ref), mode="r")
+    finite = int(np.isfinite(np.asarray(g["height"])).sum())  # type: ignore[index]
+    # the passes overlap: many pixels carry the weight of two contributions
+    weight = np.asarray(g["weight"])  # type: ignore[index]
+    assert (weight > 1.5 * float(np.median(weight[weight > 0]))).sum() > 1000
+    assert g.attrs["valid_pixels"] == finite
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    g = zarr.open_group(str(path), mode="r")
+    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])  # type: ignore[index]
+    return {level_path(n, k): np.asarray(g[level_path(n, k)])  # type: ignore[index]
+            for n in ARRAYS for k in range(levels)}
+
+
+@pytest.mark.parametrize("where", ["level0", "pyramid"])
+def test_pyramid_after_kill_and_resume(tmp_path: Path, two_pass: tuple[Path, Path],
+                                       where: str) -> None:
+    rec, ref = two_pass
+    reference = _arrays(ref)
+    writes = int(zarr.open_group(str(ref), mode="r").attrs["writes_done"])  # type: ignore[arg-type]
+    kill_at = writes - 3  # a second-pass write, over first-pass bands
+    out = tmp_path / "torn.zarr"
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["tests.pyramid_children", "sffscan.pipeline.wiring"])
+    proc = ctx.Process(target=torn_replay, args=(str(rec), str(out), kill_at, where))
+    proc.start()
+    proc.join(120)
+    assert proc.exitcode == -signal.SIGKILL
+    proc.close()
+    _, info = tile_states(out)
+    assert info["writing"] is not None and info["writes_done"] == kill_at
+    if where == "pyramid":  # the kill left a pyramid that level 0 does not match
+        with pytest.raises(AssertionError):
+            assert_pyramid_consistent(out)
+    # resume, as 'sffscan replay --resume' does
+    recording = open_recording(rec)
+    cfg = recording.config.model_copy(deep=True)
+    cfg.output.path = str(out)
+    writer = MosaicWriter.reopen(out, scan_config=cfg.model_dump(mode="json"))
+    run_scan(cfg, frames=recording.frames(), writer=writer, progress=False)
+    assert assert_pyramid_consistent(out) >= 4
+    resumed = _arrays(out)
+    for key, want in reference.items():
+        assert np.array_equal(resumed[key], want, equal_nan=True), key
+    g = zarr.open_group(str(out), mode="r")
+    assert g.attrs["status"] == "complete"
+    assert g.attrs["valid_pixels"] == int(np.isfinite(resumed["height"]).sum())
