@@ -109,6 +109,9 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
 
 
 def cmd_stack(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
     from sffscan.stages.fields.stationary import (
         read_image_stack,
         read_zarr_stack,
@@ -126,6 +129,9 @@ def cmd_stack(args: argparse.Namespace) -> int:
         else:
             stack, zarr_table = read_image_stack(args.images), None
         table = _focus_table(args, stack.shape[0], zarr_table)
+        stack, covered, alignment = prepare_stack(stack, align=args.align)
+        if alignment is not None:
+            print(describe_alignment(alignment), file=sys.stderr)
         max_value = None if args.bit_depth is None else float(2**args.bit_depth - 1)
         if not args.pixel_um > 0:
             raise ValueError(f"--pixel-um must be > 0, got {args.pixel_um}")
@@ -136,9 +142,14 @@ def cmd_stack(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         result = reconstruct_field(stack, focus_heights_um=table, settings=settings,
                                    max_value=max_value)
+        if covered is not None:  # pixels some aligned frame does not cover: not measured
+            result = replace(result, height_um=mask_uncovered(
+                result.height_um, covered, reach_px=2 * (settings.window // 2) + 1))
         writer = MosaicWriter(args.output, origin_px=(0, 0), shape=result.height_um.shape,
                               pixel_um=args.pixel_um, overwrite=args.overwrite,
-                              attrs={"processing": {"mode": "stationary", **settings.as_dict()},
+                              attrs={"processing": {"mode": "stationary", **settings.as_dict(),
+                                                    "alignment": None if alignment is None
+                                                    else alignment.as_dict()},
                                      "focus_heights_um": [float(v) for v in table]})
     except ValueError as err:
         return _fail(str(err))
@@ -299,6 +310,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("-o", "--output", required=True, help="mosaic Zarr group to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
     p.add_argument("--save-npy", help="also save the height map (µm) as .npy")
+    p.add_argument("--align", action="store_true",
+                   help="align the frames first: each frame's scale and shift against the "
+                        "middle frame (OpenCV ECC), printed per frame, then warped; pixels "
+                        "not covered by every frame are left invalid. Without it, a stack "
+                        "that looks misaligned gets a warning")
     _settings_options(p)
     p.set_defaults(func=cmd_stack)
 

@@ -1,0 +1,385 @@
+"""Stack alignment: each frame's scale and shift against the middle frame, and the warp.
+
+A non-telecentric lens magnifies differently at each focus position ("focus breathing");
+a focus stack taken through it must be aligned before a focus measure compares the frames
+pixel by pixel, as the focus-stack program does. Here:
+
+1. each frame is registered to its neighbour toward the middle frame with OpenCV's ECC
+   (:func:`cv2.findTransformECC`, affine model, coarse to fine on an image pyramid, each
+   pair started from the previous pair's result), and the pair transforms are chained to
+   the middle frame: neighbours differ little in blur, so the correlation holds even where
+   the middle frame is sharp and the far frames are not;
+2. the chained affine transform is reduced to the model asked for: ``"scale"`` (one
+   magnification about the frame centre plus a shift, the breathing of a lens),
+   ``"similarity"`` (plus a rotation) or ``"affine"``;
+3. each frame is warped onto the middle frame's grid with a Lanczos kernel
+   (:func:`align_stack`), so a band-limited image keeps its sharpness whatever the sub-pixel
+   phase; pixels that any frame does not cover are reported (``valid``), never filled.
+
+:func:`misalignment` is the cheap check a stack gets when alignment is off: the first and
+last frames against the middle one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "Alignment",
+    "align_stack",
+    "check_alignment",
+    "describe_alignment",
+    "estimate_alignment",
+    "mask_uncovered",
+    "misalignment",
+    "pair_transform",
+    "prepare_stack",
+    "warp_frame",
+]
+
+log = logging.getLogger(__name__)
+
+Model = Literal["scale", "similarity", "affine"]
+ECC_ITERATIONS = 200
+ECC_EPS = 1e-7
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Per-frame transforms onto the reference frame's grid.
+
+    Attributes
+    ----------
+    matrices : (N, 2, 3) float64
+        ``frame_k(A_k [x, y, 1]) ~ reference(x, y)``: reference px -> frame k px.
+    scale : (N,) float64
+        Magnification of each frame relative to the reference (1.015 = 1.5 % larger).
+    shift_px : (N, 2) float64
+        Where the reference's centre lands in frame k, minus the centre, px (x, y).
+    rotation_deg : (N,) float64
+        Rotation of frame k relative to the reference, degrees (0 for ``"scale"``).
+    reference : int
+        Index of the reference (middle) frame.
+    correlation : (N,) float64
+        ECC correlation coefficient of each frame with its neighbour toward the reference
+        after alignment (1 for the reference).
+    model : str
+        ``"scale"``, ``"similarity"`` or ``"affine"``.
+    """
+
+    matrices: np.ndarray
+    scale: np.ndarray
+    shift_px: np.ndarray
+    rotation_deg: np.ndarray
+    reference: int
+    correlation: np.ndarray
+    model: str
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary (stored in the mosaic's attributes)."""
+        return {"model": self.model, "reference": self.reference,
+                "scale": [round(float(v), 7) for v in self.scale],
+                "shift_px": [[round(float(a), 3), round(float(b), 3)] for a, b in self.shift_px],
+                "rotation_deg": [round(float(v), 4) for v in self.rotation_deg],
+                "correlation": [round(float(v), 5) for v in self.correlation]}
+
+
+def _to_float(img: np.ndarray) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim != 2:
+        raise ValueError(f"frames must be 2-D grey images, got shape {a.shape}")
+    out = a.astype(np.float32)
+    top = float(out.max()) if out.size else 0.0
+    if top > 0:
+        out *= np.float32(1.0 / top)
+    return out
+
+
+def _h(m: np.ndarray) -> np.ndarray:
+    return np.vstack([m, [0.0, 0.0, 1.0]])
+
+
+def pair_transform(template: np.ndarray, image: np.ndarray, *, init: np.ndarray | None = None,
+                   levels: int | None = None, gauss_size: int = 5) -> tuple[np.ndarray, float]:
+    """Affine transform ``A`` with ``image(A [x, y, 1]) ~ template(x, y)`` (ECC, coarse to fine).
+
+    Parameters
+    ----------
+    template, image : (H, W) arrays of the same shape (any real dtype)
+    init : (2, 3) float, optional
+        Starting transform at full resolution; default the identity.
+    levels : int, optional
+        Pyramid levels (halvings); default so that the coarsest image is about 128 px.
+    gauss_size : int
+        ECC's Gaussian pre-filter size (odd px), applied to both images at every level.
+
+    Returns
+    -------
+    A : (2, 3) float64
+    correlation : float
+        ECC's correlation coefficient at full resolution.
+
+    Raises
+    ------
+    ValueError
+        When ECC does not converge (featureless or unrelated images).
+    """
+    t, im = _to_float(template), _to_float(image)
+    if t.shape != im.shape:
+        raise ValueError(f"images differ in shape: {t.shape} and {im.shape}")
+    if levels is None:
+        levels = max(0, int(math.floor(math.log2(min(t.shape) / 128.0))))
+    pyr_t, pyr_i = [t], [im]
+    for _ in range(levels):
+        pyr_t.append(cv2.pyrDown(pyr_t[-1]))
+        pyr_i.append(cv2.pyrDown(pyr_i[-1]))
+    warp = (np.eye(2, 3) if init is None else np.asarray(init, dtype=np.float64)).copy()
+    warp = warp.astype(np.float32)
+    f = 2.0 ** levels
+    warp[:, 2] /= f
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, ECC_ITERATIONS, ECC_EPS)
+    rho = 0.0
+    for lev in range(levels, -1, -1):
+        try:
+            # the stubs lack the (mask None, gaussFiltSize) overload the library has
+            rho, warp = cv2.findTransformECC(  # type: ignore[call-overload]
+                pyr_t[lev], pyr_i[lev], warp, cv2.MOTION_AFFINE, crit, None, gauss_size)
+        except cv2.error as err:
+            raise ValueError(f"ECC alignment did not converge at pyramid level {lev}: "
+                             f"{str(err).strip().splitlines()[-1]}") from None
+        if lev > 0:
+            warp[:, 2] *= 2.0
+    return warp.astype(np.float64), float(rho)
+
+
+def _reduce(a: np.ndarray, shape: tuple[int, int], model: Model
+            ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Project an affine transform onto the model, about the frame centre."""
+    h, w = shape
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    lin = a[:, :2]
+    shift = lin @ c + a[:, 2] - c  # where the centre goes, minus the centre
+    if model == "affine":
+        s = math.sqrt(abs(float(np.linalg.det(lin))))
+        rot = math.degrees(math.atan2(lin[1, 0] - lin[0, 1], lin[0, 0] + lin[1, 1]))
+        m = a.copy()
+    else:
+        # closest similarity (least squares): [[p, -q], [q, p]]
+        p = 0.5 * (lin[0, 0] + lin[1, 1])
+        q = 0.5 * (lin[1, 0] - lin[0, 1])
+        if model == "scale":
+            q = 0.0
+        new = np.array([[p, -q], [q, p]])
+        s = math.hypot(p, q)
+        rot = math.degrees(math.atan2(q, p))
+        m = np.hstack([new, (c + shift - new @ c)[:, None]])
+    # a reference point d px from the centre appears s * d px from it in the frame: s is the
+    # frame's magnification relative to the reference
+    return m, s, shift, rot
+
+
+def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
+                       reference: int | None = None) -> Alignment:
+    """Each frame's transform onto the reference (middle) frame, chained through neighbours.
+
+    Parameters
+    ----------
+    stack : (N, H, W) array of uint8, uint16 or float
+        The focus stack, in focus order.
+    model : {"scale", "similarity", "affine"}, keyword-only
+        Motion model reported and used by :func:`align_stack`.
+    reference : int, optional
+        Reference frame; default the middle one, ``N // 2``.
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    ValueError
+        If the stack is not (N, H, W) or a frame cannot be aligned (the message names it).
+    """
+    st = np.asarray(stack)
+    if st.ndim != 3 or st.shape[0] < 1:
+        raise ValueError(f"stack must be (N, H, W), got shape {st.shape}")
+    if model not in ("scale", "similarity", "affine"):
+        raise ValueError(f"model must be 'scale', 'similarity' or 'affine', got {model!r}")
+    n = st.shape[0]
+    ref = n // 2 if reference is None else int(reference)
+    if not 0 <= ref < n:
+        raise ValueError(f"reference must be in 0..{n - 1}, got {reference}")
+    full = [np.eye(3) for _ in range(n)]
+    rho = np.ones(n)
+    for direction in (-1, 1):
+        step_init: np.ndarray | None = None
+        k = ref + direction
+        while 0 <= k < n:
+            j = k - direction
+            try:
+                a, rho[k] = pair_transform(st[j], st[k], init=step_init)
+            except ValueError as err:
+                raise ValueError(f"frame {k}: cannot align to frame {j}: {err}") from None
+            step_init = a
+            full[k] = _h(a) @ full[j]  # reference px -> frame j px -> frame k px
+            k += direction
+    mats, scales, shifts, rots = [], [], [], []
+    for k in range(n):
+        m, s, sh, r = _reduce(full[k][:2], st.shape[1:], model)
+        mats.append(m)
+        scales.append(s)
+        shifts.append(sh)
+        rots.append(r)
+    return Alignment(matrices=np.array(mats), scale=np.array(scales), shift_px=np.array(shifts),
+                     rotation_deg=np.array(rots), reference=ref, correlation=rho, model=model)
+
+
+def warp_frame(image: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (Lanczos).
+
+    Returns an array of ``image``'s shape and dtype; pixels mapping outside the frame
+    replicate its border (:func:`align_stack` reports them as not valid).
+    """
+    img = np.asarray(image)
+    h, w = img.shape
+    return cv2.warpAffine(img, np.asarray(matrix, dtype=np.float64), (w, h),
+                          flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.ndarray:
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x = matrix[0, 0] * xx + matrix[0, 1] * yy + matrix[0, 2]
+    y = matrix[1, 0] * xx + matrix[1, 1] * yy + matrix[1, 2]
+    return (x >= inset) & (x <= w - 1 - inset) & (y >= inset) & (y <= h - 1 - inset)
+
+
+def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | None = None,
+                alignment: Alignment | None = None
+                ) -> tuple[np.ndarray, np.ndarray, Alignment]:
+    """Warp every frame of a focus stack onto the reference frame's grid.
+
+    Parameters
+    ----------
+    stack : (N, H, W) array of uint8, uint16 or float
+    model, reference
+        As in :func:`estimate_alignment`.
+    alignment : Alignment, optional
+        Transforms already estimated (e.g. from a calibration); default estimated here.
+
+    Returns
+    -------
+    aligned : (N, H, W) array, ``stack``'s dtype
+    valid : (H, W) bool
+        Pixels that every frame covers (3 px inside its border, the interpolation's
+        reach); the others hold replicated borders and must not be measured.
+    alignment : Alignment
+    """
+    st = np.asarray(stack)
+    al = alignment if alignment is not None else estimate_alignment(st, model=model,
+                                                                    reference=reference)
+    if al.matrices.shape[0] != st.shape[0]:
+        raise ValueError(f"alignment has {al.matrices.shape[0]} transforms for "
+                         f"{st.shape[0]} frames")
+    out = np.empty_like(st)
+    valid = np.ones(st.shape[1:], dtype=bool)
+    for k in range(st.shape[0]):
+        out[k] = warp_frame(st[k], al.matrices[k])
+        valid &= _coverage(al.matrices[k], st.shape[1:], 3.0)
+    return out, valid, al
+
+
+def misalignment(stack: np.ndarray) -> tuple[float, float]:
+    """How misaligned a stack looks: the largest relative scale change (fraction) and shift
+    (px) of its first and last frames against the middle one, at most 512 px wide.
+
+    Returns (0, 0) for stacks of fewer than 3 frames; a pair ECC cannot align counts as
+    (nan, nan).
+    """
+    st = np.asarray(stack)
+    n = st.shape[0]
+    if n < 3:
+        return 0.0, 0.0
+    f = max(1, int(math.ceil(max(st.shape[1:]) / 512)))
+    def small(i: int) -> np.ndarray:
+        img = _to_float(st[i])
+        return img if f == 1 else cv2.resize(img, (img.shape[1] // f, img.shape[0] // f),
+                                              interpolation=cv2.INTER_AREA)
+    try:
+        al = estimate_alignment(np.stack([small(0), small(n // 2), small(n - 1)]))
+    except ValueError:
+        return math.nan, math.nan
+    return (float(np.max(np.abs(al.scale - 1.0))),
+            float(np.max(np.hypot(al.shift_px[:, 0], al.shift_px[:, 1]))) * f)
+
+
+def describe_alignment(al: Alignment) -> str:
+    """One line per frame: scale (and its change from the previous frame), shift, rotation."""
+    lines = [f"alignment ({al.model}, reference frame {al.reference}): scale relative to the "
+             "reference, change from the previous frame, shift of the centre"]
+    for k in range(al.scale.size):
+        step = "" if k == 0 else f" ({100 * (al.scale[k] / al.scale[k - 1] - 1):+.3f} %/frame)"
+        rot = f", rotation {al.rotation_deg[k]:+.3f}°" if al.model != "scale" else ""
+        lines.append(f"  frame {k:3d}: scale {al.scale[k]:.5f}{step}, shift "
+                     f"({al.shift_px[k, 0]:+.2f}, {al.shift_px[k, 1]:+.2f}) px{rot}, "
+                     f"ECC r {al.correlation[k]:.4f}")
+    return "\n".join(lines)
+
+
+def check_alignment(stack: np.ndarray, *, tolerance_px: float = 1.0) -> bool:
+    """Warn (logging) when a stack looks misaligned; True when it does.
+
+    Misaligned: the first or last frame, against the middle one, is scaled or shifted by
+    more than ``tolerance_px`` at the frame corner (:func:`misalignment`).
+    """
+    st = np.asarray(stack)
+    h, w = st.shape[1:]
+    scale, shift = misalignment(st)
+    if math.isnan(scale):
+        log.warning("could not check the stack's alignment (ECC did not converge between its "
+                    "first, middle and last frames)")
+        return False
+    corner = scale * math.hypot(w / 2.0, h / 2.0)
+    if max(corner, shift) > tolerance_px:
+        log.warning(f"the stack looks misaligned: its end frames are scaled by up to "
+                    f"{100 * scale:.2f} % ({corner:.1f} px at the corner) and shifted by "
+                    f"{shift:.1f} px against the middle frame (focus breathing?); heights "
+                    "along edges will be wrong: use --align")
+        return True
+    return False
+
+
+def mask_uncovered(height_um: np.ndarray, valid: np.ndarray, *, reach_px: int) -> np.ndarray:
+    """Height map with NaN where an aligned frame did not cover the pixel or its focus window.
+
+    ``valid`` from :func:`align_stack`, shrunk by ``reach_px`` (the focus measure's reach);
+    returns a float32 copy.
+    """
+    ok: np.ndarray = np.asarray(valid, dtype=np.uint8)
+    if reach_px > 0:
+        ok = cv2.erode(ok, np.ones((2 * reach_px + 1, 2 * reach_px + 1), np.uint8),
+                       borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    out = np.array(height_um, dtype=np.float32, copy=True)
+    out[ok == 0] = np.nan
+    return out
+
+
+def prepare_stack(stack: np.ndarray, *, align: bool, model: Model = "scale"
+                  ) -> tuple[np.ndarray, np.ndarray | None, Alignment | None]:
+    """What ``sffscan stack`` does before the focus measure.
+
+    With ``align``: :func:`align_stack` (returns the aligned stack, its ``valid`` mask and
+    the :class:`Alignment`). Without: the stack unchanged, after :func:`check_alignment`
+    (a warning when it looks misaligned), and ``None, None``.
+    """
+    if not align:
+        check_alignment(stack)
+        return np.asarray(stack), None, None
+    return align_stack(stack, model=model)
