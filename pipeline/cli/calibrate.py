@@ -197,7 +197,8 @@ def cmd_restrict(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("calibrate", help="calibration: run on simulated targets, show a file")
+    p = sub.add_parser("calibrate", help="calibration: from your images (z, lateral, curvature, "
+                                         "noise), on simulated targets (sim), show a file")
     cs = p.add_subparsers(dest="calibrate_command", required=True)
     q = cs.add_parser("sim", help="calibrate on simulated targets with known answers")
     q.add_argument("-o", "--output", default="sffscan-calibration.json",
@@ -207,6 +208,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q = cs.add_parser("show", help="validate and print a calibration file")
     q.add_argument("file")
     q.set_defaults(func=cmd_calibrate_show)
+    from sffscan.pipeline.cli.calibrate_images import register_subcommands
+
+    register_subcommands(cs)
 
     p = sub.add_parser("twostep", help="simulated two-step measurement: coarse prior vs full")
     p.add_argument("--field-px", type=int, default=128, help="field size, px (default 128)")

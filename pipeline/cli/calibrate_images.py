@@ -1,0 +1,238 @@
+"""``sffscan calibrate z | lateral | curvature | noise``: calibration from a user's own images.
+
+Each command reads image files (or a Zarr stack), runs one routine of
+:mod:`sffscan.pipeline.metrology.calibration` and writes its result into the calibration JSON
+given with ``-o``: an existing file is updated (its other sections kept), so a setup is
+calibrated step by step into one file, in this order:
+
+1. ``calibrate z --gauge HEIGHT_UM STACK ...`` -- gauge blocks of known heights, one focus
+   stack each: the z response (µm per focus level, intercept);
+2. ``calibrate lateral --squares NX NY --square-um S --image LEVEL FILE ...`` -- a
+   checkerboard in focus at several focus levels: the lateral scale and its change per level
+   (the magnification change of a non-telecentric objective);
+3. ``calibrate curvature STACK`` -- a flat reference filling the field: the field curvature
+   (heights through the file's z response when it has one, else the nominal focus table);
+4. ``calibrate noise STACK1 STACK2`` -- two back-to-back stacks of the same surface:
+   N_M by subtraction.
+
+A STACK is a folder of images (read in the natural order of their names: ``im_2`` before
+``im_10``) or a Zarr (N, H, W) array. Bad input exits 2 with a message naming the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from sffscan.pipeline.config import ConfigError
+from sffscan.pipeline.metrology.calibration import (
+    Calibration,
+    CalibrationError,
+    calibrate_lateral,
+    calibrate_z,
+    calibrated_focus_heights,
+    fit_field_curvature,
+    load_calibration,
+    measure_height,
+    noise_by_subtraction,
+    save_calibration,
+)
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm")
+
+
+def _natural_key(name: str) -> list[object]:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def read_stack(path: str | Path, *, grey: bool = False) -> np.ndarray:
+    """(N, H, W) stack from a folder of images (natural order) or a Zarr array."""
+    from sffscan.stages.fields.stationary import read_image_stack, read_zarr_stack
+
+    p = Path(path)
+    if p.suffix == ".zarr" or (p / "zarr.json").is_file():
+        return read_zarr_stack(p)[0]
+    if not p.is_dir():
+        raise ValueError(f"{p}: not a folder of images or a Zarr array")
+    files = sorted((f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES),
+                   key=lambda f: _natural_key(f.name))
+    if not files:
+        raise ValueError(f"{p}: no image files ({', '.join(IMAGE_SUFFIXES)})")
+    if grey:
+        return read_image_stack(files, grey=True)
+    return read_image_stack(files)
+
+
+def read_one(path: str | Path) -> np.ndarray:
+    """One grey image (checkerboard)."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot read as an image")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return np.asarray(img)
+
+
+def _max_value(args: argparse.Namespace, stack: np.ndarray) -> float:
+    from sffscan.stages.fields.stationary import default_max_value
+
+    if args.bit_depth is not None:
+        return float(2 ** args.bit_depth - 1)
+    return default_max_value(stack.dtype)
+
+
+def _open(path: str) -> Calibration:
+    """The calibration to update: the file at ``path`` if it exists, else a new one."""
+    return load_calibration(path) if Path(path).is_file() else Calibration()
+
+
+def _focus_table(args: argparse.Namespace, cal: Calibration, n: int) -> tuple[np.ndarray, str]:
+    if cal.z_response is not None and not args.nominal:
+        return calibrated_focus_heights(cal, n), "the calibration's z response"
+    if args.focus_start is None or args.focus_step is None:
+        raise ValueError("focus positions missing: calibrate z first (into the same -o file) "
+                         "or give --focus-start and --focus-step (µm)")
+    return args.focus_start + args.focus_step * np.arange(n, dtype=np.float64), "nominal"
+
+
+def cmd_z(args: argparse.Namespace) -> int:
+    cal = _open(args.output)
+    heights = np.array([float(h) for h, _ in args.gauge])
+    stacks = [read_stack(s, grey=args.grey) for _, s in args.gauge]
+    shapes = {s.shape for s in stacks}
+    if len(shapes) != 1:
+        raise ValueError(f"the gauge stacks differ in shape: {sorted(shapes)}")
+    z = calibrate_z(np.stack(stacks), heights, max_value=_max_value(args, stacks[0]),
+                    patch_px=args.patch_px)
+    print(f"z response ({heights.size} gauges): a_z = {z.um_per_level:.3f} µm/level, intercept "
+          f"{z.intercept_um:.1f} µm, r = {z.pearson_r:.7f}, residuals "
+          + ", ".join(f"{r:+.1f}" for r in z.residuals_um) + " µm")
+    cal = cal.model_copy(update={"z_response": z})
+    print(f"wrote {save_calibration(cal, args.output)}")
+    return EXIT_OK
+
+
+def cmd_lateral(args: argparse.Namespace) -> int:
+    cal = _open(args.output)
+    levels = np.array([float(lv) for lv, _ in args.image])
+    images = [read_one(f) for _, f in args.image]
+    if len({im.shape for im in images}) != 1:
+        raise ValueError("the checkerboard images differ in shape")
+    lat = calibrate_lateral(np.stack(images), levels=levels, squares=tuple(args.squares),
+                            square_um=args.square_um, reference_level=args.reference_level)
+    for m in lat.per_level:
+        print(f"  level {m.level:g}: {m.um_per_px_x:.5f} x {m.um_per_px_y:.5f} µm/px")
+    print(f"lateral scale at level {lat.reference_level:g}: {lat.um_per_px_x:.5f} x "
+          f"{lat.um_per_px_y:.5f} µm/px; change {lat.slope_x_per_level:+.6f} / "
+          f"{lat.slope_y_per_level:+.6f} µm/px per level")
+    cal = cal.model_copy(update={"lateral": lat})
+    print(f"wrote {save_calibration(cal, args.output)}")
+    return EXIT_OK
+
+
+def cmd_curvature(args: argparse.Namespace) -> int:
+    cal = _open(args.output)
+    stack = read_stack(args.stack, grey=args.grey)
+    table, source = _focus_table(args, cal, stack.shape[0])
+    height, _ = measure_height(stack, focus_heights_um=table, max_value=_max_value(args, stack))
+    fit = fit_field_curvature(height, margin_px=args.margin_px)
+    c = fit.coefficients_um
+    cx, cy = fit.centre_px
+    corner = c[3] * cx * cx + c[4] * cx * cy + c[5] * cy * cy
+    print(f"field curvature ({source} heights): u² {c[3]:+.3e}, uv {c[4]:+.3e}, v² {c[5]:+.3e} "
+          f"µm/px²; the flat reads {corner:+.1f} µm at the frame corner; fit residual "
+          f"{fit.rms_residual_um:.1f} µm")
+    cal = cal.model_copy(update={"field_curvature": fit})
+    print(f"wrote {save_calibration(cal, args.output)}")
+    return EXIT_OK
+
+
+def cmd_noise(args: argparse.Namespace) -> int:
+    cal = _open(args.output)
+    s1, s2 = read_stack(args.stack1, grey=args.grey), read_stack(args.stack2, grey=args.grey)
+    table, source = _focus_table(args, cal, s1.shape[0])
+    mv = _max_value(args, s1)
+    z1, _ = measure_height(s1, focus_heights_um=table, max_value=mv)
+    z2, _ = measure_height(s2, focus_heights_um=table, max_value=mv)
+    m = args.margin_px
+    inner = (slice(m, -m or None), slice(m, -m or None))
+    noise = noise_by_subtraction(z1[inner], z2[inner])
+    print(f"noise by subtraction ({source} heights): N_M = {noise:.2f} µm")
+    cal = cal.model_copy(update={"noise_um": noise})
+    print(f"wrote {save_calibration(cal, args.output)}")
+    return EXIT_OK
+
+
+def _guarded(func):  # noqa: ANN001, ANN202 - argparse handler wrapper
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return int(func(args))
+        except (ValueError, ConfigError, CalibrationError) as err:
+            print(f"sffscan: {err}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+    return run
+
+
+def _common(q: argparse.ArgumentParser) -> None:
+    q.add_argument("-o", "--output", default="sffscan-calibration.json",
+                   help="calibration file to write; an existing one is updated, its other "
+                        "sections kept (default sffscan-calibration.json)")
+    q.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+    q.add_argument("--grey", action="store_true", help="convert colour images to grey")
+
+
+def _table_options(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--focus-start", type=float, help="nominal focus height of the first image, µm")
+    q.add_argument("--focus-step", type=float, help="nominal focus step, µm")
+    q.add_argument("--nominal", action="store_true",
+                   help="use the nominal table even when the file has a z response")
+    q.add_argument("--margin-px", type=int, default=10,
+                   help="frame border left out (focus window and filter reach), px (default 10)")
+
+
+def register_subcommands(cs: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``z``, ``lateral``, ``curvature`` and ``noise`` to ``sffscan calibrate``."""
+    q = cs.add_parser("z", help="z response from gauge-block focus stacks (image folders)")
+    q.add_argument("--gauge", nargs=2, action="append", required=True,
+                   metavar=("HEIGHT_UM", "STACK"),
+                   help="a gauge block's known height, µm, and its focus stack (folder of "
+                        "images or Zarr array); at least 3")
+    q.add_argument("--patch-px", type=int, default=64,
+                   help="central patch whose focus curve is averaged, px (default 64)")
+    _common(q)
+    q.set_defaults(func=_guarded(cmd_z))
+
+    q = cs.add_parser("lateral", help="lateral scale and its change per focus level from "
+                                      "checkerboard images")
+    q.add_argument("--image", nargs=2, action="append", required=True,
+                   metavar=("LEVEL", "FILE"),
+                   help="focus level at which the board is in focus, and its image")
+    q.add_argument("--squares", type=int, nargs=2, required=True, metavar=("NX", "NY"),
+                   help="squares of the board along x and y")
+    q.add_argument("--square-um", type=float, required=True, help="square side, µm")
+    q.add_argument("--reference-level", type=float,
+                   help="level the stored scale refers to (default the mean level)")
+    _common(q)
+    q.set_defaults(func=_guarded(cmd_lateral))
+
+    q = cs.add_parser("curvature", help="field curvature from a flat reference's focus stack")
+    q.add_argument("stack", help="folder of images or Zarr array")
+    _table_options(q)
+    _common(q)
+    q.set_defaults(func=_guarded(cmd_curvature))
+
+    q = cs.add_parser("noise", help="noise N_M from two back-to-back stacks of one surface")
+    q.add_argument("stack1")
+    q.add_argument("stack2")
+    _table_options(q)
+    _common(q)
+    q.set_defaults(func=_guarded(cmd_noise))
