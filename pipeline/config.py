@@ -96,10 +96,17 @@ class MotionConfig(_Model):
 
 
 class ProcessingConfig(_Model):
-    focus_operator: Literal["glvm", "tenv"] = Field("glvm", description="Focus measure operator")
+    focus_operator: Literal[
+        "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
+        "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
+        "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols",
+    ] = Field("glvm", description="Focus measure operator: an acronym of Pertuz's toolbox "
+              "(focusmeasure.m), any case")
     window: int = Field(9, ge=3, description="Focus measure window k (odd), px")
-    depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc"] = Field(
-        "spc", description="Focus curve -> depth method"
+    depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
+                          "wcentroid"] = Field(
+        "wcentroid", description="Focus curve -> depth method (wcentroid: centroid over 9 "
+        "levels about the median-filtered peak)"
     )
     median_size: int = Field(11, ge=3, description="SPC median filter size (odd), px")
     registration: bool = Field(True, description="Refine speed offsets by phase correlation")
@@ -113,6 +120,11 @@ class ProcessingConfig(_Model):
     queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
     block_columns: int = Field(128, ge=1, description="Columns reduced to depth at once")
 
+    @field_validator("focus_operator", mode="before")
+    @classmethod
+    def _lower(cls, v: object) -> object:
+        return v.lower() if isinstance(v, str) else v
+
     @field_validator("window", "median_size")
     @classmethod
     def _odd(cls, v: int) -> int:
@@ -125,12 +137,13 @@ class ProcessingConfig(_Model):
         """How far the frame border reaches into the focus measure, px.
 
         GLVM filters twice with the k x k box (reach 2 * (k // 2)); TENV is a 3 x 3 Sobel
-        then the box (reach k // 2 + 1). Columns and rows closer to the border than this
-        see the replicated border and are not used.
+        then the box (reach k // 2 + 1); every operator's reach is
+        :func:`sffscan.stages.operators.operator_reach`. Columns and rows closer to the
+        border than this see the padded border and are not used.
         """
-        if self.focus_operator == "glvm":
-            return 2 * (self.window // 2)
-        return self.window // 2 + 1
+        from sffscan.stages.operators import operator_reach  # torch-free
+
+        return operator_reach(self.focus_operator, self.window)
 
     @property
     def edge_margin_px(self) -> int:

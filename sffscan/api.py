@@ -192,7 +192,8 @@ def focus_measure(image: np.ndarray, *, operator: str = "glvm", window: int = 9,
     image : (H, W) or (B, H, W) ndarray of float
         Grey image(s), 0..1.
     operator : str, keyword-only
-        Focus measure operator (``"glvm"``, ``"tenv"``).
+        Focus measure operator: an acronym of Pertuz's toolbox, any case (``"LAPM"``,
+        ``"glvm"``, ``"TENV"``...), see ``sffscan.stages.focus_measure.FOCUS_OPERATORS``.
     window : int, keyword-only
         Odd window size k >= 3, px.
     backend : {"opencv", "torch"}, keyword-only

@@ -27,20 +27,30 @@ import cv2
 import numpy as np
 
 __all__ = [
+    "DEFAULT_METHOD",
     "DEPTH_METHODS",
     "STREAMING_METHODS",
+    "WCENTROID_HALF_WINDOW",
     "all_in_focus",
     "depth_from_focus",
     "depth_from_harmonics",
     "harmonic_table",
     "levels_to_height",
+    "median_filter_levels",
     "spc_by_roll",
+    "windowed_centroid",
 ]
 
-DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc")
+DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc", "wcentroid")
 """Names accepted by :func:`depth_from_focus` as ``method``."""
 
 STREAMING_METHODS = ("argmax", "centroid", "pc", "spc")
+
+DEFAULT_METHOD = "wcentroid"
+"""The default depth method of scan, replay and stack (see :func:`windowed_centroid`)."""
+
+WCENTROID_HALF_WINDOW = 4
+"""Half width h of the ``"wcentroid"`` window: 2h + 1 = 9 levels around the filtered peak."""
 """Methods that need only the sums of :func:`harmonic_table` and the argmax of each curve
 (:func:`depth_from_harmonics`), so a streaming accumulator needs no N-level volume."""
 
@@ -131,7 +141,7 @@ def _argmax(vol: np.ndarray) -> np.ndarray:
     return idx
 
 
-def _median_filter_levels(levels: np.ndarray, size: int, n_levels: int) -> np.ndarray:
+def median_filter_levels(levels: np.ndarray, size: int, n_levels: int) -> np.ndarray:
     """Median of integer level indices over size x size windows, replicated borders.
 
     ``cv2.medianBlur`` on uint8 when the levels fit (N <= 256; it takes any odd size there),
@@ -162,7 +172,7 @@ def _spc_shift(vol: np.ndarray, median_size: int) -> np.ndarray:
 
 def _spc_shift_of(argmax: np.ndarray, median_size: int, n: int) -> np.ndarray:
     """:func:`_spc_shift` from the argmax map."""
-    return (n + 1) // 2 - _median_filter_levels(argmax, median_size, n)
+    return (n + 1) // 2 - median_filter_levels(argmax, median_size, n)
 
 
 def _wrap(x: np.ndarray, n: int) -> np.ndarray:
@@ -170,6 +180,65 @@ def _wrap(x: np.ndarray, n: int) -> np.ndarray:
     out = np.mod(x, float(n))
     out[out >= n] -= n
     return out
+
+
+def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
+                      half_window: int = WCENTROID_HALF_WINDOW) -> np.ndarray:
+    """Baseline-free centroid of each curve over the 2h + 1 levels around ``centre``.
+
+    For every pixel the levels ``centre - h .. centre + h`` that exist (the window is cut at
+    0 and N - 1) are read; their minimum is subtracted (the floor of the curve, which
+    otherwise pulls the centroid towards the window's middle) and the centroid of what is
+    left is returned, in levels. Where the window holds no signal above its minimum (a flat
+    curve) the result is ``centre``.
+
+    Parameters
+    ----------
+    vol : (N, H, W) ndarray of float
+        Focus volume; a float32 view with positive strides (a block of a ring buffer) is
+        read in place, anything else is copied first.
+    centre : (H, W) ndarray of int
+        Window centres, levels 0..N-1.
+    half_window : int, keyword-only
+        h >= 1. Default :data:`WCENTROID_HALF_WINDOW`.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    n = vol.shape[0]
+    shape = vol.shape[1:]
+    pixels = int(np.prod(shape))
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    if vol.dtype != np.float32 or any(st <= 0 or st % 4 for st in vol.strides):
+        vol = np.ascontiguousarray(vol, dtype=np.float32)
+    # read in place through the element offsets of the (possibly strided) view: one 1-D
+    # view over the memory from its first to its last element (all inside its buffer)
+    st0, st1, st2 = (st // 4 for st in vol.strides)
+    span = (n - 1) * st0 + (shape[0] - 1) * st1 + (shape[1] - 1) * st2 + 1
+    flat = np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,))
+    rows, cols = np.indices(shape, dtype=np.intp)
+    base = (rows * st1 + cols * st2).reshape(-1)
+    vals, inside = [], []
+    floor = np.full(pixels, np.inf, np.float32)
+    for j in range(-half_window, half_window + 1):
+        k = c + j
+        ok = (k >= 0) & (k < n)
+        v = flat.take(np.clip(k, 0, n - 1) * st0 + base)
+        np.minimum(floor, np.where(ok, v, np.inf), out=floor)
+        vals.append(v)
+        inside.append(ok)
+    s0 = np.zeros(pixels, np.float32)
+    s1 = np.zeros(pixels, np.float32)
+    for j, v, ok in zip(range(-half_window, half_window + 1), vals, inside, strict=True):
+        wgt = np.where(ok, v - floor, np.float32(0.0))
+        s0 += wgt
+        if j:
+            s1 += np.float32(j) * wgt
+    good = s0 > 0
+    off = np.where(good, s1 / np.where(good, s0, np.float32(1.0)), np.float32(0.0))
+    return (c + off).astype(np.float32).reshape(shape)
 
 
 def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
@@ -198,7 +267,8 @@ def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
 
 
 def depth_from_focus(
-    volume: np.ndarray, *, method: str = "spc", median_size: int = 11
+    volume: np.ndarray, *, method: str = "spc", median_size: int = 11,
+    argmax: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-level focus peak and its confidence for every pixel of a focus volume.
 
@@ -222,6 +292,15 @@ def depth_from_focus(
             ``sum(k y_k) / sum(y_k)`` (argmax where the sum is <= 0).
         ``"pc"``
             Phase correlation: ``(-angle(H_1) N / (2 pi)) mod N``, in [0, N).
+        ``"wcentroid"`` (the default of scan, replay and stack)
+            Windowed centroid about the filtered peak: the argmax, median filtered over
+            ``median_size`` x ``median_size`` pixels as for SPC (``a_med``), is the centre of
+            a window of 2h + 1 = 9 levels (:data:`WCENTROID_HALF_WINDOW`, cut at the ends of
+            the range); the window's minimum is subtracted and the centroid of the rest is
+            the depth (:func:`windowed_centroid`). The median keeps a noisy or flat curve's
+            stray maximum from moving the window (what spoils argmax, gauss3 and
+            quadratic3 with noise); the window keeps the curve's far tails and noise floor
+            out of the estimate (what spoils centroid and PC).
         ``"spc"``
             Shifted phase correlation: argmax, median filtered over ``median_size`` x
             ``median_size`` pixels (``a_med``); per-pixel shift ``s = round(N/2) - a_med``
@@ -233,10 +312,14 @@ def depth_from_focus(
             lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
             filtered argmax. Same result as :func:`spc_by_roll`.
     median_size : int, keyword-only
-        Odd median-filter size for ``"spc"`` (1 = no filtering). Default 11. The thesis used
+        Odd median-filter size for ``"spc"`` and ``"wcentroid"`` (1 = no filtering).
+        Default 11. The thesis used
         10 x 10; an even window has no centre pixel (the median would be shifted by half a
         pixel and an average of two levels), and ``cv2.medianBlur`` requires an odd size, so
         the nearest odd size above is the default. Validated for every method.
+    argmax : (H, W) ndarray of int, optional, keyword-only
+        Each curve's first maximum, if already known (a streaming accumulator keeps it as
+        the levels arrive); computed from ``volume`` when not given.
 
     Returns
     -------
@@ -260,11 +343,21 @@ def depth_from_focus(
     h0, hk, re, im = _moments(vol)
     if not np.isfinite(h0).all():  # NaN / inf anywhere in a curve makes its sum non-finite
         _raise_not_finite(vol)
-    a = _argmax(vol) if method != "pc" else None
+    a: np.ndarray | None = None
+    if argmax is not None and method != "pc":
+        a = np.asarray(argmax)
+        if a.shape != vol.shape[1:]:
+            raise ValueError(f"argmax shape {a.shape} differs from the volume's {vol.shape[1:]}")
+        a = a.astype(np.intp, copy=False)
+    elif method != "pc":
+        a = _argmax(vol)
     if method in STREAMING_METHODS:
         return _from_harmonics(h0, hk, re, im, a, n, method, median_size)
     assert a is not None
     depth, confidence = _from_harmonics(h0, hk, re, im, a, n, "argmax", median_size)
+    if method == "wcentroid":
+        depth = windowed_centroid(vol, median_filter_levels(a, median_size, n))
+        return depth, confidence
     depth = a + _three_point(vol, a, log=method == "gauss3")
     return depth.astype(np.float32, copy=False), confidence
 

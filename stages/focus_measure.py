@@ -1,6 +1,9 @@
-"""Focus measure operators: GLVM and TENV (SFF_NOTES.md section 2).
+"""Focus measure: the stage, the dispatch, and fast paths of GLVM and TENV (SFF_NOTES.md 2).
 
-Two implementations of the same definitions, which agree numerically:
+Every operator of Pertuz's toolbox (:data:`FOCUS_OPERATORS`, case-insensitive) is
+implemented in torch in :mod:`sffscan.stages.operators.toolbox`; :func:`focus_measure`
+dispatches to it. GLVM and TENV, the two the scan uses most, also have an OpenCV CPU fast
+path here. Two implementations of the same definitions, which agree numerically:
 
 * a torch path (:func:`glvm`, :func:`tenv`) on ``(..., H, W)`` floating tensors, the same code
   on CPU and CUDA; results are created on the input's device and dtype;
@@ -14,7 +17,8 @@ Definitions (``box_k`` = mean over a k x k window with replicated borders, i.e. 
 * GLVM, modified grey-level variance: ``mu = box_k(I)``, ``fm = box_k((I - mu)**2)``.
 * TENV, Tenengrad variance: ``Gx``, ``Gy`` = unnormalised 3 x 3 Sobel (MATLAB
   ``fspecial('sobel')`` and its transpose, replicated borders), ``G = Gx**2 + Gy**2``,
-  ``fm = box_k(G**2) - box_k(G)**2``.
+  ``fm = stdfilt(G, ones(k))**2``: the sample variance of G over k x k (1 / (k^2 - 1)),
+  with mirrored borders, as the toolbox computes it.
 
 All functions are pure: no state, no import-time side effects. :class:`FocusMeasureStage`
 is the thin pipeline stage around them.
@@ -33,6 +37,10 @@ from sffscan.pipeline.messages import FocusFrame, PlacedFrame
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import check_odd_size
 from sffscan.stages.focus_volume import new_columns
+from sffscan.stages.operators import OPERATORS, check_operator
+from sffscan.stages.operators.filters import box as _box
+from sffscan.stages.operators.filters import sample_variance, sobel_energy
+from sffscan.stages.operators.toolbox import TOOLBOX
 
 __all__ = [
     "FOCUS_OPERATORS",
@@ -48,8 +56,8 @@ __all__ = [
     "to_unit_float",
 ]
 
-FOCUS_OPERATORS = ("glvm", "tenv")
-"""Names accepted by :func:`focus_measure` as ``operator``."""
+FOCUS_OPERATORS = OPERATORS
+"""Names accepted by :func:`focus_measure` as ``operator`` (any case)."""
 
 _BACKENDS = ("opencv", "torch")
 
@@ -110,61 +118,6 @@ def _check_tensor(image: torch.Tensor) -> torch.Tensor:
     return image.reshape(-1, image.shape[-2], image.shape[-1])
 
 
-def _window_sum(x: torch.Tensor, window: int, dim: int) -> torch.Tensor:
-    """Sums of ``window`` consecutive elements along ``dim`` (output ``window - 1`` shorter).
-
-    Doubling scheme: partial sums of width 1, 2, 4, ... are built by adding shifted views,
-    and the widths in the binary expansion of ``window`` are combined, so a window of k
-    costs about 2 log2(k) elementwise adds instead of k (4 instead of 8 for k = 9). Pairwise
-    summation, so float32 round-off is no worse than a direct sum.
-    """
-    n_out = x.size(dim) - window + 1
-    result: torch.Tensor | None = None
-    power, width, offset = x, 1, 0
-    while True:
-        if window & 1:
-            term = power.narrow(dim, offset, n_out)
-            result = term if result is None else result + term
-            offset += width
-        window >>= 1
-        if not window:
-            break
-        m = power.size(dim) - width
-        power = power.narrow(dim, 0, m) + power.narrow(dim, width, m)
-        width *= 2
-    assert result is not None
-    return result
-
-
-def _box(x: torch.Tensor, window: int) -> torch.Tensor:
-    """Mean over a ``window`` x ``window`` neighbourhood, replicate borders; ``x`` is (B, H, W).
-
-    Replicate padding clamps each axis independently, so the 2-D mean separates into a
-    vertical and a horizontal 1-D window sum (see :func:`_window_sum`), then one division.
-    Elementwise ops only: the same code runs on any device and about 15x faster on CPU than
-    ``F.avg_pool2d`` with a (k, 1) kernel.
-    """
-    r = window // 2
-    p = F.pad(x, (r, r, r, r), mode="replicate")
-    s = _window_sum(_window_sum(p, window, -2), window, -1)
-    return s / (window * window)
-
-
-def _sobel_energy(x: torch.Tensor) -> torch.Tensor:
-    """``Gx**2 + Gy**2`` of the unnormalised 3 x 3 Sobel, replicate borders; ``x`` is (B, H, W).
-
-    MATLAB's ``fspecial('sobel')`` is ``[[1, 2, 1], [0, 0, 0], [-1, -2, -1]]`` (correlation,
-    top minus bottom) and its transpose (left minus right); the sign does not matter once
-    squared. Implemented separably with slices of the padded image.
-    """
-    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    smooth_v = p[..., :-2, :] + 2.0 * p[..., 1:-1, :] + p[..., 2:, :]  # (B, H, W+2)
-    smooth_h = p[..., :, :-2] + 2.0 * p[..., :, 1:-1] + p[..., :, 2:]  # (B, H+2, W)
-    gx = smooth_v[..., :, :-2] - smooth_v[..., :, 2:]
-    gy = smooth_h[..., :-2, :] - smooth_h[..., 2:, :]
-    return gx * gx + gy * gy
-
-
 # ----------------------------------------------------------------------------- torch path
 
 
@@ -195,14 +148,14 @@ def glvm(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
 
 
 def tenv(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """Tenengrad variance (TENV), local k x k version.
+    """Tenengrad variance (TENV), the toolbox's local k x k version.
 
     ``G = Gx**2 + Gy**2`` with the unnormalised 3 x 3 Sobel pair (MATLAB
-    ``fspecial('sobel')`` and its transpose, replicated borders);
-    ``fm = box_k(G**2) - box_k(G)**2``: the *population* variance of G in the window
-    (normalised by 1/k^2; MATLAB's ``std2`` would use 1/(k^2 - 1)). Tiny negative values from
-    round-off are clamped to 0. Pertuz's ``fmeasure`` TENV is a single global variance per
-    image; this is the local windowed operator of the thesis (SFF_NOTES.md section 2).
+    ``fspecial('sobel')`` and its transpose, replicated borders); ``fm = stdfilt(G,
+    ones(k))**2``: the *sample* variance of G in the window (``(sum G^2 - (sum G)^2 / n) /
+    (n - 1)``, n = k^2), mirrored borders (MATLAB 'symmetric'), as Pertuz's
+    ``focusmeasure.m`` computes it. The thesis' standard-deviation form is the operator
+    ``"tenv_std"``. Tiny negative values from round-off are clamped to 0.
 
     Parameters
     ----------
@@ -219,11 +172,7 @@ def tenv(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
     """
     window = _check_window(window)
     x = _check_tensor(image)
-    g = _sobel_energy(x)
-    b = x.shape[0]
-    m = _box(torch.cat((g, g * g), dim=0), window)  # one pad + pool for both moments
-    fm = m[b:] - m[:b] * m[:b]
-    return fm.clamp_min_(0.0).reshape(image.shape)
+    return sample_variance(sobel_energy(x), window).reshape(image.shape)
 
 
 def glvm_conv2d_baseline(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
@@ -302,8 +251,9 @@ def tenv_cv(image: np.ndarray, *, window: int = 9) -> np.ndarray:
     """TENV with OpenCV (CPU fast path); same definition and normalisation as :func:`tenv`.
 
     ``cv2.Sobel(ksize=3)`` (unnormalised, ``BORDER_REPLICATE``; its sign is the opposite of
-    MATLAB's, which squaring removes), then ``cv2.sqrBoxFilter(G) - cv2.boxFilter(G)**2``
-    clamped at 0.
+    MATLAB's, which squaring removes), then the sample variance of G from
+    ``cv2.sqrBoxFilter`` and ``cv2.boxFilter`` with ``BORDER_REFLECT`` (MATLAB's
+    'symmetric'), times n / (n - 1), clamped at 0.
 
     Parameters
     ----------
@@ -325,9 +275,12 @@ def tenv_cv(image: np.ndarray, *, window: int = 9) -> np.ndarray:
     g = gx * gx
     g += gy * gy
     ksize = (window, window)
-    mean = cv2.boxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=border)
-    fm = cv2.sqrBoxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=border)
+    mirror = cv2.BORDER_REFLECT
+    mean = cv2.boxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=mirror)
+    fm = cv2.sqrBoxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=mirror)
     np.subtract(fm, mean * mean, out=fm)
+    n = window * window
+    np.multiply(fm, np.float32(n / (n - 1)), out=fm)
     return np.maximum(fm, 0.0, out=fm)
 
 
@@ -380,7 +333,9 @@ def focus_measure_raw(
         Raw image; may be a strided view (a column range of a frame).
     max_value : float, keyword-only
         Full-scale value (255, 1023, ...).
-    operator : {"glvm", "tenv"}, keyword-only
+    operator : str, keyword-only
+        One of :data:`FOCUS_OPERATORS` (any case); GLVM and TENV run in OpenCV, the others
+        in torch on the CPU.
     window : int, keyword-only
         Odd window size k >= 3, pixels. Default 9.
 
@@ -389,17 +344,44 @@ def focus_measure_raw(
     image01, focus : (H, W) ndarray of float32
         The scaled image and its focus measure.
     """
-    if operator not in FOCUS_OPERATORS:
-        raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {operator!r}")
+    operator = check_operator(operator)
     window = _check_window(window)
     image01 = to_unit_float(image, max_value=max_value)
     if operator == "glvm" and image.dtype in (np.uint8, np.uint16):
         return image01, glvm_cv_raw(image, image01, max_value=max_value, window=window)
-    op_cv = glvm_cv if operator == "glvm" else tenv_cv
-    return image01, op_cv(image01, window=window)
+    if operator in _CV_OPS:
+        return image01, _CV_OPS[operator](image01, window=window)
+    return image01, _torch_cpu(image01, operator, window)
 
 
 # ----------------------------------------------------------------------------- dispatch
+
+_CV_OPS = {"glvm": glvm_cv, "tenv": tenv_cv}
+
+
+def _torch_op(operator: str) -> Any:
+    """The torch function of a (checked) operator: ``f(image, *, window)``."""
+    if operator == "glvm":
+        return glvm
+    if operator == "tenv":
+        return tenv
+    fn = TOOLBOX[operator]
+
+    def op(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
+        x = _check_tensor(image)
+        return fn(x, _check_window(window)).reshape(image.shape)
+
+    return op
+
+
+def _torch_cpu(image01: np.ndarray, operator: str, window: int) -> np.ndarray:
+    """A toolbox operator of one float32 image on the CPU, through torch."""
+    img = np.ascontiguousarray(image01, dtype=np.float32)
+    if not img.flags.writeable:
+        img = img.copy()
+    with torch.inference_mode():
+        return _torch_op(operator)(torch.from_numpy(img), window=window).numpy()
+
 
 
 def focus_measure(
@@ -416,13 +398,15 @@ def focus_measure(
     ----------
     image : (H, W) or (B, H, W) ndarray of float
         Image(s) already scaled to 0..1 (see :func:`to_unit_float`); computed in float32.
-    operator : {"glvm", "tenv"}, keyword-only
-        Focus measure operator, see :data:`FOCUS_OPERATORS`.
+    operator : str, keyword-only
+        Focus measure operator, the toolbox's acronym in any case (``"LAPM"``, ``"glvm"``),
+        see :data:`FOCUS_OPERATORS` and :mod:`sffscan.stages.operators.toolbox`.
     window : int, keyword-only
         Odd window size k >= 3, pixels. Default 9.
     backend : {"opencv", "torch"}, keyword-only
-        ``"opencv"``: CPU fast path, image by image. ``"torch"``: the whole batch at once on
-        ``device``, result copied back to host memory.
+        ``"opencv"``: CPU fast path, image by image (GLVM and TENV; the other operators run
+        in torch on the CPU). ``"torch"``: the whole batch at once on ``device``, result
+        copied back to host memory.
     device : str, keyword-only
         Torch device for ``backend="torch"`` (``"cpu"``, ``"cuda"``, ``"cuda:1"``...);
         ignored by the OpenCV backend.
@@ -438,8 +422,7 @@ def focus_measure(
         Unknown ``operator`` or ``backend``, bad ``window``, or an image that is not a 2-D or
         3-D floating array.
     """
-    if operator not in FOCUS_OPERATORS:
-        raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {operator!r}")
+    operator = check_operator(operator)
     if backend not in _BACKENDS:
         raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
     window = _check_window(window)
@@ -452,20 +435,20 @@ def focus_measure(
         )
     img = np.ascontiguousarray(image, dtype=np.float32)
 
-    if backend == "opencv":
-        op_cv = glvm_cv if operator == "glvm" else tenv_cv
+    if backend == "opencv" and operator in _CV_OPS:
+        op_cv = _CV_OPS[operator]
         if img.ndim == 2:
             return op_cv(img, window=window)
         out = np.empty_like(img)
         for i in range(img.shape[0]):
             out[i] = op_cv(img[i], window=window)
         return out
-
-    op_torch = glvm if operator == "glvm" else tenv
+    if backend == "opencv":
+        device = "cpu"
     if not img.flags.writeable:  # torch.from_numpy warns on read-only arrays
         img = img.copy()
     with torch.inference_mode():
-        result = op_torch(torch.from_numpy(img).to(device), window=window)
+        result = _torch_op(operator)(torch.from_numpy(img).to(device), window=window)
         return result.cpu().numpy()
 
 
@@ -488,7 +471,8 @@ class DeviceFocus:
     ----------
     device : str or torch.device
         Torch device.
-    operator : {"glvm", "tenv"}
+    operator : str
+        One of :data:`FOCUS_OPERATORS`, any case.
     window : int
         Odd window size k >= 3, px.
     max_value : float
@@ -497,10 +481,8 @@ class DeviceFocus:
 
     def __init__(self, *, device: str | torch.device, operator: str = "glvm", window: int = 9,
                  max_value: float = 255.0) -> None:
-        if operator not in FOCUS_OPERATORS:
-            raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {operator!r}")
         self.device = torch.device(device)
-        self.op = glvm if operator == "glvm" else tenv
+        self.op = _torch_op(check_operator(operator))
         self.window = _check_window(window)
         self.scale = 1.0 / float(max_value)
         self.cuda = self.device.type == "cuda"
@@ -590,7 +572,7 @@ class FocusMeasureStage(Stage):
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
                  device: str = "cpu", max_value: float = 255.0, margin: int,
                  directions: Sequence[int] = (1,)) -> None:
-        self.operator = operator
+        self.operator = check_operator(operator)
         self.window = _check_window(window)
         self.backend = backend
         self.device = device

@@ -14,8 +14,11 @@ What a column keeps depends on the depth method. argmax, centroid, PC and SPC ne
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth.harmonic_table`) and its argmax, so each frame is *accumulated* into
 per-pixel sums and a running maximum as it arrives (a few passes of OpenCV arithmetic,
-no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3) need the
-neighbours of the peak: for them the ring stores every level of every pixel.
+no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3) and the
+default windowed centroid (wcentroid) need the levels about a peak that is known only
+once the column and its neighbours are complete: for them the ring stores every level of
+every pixel (N planes: bounded by the ring, the columns in view, never the whole stack),
+and the running argmax is kept as frames arrive.
 
 Motion along -x is handled by mirroring: internally columns are numbered so that they
 always complete in increasing order.
@@ -37,6 +40,8 @@ from sffscan.stages.depth import (
     depth_from_harmonics,
     harmonic_table,
     levels_to_height,
+    median_filter_levels,
+    windowed_centroid,
 )
 
 
@@ -198,14 +203,20 @@ class FocusVolume:
         plane = (self.rows, self.ring)
         # filled now, so the pages are touched at start-up and not during the scan
         self.fv: np.ndarray | None = None
+        # the running argmax of every curve (all methods: the N-level methods reuse it)
+        self.argmax = np.zeros(plane, np.uint8 if self.n <= 256 else np.uint16)
+        self._level_buf = np.empty((self.h, self.w), self.argmax.dtype)
         if self.streaming:
             # sums of harmonic_table(N) rows 0 (H_0), 2 (Re H_1), 3 (Im H_1), and 1 (sum k y)
             # for the centroid only; float32 (50 terms: ~1e-6 relative)
             self.sums = np.zeros((4 if method == "centroid" else 3, *plane), np.float32)
             self.coef = harmonic_table(self.n)[[0, 2, 3, 1]]
-            self.argmax = np.zeros(plane, np.uint8 if self.n <= 256 else np.uint16)
-            self._level_buf = np.empty((self.h, self.w), self.argmax.dtype)
         else:
+            # the windowed centroid's confidence comes from the sums too (no pass over the
+            # N levels at the reduction); the 3-point fits take both from the levels
+            windowed = method == "wcentroid"
+            self.sums = np.zeros((3 if windowed else 0, *plane), np.float32)
+            self.coef = harmonic_table(self.n)[[0, 2, 3]] if windowed else np.zeros((0, self.n))
             self.fv = np.empty((self.n, *plane), np.float32)
             self.fv.fill(0.0)
         self.filled = np.zeros((self.n, self.ring), bool)
@@ -255,8 +266,8 @@ class FocusVolume:
         if self.direction == -1:
             focus, image01 = focus[:, ::-1], image01[:, ::-1]
             col0 = self.w - (col0 + focus.shape[1])
-            if self.streaming:  # OpenCV takes positive strides only
-                focus, image01 = np.ascontiguousarray(focus), np.ascontiguousarray(image01)
+            # OpenCV takes positive strides only
+            focus, image01 = np.ascontiguousarray(focus), np.ascontiguousarray(image01)
         u_frame = self._to_internal(x)
         m = self.margin
         if self.y0 is None:
@@ -316,19 +327,15 @@ class FocusVolume:
         self.count[cs] += 1
         self.row_lo[level, cs] = r0
         self.row_hi[level, cs] = r1
-        if self.fv is None:
-            self._accumulate(level, fm, image01[fr, fc], r0, r1, cs)
-        else:
+        if self.fv is not None:
             self.fv[level, r0:r1, cs] = fm
-            best = self.best[r0:r1, cs]
-            sharper = fm > best
-            np.copyto(best, fm, where=sharper)
-            np.copyto(self.tex[r0:r1, cs], image01[fr, fc], where=sharper)
+        self._accumulate(level, fm, image01[fr, fc], r0, r1, cs)
         self.end_u = max(self.end_u, v1)
 
     def _accumulate(self, level: int, fm: np.ndarray, img: np.ndarray, r0: int, r1: int,
                     cs: slice) -> None:
-        """Add level ``level``'s values ``fm`` to the sums and running argmax of a region.
+        """Add level ``level``'s values ``fm`` to the sums (streaming methods) and the running
+        maximum, argmax and texture of a region.
 
         OpenCV arithmetic in place on the (strided) views: one pass each, about 4x faster
         than numpy on strided 2-D views, done in strips of rows (about 512 KiB of ``fm``)
@@ -416,19 +423,25 @@ class FocusVolume:
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
-        if self.fv is None:
+        if self.fv is None or self.method == "wcentroid":
             planes = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             sums = np.zeros((4, *planes.shape[1:]), np.float32)
             sums[0], sums[2], sums[3] = planes[0], planes[1], planes[2]
             if planes.shape[0] == 4:  # only the centroid uses sum k y
                 sums[1] = planes[3]
+            argmax = self._gather(self.argmax, a0, a1)
             depth, conf = depth_from_harmonics(
-                sums, self._gather(self.argmax, a0, a1), n_levels=self.n, method=self.method,
+                sums, argmax, n_levels=self.n,
+                method="argmax" if self.fv is not None else self.method,
                 median_size=self.median_size)
+            if self.fv is not None:  # wcentroid: the levels about the filtered argmax
+                centre = median_filter_levels(argmax, self.median_size, self.n)
+                depth = windowed_centroid(self._gather(self.fv, a0, a1), centre)
         else:
             vol = self._gather(self.fv, a0, a1)
             depth, conf = depth_from_focus(vol, method=self.method,
-                                           median_size=self.median_size)
+                                           median_size=self.median_size,
+                                           argmax=self._gather(self.argmax, a0, a1))
         inner = slice(u0 - a0, u1 - a0)
         depth, conf = depth[:, inner], conf[:, inner]
         complete = self._gather(self.count, u0, u1) == self.n
@@ -460,16 +473,15 @@ class FocusVolume:
             self.count[cs] = 0
             self.best[:, cs] = -1.0
             self.tex[:, cs] = 0.0
-            if self.fv is None:
-                self.sums[:, :, cs] = 0.0
-                self.argmax[:, cs] = 0
+            self.sums[:, :, cs] = 0.0
+            self.argmax[:, cs] = 0
         self.first_u = below
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-pixel state (fixed for the life of the volume)."""
-        planes = [self.best, self.tex] + ([self.fv] if self.fv is not None
-                                          else [self.sums, self.argmax])
+        planes = [self.best, self.tex, self.argmax] + ([self.fv] if self.fv is not None
+                                                       else []) + [self.sums]
         return sum(a.nbytes for a in planes)
 
 

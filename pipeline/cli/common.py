@@ -23,6 +23,13 @@ from sffscan.pipeline.runtime import Sink, StageFailed
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
+OPERATOR_CHOICES = (
+    "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
+    "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
+    "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols",
+)
+"""Focus measure operators (sffscan.stages.operators.OPERATORS, kept torch-free here)."""
+
 VIEWER_CHOICES = "spawn|serve|save PATH|off"
 
 
@@ -31,8 +38,11 @@ def processing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-registration", action="store_true",
                    help="place frames by speed only")
     p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
-                                        "spc"], help="depth method (default spc)")
-    p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
+                                        "spc", "wcentroid"],
+                   help="depth method (default wcentroid)")
+    p.add_argument("--operator", type=str.lower, choices=OPERATOR_CHOICES, metavar="OPERATOR",
+                   help="focus measure operator, a toolbox acronym in any case (default glvm): "
+                        + ", ".join(OPERATOR_CHOICES))
     p.add_argument("--window", type=int, help="focus measure window k, odd, px")
     p.add_argument("--calibration", metavar="FILE",
                    help="calibration JSON ('sffscan calibrate'): focus level -> µm")

@@ -37,7 +37,7 @@ from sffscan.pipeline.config import (
 COMMAND_MODULES: tuple[str, ...] = (
     "sffscan.pipeline.cli.record", "sffscan.pipeline.cli.hardware",
     "sffscan.pipeline.cli.calibrate", "sffscan.pipeline.cli.metrology",
-    "sffscan.pipeline.cli.batch")
+    "sffscan.pipeline.cli.batch", "sffscan.pipeline.cli.study")
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:

@@ -20,7 +20,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OK
+from sffscan.pipeline.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    OPERATOR_CHOICES,
+)
 
 UNIT_TO_UM = {"um": 1.0, "mm": 1000.0, "m": 1e6}
 
@@ -38,12 +43,15 @@ def _settings_options(p: argparse.ArgumentParser) -> None:
 
     # the defaults without an instance (validating one would load torch for '--help')
     d = types.SimpleNamespace(**{f.name: f.default for f in fields(StackSettings)})
-    p.add_argument("--operator", choices=["glvm", "tenv"], default=d.operator,
-                   help=f"focus measure operator (default {d.operator})")
+    p.add_argument("--operator", type=str.lower, choices=OPERATOR_CHOICES, default=d.operator,
+                   metavar="OPERATOR",
+                   help=f"focus measure operator, a toolbox acronym (default {d.operator}): "
+                        + ", ".join(OPERATOR_CHOICES))
     p.add_argument("--window", type=int, default=d.window,
                    help=f"focus measure window k, odd, px (default {d.window})")
     p.add_argument("--method", default=d.method,
-                   choices=["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc"],
+                   choices=["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
+                            "wcentroid"],
                    help=f"depth method (default {d.method})")
     p.add_argument("--median-size", type=int, default=d.median_size,
                    help=f"SPC median filter size, odd, px (default {d.median_size})")

@@ -61,8 +61,9 @@ class StackSettings:
 
     Parameters
     ----------
-    operator : {"glvm", "tenv"}
-        Focus measure operator.
+    operator : str
+        Focus measure operator, a toolbox acronym (any case), see
+        :data:`sffscan.stages.focus_measure.FOCUS_OPERATORS`.
     window : int
         Focus measure window k (odd, >= 3), px.
     method : str
@@ -89,7 +90,7 @@ class StackSettings:
     def __post_init__(self) -> None:
         from sffscan.stages.focus_measure import FOCUS_OPERATORS  # torch loads with the first use
 
-        if self.operator not in FOCUS_OPERATORS:
+        if self.operator.lower() not in FOCUS_OPERATORS:
             raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {self.operator!r}")
         if self.method not in DEPTH_METHODS:
             raise ValueError(f"method must be one of {DEPTH_METHODS}, got {self.method!r}")
