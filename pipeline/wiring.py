@@ -27,6 +27,7 @@ from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import DepthStage
 from sffscan.stages.frame_source import SourceStage
 from sffscan.stages.mosaic import MosaicStage, MosaicWriter
+from sffscan.stages.optics_correction import corrections_applied, optics_correction_stages
 from sffscan.stages.registration import RegistrationStage
 from sffscan.stages.speed_shift import SpeedShiftStage
 
@@ -50,9 +51,12 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     directions = [pass_direction(cfg, i) for i in range(m.passes)]
     x0, y0, x1, y1 = (v * o.pixel_um for v in scan_extent_px(cfg))
+    # the calibration's magnification per level and field curvature (issue 14)
+    optics_pre, optics_post = optics_correction_stages(cfg, focus_heights_um(cfg))
     stages: list[Stage] = [
         SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels,
                     max_value=int(o.max_value), passes=m.passes, area_um=(x0, y0, x1, y1)),
+        *optics_pre,
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
                         pass_start=lambda i: pass_start_px(cfg, i)),
     ]
@@ -68,6 +72,7 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
                    block_columns=p.block_columns,
                    directions=directions,
                    slack_px=slack),
+        *optics_post,
         MosaicStage(writer),
     ]
     return stages
@@ -87,7 +92,8 @@ def open_writer(cfg: ScanConfig, *, path: str | Path | None = None,
                            "depth_method": p.depth_method, "median_size": p.median_size,
                            "registration": p.registration,
                            "registration_scale": p.registration_scale, "backend": p.backend,
-                           "calibration": p.calibration},
+                           "calibration": p.calibration,
+                           "calibration_applied": corrections_applied(cfg)},
             "focus_heights_um": focus_heights_um(cfg),
             "scan_config": cfg.model_dump(mode="json"),
         },

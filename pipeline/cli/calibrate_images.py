@@ -10,8 +10,10 @@ calibrated step by step into one file, in this order:
 2. ``calibrate lateral --squares NX NY --square-um S --image LEVEL FILE ...`` -- a
    checkerboard in focus at several focus levels: the lateral scale and its change per level
    (the magnification change of a non-telecentric objective);
-3. ``calibrate curvature STACK`` -- a flat reference filling the field: the field curvature
-   (heights through the file's z response when it has one, else the nominal focus table);
+3. ``calibrate curvature STACK`` -- a flat, evenly lit reference filling the field: the
+   vignetting (the mean illumination over the frame) and the field curvature (heights
+   through the file's z response when it has one, else the nominal focus table; frames
+   first brought to one scale by its lateral section when it has one);
 4. ``calibrate noise STACK1 STACK2`` -- two back-to-back stacks of the same surface:
    N_M by subtraction.
 
@@ -37,6 +39,7 @@ from sffscan.pipeline.metrology.calibration import (
     calibrate_z,
     calibrated_focus_heights,
     fit_field_curvature,
+    fit_vignetting,
     load_calibration,
     measure_height,
     noise_by_subtraction,
@@ -104,6 +107,16 @@ def _focus_table(args: argparse.Namespace, cal: Calibration, n: int) -> tuple[np
     return args.focus_start + args.focus_step * np.arange(n, dtype=np.float64), "nominal"
 
 
+def _unbreathe(cal: Calibration, stack: np.ndarray, max_value: float) -> np.ndarray:
+    """Frames flat-fielded (``vignetting``) and frame k resampled to the reference level's
+    scale (``lateral``), as the corrected pipeline sees them."""
+    from sffscan.pipeline.metrology.optics_correction import StackCorrection
+
+    if cal.lateral is not None:
+        log.info("frames resampled to one scale by the calibration's lateral section first")
+    return StackCorrection(cal).frames(stack, max_value=max_value)
+
+
 def cmd_z(args: argparse.Namespace) -> int:
     cal = _open(args.output)
     heights = np.array([float(h) for h, _ in args.gauge])
@@ -141,7 +154,11 @@ def cmd_lateral(args: argparse.Namespace) -> int:
 
 def cmd_curvature(args: argparse.Namespace) -> int:
     cal = _open(args.output)
-    stack = read_stack(args.stack, grey=args.grey)
+    raw = read_stack(args.stack, grey=args.grey)
+    vig = fit_vignetting(raw, margin_px=args.margin_px)
+    print(f"vignetting: {100 * vig.corner_loss:.1f} % less light at the frame corners")
+    cal = cal.model_copy(update={"vignetting": vig})
+    stack = _unbreathe(cal, raw, _max_value(args, raw))
     table, source = _focus_table(args, cal, stack.shape[0])
     height, _ = measure_height(stack, focus_heights_um=table, max_value=_max_value(args, stack))
     fit = fit_field_curvature(height, margin_px=args.margin_px)
@@ -158,7 +175,9 @@ def cmd_curvature(args: argparse.Namespace) -> int:
 
 def cmd_noise(args: argparse.Namespace) -> int:
     cal = _open(args.output)
-    s1, s2 = read_stack(args.stack1, grey=args.grey), read_stack(args.stack2, grey=args.grey)
+    s1 = read_stack(args.stack1, grey=args.grey)
+    s1 = _unbreathe(cal, s1, _max_value(args, s1))
+    s2 = _unbreathe(cal, read_stack(args.stack2, grey=args.grey), _max_value(args, s1))
     table, source = _focus_table(args, cal, s1.shape[0])
     mv = _max_value(args, s1)
     z1, _ = measure_height(s1, focus_heights_um=table, max_value=mv)

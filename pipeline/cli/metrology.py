@@ -119,6 +119,7 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
 def cmd_stack(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    from sffscan.pipeline.metrology.optics_correction import applied
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
     from sffscan.stages.fields.stationary import (
         read_image_stack,
@@ -137,6 +138,11 @@ def cmd_stack(args: argparse.Namespace) -> int:
         else:
             stack, zarr_table = read_image_stack(args.images), None
         table = _focus_table(args, stack.shape[0], zarr_table)
+        correction = _stack_correction(args)
+        if correction is not None:
+            table = correction.focus_heights_um(table)
+            stack = correction.frames(stack, max_value=None if args.bit_depth is None
+                                      else float(2**args.bit_depth - 1))
         stack, covered, alignment = prepare_stack(stack, align=args.align)
         if alignment is not None:
             print(describe_alignment(alignment), file=sys.stderr)
@@ -150,6 +156,8 @@ def cmd_stack(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         result = reconstruct_field(stack, focus_heights_um=table, settings=settings,
                                    max_value=max_value)
+        if correction is not None:
+            result = correction.field(result)
         if covered is not None:  # pixels some aligned frame does not cover: not measured
             result = replace(result, height_um=mask_uncovered(
                 result.height_um, covered, reach_px=2 * (settings.window // 2) + 1))
@@ -157,7 +165,10 @@ def cmd_stack(args: argparse.Namespace) -> int:
                               pixel_um=args.pixel_um, overwrite=args.overwrite,
                               attrs={"processing": {"mode": "stationary", **settings.as_dict(),
                                                     "alignment": None if alignment is None
-                                                    else alignment.as_dict()},
+                                                    else alignment.as_dict(),
+                                                    "calibration": args.calibration,
+                                                    "calibration_applied": [] if correction
+                                                    is None else applied(correction.calibration)},
                                      "focus_heights_um": [float(v) for v in table]})
     except ValueError as err:
         return _fail(str(err))
@@ -182,6 +193,26 @@ def cmd_stack(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- stop-and-go
 
 
+def _realistic_optics(zs: np.ndarray) -> dict[str, float]:
+    """The simulator's realistic [optics] (``demo --realistic``), breathing about mid-range."""
+    from sffscan.pipeline.config import REALISTIC_OPTICS
+
+    return {**REALISTIC_OPTICS, "magnification_ref_um": 0.5 * float(zs[0] + zs[-1])}
+
+
+def _stack_correction(args: argparse.Namespace):  # noqa: ANN202 - StackCorrection, lazily
+    """The calibration ``--calibration`` names, as applied to stationary stacks (or None)."""
+    if not getattr(args, "calibration", None):
+        return None
+    from sffscan.pipeline.metrology.calibration import load_calibration
+    from sffscan.pipeline.metrology.optics_correction import StackCorrection, applied
+
+    cal = load_calibration(args.calibration)
+    log.info("calibration %s: correcting %s", args.calibration,
+             ", ".join(applied(cal)) or "nothing (the file has no section that applies)")
+    return StackCorrection(cal)
+
+
 def cmd_stopgo(args: argparse.Namespace) -> int:
     from sffscan.stages.fields.stop_and_go import (
         SimFieldCamera,
@@ -198,8 +229,10 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
         world = characterisation_plate(seed=args.seed, pixel_um=args.pixel_um,
                                        length_mm=args.plate_length_mm,
                                        width_mm=args.plate_width_mm, z_range_um=(0, zs[-1]))
-        optics = Optics(width=args.field[0], height=args.field[1], pixel_um=args.pixel_um)
+        optics = Optics(width=args.field[0], height=args.field[1], pixel_um=args.pixel_um,
+                        **(_realistic_optics(zs) if args.realistic else {}))
         camera = SimFieldCamera(world, optics, zs, seed=args.seed)
+        correction = _stack_correction(args)
         x0, x1, y0, y1 = args.area_mm
         grid = plan_grid(x_um=(x0 * 1000, x1 * 1000), y_um=(y0 * 1000, y1 * 1000),
                          field_px=(optics.width, optics.height), pixel_um=args.pixel_um,
@@ -209,7 +242,8 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
               file=sys.stderr)
         report = run_stop_and_go(camera, grid, args.output, settings=settings,
                                  overlap_px=args.overlap_px, overwrite=args.overwrite,
-                                 progress=None if args.quiet else print_progress)
+                                 progress=None if args.quiet else print_progress,
+                                 correction=correction)
     except ValueError as err:
         return _fail(str(err))
     except KeyboardInterrupt:
@@ -323,6 +357,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                         "middle frame (OpenCV ECC), printed per frame, then warped; pixels "
                         "not covered by every frame are left invalid. Without it, a stack "
                         "that looks misaligned gets a warning")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration file ('sffscan calibrate'): vignetting and magnification "
+                        "per level corrected in the frames (frame k at focus level k), its z "
+                        "response replaces the focus positions, field curvature removed")
     _settings_options(p)
     p.set_defaults(func=cmd_stack)
 
@@ -344,6 +382,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--plate-width-mm", type=float, default=4.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("--realistic", action="store_true",
+                   help="real-lens optics as 'demo --realistic' (breathing, field curvature, "
+                        "vignetting)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration file applied to every field (as for 'stack')")
     _settings_options(p)
     p.set_defaults(func=cmd_stopgo)
 

@@ -39,6 +39,7 @@ __all__ = [
     "FieldCurvatureFit",
     "LateralScale",
     "LevelScale",
+    "VignettingFit",
     "ZResponse",
     "apply_calibration",
     "calibrate_lateral",
@@ -47,7 +48,9 @@ __all__ = [
     "chessboard_corners",
     "curvature_correction",
     "fit_field_curvature",
+    "fit_vignetting",
     "fit_z_response",
+    "illumination_map",
     "lateral_scale",
     "load_calibration",
     "measure_height",
@@ -115,6 +118,19 @@ class FieldCurvatureFit(_Model):
     rms_residual_um: float = Field(ge=0, description="RMS of the reference minus the fit, µm")
 
 
+class VignettingFit(_Model):
+    """Relative illumination over the frame: quadratic surface, 1 at the centre."""
+
+    frame_width_px: int = Field(ge=1)
+    frame_height_px: int = Field(ge=1)
+    centre_px: tuple[float, float] = Field(description="Frame pixel (x, y) where u = v = 0")
+    coefficients: tuple[float, float, float, float, float, float] = Field(
+        description="1, cu, cv, cuu, cuv, cvv: illumination relative to the centre; u, v in px "
+                    "from centre_px")
+    corner_loss: float = Field(description="Illumination lost at the frame corners (mean of "
+                                           "the four), fraction")
+
+
 class Calibration(_Model):
     """One instrument's calibration (schemas/calibration.v1.json)."""
 
@@ -126,6 +142,8 @@ class Calibration(_Model):
     lateral: LateralScale | None = None
     field_curvature: FieldCurvatureFit | None = None
     noise_um: float | None = Field(None, ge=0, description="N_M by subtraction, µm")
+    vignetting: VignettingFit | None = Field(
+        None, description="Illumination over the frame (flat field), from a flat reference")
 
 
 def save_calibration(cal: Calibration, path: str | Path) -> Path:
@@ -463,6 +481,57 @@ def curvature_correction(fit: FieldCurvatureFit, shape: tuple[int, int], *,
     vv, uu = np.mgrid[y0:y0 + h, x0:x0 + w].astype(np.float64)
     c = np.asarray(fit.coefficients_um)
     out = _design(uu - cx, vv - cy) @ c - c[0]
+    return out.astype(np.float32)
+
+
+def fit_vignetting(stack: np.ndarray, *, margin_px: int = 0) -> VignettingFit:
+    """Relative illumination of the frame from a focus stack of a flat, evenly lit reference.
+
+    The mean of the stack's frames (texture averages out over the defocused frames and
+    the fit), fitted by least squares with a quadratic surface in the frame coordinates,
+    then divided by its value at the frame centre.
+
+    Parameters
+    ----------
+    stack : (N, H, W) array of uint8, uint16 or float
+    margin_px : int
+        Frame border left out, px.
+
+    Returns
+    -------
+    VignettingFit
+    """
+    st = np.asarray(stack)
+    if st.ndim != 3:
+        raise CalibrationError(f"flat reference stack must be (N, H, W), got shape {st.shape}")
+    mean = st.mean(axis=0, dtype=np.float64)
+    h, w = mean.shape
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    step = max(1, min(h, w) // 128)  # a few thousand samples are plenty for 6 coefficients
+    vv, uu = np.mgrid[margin_px:h - margin_px:step, margin_px:w - margin_px:step]
+    z = mean[vv, uu]
+    if z.size < 6 or not np.isfinite(z).all():
+        raise CalibrationError("vignetting: too few valid pixels in the flat reference")
+    a = _design((uu - cx).ravel().astype(np.float64), (vv - cy).ravel().astype(np.float64))
+    coef, *_ = np.linalg.lstsq(a, z.ravel(), rcond=None)
+    if not coef[0] > 0:
+        raise CalibrationError("vignetting: the flat reference is dark at the frame centre")
+    coef = coef / coef[0]
+    corners = _design(np.array([-cx, cx, -cx, cx]), np.array([-cy, -cy, cy, cy])) @ coef
+    return VignettingFit(frame_width_px=w, frame_height_px=h, centre_px=(cx, cy),
+                         coefficients=tuple(float(c) for c in coef),  # type: ignore[arg-type]
+                         corner_loss=float(1.0 - corners.mean()))
+
+
+def illumination_map(fit: VignettingFit) -> np.ndarray:
+    """Relative illumination of every frame pixel, (H, W) float32 (1 at the centre)."""
+    h, w = fit.frame_height_px, fit.frame_width_px
+    cx, cy = fit.centre_px
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    out = _design(uu - cx, vv - cy) @ np.asarray(fit.coefficients)
+    if not np.all(out > 0.05):
+        raise CalibrationError("vignetting: the fitted illumination falls below 5 % in the "
+                               "frame")
     return out.astype(np.float32)
 
 

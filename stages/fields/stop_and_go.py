@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from sffscan.pipeline.metrology.optics_correction import StackCorrection, applied
 from sffscan.stages.fields.stationary import FieldResult, StackSettings, reconstruct_field
 from sffscan.stages.mosaic import MIN_WEIGHT, MosaicWriter
 from sffscan.stages.sim.camera import Optics, render_stack
@@ -234,7 +235,8 @@ def grid_extent_px(positions: Sequence[FieldPosition], *, pixel_um: float,
 def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], output: str | Path,
                     *, settings: StackSettings | None = None, overlap_px: int = 150,
                     chunk_px: int = 256, overwrite: bool = False,
-                    progress: Callable[[int, int, float], None] | None = None) -> StopAndGoReport:
+                    progress: Callable[[int, int, float], None] | None = None,
+                    correction: StackCorrection | None = None) -> StopAndGoReport:
     """Acquire, reconstruct and stitch every field of a grid into a Zarr mosaic.
 
     The mosaic's status is ``writing`` while fields arrive, ``complete`` at the end, and
@@ -256,18 +258,25 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
         As for :class:`sffscan.stages.mosaic.MosaicWriter`.
     progress : callable(done, total, elapsed_s), keyword-only
         Called after each field.
+    correction : StackCorrection, keyword-only
+        A calibration applied to every field: vignetting and magnification per level in
+        the frames, the z response in the focus table, the field curvature in the heights.
     """
     if not positions:
         raise ValueError("positions: the grid has no fields")
     settings = settings or StackSettings()
     px = camera.pixel_um
     x0, y0, x1, y1 = grid_extent_px(positions, pixel_um=px, field_px=camera.field_px)
+    table = camera.focus_heights_um if correction is None else \
+        correction.focus_heights_um(camera.focus_heights_um)
     processing = {"mode": "stop-and-go", **settings.as_dict(), "overlap_px": overlap_px,
+                  "calibration_applied": [] if correction is None else
+                  applied(correction.calibration),
                   "fields": [[p.ix, p.iy, p.stage_x_um, p.stage_y_um] for p in positions]}
     writer = MosaicWriter(output, origin_px=(x0, y0), shape=(y1 - y0, x1 - x0), pixel_um=px,
                           chunk_px=chunk_px, overwrite=overwrite,
                           attrs={"processing": processing,
-                                 "focus_heights_um": [float(v) for v in camera.focus_heights_um]})
+                                 "focus_heights_um": [float(v) for v in table]})
     feather = feather_weights((camera.field_px[1], camera.field_px[0]), overlap_px=overlap_px)
     start = time.perf_counter()
     valid = done = 0
@@ -275,8 +284,12 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
         for pos in positions:
             stack = camera.acquire(stage_x_um=pos.stage_x_um, stage_y_um=pos.stage_y_um)
             try:
-                result = reconstruct_field(stack, focus_heights_um=camera.focus_heights_um,
+                if correction is not None:
+                    stack = correction.frames(stack, max_value=camera.max_value)
+                result = reconstruct_field(stack, focus_heights_um=table,
                                            settings=settings, max_value=camera.max_value)
+                if correction is not None:
+                    result = correction.field(result)
             except ValueError as err:
                 raise ValueError(f"field ({pos.ix}, {pos.iy}) at stage ({pos.stage_x_um:g}, "
                                  f"{pos.stage_y_um:g}) µm: {err}") from None

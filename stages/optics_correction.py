@@ -1,0 +1,131 @@
+"""Optics corrections in the streaming scan: the calibration's vignetting and magnification
+per focus level (in the frames, before they are placed in world coordinates) and its field
+curvature (in the heights).
+
+    source -> [frame_optics] -> speed_shift -> ... -> depth -> [field_curvature] -> mosaic
+
+Both stages are thin wrappers of the pure functions in
+:mod:`sffscan.pipeline.metrology.optics_correction`; :func:`optics_correction_stages` builds
+them from a configuration whose ``processing.calibration`` names a calibration file (none
+when the file has neither ``lateral`` nor ``field_curvature``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.messages import DepthBlock, Frame, FrameError
+from sffscan.pipeline.metrology.calibration import (
+    Calibration,
+    illumination_map,
+    load_calibration,
+)
+from sffscan.pipeline.metrology.optics_correction import (
+    ScanCurvature,
+    applied,
+    flat_field,
+    level_magnification,
+    unbreathe_frame,
+)
+from sffscan.pipeline.runtime import Stage
+
+__all__ = ["CurvatureStage", "FrameOpticsStage", "corrections_applied",
+           "optics_correction_stages"]
+
+
+class FrameOpticsStage(Stage):
+    """Flat-fields each frame (vignetting), then resamples it to the reference level's scale
+    about the optical centre (magnification per level).
+
+    Parameters
+    ----------
+    magnifications : (N,) array_like of float, or None
+        Relative magnification of each focus level (1 = reference); None: not resampled.
+    centre_px : (x, y)
+        Optical centre, frame px.
+    illumination : (H, W) float32 or None
+        Relative illumination of the frame; None: not flat-fielded.
+    max_value : float
+        Full scale the flat-fielded frames are clipped to.
+    """
+
+    name = "frame_optics"
+
+    def __init__(self, magnifications: Sequence[float] | np.ndarray | None, *,
+                 centre_px: tuple[float, float], illumination: np.ndarray | None = None,
+                 max_value: float = 65535.0) -> None:
+        self.mags = None if magnifications is None else np.asarray(magnifications, np.float64)
+        self.centre = (float(centre_px[0]), float(centre_px[1]))
+        self.illumination = illumination
+        self.max_value = max_value
+
+    def process(self, item: Frame) -> Iterator[Frame]:
+        img = item.image
+        if self.illumination is not None:
+            try:
+                img = flat_field(img, self.illumination, max_value=self.max_value)
+            except ValueError as err:
+                raise FrameError(f"frame_id {item.header.frame_id}: {err}") from None
+        if self.mags is not None:
+            k = item.header.focus_index
+            if not 0 <= k < self.mags.size:
+                raise FrameError(f"frame_id {item.header.frame_id}: focus_index {k} outside "
+                                 f"the calibrated levels 0..{self.mags.size - 1}")
+            img = unbreathe_frame(img, float(self.mags[k]), centre_px=self.centre)
+        yield Frame(item.header, img)
+
+
+class CurvatureStage(Stage):
+    """Subtracts the field curvature seen by each world pixel from the depth blocks."""
+
+    name = "field_curvature"
+    unit = "blocks"
+
+    def __init__(self, curvature: ScanCurvature) -> None:
+        self.curvature = curvature
+
+    def process(self, item: DepthBlock) -> Iterator[DepthBlock]:
+        h = item.header
+        corr = self.curvature.correction(item.height_um, x0_px=h.x0_px, y0_px=h.y0_px,
+                                         pass_index=h.pass_index)
+        yield DepthBlock(h, (item.height_um - corr).astype(np.float32), item.texture,
+                         item.confidence)
+
+
+def optics_correction_stages(cfg: ScanConfig, focus_heights_um: Sequence[float], *,
+                             calibration: Calibration | None = None
+                             ) -> tuple[list[Stage], list[Stage]]:
+    """The correction stages a configuration asks for: (before speed_shift, before mosaic).
+
+    ``calibration`` defaults to the file ``processing.calibration`` names; a calibration
+    without ``lateral``, ``vignetting`` or ``field_curvature`` gives no stage for them.
+    """
+    if calibration is None:
+        if not cfg.processing.calibration:
+            return [], []
+        calibration = load_calibration(cfg.processing.calibration)
+    pre: list[Stage] = []
+    post: list[Stage] = []
+    lat, vig = calibration.lateral, calibration.vignetting
+    if lat is not None or vig is not None:
+        o = cfg.optics
+        centre = lat.optical_centre_px if lat is not None else \
+            ((o.width_px - 1) / 2.0, (o.height_px - 1) / 2.0)
+        pre.append(FrameOpticsStage(
+            None if lat is None else level_magnification(lat, np.arange(o.n_levels)),
+            centre_px=centre, illumination=None if vig is None else illumination_map(vig),
+            max_value=o.max_value))
+    if calibration.field_curvature is not None:
+        post.append(CurvatureStage(ScanCurvature.from_config(
+            cfg, calibration.field_curvature, np.asarray(focus_heights_um))))
+    return pre, post
+
+
+def corrections_applied(cfg: ScanConfig) -> list[str]:
+    """What a scan with this configuration corrects (the mosaic's attributes): a subset of
+    ``z_response``, ``magnification_per_level``, ``field_curvature``; [] without calibration."""
+    if not cfg.processing.calibration:
+        return []
+    return applied(load_calibration(cfg.processing.calibration))
