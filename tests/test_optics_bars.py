@@ -17,11 +17,14 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import REALISTIC_OPTICS, ScanConfig
 from sffscan.pipeline.metrology.compare import compare_height_maps
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.recorder import recorder_sink
 from sffscan.stages.sim.camera import Optics, focus_heights, render_stack
 from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
-from sffscan.stages.sim.scanner import make_optics
+from sffscan.stages.sim.scanner import make_optics, simulate_frames
 from sffscan.stages.sim.world import characterisation_plate
 
+from sffscan.api import replay
 from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
 
 ZS = focus_heights(n_levels=50, z_step_um=200.0)
@@ -60,6 +63,15 @@ def test_continuous_scan(tmp_path: Path) -> None:
     attrs = zarr.open_group(str(tmp_path / "cal.zarr"), mode="r").attrs["processing"]
     assert set(attrs["calibration_applied"]) == {"z_response", "magnification_per_level",
                                                   "field_curvature", "vignetting"}
+    # the raw stream recorded without calibration, replayed with it: the same heights
+    rec = tmp_path / "rec.zarr"
+    run_scan(real, frames=simulate_frames(real), output=tmp_path / "r2.zarr", progress=False,
+             sinks=[recorder_sink(real, rec)])
+    replay(rec, output=tmp_path / "replay.zarr", processing={"calibration": str(cal)})
+    region = strip_region(real)
+    a = mosaic_height(tmp_path / "replay.zarr", region)
+    b = mosaic_height(tmp_path / "cal.zarr", region)
+    np.testing.assert_array_equal(a, b)
 
 
 def _stopgo_rmse(args: list[str]) -> float:
