@@ -110,3 +110,22 @@ def test_bad_input_names_the_file(calibrated: dict, capsys: pytest.CaptureFixtur
     assert main(["calibrate", "z", "-o", str(d / "other.json"), "--gauge", "100",
                  str(d / "nothere")]) == 2
     assert "nothere" in capsys.readouterr().err
+
+
+def test_targets_command_writes_the_images_and_prints_the_commands(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sffscan.pipeline.config import REALISTIC_OPTICS, config_to_toml, demo_config
+
+    cfg = demo_config(optics={**REALISTIC_OPTICS, "width_px": 256, "height_px": 128,
+                              "n_levels": 12, "z_step_um": 400.0},
+                      motion={"speed_mm_s": 1.0})
+    toml = tmp_path / "small.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    assert main(["calibrate", "targets", str(tmp_path / "t"), "--config", str(toml),
+                 "-o", str(tmp_path / "c.json")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("  sffscan calibrate ") == 4
+    assert len(list((tmp_path / "t" / "flat1").glob("img_*.png"))) == 12
+    assert len(list((tmp_path / "t").glob("board_*.png"))) == 5
+    img = cv2.imread(str(tmp_path / "t" / "board_0.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (128, 256) and img.dtype == np.uint16

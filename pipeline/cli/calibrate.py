@@ -123,6 +123,8 @@ def cmd_calibrate_show(args: argparse.Namespace) -> int:
         f = cal.field_curvature
         print(f"  field curvature: {f.frame_width_px} x {f.frame_height_px} px, coefficients "
               + ", ".join(f"{v:.4g}" for v in f.coefficients_um) + " µm")
+    if cal.vignetting:
+        print(f"  vignetting: {100 * cal.vignetting.corner_loss:.1f} % less light at the corners")
     if cal.noise_um is not None:
         print(f"  noise N_M: {cal.noise_um:.3f} µm")
     return EXIT_OK

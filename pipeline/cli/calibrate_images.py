@@ -191,6 +191,27 @@ def cmd_noise(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_targets(args: argparse.Namespace) -> int:
+    import shlex
+
+    from sffscan.pipeline.config import REALISTIC_OPTICS, demo_config, load_config
+    from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
+    from sffscan.stages.sim.scanner import make_optics
+
+    if args.config:
+        cfg = load_config(args.config)
+    else:
+        cfg = demo_config(optics=dict(REALISTIC_OPTICS) if args.realistic else {})
+    t = write_optics_targets(args.folder, optics=make_optics(cfg),
+                             focus_heights_um=np.array(cfg.optics.focus_heights_um()),
+                             seed=args.seed)
+    print(f"wrote {len(t.gauges)} gauge stacks, {len(t.boards)} board images and 2 flat stacks "
+          f"under {t.folder}; calibrate with:")
+    for cmd in calibration_commands(t, args.output):
+        print("  sffscan " + " ".join(shlex.quote(c) for c in cmd))
+    return EXIT_OK
+
+
 def _guarded(func):  # noqa: ANN001, ANN202 - argparse handler wrapper
     def run(args: argparse.Namespace) -> int:
         try:
@@ -248,6 +269,20 @@ def register_subcommands(cs: argparse._SubParsersAction) -> None:  # type: ignor
     _table_options(q)
     _common(q)
     q.set_defaults(func=_guarded(cmd_curvature))
+
+    q = cs.add_parser("targets", help="simulated target images to practise the commands on",
+                      description="Render the calibration targets (gauge stacks, boards at "
+                                  "several levels, two flat stacks) through the simulated "
+                                  "scanner's optics into a folder, and print the calibrate "
+                                  "commands that use them.")
+    q.add_argument("folder")
+    q.add_argument("--config", help="scan configuration whose [optics] to use (default demo)")
+    q.add_argument("--realistic", action="store_true",
+                   help="the demo with real-lens optics (as 'demo --realistic')")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("-o", "--output", default="sffscan-calibration.json",
+                   help="calibration file the printed commands write")
+    q.set_defaults(func=_guarded(cmd_targets))
 
     q = cs.add_parser("noise", help="noise N_M from two back-to-back stacks of one surface")
     q.add_argument("stack1")
