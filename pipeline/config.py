@@ -31,36 +31,52 @@ class SourceConfig(_Model):
         "([camera] table), 'tcp' = frames sent by 'sffscan grab' to source.address")
     address: str = Field("tcp://127.0.0.1:5555", description="zmq address of 'sffscan grab' "
                          "(tcp:// or ipc://), for kind 'tcp'")
-    seed: int = Field(0, description="Seed of the simulated world texture and sensor noise")
+    idle_timeout_s: float = Field(
+        30.0, gt=0, le=86400, description="Transport: a sender silent this long after its first "
+        "frame has stopped; the stream ends there and the scan is 'incomplete', s")
+    max_bad_messages: int = Field(
+        100, ge=0, le=10**6, description="Transport: malformed or unauthenticated messages "
+        "refused (and counted) before the scan fails")
+    keys_dir: str | None = Field(
+        None, description="Transport beyond loopback: folder of the CURVE keys made by "
+        "'sffscan keys' (default $XDG_CONFIG_HOME/sffscan/keys, else ~/.config/sffscan/keys)")
+    seed: int = Field(0, ge=0, le=2**32 - 1,
+                      description="Seed of the simulated world texture and sensor noise")
     world: Literal["plate", "sinusoid"] = Field(
         "plate", description="Simulated world: characterisation plate or sinusoidal surface"
     )
-    plate_length_mm: float = Field(60.0, gt=0, description="Length of the simulated plate, mm")
-    plate_width_mm: float = Field(9.0, gt=0, description="Width of the simulated plate, mm")
+    plate_length_mm: float = Field(60.0, gt=0, le=2000,
+                                   description="Length of the simulated plate, mm")
+    plate_width_mm: float = Field(9.0, gt=0, le=2000,
+                                  description="Width of the simulated plate, mm")
 
 
 class OpticsConfig(_Model):
-    width_px: int = Field(1280, ge=32, description="Frame width (along the motion), px")
-    height_px: int = Field(1024, ge=32, description="Frame height (across the motion), px")
-    pixel_um: float = Field(8.5, gt=0, description="Object-side pixel scale, µm/px")
+    width_px: int = Field(1280, ge=32, le=65536, description="Frame width (along the motion), px")
+    height_px: int = Field(1024, ge=32, le=65536,
+                           description="Frame height (across the motion), px")
+    pixel_um: float = Field(8.5, gt=0, le=10000, description="Object-side pixel scale, µm/px")
     n_levels: int = Field(50, ge=3, le=255, description="Focus levels N of the lens staircase")
-    z_min_um: float = Field(0.0, description="Height in focus at level 0, µm")
-    z_step_um: float = Field(200.0, gt=0, description="Height step between focus levels, µm")
-    fps: float = Field(150.0, gt=0, description="Camera frame rate, frames/s")
+    z_min_um: float = Field(0.0, ge=-1e6, le=1e6, description="Height in focus at level 0, µm")
+    z_step_um: float = Field(200.0, gt=0, le=1e5,
+                             description="Height step between focus levels, µm")
+    fps: float = Field(150.0, gt=0, le=1e6, description="Camera frame rate, frames/s")
     bit_depth: Literal[8, 10] = Field(10, description="8 -> uint8 frames, 10 -> 10-bit in uint16")
-    psf_s0_px: float = Field(0.6, ge=0, description="Sim: PSF sigma in focus, px")
-    psf_c_px_per_um: float = Field(0.004, gt=0, description="Sim: PSF sigma growth, px per µm")
-    sigma_max_px: float = Field(16.0, gt=0, description="Sim: largest PSF sigma rendered, px")
-    noise_sigma: float = Field(0.005, ge=0, description="Sim: sensor noise std, full scale")
+    psf_s0_px: float = Field(0.6, ge=0, le=100, description="Sim: PSF sigma in focus, px")
+    psf_c_px_per_um: float = Field(0.004, gt=0, le=10,
+                                   description="Sim: PSF sigma growth, px per µm")
+    sigma_max_px: float = Field(16.0, gt=0, le=256,
+                                description="Sim: largest PSF sigma rendered, px")
+    noise_sigma: float = Field(0.005, ge=0, le=1, description="Sim: sensor noise std, full scale")
     magnification_per_mm: float = Field(
         0.0, gt=-0.1, lt=0.1, description="Sim: relative change of the magnification per mm of "
         "focus height, about the optical centre (focus breathing), 1/mm; 0 = telecentric")
     magnification_ref_um: float | None = Field(
-        None, description="Sim: focus height where the magnification is 1, µm; default the "
-        "middle of the focus range")
+        None, ge=-1e6, le=1e6, description="Sim: focus height where the magnification is 1, "
+        "µm; default the middle of the focus range")
     field_curvature_um: float = Field(
-        0.0, description="Sim: surface of best focus above the nominal focus at the frame "
-        "corner (quadratic in the radius from the centre), µm; 0 = flat field")
+        0.0, ge=-1e5, le=1e5, description="Sim: surface of best focus above the nominal focus "
+        "at the frame corner (quadratic in the radius from the centre), µm; 0 = flat field")
     vignetting: float = Field(0.0, ge=0, lt=1, description="Sim: illumination lost at the "
                               "frame corner (quadratic in the radius), fraction")
 
@@ -83,16 +99,20 @@ class OpticsConfig(_Model):
 
 
 class MotionConfig(_Model):
-    speed_mm_s: float = Field(15.0, gt=0, description="Stage speed, mm/s")
-    x_start_mm: float = Field(0.0, description="Start of the strip to cover completely, mm")
-    x_end_mm: float = Field(60.0, description="End of the strip to cover completely, mm")
-    y_start_mm: float = Field(0.0, description="World y of the first pass's first row, mm")
-    passes: int = Field(1, ge=1, description="Parallel passes, stepped along y")
+    speed_mm_s: float = Field(15.0, gt=0, le=10000, description="Stage speed, mm/s")
+    x_start_mm: float = Field(0.0, ge=-1e5, le=1e5,
+                              description="Start of the strip to cover completely, mm")
+    x_end_mm: float = Field(60.0, ge=-1e5, le=1e5,
+                            description="End of the strip to cover completely, mm")
+    y_start_mm: float = Field(0.0, ge=-1e5, le=1e5,
+                              description="World y of the first pass's first row, mm")
+    passes: int = Field(1, ge=1, le=10000, description="Parallel passes, stepped along y")
     pass_overlap: float = Field(0.15, ge=0, lt=1, description="Pass overlap, fraction")
     serpentine: bool = Field(True, description="Alternate the direction of successive passes")
-    wobble_along_px: float = Field(0.0, ge=0, description="Sim: wobble along, ±px")
-    wobble_across_px: float = Field(0.0, ge=0, description="Sim: wobble across, ±px")
-    wobble_period_mm: float = Field(2.0, gt=0, description="Sim: wobble period, mm of travel")
+    wobble_along_px: float = Field(0.0, ge=0, le=1000, description="Sim: wobble along, ±px")
+    wobble_across_px: float = Field(0.0, ge=0, le=1000, description="Sim: wobble across, ±px")
+    wobble_period_mm: float = Field(2.0, gt=0, le=1e5,
+                                    description="Sim: wobble period, mm of travel")
 
 
 class ProcessingConfig(_Model):
@@ -102,13 +122,13 @@ class ProcessingConfig(_Model):
         "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols",
     ] = Field("glvm", description="Focus measure operator: an acronym of Pertuz's toolbox "
               "(focusmeasure.m), any case")
-    window: int = Field(9, ge=3, description="Focus measure window k (odd), px")
+    window: int = Field(9, ge=3, le=255, description="Focus measure window k (odd), px")
     depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
                           "wcentroid"] = Field(
         "wcentroid", description="Focus curve -> depth method (wcentroid: centroid over 9 "
         "levels about the median-filtered peak)"
     )
-    median_size: int = Field(11, ge=3, description="SPC median filter size (odd), px")
+    median_size: int = Field(11, ge=3, le=255, description="SPC median filter size (odd), px")
     registration: bool = Field(True, description="Refine speed offsets by phase correlation")
     registration_scale: int = Field(
         4, ge=1, le=16, description="Image reduction for registration (4 = quarter resolution)")
@@ -117,8 +137,8 @@ class ProcessingConfig(_Model):
     calibration: str | None = Field(
         None, description="Calibration file (JSON, 'sffscan calibrate'): its z response maps "
         "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um")
-    queue_capacity: int = Field(8, ge=1, description="Capacity of every inter-stage queue")
-    block_columns: int = Field(128, ge=1, description="Columns reduced to depth at once")
+    queue_capacity: int = Field(8, ge=1, le=4096, description="Capacity of every inter-stage queue")
+    block_columns: int = Field(128, ge=1, le=65536, description="Columns reduced to depth at once")
 
     @field_validator("focus_operator", mode="before")
     @classmethod
@@ -159,7 +179,7 @@ class ProcessingConfig(_Model):
 
 class OutputConfig(_Model):
     path: str = Field("sffscan-mosaic.zarr", description="Zarr v3 group of the height mosaic")
-    chunk_px: int = Field(256, ge=16, description="Chunk edge of the mosaic arrays, px")
+    chunk_px: int = Field(256, ge=16, le=16384, description="Chunk edge of the mosaic arrays, px")
     overwrite: bool = Field(False, description="Replace an existing mosaic at path")
 
 
@@ -217,6 +237,12 @@ def pass_pitch_px(cfg: ScanConfig) -> float:
 
 def check_feasible(cfg: ScanConfig) -> None:
     """Raise :class:`ConfigError` for a configuration that cannot measure its strip."""
+    p, o = cfg.processing, cfg.optics
+    for name, size in (("window", p.window), ("median_size", p.median_size)):
+        if size > min(o.width_px, o.height_px) // 2:
+            raise ConfigError(
+                f"processing.{name} = {size} px is more than half the frame "
+                f"({o.width_px} x {o.height_px} px, optics.width_px x optics.height_px)")
     if usable_width_px(cfg) < cfg.optics.n_levels:
         raise ConfigError(
             f"optics.width_px = {cfg.optics.width_px} px leaves {usable_width_px(cfg):.0f} px "
@@ -272,6 +298,11 @@ def load_config(path: str | Path) -> ScanConfig:
         raise ConfigError(f"{p}: configuration file not found") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{p}: not UTF-8 text (byte {err.start}); TOML files are UTF-8"
+                          ) from None
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot read the configuration: {err.strerror}") from None
     return config_from_dict(data, origin=str(p))
 
 

@@ -128,9 +128,17 @@ class MosaicAttrs(BaseModel):
     format_version: Literal[1, 2] = Field(
         default=2, description="2: an OME-Zarr (NGFF 0.5) image with a resolution pyramid "
         "(attribute 'ome'); 1: the four arrays only (still read)")
-    status: Literal["writing", "complete", "failed"] = Field(
-        description="'complete' after a clean end of stream; 'failed' if a stage failed (the "
-        "arrays hold every block completed before the failure)")
+    status: Literal["writing", "complete", "incomplete", "failed"] = Field(
+        description="'complete' after a clean end of stream in which every expected frame "
+        "(frames_expected) was received and processed; 'incomplete' after a clean end with "
+        "fewer (frames_received < frames_expected, or no count from the sender); 'failed' if a "
+        "stage failed (the arrays hold every block completed before the failure)")
+    frames_expected: int | None = Field(
+        default=None, ge=0, description="Frames the scan should have: the plan's (or "
+        "camera.frames, or the recording's), or the count the sender's end message gave; null "
+        "when unknown")
+    frames_received: int | None = Field(
+        default=None, ge=0, description="Frames received and processed")
     units: dict[str, str] = Field(description="Unit of each array")
     pixel_um: float = Field(gt=0, description="Pixel scale, µm/px")
     origin_px: tuple[int, int] = Field(description="World (x, y) px of array element [0, 0]")

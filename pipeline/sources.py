@@ -10,9 +10,10 @@ or socket when closed (the source stage closes them, on failure too).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
+from sffscan.pipeline.completeness import FrameAccount, planned_frames
 from sffscan.pipeline.config import ConfigError, ScanConfig
 from sffscan.pipeline.messages import Frame
 
@@ -25,6 +26,8 @@ class FrameFeed:
     description: str
     #: the simulated world (only for ``kind = "sim"``): lets the scan be scored
     world: Any | None = None
+    #: frames expected and received: the mosaic is 'complete' only with all of them
+    account: FrameAccount = field(default_factory=FrameAccount)
 
 
 def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
@@ -33,20 +36,26 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
         if not source.startswith(("tcp://", "ipc://")):
             raise ConfigError(f"--source {source!r}: expected a zmq address tcp://HOST:PORT or "
                               "ipc://PATH")
-        from sffscan.pipeline.formats.transport import receive_frames
-
-        return FrameFeed(receive_frames(source, cfg), f"frames from {source}")
+        return _tcp_feed(cfg, source)
     kind = cfg.source.kind
     if kind == "sim":
         from sffscan.stages.sim.scanner import make_world, simulate_frames
 
         world = make_world(cfg)
-        return FrameFeed(simulate_frames(cfg, world=world), "simulated scanner", world)
+        return FrameFeed(simulate_frames(cfg, world=world), "simulated scanner", world,
+                         FrameAccount(planned=planned_frames(cfg)))
     if kind == "camera":
         from sffscan.stages.camera_source import camera_frames
 
-        return FrameFeed(camera_frames(cfg), "GenICam camera")
+        return FrameFeed(camera_frames(cfg), "GenICam camera",
+                         account=FrameAccount(planned=planned_frames(cfg)))
+    return _tcp_feed(cfg, cfg.source.address)
+
+
+def _tcp_feed(cfg: ScanConfig, address: str) -> FrameFeed:
+    """Frames from 'sffscan grab': complete only with the count of the sender's end message."""
     from sffscan.pipeline.formats.transport import receive_frames
 
-    return FrameFeed(receive_frames(cfg.source.address, cfg),
-                     f"frames from {cfg.source.address}")
+    account = FrameAccount(planned=planned_frames(cfg), needs_sender=True)
+    return FrameFeed(receive_frames(address, cfg, account=account), f"frames from {address}",
+                     account=account)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.metrology.evaluate import Accuracy, mosaic_accuracy
@@ -146,12 +147,17 @@ class ScanReport:
 
 def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | None = None,
              overwrite: bool | None = None, progress: bool = True,
-             sinks: list[Sink] | None = None, writer: MosaicWriter | None = None) -> ScanReport:
+             sinks: list[Sink] | None = None, writer: MosaicWriter | None = None,
+             account: FrameAccount | None = None) -> ScanReport:
     """Run the whole pipeline over ``frames``; the mosaic goes to ``output`` (or into an
     already open ``writer``, e.g. one reopened to resume); ``sinks`` (recorder, viewer) tap
-    the stages they name."""
+    the stages they name. With ``account``, the frames taken are counted and the mosaic is
+    ``complete`` only if every expected frame was (else ``incomplete``)."""
     if writer is None:
         writer = open_writer(cfg, path=output, overwrite=overwrite)
+    if account is not None:
+        frames = account.count(frames)
+        writer.account = account.status
     stages = build_stages(cfg, frames, writer)
     prog = Progress(frame_count(cfg)) if progress else None
     pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,

@@ -12,6 +12,18 @@ buffered and written every ``flush_every`` frames, ``frame_id`` last, so an entr
 atomically (temporary file, then rename): a SIGKILL at any moment leaves every chunk either
 as it was or as it is meant to be, and the reader replays up to the last flushed frame.
 The arrays grow in steps of :data:`GROW` frames; the unwritten tail has ``frame_id`` -1.
+
+Format version 2 (:mod:`sffscan.pipeline.formats.recording`): every chunk carries a CRC-32C,
+and a copy of each frame's header is written beside the frame (array ``headers``) right
+after its chunk, so a frame is readable as soon as its header copy is written, even before
+the next metadata flush.
+
+Durability: the files written are fsynced (and their folders) every ``fsync_s`` seconds
+(default :data:`FSYNC_S`, 1 s) and at close: a power cut loses at most the last second of
+the stream. A reserve file (:data:`sffscan.stages.durable.RESERVE_BYTES`) is kept in the
+recording while it is written and freed on close, so that after a disk-full error the
+metadata and the status 'failed' can still be written; the error message names the frames
+that are readable.
 """
 
 from __future__ import annotations
@@ -27,13 +39,22 @@ from typing import Any
 import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.formats.recording import META_CHUNK, PER_FRAME, RecordingAttrs
+from sffscan.pipeline.formats.recording import (
+    HEADER_COLUMNS,
+    META_CHUNK,
+    PER_FRAME,
+    RecordingAttrs,
+    header_row,
+)
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
-from zarr.codecs import BloscCodec, BloscShuffle
+from sffscan.stages.durable import SyncTracker, free_reserve, make_reserve
+from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
 
 #: arrays grow by this many frames at a time
 GROW = 1024
+#: the recorder makes what it wrote durable (fsync) at least this often, s
+FSYNC_S = 1.0
 #: default codec of the frames array (see bench/recorder_results.md)
 DEFAULT_CODEC = "blosc-lz4"
 #: the recorder's queue holds up to this many bytes of frames (within 16..1024 frames)
@@ -74,11 +95,17 @@ class RecordingWriter:
         See :func:`frame_codecs`.
     flush_every, flush_s : int, float
         Metadata is written every ``flush_every`` frames or ``flush_s`` seconds, whichever
-        comes first (and at the end): a crash loses at most that much of the stream.
+        comes first (and at the end); the header copy beside each frame makes it readable
+        before that.
+    fsync_s : float
+        Files written are made durable (fsync) at least this often, and at close.
+    account : FrameAccount, optional
+        The scan's frame account: its expected count goes to ``frames_planned`` at close.
     """
 
     def __init__(self, path: str | Path, cfg: ScanConfig, *, codec: str = DEFAULT_CODEC,
-                 flush_every: int = 16, flush_s: float = 0.25) -> None:
+                 flush_every: int = 16, flush_s: float = 0.25, fsync_s: float = FSYNC_S,
+                 account: Any | None = None) -> None:
         self.path = Path(path)
         if self.path.exists():
             raise FileExistsError(f"{self.path}: exists; a recording is never overwritten, "
@@ -94,12 +121,16 @@ class RecordingWriter:
         self.attrs = RecordingAttrs(
             status="recording", frame_shape=self.shape, dtype=str(self.dtype),  # type: ignore[arg-type]
             scan_config=cfg.model_dump(mode="json"), codec=codec,
-            created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), writer="sffscan")
+            created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), writer="sffscan",
+            fsync_s=fsync_s)
+        self.account = account
+        self.sync = SyncTracker(self.path, interval_s=fsync_s)
         self.group: zarr.Group | None = None
         self.capacity = 0
         self.count = 0  # frames whose chunk is written
         self.committed = 0  # frames whose metadata is written too
         self.bytes = 0
+        self.first_id: int | None = None
         self.last_id: int | None = None
         self._pending: list[tuple[int, int, int, float, float, int]] = []
         self.closed = False
@@ -111,19 +142,28 @@ class RecordingWriter:
         group = zarr.open_group(str(self.path), mode="w-")
         self.frames = group.create_array(
             name="frames", shape=(0, *self.shape), chunks=(1, *self.shape), dtype=self.dtype,
-            fill_value=0, compressors=frame_codecs(self.codec),
+            fill_value=0, compressors=[*frame_codecs(self.codec), Crc32cCodec()],
             dimension_names=("frame", "y", "x"),
             # a chunk equal to the fill value (an all-black frame) must be stored too: the
             # reader takes an absent chunk for a lost frame
             config={"write_empty_chunks": True})
         self.meta = {
             name: group.create_array(name=name, shape=(0,), chunks=(META_CHUNK,), dtype=dtype,
-                                     fill_value=fill, compressors=None,
-                                     dimension_names=("frame",))
+                                     fill_value=fill, compressors=[Crc32cCodec()],
+                                     dimension_names=("frame",),
+                                     config={"write_empty_chunks": True})
             for name, (dtype, fill, _) in PER_FRAME.items()
         }
+        self.headers = group.create_array(
+            name="headers", shape=(0, len(HEADER_COLUMNS)), chunks=(1, len(HEADER_COLUMNS)),
+            dtype="int64", fill_value=-1, compressors=[Crc32cCodec()],
+            dimension_names=("frame", "field"), config={"write_empty_chunks": True},
+            attributes={"columns": list(HEADER_COLUMNS)})
         group.update_attributes(self.attrs.model_dump(mode="json"))
         self.group = group
+        make_reserve(self.path)
+        self.sync.add(["zarr.json", "headers/zarr.json", "frames/zarr.json",
+                       *(f"{name}/zarr.json" for name in PER_FRAME)])
         return group
 
     def _grow(self, n: int) -> None:
@@ -131,9 +171,12 @@ class RecordingWriter:
             return
         cap = (n + GROW - 1) // GROW * GROW
         self.frames.resize((cap, *self.shape))
+        self.headers.resize((cap, len(HEADER_COLUMNS)))
         for arr in self.meta.values():
             arr.resize((cap,))
         self.capacity = cap
+        self.sync.add(["headers/zarr.json", "frames/zarr.json",
+                       *(f"{name}/zarr.json" for name in PER_FRAME)])
 
     def write(self, frame: Frame) -> None:
         """Write one frame's chunk now; its metadata with the next flush."""
@@ -147,10 +190,17 @@ class RecordingWriter:
                              "width_px)")
         self._open()
         self._grow(self.count + 1)
-        self.frames[self.count] = frame.image
+        i = self.count
+        self.frames[i] = frame.image
+        self.headers[i] = header_row(h)  # after the frame: a header copy means a whole frame
+        enc = self.frames.metadata.encode_chunk_key  # type: ignore[union-attr]
+        self.sync.add([f"frames/{enc((i, 0, 0))}",
+                       f"headers/{self.headers.metadata.encode_chunk_key((i, 0))}"])  # type: ignore[union-attr]
         self.count += 1
         self.bytes += frame.image.nbytes
         self.last_id = h.frame_id
+        if self.first_id is None:
+            self.first_id = h.frame_id
         nan = float("nan")
         self._pending.append((h.frame_id, h.timestamp_ns, h.focus_index,
                               nan if h.stage_x_um is None else h.stage_x_um,
@@ -159,6 +209,9 @@ class RecordingWriter:
         if len(self._pending) >= self.flush_every or now - self._flushed_at >= self.flush_s:
             self.flush()
             self._flushed_at = now
+        if self.sync.due():
+            self.flush()
+            self.sync.sync()
 
     def flush(self) -> None:
         """Write the pending metadata; ``frame_id`` last (it marks the entries complete)."""
@@ -169,6 +222,8 @@ class RecordingWriter:
         names = list(PER_FRAME)
         for k in [1, 2, 3, 4, 5, 0]:  # frame_id last
             self.meta[names[k]][a:b] = np.asarray(cols[k], dtype=PER_FRAME[names[k]][0])
+        self.sync.add([f"{name}/c/{c}" for name in names
+                       for c in range(a // META_CHUNK, (b - 1) // META_CHUNK + 1)])
         self.committed = b
         self._pending.clear()
 
@@ -179,26 +234,40 @@ class RecordingWriter:
         self.closed = True
         if self.group is None:  # no frame arrived: nothing to keep
             return
+        free_reserve(self.path)  # room for the metadata and the status, even on a full disk
         failure: BaseException | None = None
         try:
             self.flush()
             if status == "complete":
                 self.frames.resize((self.committed, *self.shape))
+                self.headers.resize((self.committed, len(HEADER_COLUMNS)))
                 for arr in self.meta.values():
                     arr.resize((self.committed,))
+                self.sync.add(["headers/zarr.json", "frames/zarr.json",
+                               *(f"{name}/zarr.json" for name in PER_FRAME)])
         except BaseException as exc:  # the status must still say that it did not complete
             failure = exc
             status, error = "failed", f"{error + '; ' if error else ''}closing: {exc}"
+        planned = None
+        if self.account is not None:
+            planned = self.account.expected
+            planned = planned if planned is not None else self.account.planned
         attrs = self.attrs.model_copy(update={"status": status, "frames": self.committed,
-                                              "error": error})
+                                              "error": error, "frames_planned": planned})
         try:
             self.group.update_attributes(attrs.model_dump(mode="json"))
             self.attrs = attrs
+            self.sync.add("zarr.json")
         except OSError:
             if failure is None:
                 raise
             # the disk refuses even the status: it stays 'recording', which readers treat
             # as not complete; the first error is the one reported
+        try:
+            self.sync.sync()
+        except OSError:
+            if failure is None:
+                raise
         if failure is not None:
             raise failure
 
@@ -274,9 +343,11 @@ class RecorderSink(Sink):
         w = self.writer
         what = "disk full" if exc.errno == errno.ENOSPC else f"write failed ({exc})"
         self.error = f"{what} at frame_id {frame_id}"
+        kept = (f"keeps the {w.count} frame(s) written before it (frame_id {w.first_id}.."
+                f"{w.last_id}), readable with 'sffscan info {w.path}'" if w.count else
+                "holds no frame")
         err = RecorderError(f"recording {w.path}: {what} at frame_id {frame_id}; the scan "
-                            f"stops. The recording keeps the frames before it, readable with "
-                            f"'sffscan info {w.path}'")
+                            f"stops. The recording {kept}")
         err.errno = exc.errno
         return err
 
@@ -319,7 +390,10 @@ def queue_capacity(cfg: ScanConfig) -> int:
     return int(min(1024, max(16, QUEUE_BYTES // frame_bytes)))
 
 
-def recorder_sink(cfg: ScanConfig, path: str, *, codec: str = DEFAULT_CODEC) -> Sink:
-    """The sink that records the raw stream of a scan into ``path`` (``--record PATH``)."""
-    writer = RecordingWriter(path, cfg, codec=codec)
+def recorder_sink(cfg: ScanConfig, path: str, *, codec: str = DEFAULT_CODEC,
+                  account: Any | None = None) -> Sink:
+    """The sink that records the raw stream of a scan into ``path`` (``--record PATH``);
+    ``account`` (the scan's :class:`~sffscan.pipeline.completeness.FrameAccount`) gives the
+    recording's ``frames_planned``."""
+    writer = RecordingWriter(path, cfg, codec=codec, account=account)
     return RecorderSink(writer, fps=cfg.optics.fps, capacity=queue_capacity(cfg))

@@ -88,8 +88,11 @@ def test_lost_frames_leave_invalid_columns_never_filled(live: tuple[Path, Path],
     gappy = tmp_path / "gappy.zarr"
     plain_recording(gappy, r.config, frames)
     out = tmp_path / "gappy-replay.zarr"
-    assert main(["replay", str(gappy), "-o", str(out), "-q"]) == 0
+    # 8 of the planned frames never arrive: the mosaic is 'incomplete', exit 3 (issue 13)
+    assert main(["replay", str(gappy), "-o", str(out), "-q"]) == 3
     text = capsys.readouterr()
+    assert _attrs(out)["status"] == "incomplete"
+    assert (_attrs(out)["frames_expected"], _attrs(out)["frames_received"]) == (116, 108)
     assert "gaps        1 (8 frames lost): 50..57" in text.err
     assert "frame_id_gaps 1, frames_lost 8" in text.out
     got, want = _arrays(out), _arrays(mosaic)

@@ -158,10 +158,10 @@ def test_header_is_json_validated_and_pixels_are_raw() -> None:
     meta = json.loads(head)  # plain JSON, never pickle
     assert meta["kind"] == "frame" and meta["dtype"] == "uint16" and meta["shape"] == [12, 16]
     assert meta["header"]["frame_id"] == 3 and meta["crc32"] == zlib.crc32(img.data)
-    out = decode_message([head, img.tobytes()])
+    out = decode_message([head, b"", img.tobytes()])
     assert isinstance(out, Frame)
     np.testing.assert_array_equal(out.image, img)
-    end = decode_message([EndMessage(frames_sent=4).model_dump_json().encode()])
+    end = decode_message([EndMessage(frames_sent=4).model_dump_json().encode(), b""])
     assert isinstance(end, EndMessage) and end.frames_sent == 4
 
 
@@ -170,17 +170,19 @@ def test_bad_messages_are_refused_naming_the_frame() -> None:
     bad = bytearray(img.tobytes())
     bad[5] ^= 0xFF
     with pytest.raises(TransportError, match="frame_id 7: pixel checksum mismatch"):
-        decode_message([head, bytes(bad)])
+        decode_message([head, b"", bytes(bad)])
     with pytest.raises(TransportError, match="frame_id 7: 382 bytes"):
-        decode_message([head, img.tobytes()[:-2]])
-    with pytest.raises(TransportError, match="frame_id 7: 1 message parts"):
+        decode_message([head, b"", img.tobytes()[:-2]])
+    with pytest.raises(TransportError, match="frame_id 7: 2 message parts"):
+        decode_message([head, b""])
+    with pytest.raises(TransportError, match="1 message parts"):
         decode_message([head])
     meta = json.loads(head)
     meta["header"]["frame_id"] = -1
     with pytest.raises(TransportError, match="transport schema.*header.frame_id"):
-        decode_message([json.dumps(meta).encode(), img.tobytes()])
+        decode_message([json.dumps(meta).encode(), b"", img.tobytes()])
     with pytest.raises(TransportError, match="transport schema"):
-        decode_message([b"\x80\x04pickle", img.tobytes()])
+        decode_message([b"\x80\x04pickle", b"", img.tobytes()])
 
 
 def test_sender_takes_the_buffer_over() -> None:
@@ -189,7 +191,7 @@ def test_sender_takes_the_buffer_over() -> None:
     port = free_port()
     frame = _frame()
     frame.image = np.ascontiguousarray(frame.image)
-    sender = FrameSender(f"tcp://127.0.0.1:{port}", hwm=4)
+    sender = FrameSender(f"tcp://127.0.0.1:{port}", hwm=4, secret=b"k" * 32)
     try:
         assert sender._sock.getsockopt(zmq.CONFLATE) == 0  # it breaks multipart messages
         sender.send(frame)  # queued (no receiver): zero copy, zmq holds the buffer
@@ -198,7 +200,7 @@ def test_sender_takes_the_buffer_over() -> None:
             frame.image[0, 0] = 1
         with pytest.raises(TransportError, match="took no message"):
             for _ in range(10):  # fill the high-water marks, then time out
-                sender._send([b"x"], timeout_s=0.3)
+                sender._send(b"x", [], timeout_s=0.3)
     finally:
         sender.close(linger_s=0)
 
@@ -243,7 +245,7 @@ def test_a_failed_sender_fails_the_receiver() -> None:
 
 
 def test_frames_lost_in_transit_are_reported_at_the_end(
-        capsys: pytest.CaptureFixture[str]) -> None:
+        caplog: pytest.LogCaptureFixture) -> None:
     """The end message says 4 frames were sent; 2 arrived (the others were lost at a
     receiver restart, here after the last one received, where no frame_id gap shows them):
     the receiver counts and says so instead of ending as if nothing were missing."""
@@ -268,7 +270,7 @@ def test_frames_lost_in_transit_are_reported_at_the_end(
     thread.join(30)
     assert got == [0, 1] and st.ended and st.frames_sent == 4
     assert st.lost == 2
-    assert "received 2 of the 4 frames sent: 2 lost in transit" in capsys.readouterr().err
+    assert "received 2 of the 4 frames sent: 2 lost in transit" in caplog.text
 
 
 def test_a_negative_shape_is_refused_naming_the_frame() -> None:
@@ -278,7 +280,7 @@ def test_a_negative_shape_is_refused_naming_the_frame() -> None:
     meta = json.loads(head)
     meta["shape"] = [-12, -16]
     with pytest.raises(TransportError, match="frame_id 9: shape"):
-        decode_message([json.dumps(meta).encode(), img.tobytes()])
+        decode_message([json.dumps(meta).encode(), b"", img.tobytes()])
 
 
 def test_the_checksum_catches_a_buffer_reused_before_zmq_sent_it() -> None:
@@ -290,11 +292,14 @@ def test_the_checksum_catches_a_buffer_reused_before_zmq_sent_it() -> None:
     head, out = encode_frame(Frame(FrameHeader(frame_id=5, timestamp_ns=0, focus_index=5),
                                    img))
     assert out is img and img.nbytes > zmq.COPY_THRESHOLD
-    sender = FrameSender(address)
+    key = b"s" * 32
+    sender = FrameSender(address, secret=key)
     try:
-        sender._send([head, out])  # bypasses send(): the array stays writable
+        sender._send(head, [out])  # bypasses send(): the array stays writable
         img[:] = 7  # a source reusing its buffer for the next frame
-        gen = receive_frames(address, tiny_config(), first_timeout_s=30)
+        cfg = config_from_dict({"optics": {"width_px": 256, "height_px": 256, "pixel_um": 17.0,
+                                           "n_levels": 10}})  # 256 x 256 px messages fit
+        gen = receive_frames(address, cfg, first_timeout_s=30, secret=key, max_bad=0)
         with pytest.raises(TransportError, match="frame_id 5: pixel checksum mismatch"):
             next(gen)
     finally:

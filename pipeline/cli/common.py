@@ -12,6 +12,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
+from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import (
     ScanConfig,
     config_from_dict,
@@ -22,6 +23,9 @@ from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import Sink, StageFailed
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: the scan ended cleanly but fewer frames than expected were received and processed (the
+#: mosaic's status is 'incomplete'; see sffscan.pipeline.completeness)
+EXIT_INCOMPLETE = 3
 
 OPERATOR_CHOICES = (
     "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
@@ -115,15 +119,18 @@ def viewer_sink(cfg: ScanConfig, viewer: list[str] | None, *, default: str = "of
 
 def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | None,
                    progress: bool, sinks: list[Sink] | None = None,
-                   writer: Any | None = None, kept: str = "") -> int:
+                   writer: Any | None = None, kept: str = "",
+                   account: FrameAccount | None = None) -> int:
     """Run a scan over ``frames`` (into ``writer`` if given), print its summary (scored
     against ``world`` if given) and return the exit code; failures print the stage, the
-    cause and what was kept (``kept`` replaces the default sentence)."""
+    cause and what was kept (``kept`` replaces the default sentence). With ``account``, a
+    scan that received fewer frames than expected ends :data:`EXIT_INCOMPLETE`."""
     from sffscan.pipeline.wiring import evaluate_sim, format_summary, run_scan
 
     kept = kept or f"the mosaic at {cfg.output.path} holds what was completed"
     try:
-        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks, writer=writer)
+        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks, writer=writer,
+                          account=account)
     except StageFailed as err:
         print(f"sffscan: {err}", file=sys.stderr)
         print(f"sffscan: {kept} before the failure (status 'failed')", file=sys.stderr)
@@ -137,4 +144,10 @@ def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | Non
     if world is not None:
         evaluate_sim(report, world)
     print(format_summary(report))
+    if account is not None:
+        print(f"frames      {account.describe()}", flush=True)
+    if account is not None and not account.complete:
+        print(f"sffscan: INCOMPLETE: {account.describe()}; the mosaic at {report.output} has "
+              "status 'incomplete'", file=sys.stderr)
+        return EXIT_INCOMPLETE
     return EXIT_OK

@@ -44,7 +44,12 @@ def _grab_config(args: argparse.Namespace) -> ScanConfig:
 
 
 def cmd_grab(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.formats.transport import FrameSender, TransportError, stream_frames
+    from sffscan.pipeline.formats.transport import (
+        FrameSender,
+        TransportError,
+        keys_dir_of,
+        stream_frames,
+    )
     from sffscan.pipeline.hardware.daq import DaqNotFoundError
     from sffscan.stages.camera_source import CameraError
 
@@ -62,7 +67,8 @@ def cmd_grab(args: argparse.Namespace) -> int:
 
         frames = simulate_frames(cfg)
     print(f"grab: {cfg.source.kind} frames to {address}", file=sys.stderr)
-    sender = FrameSender(address, hwm=args.hwm, bind=args.bind, checksum=not args.no_checksum)
+    sender = FrameSender(address, hwm=args.hwm, bind=args.bind,
+                         keys_dir=keys_dir_of(cfg, getattr(args, "keys", None)))
     ok = False
     try:
         n = stream_frames(frames, sender)
@@ -118,5 +124,30 @@ def register(sub: Any) -> None:
     p.add_argument("--frames", type=int, help="frames to acquire (camera; default: the plan's)")
     p.add_argument("--hwm", type=int, default=8, help="send high-water mark, frames (default 8)")
     p.add_argument("--bind", action="store_true", help="bind instead of connecting")
-    p.add_argument("--no-checksum", action="store_true", help="no CRC-32 in the headers")
+    p.add_argument("--keys", metavar="DIR", help="CURVE keys folder for a receiver beyond "
+                   "loopback (default source.keys_dir; see 'sffscan keys')")
     p.set_defaults(func=cmd_grab)
+
+    p = sub.add_parser("keys", help="make the CURVE keys of a transport beyond loopback",
+                       description="Make the receiver's and the sender's CURVE key pairs "
+                       "(zmq) for 'sffscan scan --source tcp://HOST:PORT' fed by 'sffscan "
+                       "grab' from another machine, and authorise the sender. Keep the "
+                       "folder on the receiving machine; copy sender.key_secret and "
+                       "receiver.key into the sending machine's keys folder (same "
+                       "source.keys_dir). On loopback no keys are needed: each scan draws "
+                       "its own pairing secret.")
+    p.add_argument("--dir", help="keys folder (default source.keys_dir, else "
+                   "$XDG_CONFIG_HOME/sffscan/keys or ~/.config/sffscan/keys)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing keys")
+    p.set_defaults(func=cmd_keys)
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.formats.transport_auth import keys_dir_of, make_keys
+
+    folder = keys_dir_of(None, args.dir)
+    for path in make_keys(folder, overwrite=args.overwrite):
+        print(f"wrote {path}")
+    print(f"receiver: keep {folder}; sender: copy {folder / 'sender.key_secret'} and "
+          f"{folder / 'receiver.key'} to its keys folder")
+    return EXIT_OK

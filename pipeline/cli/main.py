@@ -2,8 +2,18 @@
 :data:`COMMAND_MODULES`.
 
 Exit codes: 0 success; 1 a pipeline stage failed (its name and cause are printed, what was
-already written stays readable); 2 bad configuration, bad input or bad usage; 130
-interrupted (Ctrl-C; the mosaic keeps what was completed).
+already written stays readable); 2 bad configuration, bad input or bad usage; 3 the scan
+ended cleanly but incomplete: fewer frames than expected (the plan's, or the count the
+sender's end message gave) were received and processed, and the mosaic's status is
+'incomplete' with both counts (``sffscan info MOSAIC`` shows them); 130
+interrupted (Ctrl-C; the mosaic keeps what was completed); 141 the output pipe was closed
+by its reader (``sffscan info ... | head``), said nowhere.
+
+Logging: ``-q`` (warnings and errors only, no progress display) and ``-v`` (debug lines
+with their logger's names) go before or after the sub-command (``sffscan -q demo`` =
+``sffscan demo -q``); :mod:`sffscan.pipeline.cli.logsetup` installs the one handler.
+Results (summaries, reports, tables) go to stdout; status lines, warnings, errors and the
+progress display to stderr.
 """
 
 from __future__ import annotations
@@ -41,17 +51,26 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:
+    from sffscan.pipeline.preflight import preflight
     from sffscan.pipeline.sources import open_feed
 
     print(describe(cfg), file=sys.stderr)
+    source = getattr(args, "source", None)
+    # every check before anything is created or deleted (--overwrite included)
+    preflight(cfg, record=getattr(args, "record", None),
+              simulated=source is None and cfg.source.kind == "sim")
+    if getattr(args, "check", False):
+        print("configuration, device, paths and memory checked: ready to scan",
+              file=sys.stderr)
+        return EXIT_OK
     feed = open_feed(cfg, source=getattr(args, "source", None))
     sinks = [k for k in (viewer_sink(cfg, args.viewer, default=viewer_default),) if k]
     if getattr(args, "record", None):
         from sffscan.stages.recorder import recorder_sink
 
-        sinks.append(recorder_sink(cfg, args.record))
+        sinks.append(recorder_sink(cfg, args.record, account=feed.account))
     return run_and_report(cfg, feed.frames, world=feed.world if evaluate else None,
-                          progress=not args.quiet, sinks=sinks)
+                          progress=not args.quiet, sinks=sinks, account=feed.account)
 
 
 DEMO_OUTPUT = "sffscan-demo.zarr"
@@ -120,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="TOML file (see 'sffscan config')")
     p.add_argument("--no-evaluate", action="store_true",
                    help="skip the comparison with the simulated true surface")
+    p.add_argument("--check", action="store_true",
+                   help="check the configuration, device, paths and memory, then exit "
+                        "without scanning (0 = ready, 2 = the error names the field)")
     scan_options(p)
     p.set_defaults(func=cmd_scan)
 

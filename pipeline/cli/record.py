@@ -55,7 +55,8 @@ def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
           "region(s) to rebuild", file=sys.stderr)
     return run_and_report(cfg, rec.frames(realtime=args.realtime), world=None,
                           progress=not args.quiet, sinks=sinks, writer=writer,
-                          kept=f"{writer.path} can be resumed again; it holds what was completed")
+                          kept=f"{writer.path} can be resumed again; it holds what was completed",
+                          account=rec.account())
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -73,6 +74,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         args.overwrite = False
     cfg = override(rec.config, args)
     print(describe(cfg), file=sys.stderr)
+    from sffscan.pipeline.preflight import preflight
+
+    preflight(cfg, resume=args.resume, simulated=False)  # before --overwrite deletes anything
     sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off"),) if k]
     if args.resume:
         code = _resume(cfg, rec, args, sinks)
@@ -83,7 +87,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
             world = make_world(cfg)
         frames = rec.frames(realtime=args.realtime)
-        code = run_and_report(cfg, frames, world=world, progress=not args.quiet, sinks=sinks)
+        code = run_and_report(cfg, frames, world=world, progress=not args.quiet, sinks=sinks,
+                              account=rec.account())
     out = Path(cfg.output.path)
     if out.exists() and code != EXIT_BAD_INPUT:
         annotate_mosaic(out, rec)
@@ -102,7 +107,12 @@ def _info_mosaic(path: Path) -> int:
     try:
         _, info = tile_states(path)
     except (ValueError, KeyError) as err:
-        print(f"sffscan: {err}", file=sys.stderr)
+        where = "" if str(path) in str(err) else f"{path}: unreadable mosaic: "
+        print(f"sffscan: {where}{err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as err:  # noqa: BLE001 - a corrupt zarr.json or chunk of the mosaic
+        print(f"sffscan: {path}: unreadable mosaic ({type(err).__name__}: {err})",
+              file=sys.stderr)
         return EXIT_BAD_INPUT
     attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     print(f"mosaic      {path} (status {info['status']})")
@@ -112,6 +122,9 @@ def _info_mosaic(path: Path) -> int:
           + (f"; torn write at world px box {info['writing']}" if info["writing"] else "")
           + (f"; rebuilding {info['rebuild']}" if info["rebuild"] else ""))
     print(f"processing  {attrs.get('processing')}")
+    if attrs.get("frames_expected") is not None or attrs.get("frames_received") is not None:
+        print(f"frames      {attrs.get('frames_received')} of {attrs.get('frames_expected')} "
+              "expected frames received and processed")
     rec = attrs.get("recording")
     if isinstance(rec, dict):
         print(f"replayed    from {rec.get('path')} ({rec.get('frames')} frames, "

@@ -1,8 +1,11 @@
 """Raw-stream recordings: the format (a Zarr v3 group) and a validating reader.
 
-Layout (format ``sffscan-recording``, version 1; schema ``schemas/recording_attrs.v1.json``):
+Layout (format ``sffscan-recording``, version 2; schema ``schemas/recording_attrs.v1.json``):
 
 - ``frames``: uint8 or uint16 (n, H, W), one frame per chunk;
+- ``headers`` (version 2): int64 (n, 6), one chunk per frame beside it: a copy of the frame's
+  header (frame_id, timestamp_ns, focus_index, stage_x_um and stage_y_um as the bits of
+  float64, pass_index; -1 = not written), written right after the frame's chunk;
 - ``frame_id``: int64 (n,), the camera's frame counter; ``-1`` (the fill value) = not written;
 - ``timestamp_ns``: int64 (n,), exposure time stamp, ns;
 - ``focus_index``: int32 (n,), focus level of the lens staircase;
@@ -11,6 +14,15 @@ Layout (format ``sffscan-recording``, version 1; schema ``schemas/recording_attr
 - ``pass_index``: int32 (n,) (optional when the configuration has one pass);
 - group attributes (:class:`RecordingAttrs`): format, version, status, frame shape and dtype,
   and the whole scan configuration.
+
+Integrity (version 2): every chunk of every array ends with a CRC-32C (zarr v3's ``crc32c``
+codec): a flipped byte makes the chunk undecodable, never silently different. No single
+chunk file is a single point of failure: the per-frame arrays are cut in small chunks
+(:data:`META_CHUNK` frames) and every frame's header has a copy beside the frame, so a lost
+or corrupt metadata chunk is rebuilt from the copies, and a lost or corrupt frame or header
+chunk loses that frame only. Every chunk is written with ``write_empty_chunks``: within
+the frames written, an absent chunk is a lost one. Version-1 recordings (no checksums, no
+header copies) still replay.
 
 Entry ``i`` of every per-frame array describes ``frames[i]``. Arrays may be longer than what
 was written (the recorder grows them in steps): entries whose ``frame_id`` is -1 are not
@@ -27,7 +39,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import zarr
@@ -35,8 +47,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
 from sffscan.pipeline.messages import Frame, FrameHeader
 
+if TYPE_CHECKING:
+    from sffscan.pipeline.completeness import FrameAccount
+
 FORMAT = "sffscan-recording"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: per-frame arrays: name -> (dtype, fill value, required)
 PER_FRAME: dict[str, tuple[str, Any, bool]] = {
     "frame_id": ("int64", -1, True),
@@ -47,7 +62,10 @@ PER_FRAME: dict[str, tuple[str, Any, bool]] = {
     "pass_index": ("int32", -1, False),
 }
 #: chunk length of the per-frame arrays written by the recorder, frames (uncompressed)
-META_CHUNK = 1024
+META_CHUNK = 256
+#: columns of the ``headers`` array (version 2), in this order
+HEADER_COLUMNS = ("frame_id", "timestamp_ns", "focus_index", "stage_x_um", "stage_y_um",
+                  "pass_index")
 
 
 class RecordingAttrs(BaseModel):
@@ -56,7 +74,9 @@ class RecordingAttrs(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-recording"] = "sffscan-recording"
-    format_version: Literal[1] = 1
+    format_version: Literal[1, 2] = Field(
+        2, description="2: CRC-32C on every chunk and a copy of each frame's header beside it "
+        "(array 'headers'); 1: neither (still replayed)")
     status: Literal["recording", "complete", "failed"] = Field(
         "complete", description="'recording' while being written (still so after a crash: "
         "the frames up to the last complete one are readable); 'complete' after a clean end; "
@@ -70,6 +90,12 @@ class RecordingAttrs(BaseModel):
     codec: str | None = Field(None, description="Codec of the frames array, informative")
     writer: str | None = Field(None, description="Program that wrote the recording")
     error: str | None = Field(None, description="Why the recording stopped, if it failed")
+    frames_planned: int | None = Field(
+        None, ge=0, description="Frames the live scan expected (its plan, camera.frames or the "
+        "sender's count): a replay with fewer is 'incomplete'")
+    fsync_s: float | None = Field(
+        None, ge=0, description="The recorder made its data and metadata durable (fsync) at "
+        "least this often, s: a power cut loses at most this much of the stream")
 
 
 class RecordingError(ValueError):
@@ -140,7 +166,11 @@ def _ids(ids: list[str], limit: int = 20) -> str:
 
 
 def _array(group: zarr.Group, name: str, path: str) -> zarr.Array | None:
-    node = group.get(name)
+    try:
+        node = group.get(name)
+    except Exception as exc:  # noqa: BLE001 - a corrupt or truncated zarr.json of the array
+        raise RecordingError(f"{path}/{name}/zarr.json: unreadable array metadata "
+                             f"({type(exc).__name__}: {exc})") from None
     if node is None:
         return None
     if not isinstance(node, zarr.Array):
@@ -174,7 +204,7 @@ def _same_fill(arr: zarr.Array, fill: Any) -> bool:
 
 
 def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
-                    required: bool) -> np.ndarray:
+                    required: bool, extent: int = 0) -> np.ndarray:
     """Read entries [0, n) chunk by chunk; entries of an unreadable chunk become ``fill``
     and their indexes go to ``bad``.
 
@@ -182,6 +212,8 @@ def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
     value, so a lost chunk cannot be told from one that was all fill. For a required array
     whose fill value is not the documented one (-1, "not written"), an absent chunk would
     read as real metadata (focus level 0, time stamp 0): its entries go to ``bad`` instead.
+    Version 2 writes every chunk, so any chunk absent below ``extent`` (the frames
+    written) was lost: its entries go to ``bad``.
     """
     chunk = _stored(arr)[0]
     keys = _chunk_keys(arr)
@@ -193,11 +225,56 @@ def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
         if doubt_absent and enc((a // chunk,)) not in keys:
             bad.update(range(a, b))
             continue
+        if a < extent and enc((a // chunk,)) not in keys:
+            bad.update(range(a, min(b, extent)))
+            continue
         try:
             out[a:b] = np.asarray(arr[a:b])
         except Exception:  # noqa: BLE001 - any decode failure is a corrupt chunk
             bad.update(range(a, b))
     return out
+
+
+def _rebuild_from_headers(headers: zarr.Array, meta: dict[str, np.ndarray], bad: set[int],
+                          extent: int) -> int:
+    """Fill the entries below ``extent`` whose metadata is unreadable or unwritten from the
+    copy of the header beside their frame (version 2); returns how many were rebuilt."""
+    if headers.ndim != 2 or headers.shape[1] != len(HEADER_COLUMNS):
+        return 0
+    written = ((meta["frame_id"] >= 0) & (meta["timestamp_ns"] >= 0)
+               & (meta["focus_index"] >= 0) & (meta["pass_index"] >= 0))
+    todo = sorted({i for i in bad if i < extent}
+                  | {int(i) for i in np.flatnonzero(~written[:extent])})
+    if not todo:
+        return 0
+    keys = _chunk_keys(headers)
+    enc = headers.metadata.encode_chunk_key  # type: ignore[union-attr]
+    rebuilt = 0
+    for i in todo:
+        if i >= headers.shape[0] or enc((i, 0)) not in keys:
+            continue
+        try:
+            row = np.asarray(headers[i], dtype=np.int64)
+        except Exception:  # noqa: BLE001 - a corrupt header chunk: the entry stays lost
+            continue
+        if row[0] < 0 or row[1] < 0 or row[2] < 0 or row[5] < 0:
+            continue
+        pos = row[3:5].view(np.float64)
+        for name, value in zip(HEADER_COLUMNS, (row[0], row[1], row[2], pos[0], pos[1],
+                                                row[5]), strict=True):
+            meta[name][i] = value
+        bad.discard(i)
+        rebuilt += 1
+    return rebuilt
+
+
+def header_row(h: FrameHeader) -> np.ndarray:
+    """The ``headers`` row of a frame header (positions as the bits of float64)."""
+    pos = np.array([np.nan if h.stage_x_um is None else h.stage_x_um,
+                    np.nan if h.stage_y_um is None else h.stage_y_um], np.float64)
+    bits = pos.view(np.int64)
+    return np.array([h.frame_id, h.timestamp_ns, h.focus_index, bits[0], bits[1],
+                     h.pass_index], np.int64)
 
 
 @dataclass
@@ -255,6 +332,15 @@ class Recording:
                     sleep(delay)
             yield Frame(header, image)
 
+    def account(self) -> FrameAccount:
+        """Frames a replay should have: what the live scan expected (``frames_planned``),
+        else the recorded configuration's plan."""
+        from sffscan.pipeline.completeness import FrameAccount, planned_frames
+
+        planned = self.attrs.frames_planned
+        return FrameAccount(planned=planned if planned is not None
+                            else planned_frames(self.config))
+
     def verify(self) -> list[int]:
         """Decode every usable frame; frame ids of the corrupt ones (also in the report)."""
         before = len(self.report.corrupt)
@@ -279,9 +365,13 @@ def open_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{where}: no such recording")
     try:
         group = zarr.open_group(where, mode="r")
+        raw = group.attrs.asdict()
     except Exception as exc:  # noqa: BLE001 - anything that is not a readable group
-        raise RecordingError(f"{where}: not a Zarr v3 group ({exc})") from exc
-    raw = group.attrs.asdict()
+        name = f"{where}/zarr.json" if (p / "zarr.json").exists() else where
+        raise RecordingError(f"{name}: not a readable Zarr v3 group "
+                             f"({type(exc).__name__}: {exc})") from None
+    if not isinstance(raw, dict):
+        raise RecordingError(f"{where}/zarr.json: the attributes are not a JSON object")
     if raw.get("format") != FORMAT:
         raise RecordingError(f"{where}: attribute 'format' is {raw.get('format')!r}, "
                              f"expected {FORMAT!r} (not an sffscan recording)")
@@ -342,12 +432,32 @@ def open_recording(path: str | Path) -> Recording:
               if a.shape[0] > n]
     bad: set[int] = set()
     meta: dict[str, np.ndarray] = {}
+    frame_keys = _chunk_keys(frames)
+    v2 = attrs.format_version >= 2
+    headers = _array(group, "headers", where) if v2 else None
+    extent = 0
+    if v2:
+        # the frames written whole: a frame chunk and its header copy (written after it); a
+        # frame chunk alone is a write a crash cut short, not a lost frame
+        stored = {int(k.split("/")[1]) for k in frame_keys
+                  if k.startswith("c/") and k.split("/")[1].isdigit()}
+        if headers is None:
+            report.notes.append("no 'headers' array: a lost metadata chunk cannot be rebuilt")
+        else:
+            stored &= {int(k.split("/")[1]) for k in _chunk_keys(headers)
+                       if k.startswith("c/") and k.split("/")[1].isdigit()}
+        extent = min(n, max(stored) + 1) if stored else 0
     for name, (dtype, fill, _) in PER_FRAME.items():
         if name in arrays:
-            meta[name] = _read_per_frame(arrays[name], n, fill, bad,
+            meta[name] = _read_per_frame(arrays[name], n, fill, bad, extent=extent,
                                          required=PER_FRAME[name][2]).astype(dtype)
         else:
             meta[name] = np.full(n, 0 if name == "pass_index" else fill, dtype)
+    if headers is not None:
+        rebuilt = _rebuild_from_headers(headers, meta, bad, extent)
+        if rebuilt:
+            report.notes.append(f"{rebuilt} entries rebuilt from the header copies beside "
+                                "their frames (metadata lost, corrupt or not yet flushed)")
     fid = meta["frame_id"]
     written = (fid >= 0) & (meta["timestamp_ns"] >= 0) & (meta["focus_index"] >= 0)
     written &= meta["pass_index"] >= 0
@@ -368,7 +478,7 @@ def open_recording(path: str | Path) -> Recording:
                             f"{n} have no metadata and are not replayed): " + ", ".join(longer))
     # frames whose chunk is absent (another writer, or a lost file) are not replayed
     # (every chunk of the frame: a frame split over several chunks must be whole)
-    keys = _chunk_keys(frames)
+    keys = frame_keys
     enc = frames.metadata.encode_chunk_key  # type: ignore[union-attr]
     per_chunk, cy, cx = _stored(frames)
     tiles = [(y, x) for y in range(-(-attrs.frame_shape[0] // cy))

@@ -22,25 +22,27 @@ class CameraConfig(_Model):
     cti: str | None = Field(
         None, description="GenTL producer (.cti) path; default: $SFFSCAN_CTI, then the first "
         "entry of $GENICAM_GENTL64_PATH")
-    device_index: int = Field(0, ge=0, description="Index of the device among those found")
+    device_index: int = Field(0, ge=0, le=1023, description="Index of the device among those found")
     pixel_format: str | None = Field(None, description="GenICam PixelFormat (Mono8, Mono10, ..."
                                      "); default: leave the device's")
-    offset_x_px: int = Field(0, ge=0, description="Region offset along x (OffsetX), px")
-    offset_y_px: int = Field(0, ge=0, description="Region offset along y (OffsetY), px")
-    exposure_us: float | None = Field(None, gt=0, description="Exposure time, µs; default: "
+    offset_x_px: int = Field(0, ge=0, le=65535, description="Region offset along x (OffsetX), px")
+    offset_y_px: int = Field(0, ge=0, le=65535, description="Region offset along y (OffsetY), px")
+    exposure_us: float | None = Field(None, gt=0, le=1e7, description="Exposure time, µs; default: "
                                       "leave the device's")
     trigger: bool = Field(True, description="Hardware trigger (falling edge) when the device "
                           "has the nodes")
     trigger_line: str = Field("Line0", description="TriggerSource line of the DAQ's square wave")
-    fetch_timeout_s: float = Field(2.0, gt=0, description="Longest wait for one frame, s")
-    frames: int | None = Field(None, ge=1, description="Frames to acquire; default: the scan "
+    fetch_timeout_s: float = Field(2.0, gt=0, le=3600, description="Longest wait for one frame, s")
+    frames: int | None = Field(None, ge=1, le=10**9,
+                               description="Frames to acquire; default: the scan "
                                "plan's frame count")
     frame_id_modulus: int = Field(
-        0, ge=0, description="Wrap-around of the device's frame counter (65536 for a 16-bit "
-        "GigE Vision block id); 0 = a 64-bit counter that never wraps")
-    focus_phase: int = Field(0, ge=0, description="Focus level of the first frame after the "
+        0, ge=0, le=2**48, description="Wrap-around of the device's frame counter (65536 for "
+        "a 16-bit GigE Vision block id); 0 = a 64-bit counter that never wraps")
+    focus_phase: int = Field(0, ge=0, le=254,
+                             description="Focus level of the first frame after the "
                              "DAQ starts (0 when the staircase starts at level 0)")
-    num_buffers: int = Field(16, ge=1, description="Acquisition buffers announced to the "
+    num_buffers: int = Field(16, ge=1, le=1024, description="Acquisition buffers announced to the "
                              "GenTL producer")
 
 
@@ -50,15 +52,19 @@ class DaqConfig(_Model):
     device: str = Field("Dev1", description="NI-DAQmx device name")
     lens_channel: str = Field("ao0", description="Analogue output driving the lens")
     trigger_channel: str = Field("ao1", description="Output of the camera trigger square wave")
-    lens_v_min: float = Field(0.0, description="Lens driver voltage at focus level 0, V")
-    lens_v_max: float = Field(5.0, description="Lens driver voltage at focus level N-1, V")
+    lens_v_min: float = Field(0.0, ge=0, le=10,
+                              description="Lens driver voltage at focus level 0, V")
+    lens_v_max: float = Field(5.0, ge=0, le=10,
+                              description="Lens driver voltage at focus level N-1, V")
     lens_dac_bits: int = Field(10, ge=1, le=16, description="Resolution of the lens driver's "
                                "analogue input, bits")
-    lens_full_scale_v: float = Field(5.0, gt=0, description="Lens driver input range 0..full "
+    lens_full_scale_v: float = Field(5.0, gt=0, le=10,
+                                     description="Lens driver input range 0..full "
                                      "scale, V (the driver quantises it to lens_dac_bits)")
-    trigger_v_high: float = Field(5.0, gt=0, description="High level of the trigger square "
+    trigger_v_high: float = Field(5.0, gt=0, le=10, description="High level of the trigger square "
                                   "wave, V (TTL)")
-    samples_per_step: int = Field(20, ge=2, description="Output samples per staircase step "
+    samples_per_step: int = Field(20, ge=2, le=10000,
+                                  description="Output samples per staircase step "
                                   "(even: the trigger's falling edge sits on the step's "
                                   "centre sample)")
     start_trigger: str | None = Field(None, description="Digital start trigger terminal "

@@ -1,0 +1,178 @@
+"""Checks a scan's configuration against this machine before anything is created or deleted.
+
+:func:`sffscan.pipeline.config.config_from_dict` checks the configuration on its own (ranges,
+feasibility); :func:`preflight` checks what depends on the machine and the command line:
+
+- the torch device of ``processing.backend = "torch"`` exists;
+- ``output.path`` can be written: its folder exists and is writable, and an existing path is
+  only replaced when ``output.overwrite`` is set and it is an sffscan mosaic (or an empty
+  folder);
+- a ``--record`` path does not exist yet and its folder is writable;
+- the memory the pipeline needs (queues, focus volume, mosaic bands, recorder queue) fits in
+  the memory available;
+- the simulated world can be built (source.kind ``sim``).
+
+Every failure is a :class:`~sffscan.pipeline.config.ConfigError` naming the field or the path;
+``sffscan scan``, ``demo`` and ``replay`` run it first, so ``--overwrite`` deletes nothing
+until every check has passed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from sffscan.pipeline.config import ConfigError, ScanConfig
+
+#: share of the available memory a scan may plan to use
+MEMORY_SHARE = 0.8
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of /proc/meminfo (Linux), else physical memory; None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def memory_needed_bytes(cfg: ScanConfig, *, recording: bool = False) -> int:
+    """Memory the pipeline of ``cfg`` holds at its peak, bytes (an upper estimate).
+
+    Every queued frame as raw pixels plus two float32 planes (unit-scaled image and focus
+    measure), in the ``processing.queue_capacity`` slots of each of the five queues; the
+    focus volume's ring (N float32 planes, or the streaming sums); the mosaic's bands
+    (four float64 planes of a frame height each); the recorder's queue when recording.
+    """
+    from sffscan.stages.recorder import QUEUE_BYTES, queue_capacity
+
+    o, p, m = cfg.optics, cfg.processing, cfg.motion
+    h, w = o.height_px, o.width_px
+    px = h * w
+    raw = px * np.dtype(o.dtype).itemsize
+    per_item = raw + 2 * 4 * px
+    queues = 5 * p.queue_capacity * per_item + 2 * per_item
+    slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
+    rows = h + 2 * slack
+    ring = w + 2 * (p.median_size // 2 + 1) + 2 * p.block_columns + 2 * slack
+    planes = 4 + 1 if p.depth_method in ("argmax", "pc", "spc", "centroid") else o.n_levels
+    volume = rows * ring * 4 * planes + o.n_levels * max(ring, p.block_columns) * 8 * 4
+    bands = (-(-ring // cfg.output.chunk_px) + 2) * rows * cfg.output.chunk_px * 8 * 4
+    rec = min(QUEUE_BYTES, queue_capacity(cfg) * raw) if recording else 0
+    return int(queues + volume + bands + rec)
+
+
+def _check_device(cfg: ScanConfig) -> None:
+    p = cfg.processing
+    if p.backend != "torch":
+        return
+    import torch
+
+    try:
+        dev = torch.device(p.device)
+    except (RuntimeError, ValueError) as err:
+        raise ConfigError(f"processing.device = {p.device!r}: not a torch device ({err})"
+                          ) from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"processing.device = {p.device!r}: no CUDA device on this "
+                              "machine (use 'cpu')")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"processing.device = {p.device!r}: this machine has "
+                              f"{torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise ConfigError(f"processing.device = {p.device!r}: MPS is not available here")
+    elif dev.type != "cpu":
+        raise ConfigError(f"processing.device = {p.device!r}: only cpu, cuda and mps "
+                          "devices are supported")
+
+
+def _writable_folder(path: Path, what: str) -> None:
+    parent = path.resolve().parent
+    if not parent.is_dir():
+        raise ConfigError(f"{what} {path}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {path}: the folder {parent} is not writable")
+
+
+def check_output(cfg: ScanConfig, *, resume: bool = False) -> None:
+    """``output.path`` can be written (and replaced only if allowed and a mosaic)."""
+    from sffscan.stages.mosaic import is_replaceable
+
+    out = Path(cfg.output.path)
+    if resume:
+        if not out.exists():
+            raise ConfigError(f"output.path {out}: no mosaic to resume")
+        return
+    _writable_folder(out, "output.path")
+    if out.exists():
+        if not cfg.output.overwrite:
+            raise ConfigError(f"output.path {out}: exists (set output.overwrite, or "
+                              "--overwrite, or choose another path)")
+        if not is_replaceable(out):
+            raise ConfigError(f"output.path {out}: exists and is not an sffscan mosaic nor "
+                              "an empty folder; refusing to overwrite it")
+
+
+def check_record(cfg: ScanConfig, record: str | Path) -> None:
+    """A ``--record`` path is new, writable and not the mosaic's."""
+    rec = Path(record)
+    if rec.exists():
+        raise ConfigError(f"--record {rec}: exists; a recording is never overwritten, choose "
+                          "another path")
+    _writable_folder(rec, "--record")
+    if rec.resolve() == Path(cfg.output.path).resolve():
+        raise ConfigError(f"--record {rec}: is also output.path")
+
+
+def check_memory(cfg: ScanConfig, *, recording: bool = False,
+                 available: int | None = None) -> None:
+    """The pipeline's memory (:func:`memory_needed_bytes`) fits the memory available."""
+    need = memory_needed_bytes(cfg, recording=recording)
+    have = available if available is not None else available_memory_bytes()
+    if have is not None and need > MEMORY_SHARE * have:
+        o, p = cfg.optics, cfg.processing
+        raise ConfigError(
+            f"the scan needs about {need / 2**30:.1f} GiB of memory, more than "
+            f"{MEMORY_SHARE:.0%} of the {have / 2**30:.1f} GiB available: frames of "
+            f"optics.width_px x optics.height_px = {o.width_px} x {o.height_px} px, "
+            f"processing.queue_capacity = {p.queue_capacity}, optics.n_levels = "
+            f"{o.n_levels}, processing.block_columns = {p.block_columns}")
+
+
+def check_world(cfg: ScanConfig) -> None:
+    """The simulated world of source.kind ``sim`` can be built."""
+    if cfg.source.kind != "sim":
+        return
+    from sffscan.stages.sim.scanner import make_world
+
+    try:
+        make_world(cfg)
+    except ValueError as err:
+        raise ConfigError(f"source.plate_length_mm / source.plate_width_mm: cannot build the "
+                          f"simulated world: {err}") from None
+
+
+def preflight(cfg: ScanConfig, *, record: str | Path | None = None, resume: bool = False,
+              simulated: bool | None = None) -> None:
+    """Every check of this module; raises :class:`ConfigError` at the first failure.
+
+    ``simulated`` says whether the frames come from the simulator (default: when
+    ``source.kind`` is ``sim``); a replay or a tcp source builds no world.
+    """
+    _check_device(cfg)
+    check_memory(cfg, recording=record is not None)
+    if simulated if simulated is not None else cfg.source.kind == "sim":
+        check_world(cfg)
+    if record is not None:
+        check_record(cfg, record)
+    check_output(cfg, resume=resume)

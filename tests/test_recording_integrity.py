@@ -1,0 +1,156 @@
+"""Recording integrity (issue 13): CRC-32C on every chunk, header copies beside the frames,
+no single chunk file a single point of failure, malformed files exit 2 naming the file."""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import config_to_toml
+from sffscan.pipeline.formats.recording import PER_FRAME, RecordingError, open_recording
+
+from tests.scan_helpers import small_config
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
+    """A recording of a short simulated scan (version 2) and its frame count."""
+    d = tmp_path_factory.mktemp("integrity")
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 6.0},
+                       processing={"registration": False})
+    toml = d / "scan.toml"
+    toml.write_text(config_to_toml(cfg))
+    rec = d / "rec.zarr"
+    assert main(["scan", "--config", str(toml), "-o", str(d / "live.zarr"), "--record",
+                 str(rec), "-q", "--no-evaluate"]) == 0
+    r = open_recording(rec)
+    assert r.attrs.format_version == 2 and r.report.defects == 0
+    assert not (rec / ".sffscan-reserve").exists()  # freed at close
+    return rec, r.report.frames
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_twenty_flipped_bytes_in_frame_chunks_are_all_detected(
+        recorded: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src, n = recorded
+    rec = _copy(src, tmp_path / "flipped.zarr")
+    seed = int(os.environ.get("SFFSCAN_FLIP_SEED", random.randrange(2**32)))
+    print(f"byte flips: seed {seed} (SFFSCAN_FLIP_SEED={seed} repeats it)")
+    rng = random.Random(seed)
+    fid = np.asarray(zarr.open_group(str(rec), mode="r")["frame_id"])  # type: ignore[index]
+    flipped = sorted(rng.sample(range(n), 20))
+    for i in flipped:  # one byte anywhere in the chunk file, checksum bytes included
+        path = rec / "frames" / "c" / str(i) / "0" / "0"
+        data = bytearray(path.read_bytes())
+        data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+        path.write_bytes(bytes(data))
+    want = sorted(int(fid[i]) for i in flipped)
+    assert main(["info", str(rec), "--verify"]) == 0
+    out = capsys.readouterr().out
+    assert "verified    every usable frame decoded; 20 corrupt" in out, out
+    assert "corrupt     20: frame_id " + ", ".join(map(str, want)) in out
+    mosaic = tmp_path / "m.zarr"
+    assert main(["replay", str(rec), "-o", str(mosaic), "-q"]) == 3  # incomplete
+    attrs = zarr.open_group(str(mosaic), mode="r").attrs.asdict()
+    assert attrs["status"] == "incomplete"
+    assert (attrs["frames_expected"], attrs["frames_received"]) == (n, n - 20)
+    assert attrs["recording"]["corrupt"] == want and attrs["recording"]["frames_lost"] == 20
+
+
+@pytest.mark.parametrize("damage", ["delete", "truncate"])
+def test_any_one_metadata_chunk_lost_loses_no_frame(recorded: tuple[Path, int], tmp_path: Path,
+                                                    damage: str) -> None:
+    """Every chunk of every per-frame array, deleted or truncated in turn: every frame is
+    still replayed, with its header, rebuilt from the copy beside it."""
+    src, n = recorded
+    reference = [(f.header, f.image) for f in open_recording(src).frames()]
+    for name in PER_FRAME:
+        for chunk in sorted((src / name / "c").iterdir()):
+            rec = tmp_path / f"{damage}-{name}-{chunk.name}.zarr"
+            _copy(src, rec)
+            target = rec / name / "c" / chunk.name
+            if damage == "delete":
+                target.unlink()
+            else:
+                target.write_bytes(target.read_bytes()[:7])
+            r = open_recording(rec)
+            assert r.report.frames == n and r.report.defects == 0, (name, r.report.lines())
+            got = [(f.header, f.image) for f in r.frames()]
+            assert len(got) == n
+            for (h, img), (wh, wimg) in zip(got, reference, strict=True):
+                assert h == wh and np.array_equal(img, wimg)
+            shutil.rmtree(rec)
+
+
+def test_a_lost_frame_or_header_chunk_loses_that_frame_only(
+        recorded: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src, n = recorded
+    rec = _copy(src, tmp_path / "holes.zarr")
+    (rec / "frames" / "c" / "5" / "0" / "0").unlink()
+    (rec / "headers" / "c" / "9" / "0").unlink()  # the metadata still describes frame 9
+    r = open_recording(rec)
+    assert r.report.frames == n - 1 and r.report.missing_chunks == [5]
+    # frame 12 loses both its header copy and (with the frame_id chunk) its metadata
+    (rec / "headers" / "c" / "12" / "0").unlink()
+    (rec / "frame_id" / "c" / "0").unlink()
+    r = open_recording(rec)
+    assert r.report.frames == n - 3  # 5 (no frame), 9 and 12 (no header, no metadata)
+    assert r.report.missing_chunks == [5] and r.report.missing_metadata == [9, 12]
+    assert main(["replay", str(rec), "-o", str(tmp_path / "m.zarr"), "-q"]) == 3
+    assert "3 missing" in capsys.readouterr().out
+
+
+def test_version_1_recordings_still_replay(recorded: tuple[Path, int], tmp_path: Path) -> None:
+    """A version-1 recording (no checksums, no header copies) opens and replays."""
+    src, n = recorded
+    rec = _copy(src, tmp_path / "v1.zarr")
+    shutil.rmtree(rec / "headers")
+    g = zarr.open_group(str(rec), mode="r+")
+    g.update_attributes({"format_version": 1})
+    r = open_recording(rec)
+    assert r.attrs.format_version == 1 and r.report.frames == n
+    assert sum(1 for _ in r.frames()) == n
+
+
+@pytest.mark.parametrize(("target", "content"), [
+    ("zarr.json", b"{\"zarr_format\": 3, \"node_type\": \"gro"),
+    ("zarr.json", b"\xff\xfe garbage"),
+    ("frames/zarr.json", b"{\"zarr_format\": 3, \"node_t"),
+    ("frame_id/zarr.json", b"[]"),
+])
+def test_malformed_files_exit_2_naming_the_file(recorded: tuple[Path, int], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str],
+                                                target: str, content: bytes) -> None:
+    src, _ = recorded
+    rec = _copy(src, tmp_path / "bad.zarr")
+    (rec / target).write_bytes(content)
+    for argv in (["info", str(rec)], ["info", str(rec), "--verify"],
+                 ["replay", str(rec), "-o", str(tmp_path / "m.zarr"), "-q"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert f"{rec}/{target}" in err, err
+        assert "Traceback" not in err
+    with pytest.raises(RecordingError, match=target.replace(".", r"\.")):
+        open_recording(rec)
+
+
+def test_a_malformed_mosaic_exits_2_naming_it(recorded: tuple[Path, int], tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    src, _ = recorded
+    mosaic = tmp_path / "m.zarr"
+    shutil.copytree(src.parent / "live.zarr", mosaic)
+    (mosaic / "height" / "zarr.json").write_bytes(b"{\"zarr_format\": 3, \"shape\": [1")
+    assert main(["info", str(mosaic)]) == 2
+    assert str(mosaic) in capsys.readouterr().err
+    assert main(["replay", str(src), "-o", str(mosaic), "-q", "--resume"]) == 2
+    assert str(mosaic) in capsys.readouterr().err
