@@ -9,21 +9,19 @@ frame is ever dropped; the summary reports the drops counted anyway (0).
 
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.metrology.evaluate import Accuracy, mosaic_accuracy
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
-from sffscan.pipeline.runtime import Pipeline, PipelineResult, Sink, Stage, StageStats
+from sffscan.pipeline.progress import ScanProgress as Progress
+from sffscan.pipeline.runtime import Pipeline, PipelineResult, Sink, Stage
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import DepthStage
 from sffscan.stages.frame_source import SourceStage
@@ -99,40 +97,6 @@ def open_writer(cfg: ScanConfig, *, path: str | Path | None = None,
             "scan_config": cfg.model_dump(mode="json"),
         },
     )
-
-
-class Progress:
-    """Progress and throughput on one line (or a line every few seconds if not a tty)."""
-
-    def __init__(self, total: int, *, stream: TextIO | None = None, every_s: float = 5.0) -> None:
-        self.total = total
-        self.stream = stream if stream is not None else sys.stderr
-        self.tty = self.stream.isatty()
-        self.every_s = every_s
-        self._last = -every_s  # the first report comes at once
-
-    def __call__(self, stats: list[StageStats], elapsed: float) -> None:
-        if not self.tty and elapsed - self._last < self.every_s:
-            return
-        self._last = elapsed
-        done = stats[-2].frames if len(stats) > 1 else stats[0].frames
-        src = stats[0].frames
-        rate = done / elapsed if elapsed > 0 else 0.0
-        pct = 100.0 * done / self.total if self.total else 0.0
-        eta = (self.total - done) / rate if rate > 0 else float("inf")
-        line = (f"frames {done}/{self.total} ({pct:4.1f} %)  acquired {src}  "
-                f"{rate:6.1f} frames/s  elapsed {elapsed:5.1f} s  eta {eta:5.0f} s")
-        try:
-            self.stream.write(("\r" + line) if self.tty else (line + "\n"))
-            self.stream.flush()
-        except OSError:  # a closed terminal or pipe must not stop the scan
-            self.stream = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the scan
-
-    def close(self) -> None:
-        if self.tty:
-            with contextlib.suppress(OSError):
-                self.stream.write("\n")
-                self.stream.flush()
 
 
 @dataclass

@@ -32,8 +32,8 @@ The harvesters-specific code lives in :class:`HarvestersCamera` behind the small
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -46,6 +46,8 @@ from sffscan.pipeline.hardware.daq import Daq, open_daq, waveform_for
 from sffscan.pipeline.hardware.lens_waveform import exposure_window_us, max_exposure_us
 from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.plan import frame_count, pass_bounds_px
+
+log = logging.getLogger(__name__)
 
 #: pixel formats the pipeline takes, and the numpy dtype of their unpacked pixels
 PIXEL_DTYPES = {"Mono8": "uint8", "Mono10": "uint16", "Mono12": "uint16", "Mono16": "uint16"}
@@ -350,7 +352,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
     ``camera.frames``) is reached; the device and the DAQ are released in ``finally``.
 
     ``camera`` and ``daq`` replace the configured ones (tests); ``stats`` is filled as the
-    frames go and its summary is printed to stderr at the end.
+    frames go and its summary is logged (INFO) at the end.
     """
     st = stats if stats is not None else CameraStats()
     n_total = cfg.camera.frames or frame_count(cfg)
@@ -365,7 +367,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
                                        origin="camera.exposure_us")
         st.notes += cam.configure(cfg)
         for note in st.notes:
-            print(f"camera: {note}", file=sys.stderr)
+            log.warning("camera: %s", note)
         waveform = waveform_for(cfg)
         cam.start()  # armed before the first trigger: the synchronisation rule
         lens = daq if daq is not None else open_daq(cfg)
@@ -419,4 +421,4 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
                 cam.stop()
             finally:
                 cam.close()
-            print(st.summary(), file=sys.stderr)
+            log.info(st.summary())

@@ -3,7 +3,7 @@
 :class:`RecordingWriter` writes the layout of :mod:`sffscan.pipeline.formats.recording`; the sink
 (:func:`recorder_sink`) taps the ``source`` stage through its own blocking queue, so no
 frame is ever skipped: if the disk is slower than the camera, the pipeline waits, and
-that is reported loudly (a warning on stderr while it happens, the recorder's busy share
+that is reported loudly (a logged warning while it happens, the recorder's busy share
 and the pipeline's waiting time in the summary).
 
 Crash safety: each frame is one chunk, written when it arrives; the per-frame metadata is
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import errno
-import sys
+import logging
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -50,6 +50,8 @@ from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
 from sffscan.stages.durable import SyncTracker, free_reserve, make_reserve
 from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
+
+log = logging.getLogger(__name__)
 
 #: arrays grow by this many frames at a time
 GROW = 1024
@@ -276,7 +278,7 @@ class RecorderSink(Sink):
     """Tees the ``source`` stage's frames into a :class:`RecordingWriter`.
 
     While the recorder is busy more than ``behind_share`` of the time (over windows of
-    ``window_s``) it is the bottleneck: a warning goes to stderr (at most every 5 s) and the
+    ``window_s``) it is the bottleneck: a warning is logged (at most every 5 s) and the
     summary says it fell behind; the runtime adds ``pipeline_waited_s``, the time the
     pipeline waited for it.
     """
@@ -334,10 +336,9 @@ class RecorderSink(Sink):
         if now - self._warned_at >= 5.0:
             self._warned_at = now
             mb = rate * self.writer.shape[0] * self.writer.shape[1] * self.writer.dtype.itemsize
-            print(f"\nsffscan: WARNING: the recorder is falling behind: busy "
-                  f"{100 * busy / span:.0f} % of the last {span:.1f} s, writing {rate:.0f} "
-                  f"frames/s ({mb / 1e6:.0f} MB/s; the camera makes {self.fps:g}); the pipeline "
-                  "waits for it", file=sys.stderr, flush=True)
+            log.warning("the recorder is falling behind: busy %.0f %% of the last %.1f s, "
+                        "writing %.0f frames/s (%.0f MB/s; the camera makes %g); the pipeline "
+                        "waits for it", 100 * busy / span, span, rate, mb / 1e6, self.fps)
 
     def _error(self, exc: OSError, frame_id: int) -> RecorderError:
         w = self.writer
@@ -358,10 +359,10 @@ class RecorderSink(Sink):
             raise self._error(exc, self.writer.last_id or 0) from exc
         self.finished = True
         if self.behind_windows:
-            print(f"sffscan: WARNING: the recorder fell behind the stream in "
-                  f"{self.behind_windows} window(s) of {self.window_s:g} s (slowest "
-                  f"{self.worst_fps:.0f} frames/s against the camera's {self.fps:g} fps); "
-                  "see 'pipeline_waited_s' in the summary", file=sys.stderr, flush=True)
+            log.warning("the recorder fell behind the stream in %d window(s) of %g s "
+                        "(slowest %.0f frames/s against the camera's %g fps); see "
+                        "'pipeline_waited_s' in the summary", self.behind_windows,
+                        self.window_s, self.worst_fps, self.fps)
         return iter(())
 
     def close(self, *, failed: bool) -> None:

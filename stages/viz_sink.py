@@ -28,6 +28,7 @@ Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import sys
@@ -47,7 +48,9 @@ from sffscan.pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
 from sffscan.pipeline.wiring import focus_heights_um
 from sffscan.stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 
-MODES = "spawn | serve | save PATH | auto | off"
+MODES = "spawn | serve | save (with --rrd PATH) | auto | off"
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -281,16 +284,23 @@ class VizSink(Sink):
             self._mosaic()
         return ()
 
+    #: True after :meth:`close` when a served view stays up after a successful scan run
+    #: from a terminal: it is served until :meth:`release` (the command line waits for
+    #: Enter after printing the summary, :func:`sffscan.pipeline.cli.common.hold_views`).
+    waiting = False
+
     def close(self, *, failed: bool) -> None:
         self.rec.flush()
         if self.wait_at_end and not failed and sys.stdin.isatty():
-            print(f"sffscan: scan done; the live view stays at {self.wait_at_end} until you "
-                  "press Enter", file=sys.stderr)
-            try:
-                input()
-            except (EOFError, KeyboardInterrupt):
-                pass
+            self.waiting = True  # still served; release() ends it
+            return
         self.rec.disconnect()
+
+    def release(self) -> None:
+        """Stop serving a view kept up by :meth:`close` (``waiting``)."""
+        if self.waiting:
+            self.waiting = False
+            self.rec.disconnect()
 
     def extra_stats(self) -> dict[str, int]:
         return {"frames_logged": self.frames_logged, "mosaic_updates": self.mosaics_logged,
@@ -323,15 +333,18 @@ def web_viewer_url(grpc_url: str, *, web_port: int) -> str:
 
 
 def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
-    """Check the ``--viewer`` words: ("spawn" | "serve" | "auto", None) or ("save", path)."""
+    """Check the viewer words (``--viewer MODE``, and ``--rrd PATH`` as ``["save", PATH]``):
+    ("spawn" | "serve" | "auto", None) or ("save", path)."""
     if mode and mode[0] == "save":
         if len(mode) != 2:
-            raise ConfigError(f"--viewer save: expected one PATH (an .rrd file), got {mode[1:]}")
+            raise ConfigError("--viewer save: give the recording's path with --rrd PATH")
         path = Path(mode[1])
         if not path.parent.is_dir():
-            raise ConfigError(f"--viewer save {path}: folder {path.parent} does not exist")
+            raise ConfigError(f"--viewer save --rrd {path}: folder {path.parent} does not "
+                              "exist")
         if path.is_dir():
-            raise ConfigError(f"--viewer save {path}: is a folder; give an .rrd file name")
+            raise ConfigError(f"--viewer save --rrd {path}: is a folder; give an .rrd file "
+                              "name")
         return "save", path
     if len(mode) == 1 and mode[0] in ("spawn", "serve", "auto"):
         return mode[0], None
@@ -340,7 +353,7 @@ def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
 
 def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
     """A new recording stream connected as the ``--viewer`` words ``mode`` ask, and the web
-    viewer's address when it serves one (printed on stderr)."""
+    viewer's address when it serves one (logged, INFO)."""
     kind, path = parse_mode(mode)
     if kind == "auto":
         kind = "spawn" if native_viewer_possible() else "serve"
@@ -350,7 +363,7 @@ def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
                           "'--viewer save PATH'")
     rec = rr.RecordingStream("sffscan")
     bp = blueprint()
-    words = f"--viewer {' '.join(mode)}"
+    words = f"--viewer {mode[0]}" + (f" --rrd {path}" if path is not None else "")
     try:  # Rerun reports an unusable file, port or viewer as RuntimeError
         if kind == "save":
             rec.save(str(path), default_blueprint=bp)
@@ -369,7 +382,7 @@ def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
         rec.disconnect()
         raise ConfigError(f"{words}: {err}") from err
     address = web_viewer_url(grpc_url, web_port=web_port)
-    print(f"sffscan: live view at {address}", file=sys.stderr)
+    log.info("live view at %s", address)
     return rec, address
 
 

@@ -8,6 +8,7 @@ last logged mosaic equals the Zarr mosaic reduced the same way.
 from __future__ import annotations
 
 import io
+import logging
 import time
 import urllib.parse
 import urllib.request
@@ -262,19 +263,19 @@ def test_slow_viewer_drops_oldest_and_shows_the_count(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("mode", [["serve"], ["auto"]])
 def test_serve_mode_serves_the_web_viewer_on_loopback(mode: list[str],
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    """``serve`` (and ``auto`` without a display) print the web viewer's address; it answers."""
+                                                      monkeypatch: pytest.MonkeyPatch,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """``serve`` (and ``auto`` without a display) log the web viewer's address; it answers."""
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     monkeypatch.setattr("sys.platform", "linux")
     cfg = small_config()
-    err = io.StringIO()
-    with redirect_stderr(err):
+    with caplog.at_level(logging.INFO, logger="sffscan"):
         sink = viz_sink_for(cfg, mode)
     try:
-        line = err.getvalue().strip()
-        assert line.startswith("sffscan: live view at http://127.0.0.1:")
-        url = line.split(" at ", 1)[1]
+        lines = [r.getMessage() for r in caplog.records if "live view" in r.getMessage()]
+        assert len(lines) == 1 and lines[0].startswith("live view at http://127.0.0.1:")
+        url = lines[0].split(" at ", 1)[1]
         assert "?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A" in url
         with urllib.request.urlopen(url.split("?", 1)[0], timeout=10) as resp:
             assert resp.status == 200
@@ -292,7 +293,7 @@ def test_demo_shows_the_live_view_by_default(tmp_path: Path,
                                              monkeypatch: pytest.MonkeyPatch) -> None:
     seen: list[tuple[Any, str]] = []
 
-    def fake_viewer_sink(cfg: Any, viewer: Any, *, default: str) -> None:
+    def fake_viewer_sink(cfg: Any, viewer: Any, *, default: str, rrd: Any = None) -> None:
         seen.append((viewer, default))
         raise ConfigError("stop here")
 
@@ -300,7 +301,7 @@ def test_demo_shows_the_live_view_by_default(tmp_path: Path,
     with redirect_stderr(io.StringIO()):
         assert main(["demo", "-o", str(tmp_path / "d.zarr"), "-q"]) == 2
         assert main(["demo", "-o", str(tmp_path / "d.zarr"), "-q", "--viewer", "off"]) == 2
-    assert seen == [(None, "auto"), (["off"], "auto")]
+    assert seen == [(None, "auto"), ("off", "auto")]
 
 
 class _Terminal(io.StringIO):
@@ -310,9 +311,11 @@ class _Terminal(io.StringIO):
 
 def test_served_view_stays_until_enter_in_a_terminal(monkeypatch: pytest.MonkeyPatch,
                                                      tmp_path: Path) -> None:
-    """After a scan run from a terminal, ``serve`` keeps the view until Enter; the
-    recording is flushed and closed after that."""
+    """After a scan run from a terminal, ``serve`` keeps the view until Enter (asked by the
+    command line after the summary, :func:`hold_views`); the recording is flushed and
+    closed after that."""
     import rerun as rr
+    from sffscan.pipeline.cli.common import hold_views
 
     rec = rr.RecordingStream("sffscan-test")
     rec.save(str(tmp_path / "w.rrd"))
@@ -322,10 +325,40 @@ def test_served_view_stays_until_enter_in_a_terminal(monkeypatch: pytest.MonkeyP
     err = io.StringIO()
     with redirect_stderr(err):
         sink.close(failed=False)
+        assert sink.waiting and stdin.tell() == 0  # still served, nothing asked yet
+        hold_views([sink])
     assert "stays at http://127.0.0.1:1/?url=x until you press Enter" in err.getvalue()
     assert stdin.tell() == 1  # the Enter was read
+    assert not sink.waiting
     _, static, _ = read_rrd(tmp_path / "w.rrd")
     assert "/scan/calibration" in static
+
+
+def test_served_view_summary_comes_before_the_wait(monkeypatch: pytest.MonkeyPatch,
+                                                  tmp_path: Path) -> None:
+    """``--viewer serve`` from a terminal: the progress line is ended, the summary printed,
+    and only then does the command wait for Enter."""
+    import rerun as rr
+    from sffscan.pipeline.cli.common import run_and_report
+
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 6.0},
+                       output={"path": str(tmp_path / "m.zarr")})
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(tmp_path / "s.rrd"))
+    sink = VizSink(cfg, rec, wait_at_end="http://127.0.0.1:1/?url=x")
+    screen = _Terminal()  # stdout and stderr on one terminal, as a user sees them
+    stdin = _Terminal("\n")
+    monkeypatch.setattr("sys.stdin", stdin)
+    monkeypatch.setattr("sys.stdout", screen)
+    monkeypatch.setattr("sys.stderr", screen)
+    assert run_and_report(cfg, simulate_frames(cfg), world=None, progress=True,
+                          sinks=[sink]) == 0
+    text = screen.getvalue()
+    summary = text.index("mosaic      ")
+    wait = text.index("until you press Enter")
+    assert summary < wait and stdin.tell() == 1
+    assert "\r" in text[:summary] and text[:summary].endswith("\n")  # the bar's line ended
+    assert "\r" not in text[summary:]
 
 
 def test_downsample_mosaic_known_answer() -> None:
@@ -382,13 +415,14 @@ def test_calibrated_focus_table_is_shown(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("where", ["dir", "unwritable"])
 def test_viewer_save_to_an_unusable_path_exits_2(tmp_path: Path, where: str) -> None:
-    """``--viewer save PATH`` where PATH is a folder or cannot be created: exit 2, named."""
+    """``--viewer save --rrd PATH`` where PATH is a folder or cannot be created: exit 2,
+    named."""
     path = tmp_path if where == "dir" else Path("/proc/sffscan-test.rrd")
     err = io.StringIO()
     with redirect_stderr(err):
         code = main(["demo", "-o", str(tmp_path / "d.zarr"), "-q", "--viewer", "save",
-                     str(path)])
-    assert code == 2 and f"--viewer save {path}" in err.getvalue()
+                     "--rrd", str(path)])
+    assert code == 2 and f"--viewer save --rrd {path}" in err.getvalue()
 
 
 def listening_addresses(port: int) -> set[str]:

@@ -12,6 +12,7 @@ range and with a coarse prior, and prints the frames saved and both RMSEs.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from pathlib import Path
@@ -36,8 +37,11 @@ SIM_SCALE_PER_MM = -0.01  # pixel scale change with height, per mm
 SIM_CURVATURE_UM_PX2 = (2e-2, 5e-3, 1e-2)
 
 
+log = logging.getLogger(__name__)
+
+
 def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+    log.info(msg)
 
 
 def simulated_calibration(*, seed: int = 0, verbose: bool = True) -> Calibration:
@@ -194,7 +198,7 @@ def cmd_restrict(args: argparse.Namespace) -> int:
           f"{max_speed_sliding_mm_s(restricted):.1f} mm/s; the DAQ staircase runs the kept "
           "levels only")
     Path(args.output).write_text(config_to_toml(restricted), encoding="utf-8")
-    print(f"wrote {args.output}", file=sys.stderr)
+    log.info("wrote %s", args.output)
     return EXIT_OK
 
 

@@ -14,6 +14,7 @@ from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import (
+    ConfigError,
     ScanConfig,
     config_from_dict,
     max_speed_sliding_mm_s,
@@ -34,8 +35,6 @@ OPERATOR_CHOICES = (
 )
 """Focus measure operators (sffscan.stages.operators.OPERATORS, kept torch-free here)."""
 
-VIEWER_CHOICES = "spawn|serve|save PATH|off"
-
 
 def processing_options(p: argparse.ArgumentParser) -> None:
     """Options that change how frames are processed (scan and replay)."""
@@ -50,9 +49,13 @@ def processing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--window", type=int, help="focus measure window k, odd, px")
     p.add_argument("--calibration", metavar="FILE",
                    help="calibration JSON ('sffscan calibrate'): focus level -> µm")
-    p.add_argument("--viewer", nargs="+", metavar="MODE", default=None,
-                   help=f"live view in Rerun: {VIEWER_CHOICES}")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress line")
+    p.add_argument("--viewer", metavar="MODE", default=None,
+                   help="live view in Rerun, one word: spawn (native viewer), serve (web viewer on "
+                        "this machine), save (to the --rrd file), auto (spawn where a display "
+                        "exists, else serve), off")
+    p.add_argument("--rrd", metavar="PATH",
+                   help="Rerun recording (.rrd) that '--viewer save' writes (--rrd alone "
+                        "implies --viewer save)")
 
 
 def scan_options(p: argparse.ArgumentParser) -> None:
@@ -104,17 +107,52 @@ def describe(cfg: ScanConfig) -> str:
             f"{m.speed_mm_s:g} mm/s; {o.width_px}x{o.height_px} px, {o.pixel_um:g} µm/px, "
             f"{o.fps:g} fps, N = {o.n_levels} levels of {o.z_step_um:g} µm; speed limit "
             f"{max_speed_sliding_mm_s(cfg):.1f} mm/s (sliding window), thesis per-stack "
-            f"limit {max_speed_thesis_mm_s(cfg):.1f} mm/s")
+            f"limit {max_speed_thesis_mm_s(cfg, overlap=m.pass_overlap):.1f} mm/s (overlap "
+            f"{100 * m.pass_overlap:g} % = motion.pass_overlap, as 'sffscan plan --overlap')")
 
 
-def viewer_sink(cfg: ScanConfig, viewer: list[str] | None, *, default: str = "off") -> Sink | None:
-    """The live-view sink a ``--viewer`` option asks for, or None for ``off``."""
-    mode = viewer if viewer else [default]
+def viewer_mode(viewer: str | None, rrd: str | None, *, default: str = "off") -> list[str]:
+    """The viewer words of ``--viewer MODE`` and ``--rrd PATH`` (``["save", PATH]`` for a
+    saved recording); a ``--rrd`` without ``save``, or ``save`` without ``--rrd``, is a
+    usage error (:class:`ConfigError`)."""
+    if rrd is not None:
+        if viewer not in (None, "save"):
+            raise ConfigError(f"--rrd {rrd}: only with --viewer save (got --viewer {viewer})")
+        return ["save", rrd]
+    mode = viewer or default
+    if mode == "save":
+        raise ConfigError("--viewer save: give the recording's path with --rrd PATH")
+    return [mode]
+
+
+def viewer_sink(cfg: ScanConfig, viewer: str | None, *, default: str = "off",
+                rrd: str | None = None) -> Sink | None:
+    """The live-view sink ``--viewer`` (and ``--rrd``) ask for, or None for ``off``. A
+    served view that should stay up after the scan waits in :func:`hold_views`, after the
+    summary, not in the sink's ``close``."""
+    mode = viewer_mode(viewer, rrd, default=default)
     if mode == ["off"]:
         return None
     from sffscan.stages.viz_sink import viz_sink_for
 
     return viz_sink_for(cfg, mode)
+
+
+def hold_views(sinks: list[Sink] | None) -> None:
+    """A served live view that stays up after the scan (``waiting``: run from a terminal)
+    is kept until Enter; called after the summary is printed."""
+    for sink in sinks or ():
+        if not getattr(sink, "waiting", False):
+            continue
+        address = getattr(sink, "wait_at_end", "")
+        print(f"sffscan: scan done; the live view stays at {address} until you press Enter",
+              file=sys.stderr, flush=True)
+        try:
+            input()
+        except (EOFError, KeyboardInterrupt):
+            pass
+        finally:
+            sink.release()  # type: ignore[attr-defined]
 
 
 def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | None,
@@ -143,9 +181,10 @@ def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | Non
         return EXIT_INTERRUPTED
     if world is not None:
         evaluate_sim(report, world)
-    print(format_summary(report))
+    print(format_summary(report), flush=True)
     if account is not None:
         print(f"frames      {account.describe()}", flush=True)
+    hold_views(sinks)
     if account is not None and not account.complete:
         print(f"sffscan: INCOMPLETE: {account.describe()}; the mosaic at {report.output} has "
               "status 'incomplete'", file=sys.stderr)

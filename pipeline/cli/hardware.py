@@ -4,17 +4,23 @@ send frames over zmq to a running ``sffscan scan --source ADDRESS``)."""
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from typing import Any
 
 from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict, load_config
 
+log = logging.getLogger(__name__)
+
 
 def cmd_plan(args: argparse.Namespace) -> int:
     from sffscan.pipeline.hardware.planner import PlanError, format_plan, plan_scan
 
-    o = (load_config(args.config) if args.config else ScanConfig()).optics
+    cfg = load_config(args.config) if args.config else ScanConfig()
+    o = cfg.optics
+    # the scan header's thesis limit uses motion.pass_overlap: the same overlap here
+    overlap = args.overlap if args.overlap is not None else cfg.motion.pass_overlap
     pixel = args.pixel_um if args.pixel_um is not None else o.pixel_um
     if args.fov is not None:
         fov = (args.fov[0], args.fov[1])
@@ -24,7 +30,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     try:
         plan = plan_scan(fov_mm=fov, fps=args.fps if args.fps is not None else o.fps,
                          n_levels=args.levels if args.levels is not None else o.n_levels,
-                         overlap=args.overlap, pixel_um=pixel,
+                         overlap=overlap, pixel_um=pixel,
                          area_mm=(args.area[0], args.area[1]), direction=args.direction,
                          speed_mm_s=args.speed)
     except PlanError as err:
@@ -66,7 +72,7 @@ def cmd_grab(args: argparse.Namespace) -> int:
         from sffscan.stages.sim.scanner import simulate_frames
 
         frames = simulate_frames(cfg)
-    print(f"grab: {cfg.source.kind} frames to {address}", file=sys.stderr)
+    log.info("grab: %s frames to %s", cfg.source.kind, address)
     sender = FrameSender(address, hwm=args.hwm, bind=args.bind,
                          keys_dir=keys_dir_of(cfg, getattr(args, "keys", None)))
     ok = False
@@ -103,8 +109,9 @@ def register(sub: Any) -> None:
     p.add_argument("--pixel-um", type=float, help="object-side pixel scale, µm/px")
     p.add_argument("--fps", type=float, help="frame rate, frames/s")
     p.add_argument("--levels", type=int, help="focus levels N")
-    p.add_argument("--overlap", type=float, default=0.15,
-                   help="overlap between stacks and passes, fraction (default 0.15)")
+    p.add_argument("--overlap", type=float, default=None,
+                   help="overlap between stacks and passes, fraction (default: "
+                        "motion.pass_overlap of --config, else 0.15)")
     p.add_argument("--direction", choices=["x", "y"], default="x",
                    help="camera axis of the motion (default x)")
     p.add_argument("--area", type=float, nargs=2, default=[100.0, 100.0],

@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
+import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -43,6 +46,10 @@ from sffscan.pipeline.config import (
     load_config,
 )
 
+log = logging.getLogger(__name__)
+
+EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE, what a shell reports for a writer killed by it
+
 #: Modules that add sub-commands; each defines ``register(sub)``.
 COMMAND_MODULES: tuple[str, ...] = (
     "sffscan.pipeline.cli.record", "sffscan.pipeline.cli.hardware",
@@ -54,7 +61,7 @@ def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_de
     from sffscan.pipeline.preflight import preflight
     from sffscan.pipeline.sources import open_feed
 
-    print(describe(cfg), file=sys.stderr)
+    log.info(describe(cfg))
     source = getattr(args, "source", None)
     # every check before anything is created or deleted (--overwrite included)
     preflight(cfg, record=getattr(args, "record", None),
@@ -64,7 +71,8 @@ def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_de
               file=sys.stderr)
         return EXIT_OK
     feed = open_feed(cfg, source=getattr(args, "source", None))
-    sinks = [k for k in (viewer_sink(cfg, args.viewer, default=viewer_default),) if k]
+    view = viewer_sink(cfg, args.viewer, default=viewer_default, rrd=args.rrd)
+    sinks = [view] if view is not None else []
     if getattr(args, "record", None):
         from sffscan.stages.recorder import recorder_sink
 
@@ -94,24 +102,31 @@ def cmd_config(args: argparse.Namespace) -> int:
     text = config_to_toml(cfg)
     if args.output:
         Path(args.output).write_text(text, encoding="utf-8")
-        print(f"wrote {args.output}", file=sys.stderr)
+        log.info("wrote %s", args.output)
     else:
         print(text)
     return EXIT_OK
 
 
 def cmd_schemas(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.formats.schema_gen import check_schemas, write_schemas
+    from sffscan.pipeline.formats.schema_gen import (
+        check_schemas,
+        packaged_schema_dir,
+        write_schemas,
+    )
 
+    folder = Path(args.dir) if args.dir is not None else packaged_schema_dir()
+    which = "" if args.dir is not None else " (the packaged copy)"
     if args.check:
-        stale = check_schemas(Path(args.dir))
+        stale = check_schemas(folder)
         if stale:
-            print("schemas out of date: " + ", ".join(stale) + " (run 'sffscan schemas')",
-                  file=sys.stderr)
+            print(f"schemas in {folder}{which} out of date: " + ", ".join(stale)
+                  + " (run 'sffscan schemas" + (f" --dir {args.dir}'" if args.dir else "'")
+                  + ")", file=sys.stderr)
             return EXIT_FAILED
-        print("schemas up to date")
+        print(f"schemas in {folder}{which} up to date")
         return EXIT_OK
-    for path in write_schemas(Path(args.dir)):
+    for path in write_schemas(folder):
         print(f"wrote {path}")
     return EXIT_OK
 
@@ -121,6 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="sffscan",
         description="Shape-from-focus in continuous motion: scan a part while it prints and "
                     "write a Zarr height mosaic.")
+    parser.add_argument("--version", action="version", version=f"sffscan {_version()}")
+    _log_options(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo", help="simulated scan of the characterisation plate at 15 mm/s",
@@ -150,22 +167,100 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="write to this file instead of stdout")
     p.set_defaults(func=cmd_config)
 
-    p = sub.add_parser("schemas", help="write (or --check) the JSON Schemas in schemas/")
-    p.add_argument("--dir", default="schemas", help="schema folder (default schemas)")
+    p = sub.add_parser("schemas", help="write (or --check) the JSON Schemas",
+                       description="Write the JSON Schemas generated from the typed models, "
+                                   "or --check that a folder holds them unchanged. Default "
+                                   "folder: the installed package's copy (sffscan.schemas; "
+                                   "the checkout's schemas/ in an editable install), "
+                                   "whatever the current folder; the output names it.")
+    p.add_argument("--dir", default=None,
+                   help="schema folder (default: the packaged copy, sffscan.schemas)")
     p.add_argument("--check", action="store_true", help="fail if the files differ")
     p.set_defaults(func=cmd_schemas)
     for module in COMMAND_MODULES:
         importlib.import_module(module).register(sub)
+    for p in sub.choices.values():  # -q / -v after the sub-command too
+        _log_options(p)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
     try:
-        return int(args.func(args))
-    except (ConfigError, OSError) as err:  # bad configuration, or an unusable path
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return version("sffscan")
+    except PackageNotFoundError:  # pragma: no cover - a source tree, not installed
+        return "0+unknown"
+
+
+def _log_options(p: argparse.ArgumentParser) -> None:
+    """``-q`` / ``-v``; SUPPRESS defaults, so the sub-command's parser does not reset what
+    was given before the sub-command (a sub-command that defines its own keeps it)."""
+    for flags, kw in ((("-q", "--quiet"), {"action": "store_true",
+                                           "help": "warnings and errors only; no progress "
+                                                   "display"}),
+                      (("-v", "--verbose"), {"action": "count",
+                                             "help": "debug messages too, each with its "
+                                                     "logger's name"})):
+        try:
+            p.add_argument(*flags, default=argparse.SUPPRESS, **kw)  # type: ignore[arg-type]
+        except argparse.ArgumentError:
+            pass
+
+
+#: Options whose value may start with '-' (a world px box left of the origin):
+#: ``--region -1299,-16,0,100`` is passed on as ``--region=-1299,-16,0,100``, which argparse
+#: would otherwise take for an unknown option.
+NEGATIVE_VALUE_OPTIONS = ("--region",)
+_BOX = re.compile(r"^-?\d+(\s*,\s*-?\d+){3}$")
+
+
+def _joined_values(argv: Sequence[str]) -> list[str]:
+    out: list[str] = []
+    args = list(argv)
+    i = 0
+    while i < len(args):
+        a = args[i]
+        if a in NEGATIVE_VALUE_OPTIONS and i + 1 < len(args) and _BOX.match(args[i + 1]):
+            out.append(f"{a}={args[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
+def _pipe_closed() -> int:
+    """stdout's reader went away (``| head``): point stdout at /dev/null so that the
+    interpreter's last flush is silent, and end without a message."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # no real file descriptor (captured in tests)
+        pass
+    return EXIT_PIPE_CLOSED
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from sffscan.pipeline.cli.logsetup import cli_logging, level_for
+
+    try:
+        args = build_parser().parse_args(_joined_values(sys.argv[1:] if argv is None else argv))
+        args.quiet = bool(getattr(args, "quiet", False))
+        args.verbose = int(getattr(args, "verbose", 0) or 0)
+        with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)):
+            try:
+                code = int(args.func(args))
+            except BrokenPipeError:
+                raise
+            except (ConfigError, OSError) as err:  # bad configuration, or an unusable path
+                print(f"sffscan: {err}", file=sys.stderr)
+                code = EXIT_BAD_INPUT
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's last flush
+        return code
+    except BrokenPipeError:
+        return _pipe_closed()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -28,6 +29,8 @@ from sffscan.pipeline.cli.common import (
 )
 
 UNIT_TO_UM = {"um": 1.0, "mm": 1000.0, "m": 1e6}
+
+log = logging.getLogger(__name__)
 
 
 def _fail(msg: str) -> int:
@@ -92,6 +95,11 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
     if args.focus_file:
         table = read_focus_positions(args.focus_file, scale_to_um=scale)
         source = str(args.focus_file)
+    elif args.focus_start is not None and args.focus_stop is not None:
+        if args.focus_step is not None:
+            raise ValueError("give --focus-step or --focus-stop, not both")
+        table = np.linspace(args.focus_start, args.focus_stop, n) * scale
+        source = "--focus-start/--focus-stop"
     elif args.focus_start is not None and args.focus_step is not None:
         table = (args.focus_start + args.focus_step * np.arange(n)) * scale
         source = "--focus-start/--focus-step"
@@ -100,7 +108,8 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
         source = f"{args.zarr}: attribute focus_heights_um"
     else:
         raise ValueError("focus positions missing: give --focus-file, or --focus-start and "
-                         "--focus-step (or a Zarr stack with a focus_heights_um attribute)")
+                         "--focus-step (or --focus-stop), or a Zarr stack with a "
+                         "focus_heights_um attribute")
     if table.size != n:
         raise ValueError(f"{source}: {table.size} focus positions for {n} images")
     # checked here, before the stack is processed, so that the message names the source
@@ -114,6 +123,27 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
         raise ValueError(f"{source}: focus positions must be strictly monotonic; position "
                          f"{k} ({table[k]:g} µm) follows {table[k - 1]:g} µm")
     return table
+
+
+def _image_order(args: argparse.Namespace) -> list[str]:
+    """The image files in focus order: natural order of their names (``im_2`` before
+    ``im_10``, whatever the shell's glob did), said in a status line, with a warning when the
+    names leave the order ambiguous; ``--keep-order`` keeps the order given."""
+    from sffscan.stages.fields.image_io import natural_order
+
+    given = [str(p) for p in args.images]
+    if args.keep_order or len(given) < 2:
+        return given
+    ordered, ambiguous = natural_order(given)
+    names = [p.name for p in ordered]
+    span = f"{names[0]}, {names[1]}, ... {names[-1]}" if len(names) > 2 else ", ".join(names)
+    moved = [str(p) for p in ordered] != given
+    log.info("stack: images in natural order of their names (%s)%s; --keep-order keeps the "
+             "order given", span, ", reordered" if moved else "")
+    if ambiguous:
+        log.warning("stack: the focus order of the images is ambiguous: %s. Check it, or give "
+                    "the files in focus order with --keep-order", ambiguous)
+    return [str(p) for p in ordered]
 
 
 def cmd_stack(args: argparse.Namespace) -> int:
@@ -136,7 +166,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
                 raise ValueError("give image files or --zarr, not both")
             stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
         else:
-            stack, zarr_table = read_image_stack(args.images), None
+            stack, zarr_table = read_image_stack(_image_order(args), grey=args.grey), None
         table = _focus_table(args, stack.shape[0], zarr_table)
         correction = _stack_correction(args)
         if correction is not None:
@@ -149,10 +179,10 @@ def cmd_stack(args: argparse.Namespace) -> int:
         max_value = None if args.bit_depth is None else float(2**args.bit_depth - 1)
         if not args.pixel_um > 0:
             raise ValueError(f"--pixel-um must be > 0, got {args.pixel_um}")
-        print(f"stack: {stack.shape[0]} images of {stack.shape[2]}x{stack.shape[1]} px "
-              f"{stack.dtype}, focus {table[0]:g} .. {table[-1]:g} µm; {settings.operator} "
-              f"k={settings.window}, {settings.method}, weighted median "
-              f"{settings.filter_size}x{settings.filter_size}", file=sys.stderr)
+        log.info(f"stack: {stack.shape[0]} images of {stack.shape[2]}x{stack.shape[1]} px "
+                 f"{stack.dtype}, focus {table[0]:g} .. {table[-1]:g} µm; {settings.operator} "
+                 f"k={settings.window}, {settings.method}, weighted median "
+                 f"{settings.filter_size}x{settings.filter_size}")
         t0 = time.perf_counter()
         result = reconstruct_field(stack, focus_heights_um=table, settings=settings,
                                    max_value=max_value)
@@ -214,10 +244,10 @@ def _stack_correction(args: argparse.Namespace):  # noqa: ANN202 - StackCorrecti
 
 
 def cmd_stopgo(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.progress import ProgressDisplay
     from sffscan.stages.fields.stop_and_go import (
         SimFieldCamera,
         plan_grid,
-        print_progress,
         run_stop_and_go,
     )
     from sffscan.stages.sim.camera import Optics, focus_heights
@@ -237,13 +267,18 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
         grid = plan_grid(x_um=(x0 * 1000, x1 * 1000), y_um=(y0 * 1000, y1 * 1000),
                          field_px=(optics.width, optics.height), pixel_um=args.pixel_um,
                          overlap_px=args.overlap_px)
-        print(f"stop-and-go: {len(grid)} fields of {optics.width}x{optics.height} px, overlap "
-              f">= {args.overlap_px} px, N = {zs.size} levels of {args.z_step_um:g} µm",
-              file=sys.stderr)
-        report = run_stop_and_go(camera, grid, args.output, settings=settings,
-                                 overlap_px=args.overlap_px, overwrite=args.overwrite,
-                                 progress=None if args.quiet else print_progress,
-                                 correction=correction)
+        log.info(f"stop-and-go: {len(grid)} fields of {optics.width}x{optics.height} px, "
+                 f"overlap >= {args.overlap_px} px, N = {zs.size} levels of "
+                 f"{args.z_step_um:g} µm")
+        display = None if args.quiet else ProgressDisplay(len(grid), desc="fields")
+        try:
+            report = run_stop_and_go(
+                camera, grid, args.output, settings=settings, overlap_px=args.overlap_px,
+                overwrite=args.overwrite, correction=correction,
+                progress=None if display is None else lambda d, _n, t: display.update(d, t))
+        finally:
+            if display is not None:
+                display.close()
     except ValueError as err:
         return _fail(str(err))
     except KeyboardInterrupt:
@@ -298,7 +333,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     print(format_report(report) + note)
     if args.json:
         Path(args.json).write_text(report.model_dump_json(indent=2) + "\n", encoding="utf-8")
-        print(f"wrote {args.json}", file=sys.stderr)
+        log.info("wrote %s", args.json)
     return EXIT_OK
 
 
@@ -339,12 +374,21 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("stack", help="reconstruct one field from a focus stack",
                        description="Height, all-in-focus image and confidence of one field "
                                    "from a focus stack, written as a mosaic Zarr group.")
-    p.add_argument("images", nargs="*", help="image files, one per focus level, in order")
+    p.add_argument("images", nargs="*",
+                   help="image files, one per focus level; taken in the natural order of "
+                        "their names (im_2 before im_10), see --keep-order")
+    p.add_argument("--keep-order", action="store_true",
+                   help="take the image files in the order given, not sorted by name")
+    p.add_argument("--grey", action="store_true",
+                   help="convert colour images to luma (ITU-R BT.601, as OpenCV's cvtColor); "
+                        "without it a colour image is refused")
     p.add_argument("--zarr", help="read the stack from this Zarr (N, H, W) array or group")
     p.add_argument("--array", help="array inside the Zarr group given with --zarr")
     p.add_argument("--focus-file", help="focus positions, one per image (text)")
     p.add_argument("--focus-start", type=float, help="focus position of the first image")
     p.add_argument("--focus-step", type=float, help="focus step between images")
+    p.add_argument("--focus-stop", type=float,
+                   help="focus position of the last image (with --focus-start: evenly spaced)")
     p.add_argument("--focus-unit", choices=sorted(UNIT_TO_UM), default="um",
                    help="unit of the focus positions (default um)")
     p.add_argument("--pixel-um", type=float, required=True, help="object pixel size, µm/px")
@@ -381,7 +425,6 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--plate-length-mm", type=float, default=24.0)
     p.add_argument("--plate-width-mm", type=float, default=4.0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("-q", "--quiet", action="store_true")
     p.add_argument("--realistic", action="store_true",
                    help="real-lens optics as 'demo --realistic' (breathing, field curvature, "
                         "vignetting)")

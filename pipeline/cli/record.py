@@ -11,6 +11,7 @@ mosaic (status, tiles complete / incomplete, journal).
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,10 +35,16 @@ from sffscan.pipeline.formats.recording import (
     open_recording,
 )
 
+log = logging.getLogger(__name__)
+
 
 def _print_report(rec: Recording) -> None:
+    """The recording's report: what it holds as status lines, each defect as a warning."""
     for line in rec.report.lines():
-        print(line, file=sys.stderr)
+        if line.startswith(("recording ", "frames ", "frame_id ")):
+            log.info(line)
+        else:
+            log.warning(line)
 
 
 def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
@@ -51,8 +58,8 @@ def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
     except ValueError as err:
         print(f"sffscan: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    print(f"resuming {writer.path}: {writer.done} writes done, {len(writer.rebuild)} torn "
-          "region(s) to rebuild", file=sys.stderr)
+    log.info("resuming %s: %d writes done, %d torn region(s) to rebuild", writer.path,
+             writer.done, len(writer.rebuild))
     return run_and_report(cfg, rec.frames(realtime=args.realtime), world=None,
                           progress=not args.quiet, sinks=sinks, writer=writer,
                           kept=f"{writer.path} can be resumed again; it holds what was completed",
@@ -73,11 +80,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.resume:
         args.overwrite = False
     cfg = override(rec.config, args)
-    print(describe(cfg), file=sys.stderr)
+    if not args.resume and not cfg.output.overwrite and Path(cfg.output.path).exists():
+        print(f"sffscan: -o {cfg.output.path}: exists; add --overwrite to replace it (or "
+              "--resume to complete an interrupted mosaic, or choose another path)",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    log.info(describe(cfg))
     from sffscan.pipeline.preflight import preflight
 
     preflight(cfg, resume=args.resume, simulated=False)  # before --overwrite deletes anything
-    sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off"),) if k]
+    sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off", rrd=args.rrd),) if k]
     if args.resume:
         code = _resume(cfg, rec, args, sinks)
     else:
@@ -91,11 +103,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
                               account=rec.account())
     out = Path(cfg.output.path)
     if out.exists() and code != EXIT_BAD_INPUT:
-        annotate_mosaic(out, rec)
+        try:
+            annotate_mosaic(out, rec)
+        except OSError as err:  # a full disk: the failure is the pipeline's (exit 1), not input
+            print(f"sffscan: {out}: cannot record which recording it was replayed from: {err}",
+                  file=sys.stderr)
+            code = code or EXIT_FAILED
     if rec.report.corrupt:  # found while reading the frames
-        print(f"sffscan: {len(rec.report.corrupt)} frame chunk(s) could not be decoded and "
-              f"were left out (lost frames): frame_id "
-              + ", ".join(map(str, rec.report.corrupt[:20])), file=sys.stderr)
+        log.warning("%d frame chunk(s) could not be decoded and were left out (lost "
+                    "frames): frame_id %s", len(rec.report.corrupt),
+                    ", ".join(map(str, rec.report.corrupt[:20])))
     if args.strict and rec.report.defects and code == EXIT_OK:
         return EXIT_FAILED
     return code

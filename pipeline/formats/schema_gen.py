@@ -1,11 +1,14 @@
 """JSON Schemas in ``schemas/``, generated from the typed models (the single source of truth).
 
 ``sffscan schemas`` writes them; ``sffscan schemas --check`` (and a test) fails when a
-committed file differs from what the models generate.
+committed file differs from what the models generate. Without ``--dir`` both work on the
+packaged copy (:func:`packaged_schema_dir`: the ``sffscan.schemas`` package, i.e. the
+checkout's ``schemas/`` folder in an editable install), whatever the current folder.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 import json
 from pathlib import Path
 from typing import Any
@@ -28,6 +31,11 @@ SCHEMAS: dict[str, type[BaseModel]] = {
     "transport_message.v1.json": TransportMessage,
     "compare_report.v1.json": CompareReport,
 }
+
+
+def packaged_schema_dir() -> Path:
+    """The folder of the installed ``sffscan.schemas`` package (its JSON files)."""
+    return Path(str(importlib.resources.files("sffscan.schemas")))
 
 
 def schema_text(model: type[BaseModel], filename: str) -> str:

@@ -108,8 +108,12 @@ def read_height_map(path: str | Path, *, array: str = "height") -> HeightMap:
         z = np.load(p, allow_pickle=False)
         return HeightMap(_as_2d(z, p), str(p))
     if suffix in (".tif", ".tiff"):
-        import tifffile
-
+        try:
+            import tifffile
+        except ImportError:
+            raise ValueError(f"{p}: reading a TIFF height map needs the Python package "
+                             "'tifffile', which is not installed here (pip install tifffile; "
+                             "or give the map as .npy)") from None
         return HeightMap(_as_2d(tifffile.imread(p), p), str(p))
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file or folder")

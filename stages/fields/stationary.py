@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from sffscan.stages.depth import (
     DEPTH_METHODS,
@@ -280,24 +279,24 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
 # ----------------------------------------------------------------------------- reading stacks
 
 
-def read_image_stack(paths: Sequence[str | Path]) -> np.ndarray:
-    """Read grey images (TIFF, PNG, ...) into an (N, H, W) stack, in the order given.
+def read_image_stack(paths: Sequence[str | Path], *, grey: bool = False) -> np.ndarray:
+    """Read grey images (TIFF, PNG, ...) into an (N, H, W) stack, in the order given, each
+    turned as its orientation tag says; ``grey`` converts colour images to luma
+    (:func:`sffscan.stages.fields.image_io.read_image`).
 
     Raises
     ------
     ValueError
-        If a file cannot be read, is not single-channel, or differs in shape or dtype from
-        the first (the message names the file).
+        If a file cannot be read, is colour without ``grey``, or differs in shape or dtype
+        from the first (the message names the file).
     """
+    from sffscan.stages.fields.image_io import read_image
+
     if len(paths) < 3:
         raise ValueError(f"a focus stack needs at least 3 images, got {len(paths)}")
     images: list[np.ndarray] = []
     for p in paths:
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ValueError(f"{p}: cannot read as an image")
-        if img.ndim != 2:
-            raise ValueError(f"{p}: expected a single-channel grey image, got shape {img.shape}")
+        img = read_image(p, grey=grey)
         if images and (img.shape != images[0].shape or img.dtype != images[0].dtype):
             raise ValueError(f"{p}: shape {img.shape} {img.dtype} differs from the first image's "
                              f"{images[0].shape} {images[0].dtype}")

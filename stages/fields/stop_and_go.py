@@ -23,7 +23,6 @@ sibling (the scanner's simulator, standing still).
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -307,12 +306,3 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
     writer.set_status("complete", valid_pixels=valid, blocks=done)
     return StopAndGoReport(done, valid, time.perf_counter() - start, writer.path)
 
-
-def print_progress(done: int, total: int, elapsed: float) -> None:
-    """Progress line on stderr: fields done, fields/s, time left."""
-    rate = done / elapsed if elapsed > 0 else 0.0
-    left = (total - done) / rate if rate > 0 else math.nan
-    print(f"\rfield {done}/{total}  {rate:.2f} fields/s  {left:.0f} s left", end="",
-          file=sys.stderr, flush=True)
-    if done == total:
-        print(file=sys.stderr)
