@@ -13,7 +13,9 @@ with the first call that needs them.
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
+import typing as _typing
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _version
 
 from sffscan.api import (
     focus_measure,
@@ -43,15 +45,43 @@ from sffscan.pipeline.messages import (
     PlacedFrame,
 )
 
+if _typing.TYPE_CHECKING:
+    from sffscan.pipeline.formats.recording import RecordingError
+    from sffscan.pipeline.runtime import StageFailed
+    from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.fields.stationary import FieldResult, StackSettings
+
 try:
-    __version__ = version("sffscan")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree, not installed
+    __version__ = _version("sffscan")
+except _PackageNotFoundError:  # pragma: no cover - running from a source tree, not installed
     __version__ = "0+unknown"
+
+#: Names of the API whose modules load zarr, OpenCV or torch: imported on first use.
+_LAZY = {
+    "FieldResult": "sffscan.stages.fields.stationary",
+    "RecordingError": "sffscan.pipeline.formats.recording",
+    "ScanReport": "sffscan.pipeline.wiring",
+    "StackSettings": "sffscan.stages.fields.stationary",
+    "StageFailed": "sffscan.pipeline.runtime",
+}
+
+
+def __getattr__(name: str) -> _typing.Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'sffscan' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "ConfigError",
     "DepthBlock",
     "DepthBlockHeader",
+    "FieldResult",
     "FocusFrame",
     "Frame",
     "FrameHeader",
@@ -61,8 +91,12 @@ __all__ = [
     "OutputConfig",
     "PlacedFrame",
     "ProcessingConfig",
+    "RecordingError",
     "ScanConfig",
+    "ScanReport",
     "SourceConfig",
+    "StackSettings",
+    "StageFailed",
     "__version__",
     "demo_config",
     "focus_measure",

@@ -89,6 +89,9 @@ def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
 
     cfg = config if isinstance(config, ScanConfig) else load_config(config)
     cfg = _with(cfg, output=output, overwrite=overwrite, processing=processing)
+    if evaluate and (frames is not None or cfg.source.kind != "sim"):
+        raise ValueError("evaluate=True needs the simulated source (source.kind = 'sim') "
+                         "and frames=None")
     world = None
     if frames is None:
         feed = open_feed(cfg)
