@@ -49,6 +49,7 @@ from pydantic import ValidationError
 from sffscan.pipeline.formats.ngff import mosaic_ngff
 from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
 from sffscan.pipeline.runtime import Stage
+from sffscan.stages.durable import free_reserve, make_reserve
 from sffscan.stages.mosaic_pyramid import (
     create_pyramid,
     default_levels,
@@ -228,6 +229,8 @@ class MosaicWriter:
         if attrs:
             raise ValueError(f"unknown mosaic attributes: {sorted(attrs)}")
         self.group.update_attributes(header.model_dump(mode="json"))
+        # room for the final status even on a full disk (freed by set_status; issue 13)
+        make_reserve(self.path)
         self.blocks_written = 0
         self.writes = 0  # write_region calls so far, in stream order
         self.done = 0  # writes already in the mosaic when it was reopened
@@ -284,6 +287,7 @@ class MosaicWriter:
         self.valid_px = count_valid(mosaic_array(group, "height"))
         for box in self.rebuild:
             self._reset(box)
+        make_reserve(self.path)  # room for the final status even on a full disk
         return self
 
     def _journal(self, **changes: Any) -> None:
@@ -376,6 +380,7 @@ class MosaicWriter:
             status = "failed" if status == "complete" else status
             extra["rebuild"] = [list(b) for b in self.rebuild]
         attrs = MosaicAttrs.model_validate({**self.group.attrs.asdict(), "status": status, **extra})
+        free_reserve(self.path)  # the final status is written even when the disk is full
         self.group.update_attributes(attrs.model_dump(mode="json"))
 
 

@@ -289,3 +289,25 @@ def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureF
     finally:
         with contextlib.suppress(Exception):
             subprocess.run(["umount", str(mnt)], check=False)
+
+
+def test_real_disk_full_under_a_replays_mosaic(tmp_path: Path, two_pass: tuple[Path, Path],
+                                               capsys: pytest.CaptureFixture) -> None:
+    """The mosaic's disk fills up during a replay: exit 1 (a stage failed, as documented),
+    status 'failed' (written from the mosaic's reserve), the mosaic still readable."""
+    rec, _ = two_pass
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(mnt)],
+                          capture_output=True, check=False)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.decode().strip()}")
+    try:
+        out = mnt / "m.zarr"
+        assert main(["replay", str(rec), "-o", str(out), "-q"]) == 1
+        assert "No space left on device" in capsys.readouterr().err
+        assert _attrs(out)["status"] == "failed"
+        assert main(["info", str(out)]) == 0
+    finally:
+        with contextlib.suppress(Exception):
+            subprocess.run(["umount", str(mnt)], check=False)

@@ -175,6 +175,12 @@ def cmd_info(args: argparse.Namespace) -> int:
           f"codec {a.codec or 'unknown'}, written by {a.writer or 'unknown'} "
           f"{a.created or ''}".rstrip())
     print(f"rate        {rate:.1f} frames/s (from the time stamps)")
+    planned = rec.account().planned
+    print(f"expected    {planned} frames ("
+          + ("the live scan's count" if a.frames_planned is not None else "the plan's")
+          + f"), {rec.report.frames} usable: a replay would be "
+          + ("complete" if planned is not None and rec.report.frames >= planned
+             else "incomplete"))
     print(describe(rec.config))
     p = rec.config.processing
     print(f"processing  {p.focus_operator} k={p.window}, {p.depth_method}, registration "
