@@ -139,6 +139,11 @@ class ProcessingConfig(_Model):
         "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um")
     queue_capacity: int = Field(8, ge=1, le=4096, description="Capacity of every inter-stage queue")
     block_columns: int = Field(128, ge=1, le=65536, description="Columns reduced to depth at once")
+    execution: Literal["auto", "threads", "processes"] = Field(
+        "auto", description="How the stages run: 'processes' = groups of stages in worker "
+        "processes with frames in shared memory (uses several cores), 'threads' = one "
+        "process (debugging, tiny scans), 'auto' = processes for scans of at least 2e8 "
+        "pixels on a machine with 2 or more cores, without a live viewer")
 
     @field_validator("focus_operator", mode="before")
     @classmethod

@@ -57,6 +57,12 @@ class PipelineStopped(Exception):
     """Raised inside a stage's wait when another stage has failed."""
 
 
+class PipelineCancelled(Exception):
+    """:meth:`Pipeline.run` ended because :meth:`Pipeline.cancel` was called (another part
+    of a multi-process pipeline failed or was interrupted); every stage was closed as
+    failed."""
+
+
 class StageFailed(RuntimeError):
     """A stage raised; the pipeline stopped. ``stage`` names it, ``__cause__`` is the error."""
 
@@ -278,6 +284,7 @@ class Pipeline:
         on_progress: Callable[[list[StageStats], float], None] | None = None,
         progress_s: float = 1.0,
         sinks: list[Sink] | None = None,
+        stop: threading.Event | None = None,
     ) -> None:
         if not stages:
             raise ValueError("a pipeline needs at least a source stage")
@@ -291,7 +298,8 @@ class Pipeline:
             if unknown:
                 raise ValueError(f"sink '{k.name}' taps unknown stages {sorted(unknown)}")
         self.stages = stages
-        self.stop = threading.Event()
+        self.stop = stop if stop is not None else threading.Event()
+        self.cancelled = False
         policies = policies or {}
         self.queues = [
             BoundedQueue(
@@ -387,6 +395,12 @@ class Pipeline:
                 self._errors.append((stage.name, exc))
             self.stop.set()
 
+    def cancel(self) -> None:
+        """Stop every stage at its next wait; :meth:`run` closes them as failed and raises
+        :class:`PipelineCancelled` (unless a stage failed: then :class:`StageFailed`)."""
+        self.cancelled = True
+        self.stop.set()
+
     def _snapshot(self, elapsed: float) -> None:
         snap = StatsSnapshot(elapsed, tuple(copy.copy(s) for s in self.stats + self.sink_stats),
                              tuple(copy.copy(q.stats) for q in self.queues + self.sink_queues))
@@ -440,11 +454,13 @@ class Pipeline:
                 t.join()
             self._close_all(failed=True)
             raise
-        failed = bool(self._errors)
+        failed = bool(self._errors) or self.cancelled
         close_error = self._close_all(failed=failed)
         if self._errors:
             name, exc = self._errors[0]
             raise StageFailed(name, exc) from exc
+        if self.cancelled:
+            raise PipelineCancelled()
         if close_error is not None:
             raise StageFailed(*close_error) from close_error[1]
         extras = {s.name: s.extra_stats() for s in self.stages + self.sinks}

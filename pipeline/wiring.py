@@ -19,9 +19,11 @@ from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.metrology.evaluate import Accuracy, mosaic_accuracy
+from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline, PipelineResult, Sink, Stage
+from sffscan.pipeline.scan_processes import process_pipeline, use_processes
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import DepthStage
 from sffscan.stages.frame_source import SourceStage
@@ -124,8 +126,12 @@ def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | N
         writer.account = account.status
     stages = build_stages(cfg, frames, writer)
     prog = Progress(frame_count(cfg)) if progress else None
-    pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
-                    sinks=sinks)
+    pipe: Pipeline | ProcessPipeline
+    if use_processes(cfg, list(sinks or [])):
+        pipe = process_pipeline(cfg, stages, sinks=list(sinks or []), on_progress=prog)
+    else:
+        pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
+                        sinks=sinks)
     try:
         result = pipe.run()
     finally:

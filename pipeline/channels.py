@@ -1,0 +1,163 @@
+"""Stage-to-stage channels between processes: bounded queues of JSON messages.
+
+A channel carries :mod:`sffscan.pipeline.wire` messages (JSON headers; arrays stay in
+shared-memory slots) from one process to another through a bounded
+``multiprocessing.Queue`` of ``capacity`` messages. :class:`SendStage` is the last stage of
+a process's chain: it encodes each item and puts it, blocking while the channel is full
+(``block``) or dropping the new item and counting it (``drop_newest``); every wait has a
+timeout and re-checks the pipeline's stop flag. :class:`RecvStage` is the first stage of the
+next process's chain: it yields the decoded items until the end of stream.
+:class:`ForwardSink` taps stages like any sink and sends what it gets to a sink hosted in
+its own process.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+from sffscan.pipeline.runtime import (
+    END_OF_STREAM,
+    FullPolicy,
+    PipelineStopped,
+    QueueStats,
+    Sink,
+    Stage,
+)
+from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
+from sffscan.pipeline.wire import decode, discard, encode
+
+#: longest single wait of a channel before the stop flag is checked again, s
+WAIT_S = 0.25
+
+
+class _Sender:
+    def __init__(self, name: str, q: Any, capacity: int, policy: FullPolicy,
+                 pools: Sequence[SlotPool], stop: threading.Event) -> None:
+        if policy is FullPolicy.DROP_OLDEST:
+            raise ValueError(f"channel '{name}': drop_oldest cannot be done across processes "
+                             "(the sender cannot take back a message); use drop_newest")
+        self.q = q
+        self.pools = pools
+        self.stop = stop
+        self.policy = policy
+        self.stats = QueueStats(name, capacity, policy.value)
+
+    def send(self, item: Any, *, extra: dict[str, Any] | None = None) -> None:
+        try:
+            data = encode(item, self.pools, self.stop.is_set, extra=extra)
+        except PoolStopped:
+            raise PipelineStopped(self.stats.name) from None
+        eos = item is END_OF_STREAM
+        if self.policy is FullPolicy.DROP_NEWEST and not eos:
+            try:
+                self.q.put(data, block=False)
+            except queue.Full:
+                discard(data, self.pools)
+                self.stats.dropped += 1
+                return
+        else:
+            while True:
+                if self.stop.is_set():
+                    discard(data, self.pools)
+                    raise PipelineStopped(self.stats.name)
+                try:
+                    self.q.put(data, timeout=WAIT_S)
+                    break
+                except queue.Full:
+                    continue
+        self.stats.puts += 1
+        try:
+            fill = self.q.qsize()
+        except NotImplementedError:  # macOS
+            fill = 0
+        self.stats.fill_sum += fill
+        self.stats.max_fill = max(self.stats.max_fill, fill)
+
+
+class SendStage(Stage):
+    """Last stage of a process's chain: sends every item to the next process."""
+
+    def __init__(self, name: str, q: Any, *, capacity: int, pools: Sequence[SlotPool],
+                 stop: threading.Event, policy: FullPolicy = FullPolicy.BLOCK,
+                 count_of: Stage | None = None) -> None:
+        self.name = f"send:{name}"
+        self._sender = _Sender(name, q, capacity, policy, pools, stop)
+        self._count_of = count_of
+
+    @property
+    def stats(self) -> QueueStats:
+        return self._sender.stats
+
+    def _extra(self) -> dict[str, Any] | None:
+        if self._count_of is None:
+            return None
+        return {"done": getattr(self._count_of, "received", 0)}
+
+    def process(self, item: Any) -> Iterator[Any]:
+        self._sender.send(item, extra=self._extra())
+        return iter(())
+
+    def finish(self) -> Iterator[Any]:
+        self._sender.send(END_OF_STREAM, extra=self._extra())
+        return iter(())
+
+
+class RecvStage(Stage):
+    """First stage of a process's chain: the items another process sends, to the end of
+    stream. ``received`` counts them; ``done`` is the sender's progress figure."""
+
+    def __init__(self, name: str, q: Any, *, pools: Sequence[SlotPool],
+                 stop: threading.Event, producers: int = 1) -> None:
+        self.name = f"recv:{name}"
+        self.q = q
+        self.pools = pools
+        self.stop = stop
+        self.producers = producers
+        self.received = 0
+        self.done = 0
+
+    def produce(self) -> Iterator[Any]:
+        ended = 0
+        while ended < self.producers:
+            try:
+                data = self.q.get(timeout=WAIT_S)
+            except queue.Empty:
+                if self.stop.is_set():
+                    raise PipelineStopped(self.name) from None
+                continue
+            item, extra = decode(data, self.pools)
+            self.done = extra.get("done", self.done)
+            if item is END_OF_STREAM:
+                ended += 1
+                continue
+            self.received += 1
+            yield item
+
+
+class ForwardSink(Sink):
+    """Taps stages like a local sink and forwards the items to a sink in another process."""
+
+    def __init__(self, name: str, taps: tuple[str, ...], q: Any, *, capacity: int,
+                 policy: FullPolicy, pools: Sequence[SlotPool], stop: threading.Event) -> None:
+        self.name = name
+        self.taps = taps
+        self.capacity = capacity
+        # the local queue blocks; the channel applies the sink's own policy
+        self.policy = FullPolicy.BLOCK if policy is FullPolicy.BLOCK else FullPolicy.DROP_NEWEST
+        self._sender = _Sender(f"{'+'.join(taps)}->{name}", q, capacity, self.policy, pools,
+                               stop)
+
+    @property
+    def stats(self) -> QueueStats:
+        return self._sender.stats
+
+    def process(self, item: Any) -> Iterator[Any]:
+        self._sender.send(item)
+        return iter(())
+
+    def finish(self) -> Iterator[Any]:
+        self._sender.send(END_OF_STREAM)
+        return iter(())

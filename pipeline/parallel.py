@@ -1,0 +1,585 @@
+"""Process execution: groups of stages in worker processes, frames in shared memory.
+
+    main process                 worker "registration"        worker "focus"             main
+    source -> speed_shift -> ch1 -> registration -> ch2 -> focus_measure -> depth -> ch3 -> mosaic
+           \\-> ForwardSink -> ch4 -> recorder (own process)
+
+Each worker runs its group of stages with the thread runtime (:class:`Pipeline`), between a
+:class:`~sffscan.pipeline.channels.RecvStage` and a
+:class:`~sffscan.pipeline.channels.SendStage`; the main process runs the head (the source)
+and the tail (the mosaic writer, which owns the output) the same way. Workers are started
+with the ``spawn`` context (no fork of a process with torch or OpenCV threads) and build
+their stages themselves from a factory named ``"module:function"`` and JSON arguments (the
+scan configuration): no stage and no pixel is pickled.
+
+Correctness rules kept from the thread runtime:
+
+- a stage that raises, in any process, stops every process: the worker reports the stage
+  and the cause (type, message) to the main process, which sends a stop order down a pipe
+  to every worker; every other chain leaves at its next wait, every stage's ``close``
+  runs (the mosaic is marked 'failed' and stays readable) and :meth:`ProcessPipeline.run` raises
+  :class:`StageFailed` with that name and cause;
+- Ctrl-C: workers ignore SIGINT; the main process sends the stop order, closes its
+  stages, joins the workers (then terminates what is left) and re-raises;
+- ``kill -9`` of the main process: each worker asked the kernel for SIGKILL when its
+  parent dies (``PR_SET_PDEATHSIG``) and also leaves when its stop pipe reaches end of
+  file or ``os.getppid()`` changes;
+  the shared-memory segments were unlinked as soon as the workers had attached, so
+  nothing is left in ``/dev/shm``.
+
+Memory is bounded by the pools: ``sum(slots * slot_bytes)``, fixed at start (see
+:func:`sffscan.pipeline.wiring.ring_plan` for the scan pipeline's formula).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import faulthandler
+import importlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sffscan.pipeline.channels import ForwardSink, RecvStage, SendStage
+from sffscan.pipeline.messages import Frame
+from sffscan.pipeline.runtime import (
+    FullPolicy,
+    Pipeline,
+    PipelineCancelled,
+    PipelineResult,
+    PipelineStopped,
+    QueueStats,
+    Sink,
+    Stage,
+    StageFailed,
+    StageStats,
+)
+from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
+
+log = logging.getLogger(__name__)
+
+#: longest wait for the workers to import and build their stages, s
+START_TIMEOUT_S = 300.0
+#: how long a worker gets to finish after the abort before it is terminated, s
+JOIN_TIMEOUT_S = 10.0
+#: capacity of the queues between the stages inside one process (the channels between
+#: processes have the pipeline's ``capacity``)
+INNER_CAPACITY = 2
+_PR_SET_PDEATHSIG = 1
+
+
+@dataclass(frozen=True)
+class WorkerGroup:
+    """Stages run together in one worker process, built there by ``factory(**kwargs)``.
+
+    ``factory`` is ``"module:function"`` returning a list of stages (or, for a hosted
+    sink, one :class:`Sink`); ``kwargs`` must be JSON-able. ``stages`` names what the
+    factory builds, in order (for the statistics).
+    """
+
+    label: str
+    factory: str
+    kwargs: dict[str, Any]
+    stages: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class HostedSink:
+    """A sink run in its own process, fed through a shared-memory channel."""
+
+    name: str
+    taps: tuple[str, ...]
+    capacity: int
+    policy: FullPolicy
+    factory: str
+    kwargs: dict[str, Any]
+
+
+class RemoteError(RuntimeError):
+    """The cause of a failure in a worker, when its exception type cannot be rebuilt."""
+
+    def __init__(self, type_name: str, message: str, remote_traceback: str) -> None:
+        super().__init__(message)
+        self.type_name = type_name
+        self.remote_traceback = remote_traceback
+
+
+def _rebuild(info: dict[str, Any]) -> BaseException:
+    """The worker's exception: the same type when it takes one message, else RemoteError."""
+    try:
+        mod = importlib.import_module(info["module"])
+        cls = getattr(mod, info["type"])
+        if isinstance(cls, type) and issubclass(cls, Exception):
+            exc = cls(info["message"])
+            if str(exc) == info["message"]:
+                return exc
+    except Exception:  # noqa: BLE001, S110 - any type that cannot be rebuilt is wrapped
+        pass
+    err = RemoteError(info["type"], info["message"], info.get("traceback", ""))
+    return err
+
+
+def _call(factory: str, kwargs: dict[str, Any]) -> Any:
+    module, _, func = factory.partition(":")
+    return getattr(importlib.import_module(module), func)(**kwargs)
+
+
+def _stats_json(st: StageStats) -> dict[str, Any]:
+    return {"name": st.name, "unit": st.unit, "items_in": st.items_in,
+            "items_out": st.items_out, "frames": st.frames, "busy_s": st.busy_s,
+            "cpu_s": st.cpu_s}
+
+
+def _queue_json(q: QueueStats) -> dict[str, Any]:
+    return {"name": q.name, "capacity": q.capacity, "policy": q.policy, "puts": q.puts,
+            "dropped": q.dropped, "max_fill": q.max_fill, "fill_sum": q.fill_sum}
+
+
+def _internal(name: str) -> bool:
+    return name.startswith(("recv:", "send:")) or "recv:" in name or "send:" in name
+
+
+def _die_with_parent(parent: int) -> None:
+    """Ask the kernel to SIGKILL this process when its parent dies (Linux)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before prctl: leave now
+        os._exit(1)
+
+
+def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any]],
+                syncs: list[tuple[Any, Any]], in_q: Any, out_q: Any, results: Any,
+                control: Any, parent: int, producers: int = 1) -> None:
+    """Entry point of a worker process (``spawn``): build, report ready, run, report.
+
+    ``control`` is the read end of a pipe from the main process: a message there stops the
+    worker's chain (another part failed); end of file means the main process is gone.
+    """
+    _die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    faulthandler.register(signal.SIGUSR1)  # kill -USR1 <pid>: the worker's stacks on stderr
+    label = group["label"]
+    pools = [SlotPool(PoolSpec.from_json(s), sync, create=False)
+             for s, sync in zip(pool_specs, syncs, strict=True)]
+    stop = threading.Event()
+    done = threading.Event()
+    aborted = threading.Event()
+
+    def report(msg: dict[str, Any]) -> None:
+        results.put(json.dumps({"label": label, **msg}))
+
+    def watch() -> None:
+        while not done.is_set():
+            try:
+                if not control.poll(0.5):
+                    if os.getppid() != parent:
+                        os._exit(1)
+                    continue
+                control.recv_bytes()
+            except (EOFError, OSError):  # the main process is gone: nothing to report to
+                os._exit(1)
+            aborted.set()
+            pipe.cancel()
+            return
+
+    try:
+        built = _call(group["factory"], group["kwargs"])
+        stages: list[Stage] = [built] if kind == "sink" else list(built)
+        recv = RecvStage(label, in_q, pools=pools, stop=stop, producers=producers)
+        chain: list[Stage] = [recv, *stages]
+        if out_q is not None:
+            chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
+                                   stop=stop, count_of=recv))
+        pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop)
+    except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
+        report({"kind": "error", "stage": label, **_exc_info(exc)})
+        return
+    report({"kind": "ready"})
+    watcher = threading.Thread(target=watch, name="abort-watch", daemon=True)
+    watcher.start()
+    try:
+        result = pipe.run()
+    except StageFailed as err:
+        aborted.set()
+        report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
+    except PipelineCancelled:
+        report({"kind": "cancelled"})
+    else:
+        send = chain[-1]
+        report({"kind": "done",
+                "channel": _queue_json(send.stats) if isinstance(send, SendStage) else None,
+                "stages": [_stats_json(s) for s in result.stages if not _internal(s.name)],
+                "queues": [_queue_json(q) for q in result.queues if not _internal(q.name)],
+                "extras": {k: v for k, v in result.extras.items() if not _internal(k)}})
+    finally:
+        done.set()
+        if out_q is not None and aborted.is_set():
+            out_q.cancel_join_thread()  # nobody will read what is left
+        for p in pools:
+            p.close()
+
+
+def _exc_info(exc: BaseException) -> dict[str, Any]:
+    return {"type": type(exc).__name__, "module": type(exc).__module__, "message": str(exc),
+            "traceback": "".join(traceback.format_exception(exc))[-4000:]}
+
+
+class PooledSource(Stage):
+    """The source stage, its frames copied once into the frame pool (then passed on by
+    reference to every process and sink)."""
+
+    def __init__(self, inner: Stage, pool: SlotPool, stop: threading.Event) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.unit = inner.unit
+        self.pool = pool
+        self.stop = stop
+
+    def produce(self) -> Iterator[Any]:
+        for frame in self.inner.produce():
+            img = frame.image
+            if self.pool.locate(img) is None:
+                try:
+                    slot = self.pool.acquire(self.stop.is_set)
+                except PoolStopped:
+                    raise PipelineStopped(self.name) from None
+                view = self.pool.array(slot, offset=0, shape=img.shape, dtype=img.dtype.str)
+                np.copyto(view, img, casting="no")
+                frame = Frame(frame.header, view)
+            yield frame
+
+    def close(self, *, failed: bool) -> None:
+        self.inner.close(failed=failed)
+
+    def extra_stats(self) -> dict[str, Any]:
+        return self.inner.extra_stats()
+
+
+class _Abort:
+    """The main process's stop order to every worker: one pipe each (a worker polls its
+    read end; end of file there means the main process died)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._writers: list[Any] = []
+        self._readers: list[Any] = []
+
+    def pipe(self, ctx: Any) -> Any:
+        r, w = ctx.Pipe(duplex=False)
+        self._readers.append(r)
+        self._writers.append(w)
+        return r
+
+    def started(self) -> None:
+        """The workers have their read ends: close ours."""
+        for r in self._readers:
+            r.close()
+        self._readers.clear()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def set(self) -> None:
+        if self.event.is_set():
+            return
+        self.event.set()
+        for w in self._writers:
+            with contextlib.suppress(OSError):
+                w.send_bytes(b"stop")
+
+    def close(self) -> None:
+        self.started()
+        for w in self._writers:
+            w.close()
+        self._writers.clear()
+
+
+@dataclass
+class _Worker:
+    label: str
+    proc: Any
+    stages: tuple[str, ...]
+    report: dict[str, Any] | None = None
+    ready: bool = False
+
+
+@dataclass
+class ProcessPipeline:
+    """head (main) -> groups (one worker process each) -> tail (main), plus sinks.
+
+    Parameters
+    ----------
+    head, tail : list of Stage
+        Run in the main process: ``head[0]`` is the source; ``tail`` gets the last group's
+        output (it may own files that must be closed here, like the mosaic writer).
+    groups : list of WorkerGroup
+        The chain's middle, one worker process each, in order.
+    pools : list of (label, slots, slot_bytes, kinds)
+        Shared-memory pools; an array that is not in a pool yet goes into the smallest
+        slot it fits of a pool taking its message type (``kinds``: "frame", "placed",
+        "focus", "block"). The first pool must take "frame": the source's frames are
+        written into it once and passed on by reference.
+    capacity : int
+        Messages each channel between processes holds.
+    sinks : list of Sink
+        Local sinks (threads of the main process) tapping head or tail stages.
+    hosted : list of HostedSink
+        Sinks in their own process tapping head stages.
+    """
+
+    head: list[Stage]
+    groups: list[WorkerGroup]
+    tail: list[Stage]
+    pools: list[tuple[str, int, int, tuple[str, ...]]]
+    capacity: int = 8
+    sinks: list[Sink] = field(default_factory=list)
+    hosted: list[HostedSink] = field(default_factory=list)
+    on_progress: Callable[[list[StageStats], float], None] | None = None
+    progress_s: float = 1.0
+
+    def run(self) -> PipelineResult:
+        ctx = mp.get_context("spawn")
+        specs = [new_spec(label, slots=n, slot_bytes=b, kinds=k) for label, n, b, k in self.pools]
+        syncs = [(ctx.Lock(), ctx.Semaphore(s.slots)) for s in specs]
+        pools: list[SlotPool] = []
+        workers: list[_Worker] = []
+        abort = _Abort()
+        results = ctx.Queue()
+        stop = threading.Event()
+        t_start = time.perf_counter()  # wall_s counts from the workers' readiness
+        try:
+            for s, sync in zip(specs, syncs, strict=True):
+                pools.append(SlotPool(s, sync, create=True))
+            chans = [ctx.Queue(self.capacity) for _ in range(len(self.groups) + 1)]
+            sink_qs = [ctx.Queue(k.capacity) for k in self.hosted]
+            pj = [s.to_json() for s in specs]
+            for i, g in enumerate(self.groups):
+                spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
+                        "capacity": self.capacity}
+                p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
+                                args=(spec, "stages", pj, syncs, chans[i], chans[i + 1],
+                                      results, abort.pipe(ctx), os.getpid()), daemon=True)
+                workers.append(_Worker(g.label, p, g.stages))
+            for k, q in zip(self.hosted, sink_qs, strict=True):
+                spec = {"label": k.name, "factory": k.factory, "kwargs": k.kwargs}
+                p = ctx.Process(target=worker_main, name=f"sffscan-{k.name}",
+                                args=(spec, "sink", pj, syncs, q, None, results,
+                                      abort.pipe(ctx), os.getpid()), daemon=True)
+                workers.append(_Worker(k.name, p, (k.name,)))
+            for w in workers:
+                w.proc.start()
+            abort.started()
+            self._await_ready(workers, results)
+            for p in pools:  # every process has mapped them: no name is left behind
+                p.unlink()
+            startup_s = time.perf_counter() - t_start
+            result = self._run(pools, workers, chans, sink_qs, results, abort, stop,
+                               time.perf_counter())
+            result.extras["processes"] = {"workers": len(workers),
+                                          "startup_s": round(startup_s, 2),
+                                          "shared_memory_MB": round(sum(
+                                              s.total_bytes for s in specs) / 1e6, 1)}
+            return result
+        except BaseException:
+            abort.set()
+            stop.set()
+            raise
+        finally:
+            abort.set()
+            self._join(workers)
+            abort.close()
+            for p in pools:
+                p.close()
+
+    # -- start and stop ------------------------------------------------------------------
+    def _await_ready(self, workers: list[_Worker], results: Any) -> None:
+        t0 = time.monotonic()
+        while not all(w.ready for w in workers):
+            self._poll(workers, results, timeout=0.25)
+            for w in workers:
+                if w.report is not None and w.report["kind"] == "error":
+                    raise StageFailed(w.report["stage"], _rebuild(w.report))
+                if not w.ready and not w.proc.is_alive():
+                    raise StageFailed(w.label, RuntimeError(
+                        f"worker process exited with code {w.proc.exitcode} while starting"))
+            if time.monotonic() - t0 > START_TIMEOUT_S:
+                raise StageFailed(workers[0].label, TimeoutError(
+                    f"worker processes not ready after {START_TIMEOUT_S:g} s"))
+
+    @staticmethod
+    def _poll(workers: list[_Worker], results: Any, *, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                msg = json.loads(results.get(timeout=max(0.0, deadline - time.monotonic())))
+            except Exception:  # noqa: BLE001 - queue.Empty: nothing more for now
+                return
+            for w in workers:
+                if w.label == msg["label"]:
+                    if msg["kind"] == "ready":
+                        w.ready = True
+                    elif w.report is None or w.report["kind"] != "error":
+                        w.report = msg
+
+    @staticmethod
+    def _join(workers: list[_Worker]) -> None:
+        deadline = time.monotonic() + JOIN_TIMEOUT_S
+        for w in workers:
+            if w.proc.pid is None:
+                continue
+            w.proc.join(max(0.1, deadline - time.monotonic()))
+            if w.proc.is_alive():
+                log.warning("worker %s did not stop within %g s: terminated", w.label,
+                            JOIN_TIMEOUT_S)
+                w.proc.terminate()
+                w.proc.join(5.0)
+                if w.proc.is_alive():
+                    w.proc.kill()
+                    w.proc.join()
+
+    # -- run -----------------------------------------------------------------------------
+    def _run(self, pools: list[SlotPool], workers: list[_Worker], chans: list[Any],
+             sink_qs: list[Any], results: Any, abort: _Abort, stop: threading.Event,
+             t_start: float) -> PipelineResult:
+        head_names = {s.name for s in self.head}
+        for k in self.hosted:
+            if not set(k.taps) <= head_names:
+                raise ValueError(f"hosted sink '{k.name}' may tap only the main process's "
+                                 f"head stages {sorted(head_names)}")
+        # each local chain has its own stop flag: a chain that ends sets it
+        head_stop, tail_stop = stop, threading.Event()
+        forwards: list[Sink] = [
+            ForwardSink(k.name, k.taps, q, capacity=k.capacity, policy=k.policy, pools=pools,
+                        stop=head_stop) for k, q in zip(self.hosted, sink_qs, strict=True)]
+        head_sinks = [k for k in self.sinks if set(k.taps) <= head_names]
+        tail_sinks = [k for k in self.sinks if k not in head_sinks]
+        send = SendStage(self.groups[0].label if self.groups else "tail", chans[0],
+                         capacity=self.capacity, pools=pools, stop=head_stop)
+        recv = RecvStage("tail", chans[-1], pools=pools, stop=tail_stop)
+        head_stages = [PooledSource(self.head[0], pools[0], head_stop), *self.head[1:]]
+        head = Pipeline([*head_stages, send], capacity=INNER_CAPACITY, stop=head_stop,
+                        sinks=head_sinks + forwards)
+        tail = Pipeline([recv, *self.tail], capacity=INNER_CAPACITY, stop=tail_stop,
+                        sinks=tail_sinks)
+        outcome: dict[str, Any] = {}
+
+        def run_local(key: str, pipe: Pipeline) -> None:
+            try:
+                outcome[key] = pipe.run()
+            except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+                outcome[key] = exc
+                abort.set()
+
+        threads = [threading.Thread(target=run_local, args=(k, p), name=f"local-{k}",
+                                    daemon=True) for k, p in (("head", head), ("tail", tail))]
+        for t in threads:
+            t.start()
+        remote = [StageStats(n) for w in workers[:len(self.groups)] for n in w.stages]
+        try:
+            while any(t.is_alive() for t in threads) or not all(
+                    w.report is not None for w in workers):
+                self._poll(workers, results, timeout=self.progress_s)
+                if abort.is_set() or any(
+                        (w.report is None and not w.proc.is_alive())
+                        or (w.report is not None and w.report["kind"] == "error")
+                        for w in workers):
+                    head.cancel()
+                    tail.cancel()
+                    abort.set()
+                    for t in threads:
+                        t.join()
+                    self._poll(workers, results, timeout=0.5)
+                    break
+                if self.on_progress is not None:
+                    if remote:
+                        remote[-1].frames = recv.done
+                    self.on_progress(head.stats[:-1] + remote + tail.stats[1:],
+                                     time.perf_counter() - t_start)
+        except BaseException:  # Ctrl-C or the progress display: stop everything cleanly
+            abort.set()
+            head.cancel()
+            tail.cancel()
+            for t in threads:
+                t.join()
+            raise
+        for t in threads:
+            t.join()
+        self._raise_failure(workers, outcome)
+        return self._result(head, tail, send, forwards, workers, outcome, t_start)
+
+    def _raise_failure(self, workers: list[_Worker], outcome: dict[str, Any]) -> None:
+        for key in ("head", "tail"):
+            exc = outcome.get(key)
+            if isinstance(exc, StageFailed):
+                raise exc
+        for w in workers:
+            if w.report is not None and w.report["kind"] == "error":
+                raise StageFailed(w.report["stage"], _rebuild(w.report))
+        for w in workers:
+            if w.report is None or w.report["kind"] != "done":
+                code = w.proc.exitcode
+                raise StageFailed(w.stages[0], RuntimeError(
+                    f"worker process '{w.label}' ended without finishing (exit code {code})"))
+        for key in ("head", "tail"):
+            exc = outcome.get(key)
+            if isinstance(exc, BaseException):
+                raise exc
+
+    def _result(self, head: Pipeline, tail: Pipeline, send: SendStage,
+                forwards: list[Sink], workers: list[_Worker], outcome: dict[str, Any],
+                t_start: float) -> PipelineResult:
+        rh: PipelineResult = outcome["head"]
+        rt: PipelineResult = outcome["tail"]
+        hosted = {k.name for k in self.hosted}
+        sink_names = tuple(k.name for k in self.sinks) + tuple(hosted)
+        stages = [s for s in rh.stages if not _internal(s.name) and s.name not in sink_names]
+        queues = [q for q in rh.queues if not _internal(q.name)
+                  and q.name.rsplit("->", 1)[-1] not in sink_names]
+        extras = {k: v for k, v in rh.extras.items() if not _internal(k)}
+        channel, prev = send.stats, self.head[-1].name
+        for w in workers:
+            rep = w.report or {}
+            if w.label in hosted:
+                continue
+            channel.name = f"{prev}->{w.stages[0]}"
+            stages += [StageStats(**s) for s in rep.get("stages", [])]
+            queues += [channel, *(QueueStats(**q) for q in rep.get("queues", []))]
+            extras.update(rep.get("extras", {}))
+            channel = QueueStats(**rep["channel"]) if rep.get("channel") else QueueStats(
+                "", self.capacity, "block")
+            prev = w.stages[-1]
+        channel.name = f"{prev}->{self.tail[0].name}"
+        queues.append(channel)
+        stages += [s for s in rt.stages if not _internal(s.name) and s.name not in sink_names]
+        queues += [q for q in rt.queues if not _internal(q.name)
+                   and q.name.rsplit("->", 1)[-1] not in sink_names]
+        extras.update({k: v for k, v in rt.extras.items() if not _internal(k)})
+        sink_stages = [s for s in rh.stages + rt.stages
+                       if s.name in sink_names and s.name not in hosted]
+        sink_queues = [q for q in rh.queues + rt.queues
+                       if q.name.rsplit("->", 1)[-1] in sink_names and not any(
+                           q.name.endswith("->" + h) for h in hosted)]
+        for k in forwards:
+            assert isinstance(k, ForwardSink)
+            rep = next((w.report or {} for w in workers if w.label == k.name), {})
+            sink_stages += [StageStats(**s) for s in rep.get("stages", [])]
+            sink_queues.append(k.stats)
+            waited = rh.extras.get(k.name, {}).get("pipeline_waited_s", 0.0)
+            extras[k.name] = {**rep.get("extras", {}).get(k.name, {}),
+                              "pipeline_waited_s": waited}
+        return PipelineResult(wall_s=time.perf_counter() - t_start,
+                              stages=stages + sink_stages, queues=queues + sink_queues,
+                              extras=extras, sinks=sink_names)

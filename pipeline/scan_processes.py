@@ -1,0 +1,153 @@
+r"""The scan pipeline in processes: which stages run where, and the shared-memory rings.
+
+    main:    source -> speed_shift --ch--> [registration] --ch--> [focus_measure -> depth]
+                    \-> recorder (own process, reads the same frame slots)       |
+    main:    mosaic <-------------------------------------------------------ch-----/
+
+The split follows the measured CPU per frame of the stages (bench/results.md: registration
+4.2 ms, focus measure 2.4 ms, depth 3.4 ms, mosaic 0.5 ms, source + speed shift 0.2 ms on
+the 2-core dev VM): registration, and focus measure with depth, are the two heavy halves,
+each in its own worker; the source and the mosaic writer stay in the main process (the
+writer may be a mosaic reopened to resume). The focus measure and depth share a worker
+because the focus frames are 2 float32 planes of every new column (5 MB a frame at full
+size): moving them between processes would cost more than it saves on 2 cores.
+
+Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan length:
+
+- frame ring: ``N + 40 + 2 * C + R`` slots of ``H * W * bytes_per_pixel`` (N focus
+  levels; C the channel capacity, ``processing.queue_capacity``; ``R = 2 * Cr + 4`` with
+  a recorder of channel capacity ``Cr = min(its queue, 32)``, else 0): the registration
+  holds N + 2 frames (its sliding window), every queue and channel on the way holds its
+  capacity, and each stage one in hand;
+- block ring: ``2 * C + 8`` slots of ``3 * (H + 2 * slack) * block_columns * 4`` bytes
+  (depth blocks: height, texture, confidence, float32).
+
+At the default optics (1280 x 1024, 10-bit, N = 50, C = 8) that is 106 frame slots
+(278 MB), 138 (362 MB) with the recorder, plus 24 block slots (38 MB).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any, cast
+
+import numpy as np
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.parallel import HostedSink, ProcessPipeline, WorkerGroup
+from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.runtime import Sink, Stage
+from sffscan.stages.mosaic import MosaicWriter
+
+log = logging.getLogger(__name__)
+
+#: ``execution = "auto"`` runs processes for scans of at least this many pixels
+AUTO_MIN_PIXELS = 2e8
+#: a hosted sink's channel holds at most this many frames
+HOSTED_SINK_CAPACITY = 32
+
+
+def _cfg(cfg: dict[str, Any]) -> ScanConfig:
+    return ScanConfig.model_validate(cfg)
+
+
+def _built(cfg: ScanConfig) -> dict[str, Stage]:
+    """Every stage of the scan pipeline by name, built as the thread mode builds them."""
+    from sffscan.pipeline.wiring import build_stages
+
+    stages = build_stages(cfg, iter(()), cast(MosaicWriter, None))
+    return {s.name: s for s in stages}
+
+
+def registration_group(cfg: dict[str, Any]) -> list[Stage]:
+    """Worker factory: the registration stage."""
+    return [_built(_cfg(cfg))["registration"]]
+
+
+def focus_group(cfg: dict[str, Any]) -> list[Stage]:
+    """Worker factory: the focus measure and depth stages."""
+    st = _built(_cfg(cfg))
+    return [st["focus_measure"], st["depth"]]
+
+
+def hosted_recorder(cfg: dict[str, Any], path: str, codec: str) -> Sink:
+    """Worker factory: the raw-stream recorder, in its own process."""
+    from sffscan.stages.recorder import recorder_sink
+
+    return recorder_sink(_cfg(cfg), path, codec=codec)
+
+
+def _hostable(sink: Sink) -> HostedSink | None:
+    """The recorder as a sink for its own process (its writer creates the recording at
+    the first frame, so the one built here is never opened); None for other sinks."""
+    from sffscan.stages.recorder import RecorderSink
+
+    if isinstance(sink, RecorderSink) and sink.writer.group is None:
+        w = sink.writer
+        return HostedSink(sink.name, tuple(sink.taps), min(sink.capacity, HOSTED_SINK_CAPACITY),
+                          sink.policy, "sffscan.pipeline.scan_processes:hosted_recorder",
+                          {"path": str(w.path), "codec": w.codec})
+    return None
+
+
+def ring_plan(cfg: ScanConfig, hosted: list[HostedSink]) -> list[tuple[str, int, int,
+                                                                        tuple[str, ...]]]:
+    """(label, slots, slot_bytes, message kinds) of the pools (module docstring)."""
+    o, p, m = cfg.optics, cfg.processing, cfg.motion
+    c = p.queue_capacity
+    frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
+    frames = o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 4 for k in hosted)
+    slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
+    block_bytes = 3 * (o.height_px + 2 * slack) * p.block_columns * 4 + 3 * 64
+    return [("frames", frames, frame_bytes, ("frame", "placed")),
+            ("blocks", 2 * c + 8, block_bytes, ("block",))]
+
+
+def use_processes(cfg: ScanConfig, sinks: list[Sink]) -> bool:
+    """Whether ``processing.execution`` (``auto`` resolved) asks for processes."""
+    mode = cfg.processing.execution
+    if mode == "threads":
+        return False
+    local = [k for k in sinks if _hostable(k) is None]
+    if mode == "auto":
+        o = cfg.optics
+        big = frame_count(cfg) * o.width_px * o.height_px >= AUTO_MIN_PIXELS
+        return big and (os.cpu_count() or 1) >= 2 and not local
+    return True
+
+
+def process_pipeline(cfg: ScanConfig, stages: list[Stage], *, sinks: list[Sink],
+                     on_progress: Any = None) -> ProcessPipeline:
+    """The scan's stages (:func:`sffscan.pipeline.wiring.build_stages`) in processes.
+
+    ``stages`` is the thread mode's chain: its stages up to the speed shift and after the
+    depth stage (the mosaic) run here; the workers build their own registration, focus
+    measure and depth from ``cfg``. The recorder runs in its own process; other sinks may
+    tap only the main process's stages (source, speed_shift, mosaic), else
+    :class:`ValueError`.
+    """
+    names = [s.name for s in stages]
+    # the head runs up to the speed shift (optics corrections of the frames included), the
+    # tail from after the depth stage (corrections of the blocks, the mosaic)
+    head = stages[:names.index("speed_shift") + 1]
+    tail = stages[names.index("depth") + 1:]
+    cj = cfg.model_dump(mode="json")
+    groups = []
+    if "registration" in names:
+        groups.append(WorkerGroup("registration", "sffscan.pipeline.scan_processes:"
+                                  "registration_group", {"cfg": cj}, ("registration",)))
+    groups.append(WorkerGroup("focus", "sffscan.pipeline.scan_processes:focus_group",
+                              {"cfg": cj}, ("focus_measure", "depth")))
+    hosted: list[HostedSink] = []
+    local: list[Sink] = []
+    for k in sinks:
+        h = _hostable(k)
+        if h is not None:
+            hosted.append(HostedSink(h.name, h.taps, h.capacity, h.policy, h.factory,
+                                     {**h.kwargs, "cfg": cj}))
+        else:
+            local.append(k)
+    return ProcessPipeline(
+        head=head, groups=groups, tail=tail, pools=ring_plan(cfg, hosted),
+        capacity=cfg.processing.queue_capacity, sinks=local, hosted=hosted,
+        on_progress=on_progress)

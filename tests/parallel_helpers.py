@@ -1,0 +1,99 @@
+"""Stages and child processes for tests/test_parallel.py (kept free of pytest, so that
+worker processes and child scans start fast)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.runtime import Stage
+
+
+class FrameNumbers(Stage):
+    """Source: ``n`` small uint16 frames whose pixels all equal their frame_id."""
+
+    name = "numbers"
+
+    def __init__(self, n: int, shape: tuple[int, int] = (16, 24)) -> None:
+        self.n = n
+        self.shape = shape
+
+    def produce(self) -> Iterator[Frame]:
+        for i in range(self.n):
+            hdr = FrameHeader(frame_id=i, timestamp_ns=i, focus_index=0)
+            yield Frame(hdr, np.full(self.shape, i, np.uint16))
+
+
+class Explode(Stage):
+    """Passes frames on; raises ValueError at frame ``at``."""
+
+    name = "explode"
+
+    def __init__(self, at: int) -> None:
+        self.at = at
+
+    def process(self, item: Frame) -> Iterator[Frame]:
+        if item.header.frame_id == self.at:
+            raise ValueError(f"frame_id {self.at}: boom")
+        yield item
+
+
+class Collect(Stage):
+    """Tail: keeps the frame ids and pixel sums it got; records how it was closed."""
+
+    name = "collect"
+
+    def __init__(self) -> None:
+        self.ids: list[int] = []
+        self.sums: list[int] = []
+        self.closed: bool | None = None
+
+    def process(self, item: Frame) -> Iterator[None]:
+        self.ids.append(item.header.frame_id)
+        self.sums.append(int(item.image.sum()))
+        return iter(())
+
+    def close(self, *, failed: bool) -> None:
+        self.closed = failed
+
+
+def explode_group(at: int) -> list[Stage]:
+    """Worker factory: one stage that fails at frame ``at``."""
+    return [Explode(at)]
+
+
+def pass_group() -> list[Stage]:
+    """Worker factory: one stage that passes every frame on."""
+    return [Explode(at=-1)]
+
+
+def failing_focus_group(cfg: dict[str, Any], at: int) -> list[Stage]:
+    """Worker factory: the scan's focus measure and depth stages; depth fails at frame
+    ``at`` with a FrameError (as for a frame it cannot place)."""
+    from sffscan.pipeline.messages import FocusFrame, FrameError
+    from sffscan.pipeline.scan_processes import focus_group
+
+    fm, depth = focus_group(cfg)
+    real = depth.process
+
+    def process(item: FocusFrame) -> Any:
+        if item.placed.header.frame_id == at:
+            raise FrameError(f"frame_id {at}: injected failure")
+        return real(item)
+
+    depth.process = process  # type: ignore[method-assign]
+    return [fm, depth]
+
+
+def run_cli(argv: list[str]) -> Any:
+    """``sffscan ARGV`` as a child process's whole life."""
+    from sffscan.pipeline.cli.main import main
+
+    raise SystemExit(main(argv))
+
+
+if __name__ == "__main__":
+    run_cli(sys.argv[1:])

@@ -1,0 +1,322 @@
+"""Process execution: shared-memory slots, messages, and the scan pipeline in processes.
+
+The scan tests run the small test optics (tests/scan_helpers.py) with
+``processing.execution = "processes"``: worker processes, frames in shared memory.
+"""
+
+from __future__ import annotations
+
+import gc
+import multiprocessing as mp
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.channels import RecvStage, SendStage
+from sffscan.pipeline.cli.common import run_and_report
+from sffscan.pipeline.config import config_to_toml, demo_config
+from sffscan.pipeline.messages import (
+    DepthBlock,
+    DepthBlockHeader,
+    FocusFrame,
+    Frame,
+    FrameHeader,
+    PlacedFrame,
+)
+from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
+from sffscan.pipeline.runtime import END_OF_STREAM, StageFailed, Tapped
+from sffscan.pipeline.scan_processes import ring_plan, use_processes
+from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.recorder import recorder_sink
+from sffscan.stages.sim.scanner import simulate_frames
+
+from tests.parallel_helpers import Collect, FrameNumbers
+from tests.scan_helpers import small_config
+
+ROOT = Path(__file__).resolve().parents[1]
+CTX = mp.get_context("spawn")
+
+
+def pool(slots: int = 4, slot_bytes: int = 4096, kinds: tuple[str, ...] = ()) -> SlotPool:
+    spec = new_spec("test", slots=slots, slot_bytes=slot_bytes, kinds=kinds)
+    return SlotPool(spec, (CTX.Lock(), CTX.Semaphore(slots)), create=True)
+
+
+def shm_names(pid: int | None = None) -> list[str]:
+    prefix = f"sffscan-{pid}-" if pid is not None else "sffscan-"
+    return sorted(n for n in os.listdir("/dev/shm") if n.startswith(prefix))
+
+
+# --- slots and messages --------------------------------------------------------------------
+
+
+def test_slot_is_released_when_its_last_view_is_gone() -> None:
+    p = pool()
+    try:
+        slot = p.acquire(lambda: False)
+        a = p.array(slot, offset=0, shape=(8, 8), dtype="<u2")
+        part = a[2:5, ::2]  # a view of a view keeps the slot too
+        del a
+        gc.collect()
+        assert p.held() == 1
+        del part
+        assert p.held() == 0
+        # every slot can be taken again, and a full pool waits, then stops on request
+        slots = [p.acquire(lambda: False) for _ in range(4)]
+        assert sorted(slots) == [0, 1, 2, 3]
+        with pytest.raises(PoolStopped):
+            p.acquire(lambda: True, wait_s=0.01)
+    finally:
+        p.close()
+
+
+def test_messages_round_trip_with_frames_passed_by_reference() -> None:
+    frames = pool(slots=4, slot_bytes=64 * 80 * 2, kinds=("frame", "placed"))
+    other = pool(slots=4, slot_bytes=1 << 16, kinds=("focus", "block"))
+    pools = [frames, other]
+    try:
+        rng = np.random.default_rng(1)
+        img = rng.integers(0, 1024, (64, 80), dtype=np.uint16)
+        hdr = FrameHeader(frame_id=7, timestamp_ns=123, focus_index=3, stage_x_um=0.1 + 0.2,
+                          stage_y_um=-4.25, pass_index=1)
+        # a frame not in a pool is copied into the frame pool (its kind), once
+        got, _ = decode(encode(Frame(hdr, img), pools, lambda: False), pools)
+        assert got.header == hdr and np.array_equal(got.image, img)
+        assert frames.locate(got.image) is not None and frames.held() == 1
+        # a placed frame whose image is a view into a slot goes by reference: no new slot
+        placed = PlacedFrame(hdr, got.image[:, 5:70], (1.0 / 3.0, 2.5), (10, -3), (0.1, 1e-17))
+        back, _ = decode(encode(placed, pools, lambda: False), pools)
+        assert frames.held() == 1
+        assert back.predicted_px == placed.predicted_px and back.offset_px == (10, -3)
+        assert back.correction_px == placed.correction_px
+        assert np.array_equal(back.image, img[:, 5:70])
+        assert np.shares_memory(back.image, got.image)
+        f01 = rng.random((64, 30), dtype=np.float32)
+        ff = FocusFrame(placed, f01, f01 * 2, 12)
+        b2, _ = decode(encode(Tapped("focus_measure", ff), pools, lambda: False), pools)
+        assert b2.stage == "focus_measure" and b2.item.col0 == 12
+        assert np.array_equal(b2.item.focus, f01 * 2) and other.held() == 1
+        bh = DepthBlockHeader(x0_px=3, y0_px=4, width_px=30, height_px=64, pass_index=0,
+                              complete_columns=30, incomplete_columns=0)
+        h = np.where(f01 > 0.5, f01, np.nan).astype(np.float32)
+        blk, _ = decode(encode(DepthBlock(bh, h, f01, f01), pools, lambda: False), pools)
+        assert blk.header == bh and np.array_equal(blk.height_um, h, equal_nan=True)
+        eos, extra = decode(encode(END_OF_STREAM, pools, lambda: False, extra={"done": 4}),
+                            pools)
+        assert eos is END_OF_STREAM and extra == {"done": 4}
+        data = encode(Frame(hdr, img), pools, lambda: False)
+        discard(data, pools)  # a message not delivered gives its slot back
+        del got, back, b2, blk, placed, ff
+        gc.collect()
+        assert frames.held() == 0 and other.held() == 0
+    finally:
+        frames.close()
+        other.close()
+
+
+def test_ring_plan_does_not_grow_with_the_scan() -> None:
+    short = demo_config(motion={"x_end_mm": 10.0})
+    long = demo_config(motion={"x_end_mm": 40.0})
+    assert ring_plan(short, []) == ring_plan(long, [])
+    (label, slots, slot_bytes, _), (_, bslots, bbytes, _) = ring_plan(long, [])
+    # N + 40 + 2 C frame slots of one 1280 x 1024 uint16 frame (module docstring)
+    assert (label, slots, slot_bytes) == ("frames", 50 + 40 + 16, 1280 * 1024 * 2)
+    assert bslots == 24 and bbytes >= 3 * 1024 * 128 * 4
+
+
+def test_auto_execution_picks_processes_only_for_large_scans() -> None:
+    assert not use_processes(small_config(), [])  # the tests' small scans stay in threads
+    big = demo_config()
+    assert use_processes(big, []) == ((os.cpu_count() or 1) >= 2)
+    assert not use_processes(demo_config(processing={"execution": "threads"}), [])
+
+
+# --- the process runtime ---------------------------------------------------------------------
+
+
+def test_a_failing_stage_in_a_worker_stops_every_process_with_its_name() -> None:
+    collect = Collect()
+    pipe = ProcessPipeline(
+        head=[FrameNumbers(200)],
+        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",)),
+                WorkerGroup("b", "tests.parallel_helpers:explode_group", {"at": 37},
+                            ("explode",))],
+        tail=[collect], pools=[("frames", 24, 16 * 24 * 2, ("frame",))], capacity=4)
+    with pytest.raises(StageFailed) as info:
+        pipe.run()
+    assert info.value.stage == "explode"
+    assert isinstance(info.value.cause, ValueError)
+    assert str(info.value.cause) == "frame_id 37: boom"
+    assert collect.closed is True  # the tail was closed as failed
+    assert collect.ids == list(range(len(collect.ids))) and len(collect.ids) <= 37
+    assert not mp.active_children()
+    assert shm_names(os.getpid()) == []
+
+
+def test_frames_cross_processes_unchanged_and_in_order() -> None:
+    collect = Collect()
+    result = ProcessPipeline(
+        head=[FrameNumbers(300)],
+        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",))],
+        tail=[collect], pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
+    assert collect.ids == list(range(300))
+    assert collect.sums == [i * 16 * 24 for i in range(300)]  # 6 slots reused 50 times
+    assert collect.closed is False
+    assert [s.name for s in result.stages] == ["numbers", "explode", "collect"]
+    assert result.extras["processes"]["workers"] == 1
+    assert shm_names(os.getpid()) == []
+
+
+def test_channel_stages_refuse_drop_oldest() -> None:
+    p = pool()
+    try:
+        from sffscan.pipeline.runtime import FullPolicy
+
+        with pytest.raises(ValueError, match="drop_oldest"):
+            SendStage("x", CTX.Queue(2), capacity=2, pools=[p], stop=__import__(
+                "threading").Event(), policy=FullPolicy.DROP_OLDEST)
+        assert RecvStage("x", CTX.Queue(2), pools=[p], stop=__import__(
+            "threading").Event()).name == "recv:x"
+    finally:
+        p.close()
+
+
+# --- the scan pipeline in processes --------------------------------------------------------
+
+
+def mosaic_arrays(path: Path) -> dict[str, np.ndarray]:
+    return {k: np.asarray(zarr.open_array(str(path / k), mode="r")[...])
+            for k in ("height", "texture", "weight", "confidence")}
+
+
+def test_process_mode_mosaic_is_bit_identical_to_thread_mode(tmp_path: Path) -> None:
+    base = small_config(motion={"x_end_mm": 8.0, "wobble_along_px": 1.0})
+    frames = list(simulate_frames(base))
+    out = {}
+    for mode in ("threads", "processes"):
+        cfg = small_config(motion={"x_end_mm": 8.0, "wobble_along_px": 1.0},
+                           processing={"execution": mode})
+        rec = recorder_sink(cfg, str(tmp_path / f"{mode}.rec.zarr"))
+        rep = run_scan(cfg, frames=iter(frames), output=tmp_path / f"{mode}.zarr",
+                       progress=False, sinks=[rec])
+        assert rep.frames == len(frames) and rep.result.dropped == 0
+        assert ("processes" in rep.result.extras) == (mode == "processes")
+        assert rep.result.extras["recorder"]["frames_recorded"] == len(frames)
+        out[mode] = mosaic_arrays(tmp_path / f"{mode}.zarr")
+        assert zarr.open_group(str(tmp_path / f"{mode}.zarr"), mode="r").attrs[
+            "status"] == "complete"
+    for k, a in out["threads"].items():
+        assert a.shape == out["processes"][k].shape
+        assert np.array_equal(a, out["processes"][k], equal_nan=True), k
+    assert np.isfinite(out["processes"]["height"]).sum() > 1000
+    # the recorder, in its own process, stored every frame bit for bit
+    from sffscan.pipeline.formats.recording import open_recording
+
+    got = list(open_recording(tmp_path / "processes.rec.zarr").frames())
+    assert [f.header for f in got] == [f.header for f in frames]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(got, frames, strict=True))
+
+
+def test_a_failing_worker_stage_fails_the_scan_exit_1_mosaic_readable(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from sffscan.pipeline import scan_processes, wiring
+
+    def with_failing_depth(cfg, stages, **kw):  # type: ignore[no-untyped-def]
+        pipe = scan_processes.process_pipeline(cfg, stages, **kw)
+        pipe.groups[-1] = WorkerGroup("focus", "tests.parallel_helpers:failing_focus_group",
+                                      {"cfg": cfg.model_dump(mode="json"), "at": 90},
+                                      ("focus_measure", "depth"))
+        return pipe
+
+    monkeypatch.setattr(wiring, "process_pipeline", with_failing_depth)
+    cfg = small_config(motion={"x_end_mm": 8.0}, processing={"execution": "processes"},
+                       output={"path": str(tmp_path / "m.zarr")})
+    assert run_and_report(cfg, simulate_frames(cfg), world=None, progress=False) == 1
+    err = capsys.readouterr().err
+    assert "stage 'depth' failed: FrameError: frame_id 90: injected failure" in err
+    g = zarr.open_group(str(tmp_path / "m.zarr"), mode="r")
+    assert g.attrs["status"] == "failed"
+    assert np.isfinite(mosaic_arrays(tmp_path / "m.zarr")["height"]).sum() > 0  # kept
+    assert not mp.active_children()
+
+
+def long_scan_args(tmp_path: Path) -> list[str]:
+    cfg = small_config(source={"plate_length_mm": 80.0}, motion={"x_end_mm": 78.0},
+                       processing={"execution": "processes"})
+    conf = tmp_path / "scan.toml"
+    conf.write_text(config_to_toml(cfg), encoding="utf-8")
+    return ["scan", "--config", str(conf), "--no-evaluate", "-q", "-o",
+            str(tmp_path / "m.zarr")]
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = Path(f"/proc/{d}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def start_scan(tmp_path: Path) -> tuple[subprocess.Popen[bytes], list[int]]:
+    """A process-mode scan in a child; returns once its two workers are streaming."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "tests.parallel_helpers",
+                             *long_scan_args(tmp_path)], cwd=ROOT, env=env,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline:
+        workers = [c for c in children(proc.pid)
+                   if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        if len(workers) >= 2 and not shm_names(proc.pid):  # attached: names unlinked
+            time.sleep(2.0)  # let frames flow
+            assert proc.poll() is None, "the scan ended before it could be interrupted"
+            return proc, workers
+        assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
+        time.sleep(0.2)
+    proc.kill()
+    raise AssertionError("the workers did not start")
+
+
+def test_ctrl_c_exits_130_with_everything_closed(tmp_path: Path) -> None:
+    proc, workers = start_scan(tmp_path)
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err.decode()
+    assert "interrupted" in err.decode()
+    assert not any(alive(w) for w in workers)
+    assert shm_names(proc.pid) == []
+    assert zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs["status"] == "failed"
+
+
+def test_kill_9_of_the_main_process_leaves_no_worker_and_no_shared_memory(
+        tmp_path: Path) -> None:
+    proc, workers = start_scan(tmp_path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=10)
+    t0 = time.monotonic()
+    while any(alive(w) for w in workers) and time.monotonic() - t0 < 5.0:
+        time.sleep(0.1)
+    assert not any(alive(w) for w in workers), "a worker outlived the main process by 5 s"
+    assert shm_names(proc.pid) == []
