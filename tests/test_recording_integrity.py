@@ -154,3 +154,37 @@ def test_a_malformed_mosaic_exits_2_naming_it(recorded: tuple[Path, int], tmp_pa
     assert str(mosaic) in capsys.readouterr().err
     assert main(["replay", str(src), "-o", str(mosaic), "-q", "--resume"]) == 2
     assert str(mosaic) in capsys.readouterr().err
+
+
+def test_the_recorder_makes_what_it_wrote_durable(tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """fsync of every frame chunk, header copy, metadata chunk and zarr.json, and of their
+    folders: at the interval (here: every write) and at close."""
+    from sffscan.stages import durable
+    from sffscan.stages.recorder import RecordingWriter
+    from sffscan.stages.sim.scanner import simulate_frames
+
+    from tests.test_transport import tiny_config
+
+    synced: list[tuple[Path, bool]] = []
+    monkeypatch.setattr(durable, "fsync_path",
+                        lambda path, directory=False: synced.append((Path(path), directory)))
+    cfg = tiny_config()
+    frames = [f for _, f in zip(range(5), simulate_frames(cfg), strict=False)]
+    root = tmp_path / "late.zarr"
+    writer = RecordingWriter(root, cfg, fsync_s=3600.0)
+    for frame in frames:
+        writer.write(frame)
+    assert synced == []  # within the interval: nothing forced yet
+    writer.close()
+    files = {str(p.relative_to(root)) for p, d in synced if not d}
+    dirs = {p for p, d in synced if d}
+    for i in range(5):
+        assert f"frames/c/{i}/0/0" in files and f"headers/c/{i}/0" in files
+    assert {"zarr.json", "frames/zarr.json", "frame_id/c/0", "timestamp_ns/c/0"} <= files
+    assert {root, root.parent, root / "frames" / "c" / "4" / "0"} <= dirs
+    synced.clear()
+    writer = RecordingWriter(tmp_path / "eager.zarr", cfg, fsync_s=0.0)
+    writer.write(frames[0])
+    assert any(str(p).endswith("frames/c/0/0/0") for p, _ in synced)  # at the first write
+    writer.close()
