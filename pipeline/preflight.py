@@ -10,7 +10,8 @@ feasibility); :func:`preflight` checks what depends on the machine and the comma
 - a ``--record`` path does not exist yet and its folder is writable;
 - the memory the pipeline needs (queues, focus volume, mosaic bands, recorder queue) fits in
   the memory available;
-- the simulated world can be built (source.kind ``sim``).
+- the simulated world can be built (source.kind ``sim``);
+- a transport receiver beyond loopback has its CURVE keys (``sffscan keys``).
 
 Every failure is a :class:`~sffscan.pipeline.config.ConfigError` naming the field or the path;
 ``sffscan scan``, ``demo`` and ``replay`` run it first, so ``--overwrite`` deletes nothing
@@ -162,14 +163,36 @@ def check_world(cfg: ScanConfig) -> None:
                           f"simulated world: {err}") from None
 
 
+def check_transport(cfg: ScanConfig, address: str | None) -> None:
+    """A receiver beyond loopback has its CURVE keys and authorised senders."""
+    if address is None and cfg.source.kind != "tcp":
+        return
+    from sffscan.pipeline.formats.transport import check_address, is_loopback
+    from sffscan.pipeline.formats.transport_auth import keys_dir_of, load_pair
+
+    address = check_address(address if address is not None else cfg.source.address)
+    if is_loopback(address):
+        return
+    folder = keys_dir_of(cfg)
+    load_pair(folder, "receiver")
+    if not any((folder / "authorized").glob("*.key")):
+        raise ConfigError(f"source.keys_dir {folder}: no authorised sender key in "
+                          f"{folder / 'authorized'} (make them with 'sffscan keys')")
+
+
 def preflight(cfg: ScanConfig, *, record: str | Path | None = None, resume: bool = False,
-              simulated: bool | None = None) -> None:
+              simulated: bool | None = None, source: str | None = None,
+              live: bool = True) -> None:
     """Every check of this module; raises :class:`ConfigError` at the first failure.
 
     ``simulated`` says whether the frames come from the simulator (default: when
-    ``source.kind`` is ``sim``); a replay or a tcp source builds no world.
+    ``source.kind`` is ``sim``); a replay or a tcp source builds no world. ``source`` is a
+    ``--source`` address; a ``live`` scan (not a replay) from a transport beyond loopback
+    has its CURVE keys checked.
     """
     _check_device(cfg)
+    if live:
+        check_transport(cfg, source)
     check_memory(cfg, recording=record is not None)
     if simulated if simulated is not None else cfg.source.kind == "sim":
         check_world(cfg)

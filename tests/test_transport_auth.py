@@ -211,3 +211,15 @@ def test_a_killed_sender_leaves_the_scan_incomplete_with_counts(
     rattrs = zarr.open_group(str(tmp_path / "r.zarr"), mode="r").attrs.asdict()
     assert (rattrs["status"], rattrs["frames_received"]) == ("incomplete", third)
     assert json.dumps(rattrs["frames_expected"]) == json.dumps(total)
+
+
+def test_a_receiver_beyond_loopback_without_keys_is_refused_before_anything(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tiny_config(path=str(tmp_path / "m.zarr"))
+    data = cfg.model_dump()
+    data["source"]["keys_dir"] = str(tmp_path / "nokeys")
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(type(cfg).model_validate(data)), encoding="utf-8")
+    assert main(["scan", "--config", str(toml), "-q", "--source", "tcp://0.0.0.0:5599"]) == 2
+    assert "sffscan keys" in capsys.readouterr().err
+    assert not (tmp_path / "m.zarr").exists()

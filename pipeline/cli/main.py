@@ -64,7 +64,7 @@ def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_de
     log.info(describe(cfg))
     source = getattr(args, "source", None)
     # every check before anything is created or deleted (--overwrite included)
-    preflight(cfg, record=getattr(args, "record", None),
+    preflight(cfg, record=getattr(args, "record", None), source=source,
               simulated=source is None and cfg.source.kind == "sim")
     if getattr(args, "check", False):
         print("configuration, device, paths and memory checked: ready to scan",

@@ -88,7 +88,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     log.info(describe(cfg))
     from sffscan.pipeline.preflight import preflight
 
-    preflight(cfg, resume=args.resume, simulated=False)  # before --overwrite deletes anything
+    # every check before --overwrite deletes anything
+    preflight(cfg, resume=args.resume, simulated=False, live=False)
     sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off", rrd=args.rrd),) if k]
     if args.resume:
         code = _resume(cfg, rec, args, sinks)
