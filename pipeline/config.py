@@ -136,7 +136,9 @@ class ProcessingConfig(_Model):
     device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
     calibration: str | None = Field(
         None, description="Calibration file (JSON, 'sffscan calibrate'): its z response maps "
-        "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um")
+        "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um; its "
+        "vignetting and magnification per level are corrected in the frames, its field "
+        "curvature in the heights")
     queue_capacity: int = Field(8, ge=1, le=4096, description="Capacity of every inter-stage queue")
     block_columns: int = Field(128, ge=1, le=65536, description="Columns reduced to depth at once")
     execution: Literal["auto", "threads", "processes"] = Field(

@@ -48,7 +48,8 @@ def processing_options(p: argparse.ArgumentParser) -> None:
                         + ", ".join(OPERATOR_CHOICES))
     p.add_argument("--window", type=int, help="focus measure window k, odd, px")
     p.add_argument("--calibration", metavar="FILE",
-                   help="calibration JSON ('sffscan calibrate'): focus level -> µm")
+                   help="calibration JSON ('sffscan calibrate'): its z response, vignetting, "
+                        "magnification per focus level and field curvature are corrected")
     p.add_argument("--viewer", metavar="MODE", default=None,
                    help="live view in Rerun, one word: spawn (native viewer), serve (web viewer on "
                         "this machine), save (to the --rrd file), auto (spawn where a display "
