@@ -38,7 +38,7 @@ touched it) and journals the rest; the result is bit for bit the uninterrupted m
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,8 +54,10 @@ from sffscan.stages.mosaic_pyramid import (
     create_pyramid,
     default_levels,
     pyramid_arrays,
+    read_many,
     resize_pyramid,
     update_pyramid,
+    write_many,
 )
 from zarr.codecs import BloscCodec, BloscShuffle
 
@@ -180,11 +182,6 @@ class MosaicWriter:
         default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
     """
 
-    #: what a ``complete`` status is checked against: returns the status to set
-    #: (``complete`` or ``incomplete``) and the frame counts (``frames_expected``,
-    #: ``frames_received``); see :mod:`sffscan.pipeline.completeness`
-    account: Callable[[], tuple[str, dict[str, Any]]] | None = None
-
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
                  overwrite: bool = False, codec: str = DEFAULT_CODEC,
@@ -198,7 +195,7 @@ class MosaicWriter:
                                       "empty folder; refusing to overwrite it")
         self.origin = origin_px
         self.chunk = chunk_px
-        levels = default_levels(shape, chunk_px) if levels is None else levels
+        levels = default_levels(shape) if levels is None else levels
         if levels < 1:
             raise ValueError(f"mosaic pyramid levels must be >= 1, got {levels}")
         compressors = mosaic_codecs(codec)
@@ -333,10 +330,9 @@ class MosaicWriter:
         self._ensure(r0 + rows, c0 + cols)
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
         arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
-        old = {name: np.asarray(arr[sel]) for name, arr in arrays.items()}
+        old = dict(zip(ARRAYS, read_many([(arrays[n], sel) for n in ARRAYS]), strict=True))
         out = blend(old, new)
-        for name, value in out.items():
-            arrays[name][sel] = value
+        write_many([(arrays[name], sel, value) for name, value in out.items()])
         self.valid_px += int(np.isfinite(out["height"]).sum() - np.isfinite(old["height"]).sum())
         self._update_pyramid(sel)
 
@@ -371,11 +367,6 @@ class MosaicWriter:
         self.blocks_written += 1
 
     def set_status(self, status: str, **extra: Any) -> None:
-        """Set the status; a ``complete`` one is checked against :attr:`account` (if set),
-        which may make it ``incomplete`` and adds the frame counts."""
-        if status == "complete" and self.account is not None:
-            status, counts = self.account()
-            extra.update(counts)
         if self.rebuild or self.writes < self.done:
             status = "failed" if status == "complete" else status
             extra["rebuild"] = [list(b) for b in self.rebuild]

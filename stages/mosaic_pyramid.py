@@ -19,7 +19,9 @@ the write's journal entry (the resume recomputes the box).
 
 from __future__ import annotations
 
+import asyncio
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -28,17 +30,24 @@ from sffscan.pipeline.formats.ngff import level_path
 
 #: fewest levels a mosaic gets (level 0 included)
 MIN_LEVELS = 4
+#: the top level's longest side, px, at most (when more than MIN_LEVELS are needed)
+TOP_PX = 1024
 #: most levels (a 2^9 = 512 px block per top-level pixel)
 MAX_LEVELS = 10
 
 Slices = tuple[slice, slice]
 
 
-def default_levels(shape: tuple[int, int], chunk_px: int) -> int:
-    """Levels for a mosaic of ``shape``: enough that the top level fits in about one chunk,
-    at least :data:`MIN_LEVELS`, at most :data:`MAX_LEVELS`."""
+def default_levels(shape: tuple[int, int]) -> int:
+    """Levels for a mosaic of ``shape``: enough that the top level's longest side is at most
+    :data:`TOP_PX`, at least :data:`MIN_LEVELS`, at most :data:`MAX_LEVELS`.
+
+    Each level costs a read-modify-write of its chunks at every band write
+    (``bench/bench_pyramid.py``), so there are no more levels than a viewer needs for an
+    overview: a 10^9-pixel mosaic (31623 px square) gets 6, the demo (1908 x 7304) 4.
+    """
     longest = max(1, *shape)
-    need = 1 + max(0, math.ceil(math.log2(longest / chunk_px))) if longest > chunk_px else 1
+    need = 1 + math.ceil(math.log2(longest / TOP_PX)) if longest > TOP_PX else 1
     return int(min(MAX_LEVELS, max(MIN_LEVELS, need)))
 
 
@@ -69,10 +78,43 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
     f = 2 ** (levels - 1)
     pr, pc = -(-rows // f) * f, -(-cols // f) * f
 
-    def padded(a: np.ndarray) -> np.ndarray:
-        out = np.zeros((pr, pc), np.float64)
-        out[:rows, :cols] = a
+    def padded(a: np.ndarray, dtype: type, where: np.ndarray | None = None) -> np.ndarray:
+        out = np.zeros((pr, pc), dtype)
+        np.copyto(out[:rows, :cols], a, where=True if where is None else where)
         return out
+
+    def halve(a: np.ndarray) -> np.ndarray:  # 2 x 2 block sums (slices: ~5x a 4-D sum)
+        return (a[0::2, 0::2] + a[1::2, 0::2]) + (a[0::2, 1::2] + a[1::2, 1::2])
+
+    sums: dict[str, np.ndarray] = {}
+    counts: dict[str, np.ndarray] = {}
+    for name in ("height", "texture"):
+        valid = np.isfinite(values[name])
+        sums[name] = padded(values[name], np.float64, valid)
+        counts[name] = padded(valid, np.float32)  # exact: at most 4^9 per element
+    sums["confidence"] = padded(values["confidence"], np.float64)
+    sums["weight"] = padded(values["weight"], np.float64)
+    # elements of the array (not padding) under each block: rows x columns present
+    rp = np.zeros(pr, np.float64)
+    cp = np.zeros(pc, np.float64)
+    rp[:rows], cp[:cols] = 1.0, 1.0
+
+    out = []
+    for k in range(1, levels):
+        sums = {n: halve(a) for n, a in sums.items()}
+        counts = {n: halve(a) for n, a in counts.items()}
+        rp, cp = rp[0::2] + rp[1::2], cp[0::2] + cp[1::2]
+        r, c = level_shape((rows, cols), k)
+        level: dict[str, np.ndarray] = {}
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for name in ("height", "texture"):
+                n = counts[name][:r, :c]
+                level[name] = np.where(n > 0, sums[name][:r, :c] / n, np.nan).astype(np.float32)
+            present = np.outer(rp[:r], cp[:c])
+            level["confidence"] = (sums["confidence"][:r, :c] / present).astype(np.float32)
+        level["weight"] = sums["weight"][:r, :c].astype(np.float32)
+        out.append(level)
+    return out
 
     sums: dict[str, np.ndarray] = {}
     counts: dict[str, np.ndarray] = {}
@@ -84,9 +126,8 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
     sums["weight"] = padded(values["weight"])
     present = padded(np.ones((rows, cols)))
 
-    def halve(a: np.ndarray) -> np.ndarray:
-        r, c = a.shape
-        return a.reshape(r // 2, 2, c // 2, 2).sum(axis=(1, 3))
+    def halve(a: np.ndarray) -> np.ndarray:  # 2 x 2 block sums (slices: ~5x a 4-D sum)
+        return (a[0::2, 0::2] + a[1::2, 0::2]) + (a[0::2, 1::2] + a[1::2, 1::2])
 
     out = []
     for k in range(1, levels):
@@ -103,6 +144,26 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
         level["weight"] = sums["weight"][:r, :c].astype(np.float32)
         out.append(level)
     return out
+
+
+def read_many(items: Sequence[tuple[zarr.Array, Slices]]) -> list[np.ndarray]:
+    """Read several array regions in one round trip of zarr's event loop (concurrently)."""
+    from zarr.core.sync import sync
+
+    async def run() -> list[Any]:
+        return list(await asyncio.gather(*(a.async_array.getitem(sel) for a, sel in items)))
+
+    return [np.asarray(v) for v in sync(run())]
+
+
+def write_many(items: Sequence[tuple[zarr.Array, Slices, np.ndarray]]) -> None:
+    """Write several array regions in one round trip of zarr's event loop (concurrently)."""
+    from zarr.core.sync import sync
+
+    async def run() -> None:
+        await asyncio.gather(*(a.async_array.setitem(sel, v) for a, sel, v in items))
+
+    sync(run())
 
 
 def pyramid_arrays(group: zarr.Group, names: tuple[str, ...], levels: int
@@ -162,11 +223,14 @@ def update_pyramid(level0: dict[str, zarr.Array], arrays: list[dict[str, zarr.Ar
     region = aligned(sel, (int(shape[0]), int(shape[1])), levels)
     if region[0].stop <= region[0].start or region[1].stop <= region[1].start:
         return
-    values = {name: np.asarray(arr[region]) for name, arr in level0.items()}
+    names = list(level0)
+    values = dict(zip(names, read_many([(level0[n], region) for n in names]), strict=True))
+    writes = []
     for k, (level, arrs) in enumerate(zip(downsample(values, levels), arrays, strict=True),
                                       start=1):
         f = 2 ** k
         r0, c0 = region[0].start // f, region[1].start // f
         for name, arr in arrs.items():
             v = level[name]
-            arr[r0:r0 + v.shape[0], c0:c0 + v.shape[1]] = v
+            writes.append((arr, (slice(r0, r0 + v.shape[0]), slice(c0, c0 + v.shape[1])), v))
+    write_many(writes)

@@ -86,9 +86,10 @@ def test_downsample_is_the_blockwise_reduction_not_a_mean_of_means() -> None:
 
 
 def test_default_levels() -> None:
-    assert default_levels((300, 700), 128) == 4  # at least 4
-    assert default_levels((12_000, 12_000), 256) == 7  # top level 188 px: about one chunk
-    assert default_levels((10**6, 10**6), 256) == 10  # at most 10
+    assert default_levels((300, 700)) == 4  # at least 4
+    assert default_levels((1908, 7304)) == 4  # the demo: top level 239 x 913
+    assert default_levels((31_623, 31_623)) == 6  # 10^9 px: top level 989 px
+    assert default_levels((10**6, 10**6)) == 10  # at most 10
 
 
 def _block(x0: int, y0: int, pass_index: int, rng: np.random.Generator, rows: int = 40,

@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field
 __all__ = ["NGFF_VERSION", "NgffAxis", "NgffDataset", "NgffMultiscale", "NgffOme",
            "level_path", "mosaic_ngff"]
 
-NGFF_VERSION = "0.5"
+NGFF_VERSION: Literal["0.5"] = "0.5"
 
 
 class NgffAxis(BaseModel):
@@ -70,7 +70,7 @@ class NgffOme(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    version: Literal["0.5"] = NGFF_VERSION
+    version: Literal["0.5"] = "0.5"
     multiscales: list[NgffMultiscale] = Field(min_length=1)
 
 

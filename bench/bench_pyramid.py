@@ -1,0 +1,115 @@
+"""Streaming cost of the mosaic's resolution pyramid: end-to-end frames/s with and without it.
+
+The frames of a recording are read into memory once (so neither the disk nor the
+decoding is the limit, which would hide the pyramid's cost) and run through the whole
+pipeline (``run_scan``: speed shift, registration, focus measure, focus volume, depth,
+mosaic) alternately with the
+pyramid (the default levels, updated after every band write) and without it (``levels=1``:
+level 0 only, the mosaic of format version 1 plus NGFF metadata). Runs are interleaved
+(ABBA...), so a change of the machine's load hits both variants alike; the 1-minute load
+average is recorded beside each run. Reported: median end-to-end frames/s of each variant,
+their ratio, and the mosaic stage's own busy time (where the pyramid's work happens).
+
+    python bench/bench_pyramid.py RECORDING [--pairs 3] [--dir /tmp]
+
+A demo-sized recording: ``sffscan demo --passes 2 --viewer off -o d.zarr --record rec.zarr``.
+Writes ``bench/pyramid_results.md`` and ``bench/pyramid_results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import shutil
+import statistics
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import zarr
+from sffscan.pipeline import wiring
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.messages import Frame
+from sffscan.stages.mosaic import MosaicWriter
+
+
+def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
+            ) -> dict[str, Any]:
+    # the pipeline's own writer factory, with the pyramid switched off for the baseline
+    factory = MosaicWriter if pyramid else functools.partial(MosaicWriter, levels=1)
+    load = os.getloadavg()[0]
+    orig = wiring.MosaicWriter
+    wiring.MosaicWriter = factory  # type: ignore[misc]
+    try:
+        report = wiring.run_scan(cfg, frames=iter(frames), output=out, overwrite=True,
+                                 progress=False)
+    finally:
+        wiring.MosaicWriter = orig  # type: ignore[misc]
+    r = report.result
+    mosaic = next(s for s in r.stages if s.name == "mosaic")
+    g = zarr.open_group(str(out), mode="r")
+    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])  # type: ignore[index]
+    shutil.rmtree(out)
+    return {"pyramid": pyramid, "levels": levels, "frames": report.frames,
+            "wall_s": r.wall_s, "fps": report.frames / r.wall_s,
+            "mosaic_busy_s": mosaic.busy_s, "mosaic_cpu_s": mosaic.cpu_s,
+            "load_1min_before": load, "load_1min_after": os.getloadavg()[0]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("recording", type=Path)
+    ap.add_argument("--pairs", type=int, default=3, help="pairs of runs (with, without)")
+    ap.add_argument("--dir", type=Path, default=None, help="folder of the temporary mosaics")
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "pyramid_results")
+    args = ap.parse_args()
+    rec = open_recording(args.recording)
+    frames = list(rec.frames())
+    runs = []
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        for i in range(args.pairs):
+            order = (True, False) if i % 2 == 0 else (False, True)  # ABBA...
+            for pyramid in order:
+                run = one_run(rec.config, frames, Path(tmp) / f"m{i}{int(pyramid)}.zarr",
+                              pyramid=pyramid)
+                runs.append(run)
+                print(f"pair {i} pyramid={pyramid!s:<5} levels {run['levels']}  "
+                      f"{run['fps']:.2f} frames/s  mosaic busy {run['mosaic_busy_s']:.2f} s  "
+                      f"load {run['load_1min_before']:.2f}", flush=True)
+    on = [r for r in runs if r["pyramid"]]
+    off = [r for r in runs if not r["pyramid"]]
+    med = {k: statistics.median(r["fps"] for r in v) for k, v in (("on", on), ("off", off))}
+    pair_ratios = [a["fps"] / b["fps"] for a, b in zip(on, off, strict=True)]
+    summary = {
+        "recording": str(args.recording), "frames": runs[0]["frames"],
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "fps_with_pyramid_median": med["on"], "fps_without_median": med["off"],
+        "ratio_of_medians": med["on"] / med["off"], "pair_ratios": pair_ratios,
+        "mosaic_busy_s_with": statistics.median(r["mosaic_busy_s"] for r in on),
+        "mosaic_busy_s_without": statistics.median(r["mosaic_busy_s"] for r in off),
+        "runs": runs,
+    }
+    args.out.with_suffix(".json").write_text(json.dumps(summary, indent=2))
+    lines = ["# Streaming cost of the mosaic pyramid", "",
+             f"`python bench/bench_pyramid.py {args.recording} --pairs {args.pairs}`, "
+             f"{summary['machine']}; {summary['frames']} frames per run (held in memory), runs "
+             "interleaved (ABBA); load = the 1-minute load average before the run.", "",
+             "| pair | pyramid | levels | frames/s | mosaic busy s | load (1 min) |",
+             "|---|---|---|---|---|---|"]
+    for i, r in enumerate(runs):
+        lines.append(f"| {i // 2} | {'yes' if r['pyramid'] else 'no'} | {r['levels']} | "
+                     f"{r['fps']:.2f} | {r['mosaic_busy_s']:.2f} | "
+                     f"{r['load_1min_before']:.2f} |")
+    lines += ["", f"Median frames/s: {med['on']:.2f} with the pyramid, {med['off']:.2f} "
+              f"without: ratio {summary['ratio_of_medians']:.3f} (pairs: "
+              + ", ".join(f"{x:.3f}" for x in pair_ratios) + ")."]
+    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
