@@ -220,19 +220,25 @@ def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
     flat = np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,))
     rows, cols = np.indices(shape, dtype=np.intp)
     base = (rows * st1 + cols * st2).reshape(-1)
-    vals, inside = [], []
+    vals, outside = [], []
     floor = np.full(pixels, np.inf, np.float32)
+    lowest, highest = (int(c.min()), int(c.max())) if pixels else (0, 0)
     for j in range(-half_window, half_window + 1):
         k = c + j
-        ok = (k >= 0) & (k < n)
         v = flat.take(np.clip(k, 0, n - 1) * st0 + base)
-        np.minimum(floor, np.where(ok, v, np.inf), out=floor)
+        out = None  # levels beyond the range: out of the floor and the sums
+        if lowest + j < 0 or highest + j > n - 1:
+            out = (k < 0) | (k > n - 1)
+            v[out] = np.inf
+        np.minimum(floor, v, out=floor)
         vals.append(v)
-        inside.append(ok)
+        outside.append(out)
     s0 = np.zeros(pixels, np.float32)
     s1 = np.zeros(pixels, np.float32)
-    for j, v, ok in zip(range(-half_window, half_window + 1), vals, inside, strict=True):
-        wgt = np.where(ok, v - floor, np.float32(0.0))
+    for j, v, out in zip(range(-half_window, half_window + 1), vals, outside, strict=True):
+        wgt = np.subtract(v, floor, out=v)
+        if out is not None:
+            wgt[out] = 0.0
         s0 += wgt
         if j:
             s1 += np.float32(j) * wgt

@@ -436,7 +436,10 @@ class FocusVolume:
                 median_size=self.median_size)
             if self.fv is not None:  # wcentroid: the levels about the filtered argmax
                 centre = median_filter_levels(argmax, self.median_size, self.n)
-                depth = windowed_centroid(self._gather(self.fv, a0, a1), centre)
+                inner = slice(u0 - a0, u1 - a0)  # the halo served the median only
+                depth = np.zeros(centre.shape, np.float32)
+                depth[:, inner] = windowed_centroid(self._gather(self.fv, u0, u1),
+                                                    centre[:, inner])
         else:
             vol = self._gather(self.fv, a0, a1)
             depth, conf = depth_from_focus(vol, method=self.method,
