@@ -208,6 +208,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         report({"kind": "error", "stage": label, **_exc_info(exc)})
         return
     report({"kind": "ready"})
+    cpu0 = time.process_time()
     watcher = threading.Thread(target=watch, name="abort-watch", daemon=True)
     watcher.start()
     try:
@@ -219,7 +220,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         report({"kind": "cancelled"})
     else:
         send = chain[-1]
-        report({"kind": "done",
+        report({"kind": "done", "cpu_s": time.process_time() - cpu0,
                 "channel": _queue_json(send.stats) if isinstance(send, SendStage) else None,
                 "stages": [_stats_json(s) for s in result.stages if not _internal(s.name)],
                 "queues": [_queue_json(q) for q in result.queues if not _internal(q.name)],
@@ -386,10 +387,14 @@ class ProcessPipeline:
             for p in pools:  # every process has mapped them: no name is left behind
                 p.unlink()
             startup_s = time.perf_counter() - t_start
+            cpu0 = time.process_time()
             result = self._run(pools, workers, chans, sink_qs, results, abort, stop,
                                time.perf_counter())
+            cpu = time.process_time() - cpu0 + sum((w.report or {}).get("cpu_s", 0.0)
+                                                   for w in workers)
             result.extras["processes"] = {"workers": len(workers),
                                           "startup_s": round(startup_s, 2),
+                                          "cpu_s": round(cpu, 3),
                                           "shared_memory_MB": round(sum(
                                               s.total_bytes for s in specs) / 1e6, 1)}
             return result

@@ -43,6 +43,8 @@ ALIGN = 64
 STARVED_S = 60.0
 #: a count update waiting longer than this for the lock means its holder died
 LOCK_S = 10.0
+_MADV_POPULATE_READ = 22  # linux/mman.h; not in Python 3.11's mmap module
+_MADV_POPULATE_WRITE = 23
 
 
 class PoolStopped(Exception):
@@ -111,6 +113,11 @@ class SlotPool:
         self.shm = shared_memory.SharedMemory(name=spec.name, create=create,
                                               size=spec.total_bytes if create else 0)
         self._unlinked = not create
+        # map every page now (Linux >= 5.14), not at each slot's first use while streaming:
+        # a page fault per 4 KiB of a frame costs about as much as copying the frame
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            self.shm._mmap.madvise(_MADV_POPULATE_WRITE if create  # type: ignore[attr-defined]
+                                   else _MADV_POPULATE_READ)
         self.refs = np.ndarray((spec.slots,), np.int32, buffer=self.shm.buf)
         if create:
             self.refs[:] = 0

@@ -39,11 +39,16 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
         return _tcp_feed(cfg, source)
     kind = cfg.source.kind
     if kind == "sim":
+        from sffscan.pipeline.sim_workers import parallel_sim_frames, render_workers
         from sffscan.stages.sim.scanner import make_world, simulate_frames
 
         world = make_world(cfg)
-        return FrameFeed(simulate_frames(cfg, world=world), "simulated scanner", world,
-                         FrameAccount(planned=planned_frames(cfg)))
+        workers = render_workers(cfg)
+        frames = (parallel_sim_frames(cfg, workers=workers) if workers
+                  else simulate_frames(cfg, world=world))
+        return FrameFeed(frames, "simulated scanner" + (
+            f" ({workers} render processes)" if workers else ""), world,
+            FrameAccount(planned=planned_frames(cfg)))
     if kind == "camera":
         from sffscan.stages.camera_source import camera_frames
 

@@ -139,6 +139,19 @@ def test_auto_execution_picks_processes_only_for_large_scans() -> None:
     assert not use_processes(demo_config(processing={"execution": "threads"}), [])
 
 
+def test_simulated_frames_rendered_by_workers_equal_the_serial_ones() -> None:
+    from sffscan.pipeline.sim_workers import noise_steps, parallel_sim_frames
+
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 4.0})
+    o = cfg.optics
+    assert noise_steps(cfg) == o.width_px * o.height_px // 4  # 16-bit noise indices
+    serial = list(simulate_frames(cfg))
+    par = list(parallel_sim_frames(cfg, workers=3))
+    assert [f.header for f in par] == [f.header for f in serial]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(par, serial, strict=True))
+    assert not mp.active_children()
+
+
 # --- the process runtime ---------------------------------------------------------------------
 
 

@@ -1,0 +1,256 @@
+"""Process execution benchmark (issue 12): frames/s end to end, threads against processes.
+
+One command, every configuration interleaved in one run (round-robin, ``--rounds`` times,
+median reported)::
+
+    python bench/bench_parallel.py            # about 4-5 min on the 2-core dev VM
+
+1280 x 1024 uint16 frames (10-bit), N = 50, k = 9, GLVM, SPC, registration on, Zarr
+mosaic. Each end-to-end run is a fresh process, pinned with ``os.sched_setaffinity`` to
+1 or 2 (or more, ``--cores``) CPUs before anything starts; worker processes inherit it.
+Cases:
+
+- frames from memory (distinct simulated frames, read into memory first), threads and
+  processes, on each core count;
+- the same with the recorder on: every frame recorded, then the recording is read back
+  and every frame compared with the one sent (outside the timing);
+- ``replay`` of a full-size recording (reading and decoding included), threads and
+  processes;
+- the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
+
+frames/s = frames / wall time of streaming (process mode: from the moment every worker is
+ready; the workers' start-up, mostly importing torch, is reported apart). CPU ms/frame
+is the whole process tree's while streaming (every worker included, start-up excluded).
+Writes ``--out`` (markdown) and the same figures as JSON beside it. The machine and its
+load average (before and after) are named.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_pipeline import (  # noqa: E402
+    ROOT,
+    bench_config,
+    frame_bank,
+    load_bank,
+    machine,
+    rate,
+    replay_frames,
+)
+from sffscan.pipeline.config import ScanConfig  # noqa: E402
+
+
+def case_config(case: dict[str, Any]) -> ScanConfig:
+    base = bench_config()
+    data = base.model_dump()
+    data["processing"].update(execution=case["mode"], depth_method="spc",
+                              focus_operator="glvm", window=9, registration=True)
+    return ScanConfig.model_validate(data)
+
+
+def make_recording(cache: Path, bank: Path, frames: int) -> Path:
+    """A full-size recording of the bank's first ``frames`` frames (made once, cached)."""
+    from sffscan.stages.recorder import RecordingWriter
+
+    path = cache / f"rec-u16-{frames}.zarr"
+    if path.is_dir() and (path / "zarr.json").is_file():
+        return path
+    cfg = bench_config()
+    tmp = cache / f"rec-u16-{frames}.part.zarr"
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    w = RecordingWriter(tmp, cfg)
+    for f in replay_frames(cfg, load_bank(cfg, bank, frames)):
+        w.write(f)
+    w.close(status="complete")
+    tmp.rename(path)
+    return path
+
+
+def run_case(case: dict[str, Any]) -> dict[str, Any]:
+    """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs."""
+    cpus = sorted(os.sched_getaffinity(0))[:case["cores"]]
+    os.sched_setaffinity(0, cpus)
+    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.wiring import run_scan
+    from sffscan.stages.recorder import recorder_sink
+
+    cfg = case_config(case)
+    images = None
+    if case["source"] == "memory":
+        images = load_bank(cfg, Path(case["bank"]), case["frames"])
+        frames = replay_frames(cfg, images)
+    else:
+        frames = open_recording(case["recording"]).frames()
+    with tempfile.TemporaryDirectory(dir=case.get("tmp")) as tmp:
+        sinks = [recorder_sink(cfg, str(Path(tmp) / "rec.zarr"))] if case["record"] else []
+        ru0 = (resource.getrusage(resource.RUSAGE_SELF),
+               resource.getrusage(resource.RUSAGE_CHILDREN))
+        t0 = time.perf_counter()
+        rep = run_scan(cfg, frames=frames, output=Path(tmp) / "m.zarr", progress=False,
+                       sinks=sinks)
+        total_s = time.perf_counter() - t0
+        ru1 = (resource.getrusage(resource.RUSAGE_SELF),
+               resource.getrusage(resource.RUSAGE_CHILDREN))
+        r = rep.result
+        # process mode: CPU of every process while streaming (start-up excluded)
+        cpu = r.extras.get("processes", {}).get("cpu_s") or sum(
+            b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime
+            for a, b in zip(ru0, ru1, strict=True))
+        out: dict[str, Any] = {
+            "frames": rep.frames, "wall_s": r.wall_s, "fps": rep.frames / r.wall_s,
+            "total_s": total_s, "fps_with_startup": rep.frames / total_s,
+            "cpu_ms_per_frame": 1e3 * cpu / rep.frames, "dropped": r.dropped,
+            "startup_s": r.extras.get("processes", {}).get("startup_s", 0.0),
+            "stages": {s.name: round(1e3 * s.cpu_s / max(1, rep.frames), 2)
+                       for s in r.stages},
+        }
+        if case["record"]:
+            got = open_recording(Path(tmp) / "rec.zarr")
+            n = same = 0
+            for f in got.frames():
+                if images is not None:
+                    same += int(np.array_equal(f.image, images[f.header.frame_id]))
+                n += 1
+            out["recorded"] = n
+            out["recorded_equal"] = same
+            out["recorder_waited_s"] = r.extras.get("recorder", {}).get("pipeline_waited_s")
+    return out
+
+
+def spawn_case(case: dict[str, Any]) -> dict[str, Any]:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--case",
+                           json.dumps(case)], capture_output=True, text=True, env=env,
+                          check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"case {case} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def baseline_fps(bank: Path, n: int) -> float:
+    """The thesis-style torch conv2d GLVM on whole frames, frames/s (best of 3)."""
+    import torch
+    from sffscan.stages.focus_measure import glvm_conv2d_baseline
+
+    cfg = bench_config()
+    tens = [torch.from_numpy(a.astype(np.float32) / 1023.0) for a in load_bank(cfg, bank, n)]
+    with torch.inference_mode():
+        return rate(lambda t: glvm_conv2d_baseline(t, window=9), tens)
+
+
+def label(c: dict[str, Any]) -> str:
+    src = "replay of a recording" if c["source"] == "replay" else "from memory"
+    rec = ", recorder on" if c["record"] else ""
+    return f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
+
+
+def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    base = meta["baseline_fps"]
+    lines = [f"# sffscan process-execution benchmark ({time.strftime('%Y-%m-%d %H:%M')})", "",
+             f"Machine: {meta['machine']}", "",
+             f"Load average before / after: {meta['load_before']} / {meta['load_after']} "
+             "(other work on the machine lowers every figure)", "",
+             f"Command: `{meta['command']}` ({meta['frames']} frames per run, "
+             f"{meta['rounds']} rounds interleaved, median; whole run {meta['run_s']:.0f} s)."
+             " 1280 x 1024 uint16, N = 50, k = 9, GLVM, SPC, registration on.", "",
+             "| case | frames/s (median) | runs | vs baseline | with start-up | start-up s |"
+             " CPU ms/frame (all processes) | recorded and equal |",
+             "|---|---:|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        fps = [x["fps"] for x in r["runs"]]
+        med = statistics.median(fps)
+        rec = ""
+        if r["case"]["record"]:
+            rec = "; ".join(f"{x['recorded_equal']}/{x['frames']}" for x in r["runs"])
+        lines.append(
+            f"| {label(r['case'])} | {med:.1f} | {', '.join(f'{v:.0f}' for v in fps)} | "
+            f"{med / base:.1f}x | "
+            f"{statistics.median(x['fps_with_startup'] for x in r['runs']):.1f} | "
+            f"{statistics.median(x['startup_s'] for x in r['runs']):.1f} | "
+            f"{statistics.median(x['cpu_ms_per_frame'] for x in r['runs']):.2f} | {rec} |")
+    lines += ["", f"Baseline (thesis-style torch conv2d GLVM, whole frames, best of 3): "
+              f"{base:.1f} frames/s.", ""]
+    by = {label(r["case"]): statistics.median(x["fps"] for x in r["runs"]) for r in rows}
+    for mode in ("threads", "processes"):
+        one, two = (by.get(f"from memory, {mode}, 1 core"),
+                    by.get(f"from memory, {mode}, 2 cores"))
+        if one and two:
+            lines.append(f"- {mode}: 2 cores / 1 core = {two / one:.2f}x")
+    lines.append("")
+    out.write_text("\n".join(lines), encoding="utf-8")
+    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1),
+                                        encoding="utf-8")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=600, help="frames per end-to-end run")
+    ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds (median)")
+    ap.add_argument("--cores", default="1,2", help="core counts to pin to, e.g. 1,2,4,8,16")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench",
+                    help="where the rendered frames and the recording are kept")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "parallel_results.md")
+    ap.add_argument("--quick", action="store_true",
+                    help="from memory only, processes and threads on the largest core count")
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.case:
+        print(json.dumps(run_case(json.loads(args.case))))
+        return 0
+    t_run = time.perf_counter()
+    load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    bank = frame_bank(args.cache, args.frames)
+    cores = [c for c in (int(v) for v in args.cores.split(",")) if c <= len(
+        os.sched_getaffinity(0))]
+    common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache)}
+    cases = [{**common, "source": "memory", "mode": m, "record": False, "cores": c}
+             for c in cores for m in ("threads", "processes")]
+    if not args.quick:
+        rec = make_recording(args.cache, bank, args.frames)
+        top = max(cores)
+        cases += [{**common, "source": "memory", "mode": m, "record": True, "cores": top}
+                  for m in ("threads", "processes")]
+        cases += [{**common, "source": "replay", "mode": m, "record": False, "cores": top,
+                   "recording": str(rec)} for m in ("threads", "processes")]
+    else:
+        top = max(cores)
+        cases = [c for c in cases if c["cores"] == top]
+    rows = [{"case": c, "runs": []} for c in cases]
+    base = baseline_fps(bank, 12)
+    for r in range(args.rounds):
+        for row in rows:
+            got = spawn_case(row["case"])
+            row["runs"].append(got)
+            print(f"round {r + 1}: {label(row['case'])}: {got['fps']:.1f} frames/s "
+                  f"(start-up {got['startup_s']:.1f} s, {got['cpu_ms_per_frame']:.2f} CPU "
+                  f"ms/frame)", file=sys.stderr, flush=True)
+    meta = {"machine": machine(), "load_before": load_before,
+            "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
+            "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
+            "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,
+            "run_s": time.perf_counter() - t_run}
+    write_report(args.out, meta, rows)
+    print(args.out.read_text(encoding="utf-8"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

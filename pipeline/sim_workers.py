@@ -1,0 +1,231 @@
+"""The simulated scanner rendering in worker processes (the same frames, bit for bit).
+
+Rendering a full-size frame takes about 25 ms of CPU (the simulator sets the pace of
+``sffscan demo``); frames are independent except for the sensor noise, which one random
+generator draws in frame order. Each frame draws a fixed number of values from it (its
+``H x W`` noise indices, 16 bits each: ``H * W / 4`` steps of PCG64), so frame ``i``'s
+generator is the scan's generator advanced by ``i`` times that: :func:`parallel_sim_frames`
+checks this on frame 0 at start (else it renders in this process, as before), then ``K``
+workers render frames ``k, k + K, ...`` into their slots of a shared-memory pool and the
+frames are yielded in order, copied out of the slot (so a stage may hold them as long as
+it likes). The renderer itself (:func:`sffscan.stages.sim.camera.render_frame`) is not
+changed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.parallel import _die_with_parent
+from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
+
+log = logging.getLogger(__name__)
+
+#: frames each worker may have rendered ahead of the consumer
+AHEAD = 2
+WAIT_S = 0.25
+START_TIMEOUT_S = 300.0
+
+
+def noise_steps(cfg: ScanConfig) -> int | None:
+    """PCG64 steps the renderer's noise draws per frame, checked on frame 0; None when
+    the renderer draws otherwise (then frames must be rendered in order)."""
+    from sffscan.stages.sim.scanner import simulate_frames
+
+    o = cfg.optics
+    n = o.height_px * o.width_px
+    rng = np.random.default_rng(cfg.source.seed + 1)
+    used = _render_one(cfg, 0, rng, world=None, plan=None)
+    ref = next(simulate_frames(cfg))
+    if not np.array_equal(used.image, ref.image):
+        return None
+    state = rng.bit_generator.state
+    for steps in ((n + 3) // 4, 0):
+        probe = np.random.default_rng(cfg.source.seed + 1)
+        _pcg(probe).advance(steps)
+        if (probe.bit_generator.state["state"] == state["state"]
+                and not state["has_uint32"]):
+            return steps
+    return None
+
+
+def _pcg(rng: np.random.Generator) -> np.random.PCG64:
+    bg = rng.bit_generator
+    if not isinstance(bg, np.random.PCG64):
+        raise TypeError(f"expected a PCG64 generator, got {type(bg).__name__}")
+    return bg
+
+
+def _render_one(cfg: ScanConfig, i: int, rng: np.random.Generator, *, world: Any,
+                plan: list[Any] | None) -> Frame:
+    from sffscan.pipeline.plan import plan_frames
+    from sffscan.stages.sim.camera import render_frame
+    from sffscan.stages.sim.scanner import header_of, make_optics, make_world, wobble_px
+
+    world = world if world is not None else make_world(cfg)
+    pf = plan[i] if plan is not None else next(p for k, p in enumerate(plan_frames(cfg))
+                                                 if k == i)
+    wx, wy = wobble_px(cfg, pf.travel_px)
+    heights = cfg.optics.focus_heights_um()
+    image = render_frame(world, x0=pf.x_px + wx, y0=pf.y_px + wy,
+                         focus_um=heights[pf.focus_index], optics=make_optics(cfg), rng=rng)
+    return Frame(header_of(cfg, pf), image)
+
+
+def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
+                  spec: dict[str, Any], sync: tuple[Any, Any], out: Any, control: Any,
+                  parent: int) -> None:
+    """Worker process: renders frames k, k + workers, ... into the pool, in order."""
+    _die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from sffscan.pipeline.plan import plan_frames
+    from sffscan.stages.sim.scanner import make_world
+
+    cfg = ScanConfig.model_validate(cfg_json)
+    pool = SlotPool(PoolSpec.from_json(spec), sync, create=False)
+    stop = threading.Event()
+
+    def watch() -> None:
+        with contextlib.suppress(EOFError, OSError):
+            control.recv_bytes()
+        stop.set()
+
+    threading.Thread(target=watch, daemon=True).start()
+    world = make_world(cfg)
+    plan = list(plan_frames(cfg))
+    rng = np.random.default_rng(cfg.source.seed + 1)
+    _pcg(rng).advance(k * steps)
+    try:
+        for i in range(k, len(plan), workers):
+            frame = _render_one(cfg, i, rng, world=world, plan=plan)
+            _pcg(rng).advance((workers - 1) * steps)
+            slot = pool.acquire(stop.is_set)
+            view = pool.array(slot, offset=0, shape=frame.image.shape,
+                              dtype=frame.image.dtype.str)
+            np.copyto(view, frame.image)
+            pool.incref(slot)  # the message's count; ``view`` releases ours
+            msg = json.dumps({"i": i, "slot": slot, "h": frame.header.model_dump(mode="json"),
+                              "dtype": frame.image.dtype.str,
+                              "shape": list(frame.image.shape)})
+            del view
+            while True:
+                if stop.is_set():
+                    return
+                try:
+                    out.put(msg, timeout=WAIT_S)
+                    break
+                except queue.Full:
+                    continue
+        out.put(json.dumps({"end": True}))
+    except PoolStopped:
+        return
+    except BaseException as exc:  # noqa: BLE001 - the consumer reports it
+        with contextlib.suppress(Exception):
+            out.put(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), timeout=5)
+    finally:
+        if stop.is_set():
+            out.cancel_join_thread()  # nobody reads what is left
+        pool.close()
+
+
+def render_workers(cfg: ScanConfig) -> int:
+    """Render workers for a scan: 0 (render here) for small scans or ``execution =
+    "threads"``, else one per core but one (2 at least, 8 at most)."""
+    from sffscan.pipeline.plan import frame_count
+    from sffscan.pipeline.scan_processes import AUTO_MIN_PIXELS
+
+    o, cores = cfg.optics, os.cpu_count() or 1
+    if cfg.processing.execution == "threads" or cores < 2:
+        return 0
+    if (cfg.processing.execution == "auto"
+            and frame_count(cfg) * o.width_px * o.height_px < AUTO_MIN_PIXELS):
+        return 0
+    return max(2, min(cores - 1, 8))
+
+
+def parallel_sim_frames(cfg: ScanConfig, *, workers: int) -> Iterator[Frame]:
+    """Every frame of the simulated scan (as :func:`simulate_frames`), rendered by
+    ``workers`` processes. Falls back to rendering here when the noise cannot be split."""
+    from sffscan.stages.sim.scanner import simulate_frames
+
+    steps = noise_steps(cfg)
+    if steps is None:
+        log.info("simulated frames rendered in this process (the renderer's noise draws "
+                 "cannot be split between workers)")
+        yield from simulate_frames(cfg)
+        return
+    ctx = mp.get_context("spawn")
+    o = cfg.optics
+    frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
+    spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes)
+    sync = (ctx.Lock(), ctx.Semaphore(spec.slots))
+    pool = SlotPool(spec, sync, create=True)
+    outs = [ctx.Queue(AHEAD) for _ in range(workers)]
+    pipes = [ctx.Pipe(duplex=False) for _ in range(workers)]
+    procs = [ctx.Process(target=render_worker, name=f"sffscan-render-{k}", daemon=True,
+                         args=(cfg.model_dump(mode="json"), k, workers, steps,
+                               spec.to_json(), sync, outs[k], pipes[k][0], os.getpid()))
+             for k in range(workers)]
+    try:
+        for p in procs:
+            p.start()
+        for r, _ in pipes:
+            r.close()
+        ended = 0
+        i = 0
+        while ended < workers:
+            k = i % workers
+            msg = _get(outs[k], procs[k], first=i < workers)
+            if "error" in msg:
+                raise RuntimeError(f"simulated scanner, render worker {k}: {msg['error']}")
+            if "end" in msg:
+                ended += 1
+                i += 1
+                continue
+            if i == workers - 1:
+                pool.unlink()  # every worker has attached: it rendered into the pool
+            view = pool.array(msg["slot"], offset=0, shape=tuple(msg["shape"]),
+                              dtype=msg["dtype"])
+            image = view.copy()
+            del view
+            i += 1
+            yield Frame(FrameHeader.model_validate(msg["h"]), image)
+    finally:
+        for _, w in pipes:
+            with contextlib.suppress(OSError):
+                w.send_bytes(b"stop")
+            w.close()
+        for p in procs:
+            if p.pid is not None:
+                p.join(10)
+                if p.is_alive():
+                    p.kill()
+                    p.join()
+        pool.close()
+
+
+def _get(q: Any, proc: Any, *, first: bool) -> dict[str, Any]:
+    waited = 0.0
+    while True:
+        try:
+            return dict(json.loads(q.get(timeout=WAIT_S)))
+        except queue.Empty:
+            waited += WAIT_S
+            if not proc.is_alive():
+                raise RuntimeError(f"simulated scanner: render worker exited with code "
+                                   f"{proc.exitcode}") from None
+            if not first and waited > START_TIMEOUT_S:
+                raise RuntimeError("simulated scanner: a render worker stopped answering "
+                                   f"for {START_TIMEOUT_S:g} s") from None
