@@ -28,24 +28,18 @@ Correctness rules kept from the thread runtime:
   nothing is left in ``/dev/shm``.
 
 Memory is bounded by the pools: ``sum(slots * slot_bytes)``, fixed at start (see
-:func:`sffscan.pipeline.wiring.ring_plan` for the scan pipeline's formula).
+:func:`sffscan.pipeline.scan_processes.ring_plan` for the scan pipeline's formula).
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import faulthandler
-import importlib
 import json
 import logging
 import multiprocessing as mp
 import os
-import signal
-import sys
 import threading
 import time
-import traceback
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,9 +48,7 @@ import numpy as np
 from sffscan.pipeline.channels import ForwardSink, RecvStage, SendStage
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import (
-    FullPolicy,
     Pipeline,
-    PipelineCancelled,
     PipelineResult,
     PipelineStopped,
     QueueStats,
@@ -65,7 +57,15 @@ from sffscan.pipeline.runtime import (
     StageFailed,
     StageStats,
 )
-from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.worker import (
+    INNER_CAPACITY,
+    HostedSink,
+    WorkerGroup,
+    is_channel_stage,
+    rebuild_exception,
+    worker_main,
+)
 
 log = logging.getLogger(__name__)
 
@@ -73,171 +73,6 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 300.0
 #: how long a worker gets to finish after the abort before it is terminated, s
 JOIN_TIMEOUT_S = 10.0
-#: capacity of the queues between the stages inside one process (the channels between
-#: processes have the pipeline's ``capacity``)
-INNER_CAPACITY = 2
-_PR_SET_PDEATHSIG = 1
-
-
-@dataclass(frozen=True)
-class WorkerGroup:
-    """Stages run together in one worker process, built there by ``factory(**kwargs)``.
-
-    ``factory`` is ``"module:function"`` returning a list of stages (or, for a hosted
-    sink, one :class:`Sink`); ``kwargs`` must be JSON-able. ``stages`` names what the
-    factory builds, in order (for the statistics).
-    """
-
-    label: str
-    factory: str
-    kwargs: dict[str, Any]
-    stages: tuple[str, ...]
-
-
-@dataclass(frozen=True)
-class HostedSink:
-    """A sink run in its own process, fed through a shared-memory channel."""
-
-    name: str
-    taps: tuple[str, ...]
-    capacity: int
-    policy: FullPolicy
-    factory: str
-    kwargs: dict[str, Any]
-
-
-class RemoteError(RuntimeError):
-    """The cause of a failure in a worker, when its exception type cannot be rebuilt."""
-
-    def __init__(self, type_name: str, message: str, remote_traceback: str) -> None:
-        super().__init__(message)
-        self.type_name = type_name
-        self.remote_traceback = remote_traceback
-
-
-def _rebuild(info: dict[str, Any]) -> BaseException:
-    """The worker's exception: the same type when it takes one message, else RemoteError."""
-    try:
-        mod = importlib.import_module(info["module"])
-        cls = getattr(mod, info["type"])
-        if isinstance(cls, type) and issubclass(cls, Exception):
-            exc = cls(info["message"])
-            if str(exc) == info["message"]:
-                return exc
-    except Exception:  # noqa: BLE001, S110 - any type that cannot be rebuilt is wrapped
-        pass
-    err = RemoteError(info["type"], info["message"], info.get("traceback", ""))
-    return err
-
-
-def _call(factory: str, kwargs: dict[str, Any]) -> Any:
-    module, _, func = factory.partition(":")
-    return getattr(importlib.import_module(module), func)(**kwargs)
-
-
-def _stats_json(st: StageStats) -> dict[str, Any]:
-    return {"name": st.name, "unit": st.unit, "items_in": st.items_in,
-            "items_out": st.items_out, "frames": st.frames, "busy_s": st.busy_s,
-            "cpu_s": st.cpu_s}
-
-
-def _queue_json(q: QueueStats) -> dict[str, Any]:
-    return {"name": q.name, "capacity": q.capacity, "policy": q.policy, "puts": q.puts,
-            "dropped": q.dropped, "max_fill": q.max_fill, "fill_sum": q.fill_sum}
-
-
-def _internal(name: str) -> bool:
-    return name.startswith(("recv:", "send:")) or "recv:" in name or "send:" in name
-
-
-def _die_with_parent(parent: int) -> None:
-    """Ask the kernel to SIGKILL this process when its parent dies (Linux)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    if os.getppid() != parent:  # the parent died before prctl: leave now
-        os._exit(1)
-
-
-def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any]],
-                syncs: list[tuple[Any, Any]], in_q: Any, out_q: Any, results: Any,
-                control: Any, parent: int, producers: int = 1) -> None:
-    """Entry point of a worker process (``spawn``): build, report ready, run, report.
-
-    ``control`` is the read end of a pipe from the main process: a message there stops the
-    worker's chain (another part failed); end of file means the main process is gone.
-    """
-    _die_with_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
-    faulthandler.register(signal.SIGUSR1)  # kill -USR1 <pid>: the worker's stacks on stderr
-    label = group["label"]
-    pools = [SlotPool(PoolSpec.from_json(s), sync, create=False)
-             for s, sync in zip(pool_specs, syncs, strict=True)]
-    stop = threading.Event()
-    done = threading.Event()
-    aborted = threading.Event()
-
-    def report(msg: dict[str, Any]) -> None:
-        results.put(json.dumps({"label": label, **msg}))
-
-    def watch() -> None:
-        while not done.is_set():
-            try:
-                if not control.poll(0.5):
-                    if os.getppid() != parent:
-                        os._exit(1)
-                    continue
-                control.recv_bytes()
-            except (EOFError, OSError):  # the main process is gone: nothing to report to
-                os._exit(1)
-            aborted.set()
-            pipe.cancel()
-            return
-
-    try:
-        built = _call(group["factory"], group["kwargs"])
-        stages: list[Stage] = [built] if kind == "sink" else list(built)
-        recv = RecvStage(label, in_q, pools=pools, stop=stop, producers=producers)
-        chain: list[Stage] = [recv, *stages]
-        if out_q is not None:
-            chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
-                                   stop=stop, count_of=recv))
-        pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop)
-    except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
-        report({"kind": "error", "stage": label, **_exc_info(exc)})
-        return
-    report({"kind": "ready"})
-    cpu0 = time.process_time()
-    watcher = threading.Thread(target=watch, name="abort-watch", daemon=True)
-    watcher.start()
-    try:
-        result = pipe.run()
-    except StageFailed as err:
-        aborted.set()
-        report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
-    except PipelineCancelled:
-        report({"kind": "cancelled"})
-    else:
-        send = chain[-1]
-        report({"kind": "done", "cpu_s": time.process_time() - cpu0,
-                "channel": _queue_json(send.stats) if isinstance(send, SendStage) else None,
-                "stages": [_stats_json(s) for s in result.stages if not _internal(s.name)],
-                "queues": [_queue_json(q) for q in result.queues if not _internal(q.name)],
-                "extras": {k: v for k, v in result.extras.items() if not _internal(k)}})
-    finally:
-        done.set()
-        if out_q is not None and aborted.is_set():
-            out_q.cancel_join_thread()  # nobody will read what is left
-        for p in pools:
-            p.close()
-
-
-def _exc_info(exc: BaseException) -> dict[str, Any]:
-    return {"type": type(exc).__name__, "module": type(exc).__module__, "message": str(exc),
-            "traceback": "".join(traceback.format_exception(exc))[-4000:]}
-
-
 class PooledSource(Stage):
     """The source stage, its frames copied once into the frame pool (then passed on by
     reference to every process and sink)."""
@@ -416,7 +251,7 @@ class ProcessPipeline:
             self._poll(workers, results, timeout=0.25)
             for w in workers:
                 if w.report is not None and w.report["kind"] == "error":
-                    raise StageFailed(w.report["stage"], _rebuild(w.report))
+                    raise StageFailed(w.report["stage"], rebuild_exception(w.report))
                 if not w.ready and not w.proc.is_alive():
                     raise StageFailed(w.label, RuntimeError(
                         f"worker process exited with code {w.proc.exitcode} while starting"))
@@ -532,7 +367,7 @@ class ProcessPipeline:
                 raise exc
         for w in workers:
             if w.report is not None and w.report["kind"] == "error":
-                raise StageFailed(w.report["stage"], _rebuild(w.report))
+                raise StageFailed(w.report["stage"], rebuild_exception(w.report))
         for w in workers:
             if w.report is None or w.report["kind"] != "done":
                 code = w.proc.exitcode
@@ -550,10 +385,11 @@ class ProcessPipeline:
         rt: PipelineResult = outcome["tail"]
         hosted = {k.name for k in self.hosted}
         sink_names = tuple(k.name for k in self.sinks) + tuple(hosted)
-        stages = [s for s in rh.stages if not _internal(s.name) and s.name not in sink_names]
-        queues = [q for q in rh.queues if not _internal(q.name)
+        stages = [s for s in rh.stages
+                  if not is_channel_stage(s.name) and s.name not in sink_names]
+        queues = [q for q in rh.queues if not is_channel_stage(q.name)
                   and q.name.rsplit("->", 1)[-1] not in sink_names]
-        extras = {k: v for k, v in rh.extras.items() if not _internal(k)}
+        extras = {k: v for k, v in rh.extras.items() if not is_channel_stage(k)}
         channel, prev = send.stats, self.head[-1].name
         for w in workers:
             rep = w.report or {}
@@ -568,10 +404,11 @@ class ProcessPipeline:
             prev = w.stages[-1]
         channel.name = f"{prev}->{self.tail[0].name}"
         queues.append(channel)
-        stages += [s for s in rt.stages if not _internal(s.name) and s.name not in sink_names]
-        queues += [q for q in rt.queues if not _internal(q.name)
+        stages += [s for s in rt.stages
+                   if not is_channel_stage(s.name) and s.name not in sink_names]
+        queues += [q for q in rt.queues if not is_channel_stage(q.name)
                    and q.name.rsplit("->", 1)[-1] not in sink_names]
-        extras.update({k: v for k, v in rt.extras.items() if not _internal(k)})
+        extras.update({k: v for k, v in rt.extras.items() if not is_channel_stage(k)})
         sink_stages = [s for s in rh.stages + rt.stages
                        if s.name in sink_names and s.name not in hosted]
         sink_queues = [q for q in rh.queues + rt.queues

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.messages import Frame, FrameHeader
-from sffscan.pipeline.parallel import _die_with_parent
 from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.worker import die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
                   spec: dict[str, Any], sync: tuple[Any, Any], out: Any, control: Any,
                   parent: int) -> None:
     """Worker process: renders frames k, k + workers, ... into the pool, in order."""
-    _die_with_parent(parent)
+    die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from sffscan.pipeline.plan import plan_frames
     from sffscan.stages.sim.scanner import make_world
