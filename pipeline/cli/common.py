@@ -40,6 +40,9 @@ def processing_options(p: argparse.ArgumentParser) -> None:
     """Options that change how frames are processed (scan and replay)."""
     p.add_argument("--no-registration", action="store_true",
                    help="place frames by speed only")
+    p.add_argument("--execution", choices=["auto", "threads", "processes"],
+                   help="run the stages in worker processes (frames in shared memory) or in "
+                        "threads of one process (default auto: processes for large scans)")
     p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
                                         "spc", "wcentroid"],
                    help="depth method (default wcentroid)")
@@ -89,6 +92,8 @@ def override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
         data["motion"]["wobble_across_px"] = args.wobble
     if getattr(args, "no_registration", False):
         data["processing"]["registration"] = False
+    if getattr(args, "execution", None):
+        data["processing"]["execution"] = args.execution
     if getattr(args, "method", None):
         data["processing"]["depth_method"] = args.method
     if getattr(args, "operator", None):
