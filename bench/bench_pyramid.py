@@ -26,6 +26,7 @@ import platform
 import shutil
 import statistics
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,7 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
     # the pipeline's own writer factory, with the pyramid switched off for the baseline
     factory = MosaicWriter if pyramid else functools.partial(MosaicWriter, levels=1)
     load = os.getloadavg()[0]
+    cpu0 = time.process_time()
     orig = wiring.MosaicWriter
     wiring.MosaicWriter = factory  # type: ignore[misc]
     try:
@@ -49,6 +51,7 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
                                  progress=False)
     finally:
         wiring.MosaicWriter = orig  # type: ignore[misc]
+    cpu = time.process_time() - cpu0  # every thread of the process: zarr's too
     r = report.result
     mosaic = next(s for s in r.stages if s.name == "mosaic")
     g = zarr.open_group(str(out), mode="r")
@@ -56,6 +59,7 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
     shutil.rmtree(out)
     return {"pyramid": pyramid, "levels": levels, "frames": report.frames,
             "wall_s": r.wall_s, "fps": report.frames / r.wall_s,
+            "process_cpu_ms_per_frame": 1e3 * cpu / report.frames,
             "mosaic_busy_s": mosaic.busy_s, "mosaic_cpu_s": mosaic.cpu_s,
             "load_1min_before": load, "load_1min_after": os.getloadavg()[0]}
 
@@ -89,6 +93,10 @@ def main() -> None:
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "fps_with_pyramid_median": med["on"], "fps_without_median": med["off"],
         "ratio_of_medians": med["on"] / med["off"], "pair_ratios": pair_ratios,
+        "cpu_ms_per_frame_with_median": statistics.median(
+            r["process_cpu_ms_per_frame"] for r in on),
+        "cpu_ms_per_frame_without_median": statistics.median(
+            r["process_cpu_ms_per_frame"] for r in off),
         "mosaic_busy_s_with": statistics.median(r["mosaic_busy_s"] for r in on),
         "mosaic_busy_s_without": statistics.median(r["mosaic_busy_s"] for r in off),
         "runs": runs,
@@ -98,15 +106,18 @@ def main() -> None:
              f"`python bench/bench_pyramid.py {args.recording} --pairs {args.pairs}`, "
              f"{summary['machine']}; {summary['frames']} frames per run (held in memory), runs "
              "interleaved (ABBA); load = the 1-minute load average before the run.", "",
-             "| pair | pyramid | levels | frames/s | mosaic busy s | load (1 min) |",
-             "|---|---|---|---|---|---|"]
+             "| pair | pyramid | levels | frames/s | process CPU ms/frame | mosaic busy s | "
+             "load (1 min) |", "|---|---|---|---|---|---|---|"]
     for i, r in enumerate(runs):
         lines.append(f"| {i // 2} | {'yes' if r['pyramid'] else 'no'} | {r['levels']} | "
-                     f"{r['fps']:.2f} | {r['mosaic_busy_s']:.2f} | "
+                     f"{r['fps']:.2f} | {r['process_cpu_ms_per_frame']:.2f} | "
+                     f"{r['mosaic_busy_s']:.2f} | "
                      f"{r['load_1min_before']:.2f} |")
     lines += ["", f"Median frames/s: {med['on']:.2f} with the pyramid, {med['off']:.2f} "
               f"without: ratio {summary['ratio_of_medians']:.3f} (pairs: "
-              + ", ".join(f"{x:.3f}" for x in pair_ratios) + ")."]
+              + ", ".join(f"{x:.3f}" for x in pair_ratios) + "). Process CPU per frame "
+              f"(median): {summary['cpu_ms_per_frame_with_median']:.2f} ms with, "
+              f"{summary['cpu_ms_per_frame_without_median']:.2f} ms without."]
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -19,6 +19,7 @@ the process boundary but paths.
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import glob
 import logging
@@ -35,6 +36,8 @@ log = logging.getLogger(__name__)
 __all__ = ["BatchError", "BatchRow", "find_recordings", "format_table", "mosaic_path",
            "process_recording", "run_batch", "write_csv"]
 
+#: seconds a local worker process is given to exit when the batch ends
+CLOSE_TIMEOUT_S = 30.0
 #: statuses of a row: done now, skipped (complete already), failed, or done but incomplete
 STATUSES = ("complete", "skipped", "failed", "incomplete")
 
@@ -247,8 +250,15 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
                         on_row(row, done, total)
         finally:
             if cluster is not None:
+                # workers get time to exit by themselves (a worker that imported torch can
+                # take more than the 4 s the default close waits, on a loaded machine)
+                cluster.sync(_close_workers, cluster, CLOSE_TIMEOUT_S)
                 cluster.close()
     return [rows[i] for i in range(total)]
+
+
+async def _close_workers(cluster: Any, timeout: float) -> None:
+    await asyncio.gather(*(w.close(timeout=timeout) for w in cluster.workers.values()))
 
 
 def write_csv(rows: Sequence[BatchRow], path: Path) -> None:

@@ -348,8 +348,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         region = _region(args.region)
         if args.ply:
             n = write_ply(args.ply, args.mosaic, region)
-            print(f"wrote {args.ply}: {n['points']} points (x y z mm, grey)"
-                  + (f", {n['no_texture']} without texture (grey 0)" if n["no_texture"] else ""))
+            print(f"wrote {args.ply}: {n['points']} points (x y z mm, red green blue = texture)"
+                  + (f", {n['no_texture']} without texture (black)" if n["no_texture"] else ""))
         if args.x3p:
             n = write_x3p(args.x3p, args.mosaic, region)
             print(f"wrote {args.x3p}: {n['rows']}x{n['cols']} surface, {n['missing']} points "
@@ -454,8 +454,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
     p = sub.add_parser("export", help="export a mosaic region (PLY, x3p) and its Sa, Sq, ...",
                        description="Export a mosaic region as a binary PLY point cloud (x y z "
-                                   "mm + grey) and/or an ISO 25178-72 x3p surface, and print "
-                                   "its areal parameters Sa, Sq, Sz, Ssk, Sku.")
+                                   "mm, the texture as red/green/blue) and/or an ISO 25178-72 "
+                                   "x3p surface, and print its areal parameters Sa, Sq, Sz, "
+                                   "Ssk, Sku.")
     p.add_argument("mosaic")
     p.add_argument("--region", help="world px box X0,Y0,X1,Y1 (default: whole mosaic)")
     p.add_argument("--ply", help="write a binary PLY point cloud")
