@@ -77,3 +77,10 @@ def test_vignetting_darkens_the_corners() -> None:
     corner = float(img[:3, :3].mean())
     assert centre == pytest.approx(0.5 * 1023, abs=1.0)
     assert corner / centre == pytest.approx(0.8, abs=0.01)
+
+
+def test_demo_realistic_switch_parses() -> None:
+    from sffscan.pipeline.cli.main import build_parser
+
+    assert build_parser().parse_args(["demo", "--realistic"]).realistic is True
+    assert build_parser().parse_args(["demo"]).realistic is False
