@@ -38,7 +38,7 @@ touched it) and journals the rest; the result is bit for bit the uninterrupted m
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,12 +51,14 @@ from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.durable import free_reserve, make_reserve
 from sffscan.stages.mosaic_pyramid import (
+    aligned,
     create_pyramid,
     default_levels,
     pyramid_arrays,
     read_many,
     resize_pyramid,
     update_pyramid,
+    write_levels,
     write_many,
 )
 from zarr.codecs import BloscCodec, BloscShuffle
@@ -181,11 +183,6 @@ class MosaicWriter:
         Levels of the resolution pyramid, level 0 included (>= 1; 1 = no pyramid); by
         default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
     """
-
-    #: what a ``complete`` status is checked against: returns the status to set
-    #: (``complete`` or ``incomplete``) and the frame counts (``frames_expected``,
-    #: ``frames_received``); see :mod:`sffscan.pipeline.completeness`
-    account: Callable[[], tuple[str, dict[str, Any]]] | None = None
 
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
@@ -335,11 +332,21 @@ class MosaicWriter:
         self._ensure(r0 + rows, c0 + cols)
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
         arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
-        old = dict(zip(ARRAYS, read_many([(arrays[n], sel) for n in ARRAYS]), strict=True))
+        # one read of the region widened to whole pyramid blocks: the blend's input, and,
+        # blended, the pyramid's
+        shape = (int(arrays["height"].shape[0]), int(arrays["height"].shape[1]))
+        region = aligned(sel, shape, len(self.pyramid) + 1) if self.pyramid else sel
+        buf = dict(zip(ARRAYS, read_many([(arrays[n], region) for n in ARRAYS]), strict=True))
+        a, b = r0 - region[0].start, c0 - region[1].start
+        sub = (slice(a, a + rows), slice(b, b + cols))
+        old = {name: v[sub] for name, v in buf.items()}
         out = blend(old, new)
-        write_many([(arrays[name], sel, value) for name, value in out.items()])
         self.valid_px += int(np.isfinite(out["height"]).sum() - np.isfinite(old["height"]).sum())
-        self._update_pyramid(sel)
+        write_many([(arrays[name], sel, value) for name, value in out.items()])
+        if self.pyramid:
+            for name, value in out.items():
+                buf[name][sub] = value
+            write_levels(self.pyramid, region, buf)
 
     def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0).
@@ -372,11 +379,6 @@ class MosaicWriter:
         self.blocks_written += 1
 
     def set_status(self, status: str, **extra: Any) -> None:
-        """Set the status; a ``complete`` one is checked against :attr:`account` (if set),
-        which may make it ``incomplete`` and adds the frame counts."""
-        if status == "complete" and self.account is not None:
-            status, counts = self.account()
-            extra.update(counts)
         if self.rebuild or self.writes < self.done:
             status = "failed" if status == "complete" else status
             extra["rebuild"] = [list(b) for b in self.rebuild]

@@ -14,7 +14,9 @@ counts 2 x 2 at a time (float64), so level k is exactly the 2^k x 2^k reduction,
 of means. The writer (:class:`sffscan.stages.mosaic.MosaicWriter`) calls
 :func:`update_pyramid` after each band write, for the blocks that the write touched: the
 pyramid is current whenever a band completes, and a crash inside the update is covered by
-the write's journal entry (the resume recomputes the box).
+the write's journal entry (the resume recomputes the box). A band write reads its level-0
+region widened to whole blocks once, blends into it, and computes the levels from it
+(:func:`write_levels`), so the pyramid costs no second read.
 """
 
 from __future__ import annotations
@@ -225,6 +227,14 @@ def update_pyramid(level0: dict[str, zarr.Array], arrays: list[dict[str, zarr.Ar
         return
     names = list(level0)
     values = dict(zip(names, read_many([(level0[n], region) for n in names]), strict=True))
+    write_levels(arrays, region, values)
+
+
+def write_levels(arrays: list[dict[str, zarr.Array]], region: Slices,
+                 values: dict[str, np.ndarray]) -> None:
+    """Write every level over ``region``, a level-0 region of whole blocks (:func:`aligned`)
+    whose current level-0 ``values`` are given."""
+    levels = len(arrays) + 1
     writes = []
     for k, (level, arrs) in enumerate(zip(downsample(values, levels), arrays, strict=True),
                                       start=1):

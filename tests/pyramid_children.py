@@ -21,7 +21,7 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
     fd = os.open(os.devnull, os.O_WRONLY)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
-    blend, update = mosaic.MosaicWriter._blend, mosaic_pyramid.update_pyramid
+    blend, levels = mosaic.MosaicWriter._blend, mosaic_pyramid.write_levels
     state: dict[str, Any] = {}
 
     def torn_blend(self: mosaic.MosaicWriter, x0: int, y0: int,
@@ -38,14 +38,14 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
             os.kill(os.getpid(), signal.SIGKILL)
         blend(self, x0, y0, new)
 
-    def torn_update(level0: dict[str, Any], arrays: list[dict[str, Any]], sel: Any) -> None:
+    def torn_levels(arrays: list[dict[str, Any]], region: Any, values: Any) -> None:
         if where == "pyramid" and state.get("write") == kill_at:
-            update(level0, [{k: v for k, v in arrays[0].items() if k in ("height", "texture")}],
-                   sel)
+            levels([{k: v for k, v in arrays[0].items() if k in ("height", "texture")}],
+                   region, values)
             os.kill(os.getpid(), signal.SIGKILL)
-        update(level0, arrays, sel)
+        levels(arrays, region, values)
 
     mosaic.MosaicWriter._blend = torn_blend  # type: ignore[method-assign]
-    mosaic.update_pyramid = torn_update  # type: ignore[assignment]
+    mosaic.write_levels = torn_levels  # type: ignore[assignment]
     replay(recording, output=output)
     raise SystemExit(0)
