@@ -14,6 +14,8 @@ the work it reports on.
 
 from __future__ import annotations
 
+import io
+import os
 import sys
 from typing import TYPE_CHECKING, TextIO
 
@@ -22,7 +24,7 @@ from tqdm import tqdm
 if TYPE_CHECKING:
     from sffscan.pipeline.runtime import StageStats
 
-__all__ = ["PLAIN_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal"]
+__all__ = ["PLAIN_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal", "terminal_columns"]
 
 #: tqdm ``bar_format`` of the plain lines (no bar, no carriage return).
 PLAIN_FORMAT = ("{desc} {n_fmt}/{total_fmt} ({percentage:.1f} %)  {rate:.1f} {unit}/s  "
@@ -35,6 +37,16 @@ def is_terminal(stream: TextIO) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError, OSError):  # no isatty, or already closed
         return False
+
+
+def terminal_columns(stream: TextIO) -> int | None:
+    """Width of the terminal ``stream`` writes to, or None when it reports no usable size
+    (fewer than 20 columns or 2 lines, e.g. 0 x 0)."""
+    try:
+        size = os.get_terminal_size(stream.fileno())
+    except (AttributeError, ValueError, OSError, io.UnsupportedOperation):
+        return None
+    return size.columns if size.columns >= 20 and size.lines >= 2 else None
 
 
 class ProgressDisplay:
@@ -65,8 +77,13 @@ class ProgressDisplay:
         self.lines = 0  # plain lines written
         self._bar: tqdm | None = None  # type: ignore[type-arg]
         if self.tty:
+            known = terminal_columns(self.stream) is not None
+            # a terminal that reports no size (0 x 0: some pseudo-terminals) gets 100 x 20:
+            # tqdm would draw nothing in a width or height of 0
             self._bar = tqdm(total=self.total, desc=self.desc, unit=self.desc,
-                             file=self.stream, dynamic_ncols=True, leave=True)
+                             file=self.stream, dynamic_ncols=known,
+                             ncols=None if known else 100, nrows=None if known else 20,
+                             leave=True)
 
     def update(self, done: int, elapsed: float, *, note: str = "") -> None:
         """Report ``done`` items after ``elapsed`` seconds; ``note`` is appended."""

@@ -57,13 +57,34 @@ def test_bar_on_a_terminal_ends_its_line() -> None:
     assert re.search(r"100/100", text) and "acquired 100" in text
 
 
+def test_bar_on_a_terminal_that_reports_no_size() -> None:
+    """A pseudo-terminal of 0 x 0 (no size set, as under some CI runners and 'script'):
+    tqdm alone draws nothing there; the display falls back to 100 x 20."""
+    import os
+    import pty
+
+    master, slave = pty.openpty()
+    try:
+        assert os.get_terminal_size(slave) == os.terminal_size((0, 0))
+        with open(slave, "w", closefd=False) as stream:
+            p = ProgressDisplay(10, stream=stream)
+            assert p.tty
+            for i in range(11):
+                p.update(i, 0.1 * i)
+            p.close()
+        text = os.read(master, 65536).decode(errors="replace")
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert "10/10" in text and "frames" in text
+
+
 def test_a_closed_stream_switches_the_display_off() -> None:
-    for stream in (_Closed(), ):
-        p = ProgressDisplay(10, stream=stream, every_s=0.0)
-        p.update(1, 1.0)  # must not raise
-        p.update(2, 2.0)
-        assert p.stream is None
-        p.close()
+    p = ProgressDisplay(10, stream=_Closed(), every_s=0.0)
+    p.update(1, 1.0)  # must not raise
+    p.update(2, 2.0)
+    assert p.stream is None
+    p.close()
     t = _Terminal()
     p = ProgressDisplay(10, stream=t)
     t.close()  # the terminal went away
