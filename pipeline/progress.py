@@ -15,8 +15,10 @@ the work it reports on.
 from __future__ import annotations
 
 import io
+import math
 import os
 import sys
+import time
 from typing import TYPE_CHECKING, TextIO
 
 from tqdm import tqdm
@@ -140,6 +142,17 @@ class ScanProgress(ProgressDisplay):
         super().__init__(total, desc="frames", stream=stream, every_s=every_s,
                          terminal=terminal)
 
+    _stats: list[StageStats] | None = None
+    _t0 = 0.0
+
     def __call__(self, stats: list[StageStats], elapsed: float) -> None:
+        self._stats, self._t0 = stats, time.perf_counter() - elapsed
         done = stats[-2].frames if len(stats) > 1 else stats[0].frames
         self.update(done, elapsed, note=f"acquired {stats[0].frames}")
+
+    def close(self) -> None:
+        """Show the final counts (the pipeline's statistics are live objects), then end."""
+        if self._stats is not None and self.stream is not None:
+            self._last = -math.inf  # a last plain line, however soon after the previous one
+            self(self._stats, time.perf_counter() - self._t0)
+        super().close()

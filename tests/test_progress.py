@@ -34,7 +34,6 @@ def test_plain_lines_every_few_seconds_without_carriage_returns() -> None:
     assert not p.tty
     for t in range(0, 21):  # called every second for 20 s
         p(_stats(min(455, 25 * t + 5), min(455, 22 * t)), float(t))
-    p.close()
     text = s.getvalue()
     assert "\r" not in text
     lines = text.splitlines()
@@ -43,6 +42,12 @@ def test_plain_lines_every_few_seconds_without_carriage_returns() -> None:
     # frames done, rate, elapsed, time left, frames acquired
     assert lines[2] == ("frames 220/455 (48.4 %)  22.0 frames/s  elapsed 00:10  eta 00:10, "
                         "acquired 255")
+    stats = _stats(455, 440)
+    p(stats, 20.5)  # too soon for a line ...
+    stats[1].frames = 455  # ... and the stages go on (their statistics are live objects)
+    p.close()  # the final count, at once
+    last = s.getvalue().splitlines()
+    assert len(last) == 6 and last[-1].startswith("frames 455/455 (100.0 %)")
 
 
 def test_bar_on_a_terminal_ends_its_line() -> None:
