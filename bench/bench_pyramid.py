@@ -8,7 +8,9 @@ pyramid (the default levels, updated after every band write) and without it (``l
 level 0 only, the mosaic of format version 1 plus NGFF metadata). Runs are interleaved
 (ABBA...), so a change of the machine's load hits both variants alike; the 1-minute load
 average is recorded beside each run. Reported: median end-to-end frames/s of each variant,
-their ratio, and the mosaic stage's own busy time (where the pyramid's work happens).
+their ratio, the CPU time per frame of the main process (source, speed shift and the mosaic
+stage, where the pyramid's work happens; the registration and focus/depth worker
+processes of the process runtime are not counted) and the mosaic stage's busy time.
 
     python bench/bench_pyramid.py RECORDING [--pairs 3] [--dir /tmp]
 
@@ -51,7 +53,10 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
                                  progress=False)
     finally:
         wiring.MosaicWriter = orig  # type: ignore[misc]
-    cpu = time.process_time() - cpu0  # every thread of the process: zarr's too
+    # every thread of this process (zarr's too): the source, speed shift and mosaic; with
+    # the process runtime (execution auto), the registration and focus/depth workers are
+    # other processes, not counted
+    cpu = time.process_time() - cpu0
     r = report.result
     mosaic = next(s for s in r.stages if s.name == "mosaic")
     g = zarr.open_group(str(out), mode="r")
@@ -59,7 +64,7 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
     shutil.rmtree(out)
     return {"pyramid": pyramid, "levels": levels, "frames": report.frames,
             "wall_s": r.wall_s, "fps": report.frames / r.wall_s,
-            "process_cpu_ms_per_frame": 1e3 * cpu / report.frames,
+            "process_cpu_ms_per_frame": 1e3 * cpu / report.frames,  # main process only
             "mosaic_busy_s": mosaic.busy_s, "mosaic_cpu_s": mosaic.cpu_s,
             "load_1min_before": load, "load_1min_after": os.getloadavg()[0]}
 
@@ -106,7 +111,7 @@ def main() -> None:
              f"`python bench/bench_pyramid.py {args.recording} --pairs {args.pairs}`, "
              f"{summary['machine']}; {summary['frames']} frames per run (held in memory), runs "
              "interleaved (ABBA); load = the 1-minute load average before the run.", "",
-             "| pair | pyramid | levels | frames/s | process CPU ms/frame | mosaic busy s | "
+             "| pair | pyramid | levels | frames/s | main-process CPU ms/frame | mosaic busy s | "
              "load (1 min) |", "|---|---|---|---|---|---|---|"]
     for i, r in enumerate(runs):
         lines.append(f"| {i // 2} | {'yes' if r['pyramid'] else 'no'} | {r['levels']} | "
@@ -115,7 +120,7 @@ def main() -> None:
                      f"{r['load_1min_before']:.2f} |")
     lines += ["", f"Median frames/s: {med['on']:.2f} with the pyramid, {med['off']:.2f} "
               f"without: ratio {summary['ratio_of_medians']:.3f} (pairs: "
-              + ", ".join(f"{x:.3f}" for x in pair_ratios) + "). Process CPU per frame "
+              + ", ".join(f"{x:.3f}" for x in pair_ratios) + "). Main-process CPU per frame "
               f"(median): {summary['cpu_ms_per_frame_with_median']:.2f} ms with, "
               f"{summary['cpu_ms_per_frame_without_median']:.2f} ms without."]
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
