@@ -15,7 +15,7 @@ size): moving them between processes would cost more than it saves on 2 cores.
 Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan length:
 
 - frame ring: ``N + 40 + 2 * C + R`` slots of ``H * W * bytes_per_pixel`` (N focus
-  levels; C the channel capacity, ``processing.queue_capacity``; ``R = 2 * Cr + 4`` with
+  levels; C the channel capacity, ``processing.queue_capacity``; ``R = 2 * Cr + 8`` with
   a recorder of channel capacity ``Cr = min(its queue, 32)``, else 0): the registration
   holds N + 2 frames (its sliding window), every queue and channel on the way holds its
   capacity, and each stage one in hand;
@@ -23,7 +23,7 @@ Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan
   (depth blocks: height, texture, confidence, float32).
 
 At the default optics (1280 x 1024, 10-bit, N = 50, C = 8) that is 106 frame slots
-(278 MB), 138 (362 MB) with the recorder, plus 24 block slots (38 MB).
+(278 MB), 178 (467 MB) with the recorder, plus 24 block slots (38 MB).
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def ring_plan(cfg: ScanConfig, hosted: list[HostedSink]) -> list[tuple[str, int,
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     c = p.queue_capacity
     frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
-    frames = o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 4 for k in hosted)
+    frames = o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 8 for k in hosted)
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     block_bytes = 3 * (o.height_px + 2 * slack) * p.block_columns * 4 + 3 * 64
     return [("frames", frames, frame_bytes, ("frame", "placed")),
