@@ -118,35 +118,6 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
         out.append(level)
     return out
 
-    sums: dict[str, np.ndarray] = {}
-    counts: dict[str, np.ndarray] = {}
-    for name in ("height", "texture"):
-        valid = np.isfinite(values[name])
-        sums[name] = padded(np.where(valid, values[name], 0.0))
-        counts[name] = padded(valid)
-    sums["confidence"] = padded(values["confidence"])
-    sums["weight"] = padded(values["weight"])
-    present = padded(np.ones((rows, cols)))
-
-    def halve(a: np.ndarray) -> np.ndarray:  # 2 x 2 block sums (slices: ~5x a 4-D sum)
-        return (a[0::2, 0::2] + a[1::2, 0::2]) + (a[0::2, 1::2] + a[1::2, 1::2])
-
-    out = []
-    for k in range(1, levels):
-        sums = {n: halve(a) for n, a in sums.items()}
-        counts = {n: halve(a) for n, a in counts.items()}
-        present = halve(present)
-        r, c = level_shape((rows, cols), k)
-        level: dict[str, np.ndarray] = {}
-        with np.errstate(invalid="ignore", divide="ignore"):
-            for name in ("height", "texture"):
-                n = counts[name][:r, :c]
-                level[name] = np.where(n > 0, sums[name][:r, :c] / n, np.nan).astype(np.float32)
-            level["confidence"] = (sums["confidence"][:r, :c] / present[:r, :c]).astype(np.float32)
-        level["weight"] = sums["weight"][:r, :c].astype(np.float32)
-        out.append(level)
-    return out
-
 
 def read_many(items: Sequence[tuple[zarr.Array, Slices]]) -> list[np.ndarray]:
     """Read several array regions in one round trip of zarr's event loop (concurrently)."""
