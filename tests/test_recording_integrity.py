@@ -110,6 +110,21 @@ def test_a_lost_frame_or_header_chunk_loses_that_frame_only(
     assert "3 missing" in capsys.readouterr().out
 
 
+def test_verify_checks_the_header_copies_too(recorded: tuple[Path, int], tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    src, n = recorded
+    rec = _copy(src, tmp_path / "hdr.zarr")
+    path = rec / "headers" / "c" / "7" / "0"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+    assert main(["info", str(rec), "--verify"]) == 0
+    out = capsys.readouterr().out
+    assert "header copies: 1 corrupt, lost or not matching the metadata" in out
+    assert "0 corrupt" in out  # the frame itself is usable: its metadata is intact
+    assert open_recording(rec).report.frames == n
+
+
 def test_version_1_recordings_still_replay(recorded: tuple[Path, int], tmp_path: Path) -> None:
     """A version-1 recording (no checksums, no header copies) opens and replays."""
     src, n = recorded

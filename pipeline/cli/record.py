@@ -56,7 +56,12 @@ def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
     try:
         writer = MosaicWriter.reopen(cfg.output.path, scan_config=cfg.model_dump(mode="json"))
     except ValueError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
+        where = "" if str(cfg.output.path) in str(err) else f"{cfg.output.path}: "
+        print(f"sffscan: {where}{err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as err:  # noqa: BLE001 - a corrupt zarr.json or chunk of the mosaic
+        print(f"sffscan: {cfg.output.path}: cannot resume, unreadable mosaic "
+              f"({type(err).__name__}: {err})", file=sys.stderr)
         return EXIT_BAD_INPUT
     log.info("resuming %s: %d writes done, %d torn region(s) to rebuild", writer.path,
              writer.done, len(writer.rebuild))
