@@ -38,7 +38,7 @@ touched it) and journals the rest; the result is bit for bit the uninterrupted m
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -183,6 +183,11 @@ class MosaicWriter:
         Levels of the resolution pyramid, level 0 included (>= 1; 1 = no pyramid); by
         default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
     """
+
+    #: what a ``complete`` status is checked against: returns the status to set
+    #: (``complete`` or ``incomplete``) and the frame counts (``frames_expected``,
+    #: ``frames_received``); see :mod:`sffscan.pipeline.completeness`
+    account: Callable[[], tuple[str, dict[str, Any]]] | None = None
 
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
@@ -379,6 +384,11 @@ class MosaicWriter:
         self.blocks_written += 1
 
     def set_status(self, status: str, **extra: Any) -> None:
+        """Set the status; a ``complete`` one is checked against :attr:`account` (if set),
+        which may make it ``incomplete`` and adds the frame counts."""
+        if status == "complete" and self.account is not None:
+            status, counts = self.account()
+            extra.update(counts)
         if self.rebuild or self.writes < self.done:
             status = "failed" if status == "complete" else status
             extra["rebuild"] = [list(b) for b in self.rebuild]
