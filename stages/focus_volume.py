@@ -327,8 +327,6 @@ class FocusVolume:
         self.count[cs] += 1
         self.row_lo[level, cs] = r0
         self.row_hi[level, cs] = r1
-        if self.fv is not None:
-            self.fv[level, r0:r1, cs] = fm
         self._accumulate(level, fm, image01[fr, fc], r0, r1, cs)
         self.end_u = max(self.end_u, v1)
 
@@ -354,6 +352,8 @@ class FocusVolume:
             b = min(a + strip, r1 - r0)
             rows = slice(r0 + a, r0 + b)
             f = fm[a:b]
+            if self.fv is not None:  # the N-level ring, while the strip is in cache
+                self.fv[level, rows, cs] = f
             for plane, c in zip(self.sums, coef, strict=True):
                 view = plane[rows, cs]
                 if c == 1.0:
