@@ -22,6 +22,7 @@ import os
 import queue
 import signal
 import threading
+import weakref
 from collections.abc import Iterator
 from typing import Any
 
@@ -39,7 +40,7 @@ WAIT_S = 0.25
 START_TIMEOUT_S = 300.0
 
 
-def noise_steps(cfg: ScanConfig) -> int | None:
+def noise_steps(cfg: ScanConfig, *, world: Any = None) -> int | None:
     """PCG64 steps the renderer's noise draws per frame, checked on frame 0; None when
     the renderer draws otherwise (then frames must be rendered in order)."""
     from sffscan.stages.sim.scanner import simulate_frames
@@ -47,8 +48,8 @@ def noise_steps(cfg: ScanConfig) -> int | None:
     o = cfg.optics
     n = o.height_px * o.width_px
     rng = np.random.default_rng(cfg.source.seed + 1)
-    used = _render_one(cfg, 0, rng, world=None, plan=None)
-    ref = next(simulate_frames(cfg))
+    used = _render_one(cfg, 0, rng, world=world, plan=None)
+    ref = next(simulate_frames(cfg, world=world))
     if not np.array_equal(used.image, ref.image):
         return None
     state = rng.bit_generator.state
@@ -155,65 +156,117 @@ def render_workers(cfg: ScanConfig) -> int:
     return max(2, min(cores - 1, 8))
 
 
-def parallel_sim_frames(cfg: ScanConfig, *, workers: int) -> Iterator[Frame]:
-    """Every frame of the simulated scan (as :func:`simulate_frames`), rendered by
-    ``workers`` processes. Falls back to rendering here when the noise cannot be split."""
-    from sffscan.stages.sim.scanner import simulate_frames
+class _Renderers:
+    """The render workers, their pool and pipes; :meth:`stop` ends them (idempotent)."""
 
-    steps = noise_steps(cfg)
-    if steps is None:
-        log.info("simulated frames rendered in this process (the renderer's noise draws "
-                 "cannot be split between workers)")
-        yield from simulate_frames(cfg)
-        return
-    ctx = mp.get_context("spawn")
-    o = cfg.optics
-    frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
-    spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes)
-    sync = (ctx.Lock(), ctx.Semaphore(spec.slots))
-    pool = SlotPool(spec, sync, create=True)
-    outs = [ctx.Queue(AHEAD) for _ in range(workers)]
-    pipes = [ctx.Pipe(duplex=False) for _ in range(workers)]
-    procs = [ctx.Process(target=render_worker, name=f"sffscan-render-{k}", daemon=True,
-                         args=(cfg.model_dump(mode="json"), k, workers, steps,
-                               spec.to_json(), sync, outs[k], pipes[k][0], os.getpid()))
-             for k in range(workers)]
-    try:
-        for p in procs:
-            p.start()
-        for r, _ in pipes:
-            r.close()
-        ended = 0
-        i = 0
-        while ended < workers:
-            k = i % workers
-            msg = _get(outs[k], procs[k], first=i < workers)
-            if "error" in msg:
-                raise RuntimeError(f"simulated scanner, render worker {k}: {msg['error']}")
-            if "end" in msg:
-                ended += 1
-                i += 1
-                continue
-            if i == workers - 1:
-                pool.unlink()  # every worker has attached: it rendered into the pool
-            view = pool.array(msg["slot"], offset=0, shape=tuple(msg["shape"]),
-                              dtype=msg["dtype"])
-            image = view.copy()
-            del view
-            i += 1
-            yield Frame(FrameHeader.model_validate(msg["h"]), image)
-    finally:
-        for _, w in pipes:
+    def __init__(self, cfg: ScanConfig, workers: int, steps: int) -> None:
+        ctx = mp.get_context("spawn")
+        o = cfg.optics
+        frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
+        spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes)
+        sync = (ctx.Lock(), ctx.Semaphore(spec.slots))
+        self.workers = workers
+        self.pool = SlotPool(spec, sync, create=True)
+        self.outs = [ctx.Queue(AHEAD) for _ in range(workers)]
+        self.pipes = [ctx.Pipe(duplex=False) for _ in range(workers)]
+        self.procs = [ctx.Process(target=render_worker, name=f"sffscan-render-{k}",
+                                  daemon=True,
+                                  args=(cfg.model_dump(mode="json"), k, workers, steps,
+                                        spec.to_json(), sync, self.outs[k],
+                                        self.pipes[k][0], os.getpid()))
+                      for k in range(workers)]
+        self.stopped = False
+        try:
+            for p in self.procs:
+                p.start()
+        finally:
+            for r, _ in self.pipes:
+                r.close()
+
+    def stop(self) -> None:
+        if self.stopped:
+            return
+        self.stopped = True
+        for _, w in self.pipes:
             with contextlib.suppress(OSError):
                 w.send_bytes(b"stop")
             w.close()
-        for p in procs:
+        for p in self.procs:
             if p.pid is not None:
                 p.join(10)
                 if p.is_alive():
                     p.kill()
                     p.join()
-        pool.close()
+        self.pool.close()
+
+    def frames(self) -> Iterator[Frame]:
+        try:
+            ended = 0
+            i = 0
+            while ended < self.workers:
+                k = i % self.workers
+                msg = _get(self.outs[k], self.procs[k], first=i < self.workers)
+                if "error" in msg:
+                    raise RuntimeError(f"simulated scanner, render worker {k}: "
+                                       f"{msg['error']}")
+                i += 1
+                if "end" in msg:
+                    ended += 1
+                    continue
+                if i == self.workers:
+                    self.pool.unlink()  # every worker has attached: it rendered into it
+                view = self.pool.array(msg["slot"], offset=0, shape=tuple(msg["shape"]),
+                                       dtype=msg["dtype"])
+                image = view.copy()
+                del view
+                yield Frame(FrameHeader.model_validate(msg["h"]), image)
+        finally:
+            self.stop()
+
+
+class ParallelSimFrames:
+    """Every frame of the simulated scan (as :func:`simulate_frames`), rendered by
+    ``workers`` processes that start at once (while the pipeline's own workers start).
+
+    An iterator with ``close()``; the workers also stop when it is garbage. Renders in
+    this process when the noise cannot be split (:func:`noise_steps`).
+    """
+
+    def __init__(self, cfg: ScanConfig, *, workers: int, world: Any = None) -> None:
+        from sffscan.stages.sim.scanner import simulate_frames
+
+        steps = noise_steps(cfg, world=world)
+        self._renderers: _Renderers | None = None
+        if steps is None:
+            log.info("simulated frames rendered in this process (the renderer's noise draws "
+                     "cannot be split between workers)")
+            self._it: Iterator[Frame] = simulate_frames(cfg, world=world)
+            return
+        self._renderers = _Renderers(cfg, workers, steps)
+        self._finalizer = weakref.finalize(self, self._renderers.stop)
+        self._it = self._renderers.frames()
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self
+
+    def __next__(self) -> Frame:
+        return next(self._it)
+
+    def close(self) -> None:
+        close = getattr(self._it, "close", None)
+        if close is not None:
+            close()
+        if self._renderers is not None:
+            self._renderers.stop()
+
+
+def parallel_sim_frames(cfg: ScanConfig, *, workers: int) -> Iterator[Frame]:
+    """:class:`ParallelSimFrames` as a generator (workers start at the first frame)."""
+    it = ParallelSimFrames(cfg, workers=workers)
+    try:
+        yield from it
+    finally:
+        it.close()
 
 
 def _get(q: Any, proc: Any, *, first: bool) -> dict[str, Any]:

@@ -39,13 +39,13 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
         return _tcp_feed(cfg, source)
     kind = cfg.source.kind
     if kind == "sim":
-        from sffscan.pipeline.sim_workers import parallel_sim_frames, render_workers
+        from sffscan.pipeline.sim_workers import ParallelSimFrames, render_workers
         from sffscan.stages.sim.scanner import make_world, simulate_frames
 
         world = make_world(cfg)
         workers = render_workers(cfg)
-        frames = (parallel_sim_frames(cfg, workers=workers) if workers
-                  else simulate_frames(cfg, world=world))
+        frames: Iterator[Frame] = (ParallelSimFrames(cfg, workers=workers, world=world)
+                                   if workers else simulate_frames(cfg, world=world))
         return FrameFeed(frames, "simulated scanner" + (
             f" ({workers} render processes)" if workers else ""), world,
             FrameAccount(planned=planned_frames(cfg)))

@@ -140,7 +140,7 @@ def test_auto_execution_picks_processes_only_for_large_scans() -> None:
 
 
 def test_simulated_frames_rendered_by_workers_equal_the_serial_ones() -> None:
-    from sffscan.pipeline.sim_workers import noise_steps, parallel_sim_frames
+    from sffscan.pipeline.sim_workers import ParallelSimFrames, noise_steps, parallel_sim_frames
 
     cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 4.0})
     o = cfg.optics
@@ -149,6 +149,10 @@ def test_simulated_frames_rendered_by_workers_equal_the_serial_ones() -> None:
     par = list(parallel_sim_frames(cfg, workers=3))
     assert [f.header for f in par] == [f.header for f in serial]
     assert all(np.array_equal(a.image, b.image) for a, b in zip(par, serial, strict=True))
+    assert not mp.active_children()
+    started = ParallelSimFrames(cfg, workers=2)  # workers start at once ...
+    assert len(mp.active_children()) == 2
+    started.close()  # ... and stop when closed, never iterated
     assert not mp.active_children()
 
 
