@@ -229,7 +229,8 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     with dask.config.set({"distributed.worker.daemon": False}):
         cluster = (None if scheduler else
                    LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                dashboard_address=None, memory_limit=0))
+                                # no fixed port: another cluster's 8787 is no conflict
+                                dashboard_address="127.0.0.1:0", memory_limit=0))
         try:
             with Client(scheduler or cluster) as client:
                 futures = {client.submit(process_recording, str(targets[i][0]),
