@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         top = max(cores)
         cases = [c for c in cases if c["cores"] == top]
-    rows = [{"case": c, "runs": []} for c in cases]
+    rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
     base = baseline_fps(bank, 12)
     for r in range(args.rounds):
         for row in rows:
