@@ -86,7 +86,10 @@ def bench_config(*, bits: int = 10, registration: bool = True, operator: str = "
     return demo_config(optics={"bit_depth": bits}, motion={"x_end_mm": 400.0},
                        source={"plate_length_mm": 400.0},
                        processing={"registration": registration, "focus_operator": operator,
-                                   "depth_method": method})
+                                   "depth_method": method,
+                                   # this benchmark measures the thread runtime (one
+                                   # process's CPU); bench_parallel.py compares both
+                                   "execution": "threads"})
 
 
 def bank_path(cache: Path, count: int, bits: int) -> Path:
