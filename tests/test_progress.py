@@ -77,7 +77,16 @@ def test_bar_on_a_terminal_that_reports_no_size() -> None:
             for i in range(11):
                 p.update(i, 0.1 * i)
             p.close()
-        text = os.read(master, 65536).decode(errors="replace")
+        # a pty hands its output over in pieces: read until nothing more comes
+        import select
+
+        chunks = []
+        while select.select([master], [], [], 0.5)[0]:
+            data = os.read(master, 65536)
+            if not data:
+                break
+            chunks.append(data)
+        text = b"".join(chunks).decode(errors="replace")
     finally:
         os.close(slave)
         os.close(master)
