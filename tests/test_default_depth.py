@@ -9,7 +9,6 @@ chapter 3 clean 0.684 levels (best other: centroid 0.671, 1.019 x), with noise 0
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +23,7 @@ from sffscan.stages.depth import (
 )
 from sffscan.stages.fields.stationary import read_image_stack
 from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.camera import Optics, render_stack
-from sffscan.stages.sim.world import sinusoid_world
-
-N, SIZE, STEP_UM = 60, 300, 100.0
+from sffscan.stages.sim.chapter3 import STEP_UM, chapter3_stack, with_noise
 
 
 def _table(vol: np.ndarray, score) -> dict[str, float]:  # noqa: ANN001
@@ -36,17 +32,9 @@ def _table(vol: np.ndarray, score) -> dict[str, float]:  # noqa: ANN001
 
 @pytest.fixture(scope="module")
 def chapter3() -> dict[str, dict[str, float]]:
-    optics = Optics(width=SIZE, height=SIZE, pixel_um=8.5, noise_sigma=0.0, bit_depth=10)
-    heights = np.arange(N) * STEP_UM
-    world = dataclasses.replace(
-        sinusoid_world(seed=3, pixel_um=8.5, amplitude_um=0.35 * heights[-1], period_px=150.0,
-                       offset_um=0.5 * heights[-1]),
-        texture_scales_px=(1.0, 2.0))
-    stack = render_stack(world, x0=0.0, y0=0.0, focus_heights_um=heights, optics=optics,
-                         rng=None).astype(np.float32) / 1023.0
-    noisy = stack + np.random.default_rng(5).normal(
-        0.0, np.sqrt(0.005), stack.shape).astype(np.float32)
-    truth = (world.height_um(0.0, 0.0, SIZE, SIZE) - heights[0]) / STEP_UM
+    stack, heights, truth_um = chapter3_stack()
+    noisy = with_noise(stack, variance=0.005)
+    truth = (truth_um - heights[0]) / STEP_UM
 
     def rmse(d: np.ndarray) -> float:
         return float(np.sqrt(np.mean((d - truth) ** 2)))

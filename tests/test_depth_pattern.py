@@ -14,32 +14,18 @@ degrades so much (7.4 levels RMSE) that even the centroid beats it: measured, no
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
 from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.camera import Optics, render_stack
-from sffscan.stages.sim.world import sinusoid_world
-
-N, SIZE, STEP_UM = 60, 300, 100.0
+from sffscan.stages.sim.chapter3 import STEP_UM, chapter3_stack
 
 
 @pytest.fixture(scope="module")
 def rmse_by_method() -> dict[str, float]:
-    optics = Optics(width=SIZE, height=SIZE, pixel_um=8.5, noise_sigma=0.0, bit_depth=10)
-    heights = np.arange(N) * STEP_UM
-    world = dataclasses.replace(
-        sinusoid_world(seed=3, pixel_um=8.5, amplitude_um=0.35 * heights[-1], period_px=150.0,
-                       offset_um=0.5 * heights[-1]),
-        texture_scales_px=(1.0, 2.0))
-    stack = render_stack(world, x0=0.0, y0=0.0, focus_heights_um=heights, optics=optics,
-                         rng=None).astype(np.float32) / 1023.0
-    rng = np.random.default_rng(5)
-    noisy = stack + rng.normal(0.0, np.sqrt(0.005), stack.shape).astype(np.float32)
+    noisy, heights, truth_um = chapter3_stack(noise=0.005)
     vol = focus_measure(noisy, operator="tenv", window=5)
-    truth = (world.height_um(0.0, 0.0, SIZE, SIZE) - heights[0]) / STEP_UM
+    truth = (truth_um - heights[0]) / STEP_UM
     out = {}
     for method in DEPTH_METHODS:
         depth, _ = depth_from_focus(vol, method=method)

@@ -108,26 +108,12 @@ def read_imdata(path: Path) -> StudyStack:
 
 
 def chapter3_stack(*, noise: float, seed: int = 5) -> StudyStack:
-    """The thesis' chapter-3 simulation: 300 x 300 px, 60 levels of 100 µm, a sinusoidal
-    surface with a fine texture, Gaussian noise of variance ``noise`` on the 0..1 images."""
-    import dataclasses
+    """The thesis' chapter-3 simulation (:mod:`sffscan.stages.sim.chapter3`) as a study
+    stack: every pixel scored."""
+    from sffscan.stages.sim.chapter3 import chapter3_stack as simulate
 
-    from sffscan.stages.sim.camera import Optics, render_stack
-    from sffscan.stages.sim.world import sinusoid_world
-
-    n, size = 60, 300
-    optics = Optics(width=size, height=size, pixel_um=8.5, noise_sigma=0.0, bit_depth=10)
-    heights = np.arange(n) * 100.0
-    world = dataclasses.replace(
-        sinusoid_world(seed=3, pixel_um=8.5, amplitude_um=0.35 * heights[-1], period_px=150.0,
-                       offset_um=0.5 * heights[-1]), texture_scales_px=(1.0, 2.0))
-    images = render_stack(world, x0=0.0, y0=0.0, focus_heights_um=heights, optics=optics,
-                          rng=None).astype(np.float32) / 1023.0
-    if noise > 0:
-        rng = np.random.default_rng(seed)
-        images = images + rng.normal(0.0, np.sqrt(noise), images.shape).astype(np.float32)
-    truth = world.height_um(0.0, 0.0, size, size)
-    return StudyStack(images, heights, truth, np.ones((size, size), bool),
+    images, heights, truth = simulate(noise=noise, seed=seed)
+    return StudyStack(images, heights, truth, np.ones(truth.shape, bool),
                       f"chapter3 noise {noise:g}")
 
 
