@@ -84,18 +84,21 @@ def _stopgo_rmse(args: list[str]) -> float:
 
 
 def test_stopgo(tmp_path: Path) -> None:
-    optics = Optics(width=320, height=256, pixel_um=17.0, magnification_ref_um=MID,
+    # fields of the thesis' field of view at half resolution (640 x 512 px of 17 µm): on
+    # the default 320 x 256 fields the breathing barely shows (1.11x without calibration)
+    field = ["--field", "640", "512"]
+    optics = Optics(width=640, height=512, pixel_um=17.0, magnification_ref_um=MID,
                     **REALISTIC_OPTICS)
     cal = calibrate(tmp_path, optics)
-    ideal = _stopgo_rmse(["-o", str(tmp_path / "i.zarr")])
-    raw = _stopgo_rmse(["-o", str(tmp_path / "r.zarr"), "--realistic"])
+    ideal = _stopgo_rmse(["-o", str(tmp_path / "i.zarr"), *field])
+    raw = _stopgo_rmse(["-o", str(tmp_path / "r.zarr"), "--realistic", *field])
     corrected = _stopgo_rmse(["-o", str(tmp_path / "c.zarr"), "--realistic",
-                              "--calibration", str(cal)])
+                              "--calibration", str(cal), *field])
     print(f"\nstop-and-go RMSE: ideal optics {ideal:.1f} µm; realistic optics without "
           f"calibration {raw:.1f} µm ({raw / ideal:.3f}x), with {corrected:.1f} µm "
           f"({corrected / ideal:.3f}x)")
     assert corrected <= 1.10 * ideal
-    assert raw > ideal
+    assert raw >= 1.3 * ideal  # the simulated optics show their effect
 
 
 def test_stack(tmp_path: Path) -> None:
