@@ -56,6 +56,14 @@ def test_wheel_holds_one_package_with_its_data(wheel: Path) -> None:
     for schema in SCHEMAS:
         assert f"sffscan/schemas/{schema}" in names, schema
     assert "sffscan/schemas/__init__.py" in names
+    # every module of the source folders is in the wheel (a new sub-package missing from
+    # pyproject's package list would install a package that cannot import)
+    mapped = {"sffscan": "sffscan", "pipeline": "sffscan/pipeline", "stages": "sffscan/stages"}
+    missing = [f"{mapped[top]}/{path.relative_to(ROOT / top).as_posix()}"
+               for top in mapped for path in (ROOT / top).rglob("*.py")
+               if "__pycache__" not in path.parts]
+    missing = [m for m in missing if m not in names]
+    assert not missing, missing
     entry = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     assert "sffscan = sffscan.pipeline.cli.main:main" in zipfile.ZipFile(wheel).read(
         entry).decode()
@@ -71,8 +79,9 @@ def test_installed_wheel_imports_and_checks_its_schemas(wheel: Path, tmp_path: P
     run = tmp_path / "elsewhere"
     run.mkdir()
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
-    code = ("import sffscan, sffscan.pipeline.formats.schema_gen as g; "
-            "print(sffscan.__file__); print(g.packaged_schema_dir())")
+    code = ("import numpy, sffscan, sffscan.pipeline.formats.schema_gen as g; "
+            "assert sffscan.focus_measure(numpy.eye(16), operator='LAPM', window=3).shape "
+            "== (16, 16); print(sffscan.__file__); print(g.packaged_schema_dir())")
     res = subprocess.run([sys.executable, "-I", "-c", f"import sys; sys.path.insert(0, "
                           f"{str(site)!r}); {code}"], cwd=run, env=env, capture_output=True,
                          text=True, timeout=120, check=False)
