@@ -232,3 +232,14 @@ def test_packaged_schemas_checked_from_any_folder(tmp_path: Path,
     assert main(["schemas", "--dir", "out", "--check"]) == 1
     assert "frame_header.v1.json" in capsys.readouterr().err
 
+
+
+def test_batch_takes_the_same_processing_choices_as_replay() -> None:
+    """`batch` offers the processing options of `replay` (it had its own copy, limited to
+    GLVM and TENV)."""
+    from sffscan.pipeline.cli.main import build_parser
+
+    parser = build_parser()
+    for command in (["batch", "layers", "-o", "out"], ["replay", "rec.zarr", "-o", "m.zarr"]):
+        args = parser.parse_args([*command, "--operator", "LAPM", "--method", "wcentroid"])
+        assert (args.operator, args.method) == ("lapm", "wcentroid")

@@ -16,7 +16,7 @@ import os
 import sys
 from pathlib import Path
 
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, processing_choices
 
 log = logging.getLogger(__name__)
 
@@ -110,12 +110,5 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="reprocess recordings whose mosaic is complete already")
     p.add_argument("--no-evaluate", action="store_true",
                    help="do not score simulated recordings against their true surface")
-    p.add_argument("--no-registration", action="store_true",
-                   help="place frames by speed only")
-    p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
-                                        "spc", "wcentroid"], help="depth method")
-    p.add_argument("--operator", choices=["glvm", "tenv"], help="focus measure operator")
-    p.add_argument("--window", type=int, help="focus measure window k, odd, px")
-    p.add_argument("--calibration", metavar="FILE",
-                   help="calibration JSON ('sffscan calibrate'): focus level -> µm")
+    processing_choices(p)
     p.set_defaults(func=cmd_batch)

@@ -10,11 +10,12 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, get_args
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import (
     ConfigError,
+    ProcessingConfig,
     ScanConfig,
     config_from_dict,
     max_speed_sliding_mm_s,
@@ -22,29 +23,26 @@ from sffscan.pipeline.config import (
 )
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import Sink, StageFailed
+from sffscan.stages.operators import OPERATORS
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: the scan ended cleanly but fewer frames than expected were received and processed (the
 #: mosaic's status is 'incomplete'; see sffscan.pipeline.completeness)
 EXIT_INCOMPLETE = 3
 
-OPERATOR_CHOICES = (
-    "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
-    "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
-    "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols",
-)
-"""Focus measure operators (sffscan.stages.operators.OPERATORS, kept torch-free here)."""
+#: focus measure operators (the names alone: importing them loads no torch)
+OPERATOR_CHOICES: tuple[str, ...] = OPERATORS
+#: depth methods, as the configuration model accepts them
+DEPTH_METHOD_CHOICES: tuple[str, ...] = get_args(
+    ProcessingConfig.model_fields["depth_method"].annotation)
 
 
-def processing_options(p: argparse.ArgumentParser) -> None:
-    """Options that change how frames are processed (scan and replay)."""
+def processing_choices(p: argparse.ArgumentParser) -> None:
+    """Options that choose how frames are processed: registration, depth method, operator,
+    window, calibration (scan, replay, batch)."""
     p.add_argument("--no-registration", action="store_true",
                    help="place frames by speed only")
-    p.add_argument("--execution", choices=["auto", "threads", "processes"],
-                   help="run the stages in worker processes (frames in shared memory) or in "
-                        "threads of one process (default auto: processes for large scans)")
-    p.add_argument("--method", choices=["argmax", "gauss3", "quadratic3", "centroid", "pc",
-                                        "spc", "wcentroid"],
+    p.add_argument("--method", choices=DEPTH_METHOD_CHOICES,
                    help="depth method (default wcentroid)")
     p.add_argument("--operator", type=str.lower, choices=OPERATOR_CHOICES, metavar="OPERATOR",
                    help="focus measure operator, a toolbox acronym in any case (default glvm): "
@@ -53,6 +51,14 @@ def processing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calibration", metavar="FILE",
                    help="calibration JSON ('sffscan calibrate'): its z response, vignetting, "
                         "magnification per focus level and field curvature are corrected")
+
+
+def processing_options(p: argparse.ArgumentParser) -> None:
+    """Options that change how frames are processed and shown (scan and replay)."""
+    processing_choices(p)
+    p.add_argument("--execution", choices=["auto", "threads", "processes"],
+                   help="run the stages in worker processes (frames in shared memory) or in "
+                        "threads of one process (default auto: processes for large scans)")
     p.add_argument("--viewer", metavar="MODE", default=None,
                    help="live view in Rerun, one word: spawn (native viewer), serve (web viewer on "
                         "this machine), save (to the --rrd file), auto (spawn where a display "

@@ -28,11 +28,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, OPERATOR_CHOICES
+from sffscan.pipeline.cli.common import (
+    DEPTH_METHOD_CHOICES,
+    EXIT_BAD_INPUT,
+    EXIT_OK,
+    OPERATOR_CHOICES,
+)
 
 log = logging.getLogger(__name__)
 
-METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc", "wcentroid")
+METHODS = DEPTH_METHOD_CHOICES
 
 
 @dataclass(frozen=True)
