@@ -164,6 +164,10 @@ class MosaicAttrs(BaseModel):
         default=None, description="The recording this mosaic was replayed from (path, frames, "
         "defects found), null for a live scan")
     resumed: int = Field(default=0, ge=0, description="Times 'replay --resume' continued it")
+    pyramid_stale: tuple[int, int, int, int] | None = Field(
+        default=None, description="Journal: world px box (x0, y0, width, height) of level 0 "
+        "whose pyramid levels the writer holds unwritten (a bounded write-back cache); after "
+        "a crash, 'replay --resume' recomputes them; null once written")
     ome: NgffOme | None = Field(
         default=None, description="OME-Zarr (NGFF 0.5) multiscales metadata: one pyramid per "
         "array, 'height' first (format version 2); null in version 1")

@@ -38,6 +38,7 @@ touched it) and journals the rest; the result is bit for bit the uninterrupted m
 from __future__ import annotations
 
 import datetime as _dt
+import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,8 @@ from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.durable import free_reserve, make_reserve
 from sffscan.stages.mosaic_pyramid import (
+    LAG_S,
+    PyramidCache,
     aligned,
     create_pyramid,
     default_levels,
@@ -58,10 +61,11 @@ from sffscan.stages.mosaic_pyramid import (
     read_many,
     resize_pyramid,
     update_pyramid,
-    write_levels,
     write_many,
 )
 from zarr.codecs import BloscCodec, BloscShuffle
+
+log = logging.getLogger(__name__)
 
 ARRAYS = ("height", "texture", "confidence", "weight")
 MIN_WEIGHT = 1e-3
@@ -182,6 +186,20 @@ class MosaicWriter:
     levels : int, optional
         Levels of the resolution pyramid, level 0 included (>= 1; 1 = no pyramid); by
         default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
+    pyramid_lag_s : float
+        Longest time, s, an upper-level chunk keeps changes unwritten while band writes
+        still touch it (:class:`~sffscan.stages.mosaic_pyramid.PyramidCache`).
+
+    Notes
+    -----
+    The pyramid is written back through a cache of upper-level chunks: a level-k chunk is
+    written when the band writes leave its columns (2^k chunk-wide bands), or at the first
+    band write after it has held unwritten changes for ``pyramid_lag_s`` s, and every chunk
+    at :meth:`set_status`; so a viewer sees level k lag level 0 by at most that. Each
+    journal entry (``writing`` before a band write, ``writes_done`` after it) also records
+    ``pyramid_stale``, the world px box under the chunks not yet written; :meth:`reopen`
+    recomputes it from level 0. The cache holds only the chunks under the last write (for
+    the demo's 256 x 1040 px bands: 7 chunks per array, 7 MiB).
     """
 
     #: what a ``complete`` status is checked against: returns the status to set
@@ -192,7 +210,7 @@ class MosaicWriter:
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
                  overwrite: bool = False, codec: str = DEFAULT_CODEC,
-                 levels: int | None = None) -> None:
+                 levels: int | None = None, pyramid_lag_s: float = LAG_S) -> None:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
@@ -215,6 +233,7 @@ class MosaicWriter:
         create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
                        units=UNITS, compressors=compressors)
         self.pyramid = pyramid_arrays(self.group, ARRAYS, levels)
+        self.cache = PyramidCache(self.pyramid, lag_s=pyramid_lag_s) if self.pyramid else None
         attrs = dict(attrs or {})
         header = MosaicAttrs(
             status="writing",
@@ -278,6 +297,7 @@ class MosaicWriter:
         self.done = attrs.writes_done
         levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
         self.pyramid = pyramid_arrays(group, ARRAYS, levels)
+        self.cache = PyramidCache(self.pyramid) if self.pyramid else None
         rebuild = [tuple(b) for b in attrs.rebuild]
         if attrs.writing is not None and tuple(attrs.writing) not in rebuild:
             rebuild.append(tuple(attrs.writing))
@@ -286,6 +306,10 @@ class MosaicWriter:
         rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)
         cols = max(mosaic_array(group, n).shape[1] for n in ARRAYS)
         self._ensure(rows, cols)
+        if attrs.pyramid_stale is not None:  # levels the writer had not written back
+            sel = self._region(attrs.pyramid_stale)
+            if sel is not None:
+                self._update_pyramid(sel)
         self._journal(rebuild=[list(b) for b in self.rebuild], writing=None, status="writing",
                       resumed=attrs.resumed + 1)
         self.valid_px = count_valid(mosaic_array(group, "height"))
@@ -295,8 +319,17 @@ class MosaicWriter:
         return self
 
     def _journal(self, **changes: Any) -> None:
-        """Update attributes in one atomic write of the group's metadata."""
-        self.group.update_attributes(changes)
+        """Update attributes in one atomic write of the group's metadata, with the box of
+        the pyramid's unwritten chunks (``pyramid_stale``)."""
+        self.group.update_attributes({**changes, "pyramid_stale": self._stale()})
+
+    def _stale(self) -> list[int] | None:
+        """World px box (x0, y0, width, height) under the pyramid's unwritten chunks."""
+        sel = self.cache.stale() if self.cache is not None else None
+        if sel is None:
+            return None
+        return [self.origin[0] + sel[1].start, self.origin[1] + sel[0].start,
+                sel[1].stop - sel[1].start, sel[0].stop - sel[0].start]
 
     def _region(self, box: Box) -> tuple[slice, slice] | None:
         """Array slices of a world box, clipped to the arrays."""
@@ -347,11 +380,20 @@ class MosaicWriter:
         old = {name: v[sub] for name, v in buf.items()}
         out = blend(old, new)
         self.valid_px += int(np.isfinite(out["height"]).sum() - np.isfinite(old["height"]).sum())
-        write_many([(arrays[name], sel, value) for name, value in out.items()])
-        if self.pyramid:
+        writes = [(arrays[name], sel, value) for name, value in out.items()]
+        if self.cache is not None:
             for name, value in out.items():
                 buf[name][sub] = value
-            write_levels(self.pyramid, region, buf)
+            self.cache.update(region, buf)
+            # the chunks due go with level 0, in one round trip; a crash in it is covered by
+            # the journal (the torn box, and the unwritten chunks' box of the last entry)
+            writes += self.cache.write_back()
+        write_many(writes)
+
+    def flush_pyramid(self) -> None:
+        """Write every chunk the pyramid's cache holds (then the pyramid is current)."""
+        if self.cache is not None:
+            write_many(self.cache.write_back(everything=True))
 
     def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0).
@@ -392,7 +434,18 @@ class MosaicWriter:
         if self.rebuild or self.writes < self.done:
             status = "failed" if status == "complete" else status
             extra["rebuild"] = [list(b) for b in self.rebuild]
-        attrs = MosaicAttrs.model_validate({**self.group.attrs.asdict(), "status": status, **extra})
+        # the levels are current before the final status; if they cannot be written (a
+        # full disk), their box stays journaled and a resume recomputes it
+        stale = self._stale()
+        try:
+            self.flush_pyramid()
+            stale = None
+        except OSError as err:
+            log.warning("%s: pyramid levels over world px box %s not written (%s); "
+                        "'replay --resume' recomputes them", self.path, stale, err)
+            status = "failed" if status == "complete" else status
+        attrs = MosaicAttrs.model_validate({**self.group.attrs.asdict(), "status": status,
+                                            "pyramid_stale": stale, **extra})
         free_reserve(self.path)  # the final status is written even when the disk is full
         self.group.update_attributes(attrs.model_dump(mode="json"))
 

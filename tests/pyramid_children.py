@@ -1,6 +1,6 @@
 """Child processes of tests/test_mosaic_pyramid.py: a replay through the Python API that
-dies by SIGKILL in the middle of mosaic write number ``kill_at`` (kept free of pytest so that
-the fork-server children start fast)."""
+dies by SIGKILL around mosaic write number ``kill_at`` (kept free of pytest so that the
+fork-server children start fast)."""
 
 from __future__ import annotations
 
@@ -10,18 +10,21 @@ from typing import Any
 
 
 def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
-    """Replay ``recording`` into ``output``; during write ``kill_at`` the process dies:
-    ``where="level0"`` after two of the four level-0 arrays are written (no pyramid update),
-    ``where="pyramid"`` after level 0 and half of level 1 are written."""
+    """Replay ``recording`` into ``output``; the process dies
+
+    - ``where="level0"``: during write ``kill_at``, after two of the four level-0 arrays are
+      written (no pyramid write-back);
+    - ``where="pyramid"``: during write ``kill_at``, after level 0 and half of the pyramid
+      chunks that write writes back."""
     import numpy as np
-    from sffscan.stages import mosaic, mosaic_pyramid
+    from sffscan.stages import mosaic
 
     from sffscan.api import replay
 
     fd = os.open(os.devnull, os.O_WRONLY)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
-    blend, levels = mosaic.MosaicWriter._blend, mosaic_pyramid.write_levels
+    blend, write_many = mosaic.MosaicWriter._blend, mosaic.write_many
     state: dict[str, Any] = {}
 
     def torn_blend(self: mosaic.MosaicWriter, x0: int, y0: int,
@@ -38,14 +41,14 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
             os.kill(os.getpid(), signal.SIGKILL)
         blend(self, x0, y0, new)
 
-    def torn_levels(arrays: list[dict[str, Any]], region: Any, values: Any) -> None:
+    def torn_write_many(items: list[Any]) -> None:
         if where == "pyramid" and state.get("write") == kill_at:
-            levels([{k: v for k, v in arrays[0].items() if k in ("height", "texture")}],
-                   region, values)
+            level0 = len(mosaic.ARRAYS)  # the first items: level 0, then the write-back
+            write_many(items[:level0 + (len(items) - level0) // 2])
             os.kill(os.getpid(), signal.SIGKILL)
-        levels(arrays, region, values)
+        write_many(items)
 
     mosaic.MosaicWriter._blend = torn_blend  # type: ignore[method-assign]
-    mosaic.write_levels = torn_levels  # type: ignore[assignment]
+    mosaic.write_many = torn_write_many  # type: ignore[assignment]
     replay(recording, output=output)
     raise SystemExit(0)

@@ -43,16 +43,25 @@ def block_reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
 HOW = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum"}
 
 
-def assert_pyramid_consistent(path: Path) -> int:
-    """Every level k of every array equals the reduction of level 0; returns the levels."""
+def assert_pyramid_consistent(path: Path, *, stale: list[int] | None = None) -> int:
+    """Every level k of every array equals the reduction of level 0 (outside the blocks that
+    meet the world px box ``stale``, if given); returns the levels."""
     g = zarr.open_group(str(path), mode="r")
     levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])  # type: ignore[index]
+    ox, oy = g.attrs["origin_px"]  # type: ignore[misc]
     for name in ARRAYS:
         base = np.asarray(g[name])  # type: ignore[index]
         for k in range(1, levels):
             got = np.asarray(g[level_path(name, k)])  # type: ignore[index]
             want = block_reduce(base, 2 ** k, HOW[name])
             assert got.shape == want.shape, (name, k)
+            if stale is not None:  # leave out the blocks under the box
+                f = 2 ** k
+                r0, c0 = (stale[1] - oy) // f, (stale[0] - ox) // f
+                r1, c1 = -(-(stale[1] - oy + stale[3]) // f), -(-(stale[0] - ox + stale[2]) // f)
+                got, want = got.copy(), want.copy()
+                got[max(r0, 0):max(r1, 0), max(c0, 0):max(c1, 0)] = 0
+                want[max(r0, 0):max(r1, 0), max(c0, 0):max(c1, 0)] = 0
             assert np.array_equal(np.isnan(got), np.isnan(want)), (name, k)
             np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-6, equal_nan=True,
                                        err_msg=f"{name} level {k}")
@@ -102,21 +111,33 @@ def _block(x0: int, y0: int, pass_index: int, rng: np.random.Generator, rows: in
                       rng.random((rows, cols)).astype(np.float32))
 
 
-def test_streamed_pyramid_is_current_after_every_band(tmp_path: Path) -> None:
+@pytest.mark.parametrize("lag_s", [0.0, np.inf])
+def test_streamed_pyramid_is_current_after_every_band(tmp_path: Path, lag_s: float) -> None:
     """Two overlapping passes of blocks: after each band write, every level of the mosaic
-    equals the reduction of what level 0 holds then (the pyramid is kept current)."""
+    equals the reduction of what level 0 holds then, except under the journaled box of the
+    chunks the writer has not written back yet (none with lag_s=0; with no time limit, the
+    box spans at most the top level's chunk width, and the pyramid still grows)."""
     rng = np.random.default_rng(3)
     path = tmp_path / "m.zarr"
     writer = MosaicWriter(path, origin_px=(-37, -11), shape=(60, 100), pixel_um=8.5,
-                          chunk_px=32, levels=4)
+                          chunk_px=32, levels=4, pyramid_lag_s=lag_s)
     stage = MosaicStage(writer)
     checked = 0
     orig = writer.write_region
+    grown = []
 
     def checked_write(*args: Any, **kwargs: Any) -> None:
         nonlocal checked
         orig(*args, **kwargs)
-        assert_pyramid_consistent(path)
+        g = zarr.open_group(str(path), mode="r")
+        stale = g.attrs["pyramid_stale"]
+        if lag_s == 0:
+            assert stale is None
+        else:
+            assert stale is not None and stale[2] <= 32 * 8  # one level-3 chunk wide
+        assert_pyramid_consistent(path, stale=stale)  # type: ignore[arg-type]
+        level1 = np.asarray(g[level_path("height", 1)])  # type: ignore[index]
+        grown.append(int(np.isfinite(level1).sum()))
         checked += 1
 
     writer.write_region = checked_write  # type: ignore[method-assign]
@@ -126,7 +147,9 @@ def test_streamed_pyramid_is_current_after_every_band(tmp_path: Path) -> None:
     list(stage.finish())
     stage.close(failed=False)
     assert checked >= 10
+    assert grown[checked // 2] > 0  # the levels are written while the scan runs
     g = zarr.open_group(str(path), mode="r")
+    assert g.attrs["pyramid_stale"] is None
     height = np.asarray(g["height"])  # type: ignore[index]
     assert height.shape[1] > 100
     assert g.attrs["valid_pixels"] == int(np.isfinite(height).sum())
@@ -169,6 +192,50 @@ def _arrays(path: Path) -> dict[str, np.ndarray]:
             for n in ARRAYS for k in range(levels)}
 
 
+def _bands(rng: np.random.Generator) -> list[tuple[int, int, dict[str, np.ndarray]]]:
+    """Band writes of two overlapping passes, the second one backwards: (x0, y0, sums)."""
+    out = []
+    for y0, xs in ((-11, range(-37, 200, 32)), (13, range(187, -40, -32))):
+        for x0 in xs:
+            w = rng.random((40, 32))
+            w[rng.random(w.shape) < 0.2] = 0.0
+            out.append((x0, y0, {"height": rng.normal(50, 10, w.shape) * w,
+                                 "texture": 0.5 * w, "weight": w,
+                                 "confidence": rng.random(w.shape).astype(np.float32)}))
+    return out
+
+
+def test_pyramid_cache_lost_between_writes_is_recomputed(tmp_path: Path) -> None:
+    """A writer that stops between two writes (as after a kill: its cache of upper-level
+    chunks is lost) leaves a pyramid that differs from level 0 only under the journaled box;
+    reopening and writing the same bands again gives the uninterrupted mosaic bit for bit."""
+    bands = _bands(np.random.default_rng(5))
+    kw: dict[str, Any] = {"origin_px": (-37, -11), "shape": (60, 100), "pixel_um": 8.5,
+                          "chunk_px": 32, "levels": 4, "pyramid_lag_s": np.inf}
+    ref = MosaicWriter(tmp_path / "ref.zarr", **kw)
+    for x0, y0, new in bands:
+        ref.write_region(x0, y0, new)
+    ref.set_status("complete")
+    torn = MosaicWriter(tmp_path / "torn.zarr", **kw)
+    for x0, y0, new in bands[:10]:
+        torn.write_region(x0, y0, new)
+    del torn  # no set_status: nothing of the cache is written
+    stale = zarr.open_group(str(tmp_path / "torn.zarr"), mode="r").attrs["pyramid_stale"]
+    assert stale is not None
+    with pytest.raises(AssertionError):
+        assert_pyramid_consistent(tmp_path / "torn.zarr")
+    assert_pyramid_consistent(tmp_path / "torn.zarr", stale=stale)  # type: ignore[arg-type]
+    again = MosaicWriter.reopen(tmp_path / "torn.zarr", scan_config={})
+    assert zarr.open_group(str(tmp_path / "torn.zarr"), mode="r").attrs["pyramid_stale"] is None
+    for x0, y0, new in bands:
+        again.write_region(x0, y0, new)
+    again.set_status("complete")
+    want, got = _arrays(tmp_path / "ref.zarr"), _arrays(tmp_path / "torn.zarr")
+    for key, value in want.items():
+        assert np.array_equal(got[key], value, equal_nan=True), key
+    assert assert_pyramid_consistent(tmp_path / "torn.zarr") == 4
+
+
 @pytest.mark.parametrize("where", ["level0", "pyramid"])
 def test_pyramid_after_kill_and_resume(tmp_path: Path, two_pass: tuple[Path, Path],
                                        where: str) -> None:
@@ -185,10 +252,12 @@ def test_pyramid_after_kill_and_resume(tmp_path: Path, two_pass: tuple[Path, Pat
     assert proc.exitcode == -signal.SIGKILL
     proc.close()
     _, info = tile_states(out)
-    assert info["writing"] is not None and info["writes_done"] == kill_at
-    if where == "pyramid":  # the kill left a pyramid that level 0 does not match
-        with pytest.raises(AssertionError):
-            assert_pyramid_consistent(out)
+    assert info["writes_done"] == kill_at
+    assert info["writing"] is not None
+    # the chunks the writer had not written back yet
+    assert zarr.open_group(str(out), mode="r").attrs["pyramid_stale"] is not None
+    with pytest.raises(AssertionError):  # the kill left a pyramid level 0 does not match
+        assert_pyramid_consistent(out)
     # resume, as 'sffscan replay --resume' does
     recording = open_recording(rec)
     cfg = recording.config.model_copy(deep=True)
