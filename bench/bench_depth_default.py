@@ -1,13 +1,24 @@
-"""Throughput of the default depth method against SPC: focus-volume accumulation per frame.
+"""The default depth method against SPC: focus-volume cost per frame, and every method's
+accuracy on the scans of the issue's bars.
 
-    python bench/bench_depth_default.py [--frames 300] [--rounds 3] [--e2e RECORDING]
+    python bench/bench_depth_default.py [--frames 300] [--rounds 3] [--methods spc,adaptive]
+    python bench/bench_depth_default.py --e2e RECORDING [--rounds 3] [--execution threads]
+    python bench/bench_depth_default.py --accuracy RECORDING
 
-What the depth stage does for every frame of a demo scan (1280 x 1024 px, N = 50, 15 mm/s,
-the columns the focus stage measures, ~52 % of each frame), for ``spc`` (running sums and
-argmax, no N-level ring) and ``wcentroid`` (the N-level ring of the 3-point fits, reduced
-by the windowed centroid), *interleaved* in rounds in one process so that both see the
-same machine load: ms per frame including the reduction of the completed blocks, and the
-bytes each keeps per pass. Not a test: nothing here asserts.
+Default mode: what the depth stage does for every frame of a demo scan (1280 x 1024 px,
+N = 50, 15 mm/s, the columns the focus stage measures, ~52 % of each frame), for each
+method, *interleaved* in rounds in one process so that all see the same machine load: wall
+and CPU ms per frame including the reduction of the completed blocks, and the bytes each
+keeps per pass. The focus values are random (gamma distributed), so the depth methods'
+data-dependent paths (adaptive's peak fit or centroid) take their share of a textured
+surface's pixels, not a flat plate's.
+
+``--e2e``: the whole pipeline over a recording (``sffscan demo --record``), frames read
+into memory first, SPC and the default interleaved: frames/s and CPU ms per frame.
+
+``--accuracy``: every method's RMSE over the recording (replayed, threads) and over the
+±3 px wobble scan with noise of the end-to-end tests (tests/scan_helpers.py). Not a test:
+nothing here asserts.
 """
 
 from __future__ import annotations
@@ -15,11 +26,15 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.config import demo_config
 from sffscan.pipeline.plan import plan_frames
+from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.focus_volume import FocusVolume, new_columns
 from sffscan.stages.sim.camera import focus_heights
 
@@ -46,7 +61,7 @@ def run(method: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.n
                       focus_heights_um=focus_heights(n_levels=o.n_levels, z_min_um=o.z_min_um,
                                                      z_step_um=o.z_step_um),
                       margin=p.focus_reach_px, method=method, median_size=p.median_size,
-                      block_columns=p.block_columns)
+                      spread_size=p.window, block_columns=p.block_columns)
     t0 = time.perf_counter()  # after the volume's start-up (its pages are touched there)
     c0_cpu = time.process_time()
     for i, (x, y, level, c0, c1) in enumerate(plan):
@@ -58,51 +73,37 @@ def run(method: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.n
             vol.nbytes)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--e2e", metavar="RECORDING",
-                    help="also replay this recording end to end (e.g. one of 'sffscan demo "
-                         "--record'), SPC and wcentroid interleaved")
-    ap.add_argument("--execution", default="threads", choices=["threads", "processes"])
-    args = ap.parse_args()
-    if args.e2e:
-        print(json.dumps(end_to_end(args.e2e, args.rounds, args.execution)))
-        return 0
+def focus_volume_cost(methods: list[str], n_frames: int, rounds: int) -> dict[str, object]:
     cfg = demo_config()
     h, w = cfg.optics.height_px, cfg.optics.width_px
     rng = np.random.default_rng(0)
     bank = [rng.gamma(2.0, 0.01, (h, w)).astype(np.float32) for _ in range(7)]
     tex = rng.random((h, w), dtype=np.float32)
-    plan = frames(args.frames)
-    res: dict[str, list[float]] = {"spc": [], "wcentroid": []}
-    cpu: dict[str, list[float]] = {"spc": [], "wcentroid": []}
+    plan = frames(n_frames)
+    wall: dict[str, list[float]] = {m: [] for m in methods}
+    cpu: dict[str, list[float]] = {m: [] for m in methods}
     mem = {}
-    for _ in range(args.rounds):
-        for method in res:
+    for _ in range(rounds):
+        for method in methods:
             ms, cpu_ms, nbytes = run(method, plan, bank, tex)
-            res[method].append(ms)
-            cpu[method].append(cpu_ms)
+            wall[method].append(round(ms, 3))
+            cpu[method].append(round(cpu_ms, 3))
             mem[method] = nbytes
-    best = {m: min(v) for m, v in res.items()}
+    best = {m: min(v) for m, v in wall.items()}
     best_cpu = {m: min(v) for m, v in cpu.items()}
-    print(json.dumps({"ms_per_frame": res, "cpu_ms_per_frame": cpu, "best_ms_per_frame": best,
-                      "best_cpu_ms_per_frame": best_cpu,
-                      "state_MiB": {m: round(b / 2**20, 1) for m, b in mem.items()},
-                      "wcentroid_over_spc": round(best["wcentroid"] / best["spc"], 3),
-                      "wcentroid_over_spc_cpu": round(best_cpu["wcentroid"] / best_cpu["spc"],
-                                                      3)}))
-    return 0
+    ref = methods[0]
+    return {"ms_per_frame": wall, "cpu_ms_per_frame": cpu, "best_ms_per_frame": best,
+            "best_cpu_ms_per_frame": best_cpu,
+            "state_MiB": {m: round(b / 2**20, 1) for m, b in mem.items()},
+            f"over_{ref}_wall": {m: round(best[m] / best[ref], 3) for m in methods},
+            f"over_{ref}_cpu": {m: round(best_cpu[m] / best_cpu[ref], 3) for m in methods}}
 
 
-def end_to_end(recording: str, rounds: int, execution: str) -> dict[str, object]:
+def end_to_end(recording: str, rounds: int, execution: str,
+               methods: list[str]) -> dict[str, object]:
     """Replay a recording (frames read into memory first) through the whole pipeline with
-    SPC and wcentroid, interleaved: frames/s, the depth stage's and the whole process's CPU
-    ms per frame (the steadier figure on a shared machine)."""
-    import tempfile
-    from pathlib import Path
-
+    each method, interleaved: frames/s, the depth stage's and the whole process's CPU ms per
+    frame (the steadier figure on a shared machine)."""
     from sffscan.pipeline.formats.recording import open_recording
     from sffscan.pipeline.wiring import run_scan
 
@@ -110,27 +111,91 @@ def end_to_end(recording: str, rounds: int, execution: str) -> dict[str, object]
     frames_in = list(rec.frames())
     out: dict[str, dict[str, list[float]]] = {}
     for _ in range(rounds):
-        for method in ("spc", "wcentroid"):
+        for method in methods:
             proc = rec.config.processing.model_copy(
                 update={"depth_method": method, "execution": execution})
             cfg = rec.config.model_copy(update={"processing": proc})
             ru0 = resource.getrusage(resource.RUSAGE_SELF)
+            ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             with tempfile.TemporaryDirectory() as tmp:
                 rep = run_scan(cfg, frames=iter(frames_in), output=Path(tmp) / "m.zarr",
                                progress=False)
             ru1 = resource.getrusage(resource.RUSAGE_SELF)
+            ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             r = rep.result
             depth = next(s for s in r.stages if s.name == "depth")
+            cpu_s = sum(b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime
+                        for a, b in ((ru0, ru1), (ch0, ch1)))
             row = out.setdefault(method, {"fps": [], "depth_cpu_ms": [], "process_cpu_ms": []})
-            row["fps"].append(rep.frames / r.wall_s)
-            row["depth_cpu_ms"].append(1e3 * depth.cpu_s / rep.frames)
-            row["process_cpu_ms"].append(1e3 * (ru1.ru_utime + ru1.ru_stime - ru0.ru_utime
-                                                - ru0.ru_stime) / rep.frames)
+            row["fps"].append(round(rep.frames / r.wall_s, 2))
+            row["depth_cpu_ms"].append(round(1e3 * depth.cpu_s / rep.frames, 3))
+            row["process_cpu_ms"].append(round(1e3 * cpu_s / rep.frames, 3))
     best = {m: max(v["fps"]) for m, v in out.items()}
     cpu = {m: min(v["process_cpu_ms"]) for m, v in out.items()}
+    ref = methods[0]
     return {"runs": out, "best_fps": best, "least_process_cpu_ms": cpu,
-            "wcentroid_over_spc_fps": round(best["wcentroid"] / best["spc"], 3),
-            "wcentroid_over_spc_cpu": round(cpu["wcentroid"] / cpu["spc"], 3)}
+            f"fps_over_{ref}": {m: round(best[m] / best[ref], 3) for m in methods},
+            f"cpu_over_{ref}": {m: round(cpu[m] / cpu[ref], 3) for m in methods}}
+
+
+def accuracy_table(recording: str, methods: list[str]) -> dict[str, dict[str, float]]:
+    """RMSE (µm) of every method over the recording and over the ±3 px wobble scan."""
+    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.metrology.evaluate import mosaic_accuracy
+    from sffscan.pipeline.wiring import run_scan
+    from sffscan.stages.sim.scanner import make_world
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.scan_helpers
+    from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
+
+    rec = open_recording(recording)
+    out: dict[str, dict[str, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for m in methods:
+            proc = rec.config.processing.model_copy(update={"depth_method": m,
+                                                            "execution": "threads"})
+            cfg = rec.config.model_copy(update={"processing": proc})
+            path = Path(tmp) / f"demo-{m}.zarr"
+            run_scan(cfg, frames=rec.frames(), output=path, progress=False)
+            o = cfg.optics
+            acc = mosaic_accuracy(path, make_world(cfg),
+                                  max_depth=(o.n_levels - 1) * o.z_step_um)
+            wcfg = small_config(motion={"wobble_along_px": 3.0, "wobble_across_px": 3.0},
+                                processing={"depth_method": m})
+            wpath = Path(tmp) / f"wobble-{m}.zarr"
+            scan(wcfg, wpath)
+            region = strip_region(wcfg)
+            wob = score(wcfg, mosaic_height(wpath, region), region)
+            out[m] = {"recording_rmse_um": round(acc.rmse_um, 2),
+                      "wobble_rmse_um": round(wob.rmse_um, 2)}
+            print(m, json.dumps(out[m]), flush=True)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--methods", default=f"spc,wcentroid,{DEFAULT_METHOD}",
+                    help="comma-separated; the first is the reference of the ratios")
+    ap.add_argument("--e2e", metavar="RECORDING",
+                    help="replay this recording end to end (e.g. one of 'sffscan demo "
+                         "--record'), the methods interleaved")
+    ap.add_argument("--accuracy", metavar="RECORDING",
+                    help="every method's RMSE over this recording and the wobble scan")
+    ap.add_argument("--execution", default="threads", choices=["threads", "processes"])
+    args = ap.parse_args()
+    methods = [m for m in args.methods.split(",") if m]
+    bad = [m for m in methods if m not in DEPTH_METHODS]
+    if bad:
+        ap.error(f"unknown methods {bad}; choose from {DEPTH_METHODS}")
+    if args.accuracy:
+        print(json.dumps(accuracy_table(args.accuracy, list(DEPTH_METHODS))))
+    elif args.e2e:
+        print(json.dumps(end_to_end(args.e2e, args.rounds, args.execution, methods)))
+    else:
+        print(json.dumps(focus_volume_cost(methods, args.frames, args.rounds)))
+    return 0
 
 
 if __name__ == "__main__":

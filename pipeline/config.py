@@ -124,9 +124,10 @@ class ProcessingConfig(_Model):
               "(focusmeasure.m), any case")
     window: int = Field(9, ge=3, le=255, description="Focus measure window k (odd), px")
     depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
-                          "wcentroid"] = Field(
-        "wcentroid", description="Focus curve -> depth method (wcentroid: centroid over 9 "
-        "levels about the median-filtered peak)"
+                          "wcentroid", "adaptive"] = Field(
+        "adaptive", description="Focus curve -> depth method (adaptive: about the "
+        "median-filtered peak, the curve's maximum (3-point Gaussian) where the filtered "
+        "peaks span <= 2 levels over the focus window, else the centroid of 11 levels)"
     )
     median_size: int = Field(11, ge=3, le=255, description="SPC median filter size (odd), px")
     registration: bool = Field(True, description="Refine speed offsets by phase correlation")

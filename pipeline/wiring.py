@@ -70,7 +70,7 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
         DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
                    focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
                    method=p.depth_method, median_size=p.median_size,
-                   block_columns=p.block_columns,
+                   spread_size=p.window, block_columns=p.block_columns,
                    directions=directions,
                    slack_px=slack),
         *optics_post,

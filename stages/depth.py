@@ -30,29 +30,41 @@ __all__ = [
     "DEFAULT_METHOD",
     "DEPTH_METHODS",
     "STREAMING_METHODS",
+    "ADAPTIVE_HALF_WINDOW",
+    "ADAPTIVE_MAX_SPREAD",
     "WCENTROID_HALF_WINDOW",
+    "adaptive_peak",
     "all_in_focus",
     "depth_from_focus",
     "depth_from_harmonics",
     "harmonic_table",
+    "level_spread",
     "levels_to_height",
     "median_filter_levels",
     "spc_by_roll",
     "windowed_centroid",
 ]
 
-DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc", "wcentroid")
+DEPTH_METHODS = ("argmax", "gauss3", "quadratic3", "centroid", "pc", "spc", "wcentroid",
+                 "adaptive")
 """Names accepted by :func:`depth_from_focus` as ``method``."""
 
 STREAMING_METHODS = ("argmax", "centroid", "pc", "spc")
+"""Methods that need only the sums of :func:`harmonic_table` and the argmax of each curve
+(:func:`depth_from_harmonics`), so a streaming accumulator needs no N-level volume."""
 
-DEFAULT_METHOD = "wcentroid"
-"""The default depth method of scan, replay and stack (see :func:`windowed_centroid`)."""
+DEFAULT_METHOD = "adaptive"
+"""The default depth method of scan, replay and stack (see :func:`adaptive_peak`)."""
 
 WCENTROID_HALF_WINDOW = 4
 """Half width h of the ``"wcentroid"`` window: 2h + 1 = 9 levels around the filtered peak."""
-"""Methods that need only the sums of :func:`harmonic_table` and the argmax of each curve
-(:func:`depth_from_harmonics`), so a streaming accumulator needs no N-level volume."""
+
+ADAPTIVE_HALF_WINDOW = 5
+"""Half width h of the ``"adaptive"`` method's centroid: 2h + 1 = 11 levels."""
+
+ADAPTIVE_MAX_SPREAD = 2
+"""Largest spread of filtered peaks (levels) in the focus window for which ``"adaptive"``
+takes the curve's maximum (Gaussian 3-point fit) instead of its windowed centroid."""
 
 
 # ----------------------------------------------------------------------------- validation
@@ -182,6 +194,62 @@ def _wrap(x: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def _window_levels(vol: np.ndarray, centre: np.ndarray, half_window: int
+                   ) -> tuple[list[np.ndarray], list[np.ndarray | None], np.ndarray]:
+    """Levels ``centre - h .. centre + h`` of every curve, read in place.
+
+    Returns the 2h + 1 flat ``(H * W,)`` float32 value arrays (levels beyond the range set
+    to +inf), for each a mask of those beyond the range (None where none is), and the
+    flat centres.
+    """
+    n = vol.shape[0]
+    shape = vol.shape[1:]
+    pixels = int(np.prod(shape))
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    if vol.dtype != np.float32 or any(st <= 0 or st % 4 for st in vol.strides):
+        vol = np.ascontiguousarray(vol, dtype=np.float32)
+    # read in place through the element offsets of the (possibly strided) view: one 1-D
+    # view over the memory from its first to its last element (all inside its buffer)
+    st0, st1, st2 = (st // 4 for st in vol.strides)
+    span = (n - 1) * st0 + (shape[0] - 1) * st1 + (shape[1] - 1) * st2 + 1
+    flat = np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,))
+    rows, cols = np.indices(shape, dtype=np.intp)
+    base = (rows * st1 + cols * st2).reshape(-1)
+    vals: list[np.ndarray] = []
+    outside: list[np.ndarray | None] = []
+    lowest, highest = (int(c.min()), int(c.max())) if pixels else (0, 0)
+    for j in range(-half_window, half_window + 1):
+        k = c + j
+        v = flat.take(np.clip(k, 0, n - 1) * st0 + base)
+        out = None  # levels beyond the range: out of the floor and the sums
+        if lowest + j < 0 or highest + j > n - 1:
+            out = (k < 0) | (k > n - 1)
+            v[out] = np.inf
+        vals.append(v)
+        outside.append(out)
+    return vals, outside, c
+
+
+def _centroid_offset(vals: list[np.ndarray], outside: list[np.ndarray | None]) -> np.ndarray:
+    """Centroid offset (levels, float32) of the window values above their minimum, 0 where
+    nothing is above it; ``vals`` is overwritten."""
+    half_window = len(vals) // 2
+    floor = vals[0].copy()
+    for v in vals[1:]:
+        np.minimum(floor, v, out=floor)
+    s0 = np.zeros(floor.shape, np.float32)
+    s1 = np.zeros(floor.shape, np.float32)
+    for j, v, out in zip(range(-half_window, half_window + 1), vals, outside, strict=True):
+        wgt = np.subtract(v, floor, out=v)
+        if out is not None:
+            wgt[out] = 0.0
+        s0 += wgt
+        if j:
+            s1 += np.float32(j) * wgt
+    good = s0 > 0
+    return np.where(good, s1 / np.where(good, s0, np.float32(1.0)), np.float32(0.0))
+
+
 def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
                       half_window: int = WCENTROID_HALF_WINDOW) -> np.ndarray:
     """Baseline-free centroid of each curve over the 2h + 1 levels around ``centre``.
@@ -207,44 +275,106 @@ def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
     (H, W) ndarray of float32
         Depth in fractional levels.
     """
+    vals, outside, c = _window_levels(vol, centre, half_window)
+    return (c + _centroid_offset(vals, outside)).astype(np.float32).reshape(vol.shape[1:])
+
+
+def level_spread(centre: np.ndarray, size: int, n_levels: int) -> np.ndarray:
+    """Spread of integer levels over size x size windows: local maximum - minimum.
+
+    Replicated borders (``cv2.dilate`` / ``cv2.erode`` on uint8 when N <= 256, else
+    :func:`scipy.ndimage.maximum_filter` / ``minimum_filter``).
+
+    Parameters
+    ----------
+    centre : (H, W) ndarray of int
+        Levels 0..N-1 (the median-filtered argmax).
+    size : int
+        Odd window size, px (the focus measure's window k).
+    n_levels : int
+        Number of levels N.
+
+    Returns
+    -------
+    (H, W) ndarray of intp
+        Levels spanned by each pixel's window.
+    """
+    size = check_odd_size(size, name="spread_size", minimum=1)
+    if size == 1:
+        return np.zeros(np.shape(centre), np.intp)
+    if n_levels <= 256:
+        a8 = np.asarray(centre).astype(np.uint8)
+        kernel = np.ones((size, size), np.uint8)
+        hi = cv2.dilate(a8, kernel, borderType=cv2.BORDER_REPLICATE)
+        lo = cv2.erode(a8, kernel, borderType=cv2.BORDER_REPLICATE)
+        return hi.astype(np.intp) - lo.astype(np.intp)
+    from scipy import ndimage
+
+    a = np.asarray(centre).astype(np.int64)
+    return (ndimage.maximum_filter(a, size, mode="nearest")
+            - ndimage.minimum_filter(a, size, mode="nearest")).astype(np.intp)
+
+
+def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
+                  half_window: int = ADAPTIVE_HALF_WINDOW,
+                  max_spread: int = ADAPTIVE_MAX_SPREAD) -> np.ndarray:
+    """The curve's maximum where the focus window sees one height, else its windowed centroid.
+
+    ``spread`` is the number of levels that the median-filtered peaks ``centre`` span over
+    the focus measure's window about each pixel (:func:`level_spread`): how many heights
+    the window mixes into the pixel's focus curve.
+
+    * ``spread > max_spread`` (a slope or an edge: the curve is a blend of peaks at the
+      heights the window covers): the baseline-free centroid of the 2h + 1 levels about
+      ``centre`` (:func:`windowed_centroid`), which takes the middle of that blend.
+    * ``spread <= max_spread`` (one height): the curve's own maximum: the largest of the
+      levels ``centre - 1 .. centre + 1``, refined by the Gaussian (log-parabola) through it
+      and its two neighbours (offset within ±0.5; none at the ends of the range, on a
+      flat top or on values <= 0). A maximum does not move when the focus axis is
+      stretched unevenly, where a centroid does: on lopsided curves (a thin lens' blur is
+      even in 1/z, not in z) the centroid is pulled towards the longer tail.
+
+    Parameters
+    ----------
+    vol : (N, H, W) ndarray of float
+        Focus volume, read as in :func:`windowed_centroid`.
+    centre : (H, W) ndarray of int
+        Median-filtered argmax, levels 0..N-1.
+    spread : (H, W) ndarray of int
+        Levels spanned by ``centre`` over the focus window (:func:`level_spread`).
+    half_window : int, keyword-only
+        Centroid half width h >= 2. Default :data:`ADAPTIVE_HALF_WINDOW`.
+    max_spread : int, keyword-only
+        Default :data:`ADAPTIVE_MAX_SPREAD`.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    if half_window < 2:
+        raise ValueError(f"half_window must be >= 2, got {half_window}")
     n = vol.shape[0]
-    shape = vol.shape[1:]
-    pixels = int(np.prod(shape))
-    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
-    if vol.dtype != np.float32 or any(st <= 0 or st % 4 for st in vol.strides):
-        vol = np.ascontiguousarray(vol, dtype=np.float32)
-    # read in place through the element offsets of the (possibly strided) view: one 1-D
-    # view over the memory from its first to its last element (all inside its buffer)
-    st0, st1, st2 = (st // 4 for st in vol.strides)
-    span = (n - 1) * st0 + (shape[0] - 1) * st1 + (shape[1] - 1) * st2 + 1
-    flat = np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,))
-    rows, cols = np.indices(shape, dtype=np.intp)
-    base = (rows * st1 + cols * st2).reshape(-1)
-    vals, outside = [], []
-    floor = np.full(pixels, np.inf, np.float32)
-    lowest, highest = (int(c.min()), int(c.max())) if pixels else (0, 0)
-    for j in range(-half_window, half_window + 1):
-        k = c + j
-        v = flat.take(np.clip(k, 0, n - 1) * st0 + base)
-        out = None  # levels beyond the range: out of the floor and the sums
-        if lowest + j < 0 or highest + j > n - 1:
-            out = (k < 0) | (k > n - 1)
-            v[out] = np.inf
-        np.minimum(floor, v, out=floor)
-        vals.append(v)
-        outside.append(out)
-    s0 = np.zeros(pixels, np.float32)
-    s1 = np.zeros(pixels, np.float32)
-    for j, v, out in zip(range(-half_window, half_window + 1), vals, outside, strict=True):
-        wgt = np.subtract(v, floor, out=v)
-        if out is not None:
-            wgt[out] = 0.0
-        s0 += wgt
-        if j:
-            s1 += np.float32(j) * wgt
-    good = s0 > 0
-    off = np.where(good, s1 / np.where(good, s0, np.float32(1.0)), np.float32(0.0))
-    return (c + off).astype(np.float32).reshape(shape)
+    vals, outside, c = _window_levels(vol, centre, half_window)
+    h = half_window
+    # the five levels about the centre, before the centroid overwrites them; beyond the
+    # range they are -inf (never the maximum)
+    near = [np.where(np.isinf(v), -np.inf, v) for v in vals[h - 2:h + 3]]
+    depth = (c + _centroid_offset(vals, outside)).astype(np.float32)
+    peak = np.flatnonzero(np.asarray(spread).reshape(-1) <= max_spread)
+    if peak.size:
+        y = np.stack([v[peak] for v in near])  # (5, P): levels c-2 .. c+2
+        i = 1 + np.argmax(y[1:4], axis=0)  # index of the maximum among c-1, c, c+1
+        cols = np.arange(peak.size)
+        ym, y0, yp = y[i - 1, cols], y[i, cols], y[i + 1, cols]
+        top = c[peak] + (i - 2)
+        ok = (top > 0) & (top < n - 1) & (ym > 0) & (y0 > 0) & (yp > 0)
+        lm, l0, lp = (np.log(np.where(ok, v, 1.0)) for v in (ym, y0, yp))
+        den = lm - 2.0 * l0 + lp
+        ok &= den < 0
+        off = np.clip(np.where(ok, 0.5 * (lm - lp) / np.where(ok, den, -1.0), 0.0), -0.5, 0.5)
+        depth[peak] = (top + off).astype(np.float32)
+    return depth.reshape(vol.shape[1:])
 
 
 def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
@@ -274,7 +404,7 @@ def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
 
 def depth_from_focus(
     volume: np.ndarray, *, method: str = "spc", median_size: int = 11,
-    argmax: np.ndarray | None = None,
+    argmax: np.ndarray | None = None, spread_size: int = 9,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-level focus peak and its confidence for every pixel of a focus volume.
 
@@ -298,7 +428,13 @@ def depth_from_focus(
             ``sum(k y_k) / sum(y_k)`` (argmax where the sum is <= 0).
         ``"pc"``
             Phase correlation: ``(-angle(H_1) N / (2 pi)) mod N``, in [0, N).
-        ``"wcentroid"`` (the default of scan, replay and stack)
+        ``"adaptive"`` (the default of scan, replay and stack)
+            The argmax, median filtered as for SPC (``a_med``); where ``a_med`` spans at
+            most :data:`ADAPTIVE_MAX_SPREAD` levels over the ``spread_size`` x
+            ``spread_size`` focus window about the pixel, the curve's maximum next to
+            ``a_med`` refined by a 3-point Gaussian; elsewhere the windowed centroid of
+            the 2h + 1 = 11 levels about ``a_med`` (:func:`adaptive_peak`).
+        ``"wcentroid"``
             Windowed centroid about the filtered peak: the argmax, median filtered over
             ``median_size`` x ``median_size`` pixels as for SPC (``a_med``), is the centre of
             a window of 2h + 1 = 9 levels (:data:`WCENTROID_HALF_WINDOW`, cut at the ends of
@@ -318,7 +454,8 @@ def depth_from_focus(
             lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
             filtered argmax. Same result as :func:`spc_by_roll`.
     median_size : int, keyword-only
-        Odd median-filter size for ``"spc"`` and ``"wcentroid"`` (1 = no filtering).
+        Odd median-filter size for ``"spc"``, ``"wcentroid"`` and ``"adaptive"`` (1 = no
+        filtering).
         Default 11. The thesis used
         10 x 10; an even window has no centre pixel (the median would be shifted by half a
         pixel and an average of two levels), and ``cv2.medianBlur`` requires an odd size, so
@@ -326,6 +463,9 @@ def depth_from_focus(
     argmax : (H, W) ndarray of int, optional, keyword-only
         Each curve's first maximum, if already known (a streaming accumulator keeps it as
         the levels arrive); computed from ``volume`` when not given.
+    spread_size : int, keyword-only
+        Odd window, px, over which ``"adaptive"`` measures the spread of the filtered
+        peaks: the focus measure's window k. Default 9. Validated for every method.
 
     Returns
     -------
@@ -343,6 +483,7 @@ def depth_from_focus(
     if method not in DEPTH_METHODS:
         raise ValueError(f"method must be one of {DEPTH_METHODS}, got {method!r}")
     median_size = _check_median_size(median_size)
+    spread_size = check_odd_size(spread_size, name="spread_size", minimum=1)
     vol = _check_volume(volume)
     n = vol.shape[0]
 
@@ -361,9 +502,11 @@ def depth_from_focus(
         return _from_harmonics(h0, hk, re, im, a, n, method, median_size)
     assert a is not None
     depth, confidence = _from_harmonics(h0, hk, re, im, a, n, "argmax", median_size)
-    if method == "wcentroid":
-        depth = windowed_centroid(vol, median_filter_levels(a, median_size, n))
-        return depth, confidence
+    if method in ("wcentroid", "adaptive"):
+        centre = median_filter_levels(a, median_size, n)
+        if method == "wcentroid":
+            return windowed_centroid(vol, centre), confidence
+        return adaptive_peak(vol, centre, level_spread(centre, spread_size, n)), confidence
     depth = a + _three_point(vol, a, log=method == "gauss3")
     return depth.astype(np.float32, copy=False), confidence
 

@@ -14,11 +14,11 @@ What a column keeps depends on the depth method. argmax, centroid, PC and SPC ne
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth.harmonic_table`) and its argmax, so each frame is *accumulated* into
 per-pixel sums and a running maximum as it arrives (a few passes of OpenCV arithmetic,
-no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3) and the
-default windowed centroid (wcentroid) need the levels about a peak that is known only
-once the column and its neighbours are complete: for them the ring stores every level of
-every pixel (N planes: bounded by the ring, the columns in view, never the whole stack),
-and the running argmax is kept as frames arrive.
+no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3), the
+windowed centroid (wcentroid) and the default (adaptive) need the levels about a peak that
+is known only once the column and its neighbours are complete: for them the ring stores
+every level of every pixel (N planes: bounded by the ring, the columns in view, never the
+whole stack), and the running argmax is kept as frames arrive.
 
 Motion along -x is handled by mirroring: internally columns are numbered so that they
 always complete in increasing order.
@@ -36,9 +36,11 @@ from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, 
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import (
     STREAMING_METHODS,
+    adaptive_peak,
     depth_from_focus,
     depth_from_harmonics,
     harmonic_table,
+    level_spread,
     levels_to_height,
     median_filter_levels,
     windowed_centroid,
@@ -158,9 +160,12 @@ class FocusVolume:
     method : str
         Depth method (see :func:`sffscan.stages.depth.depth_from_focus`). The methods of
         :data:`sffscan.stages.depth.STREAMING_METHODS` accumulate sums and the argmax (``fv`` is
-        None); gauss3 and quadratic3 store the N-level ring ``fv``.
+        None); gauss3, quadratic3, wcentroid and adaptive store the N-level ring ``fv``.
     median_size : int
         SPC median filter size; also sets the halo of columns kept around a block.
+    spread_size : int
+        Window over which ``"adaptive"`` measures the spread of the filtered peaks (the
+        focus measure's window k, px); widens its halo by ``spread_size // 2``.
     block_columns : int
         Number of completed columns reduced at once.
     row_slack : int
@@ -180,6 +185,7 @@ class FocusVolume:
         direction: int = 1,
         method: str = "spc",
         median_size: int = 11,
+        spread_size: int = 9,
         block_columns: int = 64,
         row_slack: int = 8,
         col_slack: int = 8,
@@ -193,7 +199,10 @@ class FocusVolume:
         self.direction = direction
         self.method = method
         self.median_size = median_size
-        self.halo = median_size // 2 + 1
+        self.spread_size = spread_size
+        # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
+        # that a block's filtered peaks and spreads equal those of the whole volume
+        self.halo = median_size // 2 + 1 + (spread_size // 2 if method == "adaptive" else 0)
         self.block = block_columns
         self.row_slack = row_slack
         self.col_slack = col_slack
@@ -214,7 +223,7 @@ class FocusVolume:
         else:
             # the windowed centroid's confidence comes from the sums too (no pass over the
             # N levels at the reduction); the 3-point fits take both from the levels
-            windowed = method == "wcentroid"
+            windowed = method in ("wcentroid", "adaptive")
             self.sums = np.zeros((3 if windowed else 0, *plane), np.float32)
             self.coef = harmonic_table(self.n)[[0, 2, 3]] if windowed else np.zeros((0, self.n))
             self.fv = np.empty((self.n, *plane), np.float32)
@@ -423,7 +432,7 @@ class FocusVolume:
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
-        if self.fv is None or self.method == "wcentroid":
+        if self.fv is None or self.method in ("wcentroid", "adaptive"):
             planes = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             sums = np.zeros((4, *planes.shape[1:]), np.float32)
             sums[0], sums[2], sums[3] = planes[0], planes[1], planes[2]
@@ -434,12 +443,17 @@ class FocusVolume:
                 sums, argmax, n_levels=self.n,
                 method="argmax" if self.fv is not None else self.method,
                 median_size=self.median_size)
-            if self.fv is not None:  # wcentroid: the levels about the filtered argmax
+            if self.fv is not None:  # the levels about the filtered argmax
                 centre = median_filter_levels(argmax, self.median_size, self.n)
-                inner = slice(u0 - a0, u1 - a0)  # the halo served the median only
+                inner = slice(u0 - a0, u1 - a0)  # the halo served the filters only
                 depth = np.zeros(centre.shape, np.float32)
-                depth[:, inner] = windowed_centroid(self._gather(self.fv, u0, u1),
-                                                    centre[:, inner])
+                levels = self._gather(self.fv, u0, u1)
+                if self.method == "adaptive":
+                    spread = level_spread(centre, self.spread_size, self.n)
+                    depth[:, inner] = adaptive_peak(levels, centre[:, inner],
+                                                    spread[:, inner])
+                else:
+                    depth[:, inner] = windowed_centroid(levels, centre[:, inner])
         else:
             vol = self._gather(self.fv, a0, a1)
             depth, conf = depth_from_focus(vol, method=self.method,
@@ -496,10 +510,12 @@ class DepthStage(Stage):
     def __init__(self, *, n_levels: int, frame_shape: tuple[int, int],
                  focus_heights_um: Sequence[float], margin: int, method: str = "spc",
                  median_size: int = 11, block_columns: int = 64,
-                 directions: Sequence[int] = (1,), slack_px: int = 8) -> None:
+                 directions: Sequence[int] = (1,), slack_px: int = 8,
+                 spread_size: int = 9) -> None:
         self.kwargs = dict(n_levels=n_levels, frame_shape=frame_shape,
                            focus_heights_um=focus_heights_um, margin=margin, method=method,
-                           median_size=median_size, block_columns=block_columns,
+                           median_size=median_size, spread_size=spread_size,
+                           block_columns=block_columns,
                            row_slack=slack_px, col_slack=slack_px)
         self.directions = list(directions)
         self.volume: FocusVolume | None = None

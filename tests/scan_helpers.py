@@ -104,7 +104,8 @@ def stationary_height(cfg: ScanConfig, region: tuple[int, int, int, int]) -> np.
         vol = np.stack([focus_measure(to_unit_float(img, max_value=o.max_value),
                                       operator=p.focus_operator, window=p.window)
                         for img in stack])
-        depth, _ = depth_from_focus(vol, method=p.depth_method, median_size=p.median_size)
+        depth, _ = depth_from_focus(vol, method=p.depth_method, median_size=p.median_size,
+                                    spread_size=p.window)
         height = levels_to_height(depth, focus_heights_um=heights)
         w = min(step, x1 - fx - m)
         r = fy + m - y0

@@ -26,7 +26,7 @@ from sffscan.stages.focus_measure import focus_measure, to_unit_float
 # zero baseline, peaks at least 4 sigma from both ends), in levels. Measured worst cases:
 # argmax 0.49992 (quantisation), gauss3 2e-6 (exact for a Gaussian; float32 logs),
 # quadratic3 0.012 (sigma 2) / 0.005 (sigma 3), centroid 2.4e-4, pc and spc 1.6e-4 (the
-# Gaussian tails cut off beyond the ends), wcentroid 0.029.
+# Gaussian tails cut off beyond the ends), wcentroid 0.029, adaptive 0.0068.
 PEAK_TOL = {
     "argmax": 0.5,
     "gauss3": 1e-4,
@@ -38,6 +38,9 @@ PEAK_TOL = {
     # minimum is subtracted: a bias towards the window's centre, measured 0.015 (sigma 2) /
     # 0.029 (sigma 3) levels
     "wcentroid": 0.04,
+    # the Gaussian 3-point fit where the filtered peaks span <= 2 levels over 9 x 9 px
+    # (exact: 1.2e-6); where this ramp spans 3 (sigma 3), the 11-level centroid: 0.0068
+    "adaptive": 0.01,
 }
 
 
@@ -254,11 +257,13 @@ def test_validation_errors() -> None:
         depth_from_focus(bad, method="argmax")
     with pytest.raises(ValueError, match="NaN at level 3"):
         spc_by_roll(np.where(np.arange(6)[:, None, None] == 3, np.nan, vol))
-    with pytest.raises(ValueError, match=r"method must be one of \('argmax', .*'wcentroid'\)"):
+    with pytest.raises(ValueError, match=r"method must be one of \('argmax', .*'adaptive'\)"):
         depth_from_focus(vol, method="wavr")
     for size in (0, 10, -1, 3.0):
         with pytest.raises(ValueError, match="median_size"):
             depth_from_focus(vol, median_size=size)  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match="spread_size"):
+            depth_from_focus(vol, method="adaptive", spread_size=size)  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- pertuz data

@@ -126,7 +126,7 @@ def _reference_volume(positions: list[int], levels: list[int], frame, xs: np.nda
     return vol
 
 
-@pytest.mark.parametrize("method", ["argmax", "centroid", "pc", "spc", "wcentroid"])
+@pytest.mark.parametrize("method", ["argmax", "centroid", "pc", "spc", "wcentroid", "adaptive"])
 @pytest.mark.parametrize(("quantised", "strips"), [(False, False), (True, False), (True, True)])
 def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
                                                                    quantised: bool,
@@ -135,15 +135,17 @@ def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
     on the curves a ring would have stored; with quantised values (exact ties of the
     maximum) the argmax still takes the lowest level, as depth_from_focus does. wcentroid
     keeps the ring (it reads the levels about the filtered peak) but its running argmax and
-    confidence sums are accumulated the same way."""
+    confidence sums are accumulated the same way; so does adaptive (its spread of the
+    filtered peaks over 3 x 3 px reaches one pixel further)."""
 
     def frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
         fm, img = _frame(x0, y0, level)
         return (np.round(fm * 4) / 4 if quantised else fm).astype(np.float32), img
 
     vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
-                      method=method, median_size=3, block_columns=16, row_slack=0)
-    assert (vol.fv is None) == (method != "wcentroid")
+                      method=method, median_size=3, block_columns=16, row_slack=0,
+                      spread_size=3)
+    assert (vol.fv is None) == (method not in ("wcentroid", "adaptive"))
     if strips:  # rows added in strips of 16 (3 per frame), as large frames are
         vol.strip_bytes = 1024
     positions = [7 * k for k in range(40)]
@@ -162,15 +164,19 @@ def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
     inner = complete & np.roll(complete, 1) & np.roll(complete, -1)
     assert inner.sum() > 100
     depth, conf = depth_from_focus(np.nan_to_num(ref[:, 3:-3][:, :, inner]), method=method,
-                                   median_size=3)
+                                   median_size=3, spread_size=3)
     want_h = levels_to_height(depth, focus_heights_um=np.asarray(HEIGHTS))
-    if method == "wcentroid":
+    if method in ("wcentroid", "adaptive"):
         # its window follows the filtered argmax, which differs where the median's 3 x 3
-        # reaches beyond the pixels compared here (the ring's margin rows, the columns left
-        # out): compare one more pixel in
-        core = (inner & np.roll(inner, 1) & np.roll(inner, -1))[inner]
-        cmp_h, want_h = got_h[4:-4][:, inner][:, core], want_h[1:-1][:, core]
-        cmp_c, conf = got_c[4:-4][:, inner][:, core], conf[1:-1][:, core]
+        # (and adaptive's spread window) reaches beyond the pixels compared here (the
+        # ring's margin rows, the columns left out): compare one (two) more pixels in
+        r = 1 if method == "wcentroid" else 2
+        core = inner.copy()
+        for _ in range(r):
+            core = core & np.roll(core, 1) & np.roll(core, -1)
+        core = core[inner]
+        cmp_h, want_h = got_h[3 + r:-3 - r][:, inner][:, core], want_h[r:-r][:, core]
+        cmp_c, conf = got_c[3 + r:-3 - r][:, inner][:, core], conf[r:-r][:, core]
         assert core.sum() > 100
     else:
         cmp_h, cmp_c = got_h[3:-3][:, inner], got_c[3:-3][:, inner]

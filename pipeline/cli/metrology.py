@@ -54,7 +54,7 @@ def _settings_options(p: argparse.ArgumentParser) -> None:
                    help=f"focus measure window k, odd, px (default {d.window})")
     p.add_argument("--method", default=d.method,
                    choices=["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
-                            "wcentroid"],
+                            "wcentroid", "adaptive"],
                    help=f"depth method (default {d.method})")
     p.add_argument("--median-size", type=int, default=d.median_size,
                    help=f"SPC median filter size, odd, px (default {d.median_size})")

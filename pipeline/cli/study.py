@@ -83,7 +83,7 @@ def run_study(stack: StudyStack, *, operators: list[str], windows: list[int],
             vol = focus_measure(stack.images, operator=op, window=k)
             per_image = (time.perf_counter() - t0) / len(stack.images)
             for m in methods:
-                d, _ = depth_from_focus(vol, method=m, median_size=median_size)
+                d, _ = depth_from_focus(vol, method=m, median_size=median_size, spread_size=k)
                 z = levels_to_height(d, focus_heights_um=stack.focus_um)
                 acc = accuracy(np.where(stack.mask, z, np.nan), truth, max_depth=depth_range,
                                mask=stack.mask)
@@ -220,6 +220,6 @@ def register(sub: Any) -> None:
     p.add_argument("--methods", default=",".join(METHODS),
                    help=f"comma-separated depth methods (default {','.join(METHODS)})")
     p.add_argument("--median-size", type=int, default=11,
-                   help="median filter of SPC and wcentroid, odd, px (default 11)")
+                   help="median filter of SPC, wcentroid and adaptive, odd, px (default 11)")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")
     p.set_defaults(func=cmd_study)

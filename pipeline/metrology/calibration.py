@@ -410,7 +410,8 @@ def measure_height(stack: np.ndarray, *, focus_heights_um: np.ndarray, max_value
     from sffscan.stages.depth import depth_from_focus, levels_to_height
 
     vol = focus_volume_of(stack, max_value=max_value, operator=operator, window=window)
-    depth, _ = depth_from_focus(vol, method=method, median_size=median_size)
+    depth, _ = depth_from_focus(vol, method=method, median_size=median_size,
+                                spread_size=window)
     return levels_to_height(depth, focus_heights_um=focus_heights_um), depth
 
 

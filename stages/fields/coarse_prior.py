@@ -198,9 +198,11 @@ def reconstruct_levels(frames: np.ndarray, levels: np.ndarray, *, focus_heights_
         full = np.empty((table.size,) + vol.shape[1:], dtype=np.float32)
         full[:] = vol.min(axis=0)
         full[lv] = vol
-        depth, conf = depth_from_focus(full, method=method, median_size=median_size)
+        depth, conf = depth_from_focus(full, method=method, median_size=median_size,
+                                       spread_size=window)
         return levels_to_height(depth, focus_heights_um=table), conf
-    depth, conf = depth_from_focus(vol, method=method, median_size=median_size)
+    depth, conf = depth_from_focus(vol, method=method, median_size=median_size,
+                                   spread_size=window)
     return levels_to_height(depth, focus_heights_um=table[lv]), conf
 
 

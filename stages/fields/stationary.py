@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.stages.depth import (
+    DEFAULT_METHOD,
     DEPTH_METHODS,
     all_in_focus,
     check_odd_size,
@@ -54,8 +55,8 @@ MIN_WEIGHT = 1e-3
 class StackSettings:
     """How a focus stack is reduced to a height map.
 
-    The defaults are the settings documented for pertuz-simu02 in the README ("Stationary
-    stacks and metrology"): GLVM, k = 9, Gaussian 3-point fit, confidence-weighted median
+    The defaults: GLVM, k = 9, the scan's default depth method
+    (:data:`sffscan.stages.depth.DEFAULT_METHOD`, ``"adaptive"``), confidence-weighted median
     of 15 x 15 px.
 
     Parameters
@@ -66,9 +67,10 @@ class StackSettings:
     window : int
         Focus measure window k (odd, >= 3), px.
     method : str
-        Depth method, one of :data:`sffscan.stages.depth.DEPTH_METHODS`.
+        Depth method, one of :data:`sffscan.stages.depth.DEPTH_METHODS`; ``"adaptive"``
+        measures the spread of the filtered peaks over the focus window ``window``.
     median_size : int
-        SPC median filter size (odd), px.
+        Median filter size of SPC, wcentroid and adaptive (odd), px.
     filter_size : int
         Confidence-weighted median window of the height map (odd), px; 1 = no post-filter.
     min_confidence : float
@@ -79,7 +81,7 @@ class StackSettings:
 
     operator: str = "glvm"
     window: int = 9
-    method: str = "gauss3"
+    method: str = DEFAULT_METHOD
     median_size: int = 11
     filter_size: int = 15
     min_confidence: float = 0.0
@@ -266,7 +268,8 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     volume = focus_measure(images, operator=settings.operator, window=settings.window,
                            backend=settings.backend, device=settings.device)
     levels, confidence = depth_from_focus(volume, method=settings.method,
-                                          median_size=settings.median_size)
+                                          median_size=settings.median_size,
+                                          spread_size=settings.window)
     raw = levels_to_height(levels, focus_heights_um=heights)
     texture = all_in_focus(images, volume)
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
