@@ -346,9 +346,13 @@ def focus_measure_raw(
     """
     operator = check_operator(operator)
     window = _check_window(window)
-    image01 = to_unit_float(image, max_value=max_value)
     if operator == "glvm" and image.dtype in (np.uint8, np.uint16):
-        return image01, glvm_cv_raw(image, image01, max_value=max_value, window=window)
+        # one contiguous copy of the raw columns first: OpenCV's box filter reads a
+        # strided view about 1.8x slower, and the scaling reads the copy from cache
+        raw = np.ascontiguousarray(image)
+        image01 = to_unit_float(raw, max_value=max_value)
+        return image01, glvm_cv_raw(raw, image01, max_value=max_value, window=window)
+    image01 = to_unit_float(image, max_value=max_value)
     if operator in _CV_OPS:
         return image01, _CV_OPS[operator](image01, window=window)
     return image01, _torch_cpu(image01, operator, window)

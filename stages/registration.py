@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.fft
 from sffscan.pipeline.messages import PlacedFrame
 from sffscan.pipeline.runtime import Stage
 
@@ -47,13 +46,22 @@ def downsample(image: np.ndarray, *, factor: int) -> np.ndarray:
     uint8 / uint16 images whose sides divide by ``factor`` sum each group of ``factor``
     rows exactly in integers first (contiguous rows, a quarter of the float32 traffic),
     then average along the rows with ``cv2.resize(..., INTER_AREA)``: the same values as
-    the area resize of the whole float32 image, without its float32 copy.
+    the area resize of the whole float32 image, without its float32 copy. When ``factor``
+    is a power of two, every ``factor`` x ``factor`` block is summed in 16-bit integers
+    (OpenCV's saturating adds, one pass over the frame) and scaled once: the same float32
+    values again (the sums are exact and the scale is a power of two), about twice as fast;
+    a block whose sum could have saturated (a sum reaching 65535, possible with 16-bit
+    data) sends the image down the exact 32-bit path instead.
     """
     if factor < 1:
         raise ValueError(f"factor must be >= 1, got {factor}")
     h, w = image.shape
     top = np.iinfo(image.dtype).max if image.dtype in (np.uint8, np.uint16) else None
     if factor > 1 and top is not None and h % factor == 0 and w % factor == 0:
+        if factor & (factor - 1) == 0:
+            out = _block_sum16(image, factor)
+            if out is not None:
+                return np.multiply(out, np.float32(1.0 / (factor * factor)), dtype=np.float32)
         acc = np.uint16 if factor * top < 1 << 16 else np.uint32
         rows = image[0::factor].astype(acc)
         for i in range(1, factor):
@@ -65,6 +73,24 @@ def downsample(image: np.ndarray, *, factor: int) -> np.ndarray:
     if factor == 1:
         return img
     return cv2.resize(img, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def _block_sum16(image: np.ndarray, factor: int) -> np.ndarray | None:
+    """Sums of the ``factor`` x ``factor`` blocks of a uint8/uint16 image as uint16 (pairwise
+    saturating adds: rows, then columns); None if any sum reached 65535 (saturation sticks
+    at 65535, so a result below it everywhere is exact)."""
+
+    def tree(parts: list[np.ndarray], dtype: int) -> np.ndarray:
+        while len(parts) > 1:
+            parts = [cv2.add(parts[i], parts[i + 1], dtype=dtype)
+                     for i in range(0, len(parts), 2)]
+        return parts[0]
+
+    rows = tree([image[i::factor] for i in range(factor)], cv2.CV_16U)
+    out = tree([rows[:, i::factor] for i in range(factor)], cv2.CV_16U)
+    if int(out.max()) >= np.iinfo(np.uint16).max:
+        return None
+    return out
 
 
 def _dft_size_at_most(n: int) -> int:
@@ -130,18 +156,46 @@ def phase_correlate(a: np.ndarray, b: np.ndarray, *, peak_sigma: float = 1.5
 
 
 def windowed_spectrum(image: np.ndarray) -> np.ndarray:
-    """``rfft2`` of the Hann-windowed image (what :func:`phase_correlate` correlates).
+    """Spectrum of the Hann-windowed image (what :func:`phase_correlate` correlates).
+
+    OpenCV's real-input DFT, in its packed CCS layout (the ``h x (w // 2 + 1)`` complex
+    half-spectrum of ``rfft2`` packed into ``h x w`` reals): about twice as fast as
+    ``scipy.fft.rfft2`` on the 256 x 256 crops of the registration, and correlated without
+    unpacking (:func:`correlate_spectra`).
 
     Parameters
     ----------
     image : ndarray, float32, (h, w)
+        May be a strided view (a crop): the window's product is the contiguous copy.
 
     Returns
     -------
-    ndarray, complex64, (h, w // 2 + 1)
+    ndarray, float32, (h, w)
+        CCS-packed spectrum (``cv2.dft`` of a real image without flags).
     """
     h, w = image.shape
-    return scipy.fft.rfft2(image * _hann(h, w))
+    return cv2.dft(image * _hann(h, w))
+
+
+@functools.lru_cache(maxsize=16)
+def _ccs_weight(h: int, w: int, peak_sigma: float
+                ) -> tuple[np.ndarray, list[tuple[int, np.ndarray]], float]:
+    """:func:`_pc_weight` in the CCS layout: the weight of the interior complex columns
+    ``(h, (w - 1) // 2)``, each real-packed edge column's weights by frequency
+    ``(h // 2 + 1,)``, and the mean of the whole half-spectrum's weight."""
+    full = _pc_weight(h, w, peak_sigma)
+    edges = [(0, np.ascontiguousarray(full[:h // 2 + 1, 0]))]
+    if w % 2 == 0:
+        edges.append((w - 1, np.ascontiguousarray(full[:h // 2 + 1, w // 2])))
+    return np.ascontiguousarray(full[:, 1:1 + (w - 1) // 2]), edges, float(full.mean())
+
+
+def _normalise(z: np.ndarray, weight: np.ndarray) -> None:
+    """In place: ``z * weight / (|z| + 1e-12)`` (complex or real values)."""
+    mag = np.abs(z)
+    mag += np.float32(1e-12)
+    np.divide(weight, mag, out=mag)
+    z *= mag
 
 
 def correlate_spectra(fa: np.ndarray, fb: np.ndarray, shape: tuple[int, int], *,
@@ -150,15 +204,25 @@ def correlate_spectra(fa: np.ndarray, fb: np.ndarray, shape: tuple[int, int], *,
 
     A frame's spectrum can so be computed once and correlated with several others.
     ``shape`` is the images' (h, w); returns (sx, sy, peak) as :func:`phase_correlate`.
+    The cross-power spectrum stays CCS-packed: its interior columns are (re, im) pairs,
+    normalised through a complex view; the first column (and the last, for even ``w``)
+    packs a real column's spectrum along the rows: real at row 0 (and at row h - 1 for
+    even ``h``), (re, im) pairs between.
     """
     h, w = shape
-    weight = _pc_weight(h, w, peak_sigma)
-    cross = fb * np.conj(fa)
-    mag = np.abs(cross)
-    mag += np.float32(1e-12)
-    np.divide(weight, mag, out=mag)
-    cross *= mag
-    corr = scipy.fft.irfft2(cross, s=(h, w))
+    weight, edges, mean = _ccs_weight(h, w, peak_sigma)
+    cross = cv2.mulSpectrums(fb, fa, 0, conjB=True)
+    last = w - 1 if w % 2 == 0 else w  # the interior columns are [1, last)
+    _normalise(cross[:, 1:last].view(np.complex64), weight)
+    top = h - 1 if h % 2 == 0 else h  # along an edge column, the pairs are rows [1, top)
+    for c, we in edges:
+        col = np.ascontiguousarray(cross[:, c])
+        _normalise(col[1:top].view(np.complex64), we[1:1 + (top - 1) // 2])
+        _normalise(col[0:1], we[0:1])
+        if h % 2 == 0:
+            _normalise(col[h - 1:h], we[h // 2:h // 2 + 1])
+        cross[:, c] = col
+    corr = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
     py, px = np.unravel_index(int(np.argmax(corr)), corr.shape)
     c0 = float(corr[py, px])
     sx = px + _peak_offset(float(corr[py, (px - 1) % w]), c0, float(corr[py, (px + 1) % w]))
@@ -168,7 +232,7 @@ def correlate_spectra(fa: np.ndarray, fb: np.ndarray, shape: tuple[int, int], *,
     if sy > h / 2:
         sy -= h
     # the Gaussian weighting lowers the peak; scale it back to ~1 for identical images
-    return sx, sy, c0 / float(weight.mean())
+    return sx, sy, c0 / mean
 
 
 def measure_shift(
@@ -213,8 +277,8 @@ def measure_shift(
     cw, ch = _dft_size_at_most(cw), _dft_size_at_most(ch)
     x0 += (x1 - x0 - cw) // 2
     y0 += (y1 - y0 - ch) // 2
-    crop_a = np.ascontiguousarray(a[y0:y0 + ch, x0:x0 + cw])
-    crop_b = np.ascontiguousarray(b[y0 - iy:y0 - iy + ch, x0 - ix:x0 - ix + cw])
+    crop_a = a[y0:y0 + ch, x0:x0 + cw]
+    crop_b = b[y0 - iy:y0 - iy + ch, x0 - ix:x0 - ix + cw]
     sx, sy, peak = phase_correlate(crop_a, crop_b)
     # crop_b(p) = crop_a(p + r) for a true residual r, so the measured shift is -r.
     return (ix - sx) * scale, (iy - sy) * scale, peak
@@ -316,10 +380,9 @@ class RegistrationStage(Stage):
                 min(w - 2 * mx, 256))
             bx, by = (w - cw) // 2, (h - ch) // 2
             if "b" not in fixed:
-                fixed["b"] = windowed_spectrum(
-                    np.ascontiguousarray(new.reduced[by:by + ch, bx:bx + cw]))
+                fixed["b"] = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
             ax, ay = bx + ix, by + iy
-            fa = windowed_spectrum(np.ascontiguousarray(old.reduced[ay:ay + ch, ax:ax + cw]))
+            fa = windowed_spectrum(old.reduced[ay:ay + ch, ax:ax + cw])
             sx, sy, peak = correlate_spectra(fa, fixed["b"], (ch, cw))
             got = ((ix - sx) * self.scale, (iy - sy) * self.scale, peak)
             self.pairs_shared += 1

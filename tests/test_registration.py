@@ -154,3 +154,20 @@ def test_integer_downsample_equals_area_resize(dtype: type) -> None:
     odd = img[:63, :95]  # sides that do not divide: the resize path
     np.testing.assert_array_equal(downsample(odd, factor=4), cv2.resize(
         odd.astype(np.float32), (23, 15), interpolation=cv2.INTER_AREA))
+
+
+@pytest.mark.parametrize("top", [255, 1023, 4095, 65535])
+def test_power_of_two_downsample_is_the_exact_area_mean(top: int) -> None:
+    """The 16-bit block sums equal the float32 area resize bit for bit, and a block whose
+    sum would saturate 16 bits (full-scale 16-bit data) takes the exact 32-bit path."""
+    rng = np.random.default_rng(3)
+    dtype = np.uint8 if top == 255 else np.uint16
+    img = rng.integers(0, top + 1, (64, 96)).astype(dtype)
+    img[:8, :8] = top  # a saturated corner: 16 x 65535 does not fit 16 bits
+    for factor in (2, 4, 8):
+        want = cv2.resize(img.astype(np.float32), (96 // factor, 64 // factor),
+                          interpolation=cv2.INTER_AREA)
+        got = downsample(img, factor=factor)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(got[0, 0], np.float32(top))
