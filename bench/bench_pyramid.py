@@ -3,9 +3,10 @@
 The frames of a recording are read into memory once (so neither the disk nor the
 decoding is the limit, which would hide the pyramid's cost) and run through the whole
 pipeline (``run_scan``: speed shift, registration, focus measure, focus volume, depth,
-mosaic) alternately with the
-pyramid (the default levels, updated after every band write) and without it (``levels=1``:
-level 0 only, the mosaic of format version 1 plus NGFF metadata). Runs are interleaved
+mosaic) alternately with the pyramid (the default levels, kept current through the writer's
+write-back cache of upper-level chunks, :class:`sffscan.stages.mosaic_pyramid.PyramidCache`)
+and without it (``levels=1``: level 0 only, the mosaic of format version 1 plus NGFF
+metadata). Runs are interleaved
 (ABBA...), so a change of the machine's load hits both variants alike; the 1-minute load
 average is recorded beside each run. Reported: median end-to-end frames/s of each variant,
 their ratio, the CPU time per frame of the main process (source, speed shift and the mosaic
@@ -21,10 +22,10 @@ Writes ``bench/pyramid_results.md`` and ``bench/pyramid_results.json``.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import tempfile
@@ -43,9 +44,16 @@ from sffscan.stages.mosaic import MosaicWriter
 def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
             ) -> dict[str, Any]:
     # the pipeline's own writer factory, with the pyramid switched off for the baseline
-    factory = MosaicWriter if pyramid else functools.partial(MosaicWriter, levels=1)
+    made: list[MosaicWriter] = []
+
+    def factory(*args: Any, **kwargs: Any) -> MosaicWriter:
+        made.append(MosaicWriter(*args, **kwargs) if pyramid
+                    else MosaicWriter(*args, levels=1, **kwargs))
+        return made[-1]
+
     load = os.getloadavg()[0]
     cpu0 = time.process_time()
+    children0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     orig = wiring.MosaicWriter
     wiring.MosaicWriter = factory  # type: ignore[misc]
     try:
@@ -57,14 +65,23 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
     # the process runtime (execution auto), the registration and focus/depth workers are
     # other processes, not counted
     cpu = time.process_time() - cpu0
+    # the worker processes, once joined (the process runtime joins them at the end)
+    children1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    workers = (children1.ru_utime + children1.ru_stime
+               - children0.ru_utime - children0.ru_stime)
+    cache = made[0].cache
     r = report.result
     mosaic = next(s for s in r.stages if s.name == "mosaic")
     g = zarr.open_group(str(out), mode="r")
-    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])  # type: ignore[index]
+    ome: Any = g.attrs["ome"]
+    levels = len(ome["multiscales"][0]["datasets"])
     shutil.rmtree(out)
     return {"pyramid": pyramid, "levels": levels, "frames": report.frames,
             "wall_s": r.wall_s, "fps": report.frames / r.wall_s,
             "process_cpu_ms_per_frame": 1e3 * cpu / report.frames,  # main process only
+            "all_cpu_ms_per_frame": 1e3 * (cpu + workers) / report.frames,
+            "pyramid_chunks_written": cache.chunks_written if cache is not None else 0,
+            "pyramid_chunks_read": cache.chunks_read if cache is not None else 0,
             "mosaic_busy_s": mosaic.busy_s, "mosaic_cpu_s": mosaic.cpu_s,
             "load_1min_before": load, "load_1min_after": os.getloadavg()[0]}
 
@@ -102,6 +119,10 @@ def main() -> None:
             r["process_cpu_ms_per_frame"] for r in on),
         "cpu_ms_per_frame_without_median": statistics.median(
             r["process_cpu_ms_per_frame"] for r in off),
+        "all_cpu_ms_per_frame_with_median": statistics.median(
+            r["all_cpu_ms_per_frame"] for r in on),
+        "all_cpu_ms_per_frame_without_median": statistics.median(
+            r["all_cpu_ms_per_frame"] for r in off),
         "mosaic_busy_s_with": statistics.median(r["mosaic_busy_s"] for r in on),
         "mosaic_busy_s_without": statistics.median(r["mosaic_busy_s"] for r in off),
         "runs": runs,
@@ -111,18 +132,23 @@ def main() -> None:
              f"`python bench/bench_pyramid.py {args.recording} --pairs {args.pairs}`, "
              f"{summary['machine']}; {summary['frames']} frames per run (held in memory), runs "
              "interleaved (ABBA); load = the 1-minute load average before the run.", "",
-             "| pair | pyramid | levels | frames/s | main-process CPU ms/frame | mosaic busy s | "
-             "load (1 min) |", "|---|---|---|---|---|---|---|"]
+             "| pair | pyramid | levels | frames/s | main-process CPU ms/frame | all processes "
+             "CPU ms/frame | mosaic busy s | pyramid chunks written / read | load (1 min) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for i, r in enumerate(runs):
         lines.append(f"| {i // 2} | {'yes' if r['pyramid'] else 'no'} | {r['levels']} | "
                      f"{r['fps']:.2f} | {r['process_cpu_ms_per_frame']:.2f} | "
-                     f"{r['mosaic_busy_s']:.2f} | "
+                     f"{r['all_cpu_ms_per_frame']:.1f} | {r['mosaic_busy_s']:.2f} | "
+                     f"{r['pyramid_chunks_written']} / {r['pyramid_chunks_read']} | "
                      f"{r['load_1min_before']:.2f} |")
     lines += ["", f"Median frames/s: {med['on']:.2f} with the pyramid, {med['off']:.2f} "
               f"without: ratio {summary['ratio_of_medians']:.3f} (pairs: "
               + ", ".join(f"{x:.3f}" for x in pair_ratios) + "). Main-process CPU per frame "
               f"(median): {summary['cpu_ms_per_frame_with_median']:.2f} ms with, "
-              f"{summary['cpu_ms_per_frame_without_median']:.2f} ms without."]
+              f"{summary['cpu_ms_per_frame_without_median']:.2f} ms without; all processes "
+              f"(main and workers): {summary['all_cpu_ms_per_frame_with_median']:.1f} ms "
+              f"with, {summary['all_cpu_ms_per_frame_without_median']:.1f} ms without. A "
+              "pyramid chunk written or read counts its four arrays once."]
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -186,9 +186,10 @@ class MosaicWriter:
     levels : int, optional
         Levels of the resolution pyramid, level 0 included (>= 1; 1 = no pyramid); by
         default :func:`~sffscan.stages.mosaic_pyramid.default_levels` (at least 4).
-    pyramid_lag_s : float
+    pyramid_lag_s : float, optional
         Longest time, s, an upper-level chunk keeps changes unwritten while band writes
-        still touch it (:class:`~sffscan.stages.mosaic_pyramid.PyramidCache`).
+        still touch it (:class:`~sffscan.stages.mosaic_pyramid.PyramidCache`); by default
+        :data:`~sffscan.stages.mosaic_pyramid.LAG_S` (5 s).
 
     Notes
     -----
@@ -210,7 +211,7 @@ class MosaicWriter:
     def __init__(self, path: str | Path, *, origin_px: tuple[int, int], shape: tuple[int, int],
                  pixel_um: float, chunk_px: int = 256, attrs: dict[str, Any] | None = None,
                  overwrite: bool = False, codec: str = DEFAULT_CODEC,
-                 levels: int | None = None, pyramid_lag_s: float = LAG_S) -> None:
+                 levels: int | None = None, pyramid_lag_s: float | None = None) -> None:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
@@ -233,7 +234,8 @@ class MosaicWriter:
         create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
                        units=UNITS, compressors=compressors)
         self.pyramid = pyramid_arrays(self.group, ARRAYS, levels)
-        self.cache = PyramidCache(self.pyramid, lag_s=pyramid_lag_s) if self.pyramid else None
+        lag = LAG_S if pyramid_lag_s is None else pyramid_lag_s
+        self.cache = PyramidCache(self.pyramid, lag_s=lag, empty=True) if self.pyramid else None
         attrs = dict(attrs or {})
         header = MosaicAttrs(
             status="writing",
@@ -297,7 +299,7 @@ class MosaicWriter:
         self.done = attrs.writes_done
         levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
         self.pyramid = pyramid_arrays(group, ARRAYS, levels)
-        self.cache = PyramidCache(self.pyramid) if self.pyramid else None
+        self.cache = PyramidCache(self.pyramid, lag_s=LAG_S) if self.pyramid else None
         rebuild = [tuple(b) for b in attrs.rebuild]
         if attrs.writing is not None and tuple(attrs.writing) not in rebuild:
             rebuild.append(tuple(attrs.writing))
@@ -459,6 +461,21 @@ def read_mosaic_attrs(group: zarr.Group, path: str | Path) -> MosaicAttrs:
         where = ".".join(str(v) for v in first["loc"]) or "(attributes)"
         raise ValueError(f"{path}: not a valid sffscan mosaic: attribute '{where}': "
                          f"{first['msg']} ({len(err.errors())} problem(s))") from None
+
+
+def pyramid_levels(path: str | Path) -> list[dict[str, Any]]:
+    """The resolution levels of a mosaic, finest first: ``level``, ``path`` (of the height
+    array), ``shape`` (rows, cols) and ``pixel_um`` (µm per element, from the NGFF
+    metadata; version 1 mosaics have level 0 only)."""
+    group = zarr.open_group(str(path), mode="r")
+    attrs = read_mosaic_attrs(group, path)
+    if attrs.ome is None:
+        paths = [("height", attrs.pixel_um)]
+    else:
+        paths = [(d.path, d.coordinateTransformations[0].scale[1])
+                 for d in attrs.ome.multiscales[0].datasets]
+    return [{"level": k, "path": p, "shape": tuple(int(n) for n in mosaic_array(group, p).shape),
+             "pixel_um": um} for k, (p, um) in enumerate(paths)]
 
 
 def count_valid(height: zarr.Array) -> int:

@@ -269,12 +269,18 @@ class _Chunk:
     """One cached upper-level chunk of every array (float32, chunk x chunk)."""
 
     data: dict[str, np.ndarray]
+    #: the elements set by updates while cached; None: every element is current
+    covered: np.ndarray | None
     touched: int  # the update that last changed it
     dirty_since: float | None  # when its first unwritten change was made; None: clean
 
 
 class PyramidCache:
     """Write-back cache of the upper-level chunks under the latest writes (see the module).
+
+    A chunk is not read when a write first touches it: the cache records which elements
+    the updates set, and reads the chunk (to keep the others) only when it writes it back
+    and the updates did not set it whole, or never if it is known to be empty.
 
     Parameters
     ----------
@@ -284,21 +290,27 @@ class PyramidCache:
         A chunk that still has unwritten changes this many seconds after its first one is
         written at the next :meth:`write_back` even if writes still touch it (0: every
         change is written at the next write-back, as without a cache).
+    empty : bool
+        The arrays were just created: a chunk this cache has not written holds fill values
+        (no read needed); False for a reopened mosaic.
     clock : callable
         Monotonic time, s.
     """
 
     def __init__(self, arrays: list[dict[str, zarr.Array]], *, lag_s: float = LAG_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 empty: bool = False, clock: Callable[[], float] = time.monotonic) -> None:
         self.arrays = arrays
         self.levels = len(arrays) + 1
         self.lag_s = lag_s
         self.clock = clock
+        self.empty = empty
         first = next(iter(arrays[0].values())) if arrays else None
         self.chunk = int(first.chunks[0]) if first is not None else 0
         self.cached: dict[tuple[int, int, int], _Chunk] = {}  # (level, chunk row, chunk col)
+        self.written: set[tuple[int, int, int]] = set()  # chunks written (when empty)
         self.updates = 0
-        self.chunks_written = 0  # chunk writes (all arrays of one chunk count once)
+        self.chunks_written = 0  # chunk write-backs (the four arrays of a chunk count once)
+        self.chunks_read = 0  # chunk reads before a write-back (likewise)
 
     def _sel(self, key: tuple[int, int, int]) -> Slices:
         k, i, j = key
@@ -308,13 +320,11 @@ class PyramidCache:
 
     def update(self, region: Slices, values: dict[str, np.ndarray]) -> None:
         """Put the levels of ``region`` (level-0 region of whole blocks, :func:`aligned`)
-        whose level-0 ``values`` are given into the cached chunks (read the ones not held)."""
+        whose level-0 ``values`` are given into the cached chunks."""
         self.updates += 1
         now = self.clock()
-        levels = downsample(values, self.levels)
         c = self.chunk
-        places = []
-        for k, level in enumerate(levels, start=1):
+        for k, level in enumerate(downsample(values, self.levels), start=1):
             f = 2 ** k
             r0, c0 = region[0].start // f, region[1].start // f
             r1, c1 = r0 + level["height"].shape[0], c0 + level["height"].shape[1]
@@ -322,28 +332,35 @@ class PyramidCache:
                 for j in range(c0 // c, -(-c1 // c)):
                     a0, b0 = max(r0, i * c), max(c0, j * c)
                     a1, b1 = min(r1, (i + 1) * c), min(c1, (j + 1) * c)
-                    places.append(((k, i, j), (slice(a0 - i * c, a1 - i * c),
-                                               slice(b0 - j * c, b1 - j * c)),
-                                   level, (slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0))))
-        missing = sorted({key for key, *_ in places if key not in self.cached})
-        reads = [(arr, self._sel(key)) for key in missing
-                 for arr in self.arrays[key[0] - 1].values()]
-        loaded = iter(read_many(reads))
-        for key in missing:
-            data = {}
-            for name, arr in self.arrays[key[0] - 1].items():
-                block = np.full((c, c), arr.fill_value, np.float32)
-                part = next(loaded)
-                block[:part.shape[0], :part.shape[1]] = part
-                data[name] = block
-            self.cached[key] = _Chunk(data, self.updates, None)
-        for key, dst, level, src in places:
-            chunk = self.cached[key]
-            for name, block in chunk.data.items():
-                block[dst] = level[name][src]
-            chunk.touched = self.updates
-            if chunk.dirty_since is None:
-                chunk.dirty_since = now
+                    dst = slice(a0 - i * c, a1 - i * c), slice(b0 - j * c, b1 - j * c)
+                    src = slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0)
+                    self._place((k, i, j), dst, level, src, now)
+
+    def _place(self, key: tuple[int, int, int], dst: Slices, level: dict[str, np.ndarray],
+               src: Slices, now: float) -> None:
+        chunk = self.cached.get(key)
+        if chunk is None:
+            c = self.chunk
+            known = self.empty and key not in self.written  # all fill values
+            chunk = _Chunk({name: np.full((c, c), arr.fill_value, np.float32)
+                            for name, arr in self.arrays[key[0] - 1].items()},
+                           None if known else np.zeros((c, c), bool), self.updates, None)
+            self.cached[key] = chunk
+        for name, block in chunk.data.items():
+            block[dst] = level[name][src]
+        if chunk.covered is not None:
+            chunk.covered[dst] = True
+        chunk.touched = self.updates
+        if chunk.dirty_since is None:
+            chunk.dirty_since = now
+
+    def _whole(self, key: tuple[int, int, int]) -> bool:
+        """Whether every element of a cached chunk inside the array is current."""
+        covered = self.cached[key].covered
+        if covered is None:
+            return True
+        sel = self._sel(key)
+        return bool(covered[:sel[0].stop - sel[0].start, :sel[1].stop - sel[1].start].all())
 
     def write_back(self, *, everything: bool = False
                    ) -> list[tuple[zarr.Array, Slices, np.ndarray]]:
@@ -353,20 +370,34 @@ class PyramidCache:
         together with its own. Chunks the last update did not touch leave the cache.
         """
         now = self.clock()
+        due = [key for key, chunk in self.cached.items() if chunk.dirty_since is not None and (
+            everything or chunk.touched < self.updates or now - chunk.dirty_since >= self.lag_s)]
+        # the elements no update set, read from the store for the chunks not set whole
+        partial = [key for key in due if not self._whole(key)]
+        reads = [(arr, self._sel(key)) for key in partial
+                 for arr in self.arrays[key[0] - 1].values()]
+        stored = iter(read_many(reads))
+        for key in partial:
+            chunk = self.cached[key]
+            keep = ~chunk.covered  # type: ignore[operator]
+            for block in chunk.data.values():
+                part = next(stored)
+                np.copyto(block[:part.shape[0], :part.shape[1]], part,
+                          where=keep[:part.shape[0], :part.shape[1]])
+            self.chunks_read += 1
         writes = []
-        for key, chunk in list(self.cached.items()):
-            left = chunk.touched < self.updates
-            due = chunk.dirty_since is not None and (
-                everything or left or now - chunk.dirty_since >= self.lag_s)
-            if due:
-                sel = self._sel(key)
-                rows, cols = sel[0].stop - sel[0].start, sel[1].stop - sel[1].start
-                for name, arr in self.arrays[key[0] - 1].items():
-                    writes.append((arr, sel, chunk.data[name][:rows, :cols].copy()))
-                chunk.dirty_since = None
-                self.chunks_written += 1
-            if left or everything:
-                del self.cached[key]
+        for key in due:
+            chunk = self.cached[key]
+            sel = self._sel(key)
+            rows, cols = sel[0].stop - sel[0].start, sel[1].stop - sel[1].start
+            for name, arr in self.arrays[key[0] - 1].items():
+                writes.append((arr, sel, chunk.data[name][:rows, :cols].copy()))
+            chunk.covered, chunk.dirty_since = None, None
+            self.written.add(key)
+            self.chunks_written += 1
+        for key in [key for key, chunk in self.cached.items()
+                    if everything or chunk.touched < self.updates]:
+            del self.cached[key]
         return writes
 
     def stale(self) -> Slices | None:

@@ -48,6 +48,7 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
             os.kill(os.getpid(), signal.SIGKILL)
         write_many(items)
 
+    mosaic.LAG_S = float("inf")  # what the writer holds back does not depend on the clock
     mosaic.MosaicWriter._blend = torn_blend  # type: ignore[method-assign]
     mosaic.write_many = torn_write_many  # type: ignore[assignment]
     replay(recording, output=output)

@@ -271,3 +271,26 @@ def test_pyramid_after_kill_and_resume(tmp_path: Path, two_pass: tuple[Path, Pat
     g = zarr.open_group(str(out), mode="r")
     assert g.attrs["status"] == "complete"
     assert g.attrs["valid_pixels"] == int(np.isfinite(resumed["height"]).sum())
+
+
+def test_info_lists_the_pyramid_levels(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                       ) -> None:
+    """``sffscan info MOSAIC``: level, shape and pixel size of every level, and the box of
+    levels not written yet while a writer holds them."""
+    from sffscan.pipeline.cli.main import main
+
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(0, 0), shape=(60, 100), pixel_um=8.5, chunk_px=32,
+                          levels=4, pyramid_lag_s=np.inf)
+    for x0, y0, new in _bands(np.random.default_rng(2))[:3]:
+        writer.write_region(x0 + 37, y0 + 11, new)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "levels      4 " in out
+    for k, (shape, um) in enumerate([("60 x 100", "8.5"), ("30 x 50", "17"),
+                                     ("15 x 25", "34"), ("8 x 13", "68")]):
+        assert f"  {k:>2}        {shape} px, {um} µm" in out, out
+    assert "not written yet" in out  # the writer's cache holds levels over the last band
+    writer.set_status("complete")
+    assert main(["info", str(path)]) == 0
+    assert "not written yet" not in capsys.readouterr().out

@@ -125,10 +125,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _info_mosaic(path: Path) -> int:
-    from sffscan.stages.mosaic import tile_states
+    from sffscan.stages.mosaic import pyramid_levels, tile_states
 
     try:
         _, info = tile_states(path)
+        levels = pyramid_levels(path)
     except (ValueError, KeyError) as err:
         where = "" if str(path) in str(err) else f"{path}: unreadable mosaic: "
         print(f"sffscan: {where}{err}", file=sys.stderr)
@@ -144,6 +145,13 @@ def _info_mosaic(path: Path) -> int:
     print(f"journal     {info['writes_done']} writes done"
           + (f"; torn write at world px box {info['writing']}" if info["writing"] else "")
           + (f"; rebuilding {info['rebuild']}" if info["rebuild"] else ""))
+    print(f"levels      {len(levels)} (OME-Zarr multiscales; level: rows x cols, pixel size)")
+    for lv in levels:
+        print(f"  {lv['level']:>2}        {lv['shape'][0]} x {lv['shape'][1]} px, "
+              f"{lv['pixel_um']:g} µm  ({lv['path']})")
+    if attrs.get("pyramid_stale"):
+        print(f"pyramid     levels over world px box {attrs['pyramid_stale']} not written yet "
+              "(a scan in progress, or recomputed by 'replay --resume')")
     print(f"processing  {attrs.get('processing')}")
     if attrs.get("frames_expected") is not None or attrs.get("frames_received") is not None:
         print(f"frames      {attrs.get('frames_received')} of {attrs.get('frames_expected')} "
