@@ -37,6 +37,7 @@ __all__ = [
     "all_in_focus",
     "depth_from_focus",
     "depth_from_harmonics",
+    "focus_confidence",
     "harmonic_table",
     "level_spread",
     "levels_to_height",
@@ -124,19 +125,43 @@ def _moments(vol: np.ndarray) -> np.ndarray:
 
     One matrix product with the ``(4, N)`` :func:`harmonic_table`, accumulated in float64
     (float32 accumulation costs up to ~1e-3 levels of PC phase on curves whose first harmonic
-    is weak). Done over blocks of columns so the float64 copy of the volume stays in cache.
+    is weak). Done over blocks of rows so the float64 copy of the volume stays in cache; a
+    strided view (a block of a ring buffer) is read in place.
     """
-    n = vol.shape[0]
+    n, height, width = vol.shape
     table = harmonic_table(n)
-    flat = vol.reshape(n, -1)
-    out = np.empty((4, flat.shape[1]), dtype=np.float64)
-    block = max(256, (1 << 17) // n)  # ~1 MiB of float64 per block (stays in L2)
-    buf = np.empty((n, min(block, flat.shape[1])), dtype=np.float64)
-    for i in range(0, flat.shape[1], block):
-        cols = min(block, flat.shape[1] - i)
-        buf[:, :cols] = flat[:, i : i + cols]
-        np.matmul(table, buf[:, :cols], out=out[:, i : i + cols])
-    return out.reshape((4, *vol.shape[1:]))
+    out = np.empty((4, height * width), dtype=np.float64)
+    rows = max(1, max(256, (1 << 17) // n) // max(1, width))  # ~1 MiB of float64 (L2)
+    buf = np.empty((n, min(rows, height) * width), dtype=np.float64)
+    for i in range(0, height, rows):
+        r = min(rows, height - i)
+        np.copyto(buf[:, :r * width].reshape(n, r, width), vol[:, i:i + r])
+        np.matmul(table, buf[:, :r * width], out=out[:, i * width:(i + r) * width])
+    return out.reshape((4, height, width))
+
+
+def _confidence(h0: np.ndarray, re: np.ndarray, im: np.ndarray) -> np.ndarray:
+    """``|H_1| / H_0`` clipped to [0, 1], 0 where ``H_0 <= 0``; float32."""
+    positive = h0 > 0
+    confidence = np.sqrt(re * re + im * im) / np.where(positive, h0, 1.0)
+    return np.clip(np.where(positive, confidence, 0.0), 0.0, 1.0).astype(np.float32)
+
+
+def focus_confidence(volume: np.ndarray) -> np.ndarray:
+    """The confidence every method of :func:`depth_from_focus` returns, alone.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float32
+        Focus volume (finite; not checked), a strided float32 view read in place.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        ``|H_1| / H_0`` in [0, 1] (0 where ``H_0 <= 0``), summed in float64.
+    """
+    h0, _, re, im = _moments(volume)
+    return _confidence(h0, re, im)
 
 
 def _argmax(vol: np.ndarray) -> np.ndarray:
@@ -194,45 +219,51 @@ def _wrap(x: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _window_levels(vol: np.ndarray, centre: np.ndarray, half_window: int
-                   ) -> tuple[list[np.ndarray], list[np.ndarray | None], np.ndarray]:
-    """Levels ``centre - h .. centre + h`` of every curve, read in place.
-
-    Returns the 2h + 1 flat ``(H * W,)`` float32 value arrays (levels beyond the range set
-    to +inf), for each a mask of those beyond the range (None where none is), and the
-    flat centres.
-    """
-    n = vol.shape[0]
-    shape = vol.shape[1:]
-    pixels = int(np.prod(shape))
-    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+def _flat_view(vol: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    """One 1-D float32 view over ``vol``'s memory, first to last element (all inside its
+    buffer), and its element strides; a float32 view with positive strides (a block of a
+    ring buffer) is read in place, anything else is copied first."""
+    n, rows, cols = vol.shape
     if vol.dtype != np.float32 or any(st <= 0 or st % 4 for st in vol.strides):
         vol = np.ascontiguousarray(vol, dtype=np.float32)
-    # read in place through the element offsets of the (possibly strided) view: one 1-D
-    # view over the memory from its first to its last element (all inside its buffer)
     st0, st1, st2 = (st // 4 for st in vol.strides)
-    span = (n - 1) * st0 + (shape[0] - 1) * st1 + (shape[1] - 1) * st2 + 1
-    flat = np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,))
-    rows, cols = np.indices(shape, dtype=np.intp)
-    base = (rows * st1 + cols * st2).reshape(-1)
+    span = (n - 1) * st0 + (rows - 1) * st1 + (cols - 1) * st2 + 1
+    return np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,)), st0, st1, st2
+
+
+def _pixel_offsets(shape: tuple[int, ...], st1: int, st2: int) -> np.ndarray:
+    """Element offset of every pixel's level 0, flat ``(H * W,)`` intp."""
+    rows = np.arange(shape[0], dtype=np.intp)[:, None] * st1
+    return (rows + np.arange(shape[1], dtype=np.intp)[None, :] * st2).reshape(-1)
+
+
+def _levels_at(flat: np.ndarray, at: np.ndarray, c: np.ndarray, st0: int, n: int,
+               half_window: int, fill: float
+               ) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+    """Levels ``c - h .. c + h`` of the pixels at offsets ``at``: 2h + 1 flat float32 arrays
+    (levels beyond the range set to ``fill``), and for each a mask of those beyond the range
+    (None where none is)."""
     vals: list[np.ndarray] = []
     outside: list[np.ndarray | None] = []
-    lowest, highest = (int(c.min()), int(c.max())) if pixels else (0, 0)
+    lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
+    first = at + c * st0
     for j in range(-half_window, half_window + 1):
-        k = c + j
-        v = flat.take(np.clip(k, 0, n - 1) * st0 + base)
-        out = None  # levels beyond the range: out of the floor and the sums
         if lowest + j < 0 or highest + j > n - 1:
+            k = c + j
             out = (k < 0) | (k > n - 1)
-            v[out] = np.inf
+            v = flat.take(np.clip(k, 0, n - 1) * st0 + at)
+            v[out] = fill
+        else:  # every pixel's level exists: no clipping
+            out = None
+            v = flat.take(first + j * st0)
         vals.append(v)
         outside.append(out)
-    return vals, outside, c
+    return vals, outside
 
 
 def _centroid_offset(vals: list[np.ndarray], outside: list[np.ndarray | None]) -> np.ndarray:
     """Centroid offset (levels, float32) of the window values above their minimum, 0 where
-    nothing is above it; ``vals`` is overwritten."""
+    nothing is above it; ``vals`` (levels beyond the range: +inf) is overwritten."""
     half_window = len(vals) // 2
     floor = vals[0].copy()
     for v in vals[1:]:
@@ -248,6 +279,28 @@ def _centroid_offset(vals: list[np.ndarray], outside: list[np.ndarray | None]) -
             s1 += np.float32(j) * wgt
     good = s0 > 0
     return np.where(good, s1 / np.where(good, s0, np.float32(1.0)), np.float32(0.0))
+
+
+def _gaussian_top(vals: list[np.ndarray], c: np.ndarray, n: int) -> np.ndarray:
+    """The 3-point Gaussian at the largest of the levels ``c - 1 .. c + 1`` (the first of
+    ties), from the levels ``c - 2 .. c + 2`` (beyond the range: -1, never the largest and
+    never positive). Offset within ±0.5; none at the ends of the range, on a flat top or
+    on values <= 0. Float32 levels."""
+    ymm, ym, y0, yp, ypp = vals
+    below = (ym >= y0) & (ym >= yp)  # the largest is c - 1
+    above = ~below & (yp > y0)  # ... c + 1
+    a = np.where(below, ymm, np.where(above, y0, ym))
+    b = np.where(below, ym, np.where(above, yp, y0))
+    d = np.where(below, y0, np.where(above, ypp, yp))
+    top = c - below + above
+    ok = (a > 0) & (b > 0) & (d > 0) & (top > 0) & (top < n - 1)
+    one = np.float32(1.0)
+    la, lb, ld = (np.log(np.where(ok, v, one)) for v in (a, b, d))
+    den = la - 2 * lb + ld
+    ok &= den < 0
+    off = np.where(ok, np.float32(0.5) * (la - ld) / np.where(ok, den, -one), np.float32(0.0))
+    np.clip(off, -0.5, 0.5, out=off)
+    return (top + off).astype(np.float32)
 
 
 def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
@@ -275,7 +328,10 @@ def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
     (H, W) ndarray of float32
         Depth in fractional levels.
     """
-    vals, outside, c = _window_levels(vol, centre, half_window)
+    flat, st0, st1, st2 = _flat_view(vol)
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    at = _pixel_offsets(vol.shape[1:], st1, st2)
+    vals, outside = _levels_at(flat, at, c, st0, vol.shape[0], half_window, np.inf)
     return (c + _centroid_offset(vals, outside)).astype(np.float32).reshape(vol.shape[1:])
 
 
@@ -355,25 +411,27 @@ def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     if half_window < 2:
         raise ValueError(f"half_window must be >= 2, got {half_window}")
     n = vol.shape[0]
-    vals, outside, c = _window_levels(vol, centre, half_window)
-    h = half_window
-    # the five levels about the centre, before the centroid overwrites them; beyond the
-    # range they are -inf (never the maximum)
-    near = [np.where(np.isinf(v), -np.inf, v) for v in vals[h - 2:h + 3]]
-    depth = (c + _centroid_offset(vals, outside)).astype(np.float32)
-    peak = np.flatnonzero(np.asarray(spread).reshape(-1) <= max_spread)
-    if peak.size:
-        y = np.stack([v[peak] for v in near])  # (5, P): levels c-2 .. c+2
-        i = 1 + np.argmax(y[1:4], axis=0)  # index of the maximum among c-1, c, c+1
-        cols = np.arange(peak.size)
-        ym, y0, yp = y[i - 1, cols], y[i, cols], y[i + 1, cols]
-        top = c[peak] + (i - 2)
-        ok = (top > 0) & (top < n - 1) & (ym > 0) & (y0 > 0) & (yp > 0)
-        lm, l0, lp = (np.log(np.where(ok, v, 1.0)) for v in (ym, y0, yp))
-        den = lm - 2.0 * l0 + lp
-        ok &= den < 0
-        off = np.clip(np.where(ok, 0.5 * (lm - lp) / np.where(ok, den, -1.0), 0.0), -0.5, 0.5)
-        depth[peak] = (top + off).astype(np.float32)
+    flat, st0, st1, st2 = _flat_view(vol)
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    at = _pixel_offsets(vol.shape[1:], st1, st2)
+    one = np.asarray(spread).reshape(-1) <= max_spread
+    depth = np.empty(c.shape, np.float32)
+    # each pixel reads only the levels its estimate needs: 5 for a peak, 2h + 1 for a centroid
+    for peak in (True, False):
+        sel = one if peak else ~one
+        count = int(np.count_nonzero(sel))
+        if count == 0:
+            continue
+        cs, ats = (c, at) if count == c.size else (c[sel], at[sel])
+        if peak:
+            d = _gaussian_top(_levels_at(flat, ats, cs, st0, n, 2, -1.0)[0], cs, n)
+        else:
+            d = (cs + _centroid_offset(*_levels_at(flat, ats, cs, st0, n, half_window,
+                                                   np.inf))).astype(np.float32)
+        if count == c.size:
+            depth[:] = d
+        else:
+            depth[sel] = d
     return depth.reshape(vol.shape[1:])
 
 
@@ -516,8 +574,7 @@ def _from_harmonics(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarr
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Depth and confidence from the curve sums and argmax (checked inputs)."""
     positive = h0 > 0
-    confidence = np.sqrt(re * re + im * im) / np.where(positive, h0, 1.0)
-    confidence = np.clip(np.where(positive, confidence, 0.0), 0.0, 1.0).astype(np.float32)
+    confidence = _confidence(h0, re, im)
 
     if method in ("pc", "spc"):
         phi = np.arctan2(im, re) * (-n / (2.0 * math.pi))

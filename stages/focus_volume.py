@@ -39,6 +39,7 @@ from sffscan.stages.depth import (
     adaptive_peak,
     depth_from_focus,
     depth_from_harmonics,
+    focus_confidence,
     harmonic_table,
     level_spread,
     levels_to_height,
@@ -221,11 +222,10 @@ class FocusVolume:
             self.sums = np.zeros((4 if method == "centroid" else 3, *plane), np.float32)
             self.coef = harmonic_table(self.n)[[0, 2, 3, 1]]
         else:
-            # the windowed centroid's confidence comes from the sums too (no pass over the
-            # N levels at the reduction); the 3-point fits take both from the levels
-            windowed = method in ("wcentroid", "adaptive")
-            self.sums = np.zeros((3 if windowed else 0, *plane), np.float32)
-            self.coef = harmonic_table(self.n)[[0, 2, 3]] if windowed else np.zeros((0, self.n))
+            # the confidence comes from the stored levels at the reduction (one read of a
+            # block's N levels costs less than three running sums updated every frame)
+            self.sums = np.zeros((0, *plane), np.float32)
+            self.coef = np.zeros((0, self.n))
             self.fv = np.empty((self.n, *plane), np.float32)
             self.fv.fill(0.0)
         self.filled = np.zeros((self.n, self.ring), bool)
@@ -432,35 +432,33 @@ class FocusVolume:
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
-        if self.fv is None or self.method in ("wcentroid", "adaptive"):
+        inner = slice(u0 - a0, u1 - a0)  # the halo serves the filters only
+        if self.fv is None:
             planes = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             sums = np.zeros((4, *planes.shape[1:]), np.float32)
             sums[0], sums[2], sums[3] = planes[0], planes[1], planes[2]
             if planes.shape[0] == 4:  # only the centroid uses sum k y
                 sums[1] = planes[3]
-            argmax = self._gather(self.argmax, a0, a1)
             depth, conf = depth_from_harmonics(
-                sums, argmax, n_levels=self.n,
-                method="argmax" if self.fv is not None else self.method,
-                median_size=self.median_size)
-            if self.fv is not None:  # the levels about the filtered argmax
-                centre = median_filter_levels(argmax, self.median_size, self.n)
-                inner = slice(u0 - a0, u1 - a0)  # the halo served the filters only
-                depth = np.zeros(centre.shape, np.float32)
-                levels = self._gather(self.fv, u0, u1)
-                if self.method == "adaptive":
-                    spread = level_spread(centre, self.spread_size, self.n)
-                    depth[:, inner] = adaptive_peak(levels, centre[:, inner],
-                                                    spread[:, inner])
-                else:
-                    depth[:, inner] = windowed_centroid(levels, centre[:, inner])
+                sums, self._gather(self.argmax, a0, a1), n_levels=self.n,
+                method=self.method, median_size=self.median_size)
+            depth, conf = depth[:, inner], conf[:, inner]
+        elif self.method in ("wcentroid", "adaptive"):  # the levels about the filtered argmax
+            centre = median_filter_levels(self._gather(self.argmax, a0, a1),
+                                          self.median_size, self.n)
+            levels = self._gather(self.fv, u0, u1)
+            if self.method == "adaptive":
+                spread = level_spread(centre, self.spread_size, self.n)
+                depth = adaptive_peak(levels, centre[:, inner], spread[:, inner])
+            else:
+                depth = windowed_centroid(levels, centre[:, inner])
+            conf = focus_confidence(levels)
         else:
             vol = self._gather(self.fv, a0, a1)
             depth, conf = depth_from_focus(vol, method=self.method,
                                            median_size=self.median_size,
                                            argmax=self._gather(self.argmax, a0, a1))
-        inner = slice(u0 - a0, u1 - a0)
-        depth, conf = depth[:, inner], conf[:, inner]
+            depth, conf = depth[:, inner], conf[:, inner]
         complete = self._gather(self.count, u0, u1) == self.n
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
