@@ -9,7 +9,10 @@ Layout of the group (format ``sffscan-mosaic``, version 2; schema in
 - ``weight``: float32 (y, x), the sum of contribution weights used to blend overlaps;
 - ``pyramid/<k>/<name>``, k = 1 .. L-1 (L >= 4): the resolution pyramid of each array,
   level k the 2^k x 2^k reduction of level 0 (:mod:`sffscan.stages.mosaic_pyramid`),
-  updated with every band write.
+  kept current while the scan runs through a write-back cache of upper-level chunks (a
+  level-k chunk is written when the band writes leave it, or after at most 5 s, and at the
+  end); the chunks not yet written are journaled (``pyramid_stale``) and recomputed on
+  resume.
 
 Each array carries its unit in its own attributes (``units``); the group is an OME-Zarr
 (NGFF 0.5) image (attribute ``ome``, :mod:`sffscan.pipeline.formats.ngff`), so OME-Zarr
@@ -200,7 +203,7 @@ class MosaicWriter:
     journal entry (``writing`` before a band write, ``writes_done`` after it) also records
     ``pyramid_stale``, the world px box under the chunks not yet written; :meth:`reopen`
     recomputes it from level 0. The cache holds only the chunks under the last write (for
-    the demo's 256 x 1040 px bands: 7 chunks per array, 7 MiB).
+    the demo's 256 x 1040 px bands: at most 6 chunks of the four arrays, 6.4 MiB).
     """
 
     #: what a ``complete`` status is checked against: returns the status to set
