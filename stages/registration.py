@@ -179,15 +179,17 @@ def windowed_spectrum(image: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _ccs_weight(h: int, w: int, peak_sigma: float
-                ) -> tuple[np.ndarray, list[tuple[int, np.ndarray]], float]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """:func:`_pc_weight` in the CCS layout: the weight of the interior complex columns
-    ``(h, (w - 1) // 2)``, each real-packed edge column's weights by frequency
-    ``(h // 2 + 1,)``, and the mean of the whole half-spectrum's weight."""
+    ``(h, (w - 1) // 2)``; of the real-packed edge columns (the first, and the last for
+    even ``w``) by frequency along the rows, ``(edges, h // 2 + 1)``; the edge columns'
+    indices; and the mean of the whole half-spectrum's weight."""
     full = _pc_weight(h, w, peak_sigma)
-    edges = [(0, np.ascontiguousarray(full[:h // 2 + 1, 0]))]
-    if w % 2 == 0:
-        edges.append((w - 1, np.ascontiguousarray(full[:h // 2 + 1, w // 2])))
-    return np.ascontiguousarray(full[:, 1:1 + (w - 1) // 2]), edges, float(full.mean())
+    freq = [0, w // 2] if w % 2 == 0 else [0]
+    edges = np.ascontiguousarray(full[:h // 2 + 1, freq].T)
+    cols = np.array([0, w - 1] if w % 2 == 0 else [0])
+    return (np.ascontiguousarray(full[:, 1:1 + (w - 1) // 2]), edges, cols,
+            float(full.mean()))
 
 
 def _normalise(z: np.ndarray, weight: np.ndarray) -> None:
@@ -210,18 +212,18 @@ def correlate_spectra(fa: np.ndarray, fb: np.ndarray, shape: tuple[int, int], *,
     even ``h``), (re, im) pairs between.
     """
     h, w = shape
-    weight, edges, mean = _ccs_weight(h, w, peak_sigma)
+    weight, we, cols, mean = _ccs_weight(h, w, peak_sigma)
     cross = cv2.mulSpectrums(fb, fa, 0, conjB=True)
     last = w - 1 if w % 2 == 0 else w  # the interior columns are [1, last)
     _normalise(cross[:, 1:last].view(np.complex64), weight)
     top = h - 1 if h % 2 == 0 else h  # along an edge column, the pairs are rows [1, top)
-    for c, we in edges:
-        col = np.ascontiguousarray(cross[:, c])
-        _normalise(col[1:top].view(np.complex64), we[1:1 + (top - 1) // 2])
-        _normalise(col[0:1], we[0:1])
-        if h % 2 == 0:
-            _normalise(col[h - 1:h], we[h // 2:h // 2 + 1])
-        cross[:, c] = col
+    edge = np.ascontiguousarray(cross[:, cols].T)  # (edges, h)
+    _normalise(edge[:, 1:top].view(np.complex64), we[:, 1:1 + (top - 1) // 2])
+    real = [0, h - 1] if h % 2 == 0 else [0]  # the real values: frequencies 0 (and h / 2)
+    vals = edge[:, real]
+    _normalise(vals, we[:, [0, h // 2]] if h % 2 == 0 else we[:, :1])
+    edge[:, real] = vals
+    cross[:, cols] = edge.T
     corr = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
     py, px = np.unravel_index(int(np.argmax(corr)), corr.shape)
     c0 = float(corr[py, px])
@@ -363,7 +365,8 @@ class RegistrationStage(Stage):
         self._count = 0
         self._recent: collections.deque[_Entry] = collections.deque(maxlen=self.n_levels + 1)
         self._pending: collections.deque[_Entry] = collections.deque()
-        self._pairs: list[tuple[int, int, float, float, float]] = []
+        self._pairs: list[tuple[int, int, float, float, float]] = []  # since the last emit
+        self._pair_arr = np.empty((0, 5))  # (i, j, dx, dy, weight) of the window, float64
         self._emitted: dict[int, tuple[float, float]] = {}
 
     def _measure(self, old: _Entry, new: _Entry, fixed: dict[str, np.ndarray]) -> None:
@@ -398,9 +401,15 @@ class RegistrationStage(Stage):
         entry = self._pending.popleft()
         newest = self._count - 1
         lo = max(0, newest - self.window + 1)
-        self._pairs = [p for p in self._pairs if p[0] >= lo]
+        # the window's pairs as an array, in the order measured: the kept ones, then the
+        # new ones (converting only those, not the whole window's list, every frame)
+        kept = self._pair_arr
+        if self._pairs:
+            kept = np.concatenate((kept, np.asarray(self._pairs, dtype=np.float64)))
+            self._pairs = []
+        kept = self._pair_arr = kept[kept[:, 0] >= lo]
         self._emitted = {k: v for k, v in self._emitted.items() if k >= lo}
-        pairs = np.asarray(self._pairs, dtype=np.float64).reshape(-1, 5)
+        pairs = kept.copy()
         pairs[:, :2] -= lo
         sol = solve_wobble(newest - lo + 1, pairs,
                            {k - lo: v for k, v in self._emitted.items()})
