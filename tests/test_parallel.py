@@ -337,3 +337,21 @@ def test_kill_9_of_the_main_process_leaves_no_worker_and_no_shared_memory(
         time.sleep(0.1)
     assert not any(alive(w) for w in workers), "a worker outlived the main process by 5 s"
     assert shm_names(proc.pid) == []
+
+
+def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
+    """A worker's glibc settings take (on Linux), in a fresh process so this one keeps its
+    own; the main process's objects are back in the collector after a process run."""
+    if sys.platform.startswith("linux"):
+        code = ("from sffscan.pipeline.worker import keep_freed_memory; "
+                "print(keep_freed_memory())")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=120, check=True).stdout.split()
+        assert out[-1] == "True"
+    collect = Collect()
+    ProcessPipeline(
+        head=[FrameNumbers(40)],
+        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",))],
+        tail=[collect], pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
+    assert collect.ids == list(range(40))
+    assert gc.get_freeze_count() == 0
