@@ -146,28 +146,39 @@ def _image_order(args: argparse.Namespace) -> list[str]:
     return [str(p) for p in ordered]
 
 
+def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
+    """The (N, H, W) stack and its (N,) focus table (µm) that the options of
+    :func:`stack_input_options` name (used by ``stack`` and ``study``).
+
+    Raises
+    ------
+    ValueError
+        If a file cannot be read, or the focus table is missing, not monotonic or of another
+        length than the stack (the message names the file or option).
+    """
+    from sffscan.stages.fields.stationary import read_image_stack, read_zarr_stack
+
+    if args.zarr:
+        if args.images:
+            raise ValueError("give image files or --zarr, not both")
+        stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
+    else:
+        stack, zarr_table = read_image_stack(_image_order(args), grey=args.grey), None
+    return stack, _focus_table(args, stack.shape[0], zarr_table)
+
+
 def cmd_stack(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from sffscan.pipeline.metrology.optics_correction import applied
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
-    from sffscan.stages.fields.stationary import (
-        read_image_stack,
-        read_zarr_stack,
-        reconstruct_field,
-    )
+    from sffscan.stages.fields.stationary import reconstruct_field
     from sffscan.stages.fields.stop_and_go import feather_weights, stitch_field
     from sffscan.stages.mosaic import MosaicWriter
 
     try:
         settings = _settings(args)
-        if args.zarr:
-            if args.images:
-                raise ValueError("give image files or --zarr, not both")
-            stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
-        else:
-            stack, zarr_table = read_image_stack(_image_order(args), grey=args.grey), None
-        table = _focus_table(args, stack.shape[0], zarr_table)
+        stack, table = read_stack_input(args)
         correction = _stack_correction(args)
         if correction is not None:
             table = correction.focus_heights_um(table)
@@ -370,10 +381,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- parser
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("stack", help="reconstruct one field from a focus stack",
-                       description="Height, all-in-focus image and confidence of one field "
-                                   "from a focus stack, written as a mosaic Zarr group.")
+def stack_input_options(p: argparse.ArgumentParser) -> None:
+    """The options naming a focus stack and its focus positions (``stack``, ``study``):
+    image files or ``--zarr``, ``--focus-file`` / ``--focus-start`` ..., ``--bit-depth``;
+    read with :func:`read_stack_input`."""
     p.add_argument("images", nargs="*",
                    help="image files, one per focus level; taken in the natural order of "
                         "their names (im_2 before im_10), see --keep-order")
@@ -391,8 +402,15 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="focus position of the last image (with --focus-start: evenly spaced)")
     p.add_argument("--focus-unit", choices=sorted(UNIT_TO_UM), default="um",
                    help="unit of the focus positions (default um)")
-    p.add_argument("--pixel-um", type=float, required=True, help="object pixel size, µm/px")
     p.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("stack", help="reconstruct one field from a focus stack",
+                       description="Height, all-in-focus image and confidence of one field "
+                                   "from a focus stack, written as a mosaic Zarr group.")
+    stack_input_options(p)
+    p.add_argument("--pixel-um", type=float, required=True, help="object pixel size, µm/px")
     p.add_argument("-o", "--output", required=True, help="mosaic Zarr group to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
     p.add_argument("--save-npy", help="also save the height map (µm) as .npy")

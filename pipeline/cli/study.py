@@ -4,15 +4,24 @@ known truth, as a table (CSV and JSON) and a plot (PNG).
 The thesis' settings study (chapter 2 kernel-size sweep, best size 7-9; chapter 3 method
 comparison), for the user's own surfaces::
 
+    sffscan study IMAGES... --focus-file focus.txt --truth truth.npy -o study/
+    sffscan study --zarr stack.zarr --truth cmm.tif --roi 20,20,200,150 -o study/
     sffscan study --imdata DIR/imdata.mat -o study/          # a toolbox-format stack
     sffscan study --chapter3 --noise 0.005 -o study/         # the thesis' simulation
 
-``--imdata`` reads Pertuz's toolbox format (``imdata.mat`` with ``focus``, ``z``, ``ROI``
-and ``images``, the images beside it; e.g. the pertuz-simu02 dataset), ``--chapter3``
-renders the thesis' set-up (300 x 300 px, 60 levels, sinusoidal surface; ``--noise``: the
-variance of Gaussian noise added to the 0..1 images). Every combination is scored by RMSE,
-CORR and PSNR over the truth's scored pixels (the ROI), raw heights (no post-filter).
-Exit 0, or 2 for bad input (the message names the file or option).
+A user's stack is read as ``sffscan stack`` reads it (image files in the natural order of
+their names or a Zarr (N, H, W) array; focus positions from ``--focus-file``,
+``--focus-start`` with ``--focus-step`` or ``--focus-stop``, or the Zarr array's
+``focus_heights_um``), its truth with ``--truth`` as ``sffscan compare`` reads a height map
+(.npy, float TIFF or Zarr, µm, in the frame of the focus positions; NaN = not known).
+``--roi x,y,w,h`` (px, from the top left corner) limits the scoring to a box; the focus
+measure still sees the whole image. ``--imdata`` reads Pertuz's toolbox format
+(``imdata.mat`` with ``focus``, ``z``, ``ROI`` and ``images``, the images beside it; e.g. the
+pertuz-simu02 dataset), ``--chapter3`` renders the thesis' set-up (300 x 300 px, 60 levels,
+sinusoidal surface; ``--noise``: the variance of Gaussian noise added to the 0..1 images).
+Every combination is scored by RMSE, CORR and PSNR over the truth's scored pixels (the ROI,
+finite truth), raw heights (no post-filter). Exit 0, or 2 for bad input (the message names
+the file or option).
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ import json
 import logging
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +121,61 @@ def read_imdata(path: Path) -> StudyStack:
                       np.asarray(im.z, float) * 1e6, mask, path.parent.name)
 
 
+def user_stack(args: argparse.Namespace) -> StudyStack:
+    """The stack the options of ``sffscan stack`` name (image files or ``--zarr`` and the
+    focus positions) with the truth ``--truth`` names; every pixel with a finite truth is
+    scored.
+
+    Raises
+    ------
+    ValueError
+        If a file cannot be read, the focus table does not match the images, an image
+        exceeds the full scale, or the truth's shape differs from the images' (the message
+        names the file).
+    """
+    from sffscan.pipeline.cli.metrology import read_stack_input
+    from sffscan.pipeline.metrology.compare import read_height_map
+    from sffscan.stages.fields.stationary import default_max_value
+    from sffscan.stages.focus_measure import to_unit_float
+
+    raw, focus_um = read_stack_input(args)
+    source = str(args.zarr) if args.zarr else str(Path(args.images[0]).resolve().parent)
+    truth = read_height_map(args.truth, array=args.truth_array).height_um
+    if truth.shape != raw.shape[1:]:
+        raise ValueError(f"{args.truth}: truth of {truth.shape[1]} x {truth.shape[0]} px, the "
+                         f"images ({source}) are {raw.shape[2]} x {raw.shape[1]} px")
+    full = (default_max_value(raw.dtype) if args.bit_depth is None
+            else float(2**args.bit_depth - 1))
+    images = np.empty(raw.shape, dtype=np.float32)
+    for i, img in enumerate(raw):
+        try:
+            images[i] = to_unit_float(img, max_value=full)
+        except ValueError as err:
+            raise ValueError(f"{source}: image {i}: {err}") from None
+        if float(images[i].max()) > 1.0 + 1e-6:
+            raise ValueError(f"{source}: image {i}: values up to {float(raw[i].max()):g} "
+                             f"exceed the full scale {full:g} (set --bit-depth)")
+    mask = np.isfinite(truth)
+    if not mask.any():
+        raise ValueError(f"{args.truth}: no finite height")
+    return StudyStack(images, focus_um, truth.astype(np.float32), mask,
+                      f"{source} ({raw.shape[0]} images, truth {Path(args.truth).name})")
+
+
+def parse_roi(text: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The (H, W) bool mask of the box ``x,y,w,h`` (px, 0-based from the top left corner)."""
+    try:
+        x, y, w, h = (int(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise ValueError(f"--roi must be four integers x,y,w,h (px), got {text!r}") from None
+    if w < 1 or h < 1 or x < 0 or y < 0 or x + w > shape[1] or y + h > shape[0]:
+        raise ValueError(f"--roi {text}: the box x {x}..{x + w}, y {y}..{y + h} px is empty or "
+                         f"leaves the {shape[1]} x {shape[0]} px images")
+    mask = np.zeros(shape[:2], bool)
+    mask[y:y + h, x:x + w] = True
+    return mask
+
+
 def chapter3_stack(*, noise: float, seed: int = 5) -> StudyStack:
     """The thesis' chapter-3 simulation (:mod:`sffscan.stages.sim.chapter3`) as a study
     stack: every pixel scored."""
@@ -122,7 +186,8 @@ def chapter3_stack(*, noise: float, seed: int = 5) -> StudyStack:
                       f"chapter3 noise {noise:g}")
 
 
-def write_outputs(rows: list[StudyRow], out: Path, *, title: str) -> list[Path]:
+def write_outputs(rows: list[StudyRow], out: Path, *, title: str,
+                  scored_pixels: int | None = None) -> list[Path]:
     """``study.csv``, ``study.json`` and ``study.png`` (RMSE against window per operator for
     the best method of each, and RMSE per method at each operator's best window)."""
     import matplotlib
@@ -136,8 +201,8 @@ def write_outputs(rows: list[StudyRow], out: Path, *, title: str) -> list[Path]:
         writer = csv.DictWriter(f, fieldnames=list(StudyRow.__dataclass_fields__))
         writer.writeheader()
         writer.writerows(asdict(r) for r in rows)
-    paths[1].write_text(json.dumps({"stack": title, "rows": [asdict(r) for r in rows]},
-                                   indent=1))
+    paths[1].write_text(json.dumps({"stack": title, "scored_pixels": scored_pixels,
+                                    "rows": [asdict(r) for r in rows]}, indent=1))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     ops = sorted({r.operator for r in rows})
     methods = list(dict.fromkeys(r.method for r in rows))
@@ -164,6 +229,16 @@ def write_outputs(rows: list[StudyRow], out: Path, *, title: str) -> list[Path]:
     return paths
 
 
+def format_ranking(rows: list[StudyRow], *, top: int = 10) -> str:
+    """The ``top`` combinations by RMSE, best first, as a Markdown table."""
+    ranked = sorted(rows, key=lambda r: (np.isnan(r.rmse_um), r.rmse_um))[:max(top, 1)]
+    lines = ["| rank | operator | k | method | RMSE (µm) | CORR | PSNR (dB) |",
+             "|---:|---|---:|---|---:|---:|---:|"]
+    lines += [f"| {i} | {r.operator.upper()} | {r.window} | {r.method} | {r.rmse_um:.2f} | "
+              f"{r.corr:.4f} | {r.psnr_db:.2f} |" for i, r in enumerate(ranked, start=1)]
+    return "\n".join(lines)
+
+
 def _int_list(text: str) -> list[int]:
     try:
         return [int(v) for v in text.split(",") if v.strip()]
@@ -186,17 +261,42 @@ def cmd_study(args: argparse.Namespace) -> int:
         print(f"sffscan study: --windows must be odd integers >= 3, got {args.windows}",
               file=sys.stderr)
         return EXIT_BAD_INPUT
+    user = bool(args.images or args.zarr)
+    sources = [n for n, on in (("image files or --zarr", user), ("--imdata", args.imdata),
+                               ("--chapter3", args.chapter3)) if on]
+    if len(sources) != 1:
+        print("sffscan study: give one stack: image files or --zarr (with --truth), --imdata "
+              f"or --chapter3{'; got ' + ', '.join(sources) if sources else ''}",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if user != (args.truth is not None):
+        print("sffscan study: --truth FILE (the true height map, µm) goes with image files "
+              "or --zarr" + ("" if user else "; --imdata and --chapter3 carry their own"),
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     try:
-        if args.imdata is not None:
+        if user:
+            stack = user_stack(args)
+        elif args.imdata is not None:
             stack = read_imdata(Path(args.imdata))
         else:
             stack = chapter3_stack(noise=args.noise)
+        if args.roi is not None:
+            mask = stack.mask & parse_roi(args.roi, stack.truth_um.shape)
+            if not mask.any():
+                raise ValueError(f"--roi {args.roi}: no pixel of the box has a known truth")
+            stack = replace(stack, mask=mask)
+        log.info("study: %s, %d images of %d x %d px, %d pixels scored", stack.name,
+                 len(stack.images), stack.images.shape[2], stack.images.shape[1],
+                 int(stack.mask.sum()))
         rows = run_study(stack, operators=operators, windows=args.windows, methods=methods,
                          median_size=args.median_size)
-    except ValueError as err:
+    except (ValueError, FileNotFoundError) as err:
         print(f"sffscan study: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    paths = write_outputs(rows, Path(args.output), title=stack.name)
+    paths = write_outputs(rows, Path(args.output), title=stack.name,
+                          scored_pixels=int(stack.mask.sum()))
+    print(format_ranking(rows, top=args.top))
     best = min(rows, key=lambda r: r.rmse_um)
     print(f"best: {best.operator.upper()} k={best.window} {best.method}: RMSE "
           f"{best.rmse_um:.1f} µm, CORR {best.corr:.4f}, PSNR {best.psnr_db:.1f} dB")
@@ -208,9 +308,18 @@ def register(sub: Any) -> None:
     p = sub.add_parser("study", help="operators x windows x depth methods on a stack with a "
                        "known truth: table (CSV, JSON) and plot (PNG)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--imdata", metavar="MAT", help="toolbox-format imdata.mat (images beside)")
-    src.add_argument("--chapter3", action="store_true", help="the thesis' chapter-3 simulation")
+    from sffscan.pipeline.cli.metrology import stack_input_options
+
+    stack_input_options(p)
+    p.add_argument("--truth", metavar="FILE",
+                   help="with image files or --zarr: the true height map, µm, in the frame of "
+                        "the focus positions (.npy, float TIFF or Zarr; NaN = unknown)")
+    p.add_argument("--truth-array", default="height",
+                   help="array of a Zarr group given with --truth (default height)")
+    p.add_argument("--roi", metavar="X,Y,W,H",
+                   help="score only this box, px from the top left corner (default: all)")
+    p.add_argument("--imdata", metavar="MAT", help="toolbox-format imdata.mat (images beside)")
+    p.add_argument("--chapter3", action="store_true", help="the thesis' chapter-3 simulation")
     p.add_argument("--noise", type=float, default=0.0,
                    help="--chapter3: variance of the added Gaussian noise (thesis: 0.005)")
     p.add_argument("--operators", default="glvm,tenv,lapm,teng,lape,sfrq",
@@ -221,5 +330,7 @@ def register(sub: Any) -> None:
                    help=f"comma-separated depth methods (default {','.join(METHODS)})")
     p.add_argument("--median-size", type=int, default=11,
                    help="median filter of SPC, wcentroid and adaptive, odd, px (default 11)")
+    p.add_argument("--top", type=int, default=10,
+                   help="rows of the ranking printed (default 10; the CSV holds all)")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")
     p.set_defaults(func=cmd_study)
