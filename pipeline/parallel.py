@@ -34,7 +34,6 @@ Memory is bounded by the pools: ``sum(slots * slot_bytes)``, fixed at start (see
 from __future__ import annotations
 
 import contextlib
-import gc
 import json
 import logging
 import multiprocessing as mp
@@ -57,6 +56,7 @@ from sffscan.pipeline.runtime import (
     Stage,
     StageFailed,
     StageStats,
+    gc_frozen,
 )
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.worker import (
@@ -103,24 +103,6 @@ class PooledSource(Stage):
 
     def extra_stats(self) -> dict[str, Any]:
         return self.inner.extra_stats()
-
-
-@contextlib.contextmanager
-def _gc_frozen() -> Iterator[None]:
-    """Keep the objects alive before streaming (the imported modules: torch, zarr, ...) out
-    of the cyclic garbage collector's passes while streaming, then give them back.
-
-    The head and tail threads and Zarr's I/O allocate many small containers, so full
-    collections run every few frames, and each walked every object of the process: 0.3 ms
-    of CPU per frame in the main process (perf, 1280 x 1024 default scan). Objects made
-    while streaming are collected as usual; a cycle among the older ones that becomes
-    garbage meanwhile is collected after the run.
-    """
-    gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
 
 
 class _Abort:
@@ -242,7 +224,7 @@ class ProcessPipeline:
                 p.unlink()
             startup_s = time.perf_counter() - t_start
             cpu0 = time.process_time()
-            with _gc_frozen():
+            with gc_frozen():
                 result = self._run(pools, workers, chans, sink_qs, results, abort, stop,
                                    time.perf_counter())
             cpu = time.process_time() - cpu0 + sum((w.report or {}).get("cpu_s", 0.0)
@@ -338,7 +320,7 @@ class ProcessPipeline:
 
         def run_local(key: str, pipe: Pipeline) -> None:
             try:
-                outcome[key] = pipe.run()
+                outcome[key] = pipe.run(freeze_gc=False)  # frozen around both
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread
                 outcome[key] = exc
                 abort.set()

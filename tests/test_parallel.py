@@ -13,7 +13,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +32,7 @@ from sffscan.pipeline.messages import (
     PlacedFrame,
 )
 from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
-from sffscan.pipeline.runtime import END_OF_STREAM, StageFailed, Tapped
+from sffscan.pipeline.runtime import END_OF_STREAM, Pipeline, Stage, StageFailed, Tapped
 from sffscan.pipeline.scan_processes import ring_plan, use_processes
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.wire import decode, discard, encode
@@ -354,4 +356,18 @@ def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
         groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",))],
         tail=[collect], pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
     assert collect.ids == list(range(40))
+    assert gc.get_freeze_count() == 0
+    # threads: frozen while it runs, thawed after
+    seen: list[int] = []
+
+    class Probe(Stage):
+        name = "probe"
+
+        def process(self, item: Any) -> Iterator[Any]:
+            seen.append(gc.get_freeze_count())
+            yield item
+
+    tail = Collect()
+    Pipeline([FrameNumbers(5), Probe(), tail], capacity=2).run()
+    assert tail.ids == list(range(5)) and min(seen) > 0
     assert gc.get_freeze_count() == 0
