@@ -4,9 +4,18 @@ One task per recording: the task replays the recording (:func:`sffscan.replay`) 
 own mosaic, on one worker, with the worker's numerical libraries capped to
 ``threads`` threads so that concurrent tasks do not fight over the cores. A recording that
 cannot be processed (unreadable, corrupt, a stage failing) gives a ``failed`` row with the
-cause; the other tasks go on. A recording whose mosaic is already ``complete`` is skipped
-(a rerun after an interruption does only what is left); a mosaic left ``writing`` or
-``failed`` by an interrupted run is replaced.
+cause; the other tasks go on.
+
+A rerun does only what is left. A mosaic that is final is kept: ``complete`` ones are
+skipped, ``incomplete`` ones (frames lost in the recording: a replay ends incomplete again)
+are kept with their status. A mosaic left ``writing`` or ``failed`` (a worker killed, a
+machine lost, a stage failing) is resumed as ``sffscan replay --resume`` does
+(:meth:`~sffscan.stages.mosaic.MosaicWriter.reopen`): the band writes already in it are
+kept, torn tiles are rebuilt, and it ends equal to an uninterrupted run; a mosaic made with
+another configuration is not resumed but reported (``overwrite=True`` replaces it). The
+choice is made by the task when it starts, so a task that Dask retries after losing its
+worker resumes what that worker left. The accuracy of an evaluated mosaic is stored in its
+attributes (``accuracy``), so that a skipped row still shows it.
 
 The cluster is a :class:`distributed.LocalCluster` of worker processes on this machine by
 default, or any running Dask scheduler given by its address (``tcp://host:8786``): there,
@@ -23,27 +32,46 @@ import asyncio
 import csv
 import glob
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zarr
+from pydantic import ValidationError
+from sffscan.pipeline.messages import MosaicAccuracy, MosaicAttrs
+
+if TYPE_CHECKING:
+    from sffscan.pipeline.config import ScanConfig
+    from sffscan.pipeline.metrology.evaluate import Accuracy
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchError", "BatchRow", "find_recordings", "format_table", "mosaic_path",
-           "process_recording", "run_batch", "write_csv"]
+__all__ = ["BatchError", "BatchRow", "ResumeRefused", "config_differences",
+           "find_recordings", "format_table", "mosaic_path", "process_recording", "run_batch",
+           "store_accuracy", "stored_accuracy", "write_csv"]
 
 #: seconds a local worker process is given to exit when the batch ends
 CLOSE_TIMEOUT_S = 30.0
-#: statuses of a row: done now, skipped (complete already), failed, or done but incomplete
-STATUSES = ("complete", "skipped", "failed", "incomplete")
+#: statuses of a row: done now, resumed now (and complete), skipped (complete already),
+#: failed, or incomplete (done now, or kept: frames lost in the recording)
+STATUSES = ("complete", "resumed", "skipped", "failed", "incomplete")
+#: mosaic statuses a rerun continues (an interrupted run) and keeps (final)
+RESUMABLE = ("writing", "failed")
+FINAL = ("complete", "incomplete")
+#: what a simulated recording's mosaic is scored against
+SIM_TRUTH = "the simulation's true surface"
 
 
 class BatchError(ValueError):
     """Bad batch input (nothing found, two recordings mapping to one mosaic)."""
+
+
+class ResumeRefused(ValueError):
+    """An interrupted mosaic that cannot be resumed (made with another configuration,
+    unreadable); it is kept, and the message says how to replace it."""
 
 
 @dataclass
@@ -61,6 +89,7 @@ class BatchRow:
     wall_s: float | None = None
     worker: str = ""
     error: str = ""
+    note: str = ""
 
 
 def _is_recording(path: Path) -> bool:
@@ -122,12 +151,120 @@ def _mosaic_status(path: Path) -> dict[str, Any] | None:
     return attrs if attrs.get("format") == "sffscan-mosaic" else None
 
 
-def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any],
-                      evaluate: bool, threads: int) -> dict[str, Any]:
-    """Replay one recording into ``mosaic`` (replaced); the task a worker runs.
+def _finite(v: float, lo: float = -math.inf, hi: float = math.inf) -> float | None:
+    return min(max(float(v), lo), hi) if math.isfinite(v) else None
 
-    Never raises for a bad recording or a failing stage: the row says ``failed`` and why.
-    Returns a :class:`BatchRow` as a dict.
+
+def store_accuracy(mosaic: str | Path, acc: Accuracy, *, truth: str) -> MosaicAccuracy:
+    """Store ``acc`` (of :func:`~sffscan.pipeline.metrology.evaluate.mosaic_accuracy`) in the
+    mosaic's attributes (``accuracy``), validated with the other attributes; returns it."""
+    group = zarr.open_group(str(mosaic), mode="r+")
+    stored = MosaicAccuracy(truth=truth, rmse_um=_finite(acc.rmse_um, 0.0),
+                            corr=_finite(acc.corr, -1.0, 1.0), psnr_db=_finite(acc.psnr_db),
+                            pixels=acc.pixels, coverage=min(max(acc.coverage, 0.0), 1.0))
+    value = stored.model_dump(mode="json")
+    MosaicAttrs.model_validate({**group.attrs.asdict(), "accuracy": value})  # still valid
+    group.update_attributes({"accuracy": value})
+    return stored
+
+
+def stored_accuracy(attrs: dict[str, Any]) -> MosaicAccuracy | None:
+    """The accuracy a mosaic's attributes hold; None if not stored (or unreadable: a mosaic
+    made before it was stored, or by a later version)."""
+    raw = attrs.get("accuracy")
+    if raw is None:
+        return None
+    try:
+        return MosaicAccuracy.model_validate(raw)
+    except ValidationError:
+        return None
+
+
+def _config(cfg: ScanConfig, mosaic: str, processing: dict[str, Any], *,
+            overwrite: bool) -> ScanConfig:
+    """The recorded configuration with the output and the ``processing`` overrides; the
+    same for a fresh run and for a resume (which :meth:`MosaicWriter.reopen` checks)."""
+    from sffscan.pipeline.config import config_from_dict
+
+    data = cfg.model_dump()
+    data["output"].update(path=mosaic, overwrite=overwrite)
+    unknown = set(processing) - set(data["processing"])
+    if unknown:
+        raise ValueError(f"processing: unknown field(s) {sorted(unknown)}")
+    data["processing"].update(processing)
+    return config_from_dict(data, origin="sffscan batch")
+
+
+def config_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Fields (``table.field``, or a top-level key) in which two scan configurations (as
+    stored in a mosaic's ``scan_config``) differ, the ``output`` table aside."""
+    out = []
+    for key in sorted((set(old) | set(new)) - {"output"}):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key}.{k}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        elif a != b:
+            out.append(key)
+    return out
+
+
+def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate: bool,
+            overwrite: bool, row: BatchRow) -> None:
+    """Replay ``recording`` into ``mosaic``, resuming it if it was interrupted (and not
+    ``overwrite``); fills ``row``. Raises what the replay raises."""
+    from sffscan.pipeline.formats.recording import annotate_mosaic, open_recording
+    from sffscan.pipeline.wiring import evaluate_sim, run_scan
+    from sffscan.stages.mosaic import MosaicWriter
+
+    rec = open_recording(recording)
+    before = _mosaic_status(Path(mosaic))
+    status = before.get("status") if before is not None else None
+    resume = not overwrite and status in RESUMABLE
+    cfg = _config(rec.config, mosaic, processing, overwrite=not resume)
+    writer = None
+    if resume:
+        # checked here too, to name the fields (reopen refuses any difference)
+        diff = config_differences((before or {}).get("scan_config") or {},
+                                  cfg.model_dump(mode="json"))
+        keep = f"the mosaic (status {status}) is kept: --overwrite replaces it"
+        if diff:
+            raise ResumeRefused(f"{mosaic}: cannot resume with a different configuration "
+                                f"(differs in {', '.join(diff)}); {keep}")
+        try:
+            writer = MosaicWriter.reopen(mosaic, scan_config=cfg.model_dump(mode="json"))
+        except Exception as exc:  # noqa: BLE001 - a corrupt chunk or zarr.json of the mosaic
+            raise ResumeRefused(f"{mosaic}: cannot resume ({type(exc).__name__}: {exc}); "
+                                f"{keep}") from exc
+        row.note = (f"resumed: {writer.done} band write(s) kept, {len(writer.rebuild)} torn "
+                    "region(s) rebuilt")
+    report = run_scan(cfg, frames=rec.frames(), progress=False, writer=writer,
+                      account=rec.account())
+    annotate_mosaic(report.output, rec)
+    attrs = zarr.open_group(mosaic, mode="r").attrs.asdict()
+    row.status = str(attrs.get("status"))
+    if resume and row.status == "complete":
+        row.status = "resumed"
+    row.frames = report.frames
+    row.frames_lost = int(rec.report.as_dict().get("frames_lost", 0))
+    valid = attrs.get("valid_pixels")
+    row.valid_pixels = int(valid) if isinstance(valid, int) else None
+    if evaluate and cfg.source.kind == "sim":
+        from sffscan.stages.sim.scanner import make_world
+
+        acc = store_accuracy(mosaic, evaluate_sim(report, make_world(cfg)), truth=SIM_TRUTH)
+        row.rmse_um, row.coverage = acc.rmse_um, acc.coverage
+
+
+def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any],
+                      evaluate: bool, threads: int, overwrite: bool = False) -> dict[str, Any]:
+    """Replay one recording into ``mosaic``; the task a worker runs.
+
+    A mosaic left ``writing`` or ``failed`` is resumed (one made with another configuration,
+    or unreadable, is kept and the row fails, saying so), unless ``overwrite``; anything
+    else at ``mosaic``
+    is replaced. The accuracy of a simulated recording (``evaluate``) is stored in the
+    mosaic. Never raises for a bad recording or a failing stage: the row says ``failed``
+    and why. Returns a :class:`BatchRow` as a dict.
     """
     import socket
 
@@ -138,41 +275,42 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
     t0 = time.perf_counter()
     try:
         import torch
-        from sffscan.pipeline.formats.recording import open_recording
 
-        from sffscan.api import replay
-
+        before = torch.get_num_threads()
         torch.set_num_threads(threads)
-        with threadpool_limits(limits=threads):
-            sim = open_recording(recording).config.source.kind == "sim"
-            report = replay(recording, output=mosaic, overwrite=True,
-                            processing=processing or None, evaluate=evaluate and sim)
-        attrs = zarr.open_group(mosaic, mode="r").attrs.asdict()
-        row.status = str(attrs.get("status"))
-        row.frames = report.frames
-        row.frames_lost = int(report.extras.get("recording", {}).get("frames_lost", 0))
-        valid = attrs.get("valid_pixels")
-        row.valid_pixels = int(valid) if isinstance(valid, int) else None
-        if report.accuracy is not None:
-            row.rmse_um = float(report.accuracy.rmse_um)
-            row.coverage = float(report.accuracy.coverage)
+        try:
+            with threadpool_limits(limits=threads):
+                _replay(recording, mosaic, processing=processing, evaluate=evaluate,
+                        overwrite=overwrite, row=row)
+        finally:  # a worker of a shared cluster runs other tasks after this one
+            torch.set_num_threads(before)
     except Exception as exc:  # noqa: BLE001 - reported in the row; the batch goes on
         row.status = "failed"
-        row.error = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
+        text = str(exc) if isinstance(exc, ResumeRefused) else f"{type(exc).__name__}: {exc}"
+        row.error = " ".join(text.split())[:500]
     row.wall_s = round(time.perf_counter() - t0, 3)
     return asdict(row)
 
 
-def _skipped(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
+def _kept(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
+    """The row of a final mosaic left as it is: ``skipped`` (complete) or ``incomplete``."""
     rec = attrs.get("recording") or {}
-    return BatchRow(recording=str(recording), mosaic=str(mosaic), status="skipped",
-                    frames=rec.get("frames"), frames_lost=rec.get("frames_lost"),
-                    valid_pixels=attrs.get("valid_pixels"))
+    acc = stored_accuracy(attrs)
+    row = BatchRow(recording=str(recording), mosaic=str(mosaic), status="skipped",
+                   frames=rec.get("frames"), frames_lost=rec.get("frames_lost"),
+                   valid_pixels=attrs.get("valid_pixels"),
+                   rmse_um=acc.rmse_um if acc is not None else None,
+                   coverage=acc.coverage if acc is not None else None)
+    if attrs.get("status") == "incomplete":
+        row.status = "incomplete"
+        row.note = ("kept: frames lost in the recording, a replay ends incomplete again "
+                    "(--rerun reprocesses it)")
+    return row
 
 
 def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | None = None,
               workers: int = 2, threads: int = 1, processing: dict[str, Any] | None = None,
-              evaluate: bool = True, rerun: bool = False,
+              evaluate: bool = True, rerun: bool = False, overwrite: bool = False,
               on_row: Callable[[BatchRow, int, int], None] | None = None) -> list[BatchRow]:
     """Reprocess ``recordings`` into ``out_dir`` on a Dask cluster.
 
@@ -190,9 +328,14 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     processing : dict, optional
         ``processing`` fields overriding each recording's own (as ``sffscan replay``).
     evaluate : bool
-        Score recordings of the simulator against its true surface (RMSE, coverage).
+        Score recordings of the simulator against its true surface (RMSE, CORR, PSNR,
+        coverage), stored in the mosaic's attributes (``accuracy``).
     rerun : bool
-        Reprocess complete mosaics too instead of skipping them.
+        Reprocess every recording from scratch: final mosaics (complete, incomplete) are
+        replaced instead of kept, interrupted ones instead of resumed.
+    overwrite : bool
+        Replace mosaics left ``writing`` or ``failed`` instead of resuming them (as a
+        mosaic made with another configuration must be); final mosaics are still kept.
     on_row : callable, optional
         Called with (row, rows done, rows in all) as each recording finishes (progress).
 
@@ -212,8 +355,8 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     todo = []
     for i, (rec, mos) in enumerate(targets):
         attrs = _mosaic_status(mos)
-        if not rerun and attrs is not None and attrs.get("status") == "complete":
-            rows[i] = _skipped(rec, mos, attrs)
+        if not rerun and attrs is not None and attrs.get("status") in FINAL:
+            rows[i] = _kept(rec, mos, attrs)
         else:
             todo.append(i)
     total, done = len(targets), 0
@@ -235,7 +378,8 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
             with Client(scheduler or cluster) as client:
                 futures = {client.submit(process_recording, str(targets[i][0]),
                                          str(targets[i][1]), processing=processing or {},
-                                         evaluate=evaluate, threads=threads, pure=False,
+                                         evaluate=evaluate, threads=threads,
+                                         overwrite=overwrite or rerun, pure=False,
                                          key=f"sffscan-batch-{i}-{targets[i][0].name}"): i
                            for i in todo}
                 for fut in as_completed(futures):
@@ -277,7 +421,7 @@ def write_csv(rows: Sequence[BatchRow], path: Path) -> None:
 def format_table(rows: Sequence[BatchRow]) -> str:
     """The results table for a terminal."""
     lines = [f"{'recording':<28} {'status':<10} {'frames':>7} {'lost':>5} {'RMSE µm':>8} "
-             f"{'cover':>6} {'s':>7}  error"]
+             f"{'cover':>6} {'s':>7}  error / note"]
 
     def num(v: float | int | None, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
@@ -286,7 +430,7 @@ def format_table(rows: Sequence[BatchRow]) -> str:
         lines.append(f"{Path(r.recording).name[:28]:<28} {r.status:<10} "
                      f"{num(r.frames, 'd'):>7} {num(r.frames_lost, 'd'):>5} "
                      f"{num(r.rmse_um, '.1f'):>8} {num(r.coverage, '.3f'):>6} "
-                     f"{num(r.wall_s, '.1f'):>7}  {r.error}")
+                     f"{num(r.wall_s, '.1f'):>7}  {'; '.join(t for t in (r.error, r.note) if t)}")
     counts = {s: sum(1 for r in rows if r.status == s) for s in STATUSES}
     lines.append(", ".join(f"{n} {s}" for s, n in counts.items() if n) or "nothing")
     return "\n".join(lines)

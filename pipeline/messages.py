@@ -119,6 +119,23 @@ def check_frame(frame: Frame, *, shape: tuple[int, int], dtype: np.dtype, n_leve
                          f"the number of focus levels {n_levels}")
 
 
+class MosaicAccuracy(BaseModel):
+    """A mosaic's accuracy against a true surface (``sffscan batch``'s evaluation of a
+    simulated recording): RMSE, Pearson correlation and PSNR of ``height`` over the finite
+    pixels compared; a statistic that is undefined (no pixels, no variance) or infinite
+    (PSNR of an exact match) is null."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    truth: str = Field(description="What the heights were compared with")
+    rmse_um: float | None = Field(ge=0, description="Root-mean-square error, µm")
+    corr: float | None = Field(ge=-1, le=1, description="Pearson correlation coefficient")
+    psnr_db: float | None = Field(
+        description="Peak signal-to-noise ratio, dB, with the focus range as the peak")
+    pixels: int = Field(ge=0, description="Pixels compared (finite in the mosaic)")
+    coverage: float = Field(ge=0, le=1, description="Finite fraction of the pixels asked")
+
+
 class MosaicAttrs(BaseModel):
     """Attributes of a mosaic Zarr group (format ``sffscan-mosaic``)."""
 
@@ -171,3 +188,7 @@ class MosaicAttrs(BaseModel):
     ome: NgffOme | None = Field(
         default=None, description="OME-Zarr (NGFF 0.5) multiscales metadata: one pyramid per "
         "array, 'height' first (format version 2); null in version 1")
+    accuracy: MosaicAccuracy | None = Field(
+        default=None, description="Accuracy against the true surface, stored by the run that "
+        "evaluated it (a simulated recording's replay in 'sffscan batch'); null if not "
+        "evaluated")

@@ -67,6 +67,7 @@ def test_batch_reports_the_bad_recording_completes_the_others_and_resumes(
         other = zarr.open_group(rows[f"layer_{i:03d}.zarr"]["mosaic"], mode="r")["height"]
         assert np.array_equal(np.asarray(other), first, equal_nan=True)  # type: ignore[arg-type]
     assert "3 complete, 1 failed" in printed.out
+    first_rmse = [rows[f"layer_{i:03d}.zarr"]["rmse_um"] for i in range(3)]
     stamp = {i: (Path(rows[f"layer_{i:03d}.zarr"]["mosaic"]) / "zarr.json").stat().st_mtime_ns
              for i in range(3)}
 
@@ -78,6 +79,8 @@ def test_batch_reports_the_bad_recording_completes_the_others_and_resumes(
     assert [rows[f"layer_{i:03d}.zarr"]["status"] for i in range(4)] == [
         "skipped", "skipped", "skipped", "failed"]
     assert rows["layer_000.zarr"]["frames"] != ""
+    for i in range(3):  # the accuracy stored in the mosaic by the first run
+        assert rows[f"layer_{i:03d}.zarr"]["rmse_um"] == first_rmse[i] != ""
     for i in range(3):
         assert (Path(rows[f"layer_{i:03d}.zarr"]["mosaic"]) / "zarr.json"
                 ).stat().st_mtime_ns == stamp[i]

@@ -4,8 +4,10 @@
 layers) into ``OUT/<name>.mosaic.zarr``, one task per recording, on a local cluster of
 worker processes (``--workers``) or on a running Dask scheduler (``--scheduler
 tcp://host:8786``); prints the results table and writes it as CSV (``OUT/batch.csv``).
-Complete mosaics are skipped on a rerun. Exit 0 when every recording is complete, 1 when
-some failed (or ended incomplete), 2 for bad input. See :mod:`sffscan.pipeline.batch`.
+A rerun does what is left: complete mosaics are skipped, incomplete ones kept, interrupted
+ones (left ``writing`` or ``failed``) resumed (``--overwrite`` replaces them, ``--rerun``
+redoes everything). Exit 0 when every mosaic is complete, 1 when some failed or are
+incomplete, 2 for bad input. See :mod:`sffscan.pipeline.batch`.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         rows = run_batch(recordings, out, scheduler=args.scheduler, workers=args.workers,
                          threads=args.threads, processing=_processing(args),
                          evaluate=not args.no_evaluate, rerun=args.rerun,
+                         overwrite=args.overwrite,
                          on_row=None if args.quiet else progress)
     except BatchError as err:
         print(f"sffscan: {err}", file=sys.stderr)
@@ -75,7 +78,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     write_csv(rows, csv_path)
     print(format_table(rows))
     print(f"results: {csv_path}")
-    bad = [r for r in rows if r.status not in ("complete", "skipped")]
+    bad = [r for r in rows if r.status not in ("complete", "resumed", "skipped")]
     for r in bad:
         print(f"sffscan: {r.recording}: {r.status}" + (f": {r.error}" if r.error else ""),
               file=sys.stderr)
@@ -88,8 +91,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         description="Replay many recordings ('sffscan scan --record') into one mosaic each, in "
                     "parallel on a Dask cluster: a local cluster of worker processes, or a "
                     "running scheduler (--scheduler). A bad recording is reported and the "
-                    "others complete; complete mosaics are skipped on a rerun; a results "
-                    "table is printed and written as CSV. Exit 1 if any recording failed.",
+                    "others complete. A rerun skips complete mosaics, keeps incomplete ones "
+                    "(frames lost in the recording) and resumes interrupted ones (left "
+                    "'writing' or 'failed': a worker killed, a machine lost) as 'replay "
+                    "--resume' does. A results table is printed and written as CSV. Exit 1 if "
+                    "any recording failed or is incomplete.",
         epilog="Several machines: start 'dask scheduler' on one (port 8786), 'dask worker "
                "tcp://HOST:8786 --nworkers 2 --nthreads 1' on each, with sffscan installed and "
                "the recordings and OUT on a shared file system at the same paths; then "
@@ -107,7 +113,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="threads each task's numerical libraries (torch, BLAS) may use")
     p.add_argument("--csv", metavar="PATH", help="results table (default OUT/batch.csv)")
     p.add_argument("--rerun", action="store_true",
-                   help="reprocess recordings whose mosaic is complete already")
+                   help="reprocess every recording from scratch, replacing its mosaic "
+                        "(complete, incomplete or interrupted)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace mosaics left 'writing' or 'failed' instead of resuming them "
+                        "(needed when they were made with another configuration); complete "
+                        "and incomplete ones are still kept")
     p.add_argument("--no-evaluate", action="store_true",
                    help="do not score simulated recordings against their true surface")
     processing_choices(p)
