@@ -119,7 +119,8 @@ class ProcessingConfig(_Model):
     focus_operator: Literal[
         "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
         "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
-        "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols",
+        "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols", "wavr",
+        "wavs", "wavv",
     ] = Field("glvm", description="Focus measure operator: an acronym of Pertuz's toolbox "
               "(focusmeasure.m), any case")
     window: int = Field(9, ge=3, le=255, description="Focus measure window k (odd), px")

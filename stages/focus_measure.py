@@ -37,7 +37,7 @@ from sffscan.pipeline.messages import FocusFrame, PlacedFrame
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import check_odd_size
 from sffscan.stages.focus_volume import new_columns
-from sffscan.stages.operators import OPERATORS, check_operator
+from sffscan.stages.operators import OPERATORS, check_operator, operator_alignment
 from sffscan.stages.operators.filters import box as _box
 from sffscan.stages.operators.filters import sample_variance, sobel_energy
 from sffscan.stages.operators.toolbox import TOOLBOX
@@ -552,7 +552,9 @@ class FocusMeasureStage(Stage):
 
     Only the columns that can still add to the focus volume are measured (see
     :func:`sffscan.stages.focus_volume.new_columns`), with enough neighbouring columns that the
-    result equals the whole frame's focus measure there. This relies on every frame it
+    result equals the whole frame's focus measure there (the range starting on a multiple
+    of :func:`sffscan.stages.operators.operator_alignment`: 2 or 8 px for the wavelet
+    operators). This relies on every frame it
     passes on reaching the focus volume: the queues after this stage must block, never drop
     (a frame lost before this stage is fine: it is never counted as seen).
 
@@ -583,6 +585,7 @@ class FocusMeasureStage(Stage):
         self.max_value = max_value
         self.margin = margin
         self.directions = list(directions)
+        self.alignment = operator_alignment(self.operator)
         self._pass: int | None = None
         self._prev_x: dict[int, int] = {}
         self._device_focus: DeviceFocus | None = None
@@ -600,6 +603,7 @@ class FocusMeasureStage(Stage):
                              direction=self.directions[hdr.pass_index % len(self.directions)])
         self._prev_x[hdr.focus_index] = x
         a0, a1 = max(c0 - self.margin, 0), min(c1 + self.margin, w)
+        a0 -= a0 % self.alignment  # the wavelet operators decimate: start on their grid
         if self.backend == "opencv":
             image01, fm = focus_measure_raw(item.image[:, a0:a1], max_value=self.max_value,
                                             operator=self.operator, window=self.window)

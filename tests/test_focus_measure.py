@@ -210,7 +210,7 @@ def test_bad_window_rejected(bad: object) -> None:
 def test_bad_inputs_rejected() -> None:
     img = np.zeros((20, 20), np.float32)
     with pytest.raises(ValueError, match="operator"):
-        focus_measure(img, operator="wavs")  # left out (see sffscan.stages.operators)
+        focus_measure(img, operator="wavc")  # left out (see sffscan.stages.operators)
     with pytest.raises(ValueError, match="backend"):
         focus_measure(img, backend="cupy")
     with pytest.raises(ValueError, match="floating"):

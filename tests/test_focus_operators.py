@@ -22,7 +22,10 @@ from sffscan.stages.operators import check_operator, operator_reach
 from sffscan.stages.operators.toolbox import TOOLBOX
 
 from sffscan import focus_measure as api_focus_measure
-from tests.fm_reference import REFERENCES
+from tests.fm_reference import REFERENCES as TOOLBOX_REFERENCES
+from tests.wavelet_reference import WAVELET_REFERENCES
+
+REFERENCES = {**TOOLBOX_REFERENCES, **WAVELET_REFERENCES}
 
 WINDOW = 9
 REL_TOL = 1e-5
@@ -41,7 +44,7 @@ def images(pertuz_dir: Path) -> np.ndarray:
 
 def test_every_operator_has_a_reference() -> None:
     assert set(TOOLBOX) == set(FOCUS_OPERATORS) == set(REFERENCES)
-    assert len(FOCUS_OPERATORS) == 31
+    assert len(FOCUS_OPERATORS) == 34
 
 
 @pytest.mark.parametrize("operator", FOCUS_OPERATORS)
@@ -99,7 +102,7 @@ def test_reach_covers_the_border(operator: str, images: np.ndarray) -> None:
 
 def test_unknown_operator_names_the_choices() -> None:
     with pytest.raises(ValueError, match="lapm"):
-        check_operator("wavs")
+        check_operator("wavc")
     assert check_operator("TENV_STD") == "tenv_std"
 
 

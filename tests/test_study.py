@@ -33,8 +33,8 @@ def test_study_on_pertuz(pertuz_dir: Path, tmp_path: Path, capsys: pytest.Captur
 
 
 def test_study_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert main(["study", "--chapter3", "--operators", "wavs", "-o", str(tmp_path)]) == 2
-    assert "wavs" in capsys.readouterr().err
+    assert main(["study", "--chapter3", "--operators", "wavc", "-o", str(tmp_path)]) == 2
+    assert "wavc" in capsys.readouterr().err
     assert main(["study", "--chapter3", "--windows", "4", "-o", str(tmp_path)]) == 2
     assert main(["study", "--imdata", str(tmp_path / "missing.mat"), "-o", str(tmp_path)]) == 2
     assert "missing.mat" in capsys.readouterr().err

@@ -7,6 +7,7 @@ with ``WSize = k``): its filters, their borders and scaling, on images scaled to
 mirrored borders (:func:`.filters.sample_variance`); ``nlfilter`` windows are zero padded.
 The few places where the toolbox's code cannot be followed literally are said at the
 operator (GDER and SFIL: a kernel normalised by a sum that is zero).
+The wavelet operators (WAVS, WAVV, WAVR, through PyWavelets) are in :mod:`.wavelets`.
 
 Every function takes a ``(B, H, W)`` floating tensor and the window k and returns the
 focus measure as ``(B, H, W)``, same device and dtype; :data:`TOOLBOX` maps names to them.
@@ -28,6 +29,7 @@ from sffscan.stages.operators.filters import (
     sobel_energy,
     windows,
 )
+from sffscan.stages.operators.wavelets import WAVELET_OPERATORS
 
 __all__ = ["TOOLBOX", "tchebichef_polynomials"]
 
@@ -397,6 +399,6 @@ TOOLBOX: dict[str, Operator] = {
     "glvm": glvm, "glvn": glvn, "grae": grae, "gras": gras, "grat": grat, "helm": helm,
     "hise": hise, "hisr": hisr, "lapd": lapd, "lape": lape, "lapm": lapm, "lapv": lapv,
     "sfil": sfil, "sfrq": sfrq, "teng": teng, "tenv": tenv, "tenv_std": tenv_std,
-    "vola": vola, "vols": vols,
+    "vola": vola, "vols": vols, **WAVELET_OPERATORS,
 }
 """Operator name (lower case) -> ``f(x, k)`` on ``(B, H, W)`` tensors."""
