@@ -32,7 +32,6 @@ import asyncio
 import csv
 import glob
 import logging
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
@@ -40,16 +39,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import zarr
-from pydantic import ValidationError
-from sffscan.pipeline.messages import MosaicAccuracy, MosaicAttrs
+from sffscan.pipeline.metrology.evaluate import store_accuracy, stored_accuracy
 
 if TYPE_CHECKING:
     from sffscan.pipeline.config import ScanConfig
-    from sffscan.pipeline.metrology.evaluate import Accuracy
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchError", "BatchRow", "ResumeRefused", "config_differences",
+__all__ = ["BatchError", "BatchRow", "ResumeRefused",
            "find_recordings", "format_table", "mosaic_path", "process_recording", "run_batch",
            "store_accuracy", "stored_accuracy", "write_csv"]
 
@@ -62,7 +59,6 @@ STATUSES = ("complete", "resumed", "skipped", "failed", "incomplete")
 RESUMABLE = ("writing", "failed")
 FINAL = ("complete", "incomplete")
 #: what a simulated recording's mosaic is scored against
-SIM_TRUTH = "the simulation's true surface"
 
 
 class BatchError(ValueError):
@@ -151,35 +147,6 @@ def _mosaic_status(path: Path) -> dict[str, Any] | None:
     return attrs if attrs.get("format") == "sffscan-mosaic" else None
 
 
-def _finite(v: float, lo: float = -math.inf, hi: float = math.inf) -> float | None:
-    return min(max(float(v), lo), hi) if math.isfinite(v) else None
-
-
-def store_accuracy(mosaic: str | Path, acc: Accuracy, *, truth: str) -> MosaicAccuracy:
-    """Store ``acc`` (of :func:`~sffscan.pipeline.metrology.evaluate.mosaic_accuracy`) in the
-    mosaic's attributes (``accuracy``), validated with the other attributes; returns it."""
-    group = zarr.open_group(str(mosaic), mode="r+")
-    stored = MosaicAccuracy(truth=truth, rmse_um=_finite(acc.rmse_um, 0.0),
-                            corr=_finite(acc.corr, -1.0, 1.0), psnr_db=_finite(acc.psnr_db),
-                            pixels=acc.pixels, coverage=min(max(acc.coverage, 0.0), 1.0))
-    value = stored.model_dump(mode="json")
-    MosaicAttrs.model_validate({**group.attrs.asdict(), "accuracy": value})  # still valid
-    group.update_attributes({"accuracy": value})
-    return stored
-
-
-def stored_accuracy(attrs: dict[str, Any]) -> MosaicAccuracy | None:
-    """The accuracy a mosaic's attributes hold; None if not stored (or unreadable: a mosaic
-    made before it was stored, or by a later version)."""
-    raw = attrs.get("accuracy")
-    if raw is None:
-        return None
-    try:
-        return MosaicAccuracy.model_validate(raw)
-    except ValidationError:
-        return None
-
-
 def _config(cfg: ScanConfig, mosaic: str, processing: dict[str, Any], *,
             overwrite: bool) -> ScanConfig:
     """The recorded configuration with the output and the ``processing`` overrides; the
@@ -195,26 +162,13 @@ def _config(cfg: ScanConfig, mosaic: str, processing: dict[str, Any], *,
     return config_from_dict(data, origin="sffscan batch")
 
 
-def config_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    """Fields (``table.field``, or a top-level key) in which two scan configurations (as
-    stored in a mosaic's ``scan_config``) differ, the ``output`` table aside."""
-    out = []
-    for key in sorted((set(old) | set(new)) - {"output"}):
-        a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += [f"{key}.{k}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-        elif a != b:
-            out.append(key)
-    return out
-
-
 def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate: bool,
             overwrite: bool, row: BatchRow) -> None:
     """Replay ``recording`` into ``mosaic``, resuming it if it was interrupted (and not
     ``overwrite``); fills ``row``. Raises what the replay raises."""
     from sffscan.pipeline.formats.recording import annotate_mosaic, open_recording
     from sffscan.pipeline.wiring import evaluate_sim, run_scan
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.stages.mosaic import MosaicWriter, config_differences
 
     rec = open_recording(recording)
     before = _mosaic_status(Path(mosaic))
@@ -251,8 +205,10 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     if evaluate and cfg.source.kind == "sim":
         from sffscan.stages.sim.scanner import make_world
 
-        acc = store_accuracy(mosaic, evaluate_sim(report, make_world(cfg)), truth=SIM_TRUTH)
-        row.rmse_um, row.coverage = acc.rmse_um, acc.coverage
+        evaluate_sim(report, make_world(cfg))  # also stored in the mosaic's attributes
+        acc = stored_accuracy(zarr.open_group(str(mosaic), mode="r").attrs.asdict())
+        if acc is not None:
+            row.rmse_um, row.coverage = acc.rmse_um, acc.coverage
 
 
 def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any],

@@ -18,7 +18,12 @@ from typing import Any
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.messages import Frame
-from sffscan.pipeline.metrology.evaluate import Accuracy, mosaic_accuracy
+from sffscan.pipeline.metrology.evaluate import (
+    SIM_TRUTH,
+    Accuracy,
+    mosaic_accuracy,
+    store_accuracy,
+)
 from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
@@ -141,10 +146,12 @@ def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | N
 
 
 def evaluate_sim(report: ScanReport, world: Any) -> Accuracy:
-    """Accuracy of a simulated scan's mosaic against the world's true surface."""
+    """Accuracy of a simulated scan's mosaic against the world's true surface; also stored in
+    the mosaic's attributes (``accuracy``), so it travels with the mosaic."""
     o = report.config.optics
     t0 = time.perf_counter()
     acc = mosaic_accuracy(report.output, world, max_depth=(o.n_levels - 1) * o.z_step_um)
+    store_accuracy(report.output, acc, truth=SIM_TRUTH)
     report.extras["evaluation_s"] = time.perf_counter() - t0
     report.accuracy = acc
     return acc

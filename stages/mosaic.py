@@ -146,6 +146,20 @@ class _Band:
     conf: np.ndarray
 
 
+def config_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Fields (``table.field``, or a top-level key such as ``version``) in which two scan
+    configurations (as stored in a mosaic's ``scan_config``) differ, the ``output`` table
+    aside."""
+    out = []
+    for key in sorted((set(old) | set(new)) - {"output"}):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key}.{k}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        elif a != b:
+            out.append(key)
+    return out
+
+
 def mosaic_array(group: zarr.Group, name: str) -> zarr.Array:
     """One array of a mosaic group; a clear error if it is missing or not an array."""
     node = group.get(name)
@@ -284,14 +298,10 @@ class MosaicWriter:
         attrs = read_mosaic_attrs(group, path)
         if attrs.status == "complete":
             raise ValueError(f"{p}: the mosaic is complete already; nothing to resume")
-        old = {k: v for k, v in attrs.scan_config.items() if k != "output"}
-        new = {k: v for k, v in scan_config.items() if k != "output"}
-        if old != new:
-            diff = sorted(f"{t}.{k}" for t in set(old) | set(new)
-                          for k in set(old.get(t) or {}) | set(new.get(t) or {})
-                          if (old.get(t) or {}).get(k) != (new.get(t) or {}).get(k))
+        diff = config_differences(attrs.scan_config, scan_config)
+        if diff:
             raise ValueError(f"{p}: cannot resume with a different configuration "
-                             f"(differs in {', '.join(diff) or 'its tables'})")
+                             f"(differs in {', '.join(diff)})")
         self = cls.__new__(cls)
         self.path, self.group = p, group
         self.origin = attrs.origin_px

@@ -55,6 +55,10 @@ def test_readme_api_example_runs(pertuz_dir: Path, tmp_path: Path,
     field = ns["field"]
     assert isinstance(field, sffscan.FieldResult) and field.height_um.shape == (256, 256)
     assert (work / "plate.zarr").is_dir()
+    # the accuracy travels with the mosaic (scan, replay and batch store it alike)
+    stored = zarr.open_group(str(work / "plate.zarr"), mode="r").attrs["accuracy"]
+    assert stored["rmse_um"] == pytest.approx(report.accuracy.rmse_um)  # type: ignore[index]
+    assert stored["pixels"] == report.accuracy.pixels  # type: ignore[index]
 
 
 def test_all_is_the_documented_surface() -> None:

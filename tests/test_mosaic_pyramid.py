@@ -225,6 +225,10 @@ def test_pyramid_cache_lost_between_writes_is_recomputed(tmp_path: Path) -> None
     with pytest.raises(AssertionError):
         assert_pyramid_consistent(tmp_path / "torn.zarr")
     assert_pyramid_consistent(tmp_path / "torn.zarr", stale=stale)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"different configuration \(differs in processing, "
+                       r"version\)"):  # a top-level key such as version is named, not iterated
+        MosaicWriter.reopen(tmp_path / "torn.zarr",
+                            scan_config={"version": 2, "processing": {"depth_method": "spc"}})
     again = MosaicWriter.reopen(tmp_path / "torn.zarr", scan_config={})
     assert zarr.open_group(str(tmp_path / "torn.zarr"), mode="r").attrs["pyramid_stale"] is None
     for x0, y0, new in bands:

@@ -11,11 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import zarr
-from sffscan.pipeline.messages import MosaicAttrs
+from pydantic import ValidationError
+from sffscan.pipeline.messages import MosaicAccuracy, MosaicAttrs
 from sffscan.stages.mosaic import mosaic_array
 
 
@@ -112,3 +113,36 @@ def mosaic_accuracy(path: str | Path, world: HeightWorld, *, max_depth: float,
         asked = np.ones(est.shape, bool) if region_px is not None else np.isfinite(est)
         mom.add(est, ref, asked)
     return mom.result(max_depth)
+
+
+#: the ``truth`` of an accuracy against the simulator's world
+SIM_TRUTH = "the simulation's true surface"
+
+
+def _finite(v: float, lo: float = -math.inf, hi: float = math.inf) -> float | None:
+    return min(max(float(v), lo), hi) if math.isfinite(v) else None
+
+
+def store_accuracy(mosaic: str | Path, acc: Accuracy, *, truth: str) -> MosaicAccuracy:
+    """Store ``acc`` (of :func:`~sffscan.pipeline.metrology.evaluate.mosaic_accuracy`) in the
+    mosaic's attributes (``accuracy``), validated with the other attributes; returns it."""
+    group = zarr.open_group(str(mosaic), mode="r+")
+    stored = MosaicAccuracy(truth=truth, rmse_um=_finite(acc.rmse_um, 0.0),
+                            corr=_finite(acc.corr, -1.0, 1.0), psnr_db=_finite(acc.psnr_db),
+                            pixels=acc.pixels, coverage=min(max(acc.coverage, 0.0), 1.0))
+    value = stored.model_dump(mode="json")
+    MosaicAttrs.model_validate({**group.attrs.asdict(), "accuracy": value})  # still valid
+    group.update_attributes({"accuracy": value})
+    return stored
+
+
+def stored_accuracy(attrs: dict[str, Any]) -> MosaicAccuracy | None:
+    """The accuracy a mosaic's attributes hold; None if not stored (or unreadable: a mosaic
+    made before it was stored, or by a later version)."""
+    raw = attrs.get("accuracy")
+    if raw is None:
+        return None
+    try:
+        return MosaicAccuracy.model_validate(raw)
+    except ValidationError:
+        return None
