@@ -135,8 +135,7 @@ def user_stack(args: argparse.Namespace) -> StudyStack:
     """
     from sffscan.pipeline.cli.metrology import read_stack_input
     from sffscan.pipeline.metrology.compare import read_height_map
-    from sffscan.stages.fields.stationary import default_max_value
-    from sffscan.stages.focus_measure import to_unit_float
+    from sffscan.stages.fields.stationary import stack_to_unit
 
     raw, focus_um = read_stack_input(args)
     source = str(args.zarr) if args.zarr else str(Path(args.images[0]).resolve().parent)
@@ -144,17 +143,11 @@ def user_stack(args: argparse.Namespace) -> StudyStack:
     if truth.shape != raw.shape[1:]:
         raise ValueError(f"{args.truth}: truth of {truth.shape[1]} x {truth.shape[0]} px, the "
                          f"images ({source}) are {raw.shape[2]} x {raw.shape[1]} px")
-    full = (default_max_value(raw.dtype) if args.bit_depth is None
-            else float(2**args.bit_depth - 1))
-    images = np.empty(raw.shape, dtype=np.float32)
-    for i, img in enumerate(raw):
-        try:
-            images[i] = to_unit_float(img, max_value=full)
-        except ValueError as err:
-            raise ValueError(f"{source}: image {i}: {err}") from None
-        if float(images[i].max()) > 1.0 + 1e-6:
-            raise ValueError(f"{source}: image {i}: values up to {float(raw[i].max()):g} "
-                             f"exceed the full scale {full:g} (set --bit-depth)")
+    try:
+        images = stack_to_unit(raw, max_value=None if args.bit_depth is None
+                               else float(2**args.bit_depth - 1))
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from None
     mask = np.isfinite(truth)
     if not mask.any():
         raise ValueError(f"{args.truth}: no finite height")

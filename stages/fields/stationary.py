@@ -45,6 +45,7 @@ __all__ = [
     "read_image_stack",
     "read_zarr_stack",
     "reconstruct_field",
+    "stack_to_unit",
 ]
 
 MIN_WEIGHT = 1e-3
@@ -216,6 +217,41 @@ def default_max_value(dtype: np.dtype) -> float:
     raise ValueError(f"unsupported image dtype {dtype}: expected uint8, uint16 or float")
 
 
+def stack_to_unit(stack: np.ndarray, *, max_value: float | None = None) -> np.ndarray:
+    """Images of a stack scaled to 0..1 by their full scale.
+
+    Parameters
+    ----------
+    stack : (N, H, W) ndarray, integer or float
+        The images.
+    max_value : float, optional, keyword-only
+        Full scale; by default :func:`default_max_value` of the dtype.
+
+    Returns
+    -------
+    (N, H, W) ndarray of float32
+
+    Raises
+    ------
+    ValueError
+        If an image holds NaN / inf or values above the full scale (names the image).
+    """
+    from sffscan.stages.focus_measure import to_unit_float
+
+    full = default_max_value(stack.dtype) if max_value is None else float(max_value)
+    images = np.empty(stack.shape, dtype=np.float32)
+    for i, img in enumerate(stack):
+        try:
+            images[i] = to_unit_float(img, max_value=full)
+        except ValueError as err:
+            raise ValueError(f"image {i}: {err}") from None
+        top = float(images[i].max())
+        if top > 1.0 + 1e-6:
+            raise ValueError(f"image {i}: values up to {top * full:g} exceed the full scale "
+                             f"{full:g} (set max_value / --bit-depth)")
+    return images
+
+
 def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | np.ndarray,
                       settings: StackSettings | None = None,
                       max_value: float | None = None) -> FieldResult:
@@ -252,19 +288,9 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     if heights.size != stack.shape[0]:
         raise ValueError(f"focus_heights_um has {heights.size} values for {stack.shape[0]} "
                          "images")
-    from sffscan.stages.focus_measure import focus_measure, to_unit_float
+    from sffscan.stages.focus_measure import focus_measure
 
-    full = default_max_value(stack.dtype) if max_value is None else float(max_value)
-    images = np.empty(stack.shape, dtype=np.float32)
-    for i, img in enumerate(stack):
-        try:
-            images[i] = to_unit_float(img, max_value=full)
-        except ValueError as err:
-            raise ValueError(f"image {i}: {err}") from None
-        top = float(images[i].max())
-        if top > 1.0 + 1e-6:
-            raise ValueError(f"image {i}: values up to {top * full:g} exceed the full scale "
-                             f"{full:g} (set max_value / --bit-depth)")
+    images = stack_to_unit(stack, max_value=max_value)
     volume = focus_measure(images, operator=settings.operator, window=settings.window,
                            backend=settings.backend, device=settings.device)
     levels, confidence = depth_from_focus(volume, method=settings.method,
