@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from sffscan.pipeline.runtime import (
@@ -46,11 +46,18 @@ class _Sender:
         self.stats = QueueStats(name, capacity, policy.value)
 
     def send(self, item: Any, *, extra: dict[str, Any] | None = None) -> None:
-        try:
-            data = encode(item, self.pools, self.stop.is_set, extra=extra)
-        except PoolStopped:
-            raise PipelineStopped(self.stats.name) from None
         eos = item is END_OF_STREAM
+        dropping = self.policy is FullPolicy.DROP_NEWEST and not eos
+        try:
+            # a dropping channel does not wait for a slot either: when its arrays find no
+            # free slot within one wait (0.25 s), the item is dropped and counted
+            data = encode(item, self.pools, (lambda: True) if dropping else self.stop.is_set,
+                          extra=extra)
+        except PoolStopped:
+            if dropping and not self.stop.is_set():
+                self.stats.dropped += 1
+                return
+            raise PipelineStopped(self.stats.name) from None
         if self.policy is FullPolicy.DROP_NEWEST and not eos:
             try:
                 self.q.put(data, block=False)
@@ -138,11 +145,17 @@ class RecvStage(Stage):
 
 
 class ForwardSink(Sink):
-    """Taps stages like a local sink and forwards the items to a sink in another process."""
+    """Taps stages like a local sink and forwards the items to a sink in another process.
+
+    ``keep`` (optional) selects the tapped items worth sending (the sink would ignore the
+    others): they are left out before anything is copied, and not counted as drops.
+    """
 
     def __init__(self, name: str, taps: tuple[str, ...], q: Any, *, capacity: int,
-                 policy: FullPolicy, pools: Sequence[SlotPool], stop: threading.Event) -> None:
+                 policy: FullPolicy, pools: Sequence[SlotPool], stop: threading.Event,
+                 keep: Callable[[Any], bool] | None = None) -> None:
         self.name = name
+        self.keep = keep
         self.taps = taps
         self.capacity = capacity
         # the local queue blocks; the channel applies the sink's own policy
@@ -155,7 +168,8 @@ class ForwardSink(Sink):
         return self._sender.stats
 
     def process(self, item: Any) -> Iterator[Any]:
-        self._sender.send(item)
+        if self.keep is None or self.keep(item):
+            self._sender.send(item)
         return iter(())
 
     def finish(self) -> Iterator[Any]:

@@ -1,8 +1,18 @@
 r"""The scan pipeline in processes: which stages run where, and the shared-memory rings.
 
     main:    source -> speed_shift --ch--> [registration] --ch--> [focus_measure -> depth]
-                    \-> recorder (own process, reads the same frame slots)       |
-    main:    mosaic <-------------------------------------------------------ch-----/
+                    \-> recorder (own process, reads the same frame slots)  |     |     |
+    main:    mosaic <-------------------------------------------------------+-----+--ch-/
+    main:    viewer <--relay channel-- placed frames, focus frames (1 in frame_step), blocks
+
+The live viewer runs in the main process (a relayed sink): the Rerun recording stream it
+logs to is created there by ``--viewer`` before the scan (spawn, serve, connect, save) and
+a served view stays up there after the scan until Enter, which a worker process could not
+do without outliving the pipeline; the viewer's own work is small (it logs one frame in
+``frame_step`` and reduced blocks: bench/bench_viz.py), so the main process's GIL is not
+the price. Its placed frames come by reference (the frame slots the recorder reads, no
+copy), the focus frames it logs are copied into a small pool of their own, the depth
+blocks into the block ring.
 
 The split follows the measured CPU per frame of the stages (bench/results.md: registration
 4.2 ms, focus measure 2.4 ms, depth 3.4 ms, mosaic 0.5 ms, source + speed shift 0.2 ms on
@@ -22,8 +32,14 @@ Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan
 - block ring: ``2 * C + 8`` slots of ``3 * (H + 2 * slack) * block_columns * 4`` bytes
   (depth blocks: height, texture, confidence, float32).
 
+A relayed sink (the viewer, channel and queue capacity ``Cv = min(its capacity, 16)``)
+holds at most ``V = 3 * (4 + 1) + 2 * Cv + 2`` items (:func:`relay_holdings`): ``V`` more
+frame slots, ``V`` more block slots when it taps the depth blocks, and a pool of 8 slots
+of ``2 * H * W * 4`` bytes for the focus frames it logs.
+
 At the default optics (1280 x 1024, 10-bit, N = 50, C = 8) that is 106 frame slots
-(278 MB), 178 (467 MB) with the recorder, plus 24 block slots (38 MB).
+(278 MB), 178 (467 MB) with the recorder, plus 24 block slots (38 MB); the viewer adds 49
+frame slots (128 MB), 49 block slots (78 MB) and 84 MB of focus slots.
 """
 
 from __future__ import annotations
@@ -34,9 +50,10 @@ from typing import Any, cast
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.parallel import HostedSink, ProcessPipeline, WorkerGroup
+from sffscan.pipeline.parallel import HostedSink, ProcessPipeline, WorkerGroup, relayed_sinks
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.runtime import Sink, Stage
+from sffscan.pipeline.worker import RELAY_LOCAL_CAPACITY, Relay, relay_of
 from sffscan.stages.mosaic import MosaicWriter
 
 log = logging.getLogger(__name__)
@@ -90,17 +107,38 @@ def _hostable(sink: Sink) -> HostedSink | None:
     return None
 
 
-def ring_plan(cfg: ScanConfig, hosted: list[HostedSink]) -> list[tuple[str, int, int,
-                                                                        tuple[str, ...]]]:
+#: slots of the pool for the focus frames a relayed sink (the viewer) gets: a forwarder
+#: that finds them all held drops its focus frame (counted), the pipeline goes on
+RELAY_FOCUS_SLOTS = 8
+
+
+def relay_holdings(relay: Relay) -> int:
+    """Items a relayed sink holds at most (each in at most one slot of a pool): the queue
+    and the one in hand of its forwarder in each of 3 processes (head, registration,
+    focus), its channel, the one the receiver has in hand, its queue and the one in the
+    sink's hand."""
+    return 3 * (RELAY_LOCAL_CAPACITY + 1) + 2 * relay.capacity + 2
+
+
+def ring_plan(cfg: ScanConfig, hosted: list[HostedSink], relays: list[Relay] | None = None,
+              ) -> list[tuple[str, int, int, tuple[str, ...]]]:
     """(label, slots, slot_bytes, message kinds) of the pools (module docstring)."""
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     c = p.queue_capacity
+    relays = relays or []
     frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
-    frames = o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 8 for k in hosted)
+    frames = (o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 8 for k in hosted)
+              + sum(relay_holdings(r) for r in relays))
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     block_bytes = 3 * (o.height_px + 2 * slack) * p.block_columns * 4 + 3 * 64
-    return [("frames", frames, frame_bytes, ("frame", "placed")),
-            ("blocks", 2 * c + 8, block_bytes, ("block",))]
+    blocks = 2 * c + 8 + sum(relay_holdings(r) for r in relays if "depth" in r.taps)
+    plan = [("frames", frames, frame_bytes, ("frame", "placed")),
+            ("blocks", blocks, block_bytes, ("block",))]
+    if any("focus_measure" in r.taps for r in relays):
+        # a focus frame's unit-scaled image and focus measure, (H, w <= W) float32 each
+        plan.append(("focus", RELAY_FOCUS_SLOTS, 2 * (o.height_px * o.width_px * 4 + 64),
+                     ("focus",)))
+    return plan
 
 
 def use_processes(cfg: ScanConfig, sinks: list[Sink]) -> bool:
@@ -108,11 +146,10 @@ def use_processes(cfg: ScanConfig, sinks: list[Sink]) -> bool:
     mode = cfg.processing.execution
     if mode == "threads":
         return False
-    local = [k for k in sinks if _hostable(k) is None]
-    if mode == "auto":
+    if mode == "auto":  # any sink runs in process mode (the viewer relayed, issue 12)
         o = cfg.optics
         big = frame_count(cfg) * o.width_px * o.height_px >= AUTO_MIN_PIXELS
-        return big and (os.cpu_count() or 1) >= 2 and not local
+        return big and (os.cpu_count() or 1) >= 2
     return True
 
 
@@ -122,9 +159,9 @@ def process_pipeline(cfg: ScanConfig, stages: list[Stage], *, sinks: list[Sink],
 
     ``stages`` is the thread mode's chain: its stages up to the speed shift and after the
     depth stage (the mosaic) run here; the workers build their own registration, focus
-    measure and depth from ``cfg``. The recorder runs in its own process; other sinks may
-    tap only the main process's stages (source, speed_shift, mosaic), else
-    :class:`ValueError`.
+    measure and depth from ``cfg``. The recorder runs in its own process; other sinks (the
+    live viewer) run in the main process, fed by the processes that run their taps
+    (relayed, :class:`~sffscan.pipeline.worker.Relay`).
     """
     names = [s.name for s in stages]
     # the head runs up to the speed shift (optics corrections of the frames included), the
@@ -147,7 +184,9 @@ def process_pipeline(cfg: ScanConfig, stages: list[Stage], *, sinks: list[Sink],
                                      {**h.kwargs, "cfg": cj}))
         else:
             local.append(k)
+    relays = [relay_of(k) for k in relayed_sinks(local, [s.name for s in head],
+                                                  [s.name for s in tail])]
     return ProcessPipeline(
-        head=head, groups=groups, tail=tail, pools=ring_plan(cfg, hosted),
+        head=head, groups=groups, tail=tail, pools=ring_plan(cfg, hosted, relays),
         capacity=cfg.processing.queue_capacity, sinks=local, hosted=hosted,
         on_progress=on_progress)

@@ -27,7 +27,7 @@ import traceback
 from dataclasses import dataclass
 from typing import Any
 
-from sffscan.pipeline.channels import RecvStage, SendStage
+from sffscan.pipeline.channels import ForwardSink, RecvStage, SendStage
 from sffscan.pipeline.runtime import (
     FullPolicy,
     Pipeline,
@@ -74,6 +74,56 @@ class HostedSink:
     policy: FullPolicy
     factory: str
     kwargs: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Relay:
+    """A sink of the main process fed from stages in worker processes: each process that
+    runs some of ``taps`` forwards their outputs (those ``keep`` selects) through one
+    channel to the main process, where the sink runs behind a queue of ``capacity`` items
+    with its own ``policy`` (:class:`~sffscan.pipeline.parallel.ProcessPipeline`).
+
+    ``keep`` is ``("module:function", kwargs)`` of a factory returning a predicate on
+    :class:`~sffscan.pipeline.runtime.Tapped` items, or None (all of them).
+    """
+
+    name: str
+    taps: tuple[str, ...]
+    capacity: int
+    policy: FullPolicy
+    keep: tuple[str, dict[str, Any]] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "taps": list(self.taps), "capacity": self.capacity,
+                "policy": self.policy.value, "keep": list(self.keep) if self.keep else None}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Relay:
+        keep = (d["keep"][0], d["keep"][1]) if d["keep"] else None
+        return cls(d["name"], tuple(d["taps"]), d["capacity"], FullPolicy(d["policy"]), keep)
+
+
+#: queue of a relay's forwarder in each process that taps (the channel applies the policy)
+RELAY_LOCAL_CAPACITY = 4
+#: a relay's channel, and the queue in front of its sink, hold at most this many items each
+RELAY_CAPACITY = 16
+
+
+def relay_of(sink: Any) -> Relay:
+    """The relay of a main-process sink: its name, taps and policy, its capacity capped
+    at :data:`RELAY_CAPACITY` (what it holds stays in shared-memory slots), and the
+    selection it declares as ``relay_keep`` (see :class:`Relay`), if any."""
+    return Relay(sink.name, tuple(sink.taps), min(sink.capacity, RELAY_CAPACITY),
+                 FullPolicy(sink.policy), getattr(sink, "relay_keep", None))
+
+
+def relay_forwarder(relay: Relay, taps: tuple[str, ...], q: Any, *,
+                    pools: list[SlotPool], stop: threading.Event) -> ForwardSink:
+    """The sink, in one process, that forwards ``taps`` (this process's part of the
+    relay's) to the relay's channel ``q``."""
+    keep = _call(relay.keep[0], relay.keep[1]) if relay.keep is not None else None
+    return ForwardSink(relay.name, taps, q, capacity=RELAY_LOCAL_CAPACITY,
+                       policy=relay.policy, pools=pools, stop=stop, keep=keep)
 
 
 class RemoteError(RuntimeError):
@@ -159,11 +209,14 @@ def keep_freed_memory() -> bool:
 
 def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any]],
                 syncs: list[tuple[Any, Any]], in_q: Any, out_q: Any, results: Any,
-                control: Any, parent: int, producers: int = 1) -> None:
+                control: Any, parent: int, producers: int = 1,
+                relays: list[tuple[dict[str, Any], Any]] | None = None) -> None:
     """Entry point of a worker process (``spawn``): build, report ready, run, report.
 
     ``control`` is the read end of a pipe from the main process: a message there stops the
     worker's chain (another part failed); end of file means the main process is gone.
+    ``relays``: (relay as JSON, its channel) for each sink of the main process that taps
+    some of this worker's stages; their forwarders' statistics come back in the report.
     """
     die_with_parent(parent)
     keep_freed_memory()
@@ -201,7 +254,12 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         if out_q is not None:
             chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
                                    stop=stop, count_of=recv))
-        pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop)
+        forwards = []
+        for rj, rq in relays or ():
+            relay = Relay.from_json(rj)
+            mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
+            forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
+        pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop, sinks=list(forwards))
     except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
         report({"kind": "error", "stage": label, **_exc_info(exc)})
         return
@@ -218,17 +276,32 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         report({"kind": "cancelled"})
     else:
         send = chain[-1]
+        fw = {f.name for f in forwards}
         report({"kind": "done", "cpu_s": time.process_time() - cpu0,
                 "channel": _queue_json(send.stats) if isinstance(send, SendStage) else None,
-                "stages": [_stats_json(s) for s in result.stages if not is_channel_stage(s.name)],
-                "queues": [_queue_json(q) for q in result.queues if not is_channel_stage(q.name)],
-                "extras": {k: v for k, v in result.extras.items() if not is_channel_stage(k)}})
+                "stages": [_stats_json(s) for s in result.stages
+                           if not is_channel_stage(s.name) and s.name not in fw],
+                "queues": [_queue_json(q) for q in result.queues
+                           if not is_channel_stage(q.name) and q.name.rsplit("->", 1)[-1]
+                           not in fw],
+                "extras": {k: v for k, v in result.extras.items()
+                           if not is_channel_stage(k) and k not in fw},
+                "relays": {f.name: relay_report(f, result) for f in forwards}})
     finally:
         done.set()
-        if out_q is not None and aborted.is_set():
-            out_q.cancel_join_thread()  # nobody will read what is left
+        if aborted.is_set():  # nobody will read what is left
+            for q in [out_q, *(rq for _, rq in relays or ())]:
+                if q is not None:
+                    q.cancel_join_thread()
         for p in pools:
             p.close()
+
+
+def relay_report(fwd: ForwardSink, result: Any) -> dict[str, Any]:
+    """A relay forwarder's figures: its local queue, its channel, the pipeline's wait."""
+    local = next(q for q in result.queues if q.name.rsplit("->", 1)[-1] == fwd.name)
+    return {"queue": _queue_json(local), "channel": _queue_json(fwd.stats),
+            "pipeline_waited_s": result.extras.get(fwd.name, {}).get("pipeline_waited_s", 0.0)}
 
 
 def _exc_info(exc: BaseException) -> dict[str, Any]:

@@ -3,17 +3,21 @@
 :class:`MosaicPreview` rebuilds the mosaic at reduced resolution from the depth blocks
 with the mosaic stage's own weighted blend (w = max(confidence, 1e-3) for valid pixels),
 so that it equals :func:`downsample_mosaic` of the Zarr mosaic whatever the order of the
-blocks; :func:`surface_points` turns a reduced mosaic into a point cloud in mm. Used by
-:mod:`sffscan.stages.viz_sink`; no Rerun here.
+blocks; :func:`surface_points` turns a reduced mosaic into a point cloud in mm;
+:func:`logged_items` selects what the view uses where the stages run in other processes.
+Used by :mod:`sffscan.stages.viz_sink`; no Rerun here (worker processes import it).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import cv2
 import numpy as np
-from sffscan.pipeline.messages import DepthBlock
+from sffscan.pipeline.messages import DepthBlock, FocusFrame
+from sffscan.pipeline.runtime import Tapped
 
 MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
 
@@ -162,3 +166,17 @@ def to_u8(image: np.ndarray, *, scale: float, reduce: int) -> np.ndarray:
         img = cv2.resize(img, (max(1, w // reduce), max(1, h // reduce)),
                          interpolation=cv2.INTER_AREA)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def logged_items(frame_step: int) -> Callable[[Any], bool]:
+    """The live view's selection of tapped items (process mode: run where the stages run,
+    before anything is copied for the view): every item but the focus frames the view does
+    not log (frame_id not a multiple of ``frame_step``, or no column measured)."""
+
+    def keep(item: Any) -> bool:
+        ff = item.item if isinstance(item, Tapped) else item
+        if isinstance(ff, FocusFrame):
+            return ff.placed.header.frame_id % frame_step == 0 and ff.focus.size > 0
+        return True
+
+    return keep

@@ -4,7 +4,10 @@ One :class:`VizSink` owns one ``rerun.RecordingStream`` (never the global one) a
 placed frames (``registration``, or ``speed_shift`` with registration off), the focus
 measure and the depth blocks; with ``wants_stats`` it also gets the pipeline's statistics.
 Its input queue drops the oldest item when full (and counts the drops), so the viewer
-never holds the pipeline back.
+never holds the pipeline back. In process mode it stays in the main process (where its
+recording stream was opened) and the workers forward it what it taps: only the focus frames
+it logs (``relay_keep``), the rest dropping the newest when a channel is full; every drop on
+the way is counted as the view's (:mod:`sffscan.pipeline.scan_processes`).
 
 Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time stamp):
 
@@ -119,6 +122,9 @@ class VizSink(Sink):
         self.taps = (placed, "focus_measure", "depth")
         o = cfg.optics
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
+        #: what the view uses, selected where the stages run (process mode)
+        self.relay_keep = ("sffscan.stages.viz_preview:logged_items",
+                           {"frame_step": self.frame_step})
         x0, y0, x1, y1 = scan_extent_px(cfg)
         self.factor = max(1, -(-max(x1 - x0, y1 - y0) // self.opt.mosaic_max_px))
         self.preview = MosaicPreview(origin_px=(x0, y0), shape=(y1 - y0, x1 - x0),

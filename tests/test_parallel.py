@@ -36,9 +36,10 @@ from sffscan.pipeline.runtime import END_OF_STREAM, Pipeline, Stage, StageFailed
 from sffscan.pipeline.scan_processes import ring_plan, use_processes
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.wire import decode, discard, encode
-from sffscan.pipeline.wiring import run_scan
+from sffscan.pipeline.wiring import format_summary, run_scan
 from sffscan.stages.recorder import recorder_sink
 from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.stages.viz_sink import VizOptions, VizSink, viz_sink_for
 
 from tests.parallel_helpers import Collect, FrameNumbers
 from tests.scan_helpers import small_config
@@ -135,10 +136,18 @@ def test_ring_plan_does_not_grow_with_the_scan() -> None:
 
 
 def test_auto_execution_picks_processes_only_for_large_scans() -> None:
+    import rerun as rr
+
     assert not use_processes(small_config(), [])  # the tests' small scans stay in threads
     big = demo_config()
     assert use_processes(big, []) == ((os.cpu_count() or 1) >= 2)
     assert not use_processes(demo_config(processing={"execution": "threads"}), [])
+    # with the live viewer too (it fell back to threads before issue 12's relay)
+    rec = rr.RecordingStream("sffscan-test")
+    try:
+        assert use_processes(big, [VizSink(big, rec)]) == ((os.cpu_count() or 1) >= 2)
+    finally:
+        rec.disconnect()
 
 
 def test_simulated_frames_rendered_by_workers_equal_the_serial_ones() -> None:
@@ -268,13 +277,109 @@ def test_a_failing_worker_stage_fails_the_scan_exit_1_mosaic_readable(
     assert not mp.active_children()
 
 
+# --- the live viewer in process mode --------------------------------------------------------
+
+
+def rrd_contents(path: Path) -> tuple[set[str], set[str], dict[str, list[float]]]:
+    """Temporal and static entity paths of an .rrd, and the scalars of the viewer's drops
+    in log order."""
+    from rerun.chunk import RrdReader
+
+    temporal: set[str] = set()
+    static: set[str] = set()
+    dropped: list[tuple[int, int, float]] = []
+    for chunk in RrdReader(path).stream():
+        (static if chunk.is_static else temporal).add(chunk.entity_path)
+        if chunk.entity_path == "/stats/dropped/viewer" and not chunk.is_static:
+            cols = chunk.to_record_batch().to_pydict()
+            dropped += zip(cols["frame"], cols["rerun.controls.RowId"],
+                           (v[0] for v in cols["Scalars:scalars"]), strict=True)
+    return temporal, static, {"viewer": [v for *_, v in sorted(dropped)]}
+
+
+def test_viewer_in_process_mode_logs_the_entities_of_thread_mode(tmp_path: Path) -> None:
+    """``--viewer save --rrd`` in process mode: the same entity paths as in thread mode,
+    the view's drops in the summary, nothing left behind."""
+    got = {}
+    for mode in ("threads", "processes"):
+        cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0},
+                           processing={"execution": mode})
+        sink = viz_sink_for(cfg, ["save", str(tmp_path / f"{mode}.rrd")],
+                            options=VizOptions(mosaic_max_px=320, mosaic_every_s=0.2))
+        rep = run_scan(cfg, frames=simulate_frames(cfg), output=tmp_path / f"{mode}.zarr",
+                       progress=False, sinks=[sink])
+        assert ("processes" in rep.result.extras) == (mode == "processes")
+        assert rep.result.dropped == 0
+        assert all(s.frames == rep.frames for s in rep.result.stages[:5])
+        q = [q for q in rep.result.queues if q.name.endswith("->viewer")]
+        assert len(q) == 1 and q[0].policy == "drop_oldest"
+        assert rep.result.extras["viewer"]["dropped_by_viewer"] == q[0].dropped
+        assert f"{q[0].dropped:>7}" in format_summary(rep).split(q[0].name)[1].split("\n")[0]
+        assert rep.result.extras["viewer"]["frames_logged"] > 0
+        got[mode] = rrd_contents(tmp_path / f"{mode}.rrd")
+        # the last statistics reach the view after every drop
+        assert got[mode][2]["viewer"][-1] == q[0].dropped
+    assert got["processes"][0] == got["threads"][0]
+    assert got["processes"][1] == got["threads"][1]
+    assert "/scan/focus/measure" in got["processes"][0]
+    assert not mp.active_children()
+    assert shm_names(os.getpid()) == []
+
+
+class SlowViz(VizSink):
+    """A viewer that cannot keep up (or, with ``fail_at``, fails at that item)."""
+
+    def __init__(self, *args: Any, fail_at: int = -1, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.items, self.fail_at = 0, fail_at
+
+    def process(self, item: Any) -> tuple[()]:
+        self.items += 1
+        if self.items == self.fail_at:
+            raise RuntimeError("viewer broke")
+        time.sleep(0.02)
+        return super().process(item)
+
+
+def test_slow_viewer_in_process_mode_drops_and_never_holds_the_scan_back(
+        tmp_path: Path) -> None:
+    import rerun as rr
+
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0},
+                       processing={"execution": "processes"})
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(tmp_path / "slow.rrd"))
+    sink = SlowViz(cfg, rec, options=VizOptions(capacity=4))
+    rep = run_scan(cfg, frames=simulate_frames(cfg), output=tmp_path / "m.zarr",
+                   progress=False, sinks=[sink])
+    q = [q for q in rep.result.queues if q.name.endswith("->viewer")][0]
+    assert q.dropped > 0 and q.capacity == 4
+    assert rep.result.dropped == 0 and all(s.frames == rep.frames
+                                           for s in rep.result.stages[:5])
+    assert rep.result.extras["viewer"]["dropped_by_viewer"] == q.dropped
+    assert rep.result.extras["viewer"]["pipeline_waited_s"] == 0.0
+    assert zarr.open_group(str(rep.output), mode="r").attrs["status"] == "complete"
+    assert rrd_contents(tmp_path / "slow.rrd")[2]["viewer"][-1] == q.dropped
+    # a viewer that fails stops the scan with its name, like any stage
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0},
+                       processing={"execution": "processes"})
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(tmp_path / "fail.rrd"))
+    with pytest.raises(StageFailed, match="stage 'viewer' failed: RuntimeError: viewer broke"):
+        run_scan(cfg, frames=simulate_frames(cfg), output=tmp_path / "f.zarr",
+                 progress=False, sinks=[SlowViz(cfg, rec, fail_at=3)])
+    assert zarr.open_group(str(tmp_path / "f.zarr"), mode="r").attrs["status"] == "failed"
+    assert not mp.active_children()
+    assert shm_names(os.getpid()) == []
+
+
 def long_scan_args(tmp_path: Path) -> list[str]:
     cfg = small_config(source={"plate_length_mm": 80.0}, motion={"x_end_mm": 78.0},
                        processing={"execution": "processes"})
     conf = tmp_path / "scan.toml"
     conf.write_text(config_to_toml(cfg), encoding="utf-8")
     return ["scan", "--config", str(conf), "--no-evaluate", "-q", "-o",
-            str(tmp_path / "m.zarr")]
+            str(tmp_path / "m.zarr"), "--viewer", "save", "--rrd", str(tmp_path / "v.rrd")]
 
 
 def children(pid: int) -> list[int]:
