@@ -364,7 +364,15 @@ class ProcessPipeline:
         head = Pipeline([*head_stages, send], capacity=INNER_CAPACITY, stop=head_stop,
                         sinks=head_sinks + forwards + [f for r in relay_runs
                                                        for f in r.forwards[:1] if r.in_head])
-        tail = Pipeline([recv, *self.tail], capacity=INNER_CAPACITY, stop=tail_stop,
+        # with relayed sinks, the tail's last stage (the mosaic) is closed after they have
+        # ended, as the thread runtime closes its stages after its sinks: a sink that fails
+        # late still marks the mosaic failed
+        relays_done = threading.Event()
+        last: Stage = self.tail[-1]
+        if relay_runs:
+            last = _AfterRelays(last, relays_done, abort.is_set)
+        tail = Pipeline([recv, *self.tail[:-1], last], capacity=INNER_CAPACITY,
+                        stop=tail_stop,
                         sinks=tail_sinks + [r.forwards[-1] for r in relay_runs if r.in_tail])
         for r in relay_runs:
             r.bind([head, tail])
@@ -389,15 +397,40 @@ class ProcessPipeline:
             abort.set()
             for p in [head, tail, *(r.pipe for r in relay_runs)]:
                 p.cancel()
+            relays_done.set()
             for t in threads + relay_threads:
                 t.join()
             for r in relay_runs:
                 r.q.cancel_join_thread()
 
+        def end_relays() -> None:
+            """Every chain has ended (the tail's last stage waits to be closed): the
+            relayed sinks get the last statistics, then the end of stream."""
+            final = [*head.stats[:-1],
+                     *(StageStats(**s) for w in workers[:len(self.groups)]
+                       for s in (w.report or {}).get("stages", [])), *tail.stats[1:]]
+            for r in relay_runs:
+                r.finish(time.perf_counter() - t_start, final, self._chain_queues(
+                    [q.stats for q in head.queues], [q.stats for q in tail.queues],
+                    send.stats, workers), workers)
+            for t in relay_threads:
+                t.join()
+            relays_done.set()
+
         try:
             while any(t.is_alive() for t in threads) or not all(
                     w.report is not None for w in workers):
-                self._poll(workers, results, timeout=self.progress_s)
+                reported = all(w.report is not None for w in workers)
+                if relay_runs and reported and not threads[0].is_alive():
+                    # only the tail is left: its end, then the relays'
+                    assert isinstance(last, _AfterRelays)
+                    if relays_done.is_set():  # the tail is closing
+                        threads[1].join(self.progress_s)
+                    elif last.ended.wait(self.progress_s):
+                        end_relays()
+                        continue
+                else:
+                    self._poll(workers, results, timeout=self.progress_s)
                 if abort.is_set() or any(
                         (w.report is None and not w.proc.is_alive())
                         or (w.report is not None and w.report["kind"] == "error")
@@ -413,19 +446,12 @@ class ProcessPipeline:
                 # a worker's figures come with its report: not in the live statistics
                 live = head.stats[:-1] + tail.stats[1:]
                 for r in relay_runs:
-                    r.snapshot(elapsed, live, self._chain_queues(
-                        [q.stats for q in head.queues], [q.stats for q in tail.queues],
-                        send.stats, workers), workers)
-            else:  # every chain ended: the relayed sinks get the last statistics, then end
-                final = [*head.stats[:-1],
-                         *(StageStats(**s) for w in workers[:len(self.groups)]
-                           for s in (w.report or {}).get("stages", [])), *tail.stats[1:]]
-                for r in relay_runs:
-                    r.finish(time.perf_counter() - t_start, final, self._chain_queues(
-                        [q.stats for q in head.queues], [q.stats for q in tail.queues],
-                        send.stats, workers), workers)
-                for t in relay_threads:
-                    t.join()
+                    if not relays_done.is_set():
+                        r.snapshot(elapsed, live, self._chain_queues(
+                            [q.stats for q in head.queues], [q.stats for q in tail.queues],
+                            send.stats, workers), workers)
+            if relay_runs and not relays_done.is_set():  # the tail failed: nothing waits
+                stop_all()
         except BaseException:  # Ctrl-C or the progress display: stop everything cleanly
             stop_all()
             raise
@@ -523,6 +549,35 @@ class ProcessPipeline:
         return PipelineResult(wall_s=time.perf_counter() - t_start,
                               stages=stages + sink_stages, queues=queues + sink_queues,
                               extras=extras, sinks=sink_names)
+
+
+class _AfterRelays(Stage):
+    """The tail's last stage, closed only once the relayed sinks have ended (``done``);
+    ``ended`` is set when it has finished its stream. Closed as failed if anything failed
+    meanwhile (``failed_elsewhere``); a failing tail closes at once."""
+
+    def __init__(self, inner: Stage, done: threading.Event,
+                 failed_elsewhere: Callable[[], bool]) -> None:
+        self.inner, self.done, self.failed_elsewhere = inner, done, failed_elsewhere
+        self.name, self.unit = inner.name, inner.unit
+        self.ended = threading.Event()
+
+    def process(self, item: Any) -> Any:
+        return self.inner.process(item)
+
+    def finish(self) -> list[Any]:
+        out = list(self.inner.finish())
+        self.ended.set()
+        return out
+
+    def close(self, *, failed: bool) -> None:
+        # ``done`` is set by the main thread whatever happens (end_relays, stop_all)
+        while not failed and not self.done.wait(WAIT_S) and not self.failed_elsewhere():
+            continue
+        self.inner.close(failed=failed or self.failed_elsewhere())
+
+    def extra_stats(self) -> dict[str, Any]:
+        return self.inner.extra_stats()
 
 
 class _RelayRun:

@@ -327,18 +327,20 @@ def test_viewer_in_process_mode_logs_the_entities_of_thread_mode(tmp_path: Path)
 
 
 class SlowViz(VizSink):
-    """A viewer that cannot keep up (or, with ``fail_at``, fails at that item)."""
+    """A viewer that cannot keep up (or, with ``fail``, fails at the end of its stream)."""
 
-    def __init__(self, *args: Any, fail_at: int = -1, **kw: Any) -> None:
+    def __init__(self, *args: Any, fail: bool = False, **kw: Any) -> None:
         super().__init__(*args, **kw)
-        self.items, self.fail_at = 0, fail_at
+        self.fail = fail
 
     def process(self, item: Any) -> tuple[()]:
-        self.items += 1
-        if self.items == self.fail_at:
-            raise RuntimeError("viewer broke")
         time.sleep(0.02)
         return super().process(item)
+
+    def finish(self) -> tuple[()]:
+        if self.fail:
+            raise RuntimeError("viewer broke")
+        return super().finish()
 
 
 def test_slow_viewer_in_process_mode_drops_and_never_holds_the_scan_back(
@@ -360,14 +362,16 @@ def test_slow_viewer_in_process_mode_drops_and_never_holds_the_scan_back(
     assert rep.result.extras["viewer"]["pipeline_waited_s"] == 0.0
     assert zarr.open_group(str(rep.output), mode="r").attrs["status"] == "complete"
     assert rrd_contents(tmp_path / "slow.rrd")[2]["viewer"][-1] == q.dropped
-    # a viewer that fails stops the scan with its name, like any stage
+    # a viewer that fails stops the scan with its name, like any stage; at the end of its
+    # stream (after the mosaic's last block): the mosaic is still closed as failed, as in
+    # thread mode, where the stages are closed after the sinks
     cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 8.0},
                        processing={"execution": "processes"})
     rec = rr.RecordingStream("sffscan-test")
     rec.save(str(tmp_path / "fail.rrd"))
     with pytest.raises(StageFailed, match="stage 'viewer' failed: RuntimeError: viewer broke"):
         run_scan(cfg, frames=simulate_frames(cfg), output=tmp_path / "f.zarr",
-                 progress=False, sinks=[SlowViz(cfg, rec, fail_at=3)])
+                 progress=False, sinks=[SlowViz(cfg, rec, fail=True)])
     assert zarr.open_group(str(tmp_path / "f.zarr"), mode="r").attrs["status"] == "failed"
     assert not mp.active_children()
     assert shm_names(os.getpid()) == []
