@@ -3,6 +3,7 @@
     main process                 worker "registration"        worker "focus"             main
     source -> speed_shift -> ch1 -> registration -> ch2 -> focus_measure -> depth -> ch3 -> mosaic
            \\-> ForwardSink -> ch4 -> recorder (own process)
+    viewer (main) <- ch5 <- forwarders where registration, focus_measure, depth run (relay)
 
 Each worker runs its group of stages with the thread runtime (:class:`Pipeline`), between a
 :class:`~sffscan.pipeline.channels.RecvStage` and a
