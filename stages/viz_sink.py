@@ -67,7 +67,7 @@ class VizOptions:
     mosaic_every_s: float = 2.0  # wall time between mosaic updates (and one at the end)
     tile_cells: int = 256  # the mosaic is logged in column tiles this wide, changed ones only
     max_points: int = 50_000  # points of the 3D surface
-    capacity: int = 64  # the viewer's own queue (drop oldest)
+    capacity: int = 64  # the viewer's own queue (drop oldest); 16 at most in process mode
 
 
 def blueprint() -> rrb.Blueprint:

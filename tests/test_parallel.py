@@ -297,6 +297,50 @@ def rrd_contents(path: Path) -> tuple[set[str], set[str], dict[str, list[float]]
     return temporal, static, {"viewer": [v for *_, v in sorted(dropped)]}
 
 
+def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
+    """A dropping forwarder whose arrays find no free slot drops the item and counts it
+    (the chain it taps goes on); what ``keep`` leaves out is neither sent nor a drop."""
+    import threading
+
+    from sffscan.pipeline.runtime import FullPolicy
+    from sffscan.pipeline.worker import Relay, relay_forwarder
+    from sffscan.stages.viz_preview import logged_items
+
+    p = pool(slots=1, slot_bytes=4096, kinds=("frame", "placed", "focus"))
+    q = CTX.Queue(4)
+    try:
+        relay = Relay("viewer", ("registration", "focus_measure"), 4, FullPolicy.DROP_OLDEST,
+                      ("sffscan.stages.viz_preview:logged_items", {"frame_step": 15}))
+        fwd = relay_forwarder(relay, relay.taps, q, pools=[p], stop=threading.Event())
+        assert fwd.policy is FullPolicy.DROP_NEWEST
+        held = p.acquire(lambda: False)  # every slot held
+        img = np.zeros((8, 8), np.uint16)
+
+        def focus(fid: int) -> Tapped:
+            placed = PlacedFrame(FrameHeader(frame_id=fid, timestamp_ns=fid, focus_index=0),
+                                 img, (0.0, 0.0), (0, 0))
+            f = np.ones((8, 4), np.float32)
+            return Tapped("focus_measure", FocusFrame(placed, f, f, 4))
+
+        t0 = time.perf_counter()
+        list(fwd.process(focus(30)))  # logged (30 % 15 == 0), but no slot: dropped
+        assert time.perf_counter() - t0 < 5.0
+        list(fwd.process(focus(31)))  # not logged by the view: left out
+        assert (fwd.stats.dropped, fwd.stats.puts) == (1, 0)
+        keep = logged_items(15)
+        assert keep(focus(0)) and not keep(focus(16))
+        assert keep(Tapped("depth", None))
+        p.decref(held)
+        list(fwd.process(focus(45)))  # a slot is free again: sent
+        assert (fwd.stats.dropped, fwd.stats.puts) == (1, 1)
+        got, _ = decode(q.get(timeout=5), [p])
+        assert got.item.placed.header.frame_id == 45 and got.item.col0 == 4
+        del got
+        gc.collect()
+    finally:
+        p.close()
+
+
 def test_viewer_in_process_mode_logs_the_entities_of_thread_mode(tmp_path: Path) -> None:
     """``--viewer save --rrd`` in process mode: the same entity paths as in thread mode,
     the view's drops in the summary, nothing left behind."""
