@@ -147,7 +147,7 @@ class ProcessingConfig(_Model):
         "auto", description="How the stages run: 'processes' = groups of stages in worker "
         "processes with frames in shared memory (uses several cores), 'threads' = one "
         "process (debugging, tiny scans), 'auto' = processes for scans of at least 2e8 "
-        "pixels on a machine with 2 or more cores, without a live viewer")
+        "pixels on a machine with 2 or more cores")
 
     @field_validator("focus_operator", mode="before")
     @classmethod
