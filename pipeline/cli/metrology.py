@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.cli.common import (
+    DEPTH_METHOD_CHOICES,
     EXIT_BAD_INPUT,
     EXIT_INTERRUPTED,
     EXIT_OK,
@@ -52,9 +53,7 @@ def _settings_options(p: argparse.ArgumentParser) -> None:
                         + ", ".join(OPERATOR_CHOICES))
     p.add_argument("--window", type=int, default=d.window,
                    help=f"focus measure window k, odd, px (default {d.window})")
-    p.add_argument("--method", default=d.method,
-                   choices=["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
-                            "wcentroid", "adaptive"],
+    p.add_argument("--method", default=d.method, choices=DEPTH_METHOD_CHOICES,
                    help=f"depth method (default {d.method})")
     p.add_argument("--median-size", type=int, default=d.median_size,
                    help=f"SPC median filter size, odd, px (default {d.median_size})")
