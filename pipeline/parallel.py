@@ -296,13 +296,22 @@ class ProcessPipeline:
                     f"worker processes not ready after {START_TIMEOUT_S:g} s"))
 
     @staticmethod
-    def _poll(workers: list[_Worker], results: Any, *, timeout: float) -> None:
+    def _poll(workers: list[_Worker], results: Any, *, timeout: float,
+              drain: bool = False) -> None:
+        """Wait up to ``timeout`` for the workers' messages; return as soon as one came
+        (and those already queued behind it are taken): the caller's loop checks the end
+        of the run after each, so waiting out the timeout would hold the end (and the
+        wall time) up to ``timeout`` longer. ``drain``: take every message until the
+        timeout (after a stop, so that each worker's report is in)."""
         deadline = time.monotonic() + timeout
+        wait = timeout
         while True:
             try:
-                msg = json.loads(results.get(timeout=max(0.0, deadline - time.monotonic())))
+                msg = json.loads(results.get(timeout=wait) if wait > 0
+                                 else results.get_nowait())
             except Exception:  # noqa: BLE001 - queue.Empty: nothing more for now
                 return
+            wait = max(0.0, deadline - time.monotonic()) if drain else 0.0
             for w in workers:
                 if w.label == msg["label"]:
                     if msg["kind"] == "ready":
@@ -430,6 +439,11 @@ class ProcessPipeline:
                     elif last.ended.wait(self.progress_s):
                         end_relays()
                         continue
+                elif reported:
+                    # every worker has reported: what is left is a local chain's end, so
+                    # wait on it, not on the results queue (which nothing more reaches: a
+                    # poll would hold the end, and the wall time, up to progress_s longer)
+                    next(t for t in threads if t.is_alive()).join(self.progress_s)
                 else:
                     self._poll(workers, results, timeout=self.progress_s)
                 if abort.is_set() or any(
@@ -437,7 +451,7 @@ class ProcessPipeline:
                         or (w.report is not None and w.report["kind"] == "error")
                         for w in workers):
                     stop_all()
-                    self._poll(workers, results, timeout=0.5)
+                    self._poll(workers, results, timeout=0.5, drain=True)
                     break
                 if remote:
                     remote[-1].frames = recv.done

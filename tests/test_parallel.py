@@ -524,3 +524,21 @@ def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
     Pipeline([FrameNumbers(5), Probe(), tail], capacity=2).run()
     assert tail.ids == list(range(5)) and min(seen) > 0
     assert gc.get_freeze_count() == 0
+
+
+def test_poll_returns_when_a_report_comes_not_at_its_timeout() -> None:
+    """The main loop checks the end of the run after each worker message: a poll that
+    waited out its timeout held every process-mode run's end (and its wall time, hence
+    its frames/s) up to 1 s."""
+    import json
+    import queue
+
+    from sffscan.pipeline.parallel import _Worker
+
+    workers = [_Worker("a", None, ())]  # type: ignore[arg-type]
+    results: queue.Queue[str] = queue.Queue()
+    results.put(json.dumps({"label": "a", "kind": "result"}))
+    t0 = time.monotonic()
+    ProcessPipeline._poll(workers, results, timeout=30.0)
+    assert time.monotonic() - t0 < 10.0 and workers[0].report == {"label": "a",
+                                                                   "kind": "result"}
