@@ -308,13 +308,19 @@ def _gaussian_top(vals: list[np.ndarray], c: np.ndarray, n: int) -> np.ndarray:
     d = np.where(below, y0, np.where(above, ypp, yp))
     top = c - below + above
     ok = (a > 0) & (b > 0) & (d > 0) & (top > 0) & (top < n - 1)
-    one = np.float32(1.0)
-    la, lb, ld = (np.log(np.where(ok, v, one)) for v in (a, b, d))
-    den = la - 2 * lb + ld
-    ok &= den < 0
-    off = np.where(ok, np.float32(0.5) * (la - ld) / np.where(ok, den, -one), np.float32(0.0))
-    np.clip(off, -0.5, 0.5, out=off)
-    return (top + off).astype(np.float32)
+    la, lb, ld = (np.log(np.where(ok, v, np.float32(1.0))) for v in (a, b, d))
+    return (top + _parabola_offset(la, lb, ld, ok)).astype(np.float32)
+
+
+def _parabola_offset(ym: np.ndarray, y0: np.ndarray, yp: np.ndarray, ok: np.ndarray
+                     ) -> np.ndarray:
+    """Vertex offset in [-0.5, 0.5] of the parabola through (-1, ym), (0, y0), (1, yp);
+    0 where not ``ok`` or the denominator is not negative (a flat top)."""
+    den = ym - 2 * y0 + yp
+    ok = ok & (den < 0)
+    off = np.where(ok, np.float32(0.5) * (ym - yp) / np.where(ok, den, np.float32(-1.0)),
+                   np.float32(0.0))
+    return np.clip(off, -0.5, 0.5)
 
 
 def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
@@ -465,10 +471,7 @@ def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
         positive = (ym > 0) & (y0 > 0) & (yp > 0)
         interior &= positive
         ym, y0, yp = (np.log(np.where(positive, v, 1.0)) for v in (ym, y0, yp))
-    den = ym - 2.0 * y0 + yp
-    valid = interior & (den < 0)
-    offset = 0.5 * (ym - yp) / np.where(valid, den, -1.0)
-    return np.clip(np.where(valid, offset, 0.0), -0.5, 0.5).astype(np.float32)
+    return _parabola_offset(ym, y0, yp, interior).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- public API
