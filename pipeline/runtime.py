@@ -216,6 +216,12 @@ class Stage:
     def finish(self) -> Iterable[Any]:
         return ()
 
+    def prepare(self) -> None:
+        """Allocate (and touch) what the stream will need, before its first item: called
+        once before the pipeline starts (in a worker process: before it reports ready), so
+        that no frame waits for it. Default: nothing."""
+        return None
+
     def close(self, *, failed: bool) -> None:
         return None
 
@@ -442,7 +448,20 @@ class Pipeline:
                 gc_frozen() if freeze_gc else contextlib.nullcontext():
             return self._run()
 
+    def prepare(self) -> None:
+        """Every stage's :meth:`Stage.prepare`; :class:`StageFailed` names a stage that
+        could not (nothing has run yet: the stages are closed as failed)."""
+        for stage in self.stages:
+            try:
+                stage.prepare()
+            except Exception as exc:  # noqa: BLE001 - re-raised with the stage's name
+                for s in self.stages:
+                    with contextlib.suppress(Exception):  # the first failure is the one told
+                        s.close(failed=True)
+                raise StageFailed(stage.name, exc) from exc
+
     def _run(self) -> PipelineResult:
+        self.prepare()
         t_start = time.perf_counter()
         threads = [
             threading.Thread(target=self._run_stage, args=(i,), name=f"stage-{s.name}", daemon=True)

@@ -260,6 +260,10 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
             mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
             forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
         pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop, sinks=list(forwards))
+        pipe.prepare()  # before "ready": the main process's clock starts there
+    except StageFailed as err:
+        report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
+        return
     except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
         report({"kind": "error", "stage": label, **_exc_info(exc)})
         return

@@ -150,9 +150,10 @@ def _confidence(h0: np.ndarray, re: np.ndarray, im: np.ndarray) -> np.ndarray:
 def focus_confidence(volume: np.ndarray) -> np.ndarray:
     """The confidence every method of :func:`depth_from_focus` returns, alone.
 
-    The three sums come from ``cv2.gemm`` in float32 over chunks of ~4096 pixels copied
-    out of the (strided) volume: 1.5x faster than :func:`_moments`' float64 product, and
-    within 1e-7 of it for N = 50 (a confidence needs no more; the phase methods do).
+    The three sums come from a float32 matrix product (numpy's BLAS; 3x faster than
+    ``cv2.gemm`` on these shapes, measured) over chunks of ~4096 pixels copied out of the
+    (strided) volume: faster than :func:`_moments`' float64 product, and within 1e-7 of it
+    for N = 50 (a confidence needs no more; the phase methods do).
 
     Parameters
     ----------
@@ -169,11 +170,10 @@ def focus_confidence(volume: np.ndarray) -> np.ndarray:
     sums = np.empty((3, height * width), np.float32)
     rows = max(1, 4096 // max(1, width))
     buf = np.empty((n, min(rows, height) * width), np.float32)
-    none = np.empty((0, 0), np.float32)  # no third matrix (beta = 0)
     for i in range(0, height, rows):
         r = min(rows, height - i)
         np.copyto(buf[:, :r * width].reshape(n, r, width), volume[:, i:i + r])
-        sums[:, i * width:(i + r) * width] = cv2.gemm(table, buf[:, :r * width], 1.0, none, 0.0)
+        np.matmul(table, buf[:, :r * width], out=sums[:, i * width:(i + r) * width])
     h0, re, im = sums.reshape(3, height, width)
     return _confidence(h0, re, im)
 

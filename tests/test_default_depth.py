@@ -26,10 +26,12 @@ from sffscan.stages.depth import (
     DEPTH_METHODS,
     adaptive_peak,
     depth_from_focus,
+    focus_confidence,
     level_spread,
     levels_to_height,
     windowed_centroid,
 )
+from sffscan.stages.depth_blocks import adaptive_block
 from sffscan.stages.fields.stationary import (
     StackSettings,
     confidence_weighted_median,
@@ -151,6 +153,23 @@ def test_adaptive_peak_known_answers() -> None:
     end[0], end[1], end[2] = 1.0, 0.5, 0.2  # maximum at level 0
     assert adaptive_peak(end, np.array([[0]]), np.array([[0]]))[0, 0] == 0.0
     assert adaptive_peak(end, np.array([[1]]), np.array([[0]]))[0, 0] == 0.0
+
+
+@pytest.mark.parametrize(("n", "width", "centre_at"), [(50, 64, None), (7, 33, None),
+                                                      (50, 1, 0), (12, 64, "top")])
+def test_adaptive_block_equals_the_two_passes(n: int, width: int, centre_at: object) -> None:
+    """The streaming reduction's one pass gives adaptive_peak's depths and focus_confidence's
+    confidences bit for bit, on a strided block of a ring (peaks, centroids, both ends)."""
+    rng = np.random.default_rng(n + width)
+    ring = rng.gamma(2.0, size=(n, 260, 150)).astype(np.float32)
+    vol = ring[:, 3:250, 40:40 + width]
+    centre = rng.integers(0, n, vol.shape[1:])
+    if centre_at is not None:
+        centre[:] = 0 if centre_at == 0 else n - 1
+    spread = rng.integers(0, 5, vol.shape[1:])  # about 60 % peaks, 40 % centroids
+    depth, confidence = adaptive_block(vol, centre, spread)
+    np.testing.assert_array_equal(depth, adaptive_peak(vol, centre, spread))
+    np.testing.assert_array_equal(confidence, focus_confidence(vol))
 
 
 def test_level_spread_known_answer() -> None:

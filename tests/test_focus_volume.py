@@ -23,9 +23,11 @@ def _frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
     return fm, (0.5 + 0.01 * level + 0 * fm).astype(np.float32)
 
 
-def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "gauss3"):
+def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "gauss3",
+          reuse: FocusVolume | None = None):
     vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
-                      direction=direction, method=method, median_size=3, block_columns=16)
+                      direction=direction, method=method, median_size=3, block_columns=16,
+                      reuse=reuse)
     ring_bytes = vol.fv.nbytes
     blocks = []
     for k in range(n_frames):
@@ -35,6 +37,23 @@ def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "g
     blocks += vol.finish()
     assert vol.fv.nbytes == ring_bytes  # fixed memory
     return blocks
+
+
+def test_a_pass_on_the_last_pass_ring_gives_the_same_blocks() -> None:
+    """The next pass takes over the last one's N-level ring, stale values and all."""
+    first = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                        method="adaptive", median_size=3, block_columns=16)
+    for k in range(60):  # a pass in the other direction, elsewhere: the ring is dirty
+        fm, img = _frame(900 - 7 * k, 34, (3 * k) % N)
+        first.add(fm * 3.0, img, x=900 - 7 * k, y=34, level=(3 * k) % N)
+    assert first.fv is not None and first.fv.any()
+    fresh = _scan(1, method="adaptive")
+    again = _scan(1, method="adaptive", reuse=first)
+    assert len(again) == len(fresh)
+    for a, b in zip(fresh, again, strict=True):
+        assert (a.x0, a.y0, a.complete) == (b.x0, b.y0, b.complete)
+        for u, v in zip(a[2:5], b[2:5], strict=True):
+            np.testing.assert_array_equal(u, v)
 
 
 @pytest.mark.parametrize("direction", [1, -1])

@@ -104,6 +104,30 @@ def test_failing_stage_stops_pipeline_with_its_name_and_cause() -> None:
     assert sink.items == list(range(50))  # nothing before the failure was lost
 
 
+def test_stages_prepare_before_the_stream_and_a_failure_is_named() -> None:
+    class Prepared(Double):
+        def __init__(self, fail: bool) -> None:
+            self.fail = fail
+            self.seen: list[int] = []
+
+        def prepare(self) -> None:
+            if self.fail:
+                raise MemoryError("no room for the ring")
+            self.seen.append(-1)
+
+        def process(self, item: int) -> Iterator[int]:
+            self.seen.append(item)
+            return super().process(item)
+
+    ok = Prepared(False)
+    Pipeline([Numbers(3), ok, Collect()]).run()
+    assert ok.seen == [-1, 0, 1, 2]  # once, before the first item
+    sink = Collect()
+    with pytest.raises(StageFailed, match="double.*no room for the ring"):
+        Pipeline([Numbers(3), Prepared(True), sink]).run()
+    assert sink.items == [] and sink.closed_failed is True
+
+
 def test_failing_source_is_reported() -> None:
     class Broken(Stage):
         name = "camera"
