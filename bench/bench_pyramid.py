@@ -13,7 +13,10 @@ their ratio, the CPU time per frame of the main process (source, speed shift and
 stage, where the pyramid's work happens; the registration and focus/depth worker
 processes of the process runtime are not counted) and the mosaic stage's busy time.
 
-    python bench/bench_pyramid.py RECORDING [--pairs 3] [--dir /tmp]
+    python bench/bench_pyramid.py RECORDING [--pairs 3] [--dir /tmp] [--depth-method adaptive]
+
+The depth method is today's default unless ``--depth-method`` names another (a recording
+keeps the method it was made with).
 
 A demo-sized recording: ``sffscan demo --passes 2 --viewer off -o d.zarr --record rec.zarr``.
 Writes ``bench/pyramid_results.md`` and ``bench/pyramid_results.json``.
@@ -38,6 +41,7 @@ from sffscan.pipeline import wiring
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import open_recording
 from sffscan.pipeline.messages import Frame
+from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.mosaic import MosaicWriter
 
 
@@ -92,15 +96,18 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=3, help="pairs of runs (with, without)")
     ap.add_argument("--dir", type=Path, default=None, help="folder of the temporary mosaics")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "pyramid_results")
+    ap.add_argument("--depth-method", default=DEFAULT_METHOD, choices=DEPTH_METHODS)
     args = ap.parse_args()
     rec = open_recording(args.recording)
+    cfg = rec.config.model_copy(update={"processing": rec.config.processing.model_copy(
+        update={"depth_method": args.depth_method})})
     frames = list(rec.frames())
     runs = []
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for i in range(args.pairs):
             order = (True, False) if i % 2 == 0 else (False, True)  # ABBA...
             for pyramid in order:
-                run = one_run(rec.config, frames, Path(tmp) / f"m{i}{int(pyramid)}.zarr",
+                run = one_run(cfg, frames, Path(tmp) / f"m{i}{int(pyramid)}.zarr",
                               pyramid=pyramid)
                 runs.append(run)
                 print(f"pair {i} pyramid={pyramid!s:<5} levels {run['levels']}  "
@@ -112,6 +119,7 @@ def main() -> None:
     pair_ratios = [a["fps"] / b["fps"] for a, b in zip(on, off, strict=True)]
     summary = {
         "recording": str(args.recording), "frames": runs[0]["frames"],
+        "depth_method": args.depth_method,
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "fps_with_pyramid_median": med["on"], "fps_without_median": med["off"],
         "ratio_of_medians": med["on"] / med["off"], "pair_ratios": pair_ratios,
@@ -130,7 +138,8 @@ def main() -> None:
     args.out.with_suffix(".json").write_text(json.dumps(summary, indent=2))
     lines = ["# Streaming cost of the mosaic pyramid", "",
              f"`python bench/bench_pyramid.py {args.recording} --pairs {args.pairs}`, "
-             f"{summary['machine']}; {summary['frames']} frames per run (held in memory), runs "
+             f"depth method {args.depth_method}, {summary['machine']}; "
+             f"{summary['frames']} frames per run (held in memory), runs "
              "interleaved (ABBA); load = the 1-minute load average before the run.", "",
              "| pair | pyramid | levels | frames/s | main-process CPU ms/frame | all processes "
              "CPU ms/frame | mosaic busy s | pyramid chunks written / read | load (1 min) |",

@@ -248,6 +248,8 @@ class MosaicWriter:
                                     dtype="float32", fill_value=FILL[name],
                                     compressors=compressors, dimension_names=("y", "x"),
                                     attributes={"units": UNITS[name]})
+        # the level-0 arrays, looked up once (a lookup reads the array's metadata: 0.5 ms)
+        self.level0 = {name: mosaic_array(self.group, name) for name in ARRAYS}
         create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
                        units=UNITS, compressors=compressors)
         self.pyramid = pyramid_arrays(self.group, ARRAYS, levels)
@@ -304,6 +306,7 @@ class MosaicWriter:
                              f"(differs in {', '.join(diff)})")
         self = cls.__new__(cls)
         self.path, self.group = p, group
+        self.level0 = {name: mosaic_array(group, name) for name in ARRAYS}
         self.origin = attrs.origin_px
         h = mosaic_array(group, "height")
         self.chunk = int(h.chunks[0])
@@ -369,12 +372,12 @@ class MosaicWriter:
                        sel)
 
     def _ensure(self, r1: int, c1: int) -> None:
-        shapes = [mosaic_array(self.group, n).shape for n in ARRAYS]
+        shapes = [self.level0[n].shape for n in ARRAYS]
         if any(r1 > r or c1 > c for r, c in shapes) or len(set(shapes)) > 1:
             rows = max([r1] + [r for r, _ in shapes])
             cols = max([c1] + [c for _, c in shapes])
             for name in ARRAYS:
-                arr = mosaic_array(self.group, name)
+                arr = self.level0[name]
                 if arr.shape != (rows, cols):
                     arr.resize((rows, cols))
             resize_pyramid(self.pyramid, (rows, cols))
@@ -384,7 +387,7 @@ class MosaicWriter:
         rows, cols = new["weight"].shape
         self._ensure(r0 + rows, c0 + cols)
         sel = (slice(r0, r0 + rows), slice(c0, c0 + cols))
-        arrays = {name: mosaic_array(self.group, name) for name in ARRAYS}
+        arrays = self.level0
         # one read of the region widened to whole pyramid blocks: the blend's input, and,
         # blended, the pyramid's
         shape = (int(arrays["height"].shape[0]), int(arrays["height"].shape[1]))

@@ -47,16 +47,16 @@ in tiles of :data:`TILE_PX` for bounded memory).
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import zarr
 from sffscan.pipeline.formats.ngff import level_path
+from sffscan.pipeline.formats.zarr_chunks import read_many, write_many
 
 #: fewest levels a mosaic gets (level 0 included)
 MIN_LEVELS = 4
@@ -166,27 +166,6 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
         level["weight"] = sums["weight"][:r, :c].astype(np.float32)
         out.append(level)
     return out
-
-
-def read_many(items: Sequence[tuple[zarr.Array, Slices]]) -> list[np.ndarray]:
-    """Read several array regions in one round trip of zarr's event loop (concurrently)."""
-    from zarr.core.sync import sync
-
-    async def run() -> list[Any]:
-        return list(await asyncio.gather(*(a.async_array.getitem(sel) for a, sel in items)))
-
-    return [np.asarray(v) for v in sync(run())]
-
-
-def write_many(items: Sequence[tuple[zarr.Array, Slices, np.ndarray]]) -> None:
-    """Write several array regions in one round trip of zarr's event loop (concurrently)."""
-    from zarr.core.sync import sync
-
-    async def run() -> None:
-        await asyncio.gather(*(a.async_array.setitem(sel, v) for a, sel, v in items))
-
-    if items:
-        sync(run())
 
 
 def pyramid_arrays(group: zarr.Group, names: tuple[str, ...], levels: int
