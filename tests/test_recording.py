@@ -278,3 +278,48 @@ def test_a_failing_final_flush_still_marks_the_recording_failed(tmp_path: Path) 
     attrs = zarr.open_group(str(tmp_path / "rec.zarr"), mode="r").attrs.asdict()
     assert attrs["status"] == "failed"
     assert "No space left" in attrs["error"]
+
+
+@pytest.mark.parametrize(("codec", "status"), [("blosc-lz4", "complete"), ("blosc-zstd", "failed"),
+                                               ("zstd", "complete"), ("none", "complete")])
+def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, codec: str, status: str) -> None:
+    """The writer's own chunk writes (zarr_chunks) and zarr's setitem: the same files, the
+    same files made durable; arrays grown and metadata chunks crossed several times."""
+    import json
+
+    from sffscan.stages import durable, recorder
+
+    monkeypatch.setattr(recorder, "GROW", 8)
+    monkeypatch.setattr(recorder, "META_CHUNK", 8)
+    synced: dict[bool, set[str]] = {}
+    frames = _frames(27, positions=True)
+    frames[3] = Frame(frames[3].header, np.zeros((H, W), np.uint16))  # a black frame: kept
+    frames[9] = Frame(frames[9].header.model_copy(update={"stage_x_um": None}), frames[9].image)
+    n = 23 if status == "failed" else 27
+    for via_zarr in (True, False):
+        root = tmp_path / f"via_zarr={via_zarr}.zarr"
+        done: set[str] = set()
+        monkeypatch.setattr(durable, "fsync_path", lambda path, directory=False, done=done,
+                            root=root: done.add(str(Path(path).relative_to(root.parent))
+                                                .replace(root.name, "<rec>")))
+        w = RecordingWriter(root, small_config(), codec=codec, flush_every=5, flush_s=1e9,
+                            fsync_s=3600.0, via_zarr=via_zarr)
+        for f in frames[:n]:
+            w.write(f)
+        w.close(status=status, error="stopped" if status == "failed" else None)
+        synced[via_zarr] = done
+    by_zarr, direct = (tmp_path / f"via_zarr={v}.zarr" for v in (True, False))
+    files = sorted(str(p.relative_to(by_zarr)) for p in by_zarr.rglob("*") if p.is_file())
+    assert files == sorted(str(p.relative_to(direct)) for p in direct.rglob("*") if p.is_file())
+    assert "frames/c/3/0/0" in files and "frame_id/c/2" in files and "headers/c/22/0" in files
+    for name in files:
+        a, b = (by_zarr / name).read_bytes(), (direct / name).read_bytes()
+        if name == "zarr.json":  # the group's attributes: all equal but the creation time
+            a, b = ({k: v for k, v in json.loads(x)["attributes"].items() if k != "created"}
+                    for x in (a, b))
+        assert a == b, name
+    assert synced[True] == synced[False]
+    assert {f"<rec>/frames/c/{n - 1}/0/0", "<rec>/frame_id/c/2", "<rec>"} <= synced[False]
+    r = open_recording(direct)
+    assert r.report.frames == n and r.report.defects == 0

@@ -3,19 +3,42 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.formats.zarr_chunks import direct_plan, read_many, write_many
+from sffscan.pipeline.formats.zarr_chunks import (
+    ChunkChecksumError,
+    direct_plan,
+    read_many,
+    write_many,
+)
 from sffscan.stages.mosaic import mosaic_codecs
+from sffscan.stages.recorder import frame_codecs
 from zarr.codecs import Crc32cCodec, GzipCodec
 
+#: name -> (shape, chunks, dtype, fill): the mosaic's tiles (chunks cut by the array's end),
+#: the recorder's frames (one chunk per frame), header rows and per-frame metadata
+LAYOUTS: dict[str, tuple[tuple[int, ...], tuple[int, ...], str, Any]] = {
+    "tiles": ((300, 530), (64, 64), "float32", np.nan),
+    "frames": ((5, 24, 40), (1, 24, 40), "uint16", 0),
+    "headers": ((9, 6), (1, 6), "int64", -1),
+    "meta": ((700,), (256,), "float64", np.nan),
+    "blocks": ((7, 30, 41), (3, 16, 16), "int32", -1),
+}
+CODECS = {"mosaic-blosc-lz4": mosaic_codecs("blosc-lz4"), "blosc-lz4": frame_codecs("blosc-lz4"),
+          "blosc-zstd": frame_codecs("blosc-zstd"), "zstd": frame_codecs("zstd"), "none": []}
 
-def _pair(tmp_path: Path, compressors: list, fill: float) -> tuple[zarr.Array, zarr.Array]:
-    g = zarr.open_group(str(tmp_path / "m.zarr"), mode="w")
-    return tuple(g.create_array(name=name, shape=(300, 530), chunks=(64, 64), dtype="float32",
-                                fill_value=fill, compressors=compressors)
+
+def _pair(tmp_path: Path, layout: str, compressors: list, *, write_empty: bool = False,
+          fill: Any = None) -> tuple[zarr.Array, zarr.Array]:
+    shape, chunks, dtype, default_fill = LAYOUTS[layout]
+    g = zarr.open_group(str(tmp_path / "m.zarr"), mode="a")
+    return tuple(g.create_array(name=name, shape=shape, chunks=chunks, dtype=dtype,
+                                fill_value=default_fill if fill is None else fill,
+                                compressors=compressors,
+                                config={"write_empty_chunks": write_empty})
                  for name in ("by_zarr", "direct"))  # type: ignore[return-value]
 
 
@@ -25,52 +48,111 @@ def _files(arr: zarr.Array, root: Path) -> dict[str, bytes]:
             if p.is_file() and p.name != "zarr.json"}
 
 
-def _regions(rng: np.random.Generator, shape: tuple[int, int], n: int):  # noqa: ANN202
-    out = [(slice(0, 64), slice(64, 128)),  # one whole chunk
-           (slice(256, 300), slice(512, 530)),  # the corner chunk, cut by the array's end
-           (slice(10, 200), slice(100, 101))]  # one column over several chunks
+def _selections(rng: np.random.Generator, shape: tuple[int, ...], chunks: tuple[int, ...],
+                n: int) -> list[tuple]:
+    last = tuple(slice((s - 1) // c * c, s) for s, c in zip(shape, chunks, strict=True))
+    out: list[tuple] = [tuple(slice(0, c) for c in chunks),  # the first chunk, whole
+                        last,  # the last chunk, cut by the array's end where it is
+                        (shape[0] - 1,)]  # the last index of the first axis, the rest whole
     for _ in range(n):
-        r0, c0 = rng.integers(0, shape[0] - 1), rng.integers(0, shape[1] - 1)
-        r1, c1 = rng.integers(r0 + 1, shape[0] + 1), rng.integers(c0 + 1, shape[1] + 1)
-        out.append((slice(int(r0), int(r1)), slice(int(c0), int(c1))))
+        sel = []
+        for s in shape:
+            if s > 1 and rng.random() < 0.25:
+                sel.append(int(rng.integers(-s, s)))  # an integer drops its axis
+            else:
+                a = int(rng.integers(0, s))
+                sel.append(slice(a, int(rng.integers(a + 1, s + 1))))
+        out.append(tuple(sel))
     return out
 
 
-@pytest.mark.parametrize("codec", ["blosc-lz4", "zstd", "none"])
-@pytest.mark.parametrize("fill", [np.nan, 0.0])
-def test_writes_and_reads_equal_zarr_s_values_and_files(tmp_path: Path, codec: str,
-                                                        fill: float) -> None:
-    by_zarr, direct = _pair(tmp_path, mosaic_codecs(codec), fill)
-    assert direct_plan(direct) is not None
-    rng = np.random.default_rng(7)
-    for k, sel in enumerate(_regions(rng, (300, 530), 12)):
-        shape = (sel[0].stop - sel[0].start, sel[1].stop - sel[1].start)
-        value = rng.normal(size=shape).astype(np.float32)
-        if k % 5 == 4:
-            value[:] = fill  # fill values: a chunk they cover whole is deleted, not written
+def _values(rng: np.random.Generator, shape: tuple[int, ...], dtype: str, fill: Any,
+            k: int) -> np.ndarray:
+    if np.dtype(dtype).kind == "f":
+        value = rng.normal(size=shape).astype(dtype)
         value[rng.random(shape) < 0.1] = np.nan
+    else:
+        value = rng.integers(0, 1000, shape).astype(dtype)
+    if k % 4 == 3:
+        value[...] = fill  # fill values: whole chunks of them are kept or deleted by config
+    return value
+
+
+@pytest.mark.parametrize("crc", [False, True], ids=["plain", "crc32c"])
+@pytest.mark.parametrize("codec", list(CODECS))
+@pytest.mark.parametrize("layout", list(LAYOUTS))
+def test_writes_and_reads_equal_zarr_s_values_and_files(tmp_path: Path, layout: str,
+                                                        codec: str, crc: bool) -> None:
+    shape, chunks, dtype, fill = LAYOUTS[layout]
+    rng = np.random.default_rng(len(layout) * 31 + len(codec) + crc)
+    write_empty = layout in ("frames", "headers") or (crc and layout != "tiles")
+    compressors = [*CODECS[codec], *([Crc32cCodec()] if crc else [])]
+    by_zarr, direct = _pair(tmp_path, layout, compressors, write_empty=write_empty)
+    plan = direct_plan(direct)
+    assert plan is not None and plan.crc is crc and plan.write_empty is write_empty
+    for k, sel in enumerate(_selections(rng, shape, chunks, 10)):
+        value = _values(rng, np.empty(shape)[sel].shape, dtype, fill, k)
         by_zarr[sel] = value
         write_many([(direct, sel, value)])
     np.testing.assert_array_equal(direct[:], by_zarr[:])
-    for other in _regions(rng, (300, 530), 3):
-        np.testing.assert_array_equal(read_many([(direct, other)])[0], by_zarr[other])
+    for sel in _selections(rng, shape, chunks, 4):
+        np.testing.assert_array_equal(read_many([(direct, sel)])[0], by_zarr[sel])
     root = tmp_path / "m.zarr"
     assert _files(direct, root) == _files(by_zarr, root)  # the same chunks, byte for byte
     assert not list(root.rglob("*.partial"))
 
 
-def test_other_codecs_go_through_zarr(tmp_path: Path) -> None:
-    for compressors in ([GzipCodec()], [*mosaic_codecs("blosc-lz4"), Crc32cCodec()]):
-        by_zarr, direct = _pair(tmp_path, compressors, np.nan)
+@pytest.mark.parametrize("write_empty", [False, True])
+def test_a_chunk_of_fill_values_is_kept_or_deleted_as_the_array_s_config_says(
+        tmp_path: Path, write_empty: bool) -> None:
+    _, direct = _pair(tmp_path, "frames", [*frame_codecs("blosc-lz4"), Crc32cCodec()],
+                      write_empty=write_empty)
+    write_many([(direct, 1, np.ones((24, 40), np.uint16))])
+    write_many([(direct, 1, np.zeros((24, 40), np.uint16))])  # a black frame over it
+    chunk = tmp_path / "m.zarr" / "direct" / "c" / "1" / "0" / "0"
+    assert chunk.exists() is write_empty
+    np.testing.assert_array_equal(read_many([(direct, 1)])[0], 0)
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate"])
+def test_a_corrupt_chunk_is_an_error_naming_its_file(tmp_path: Path, damage: str) -> None:
+    by_zarr, direct = _pair(tmp_path, "meta", [*frame_codecs("zstd"), Crc32cCodec()])
+    write_many([(direct, slice(0, 700), np.arange(700.0))])
+    chunk = tmp_path / "m.zarr" / "direct" / "c" / "1"
+    raw = bytearray(chunk.read_bytes())
+    if damage == "flip":
+        raw[len(raw) // 2] ^= 0x10
+    chunk.write_bytes(bytes(raw) if damage == "flip" else bytes(raw[:3]))
+    name = f"{chunk}: stored and computed CRC-32C do not match"
+    with pytest.raises(ChunkChecksumError, match=name):
+        read_many([(direct, slice(200, 300))])
+    with pytest.raises(ChunkChecksumError, match=name):  # a partial write reads it first
+        write_many([(direct, slice(300, 301), np.zeros(1))])
+    np.testing.assert_array_equal(read_many([(direct, slice(0, 256))])[0], np.arange(256.0))
+    (tmp_path / "m.zarr" / "by_zarr" / "c").mkdir(parents=True)
+    (tmp_path / "m.zarr" / "by_zarr" / "c" / "1").write_bytes(chunk.read_bytes())
+    with pytest.raises(ValueError, match="checksum"):  # zarr refuses it as well
+        by_zarr[200:300]
+
+
+def test_other_codecs_and_orders_go_through_zarr(tmp_path: Path) -> None:
+    for k, compressors in enumerate([[GzipCodec()], [Crc32cCodec(), *mosaic_codecs("zstd")],
+                                     [*mosaic_codecs("zstd"), *mosaic_codecs("blosc-lz4")]]):
+        g = zarr.open_group(str(tmp_path / f"m{k}.zarr"), mode="w")
+        direct = g.create_array(name="a", shape=(300, 530), chunks=(64, 64), dtype="float32",
+                                fill_value=np.nan, compressors=compressors)
         assert direct_plan(direct) is None
         value = np.arange(70 * 90, dtype=np.float32).reshape(70, 90)
         write_many([(direct, (slice(5, 75), slice(60, 150)), value)])
-        by_zarr[5:75, 60:150] = value
-        np.testing.assert_array_equal(read_many([(direct, (slice(0, 300), slice(0, 530)))])[0],
-                                      by_zarr[:])
+        np.testing.assert_array_equal(read_many([(direct, (slice(5, 75), slice(60, 150)))])[0],
+                                      value)
 
 
-def test_a_region_of_the_wrong_shape_is_refused_naming_the_array(tmp_path: Path) -> None:
-    _, direct = _pair(tmp_path, mosaic_codecs("blosc-lz4"), np.nan)
+def test_bad_selections_and_values_are_refused_naming_the_array(tmp_path: Path) -> None:
+    _, direct = _pair(tmp_path, "frames", frame_codecs("none"))
     with pytest.raises(ValueError, match="direct.*cannot take values of shape"):
-        write_many([(direct, (slice(0, 10), slice(0, 10)), np.zeros((10, 11), np.float32))])
+        write_many([(direct, (0, slice(0, 10)), np.zeros((10, 11), np.uint16))])
+    with pytest.raises(IndexError, match="direct.*out of bounds for axis 0"):
+        write_many([(direct, 5, np.zeros((24, 40), np.uint16))])
+    with pytest.raises(IndexError, match="direct.*only step-1"):
+        read_many([(direct, slice(0, 5, 2))])

@@ -1,29 +1,40 @@
 """Region reads and writes of local Zarr v3 arrays, chunk by chunk, without zarr's event loop.
 
-Why: the mosaic writer reads and writes a band (four arrays, about five chunks each) for
-every 256 px of motion, and its pyramid writes back about 100 chunks per demo scan.
-Through zarr 3.1 a chunk costs about 1 ms of CPU, of which encoding is 0.16 ms: the rest is
-the asynchronous machinery (a coroutine per chunk, a thread hop per codec call, a round
-trip of the event loop per call). Measured on the 2-core VM (``bench/bench_pyramid.py``
-and the mosaic stage replayed alone; figures in the README).
+Why: through zarr 3.1 a chunk costs about 1 ms of CPU beyond its encoding: the
+asynchronous machinery (a coroutine per chunk, a thread hop per codec call, a round trip of
+the event loop per call). The mosaic writer reads and writes a band (four arrays, about five
+chunks each) for every 256 px of motion and its pyramid about 100 chunks per demo scan; the
+recorder writes a 2.6 MB frame chunk and a header chunk per frame, where zarr's machinery
+cost more CPU than the compression itself. Measured on the 2-core VM
+(``bench/bench_pyramid.py``, ``bench/bench_recorder.py``; figures in the README).
 
-What: an array in a local store (a folder), with the regular chunk grid, the default chunk
-key encoding and the codecs ``bytes`` (little endian) followed by at most one ``blosc`` or
-``zstd`` compressor (what :func:`sffscan.stages.mosaic.mosaic_codecs` makes). Each chunk's
-file is encoded and decoded with numcodecs (the library zarr's own codecs call), configured
-from the codec's own metadata, so the files are the ones zarr writes (a test compares them
-byte for byte), and written as zarr's local store writes them: to a temporary file in the
-same folder, then renamed over the chunk (a reader never sees half a chunk). A chunk whose
-every element equals the fill value is deleted rather than written (zarr's default,
-``write_empty_chunks = False``). Any other array goes through zarr itself.
+What: an N-dimensional array in a local store (a folder), with the regular chunk grid, the
+default chunk key encoding (``c/i/j/…``), C order, a numeric data type and the codecs
+``bytes`` (little endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
+most one ``crc32c`` after it (what :func:`sffscan.stages.mosaic.mosaic_codecs` and the
+recorder's :func:`sffscan.stages.recorder.frame_codecs` make). Each chunk's file is encoded
+and decoded with numcodecs (the library zarr's own codecs call), configured from the codec's
+own metadata; ``crc32c`` appends the CRC-32C of the encoded bytes (google_crc32c, as zarr's
+``Crc32cCodec``), little endian, and a chunk whose checksum does not match raises
+:class:`ChunkChecksumError` naming its file. So the files are the ones zarr writes (a test
+compares them byte for byte), written as zarr's local store writes them: to a temporary
+file in the same folder, then renamed over the chunk (a reader never sees half a chunk).
+Unless the array's config says ``write_empty_chunks``, a chunk whose every element equals
+the fill value is deleted rather than written (zarr's default). A chunk that a region covers
+whole is encoded from the region's values without reading the stored one. Any other array
+goes through zarr itself.
+
+Selections: a tuple of step-1 slices and integers (an integer drops its axis, as in numpy);
+missing trailing axes are whole.
 """
 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import uuid
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,11 +42,15 @@ from typing import Any
 import numpy as np
 import zarr
 
-__all__ = ["read_many", "write_many", "direct_plan"]
+__all__ = ["ChunkChecksumError", "read_many", "write_many", "direct_plan"]
 
-Slices = tuple[slice, slice]
+Selection = Any  # a slice, an int, or a tuple of them
 
 _SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
+
+
+class ChunkChecksumError(ValueError):
+    """A chunk's stored CRC-32C does not match its bytes (the message names the file)."""
 
 
 @dataclass(frozen=True)
@@ -43,13 +58,15 @@ class _Plan:
     """How the chunks of one array are found, encoded and decoded."""
 
     folder: Path  # the array's folder
-    chunks: tuple[int, int]
+    chunks: tuple[int, ...]
     dtype: np.dtype
     fill: Any
     codec: Any  # a numcodecs codec, or None (no compressor)
+    crc: bool  # a crc32c codec after the compressor
+    write_empty: bool  # the array's config: store chunks equal to the fill value too
 
-    def path(self, arr: zarr.Array, key: tuple[int, int]) -> Path:
-        return self.folder / arr.metadata.encode_chunk_key(key)
+    def path(self, key: tuple[int, ...]) -> Path:
+        return self.folder.joinpath("c", *map(str, key))
 
 
 def _compressor(config: dict[str, Any]) -> Any:
@@ -70,7 +87,7 @@ def _compressor(config: dict[str, Any]) -> Any:
 
 def direct_plan(arr: zarr.Array) -> _Plan | None:
     """How to read and write ``arr``'s chunks directly, or None where zarr must (another
-    store, grid, key encoding, byte order or codec; a 1-D or 3-D array)."""
+    store, grid, key encoding, order, data type, byte order or codec)."""
     from zarr.core.chunk_grids import RegularChunkGrid
     from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
     from zarr.core.metadata import ArrayV3Metadata
@@ -78,34 +95,60 @@ def direct_plan(arr: zarr.Array) -> _Plan | None:
 
     meta = arr.metadata
     store = arr.store_path.store
+    dtype = np.dtype(arr.dtype)
+    config = arr.async_array.config
     if (not isinstance(meta, ArrayV3Metadata) or not isinstance(store, LocalStore)
-            or not isinstance(meta.chunk_grid, RegularChunkGrid)
-            or len(arr.shape) != 2 or arr.dtype.byteorder == ">"
+            or not isinstance(meta.chunk_grid, RegularChunkGrid) or len(arr.shape) == 0
+            or dtype.kind not in "biuf" or dtype.byteorder == ">" or config.order != "C"
             or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
             or meta.chunk_key_encoding.separator != "/"):
         return None
     codecs = [c.to_dict() for c in meta.codecs]
-    if not codecs or codecs[0] != {"name": "bytes", "configuration": {"endian": "little"}}:
+    if not codecs or codecs[0].get("name") != "bytes":
         return None
-    if len(codecs) > 2:
+    endian = (codecs[0].get("configuration") or {}).get("endian")  # type: ignore[union-attr]
+    if not (endian == "little" or (endian is None and dtype.itemsize == 1)):
+        return None
+    rest = codecs[1:]
+    crc = bool(rest) and rest[-1] == {"name": "crc32c"}
+    if crc:
+        rest = rest[:-1]
+    if len(rest) > 1:
         return None
     try:
-        codec = _compressor(codecs[1]) if len(codecs) == 2 else None  # type: ignore[arg-type]
+        codec = _compressor(rest[0]) if rest else None  # type: ignore[arg-type]
     except KeyError:
         return None
-    chunks = tuple(int(c) for c in arr.chunks)
-    return _Plan(Path(store.root) / arr.store_path.path, (chunks[0], chunks[1]),
-                 np.dtype(arr.dtype), arr.fill_value, codec)
+    return _Plan(Path(store.root) / arr.store_path.path, tuple(int(c) for c in arr.chunks),
+                 dtype, arr.fill_value, codec, crc, bool(config.write_empty_chunks))
+
+
+def _crc32c(data: Any) -> bytes:
+    import google_crc32c
+
+    # google_crc32c's C function takes bytes or a numpy array, not a memoryview (no copy)
+    return int(google_crc32c.value(np.frombuffer(data, np.uint8))).to_bytes(4, "little")
 
 
 def _load(plan: _Plan, path: Path) -> np.ndarray | None:
-    """A chunk's values (a new array), or None where no file is stored."""
+    """A chunk's values (a new, writable array), or None where no file is stored."""
     try:
-        raw = path.read_bytes()
+        raw: Any = path.read_bytes()
     except FileNotFoundError:
         return None
-    data = plan.codec.decode(raw) if plan.codec is not None else raw
-    return np.frombuffer(data, plan.dtype).reshape(plan.chunks).copy()
+    if plan.crc:
+        view = memoryview(raw)
+        if len(raw) < 4 or _crc32c(view[:-4]) != bytes(view[-4:]):
+            raise ChunkChecksumError(f"{path}: stored and computed CRC-32C do not match "
+                                     "(the chunk is corrupt)")
+        raw = view[:-4]
+    if plan.codec is not None:
+        raw = plan.codec.decode(raw)
+    data = np.frombuffer(raw, plan.dtype)
+    if data.size != int(np.prod(plan.chunks)):
+        raise ValueError(f"{path}: {data.size} elements decoded, a chunk of {plan.chunks} "
+                         f"holds {int(np.prod(plan.chunks))}")
+    return data.reshape(plan.chunks).copy()
 
 
 def _is_fill(plan: _Plan, data: np.ndarray) -> bool:
@@ -116,60 +159,106 @@ def _is_fill(plan: _Plan, data: np.ndarray) -> bool:
 
 
 def _store(plan: _Plan, path: Path, data: np.ndarray) -> None:
-    """Write a whole chunk atomically, or delete it if it holds only the fill value."""
-    if _is_fill(plan, data):
+    """Write a whole chunk atomically, or delete it if it holds only the fill value (unless
+    the array writes empty chunks)."""
+    if not plan.write_empty and _is_fill(plan, data):
         path.unlink(missing_ok=True)
         return
-    raw = np.ascontiguousarray(data, plan.dtype).tobytes()
+    raw: Any = np.ascontiguousarray(data, plan.dtype).data.cast("B")
     if plan.codec is not None:
         raw = plan.codec.encode(raw)
+    tail = _crc32c(raw) if plan.crc else b""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")  # as zarr's local store names it
     try:
         with open(tmp, "wb") as fh:
             fh.write(raw)
+            if tail:
+                fh.write(tail)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
 
 
-def _overlaps(plan: _Plan, shape: tuple[int, ...], sel: Slices):  # noqa: ANN202
-    """(chunk key, slice of the chunk, slice of the region, whole) for every chunk under
-    ``sel``; ``whole``: the region covers all of the chunk that lies inside the array."""
-    (r0, r1, _), (c0, c1, _) = sel[0].indices(shape[0]), sel[1].indices(shape[1])
-    ch, cw = plan.chunks
-    for i in range(r0 // ch, -(-r1 // ch)):
-        a0, a1 = max(r0, i * ch), min(r1, (i + 1) * ch)
-        for j in range(c0 // cw, -(-c1 // cw)):
-            b0, b1 = max(c0, j * cw), min(c1, (j + 1) * cw)
-            whole = (a0 == i * ch and a1 == min((i + 1) * ch, shape[0])
-                     and b0 == j * cw and b1 == min((j + 1) * cw, shape[1]))
-            yield ((i, j), (slice(a0 - i * ch, a1 - i * ch), slice(b0 - j * cw, b1 - j * cw)),
-                   (slice(a0 - r0, a1 - r0), slice(b0 - c0, b1 - c0)), whole)
+@dataclass(frozen=True)
+class _Region:
+    """A selection resolved against an array's shape."""
+
+    start: tuple[int, ...]
+    stop: tuple[int, ...]
+    dropped: tuple[int, ...]  # axes indexed by an integer
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(b - a for a, b in zip(self.start, self.stop, strict=True))
+
+    @property
+    def value_shape(self) -> tuple[int, ...]:
+        return tuple(n for k, n in enumerate(self.shape) if k not in self.dropped)
 
 
-def _region_shape(shape: tuple[int, ...], sel: Slices) -> tuple[int, int]:
-    (r0, r1, _), (c0, c1, _) = sel[0].indices(shape[0]), sel[1].indices(shape[1])
-    return max(0, r1 - r0), max(0, c1 - c0)
+def _region(where: object, shape: tuple[int, ...], sel: Selection) -> _Region:
+    items = sel if isinstance(sel, tuple) else (sel,)
+    if len(items) > len(shape):
+        raise IndexError(f"{where}: {len(items)} indices for an array of {len(shape)} axes")
+    start, stop, dropped = [], [], []
+    for axis, n in enumerate(shape):
+        s = items[axis] if axis < len(items) else slice(None)
+        if isinstance(s, slice):
+            a, b, step = s.indices(n)
+            if step != 1:
+                raise IndexError(f"{where}: axis {axis}: only step-1 slices, not {s}")
+            start.append(a)
+            stop.append(max(a, b))
+        elif isinstance(s, int | np.integer):
+            k = int(s) + n if s < 0 else int(s)
+            if not 0 <= k < n:
+                raise IndexError(f"{where}: index {int(s)} is out of bounds for axis {axis} "
+                                 f"of length {n}")
+            start.append(k)
+            stop.append(k + 1)
+            dropped.append(axis)
+        else:
+            raise IndexError(f"{where}: axis {axis}: a slice or an integer, not {s!r}")
+    return _Region(tuple(start), tuple(stop), tuple(dropped))
 
 
-def read_many(items: Sequence[tuple[zarr.Array, Slices]]) -> list[np.ndarray]:
-    """Several array regions (step-1 slices), each a new array: directly where
-    :func:`direct_plan` allows, the others in one round trip of zarr's event loop."""
+def _overlaps(plan: _Plan, shape: tuple[int, ...], reg: _Region) -> Iterator[
+        tuple[tuple[int, ...], tuple[slice, ...], tuple[slice, ...], bool]]:
+    """(chunk key, slice of the chunk, slice of the region, whole) for every chunk under the
+    region; ``whole``: the region covers all of the chunk that lies inside the array."""
+    per_axis = []
+    for r0, r1, c, n in zip(reg.start, reg.stop, plan.chunks, shape, strict=True):
+        axis = []
+        for i in range(r0 // c, -(-r1 // c)):
+            a0, a1 = max(r0, i * c), min(r1, (i + 1) * c)
+            axis.append((i, slice(a0 - i * c, a1 - i * c), slice(a0 - r0, a1 - r0),
+                         a0 == i * c and a1 == min((i + 1) * c, n)))
+        per_axis.append(axis)
+    for combo in itertools.product(*per_axis):
+        yield (tuple(x[0] for x in combo), tuple(x[1] for x in combo),
+               tuple(x[2] for x in combo), all(x[3] for x in combo))
+
+
+def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]:
+    """Several array regions, each a new array: directly where :func:`direct_plan` allows,
+    the others in one round trip of zarr's event loop. A stored chunk whose checksum does
+    not match raises :class:`ChunkChecksumError`."""
     out: list[np.ndarray | None] = []
-    rest: list[tuple[int, zarr.Array, Slices]] = []
+    rest: list[tuple[int, zarr.Array, Selection]] = []
     for n, (arr, sel) in enumerate(items):
         plan = direct_plan(arr)
         if plan is None:
             out.append(None)
             rest.append((n, arr, sel))
             continue
-        region = np.empty(_region_shape(arr.shape, sel), plan.dtype)
-        for key, inner, part, _ in _overlaps(plan, arr.shape, sel):
-            chunk = _load(plan, plan.path(arr, key))
+        reg = _region(plan.folder, arr.shape, sel)
+        region = np.empty(reg.shape, plan.dtype)
+        for key, inner, part, _ in _overlaps(plan, arr.shape, reg):
+            chunk = _load(plan, plan.path(key))
             region[part] = plan.fill if chunk is None else chunk[inner]
-        out.append(region)
+        out.append(region.reshape(reg.value_shape))
     if rest:
         from zarr.core.sync import sync
 
@@ -181,10 +270,11 @@ def read_many(items: Sequence[tuple[zarr.Array, Slices]]) -> list[np.ndarray]:
     return [v for v in out if v is not None]
 
 
-def write_many(items: Sequence[tuple[zarr.Array, Slices, np.ndarray]]) -> None:
-    """Write several array regions (step-1 slices; a chunk partly under a region is read,
-    patched and written whole): directly where :func:`direct_plan` allows, the others in one
-    round trip of zarr's event loop."""
+def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]]) -> None:
+    """Write several array regions (a chunk partly under a region is read, patched and
+    written whole; a chunk under it whole is not read): directly where :func:`direct_plan`
+    allows, the others in one round trip of zarr's event loop. ``value`` has the region's
+    shape, without the axes indexed by integers."""
     rest = []
     for arr, sel, value in items:
         plan = direct_plan(arr)
@@ -192,11 +282,16 @@ def write_many(items: Sequence[tuple[zarr.Array, Slices, np.ndarray]]) -> None:
             rest.append((arr, sel, value))
             continue
         value = np.asarray(value)
-        if value.shape != _region_shape(arr.shape, sel):
-            raise ValueError(f"{plan.folder}: a region of {_region_shape(arr.shape, sel)} "
-                             f"cannot take values of shape {value.shape}")
-        for key, inner, part, whole in _overlaps(plan, arr.shape, sel):
-            path = plan.path(arr, key)
+        reg = _region(plan.folder, arr.shape, sel)
+        if value.shape != reg.value_shape:
+            raise ValueError(f"{plan.folder}: a region of {reg.value_shape} cannot take "
+                             f"values of shape {value.shape}")
+        value = value.reshape(reg.shape)
+        for key, inner, part, whole in _overlaps(plan, arr.shape, reg):
+            path = plan.path(key)
+            if whole and value[part].shape == plan.chunks:  # the chunk is the value itself
+                _store(plan, path, value[part])
+                continue
             chunk = None if whole else _load(plan, path)
             if chunk is None:
                 chunk = np.full(plan.chunks, plan.fill, plan.dtype)
