@@ -1,15 +1,18 @@
 """Recorder and mosaic codecs: write throughput for 1280 x 1024 uint16 frames.
 
 The camera makes 150 frames/s of 1280 x 1024 uint16 = 393 MB/s. For each codec of the
-frames array (and two other chunk layouts), frames go through the recorder's own writer
+frames array, frames go through the recorder's own writer
 (:class:`sffscan.stages.recorder.RecordingWriter`: one chunk per frame, metadata every 16 frames)
-to a temporary folder; the figure is the best of ``--repeat`` runs: MB/s of raw frame
-data, CPU seconds per frame of the whole process (blosc and zarr use their own threads),
-and the compression ratio. Frames are rendered by the simulator (thesis optics, 10-bit
+to a temporary folder, by both of its write paths, interleaved (zarr's setitem, then the
+direct chunk writes of :mod:`sffscan.pipeline.formats.zarr_chunks`, ``--repeat`` times): the
+median and best of MB/s of raw frame data, CPU ms per frame of the whole process (blosc and
+zarr use their own threads), and the compression ratio. Two other chunk layouts are timed
+with plain zarr. Frames are rendered by the simulator (thesis optics, 10-bit
 data, sensor noise), so the ratios are those of real-looking frames. The mosaic part
 times blending-and-writing a 1024-row band of 256-px chunks of the four float32 arrays.
 
     python bench/bench_recorder.py [--frames 60] [--repeat 3] [--dir /tmp]
+        [--sections writer,layout,mosaic]
 
 Writes ``bench/recorder_results.md``.
 """
@@ -20,6 +23,7 @@ import argparse
 import os
 import shutil
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -38,26 +42,55 @@ def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def bench_writer(frames: list[Frame], codec: str, folder: Path, repeat: int) -> dict[str, float]:
+WRITE_PATHS = {"zarr setitem": True, "zarr_chunks": False}  # name -> via_zarr
+
+
+def bench_writers(frames: list[Frame], codec: str, folder: Path,
+                  repeat: int) -> dict[str, dict[str, float]]:
+    """Both write paths of the recorder's writer, interleaved run by run on the same frames:
+    per path the median and best MB/s and CPU ms/frame, and the compression ratio."""
     cfg = demo_config()
-    best = None
-    for k in range(repeat):
-        path = folder / f"rec-{codec}-{k}.zarr"
-        w = RecordingWriter(path, cfg, codec=codec)
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in WRITE_PATHS}
+
+    def record(path: Path, via_zarr: bool, out: dict[str, float]) -> None:
+        w = RecordingWriter(path, cfg, codec=codec, via_zarr=via_zarr)
         c0, t0 = time.process_time(), time.perf_counter()
-        for f in frames:
+        w.write(frames[0])  # creates the recording
+        c1, t1 = time.process_time(), time.perf_counter()
+        for f in frames[1:]:
             w.write(f)
+        c2, t2 = time.process_time(), time.perf_counter()
         w.close()
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        size = _du(path / "frames")
-        shutil.rmtree(path)
-        if best is None or wall < best[0]:
-            best = (wall, cpu, size)
-    assert best is not None
-    wall, cpu, size = best
+        c3, t3 = time.process_time(), time.perf_counter()
+        out.update(wall=t3 - t0, cpu=c3 - c0, steady_wall=t2 - t1, steady_cpu=c2 - c1)
+
+    for k in range(repeat):
+        for name, via_zarr in WRITE_PATHS.items():
+            path = folder / f"rec-{codec}-{k}-{via_zarr}.zarr"
+            out: dict[str, float] = {}
+            # in a thread, as the recorder sink runs in the pipeline (numcodecs' blosc uses
+            # its own threads only when called from the main thread)
+            t = threading.Thread(target=record, args=(path, via_zarr, out))
+            t.start()
+            t.join()
+            out["size"] = _du(path / "frames")
+            runs[name].append(out)
+            shutil.rmtree(path)
     raw = sum(f.image.nbytes for f in frames)
-    return {"MB/s": raw / wall / 1e6, "fps": len(frames) / wall,
-            "cpu_ms": 1e3 * cpu / len(frames), "ratio": raw / size}
+    n = len(frames)
+    res = {}
+    for name, rs in runs.items():
+        def col(key: str, rs: list[dict[str, float]] = rs) -> np.ndarray:
+            return np.array([r[key] for r in rs])
+        walls, cpus, steady = col("wall"), col("cpu"), col("steady_cpu")
+        res[name] = {"MB/s": raw / np.median(walls) / 1e6, "MB/s best": raw / walls.min() / 1e6,
+                     "fps": n / np.median(walls), "cpu_ms": 1e3 * np.median(cpus) / n,
+                     "cpu_ms best": 1e3 * cpus.min() / n,
+                     "steady_cpu_ms": 1e3 * np.median(steady) / (n - 1),
+                     "steady_cpu_ms best": 1e3 * steady.min() / (n - 1),
+                     "steady MB/s": raw * (n - 1) / n / np.median(col("steady_wall")) / 1e6,
+                     "ratio": raw / rs[0]["size"]}
+    return res
 
 
 def bench_layout(frames: list[Frame], chunks: tuple[int, int, int], folder: Path,
@@ -113,7 +146,13 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--dir", default=None, help="folder to write in (default: system temp)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("recorder_results.md")))
+    ap.add_argument("--sections", default="writer,layout,mosaic",
+                    help="comma-separated: writer (both write paths, all codecs), layout, "
+                         "mosaic")
+    ap.add_argument("--codecs", default="none,blosc-lz4,blosc-zstd,zstd",
+                    help="frames codecs of the writer section")
     args = ap.parse_args()
+    sections = set(args.sections.split(","))
     cfg = demo_config()
     frames = []
     for f in simulate_frames(cfg):
@@ -123,25 +162,36 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(dir=args.dir))
     try:
         lines = [f"# Recorder and mosaic codecs ({args.frames} simulated 1280x1024 uint16 frames, "
-                 f"best of {args.repeat}; {os.cpu_count()} CPU(s), load average "
+                 f"{args.repeat} runs; {os.cpu_count()} CPU(s), load average "
                  f"{os.getloadavg()[0]:.1f} at the start; folder {folder.parent})", "",
-                 f"Camera: 150 frames/s = {CAMERA_MB_S:.0f} MB/s.", "",
-                 "| frames codec (1 frame/chunk, recorder's writer) | MB/s | frames/s | "
-                 "CPU ms/frame | ratio |", "|---|---|---|---|---|"]
-        for codec in ("none", "blosc-lz4", "blosc-zstd", "zstd"):
-            r = bench_writer(frames, codec, folder, args.repeat)
-            lines.append(f"| {codec} | {r['MB/s']:.0f} | {r['fps']:.0f} | {r['cpu_ms']:.1f} | "
-                         f"{r['ratio']:.2f} |")
-            print(lines[-1], flush=True)
-        lines += ["", "| frames chunk layout (blosc-lz4, plain zarr) | MB/s | frames/s |",
-                  "|---|---|---|"]
-        for chunks in ((1, 1024, 1280), (4, 1024, 1280), (1, 256, 1280)):
+                 f"Camera: 150 frames/s = {CAMERA_MB_S:.0f} MB/s."]
+        if "writer" in sections:
+            lines += ["", "Recorder's writer, its two write paths interleaved run by run, in a "
+                      "thread as in the pipeline (median, best in brackets). Whole: from the "
+                      "first frame (which creates the recording) to the end of close (fsync "
+                      "included); steady: the frames after the first, close excluded.", "",
+                      "| frames codec (1 frame/chunk) | write path | MB/s whole | frames/s "
+                      "whole | CPU ms/frame whole | MB/s steady | CPU ms/frame steady | ratio |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for codec in args.codecs.split(","):
+                for name, r in bench_writers(frames, codec, folder, args.repeat).items():
+                    lines.append(f"| {codec} | {name} | {r['MB/s']:.0f} ({r['MB/s best']:.0f}) | "
+                                 f"{r['fps']:.0f} | {r['cpu_ms']:.1f} ({r['cpu_ms best']:.1f}) | "
+                                 f"{r['steady MB/s']:.0f} | {r['steady_cpu_ms']:.2f} "
+                                 f"({r['steady_cpu_ms best']:.2f}) | {r['ratio']:.2f} |")
+                    print(lines[-1], flush=True)
+        if "layout" in sections:
+            lines += ["", "| frames chunk layout (blosc-lz4, plain zarr, best) | MB/s | "
+                      "frames/s |", "|---|---|---|"]
+        layouts = ((1, 1024, 1280), (4, 1024, 1280), (1, 256, 1280))
+        for chunks in layouts if "layout" in sections else ():
             r = bench_layout(frames, chunks, folder, args.repeat)
             lines.append(f"| {chunks} | {r['MB/s']:.0f} | {r['fps']:.0f} |")
             print(lines[-1], flush=True)
-        lines += ["", "| mosaic codec (4 float32 arrays, 1024 x 256 band, journaled) | ms/band | "
-                  "CPU ms/band | ratio |", "|---|---|---|---|"]
-        for codec in ("zstd", "blosc-lz4", "none"):
+        if "mosaic" in sections:
+            lines += ["", "| mosaic codec (4 float32 arrays, 1024 x 256 band, journaled, best) | "
+                      "ms/band | CPU ms/band | ratio |", "|---|---|---|---|"]
+        for codec in ("zstd", "blosc-lz4", "none") if "mosaic" in sections else ():
             mosaic_codecs(codec)
             r = bench_mosaic(codec, folder, args.repeat)
             lines.append(f"| {codec} | {r['ms_band']:.1f} | {r['cpu_ms_band']:.1f} | "

@@ -31,6 +31,7 @@ from __future__ import annotations
 import datetime as _dt
 import errno
 import logging
+import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -260,10 +261,8 @@ class RecordingWriter:
         try:
             self.flush()
             if status == "complete":
-                self.frames.resize((self.committed, *self.shape))
-                self.headers.resize((self.committed, len(HEADER_COLUMNS)))
-                for arr in self.meta.values():
-                    arr.resize((self.committed,))
+                for arr in (self.frames, self.headers, *self.meta.values()):
+                    _trim(arr, self.committed)
                 self.sync.add(["headers/zarr.json", "frames/zarr.json",
                                *(f"{name}/zarr.json" for name in PER_FRAME)])
         except BaseException as exc:  # the status must still say that it did not complete
@@ -291,6 +290,27 @@ class RecordingWriter:
                 raise
         if failure is not None:
             raise failure
+
+
+def _trim(arr: zarr.Array, n: int) -> None:
+    """Shorten ``arr`` to ``n`` entries along its first axis, deleting the chunk files that
+    lie beyond (as zarr's resize does, without asking the store for each of the up to
+    :data:`GROW` chunks of the unwritten tail, which cost about 0.2 s of CPU at close)."""
+    from zarr.core.sync import sync
+
+    sync(arr.async_array.resize((n, *arr.shape[1:]), delete_outside_chunks=False))
+    step = int(arr.chunks[0])
+    folder = Path(arr.store_path.store.root) / arr.store_path.path / "c"  # type: ignore[attr-defined]
+    try:
+        names = os.listdir(folder)
+    except FileNotFoundError:
+        return
+    for name in names:
+        if name.isdigit() and int(name) * step >= n:  # a chunk wholly outside the new shape
+            outside = folder / name
+            for f in [outside] if outside.is_file() else outside.rglob("*"):
+                if f.is_file():
+                    f.unlink()
 
 
 class RecorderSink(Sink):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -310,16 +311,43 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
         w.close(status=status, error="stopped" if status == "failed" else None)
         synced[via_zarr] = done
     by_zarr, direct = (tmp_path / f"via_zarr={v}.zarr" for v in (True, False))
-    files = sorted(str(p.relative_to(by_zarr)) for p in by_zarr.rglob("*") if p.is_file())
-    assert files == sorted(str(p.relative_to(direct)) for p in direct.rglob("*") if p.is_file())
+    files = _files_of(by_zarr)
+    assert files == _files_of(direct)
     assert "frames/c/3/0/0" in files and "frame_id/c/2" in files and "headers/c/22/0" in files
     for name in files:
         a, b = (by_zarr / name).read_bytes(), (direct / name).read_bytes()
         if name == "zarr.json":  # the group's attributes: all equal but the creation time
-            a, b = ({k: v for k, v in json.loads(x)["attributes"].items() if k != "created"}
-                    for x in (a, b))
+            a, b = (json.dumps({k: v for k, v in json.loads(x)["attributes"].items()
+                                if k != "created"}).encode() for x in (a, b))
         assert a == b, name
     assert synced[True] == synced[False]
     assert {f"<rec>/frames/c/{n - 1}/0/0", "<rec>/frame_id/c/2", "<rec>"} <= synced[False]
     r = open_recording(direct)
     assert r.report.frames == n and r.report.defects == 0
+
+
+def _files_of(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def test_trimming_at_close_deletes_what_zarr_s_resize_deletes(tmp_path: Path) -> None:
+    from sffscan.stages.recorder import _trim
+
+    g = zarr.open_group(str(tmp_path / "g.zarr"), mode="w")
+    arrays = [g.create_array(name="frames", shape=(12, 4, 5), chunks=(1, 4, 5), dtype="uint16",
+                             fill_value=0, config={"write_empty_chunks": True}),
+              g.create_array(name="meta", shape=(40,), chunks=(8,), dtype="int64", fill_value=-1)]
+    arrays[0][:7] = np.arange(7 * 20, dtype=np.uint16).reshape(7, 4, 5)  # 0..6 stored
+    arrays[1][:33] = np.arange(33)  # chunks 0..4 stored
+    shutil.copytree(tmp_path / "g.zarr", tmp_path / "copy.zarr")
+    copy = zarr.open_group(str(tmp_path / "copy.zarr"), mode="r+")
+    for arr, n in zip(arrays, (5, 17), strict=True):
+        arr.resize((n, *arr.shape[1:]))  # zarr's own: deletes the chunks outside
+        _trim(copy[arr.basename], n)  # type: ignore[arg-type]
+    for name in ("frames", "meta"):
+        ours, theirs = tmp_path / "copy.zarr" / name, tmp_path / "g.zarr" / name
+        assert _files_of(ours) == _files_of(theirs)
+        assert all((ours / f).read_bytes() == (theirs / f).read_bytes() for f in _files_of(ours))
+    assert _files_of(tmp_path / "copy.zarr" / "frames") == [
+        *(f"c/{i}/0/0" for i in range(5)), "zarr.json"]
+    assert _files_of(tmp_path / "copy.zarr" / "meta") == ["c/0", "c/1", "c/2", "zarr.json"]
