@@ -45,6 +45,7 @@ import numpy as np
 import zarr
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
+from sffscan.pipeline.formats.zarr_chunks import read_many
 from sffscan.pipeline.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
@@ -316,7 +317,8 @@ class Recording:
         for index in self.order[start:]:
             header = self.header(int(index))
             try:
-                image = np.asarray(arr[int(index)])
+                # chunk by chunk without zarr's event loop (zarr_chunks: the same values)
+                image = read_many([(arr, int(index))])[0]
                 if image.shape != shape:
                     raise ValueError(f"shape {image.shape}")
             except Exception:  # noqa: BLE001 - undecodable or truncated chunk
