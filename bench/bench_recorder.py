@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -164,6 +165,7 @@ def main() -> None:
         lines = [f"# Recorder and mosaic codecs ({args.frames} simulated 1280x1024 uint16 frames, "
                  f"{args.repeat} runs; {os.cpu_count()} CPU(s), load average "
                  f"{os.getloadavg()[0]:.1f} at the start; folder {folder.parent})", "",
+                 f"Command: `python bench/bench_recorder.py {' '.join(sys.argv[1:])}`. "
                  f"Camera: 150 frames/s = {CAMERA_MB_S:.0f} MB/s."]
         if "writer" in sections:
             lines += ["", "Recorder's writer, its two write paths interleaved run by run, in a "
