@@ -130,8 +130,9 @@ def _crc32c(data: Any) -> bytes:
     return int(google_crc32c.value(np.frombuffer(data, np.uint8))).to_bytes(4, "little")
 
 
-def _load(plan: _Plan, path: Path) -> np.ndarray | None:
-    """A chunk's values (a new, writable array), or None where no file is stored."""
+def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
+    """A chunk's values (``copy``: a new, writable array; else possibly a read-only view of
+    the decoded bytes), or None where no file is stored."""
     try:
         raw: Any = path.read_bytes()
     except FileNotFoundError:
@@ -148,7 +149,8 @@ def _load(plan: _Plan, path: Path) -> np.ndarray | None:
     if data.size != int(np.prod(plan.chunks)):
         raise ValueError(f"{path}: {data.size} elements decoded, a chunk of {plan.chunks} "
                          f"holds {int(np.prod(plan.chunks))}")
-    return data.reshape(plan.chunks).copy()
+    data = data.reshape(plan.chunks)
+    return data.copy() if copy else data
 
 
 def _is_fill(plan: _Plan, data: np.ndarray) -> bool:
@@ -256,7 +258,7 @@ def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]
         reg = _region(plan.folder, arr.shape, sel)
         region = np.empty(reg.shape, plan.dtype)
         for key, inner, part, _ in _overlaps(plan, arr.shape, reg):
-            chunk = _load(plan, plan.path(key))
+            chunk = _load(plan, plan.path(key), copy=False)  # copied into the region
             region[part] = plan.fill if chunk is None else chunk[inner]
         out.append(region.reshape(reg.value_shape))
     if rest:
