@@ -18,6 +18,11 @@ and a copy of each frame's header is written beside the frame (array ``headers``
 after its chunk, so a frame is readable as soon as its header copy is written, even before
 the next metadata flush.
 
+Format version 3: the same, with the chunks of ``frames`` and ``headers`` named with zarr's
+default chunk key encoding and the separator ``.`` (``frames/c.i.0.0``, ``headers/c.i.0``,
+all in the array's folder) rather than ``/`` (``frames/c/i/0/0``: two or three new folders
+per frame, each created and fsynced). See ``bench/recorder_results.md``.
+
 Durability: the files written are fsynced (and their folders) every ``fsync_s`` seconds
 (default :data:`FSYNC_S`, 1 s) and at close: a power cut loses at most the last second of
 the stream. A reserve file (:data:`sffscan.stages.durable.RESERVE_BYTES`) is kept in the
@@ -35,7 +40,7 @@ import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import zarr
@@ -52,6 +57,7 @@ from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
 from sffscan.stages.durable import SyncTracker, free_reserve, make_reserve
 from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
+from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +67,8 @@ GROW = 1024
 FSYNC_S = 1.0
 #: default codec of the frames array (see bench/recorder_results.md)
 DEFAULT_CODEC = "blosc-lz4"
+#: chunk key separator of the frames and headers arrays -> the recording's format version
+KEY_SEPARATORS = {".": 3, "/": 2}
 #: the recorder's queue holds up to this many bytes of frames (within 16..1024 frames)
 QUEUE_BYTES = 512 * 2**20
 
@@ -109,13 +117,21 @@ class RecordingWriter:
         Write the chunks through zarr's own ``setitem`` rather than
         :func:`~sffscan.pipeline.formats.zarr_chunks.write_many` (the same files, about
         twice the CPU per frame; for the tests and the benchmark that compare the two).
+    key_separator : {".", "/"}
+        Separator of the chunk keys of ``frames`` and ``headers``: ``"."`` writes format
+        version 3 (every chunk in the array's folder), ``"/"`` format version 2 (a folder
+        per frame; for the tests and the benchmark that compare the two).
     """
 
     def __init__(self, path: str | Path, cfg: ScanConfig, *, codec: str = DEFAULT_CODEC,
                  flush_every: int = 16, flush_s: float = 0.25, fsync_s: float = FSYNC_S,
-                 account: Any | None = None, via_zarr: bool = False) -> None:
+                 account: Any | None = None, via_zarr: bool = False,
+                 key_separator: Literal[".", "/"] = ".") -> None:
         self.path = Path(path)
         self.via_zarr = via_zarr
+        if key_separator not in KEY_SEPARATORS:
+            raise ValueError(f"key_separator {key_separator!r}: one of {list(KEY_SEPARATORS)}")
+        self.key_separator = key_separator
         if self.path.exists():
             raise FileExistsError(f"{self.path}: exists; a recording is never overwritten, "
                                   "choose another path")
@@ -131,7 +147,7 @@ class RecordingWriter:
             status="recording", frame_shape=self.shape, dtype=str(self.dtype),  # type: ignore[arg-type]
             scan_config=cfg.model_dump(mode="json"), codec=codec,
             created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), writer="sffscan",
-            fsync_s=fsync_s)
+            fsync_s=fsync_s, format_version=KEY_SEPARATORS[key_separator])
         self.account = account
         self.sync = SyncTracker(self.path, interval_s=fsync_s)
         self.group: zarr.Group | None = None
@@ -149,10 +165,11 @@ class RecordingWriter:
         if self.group is not None:
             return self.group
         group = zarr.open_group(str(self.path), mode="w-")
+        keys = DefaultChunkKeyEncoding(separator=self.key_separator)
         self.frames = group.create_array(
             name="frames", shape=(0, *self.shape), chunks=(1, *self.shape), dtype=self.dtype,
             fill_value=0, compressors=[*frame_codecs(self.codec), Crc32cCodec()],
-            dimension_names=("frame", "y", "x"),
+            dimension_names=("frame", "y", "x"), chunk_key_encoding=keys,
             # a chunk equal to the fill value (an all-black frame) must be stored too: the
             # reader takes an absent chunk for a lost frame
             config={"write_empty_chunks": True})
@@ -167,6 +184,7 @@ class RecordingWriter:
             name="headers", shape=(0, len(HEADER_COLUMNS)), chunks=(1, len(HEADER_COLUMNS)),
             dtype="int64", fill_value=-1, compressors=[Crc32cCodec()],
             dimension_names=("frame", "field"), config={"write_empty_chunks": True},
+            chunk_key_encoding=keys,
             attributes={"columns": list(HEADER_COLUMNS)})
         group.update_attributes(self.attrs.model_dump(mode="json"))
         self.group = group
@@ -244,7 +262,8 @@ class RecordingWriter:
                   for name, col in zip(names, cols, strict=True)}
         self._put([v for name, v in values.items() if name != "frame_id"])
         self._put([values["frame_id"]])  # last, once the others are written
-        self.sync.add([f"{name}/c/{c}" for name in names
+        self.sync.add([f"{name}/{self.meta[name].metadata.encode_chunk_key((c,))}"  # type: ignore[union-attr]
+                       for name in names
                        for c in range(a // META_CHUNK, (b - 1) // META_CHUNK + 1)])
         self.committed = b
         self._pending.clear()
@@ -300,14 +319,26 @@ def _trim(arr: zarr.Array, n: int) -> None:
 
     sync(arr.async_array.resize((n, *arr.shape[1:]), delete_outside_chunks=False))
     step = int(arr.chunks[0])
-    folder = Path(arr.store_path.store.root) / arr.store_path.path / "c"  # type: ignore[attr-defined]
+    folder = Path(arr.store_path.store.root) / arr.store_path.path  # type: ignore[attr-defined]
+    sep = arr.metadata.chunk_key_encoding.separator  # type: ignore[union-attr]
+    if sep == ".":  # every chunk in the array's folder: c.<i>.<j>...
+        try:
+            names = os.listdir(folder)
+        except FileNotFoundError:
+            return
+        for name in names:
+            parts = name.split(".")
+            if (len(parts) == arr.ndim + 1 and parts[0] == "c"
+                    and all(p.isdigit() for p in parts[1:]) and int(parts[1]) * step >= n):
+                (folder / name).unlink()
+        return
     try:
-        names = os.listdir(folder)
+        names = os.listdir(folder / "c")
     except FileNotFoundError:
         return
     for name in names:
         if name.isdigit() and int(name) * step >= n:  # a chunk wholly outside the new shape
-            outside = folder / name
+            outside = folder / "c" / name
             for f in [outside] if outside.is_file() else outside.rglob("*"):
                 if f.is_file():
                     f.unlink()

@@ -61,14 +61,19 @@ def _kill_when(proc: Any, reached: Callable[[], bool], timeout_s: float = 60.0) 
 
 
 def _kill_at_frame(proc: Any, recording: Path, frames: int) -> bool:
-    """Kill once ``frames`` frame chunks of the recording exist (``frames/c/<i>/0/0``)."""
-    chunks = recording / "frames" / "c"
+    """Kill once ``frames`` frame chunks of the recording exist (``frames/c.<i>.0.0`` in
+    version 3, ``frames/c/<i>/0/0`` in version 2)."""
+    folder = recording / "frames"
 
     def reached() -> bool:
         try:
-            return len(os.listdir(chunks)) >= frames
+            names = os.listdir(folder)
+            n = sum(1 for name in names if name.startswith("c.") and name.endswith(".0.0"))
+            if "c" in names:
+                n += len(os.listdir(folder / "c"))
         except OSError:  # not created yet
             return False
+        return n >= frames
 
     return _kill_when(proc, reached)
 

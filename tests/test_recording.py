@@ -313,7 +313,7 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
     by_zarr, direct = (tmp_path / f"via_zarr={v}.zarr" for v in (True, False))
     files = _files_of(by_zarr)
     assert files == _files_of(direct)
-    assert "frames/c/3/0/0" in files and "frame_id/c/2" in files and "headers/c/22/0" in files
+    assert "frames/c.3.0.0" in files and "frame_id/c/2" in files and "headers/c.22.0" in files
     for name in files:
         a, b = (by_zarr / name).read_bytes(), (direct / name).read_bytes()
         if name == "zarr.json":  # the group's attributes: all equal but the creation time
@@ -321,7 +321,7 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
                                 if k != "created"}).encode() for x in (a, b))
         assert a == b, name
     assert synced[True] == synced[False]
-    assert {f"<rec>/frames/c/{n - 1}/0/0", "<rec>/frame_id/c/2", "<rec>"} <= synced[False]
+    assert {f"<rec>/frames/c.{n - 1}.0.0", "<rec>/frame_id/c/2", "<rec>"} <= synced[False]
     r = open_recording(direct)
     assert r.report.frames == n and r.report.defects == 0
 
@@ -336,18 +336,24 @@ def test_trimming_at_close_deletes_what_zarr_s_resize_deletes(tmp_path: Path) ->
     g = zarr.open_group(str(tmp_path / "g.zarr"), mode="w")
     arrays = [g.create_array(name="frames", shape=(12, 4, 5), chunks=(1, 4, 5), dtype="uint16",
                              fill_value=0, config={"write_empty_chunks": True}),
-              g.create_array(name="meta", shape=(40,), chunks=(8,), dtype="int64", fill_value=-1)]
+              g.create_array(name="meta", shape=(40,), chunks=(8,), dtype="int64", fill_value=-1),
+              g.create_array(name="dotted", shape=(12, 4, 5), chunks=(1, 4, 5), dtype="uint16",
+                             fill_value=0, config={"write_empty_chunks": True},
+                             chunk_key_encoding={"name": "default", "separator": "."})]
     arrays[0][:7] = np.arange(7 * 20, dtype=np.uint16).reshape(7, 4, 5)  # 0..6 stored
     arrays[1][:33] = np.arange(33)  # chunks 0..4 stored
+    arrays[2][:7] = arrays[0][:7]
     shutil.copytree(tmp_path / "g.zarr", tmp_path / "copy.zarr")
     copy = zarr.open_group(str(tmp_path / "copy.zarr"), mode="r+")
-    for arr, n in zip(arrays, (5, 17), strict=True):
+    for arr, n in zip(arrays, (5, 17, 5), strict=True):
         arr.resize((n, *arr.shape[1:]))  # zarr's own: deletes the chunks outside
         _trim(copy[arr.basename], n)  # type: ignore[arg-type]
-    for name in ("frames", "meta"):
+    for name in ("frames", "meta", "dotted"):
         ours, theirs = tmp_path / "copy.zarr" / name, tmp_path / "g.zarr" / name
         assert _files_of(ours) == _files_of(theirs)
         assert all((ours / f).read_bytes() == (theirs / f).read_bytes() for f in _files_of(ours))
     assert _files_of(tmp_path / "copy.zarr" / "frames") == [
         *(f"c/{i}/0/0" for i in range(5)), "zarr.json"]
     assert _files_of(tmp_path / "copy.zarr" / "meta") == ["c/0", "c/1", "c/2", "zarr.json"]
+    assert _files_of(tmp_path / "copy.zarr" / "dotted") == [
+        *(f"c.{i}.0.0" for i in range(5)), "zarr.json"]

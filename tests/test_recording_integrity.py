@@ -20,7 +20,7 @@ from tests.scan_helpers import small_config
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
-    """A recording of a short simulated scan (version 2) and its frame count."""
+    """A recording of a short simulated scan (version 3) and its frame count."""
     d = tmp_path_factory.mktemp("integrity")
     cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 6.0},
                        processing={"registration": False})
@@ -30,9 +30,16 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
     assert main(["scan", "--config", str(toml), "-o", str(d / "live.zarr"), "--record",
                  str(rec), "-q", "--no-evaluate"]) == 0
     r = open_recording(rec)
-    assert r.attrs.format_version == 2 and r.report.defects == 0
+    assert r.attrs.format_version == 3 and r.report.defects == 0
     assert not (rec / ".sffscan-reserve").exists()  # freed at close
     return rec, r.report.frames
+
+
+def _chunk(rec: Path, array: str, *key: int) -> Path:
+    """The file of a chunk, named by the array's own chunk key encoding (``c.i.0.0`` in
+    version 3, ``c/i/0/0`` in version 2)."""
+    arr = zarr.open_array(str(rec / array), mode="r")
+    return rec / array / arr.metadata.encode_chunk_key(key)  # type: ignore[union-attr]
 
 
 def _copy(src: Path, dst: Path) -> Path:
@@ -50,7 +57,8 @@ def test_twenty_flipped_bytes_in_frame_chunks_are_all_detected(
     fid = np.asarray(zarr.open_group(str(rec), mode="r")["frame_id"])  # type: ignore[index]
     flipped = sorted(rng.sample(range(n), 20))
     for i in flipped:  # one byte anywhere in the chunk file, checksum bytes included
-        path = rec / "frames" / "c" / str(i) / "0" / "0"
+        path = _chunk(rec, "frames", i, 0, 0)
+        assert path.name == f"c.{i}.0.0"  # version 3: every chunk in the array's folder
         data = bytearray(path.read_bytes())
         data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
         path.write_bytes(bytes(data))
@@ -96,12 +104,12 @@ def test_a_lost_frame_or_header_chunk_loses_that_frame_only(
         recorded: tuple[Path, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     src, n = recorded
     rec = _copy(src, tmp_path / "holes.zarr")
-    (rec / "frames" / "c" / "5" / "0" / "0").unlink()
-    (rec / "headers" / "c" / "9" / "0").unlink()  # the metadata still describes frame 9
+    _chunk(rec, "frames", 5, 0, 0).unlink()
+    _chunk(rec, "headers", 9, 0).unlink()  # the metadata still describes frame 9
     r = open_recording(rec)
     assert r.report.frames == n - 1 and r.report.missing_chunks == [5]
     # frame 12 loses both its header copy and (with the frame_id chunk) its metadata
-    (rec / "headers" / "c" / "12" / "0").unlink()
+    _chunk(rec, "headers", 12, 0).unlink()
     (rec / "frame_id" / "c" / "0").unlink()
     r = open_recording(rec)
     assert r.report.frames == n - 3  # 5 (no frame), 9 and 12 (no header, no metadata)
@@ -114,7 +122,7 @@ def test_verify_checks_the_header_copies_too(recorded: tuple[Path, int], tmp_pat
                                              capsys: pytest.CaptureFixture[str]) -> None:
     src, n = recorded
     rec = _copy(src, tmp_path / "hdr.zarr")
-    path = rec / "headers" / "c" / "7" / "0"
+    path = _chunk(rec, "headers", 7, 0)
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0x10
     path.write_bytes(bytes(data))
@@ -195,11 +203,59 @@ def test_the_recorder_makes_what_it_wrote_durable(tmp_path: Path,
     files = {str(p.relative_to(root)) for p, d in synced if not d}
     dirs = {p for p, d in synced if d}
     for i in range(5):
-        assert f"frames/c/{i}/0/0" in files and f"headers/c/{i}/0" in files
+        assert f"frames/c.{i}.0.0" in files and f"headers/c.{i}.0" in files
     assert {"zarr.json", "frames/zarr.json", "frame_id/c/0", "timestamp_ns/c/0"} <= files
-    assert {root, root.parent, root / "frames" / "c" / "4" / "0"} <= dirs
+    # version 3: the frame and header chunks lie in their array's folder, no folder per frame
+    assert dirs == {root, root.parent, root / "frames", root / "headers",
+                    *(root / name for name in PER_FRAME),
+                    *(root / name / "c" for name in PER_FRAME)}
     synced.clear()
     writer = RecordingWriter(tmp_path / "eager.zarr", cfg, fsync_s=0.0)
     writer.write(frames[0])
-    assert any(str(p).endswith("frames/c/0/0/0") for p, _ in synced)  # at the first write
+    assert any(str(p).endswith("frames/c.0.0.0") for p, _ in synced)  # at the first write
     writer.close()
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_versions_2_and_3_open_verify_and_replay_the_same_frames(tmp_path: Path,
+                                                                 version: int) -> None:
+    """Version 3 names the frame and header chunks ``c.i.0.0`` (one folder), version 2
+    ``c/i/0/0`` (a folder per frame, as recorded before): each opens, verifies and replays
+    the frames written; a lost frame chunk is reported lost, a flipped byte corrupt."""
+    from sffscan.stages.recorder import RecordingWriter
+    from sffscan.stages.sim.scanner import simulate_frames
+
+    from tests.test_transport import tiny_config
+
+    cfg = tiny_config()
+    frames = [f for _, f in zip(range(12), simulate_frames(cfg), strict=False)]
+    rec = tmp_path / f"v{version}.zarr"
+    writer = RecordingWriter(rec, cfg, key_separator={2: "/", 3: "."}[version])
+    for f in frames:
+        writer.write(f)
+    writer.close()  # trims the arrays from 1024 entries to 12
+    names = sorted(p.name for p in (rec / "frames").iterdir())
+    if version == 3:
+        assert names == sorted([*(f"c.{i}.0.0" for i in range(12)), "zarr.json"])
+        assert sorted(p.name for p in (rec / "headers").iterdir()) == sorted(
+            [*(f"c.{i}.0" for i in range(12)), "zarr.json"])
+    else:
+        assert names == ["c", "zarr.json"]
+        assert sorted(int(p.name) for p in (rec / "frames" / "c").iterdir()) == list(range(12))
+    r = open_recording(rec)
+    assert r.attrs.format_version == version and r.report.frames == 12
+    assert r.report.defects == 0 and r.verify() == [] and not r.report.notes
+    got = list(r.frames())
+    assert [f.header for f in got] == [f.header for f in frames]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(got, frames, strict=True))
+    _chunk(rec, "frames", 4, 0, 0).unlink()
+    path = _chunk(rec, "frames", 7, 0, 0)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0x04
+    path.write_bytes(bytes(data))
+    (rec / "frame_id" / "c" / "0").unlink()  # every frame_id: rebuilt from the header copies
+    r = open_recording(rec)
+    fid = [f.header.frame_id for f in frames]
+    assert r.report.missing_chunks == [fid[4]] and r.report.frames == 11
+    assert any("12 entries rebuilt from the header copies" in note for note in r.report.notes)
+    assert r.verify() == [fid[7]] and r.report.frames == 10

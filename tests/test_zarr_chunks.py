@@ -32,12 +32,13 @@ CODECS = {"mosaic-blosc-lz4": mosaic_codecs("blosc-lz4"), "blosc-lz4": frame_cod
 
 
 def _pair(tmp_path: Path, layout: str, compressors: list, *, write_empty: bool = False,
-          fill: Any = None) -> tuple[zarr.Array, zarr.Array]:
+          fill: Any = None, separator: str = "/") -> tuple[zarr.Array, zarr.Array]:
     shape, chunks, dtype, default_fill = LAYOUTS[layout]
     g = zarr.open_group(str(tmp_path / "m.zarr"), mode="a")
     return tuple(g.create_array(name=name, shape=shape, chunks=chunks, dtype=dtype,
                                 fill_value=default_fill if fill is None else fill,
                                 compressors=compressors,
+                                chunk_key_encoding={"name": "default", "separator": separator},
                                 config={"write_empty_chunks": write_empty})
                  for name in ("by_zarr", "direct"))  # type: ignore[return-value]
 
@@ -83,11 +84,29 @@ def _values(rng: np.random.Generator, shape: tuple[int, ...], dtype: str, fill: 
 @pytest.mark.parametrize("layout", list(LAYOUTS))
 def test_writes_and_reads_equal_zarr_s_values_and_files(tmp_path: Path, layout: str,
                                                         codec: str, crc: bool) -> None:
+    _compare_with_zarr(tmp_path, layout, codec, crc, "/")
+
+
+@pytest.mark.parametrize("codec", ["blosc-lz4", "none"])
+@pytest.mark.parametrize("layout", list(LAYOUTS))
+def test_dot_separated_chunk_keys_equal_zarr_s_values_and_files(tmp_path: Path, layout: str,
+                                                                codec: str) -> None:
+    """The chunk key encoding of recording format 3 (``c.i.j``): the same files as zarr's."""
+    _compare_with_zarr(tmp_path, layout, codec, True, ".")
+    folder = tmp_path / "m.zarr" / "direct"
+    assert not [p for p in folder.iterdir() if p.is_dir()]  # every chunk in the one folder
+    ndim = len(LAYOUTS[layout][0])
+    assert (folder / ".".join(["c"] + ["0"] * ndim)).is_file()
+
+
+def _compare_with_zarr(tmp_path: Path, layout: str, codec: str, crc: bool,
+                       separator: str) -> None:
     shape, chunks, dtype, fill = LAYOUTS[layout]
     rng = np.random.default_rng(len(layout) * 31 + len(codec) + crc)
     write_empty = layout in ("frames", "headers") or (crc and layout != "tiles")
     compressors = [*CODECS[codec], *([Crc32cCodec()] if crc else [])]
-    by_zarr, direct = _pair(tmp_path, layout, compressors, write_empty=write_empty)
+    by_zarr, direct = _pair(tmp_path, layout, compressors, write_empty=write_empty,
+                            separator=separator)
     plan = direct_plan(direct)
     assert plan is not None and plan.crc is crc and plan.write_empty is write_empty
     for k, sel in enumerate(_selections(rng, shape, chunks, 10)):

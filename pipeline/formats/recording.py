@@ -1,9 +1,12 @@
 """Raw-stream recordings: the format (a Zarr v3 group) and a validating reader.
 
-Layout (format ``sffscan-recording``, version 2; schema ``schemas/recording_attrs.v1.json``):
+Layout (format ``sffscan-recording``, version 3; schema ``schemas/recording_attrs.v1.json``):
 
-- ``frames``: uint8 or uint16 (n, H, W), one frame per chunk;
-- ``headers`` (version 2): int64 (n, 6), one chunk per frame beside it: a copy of the frame's
+- ``frames``: uint8 or uint16 (n, H, W), one frame per chunk; version 3 names the chunks of
+  ``frames`` and ``headers`` with the separator ``.`` (``frames/c.i.0.0``, every chunk in the
+  array's folder), versions 1 and 2 with ``/`` (``frames/c/i/0/0``, a folder per frame);
+  zarr reads each array's encoding from its ``zarr.json``;
+- ``headers`` (versions 2, 3): int64 (n, 6), one chunk per frame beside it: a copy of the frame's
   header (frame_id, timestamp_ns, focus_index, stage_x_um and stage_y_um as the bits of
   float64, pass_index; -1 = not written), written right after the frame's chunk;
 - ``frame_id``: int64 (n,), the camera's frame counter; ``-1`` (the fill value) = not written;
@@ -15,7 +18,7 @@ Layout (format ``sffscan-recording``, version 2; schema ``schemas/recording_attr
 - group attributes (:class:`RecordingAttrs`): format, version, status, frame shape and dtype,
   and the whole scan configuration.
 
-Integrity (version 2): every chunk of every array ends with a CRC-32C (zarr v3's ``crc32c``
+Integrity (versions 2 and 3): every chunk of every array ends with a CRC-32C (zarr v3's ``crc32c``
 codec): a flipped byte makes the chunk undecodable, never silently different. No single
 chunk file is a single point of failure: the per-frame arrays are cut in small chunks
 (:data:`META_CHUNK` frames) and every frame's header has a copy beside the frame, so a lost
@@ -52,7 +55,7 @@ if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount
 
 FORMAT = "sffscan-recording"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 #: per-frame arrays: name -> (dtype, fill value, required)
 PER_FRAME: dict[str, tuple[str, Any, bool]] = {
     "frame_id": ("int64", -1, True),
@@ -75,9 +78,11 @@ class RecordingAttrs(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-recording"] = "sffscan-recording"
-    format_version: Literal[1, 2] = Field(
-        2, description="2: CRC-32C on every chunk and a copy of each frame's header beside it "
-        "(array 'headers'); 1: neither (still replayed)")
+    format_version: Literal[1, 2, 3] = Field(
+        3, description="3: as 2, with the chunks of 'frames' and 'headers' named 'c.i.0.0' "
+        "(zarr's default chunk key encoding with the separator '.', every chunk in the "
+        "array's folder); 2: CRC-32C on every chunk and a copy of each frame's header beside "
+        "it (array 'headers'), chunk keys 'c/i/0/0'; 1: neither (still replayed)")
     status: Literal["recording", "complete", "failed"] = Field(
         "complete", description="'recording' while being written (still so after a crash: "
         "the frames up to the last complete one are readable); 'complete' after a clean end; "
@@ -190,6 +195,19 @@ def _chunk_keys(arr: zarr.Array) -> set[str]:
         return [k async for k in sp.store.list_prefix(prefix)]
 
     return {k[len(prefix):] for k in sync(_list())}
+
+
+def _first_indexes(arr: zarr.Array, keys: set[str]) -> set[int]:
+    """First chunk index of each chunk key of ``arr`` (zarr's default chunk key encoding,
+    ``c/i/…`` in versions 1 and 2, ``c.i.…`` in version 3, as the array's metadata says);
+    anything else (``zarr.json``, a temporary file a crash left) is skipped."""
+    sep = getattr(arr.metadata.chunk_key_encoding, "separator", "/")  # type: ignore[union-attr]
+    out = set()
+    for k in keys:
+        parts = k.split(sep)
+        if len(parts) == arr.ndim + 1 and parts[0] == "c" and all(p.isdigit() for p in parts[1:]):
+            out.add(int(parts[1]))
+    return out
 
 
 def _stored(arr: zarr.Array) -> tuple[int, ...]:
@@ -460,13 +478,11 @@ def open_recording(path: str | Path) -> Recording:
     if v2:
         # the frames written whole: a frame chunk and its header copy (written after it); a
         # frame chunk alone is a write a crash cut short, not a lost frame
-        stored = {int(k.split("/")[1]) for k in frame_keys
-                  if k.startswith("c/") and k.split("/")[1].isdigit()}
+        stored = _first_indexes(frames, frame_keys)
         if headers is None:
             report.notes.append("no 'headers' array: a lost metadata chunk cannot be rebuilt")
         else:
-            stored &= {int(k.split("/")[1]) for k in _chunk_keys(headers)
-                       if k.startswith("c/") and k.split("/")[1].isdigit()}
+            stored &= _first_indexes(headers, _chunk_keys(headers))
         extent = min(n, max(stored) + 1) if stored else 0
     for name, (dtype, fill, _) in PER_FRAME.items():
         if name in arrays:

@@ -9,8 +9,9 @@ cost more CPU than the compression itself. Measured on the 2-core VM
 (``bench/bench_pyramid.py``, ``bench/bench_recorder.py``; figures in the README).
 
 What: an N-dimensional array in a local store (a folder), with the regular chunk grid, the
-default chunk key encoding (``c/i/j/…``), C order, a numeric data type and the codecs
-``bytes`` (little endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
+default chunk key encoding with either separator (``c/i/j/…`` or ``c.i.j.…``, the keys made
+by the array's own encoding), C order, a numeric data type and the codecs ``bytes`` (little
+endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
 most one ``crc32c`` after it (what :func:`sffscan.stages.mosaic.mosaic_codecs` and the
 recorder's :func:`sffscan.stages.recorder.frame_codecs` make). Each chunk's file is encoded
 and decoded with numcodecs (the library zarr's own codecs call), configured from the codec's
@@ -34,7 +35,7 @@ import asyncio
 import itertools
 import os
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,9 +65,10 @@ class _Plan:
     codec: Any  # a numcodecs codec, or None (no compressor)
     crc: bool  # a crc32c codec after the compressor
     write_empty: bool  # the array's config: store chunks equal to the fill value too
+    encode: Callable[[tuple[int, ...]], str]  # the array's own chunk key encoding
 
     def path(self, key: tuple[int, ...]) -> Path:
-        return self.folder.joinpath("c", *map(str, key))
+        return self.folder / self.encode(key)
 
 
 def _compressor(config: dict[str, Any]) -> Any:
@@ -101,7 +103,7 @@ def direct_plan(arr: zarr.Array) -> _Plan | None:
             or not isinstance(meta.chunk_grid, RegularChunkGrid) or len(arr.shape) == 0
             or dtype.kind not in "biuf" or dtype.byteorder == ">" or config.order != "C"
             or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
-            or meta.chunk_key_encoding.separator != "/"):
+            or meta.chunk_key_encoding.separator not in ("/", ".")):
         return None
     codecs = [c.to_dict() for c in meta.codecs]
     if not codecs or codecs[0].get("name") != "bytes":
@@ -120,7 +122,8 @@ def direct_plan(arr: zarr.Array) -> _Plan | None:
     except KeyError:
         return None
     return _Plan(Path(store.root) / arr.store_path.path, tuple(int(c) for c in arr.chunks),
-                 dtype, arr.fill_value, codec, crc, bool(config.write_empty_chunks))
+                 dtype, arr.fill_value, codec, crc, bool(config.write_empty_chunks),
+                 meta.chunk_key_encoding.encode_chunk_key)
 
 
 def _crc32c(data: Any) -> bytes:
