@@ -6,15 +6,18 @@ frames array, frames go through the recorder's own writer
 to a temporary folder, by both of its write paths, interleaved (zarr's setitem, then the
 direct chunk writes of :mod:`sffscan.pipeline.formats.zarr_chunks`, ``--repeat`` times): the
 median and best of MB/s of raw frame data, CPU ms per frame of the whole process (blosc and
-zarr use their own threads), and the compression ratio. Two other chunk layouts are timed
+zarr use their own threads), and the compression ratio. The keys section runs the writer with
+the chunk keys of recording formats 2 (``c/i/0/0``) and 3 (``c.i.0.0``) the same way, system
+time and fsyncs apart (use >= 300 frames so that the 1 s fsyncs happen while writing). Two
+other chunk layouts are timed
 with plain zarr. Frames are rendered by the simulator (thesis optics, 10-bit
 data, sensor noise), so the ratios are those of real-looking frames. The mosaic part
 times blending-and-writing a 1024-row band of 256-px chunks of the four float32 arrays.
 
     python bench/bench_recorder.py [--frames 60] [--repeat 3] [--dir /tmp]
-        [--sections writer,layout,mosaic]
+        [--sections writer,keys,layout,mosaic] [--codecs none,blosc-lz4,...] [--out FILE]
 
-Writes ``bench/recorder_results.md``.
+Writes (the whole file, only the sections run) ``bench/recorder_results.md``.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zarr
@@ -43,35 +47,46 @@ def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-WRITE_PATHS = {"zarr setitem": True, "zarr_chunks": False}  # name -> via_zarr
+#: variants of the writer: name -> RecordingWriter keywords
+WRITE_PATHS: dict[str, dict[str, Any]] = {"zarr setitem": {"via_zarr": True},
+                                          "zarr_chunks": {"via_zarr": False}}
+KEY_ENCODINGS: dict[str, dict[str, Any]] = {
+    "keys c/i/0/0 (format 2)": {"key_separator": "/"},
+    "keys c.i.0.0 (format 3)": {"key_separator": "."}}
 
 
-def bench_writers(frames: list[Frame], codec: str, folder: Path,
-                  repeat: int) -> dict[str, dict[str, float]]:
-    """Both write paths of the recorder's writer, interleaved run by run on the same frames:
-    per path the median and best MB/s and CPU ms/frame, and the compression ratio."""
+def bench_writers(frames: list[Frame], codec: str, folder: Path, repeat: int,
+                  variants: dict[str, dict[str, Any]] = WRITE_PATHS
+                  ) -> dict[str, dict[str, float]]:
+    """Variants of the recorder's writer, interleaved run by run on the same frames (the
+    order reversed every other run): per
+    variant the median and best MB/s and CPU ms/frame (user + system; the system part
+    apart, fsyncs included), the fsyncs made and the compression ratio."""
     cfg = demo_config()
-    runs: dict[str, list[dict[str, float]]] = {name: [] for name in WRITE_PATHS}
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in variants}
 
-    def record(path: Path, via_zarr: bool, out: dict[str, float]) -> None:
-        w = RecordingWriter(path, cfg, codec=codec, via_zarr=via_zarr)
-        c0, t0 = time.process_time(), time.perf_counter()
+    def record(path: Path, kwargs: dict[str, Any], out: dict[str, float]) -> None:
+        w = RecordingWriter(path, cfg, codec=codec, **kwargs)
+        c0, s0, t0 = time.process_time(), os.times().system, time.perf_counter()
         w.write(frames[0])  # creates the recording
-        c1, t1 = time.process_time(), time.perf_counter()
+        c1, s1, t1 = time.process_time(), os.times().system, time.perf_counter()
         for f in frames[1:]:
             w.write(f)
-        c2, t2 = time.process_time(), time.perf_counter()
+        c2, s2, t2 = time.process_time(), os.times().system, time.perf_counter()
+        syncs = w.sync.syncs
         w.close()
-        c3, t3 = time.process_time(), time.perf_counter()
-        out.update(wall=t3 - t0, cpu=c3 - c0, steady_wall=t2 - t1, steady_cpu=c2 - c1)
+        c3, s3, t3 = time.process_time(), os.times().system, time.perf_counter()
+        out.update(wall=t3 - t0, cpu=c3 - c0, sys=s3 - s0, steady_wall=t2 - t1,
+                   steady_cpu=c2 - c1, steady_sys=s2 - s1, syncs=syncs)
 
     for k in range(repeat):
-        for name, via_zarr in WRITE_PATHS.items():
-            path = folder / f"rec-{codec}-{k}-{via_zarr}.zarr"
+        order = list(enumerate(variants.items()))
+        for v, (name, kwargs) in order[::-1] if k % 2 else order:  # who goes first alternates
+            path = folder / f"rec-{codec}-{k}-{v}.zarr"
             out: dict[str, float] = {}
             # in a thread, as the recorder sink runs in the pipeline (numcodecs' blosc uses
             # its own threads only when called from the main thread)
-            t = threading.Thread(target=record, args=(path, via_zarr, out))
+            t = threading.Thread(target=record, args=(path, kwargs, out))
             t.start()
             t.join()
             out["size"] = _du(path / "frames")
@@ -90,6 +105,9 @@ def bench_writers(frames: list[Frame], codec: str, folder: Path,
                      "steady_cpu_ms": 1e3 * np.median(steady) / (n - 1),
                      "steady_cpu_ms best": 1e3 * steady.min() / (n - 1),
                      "steady MB/s": raw * (n - 1) / n / np.median(col("steady_wall")) / 1e6,
+                     "sys_ms": 1e3 * np.median(col("sys")) / n,
+                     "steady_sys_ms": 1e3 * np.median(col("steady_sys")) / (n - 1),
+                     "syncs": float(np.median(col("syncs"))),
                      "ratio": raw / rs[0]["size"]}
     return res
 
@@ -148,8 +166,9 @@ def main() -> None:
     ap.add_argument("--dir", default=None, help="folder to write in (default: system temp)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("recorder_results.md")))
     ap.add_argument("--sections", default="writer,layout,mosaic",
-                    help="comma-separated: writer (both write paths, all codecs), layout, "
-                         "mosaic")
+                    help="comma-separated: writer (both write paths, all codecs), keys (the "
+                         "two chunk key encodings of frames and headers, formats 2 and 3), "
+                         "layout, mosaic")
     ap.add_argument("--codecs", default="none,blosc-lz4,blosc-zstd,zstd",
                     help="frames codecs of the writer section")
     args = ap.parse_args()
@@ -181,6 +200,24 @@ def main() -> None:
                                  f"{r['fps']:.0f} | {r['cpu_ms']:.1f} ({r['cpu_ms best']:.1f}) | "
                                  f"{r['steady MB/s']:.0f} | {r['steady_cpu_ms']:.2f} "
                                  f"({r['steady_cpu_ms best']:.2f}) | {r['ratio']:.2f} |")
+                    print(lines[-1], flush=True)
+        if "keys" in sections:
+            lines += ["", "Recorder's writer (zarr_chunks), the chunk keys of frames and headers "
+                      "of format 2 (`c/i/0/0`, a folder per frame) and format 3 (`c.i.0.0`, "
+                      "one folder), interleaved run by run, in a thread (median, best in "
+                      "brackets). CPU = user + system of the process; system apart; fsyncs "
+                      "every 1 s (`fsync_s`) while writing (count in the table) and at close.",
+                      "", "| frames codec | chunk keys | MB/s whole | CPU ms/frame whole | "
+                      "system ms/frame whole | CPU ms/frame steady | system ms/frame steady | "
+                      "syncs while writing |", "|---|---|---|---|---|---|---|---|"]
+            for codec in args.codecs.split(","):
+                for name, r in bench_writers(frames, codec, folder, args.repeat,
+                                             KEY_ENCODINGS).items():
+                    lines.append(f"| {codec} | {name} | {r['MB/s']:.0f} ({r['MB/s best']:.0f}) | "
+                                 f"{r['cpu_ms']:.2f} ({r['cpu_ms best']:.2f}) | "
+                                 f"{r['sys_ms']:.2f} | {r['steady_cpu_ms']:.2f} "
+                                 f"({r['steady_cpu_ms best']:.2f}) | {r['steady_sys_ms']:.2f} | "
+                                 f"{r['syncs']:.0f} |")
                     print(lines[-1], flush=True)
         if "layout" in sections:
             lines += ["", "| frames chunk layout (blosc-lz4, plain zarr, best) | MB/s | "
