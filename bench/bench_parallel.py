@@ -23,6 +23,12 @@ ready; the workers' start-up, mostly importing torch, is reported apart). CPU ms
 is the whole process tree's while streaming (every worker included, start-up excluded).
 Writes ``--out`` (markdown) and the same figures as JSON beside it. The machine and its
 load average (before and after) are named.
+
+``--scaling ROUNDS`` measures only the core scaling of processes from memory: the lowest
+and highest of ``--cores`` alternately (the order reversed every round), ROUNDS pairs, and
+prints each pair's ratio and the ratio of the medians (nothing written)::
+
+    python bench/bench_parallel.py --scaling 4
 """
 
 from __future__ import annotations
@@ -211,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="from memory only, processes and threads on the largest core count")
     ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--scaling", type=int, metavar="ROUNDS",
+                    help="only the core scaling of processes from memory, ROUNDS pairs")
     args = ap.parse_args(argv)
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
@@ -221,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     cores = [c for c in (int(v) for v in args.cores.split(",")) if c <= len(
         os.sched_getaffinity(0))]
     common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache)}
+    if args.scaling:
+        return scaling(common, min(cores), max(cores), args.scaling)
     cases = [{**common, "source": "memory", "mode": m, "record": False, "cores": c}
              for c in cores for m in ("threads", "processes")]
     if not args.quick:
@@ -249,6 +259,27 @@ def main(argv: list[str] | None = None) -> int:
             "run_s": time.perf_counter() - t_run}
     write_report(args.out, meta, rows)
     print(args.out.read_text(encoding="utf-8"))
+    return 0
+
+
+def scaling(common: dict[str, Any], low: int, high: int, rounds: int) -> int:
+    """Pairs of runs, processes from memory, on ``low`` and ``high`` cores (order reversed
+    every round); prints the frames/s, each pair's ratio and the ratio of the medians."""
+    fps: dict[int, list[float]] = {low: [], high: []}
+    for r in range(rounds):
+        for c in (low, high) if r % 2 == 0 else (high, low):
+            got = spawn_case({**common, "source": "memory", "mode": "processes",
+                              "record": False, "cores": c})
+            fps[c].append(got["fps"])
+            print(f"round {r + 1}: {c} core(s): {got['fps']:.1f} frames/s (load "
+                  f"{os.getloadavg()[0]:.2f})", file=sys.stderr, flush=True)
+    pairs = [b / a for a, b in zip(fps[low], fps[high], strict=True)]
+    ratio = statistics.median(fps[high]) / statistics.median(fps[low])
+    print(f"{machine()}; processes from memory, {common['frames']} frames per run")
+    print(f"{low} core(s): " + ", ".join(f"{v:.1f}" for v in fps[low]) + " frames/s")
+    print(f"{high} core(s): " + ", ".join(f"{v:.1f}" for v in fps[high]) + " frames/s")
+    print(f"{high}/{low} cores: ratio of the medians {ratio:.2f}x (pairs "
+          + ", ".join(f"{v:.2f}" for v in pairs) + ")")
     return 0
 
 
