@@ -22,6 +22,7 @@ accumulated in float64.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -43,6 +44,7 @@ __all__ = [
     "levels_to_height",
     "median_filter_levels",
     "spc_by_roll",
+    "volume_strips",
     "windowed_centroid",
 ]
 
@@ -66,6 +68,10 @@ ADAPTIVE_HALF_WINDOW = 5
 ADAPTIVE_MAX_SPREAD = 2
 """Largest spread of filtered peaks (levels) in the focus window for which ``"adaptive"``
 takes the curve's maximum (Gaussian 3-point fit) instead of its windowed centroid."""
+
+STRIP_PIXELS = 4096
+"""Pixels per strip of :func:`volume_strips`: N = 50 float32 levels of 4096 pixels are
+800 KiB, which stay in cache."""
 
 
 # ----------------------------------------------------------------------------- validation
@@ -168,14 +174,28 @@ def focus_confidence(volume: np.ndarray) -> np.ndarray:
     n, height, width = volume.shape
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
     sums = np.empty((3, height * width), np.float32)
-    rows = max(1, 4096 // max(1, width))
+    for p0, p1, strip in volume_strips(volume):
+        np.matmul(table, strip, out=sums[:, p0:p1])
+    h0, re, im = sums.reshape(3, height, width)
+    return _confidence(h0, re, im)
+
+
+def volume_strips(volume: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
+    """The volume in strips of whole rows, about :data:`STRIP_PIXELS` pixels each, each
+    copied into one C-ordered ``(N, P)`` float32 buffer (reused: a strip is valid until the
+    next is yielded): ``(first pixel, end pixel, strip)``, pixels counted row by row.
+
+    A strided volume (a block of a ring buffer) is read once, in pieces that stay in cache
+    for whatever the caller does with each strip.
+    """
+    n, height, width = volume.shape
+    rows = max(1, STRIP_PIXELS // max(1, width))
     buf = np.empty((n, min(rows, height) * width), np.float32)
     for i in range(0, height, rows):
         r = min(rows, height - i)
-        np.copyto(buf[:, :r * width].reshape(n, r, width), volume[:, i:i + r])
-        np.matmul(table, buf[:, :r * width], out=sums[:, i * width:(i + r) * width])
-    h0, re, im = sums.reshape(3, height, width)
-    return _confidence(h0, re, im)
+        strip = buf[:, :r * width]
+        np.copyto(strip.reshape(n, r, width), volume[:, i:i + r])
+        yield i * width, (i + r) * width, strip
 
 
 def _argmax(vol: np.ndarray) -> np.ndarray:
@@ -251,27 +271,36 @@ def _pixel_offsets(shape: tuple[int, ...], st1: int, st2: int) -> np.ndarray:
     return (rows + np.arange(shape[1], dtype=np.intp)[None, :] * st2).reshape(-1)
 
 
+def _beyond(c: np.ndarray, half_window: int, n: int) -> list[np.ndarray | None]:
+    """For each window offset j = -h .. h, the mask of the pixels whose level ``c + j`` is
+    beyond the range 0..N-1, or None where no pixel's is."""
+    lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
+    masks: list[np.ndarray | None] = []
+    for j in range(-half_window, half_window + 1):
+        if lowest + j < 0 or highest + j > n - 1:
+            k = c + j
+            masks.append((k < 0) | (k > n - 1))
+        else:
+            masks.append(None)
+    return masks
+
+
 def _levels_at(flat: np.ndarray, at: np.ndarray, c: np.ndarray, st0: int, n: int,
                half_window: int, fill: float
                ) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
     """Levels ``c - h .. c + h`` of the pixels at offsets ``at``: 2h + 1 flat float32 arrays
     (levels beyond the range set to ``fill``), and for each a mask of those beyond the range
-    (None where none is)."""
+    (None where none is: :func:`_beyond`)."""
     vals: list[np.ndarray] = []
-    outside: list[np.ndarray | None] = []
-    lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
+    outside = _beyond(c, half_window, n)
     first = at + c * st0
-    for j in range(-half_window, half_window + 1):
-        if lowest + j < 0 or highest + j > n - 1:
-            k = c + j
-            out = (k < 0) | (k > n - 1)
-            v = flat.take(np.clip(k, 0, n - 1) * st0 + at)
+    for j, out in zip(range(-half_window, half_window + 1), outside, strict=True):
+        if out is not None:
+            v = flat.take(np.clip(c + j, 0, n - 1) * st0 + at)
             v[out] = fill
         else:  # every pixel's level exists: no clipping
-            out = None
             v = flat.take(first + j * st0)
         vals.append(v)
-        outside.append(out)
     return vals, outside
 
 
@@ -413,7 +442,8 @@ def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     Parameters
     ----------
     vol : (N, H, W) ndarray of float
-        Focus volume, read as in :func:`windowed_centroid`.
+        Focus volume, finite (not checked); read in strips of rows
+        (:func:`sffscan.stages.depth_blocks.adaptive_block`).
     centre : (H, W) ndarray of int
         Median-filtered argmax, levels 0..N-1.
     spread : (H, W) ndarray of int
@@ -428,31 +458,11 @@ def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     (H, W) ndarray of float32
         Depth in fractional levels.
     """
-    if half_window < 2:
-        raise ValueError(f"half_window must be >= 2, got {half_window}")
-    n = vol.shape[0]
-    flat, st0, st1, st2 = _flat_view(vol)
-    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
-    at = _pixel_offsets(vol.shape[1:], st1, st2)
-    one = np.asarray(spread).reshape(-1) <= max_spread
-    depth = np.empty(c.shape, np.float32)
-    # each pixel reads only the levels its estimate needs: 5 for a peak, 2h + 1 for a centroid
-    for peak in (True, False):
-        sel = one if peak else ~one
-        count = int(np.count_nonzero(sel))
-        if count == 0:
-            continue
-        cs, ats = (c, at) if count == c.size else (c[sel], at[sel])
-        if peak:
-            d = _gaussian_top(_levels_at(flat, ats, cs, st0, n, 2, -1.0)[0], cs, n)
-        else:
-            d = (cs + _centroid_offset(*_levels_at(flat, ats, cs, st0, n, half_window,
-                                                   np.inf))).astype(np.float32)
-        if count == c.size:
-            depth[:] = d
-        else:
-            depth[sel] = d
-    return depth.reshape(vol.shape[1:])
+    # one implementation: the streaming reduction's, whose confidence is left unused here
+    from sffscan.stages.depth_blocks import adaptive_block
+
+    return adaptive_block(vol, centre, spread, half_window=half_window,
+                          max_spread=max_spread)[0]
 
 
 def _three_point(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:

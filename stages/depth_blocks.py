@@ -1,20 +1,20 @@
-"""The default depth method's block reduction in one pass over the block's levels.
+"""The default depth method (``"adaptive"``): a block's depth and confidence in one pass.
 
 The streaming depth stage (:mod:`sffscan.stages.focus_volume`) keeps the N focus levels of
 the columns in view in a ring of ``(N, rows, ring)`` float32 planes and reduces a block of
 columns once it is complete. For ``"adaptive"`` the reduction needs, per pixel, the 5 or 11
-levels about its filtered peak (:func:`sffscan.stages.depth.adaptive_peak`) and the curve's
-first harmonic over all N levels (:func:`sffscan.stages.depth.focus_confidence`).
+levels about its filtered peak (see :func:`sffscan.stages.depth.adaptive_peak`, which is
+this module's depth alone) and the curve's first harmonic over all N levels
+(:func:`sffscan.stages.depth.focus_confidence`).
 
 Done separately, those are two passes over a block that does not fit in cache (N = 50,
 1040 rows, 64 columns: 13 MB), and the first one gathers values scattered over N planes
 of 5 MB each. :func:`adaptive_block` does both in one pass: the block is copied in strips
-of rows that stay in cache (the copy the confidence's matrix product needs anyway), and the
-levels about each pixel's peak are gathered from that copy. Measured with
-``bench/bench_depth_default.py`` (the depth stage's CPU per frame of a demo scan); the
-figures are in the README. The depths are bit-identical to :func:`adaptive_peak`'s (the same
-values go through the same element-wise arithmetic) and the confidence equals
-:func:`focus_confidence`'s (the same float32 matrix product over the same chunks of pixels).
+of rows that stay in cache (:func:`sffscan.stages.depth.volume_strips`, the copy the
+confidence's matrix product needs anyway), and the levels about each pixel's peak are
+gathered from that copy. Measured with ``bench/bench_depth_default.py`` (the depth stage's
+CPU per frame of a demo scan); the figures are in the README. The confidence equals
+:func:`focus_confidence`'s (the same float32 matrix product over the same strips).
 """
 
 from __future__ import annotations
@@ -23,18 +23,15 @@ import numpy as np
 from sffscan.stages.depth import (
     ADAPTIVE_HALF_WINDOW,
     ADAPTIVE_MAX_SPREAD,
+    _beyond,
     _centroid_offset,
     _confidence,
     _gaussian_top,
     harmonic_table,
+    volume_strips,
 )
 
-__all__ = ["adaptive_block", "STRIP_PIXELS"]
-
-#: pixels per strip: N = 50 float32 levels of 4096 pixels are 800 KiB, the chunk
-#: :func:`sffscan.stages.depth.focus_confidence` multiplies (kept equal, so that the
-#: confidences are the same to the last bit)
-STRIP_PIXELS = 4096
+__all__ = ["adaptive_block"]
 
 
 def _gather(strip: np.ndarray, local: np.ndarray, k: np.ndarray, half_window: int,
@@ -50,18 +47,12 @@ def _gather(strip: np.ndarray, local: np.ndarray, k: np.ndarray, half_window: in
 
 def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: float
              ) -> list[np.ndarray | None]:
-    """Per window offset, the mask of pixels whose level is beyond the range (None where
-    none is); those values of ``vals`` are set to ``fill``."""
-    masks: list[np.ndarray | None] = []
-    lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
-    for j in range(-half_window, half_window + 1):
-        if lowest + j < 0 or highest + j > n - 1:
-            k = c + j
-            out = (k < 0) | (k > n - 1)
-            vals[j + half_window][out] = fill
-            masks.append(out)
-        else:
-            masks.append(None)
+    """The masks of :func:`sffscan.stages.depth._beyond`; the values of ``vals`` they mark
+    are set to ``fill``."""
+    masks = _beyond(c, half_window, n)
+    for row, out in zip(vals, masks, strict=True):
+        if out is not None:
+            row[out] = fill
     return masks
 
 
@@ -70,9 +61,9 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                    max_spread: int = ADAPTIVE_MAX_SPREAD) -> tuple[np.ndarray, np.ndarray]:
     """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
 
-    Equal to ``(adaptive_peak(vol, centre, spread), focus_confidence(vol))``
-    (:func:`sffscan.stages.depth.adaptive_peak`, :func:`sffscan.stages.depth.focus_confidence`),
-    bit for bit; see the module for why it is one pass.
+    The depth is :func:`sffscan.stages.depth.adaptive_peak`'s (documented there), the
+    confidence :func:`sffscan.stages.depth.focus_confidence`'s, bit for bit; see the module
+    for why it is one pass.
 
     Parameters
     ----------
@@ -108,14 +99,8 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
 
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
     sums = np.empty((3, height * width), np.float32)
-    rows = max(1, STRIP_PIXELS // max(1, width))
-    buf = np.empty((n, min(rows, height) * width), np.float32)
     done_peak = done_wide = 0
-    for i in range(0, height, rows):
-        r = min(rows, height - i)
-        p0, p1 = i * width, (i + r) * width
-        strip = buf[:, :r * width]
-        np.copyto(strip.reshape(n, r, width), vol[:, i:i + r])
+    for p0, p1, strip in volume_strips(vol):
         np.matmul(table, strip, out=sums[:, p0:p1])
         sel = peak[p0:p1]
         local = np.flatnonzero(sel)
@@ -123,7 +108,7 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         if local.size:
             _gather(strip, local, k[local], 2, n, top[:, done_peak:done_peak + local.size])
             done_peak += local.size
-        if local.size < r * width:
+        if local.size < p1 - p0:
             others = np.flatnonzero(~sel)
             _gather(strip, others, k[others], h, n, wide[:, done_wide:done_wide + others.size])
             done_wide += others.size
