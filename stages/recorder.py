@@ -36,7 +36,6 @@ from __future__ import annotations
 import datetime as _dt
 import errno
 import logging
-import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -50,6 +49,7 @@ from sffscan.pipeline.formats.recording import (
     META_CHUNK,
     PER_FRAME,
     RecordingAttrs,
+    chunk_keys_from,
     header_row,
 )
 from sffscan.pipeline.formats.zarr_chunks import write_many
@@ -320,28 +320,8 @@ def _trim(arr: zarr.Array, n: int) -> None:
     sync(arr.async_array.resize((n, *arr.shape[1:]), delete_outside_chunks=False))
     step = int(arr.chunks[0])
     folder = Path(arr.store_path.store.root) / arr.store_path.path  # type: ignore[attr-defined]
-    sep = arr.metadata.chunk_key_encoding.separator  # type: ignore[union-attr]
-    if sep == ".":  # every chunk in the array's folder: c.<i>.<j>...
-        try:
-            names = os.listdir(folder)
-        except FileNotFoundError:
-            return
-        for name in names:
-            parts = name.split(".")
-            if (len(parts) == arr.ndim + 1 and parts[0] == "c"
-                    and all(p.isdigit() for p in parts[1:]) and int(parts[1]) * step >= n):
-                (folder / name).unlink()
-        return
-    try:
-        names = os.listdir(folder / "c")
-    except FileNotFoundError:
-        return
-    for name in names:
-        if name.isdigit() and int(name) * step >= n:  # a chunk wholly outside the new shape
-            outside = folder / "c" / name
-            for f in [outside] if outside.is_file() else outside.rglob("*"):
-                if f.is_file():
-                    f.unlink()
+    for key in chunk_keys_from(arr, -(-n // step)):  # chunks wholly outside the new shape
+        (folder / key).unlink()
 
 
 class RecorderSink(Sink):

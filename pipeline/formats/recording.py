@@ -197,17 +197,27 @@ def _chunk_keys(arr: zarr.Array) -> set[str]:
     return {k[len(prefix):] for k in sync(_list())}
 
 
-def _first_indexes(arr: zarr.Array, keys: set[str]) -> set[int]:
-    """First chunk index of each chunk key of ``arr`` (zarr's default chunk key encoding,
+def _first_index(arr: zarr.Array, key: str) -> int | None:
+    """First chunk index of a chunk key of ``arr`` (zarr's default chunk key encoding,
     ``c/i/…`` in versions 1 and 2, ``c.i.…`` in version 3, as the array's metadata says);
-    anything else (``zarr.json``, a temporary file a crash left) is skipped."""
+    None for anything else (``zarr.json``, a temporary file a crash left)."""
     sep = getattr(arr.metadata.chunk_key_encoding, "separator", "/")  # type: ignore[union-attr]
-    out = set()
-    for k in keys:
-        parts = k.split(sep)
-        if len(parts) == arr.ndim + 1 and parts[0] == "c" and all(p.isdigit() for p in parts[1:]):
-            out.add(int(parts[1]))
-    return out
+    parts = key.split(sep)
+    if len(parts) == arr.ndim + 1 and parts[0] == "c" and all(p.isdigit() for p in parts[1:]):
+        return int(parts[1])
+    return None
+
+
+def _first_indexes(arr: zarr.Array, keys: set[str]) -> set[int]:
+    """First chunk index of each chunk key of ``arr`` (:func:`_first_index`)."""
+    return {i for i in (_first_index(arr, k) for k in keys) if i is not None}
+
+
+def chunk_keys_from(arr: zarr.Array, first: int) -> list[str]:
+    """Keys (relative to the array) of the stored chunks of ``arr`` whose first chunk index
+    is ``first`` or more, either key encoding."""
+    return [k for k in _chunk_keys(arr) if (i := _first_index(arr, k)) is not None
+            and i >= first]
 
 
 def _stored(arr: zarr.Array) -> tuple[int, ...]:
