@@ -324,6 +324,7 @@ class Pipeline:
             if unknown:
                 raise ValueError(f"sink '{k.name}' taps unknown stages {sorted(unknown)}")
         self.stages = stages
+        self.prepared = False  # Stage.prepare done (see prepare)
         self.stop = stop if stop is not None else threading.Event()
         self.cancelled = False
         policies = policies or {}
@@ -449,8 +450,12 @@ class Pipeline:
             return self._run()
 
     def prepare(self) -> None:
-        """Every stage's :meth:`Stage.prepare`; :class:`StageFailed` names a stage that
-        could not (nothing has run yet: the stages are closed as failed)."""
+        """Every stage's :meth:`Stage.prepare`, once (a worker calls it before it reports
+        ready, :meth:`run` otherwise); :class:`StageFailed` names a stage that could not
+        (nothing has run yet: the stages are closed as failed)."""
+        if self.prepared:
+            return
+        self.prepared = True
         for stage in self.stages:
             try:
                 stage.prepare()

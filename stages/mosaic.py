@@ -308,8 +308,7 @@ class MosaicWriter:
         self.path, self.group = p, group
         self.level0 = {name: mosaic_array(group, name) for name in ARRAYS}
         self.origin = attrs.origin_px
-        h = mosaic_array(group, "height")
-        self.chunk = int(h.chunks[0])
+        self.chunk = int(self.level0["height"].chunks[0])
         self.blocks_written = 0
         self.writes = 0
         self.done = attrs.writes_done
@@ -321,8 +320,8 @@ class MosaicWriter:
             rebuild.append(tuple(attrs.writing))
         self.rebuild = [(int(b[0]), int(b[1]), int(b[2]), int(b[3])) for b in rebuild]
         # arrays may have been resized unequally when the writer stopped
-        rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)
-        cols = max(mosaic_array(group, n).shape[1] for n in ARRAYS)
+        rows = max(a.shape[0] for a in self.level0.values())
+        cols = max(a.shape[1] for a in self.level0.values())
         self._ensure(rows, cols)
         if attrs.pyramid_stale is not None:  # levels the writer had not written back
             sel = self._region(attrs.pyramid_stale)
@@ -330,7 +329,7 @@ class MosaicWriter:
                 self._update_pyramid(sel)
         self._journal(rebuild=[list(b) for b in self.rebuild], writing=None, status="writing",
                       resumed=attrs.resumed + 1)
-        self.valid_px = count_valid(mosaic_array(group, "height"))
+        self.valid_px = count_valid(self.level0["height"])
         for box in self.rebuild:
             self._reset(box)
         make_reserve(self.path)  # room for the final status even on a full disk
@@ -351,7 +350,7 @@ class MosaicWriter:
 
     def _region(self, box: Box) -> tuple[slice, slice] | None:
         """Array slices of a world box, clipped to the arrays."""
-        rows, cols = mosaic_array(self.group, "height").shape
+        rows, cols = self.level0["height"].shape
         r0, c0 = box[1] - self.origin[1], box[0] - self.origin[0]
         r1, c1 = min(rows, r0 + box[3]), min(cols, c0 + box[2])
         r0, c0 = max(0, r0), max(0, c0)
@@ -361,15 +360,14 @@ class MosaicWriter:
         sel = self._region(box)
         if sel is None:
             return
-        height = mosaic_array(self.group, "height")
+        height = self.level0["height"]
         self.valid_px -= int(np.isfinite(np.asarray(height[sel])).sum())
         for name in ARRAYS:
-            mosaic_array(self.group, name)[sel] = FILL[name]
+            self.level0[name][sel] = FILL[name]
         self._update_pyramid(sel)
 
     def _update_pyramid(self, sel: tuple[slice, slice]) -> None:
-        update_pyramid({name: mosaic_array(self.group, name) for name in ARRAYS}, self.pyramid,
-                       sel)
+        update_pyramid(self.level0, self.pyramid, sel)
 
     def _ensure(self, r1: int, c1: int) -> None:
         shapes = [self.level0[n].shape for n in ARRAYS]

@@ -120,7 +120,9 @@ def test_stages_prepare_before_the_stream_and_a_failure_is_named() -> None:
             return super().process(item)
 
     ok = Prepared(False)
-    Pipeline([Numbers(3), ok, Collect()]).run()
+    pipe = Pipeline([Numbers(3), ok, Collect()])
+    pipe.prepare()  # as a worker does before it reports ready
+    pipe.run()
     assert ok.seen == [-1, 0, 1, 2]  # once, before the first item
     sink = Collect()
     with pytest.raises(StageFailed, match="double.*no room for the ring"):
