@@ -229,12 +229,15 @@ def device_rates(raw16: list[np.ndarray], *, device: str = "cuda", batch: int = 
                  reps: int = 20) -> dict[str, Any]:
     """Focus measure + depth accumulation on a torch device, in batches of ``batch`` frames.
 
-    Raw frames go up from pinned memory (:class:`sffscan.stages.focus_measure.DeviceFocus`) and are
-    added to per-pixel sums and argmax (:func:`sffscan.stages.focus_volume.accumulate_levels_torch`)
+    Raw frames go up from pinned memory (:class:`sffscan.stages.focus_torch.DeviceFocus`) and are
+    added to per-pixel sums and argmax (:func:`sffscan.stages.focus_torch.accumulate_levels_torch`)
     at levels 0..batch-1; the same frames are sent again and again (throughput only).
     """
-    from sffscan.stages.focus_measure import DeviceFocus
-    from sffscan.stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
+    from sffscan.stages.focus_torch import (
+        DeviceFocus,
+        accumulate_levels_torch,
+        new_accumulator_torch,
+    )
 
     dev = torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)

@@ -21,26 +21,26 @@ Definitions (``box_k`` = mean over a k x k window with replicated borders, i.e. 
   with mirrored borders, as the toolbox computes it.
 
 All functions are pure: no state, no import-time side effects. :class:`FocusMeasureStage`
-is the thin pipeline stage around them.
+is the thin pipeline stage around them. The torch path lives in
+:mod:`sffscan.stages.focus_torch` (its names stay importable from here) and is loaded at
+its first use: the scan's CPU path does not import torch.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-import torch
-import torch.nn.functional as F
 from sffscan.pipeline.messages import FocusFrame, PlacedFrame
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import check_odd_size
 from sffscan.stages.focus_volume import new_columns
 from sffscan.stages.operators import OPERATORS, check_operator, operator_alignment
-from sffscan.stages.operators.filters import box as _box
-from sffscan.stages.operators.filters import sample_variance, sobel_energy
-from sffscan.stages.operators.toolbox import TOOLBOX
+
+if TYPE_CHECKING:  # at run time through __getattr__ below (torch loads with first use)
+    from sffscan.stages.focus_torch import DeviceFocus, glvm, glvm_conv2d_baseline, tenv
 
 __all__ = [
     "FOCUS_OPERATORS",
@@ -55,6 +55,18 @@ __all__ = [
     "tenv_cv",
     "to_unit_float",
 ]
+
+#: the torch path's names, kept importable from here; they live in
+#: :mod:`sffscan.stages.focus_torch`, loaded (with torch) at their first use
+_TORCH_NAMES = ("DeviceFocus", "glvm", "glvm_conv2d_baseline", "tenv")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _TORCH_NAMES:
+        from sffscan.stages import focus_torch
+
+        return getattr(focus_torch, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 FOCUS_OPERATORS = OPERATORS
 """Names accepted by :func:`focus_measure` as ``operator`` (any case)."""
@@ -105,109 +117,6 @@ def to_unit_float(image: np.ndarray, *, max_value: float) -> np.ndarray:
 
 def _check_window(window: int) -> int:
     return check_odd_size(window, name="window", minimum=3)
-
-
-def _check_tensor(image: torch.Tensor) -> torch.Tensor:
-    """Validate a ``(..., H, W)`` floating tensor; return it as ``(B, H, W)``."""
-    if not isinstance(image, torch.Tensor):
-        raise TypeError(f"image must be a torch.Tensor, got {type(image).__name__}")
-    if not image.is_floating_point():
-        raise ValueError(f"image must be a floating tensor, got dtype {image.dtype}")
-    if image.ndim < 2:
-        raise ValueError(f"image must have shape (..., H, W), got {tuple(image.shape)}")
-    return image.reshape(-1, image.shape[-2], image.shape[-1])
-
-
-# ----------------------------------------------------------------------------- torch path
-
-
-def glvm(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """Modified grey-level variance (GLVM), local k x k version.
-
-    ``mu = box_k(I)``; ``fm = box_k((I - mu)**2)``, ``box_k`` the k x k mean with replicated
-    borders (MATLAB ``imfilter(..., fspecial('average', k), 'replicate')``), computed as
-    separable window sums of the replicate-padded image.
-
-    Parameters
-    ----------
-    image : (..., H, W) floating torch.Tensor
-        Images scaled to 0..1, any device.
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (..., H, W) torch.Tensor
-        Focus measure, same dtype and device as ``image``; units of intensity squared.
-    """
-    window = _check_window(window)
-    x = _check_tensor(image)
-    mu = _box(x, window)
-    d = x - mu
-    return _box(d * d, window).reshape(image.shape)
-
-
-def tenv(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """Tenengrad variance (TENV), the toolbox's local k x k version.
-
-    ``G = Gx**2 + Gy**2`` with the unnormalised 3 x 3 Sobel pair (MATLAB
-    ``fspecial('sobel')`` and its transpose, replicated borders); ``fm = stdfilt(G,
-    ones(k))**2``: the *sample* variance of G in the window (``(sum G^2 - (sum G)^2 / n) /
-    (n - 1)``, n = k^2), mirrored borders (MATLAB 'symmetric'), as Pertuz's
-    ``focusmeasure.m`` computes it. The thesis' standard-deviation form is the operator
-    ``"tenv_std"``. Tiny negative values from round-off are clamped to 0.
-
-    Parameters
-    ----------
-    image : (..., H, W) floating torch.Tensor
-        Images scaled to 0..1, any device.
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (..., H, W) torch.Tensor
-        Focus measure, same dtype and device as ``image``; units of intensity^4 (the Sobel
-        gain of 4 per axis is not divided out).
-    """
-    window = _check_window(window)
-    x = _check_tensor(image)
-    return sample_variance(sobel_energy(x), window).reshape(image.shape)
-
-
-def glvm_conv2d_baseline(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """GLVM the way the thesis ran it: dense ``F.conv2d`` with a ``ones(k, k) / k**2`` kernel.
-
-    Same definition and borders as :func:`glvm` (replicate padding, then a valid
-    convolution), but k^2 multiply-adds per pixel per box filter. Benchmark baseline only.
-
-    Parameters
-    ----------
-    image : (..., H, W) floating torch.Tensor
-        Images scaled to 0..1, any device.
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (..., H, W) torch.Tensor
-        Same as :func:`glvm`, same dtype and device as ``image``.
-    """
-    window = _check_window(window)
-    x = _check_tensor(image).unsqueeze(1)  # (B, 1, H, W)
-    r = window // 2
-    kernel = torch.full(
-        (1, 1, window, window), 1.0 / window**2, dtype=image.dtype, device=image.device
-    )
-
-    def box(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.pad(t, (r, r, r, r), mode="replicate"), kernel)
-
-    d = x - box(x)
-    return box(d * d).reshape(image.shape)
-
-
-# ----------------------------------------------------------------------------- OpenCV path
 
 
 def _check_cv_image(image: np.ndarray) -> np.ndarray:
@@ -355,37 +264,14 @@ def focus_measure_raw(
     image01 = to_unit_float(image, max_value=max_value)
     if operator in _CV_OPS:
         return image01, _CV_OPS[operator](image01, window=window)
-    return image01, _torch_cpu(image01, operator, window)
+    from sffscan.stages.focus_torch import measure_on_device  # torch loads with first use
+
+    return image01, measure_on_device(image01, operator=operator, window=window, device="cpu")
 
 
 # ----------------------------------------------------------------------------- dispatch
 
 _CV_OPS = {"glvm": glvm_cv, "tenv": tenv_cv}
-
-
-def _torch_op(operator: str) -> Any:
-    """The torch function of a (checked) operator: ``f(image, *, window)``."""
-    if operator == "glvm":
-        return glvm
-    if operator == "tenv":
-        return tenv
-    fn = TOOLBOX[operator]
-
-    def op(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-        x = _check_tensor(image)
-        return fn(x, _check_window(window)).reshape(image.shape)
-
-    return op
-
-
-def _torch_cpu(image01: np.ndarray, operator: str, window: int) -> np.ndarray:
-    """A toolbox operator of one float32 image on the CPU, through torch."""
-    img = np.ascontiguousarray(image01, dtype=np.float32)
-    if not img.flags.writeable:
-        img = img.copy()
-    with torch.inference_mode():
-        return _torch_op(operator)(torch.from_numpy(img), window=window).numpy()
-
 
 
 def focus_measure(
@@ -447,101 +333,10 @@ def focus_measure(
         for i in range(img.shape[0]):
             out[i] = op_cv(img[i], window=window)
         return out
-    if backend == "opencv":
-        device = "cpu"
-    if not img.flags.writeable:  # torch.from_numpy warns on read-only arrays
-        img = img.copy()
-    with torch.inference_mode():
-        result = _torch_op(operator)(torch.from_numpy(img).to(device), window=window)
-        return result.cpu().numpy()
+    from sffscan.stages.focus_torch import measure_on_device  # torch loads with first use
 
-
-# ----------------------------------------------------------------------------- device path
-
-
-class DeviceFocus:
-    """Raw frames to focus measure on a torch device (CUDA, or CPU for tests).
-
-    The raw uint8 / uint16 pixels go up as they are (half or a quarter of float32's bytes)
-    and are converted and scaled on the device. On CUDA the host side copies each frame or
-    batch into one of two page-locked (pinned) staging buffers and uploads it with a
-    non-blocking copy on a side stream; the compute stream waits for that copy only, so
-    the upload of the next batch overlaps the kernels of this one, and a staging buffer is
-    reused only once its earlier copy has finished. Batches of frames (``(B, H, W)``) are
-    measured with one set of kernels. float32 throughout: the depth accuracy tests have not
-    been run in reduced precision, so none is used.
-
-    Parameters
-    ----------
-    device : str or torch.device
-        Torch device.
-    operator : str
-        One of :data:`FOCUS_OPERATORS`, any case.
-    window : int
-        Odd window size k >= 3, px.
-    max_value : float
-        Full scale of the raw values (255, 1023, ...).
-    """
-
-    def __init__(self, *, device: str | torch.device, operator: str = "glvm", window: int = 9,
-                 max_value: float = 255.0) -> None:
-        self.device = torch.device(device)
-        self.op = _torch_op(check_operator(operator))
-        self.window = _check_window(window)
-        self.scale = 1.0 / float(max_value)
-        self.cuda = self.device.type == "cuda"
-        self._staging: list[torch.Tensor | None] = [None, None]
-        self._events: list[Any] = [None, None]
-        self._turn = 0
-        self._copy_stream = torch.cuda.Stream(self.device) if self.cuda else None
-
-    def _upload(self, raw: np.ndarray) -> torch.Tensor:
-        if raw.dtype == np.uint16 and (raw.size == 0 or int(raw.max()) < 1 << 15):
-            raw = raw.view(np.int16)  # same bytes; int16 converts on every device
-        elif raw.dtype not in (np.uint8, np.int16):
-            raise ValueError(f"raw frames must be uint8 or uint16, got dtype {raw.dtype}")
-        if not self.cuda:
-            host = np.ascontiguousarray(raw)
-            if not host.flags.writeable:  # torch.from_numpy warns on read-only arrays
-                host = host.copy()
-            return torch.from_numpy(host).to(self.device)
-        i = self._turn
-        self._turn ^= 1
-        buf = self._staging[i]
-        if self._events[i] is not None:
-            self._events[i].synchronize()  # the buffer's previous upload has finished
-        if buf is None or buf.shape != raw.shape or buf.numpy().dtype != raw.dtype:
-            buf = torch.from_numpy(np.empty(raw.shape, raw.dtype)).pin_memory()
-            self._staging[i] = buf
-        np.copyto(buf.numpy(), raw)
-        assert self._copy_stream is not None
-        with torch.cuda.stream(self._copy_stream):
-            dev = buf.to(self.device, non_blocking=True)
-            event = torch.cuda.Event()
-            event.record(self._copy_stream)
-        self._events[i] = event
-        torch.cuda.current_stream(self.device).wait_event(event)
-        dev.record_stream(torch.cuda.current_stream(self.device))
-        return dev
-
-    def measure(self, raw: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scaled image and focus measure of raw frame(s), on the device.
-
-        Parameters
-        ----------
-        raw : (H, W) or (B, H, W) ndarray of uint8 or uint16
-
-        Returns
-        -------
-        image01, focus : torch.Tensor, float32, same shape, on ``device``
-            Asynchronous on CUDA: ``.cpu()`` (or a synchronize) waits for them.
-        """
-        raw = np.asarray(raw)
-        if raw.ndim not in (2, 3):
-            raise ValueError(f"raw must be (H, W) or (B, H, W), got shape {raw.shape}")
-        with torch.inference_mode():
-            image01 = self._upload(raw).to(torch.float32).mul_(self.scale)
-            return image01, self.op(image01, window=self.window)
+    return measure_on_device(img, operator=operator, window=window,
+                             device="cpu" if backend == "opencv" else device)
 
 
 # ----------------------------------------------------------------------------- stage
@@ -609,6 +404,8 @@ class FocusMeasureStage(Stage):
                                             operator=self.operator, window=self.window)
         else:
             if self._device_focus is None:
+                from sffscan.stages.focus_torch import DeviceFocus  # torch: first use
+
                 self._device_focus = DeviceFocus(device=self.device, operator=self.operator,
                                                  window=self.window, max_value=self.max_value)
             t01, tfm = self._device_focus.measure(item.image[:, a0:a1])

@@ -31,7 +31,6 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-import torch
 from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import (
@@ -76,60 +75,6 @@ def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, directio
         else:
             hi = min(hi, prev_x + margin - x + slack)
     return lo, max(lo, hi)
-
-
-def new_accumulator_torch(*, n_levels: int, shape: tuple[int, int],
-                          device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
-    """Empty per-pixel state of :func:`accumulate_levels_torch` on a torch device.
-
-    Returns
-    -------
-    dict of torch.Tensor
-        ``sums`` (4, H, W) float32: H_0, sum k y, Re H_1, Im H_1 (the rows of
-        :func:`sffscan.stages.depth.harmonic_table`); ``best`` (H, W) float32 running maximum (-1);
-        ``argmax`` (H, W) int64 its level; ``table`` (4, N) float32.
-    """
-    h, w = shape
-    dev = torch.device(device)
-    return {
-        "sums": torch.zeros((4, h, w), dtype=torch.float32, device=dev),
-        "best": torch.full((h, w), -1.0, dtype=torch.float32, device=dev),
-        "argmax": torch.zeros((h, w), dtype=torch.int64, device=dev),
-        "table": torch.as_tensor(harmonic_table(n_levels), dtype=torch.float32, device=dev),
-    }
-
-
-def accumulate_levels_torch(acc: dict[str, torch.Tensor], focus: torch.Tensor,
-                            levels: torch.Tensor) -> None:
-    """Add a batch of focus frames, each at its level, to the per-pixel sums and argmax.
-
-    The device-side counterpart of :class:`FocusVolume`'s accumulation, for frames already
-    on one pixel grid (the caller cuts each frame's columns to its place): one matrix
-    product adds the batch to the four sums, one max over the batch updates the running
-    maximum, and ties keep the lowest level, as :func:`sffscan.stages.depth.depth_from_focus`'s
-    argmax does. :func:`sffscan.stages.depth.depth_from_harmonics` turns the state into depth.
-
-    Parameters
-    ----------
-    acc : dict of torch.Tensor
-        State from :func:`new_accumulator_torch`, updated in place.
-    focus : (B, H, W) torch.Tensor, float32
-        Focus measure of B frames, on the state's device; each (pixel, level) pair must be
-        added once.
-    levels : (B,) torch.Tensor of int
-        Focus level of each frame, 0..N-1.
-    """
-    b = focus.shape[0]
-    levels = levels.to(device=focus.device, dtype=torch.int64)
-    sums = acc["sums"]
-    sums.view(4, -1).addmm_(acc["table"][:, levels], focus.reshape(b, -1))
-    bmax = focus.amax(dim=0)
-    n = acc["table"].shape[1]
-    lev = torch.where(focus == bmax, levels.view(b, 1, 1), n).amin(dim=0)
-    best, amax = acc["best"], acc["argmax"]
-    sharper = (bmax > best) | ((bmax == best) & (lev < amax))
-    torch.where(sharper, bmax, best, out=best)
-    torch.where(sharper, lev, amax, out=amax)
 
 
 class BlockResult(NamedTuple):

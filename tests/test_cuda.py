@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 from sffscan.stages.depth import depth_from_focus, depth_from_harmonics
-from sffscan.stages.focus_measure import DeviceFocus, focus_measure_raw
-from sffscan.stages.focus_volume import accumulate_levels_torch, new_accumulator_torch
+from sffscan.stages.focus_measure import focus_measure_raw
+from sffscan.stages.focus_torch import DeviceFocus, accumulate_levels_torch, new_accumulator_torch
 
 FLOAT32_REL_TOL = 1e-6
 

@@ -263,3 +263,27 @@ def test_raw_fast_path_equals_scale_then_measure(operator: str, dtype: type, ful
     assert fm.dtype == np.float32 and fm.shape == view.shape
     np.testing.assert_allclose(fm, want, rtol=0, atol=FLOAT32_REL_TOL * np.abs(want).max())
     assert (fm >= 0).all()
+
+
+def test_scan_path_does_not_import_torch() -> None:
+    """The CPU scan (command line, workers, stages) runs without torch (about 1 s and
+    300 MB of memory per process); the torch path still loads at its first use."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import sffscan.pipeline.cli.main, sffscan.pipeline.scan_processes\n"
+        "import sffscan.pipeline.worker, sffscan.pipeline.sim_workers\n"
+        "from sffscan.stages import focus_measure as fm\n"
+        "import numpy as np\n"
+        "raw = (np.arange(64 * 80).reshape(64, 80) % 1024).astype(np.uint16)\n"
+        "img01, f = fm.focus_measure_raw(raw, max_value=1023.0)\n"
+        "assert 'torch' not in sys.modules, 'torch imported by the CPU scan path'\n"
+        "g = fm.focus_measure(img01, operator='lapm')  # a torch-only operator\n"
+        "assert 'torch' in sys.modules and g.shape == img01.shape\n"
+        "assert fm.glvm.__module__ == 'sffscan.stages.focus_torch'\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
