@@ -146,13 +146,16 @@ class BoundedQueue:
     def __len__(self) -> int:
         return len(self._items)
 
-    def put(self, item: Any) -> None:
+    def put(self, item: Any, *, keep: bool = False) -> None:
+        """Put an item, as the queue's policy says when it is full; with ``keep`` (and for
+        the end of stream) wait for room instead, under any policy: nothing is dropped."""
+        keep = keep or item is END_OF_STREAM
         with self._cond:
             full = len(self._items) >= self.capacity
-            if full and item is not END_OF_STREAM and self.policy is FullPolicy.DROP_NEWEST:
+            if full and not keep and self.policy is FullPolicy.DROP_NEWEST:
                 self.stats.dropped += 1
                 return
-            if full and item is not END_OF_STREAM and self.policy is FullPolicy.DROP_OLDEST:
+            if full and not keep and self.policy is FullPolicy.DROP_OLDEST:
                 self._items.popleft()  # the end of stream is the last item ever put
                 self.stats.dropped += 1
             # block (and the end of stream under any policy): wait for room
@@ -428,12 +431,14 @@ class Pipeline:
         self.cancelled = True
         self.stop.set()
 
-    def _snapshot(self, elapsed: float) -> None:
+    def _snapshot(self, elapsed: float, *, last: bool = False) -> None:
         snap = StatsSnapshot(elapsed, tuple(copy.copy(s) for s in self.stats + self.sink_stats),
                              tuple(copy.copy(q.stats) for q in self.queues + self.sink_queues))
         for k, q in zip(self.sinks, self.sink_queues, strict=True):
             if k.wants_stats and q.policy is not FullPolicy.BLOCK:
-                q.put(snap)
+                # the last statistics wait for room: put into a full queue they would drop
+                # its oldest item after their copy of the count was taken (one too few)
+                q.put(snap, keep=last)
 
     def run(self, *, freeze_gc: bool = True) -> PipelineResult:
         """Run to the end of the stream; raise :class:`StageFailed` if a stage failed.
@@ -488,7 +493,7 @@ class Pipeline:
                         self.on_progress(self.stats, elapsed)
                     self._snapshot(elapsed)
             if not self.stop.is_set():
-                self._snapshot(time.perf_counter() - t_start)
+                self._snapshot(time.perf_counter() - t_start, last=True)
                 for q in self.sink_queues:  # the sinks drain what they hold, then end
                     q.put(END_OF_STREAM)
                 for t in sink_threads:

@@ -185,6 +185,23 @@ def test_drop_policies_count_what_they_drop(policy: FullPolicy, kept: list[int])
     assert q.stats.dropped == 2
 
 
+@pytest.mark.parametrize("policy", [FullPolicy.DROP_OLDEST, FullPolicy.DROP_NEWEST])
+def test_kept_item_waits_for_room_under_a_drop_policy(policy: FullPolicy) -> None:
+    """The last statistics to a dropping viewer: put with ``keep``, nothing is dropped (the
+    count they carry stays the final one)."""
+    q = BoundedQueue("viz", 2, policy=policy)
+    q.put(1)
+    q.put(2)
+    done = threading.Event()
+    t = threading.Thread(target=lambda: (q.put("last", keep=True), done.set()))
+    t.start()
+    assert not done.wait(0.3)
+    assert q.get() == 1
+    t.join(5)
+    assert done.is_set() and [q.get(), q.get()] == [2, "last"]
+    assert q.stats.dropped == 0
+
+
 def test_waits_leave_when_pipeline_stops() -> None:
     stop = threading.Event()
     q = BoundedQueue("q", 1, stop=stop, wait_s=0.05)
