@@ -46,21 +46,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sffscan.pipeline.config import ScanConfig
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import (  # noqa: E402
-    ROOT,
-    bench_config,
-    frame_bank,
-    load_bank,
-    machine,
-    rate,
-    replay_frames,
-)
-from sffscan.pipeline.config import ScanConfig  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+# bench_pipeline (and torch with it) is imported inside the functions that use it: the
+# worker processes start by importing this script again (multiprocessing's spawn), and
+# their start-up is reported as the product's (which does not import torch)
 
 
 def case_config(case: dict[str, Any]) -> ScanConfig:
+    from bench_pipeline import bench_config
+
     base = bench_config()
     data = base.model_dump()
     data["processing"].update(execution=case["mode"], depth_method="spc",
@@ -70,6 +67,7 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
 
 def make_recording(cache: Path, bank: Path, frames: int) -> Path:
     """A full-size recording of the bank's first ``frames`` frames (made once, cached)."""
+    from bench_pipeline import bench_config, load_bank, replay_frames
     from sffscan.stages.recorder import RecordingWriter
 
     path = cache / f"rec-u16-{frames}.zarr"
@@ -93,6 +91,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs."""
     cpus = sorted(os.sched_getaffinity(0))[:case["cores"]]
     os.sched_setaffinity(0, cpus)
+    from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.formats.recording import open_recording
     from sffscan.pipeline.wiring import run_scan
     from sffscan.stages.recorder import recorder_sink
@@ -154,7 +153,8 @@ def spawn_case(case: dict[str, Any]) -> dict[str, Any]:
 def baseline_fps(bank: Path, n: int) -> float:
     """The thesis-style torch conv2d GLVM on whole frames, frames/s (best of 3)."""
     import torch
-    from sffscan.stages.focus_measure import glvm_conv2d_baseline
+    from bench_pipeline import bench_config, load_bank, rate
+    from sffscan.stages.focus_torch import glvm_conv2d_baseline
 
     cfg = bench_config()
     tens = [torch.from_numpy(a.astype(np.float32) / 1023.0) for a in load_bank(cfg, bank, n)]
@@ -220,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
     args = ap.parse_args(argv)
+    from bench_pipeline import frame_bank, machine
+
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
         return 0
@@ -265,6 +267,8 @@ def main(argv: list[str] | None = None) -> int:
 def scaling(common: dict[str, Any], low: int, high: int, rounds: int) -> int:
     """Pairs of runs, processes from memory, on ``low`` and ``high`` cores (order reversed
     every round); prints the frames/s, each pair's ratio and the ratio of the medians."""
+    from bench_pipeline import machine
+
     fps: dict[int, list[float]] = {low: [], high: []}
     for r in range(rounds):
         for c in (low, high) if r % 2 == 0 else (high, low):
