@@ -158,7 +158,7 @@ class BoundedQueue:
             if full and not keep and self.policy is FullPolicy.DROP_OLDEST:
                 self._items.popleft()  # the end of stream is the last item ever put
                 self.stats.dropped += 1
-            # block (and the end of stream under any policy): wait for room
+            # block (and a kept item, the end of stream included, under any policy): wait for room
             while len(self._items) >= self.capacity:
                 if self.stop.is_set():
                     raise PipelineStopped(self.name)

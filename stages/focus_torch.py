@@ -187,7 +187,7 @@ class DeviceFocus:
     device : str or torch.device
         Torch device.
     operator : str
-        One of :data:`FOCUS_OPERATORS`, any case.
+        One of :data:`sffscan.stages.focus_measure.FOCUS_OPERATORS`, any case.
     window : int
         Odd window size k >= 3, px.
     max_value : float
@@ -283,8 +283,9 @@ def accumulate_levels_torch(acc: dict[str, torch.Tensor], focus: torch.Tensor,
                             levels: torch.Tensor) -> None:
     """Add a batch of focus frames, each at its level, to the per-pixel sums and argmax.
 
-    The device-side counterpart of :class:`FocusVolume`'s accumulation, for frames already
-    on one pixel grid (the caller cuts each frame's columns to its place): one matrix
+    The device-side counterpart of the accumulation of
+    :class:`sffscan.stages.focus_volume.FocusVolume`, for frames already on one pixel grid
+    (the caller cuts each frame's columns to its place): one matrix
     product adds the batch to the four sums, one max over the batch updates the running
     maximum, and ties keep the lowest level, as :func:`sffscan.stages.depth.depth_from_focus`'s
     argmax does. :func:`sffscan.stages.depth.depth_from_harmonics` turns the state into depth.
