@@ -26,11 +26,17 @@ from tqdm import tqdm
 if TYPE_CHECKING:
     from sffscan.pipeline.runtime import StageStats
 
-__all__ = ["PLAIN_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal", "terminal_columns"]
+__all__ = ["PLAIN_FORMAT", "SLOW_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal", "terminal_columns"]
 
-#: tqdm ``bar_format`` of the plain lines (no bar, no carriage return).
-PLAIN_FORMAT = ("{desc} {n_fmt}/{total_fmt} ({percentage:.1f} %)  {rate:.1f} {unit}/s  "
+#: tqdm ``bar_format`` of the plain lines (no bar, no carriage return), at one item per
+#: second or more. ``rate_noinv``: tqdm's own ``rate`` field turns into seconds per item
+#: below one item per second, which this line would print as items per second.
+PLAIN_FORMAT = ("{desc} {n_fmt}/{total_fmt} ({percentage:.1f} %)  {rate_noinv:.1f} {unit}/s  "
                 "elapsed {elapsed}  eta {remaining}{postfix}")
+#: The same below one item per second: seconds per item (``{unit}`` is then the singular,
+#: "field" for "fields").
+SLOW_FORMAT = ("{desc} {n_fmt}/{total_fmt} ({percentage:.1f} %)  {rate_inv:.1f} s/{unit}  "
+               "elapsed {elapsed}  eta {remaining}{postfix}")
 
 
 def is_terminal(stream: TextIO) -> bool:
@@ -100,9 +106,11 @@ class ProgressDisplay:
                 return
             self._last = elapsed
             rate = done / elapsed if elapsed > 0 else 0.0
-            line = tqdm.format_meter(done, self.total, elapsed, unit=self.desc,
+            slow = 0.0 < rate < 1.0
+            unit = self.desc.removesuffix("s") if slow else self.desc
+            line = tqdm.format_meter(done, self.total, elapsed, unit=unit,
                                      prefix=self.desc, postfix=note or None, rate=rate,
-                                     bar_format=PLAIN_FORMAT)
+                                     bar_format=SLOW_FORMAT if slow else PLAIN_FORMAT)
             self.stream.write(line + "\n")
             self.stream.flush()
             self.lines += 1
@@ -147,7 +155,10 @@ class ScanProgress(ProgressDisplay):
 
     def __call__(self, stats: list[StageStats], elapsed: float) -> None:
         self._stats, self._t0 = stats, time.perf_counter() - elapsed
-        done = stats[-2].frames if len(stats) > 1 else stats[0].frames
+        # frames through the last stage before the mosaic that counts frames: a stage
+        # after the depth stage (the calibration's correction) counts depth blocks
+        done = next((s.frames for s in reversed(stats[:-1]) if s.unit == "frames"),
+                    stats[0].frames)
         self.update(done, elapsed, note=f"acquired {stats[0].frames}")
 
     def close(self) -> None:

@@ -115,3 +115,28 @@ def test_stopgo_progress_in_a_log_file_has_no_carriage_return(
     err = capsys.readouterr().err
     assert "\r" not in err
     assert re.search(r"^fields 1/\d+ \(", err, flags=re.M), err
+
+
+def test_below_one_item_per_second_the_line_says_seconds_per_item() -> None:
+    """tqdm's ``rate`` field turns into seconds per item below one item per second: a field
+    every 11.4 s was printed as "11.4 fields/s" (issue 26, item 2)."""
+    s = io.StringIO()
+    p = ProgressDisplay(5, desc="fields", stream=s, every_s=0.0)
+    p.update(1, 11.4)
+    p.update(30, 20.0)  # 1.5 fields/s: the items-per-second form again
+    p.close()
+    slow, fast = s.getvalue().splitlines()
+    assert "11.4 s/field " in slow and "fields/s" not in slow
+    assert "1.5 fields/s" in fast
+
+
+def test_a_stage_after_the_depth_stage_counting_blocks_is_not_taken_for_frames() -> None:
+    """With a calibration, a correction stage counting depth blocks stands between the
+    depth stage and the mosaic: the display counted its blocks as frames (issue 26, item 2)."""
+    s = io.StringIO()
+    p = ScanProgress(455, stream=s, every_s=0.0)
+    stats = [StageStats("source", frames=400), StageStats("depth", frames=390),
+             StageStats("optics", unit="blocks", frames=52), StageStats("mosaic", frames=0)]
+    p(stats, 10.0)
+    p.close()
+    assert s.getvalue().splitlines()[0].startswith("frames 390/455 (85.7 %)")
