@@ -26,7 +26,8 @@ from tqdm import tqdm
 if TYPE_CHECKING:
     from sffscan.pipeline.runtime import StageStats
 
-__all__ = ["PLAIN_FORMAT", "SLOW_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal", "terminal_columns"]
+__all__ = ["PLAIN_FORMAT", "SLOW_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal",
+           "terminal_columns"]
 
 #: tqdm ``bar_format`` of the plain lines (no bar, no carriage return), at one item per
 #: second or more. ``rate_noinv``: tqdm's own ``rate`` field turns into seconds per item
