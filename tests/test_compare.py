@@ -15,6 +15,7 @@ from sffscan.pipeline.metrology.compare import (
     compare_height_maps,
     fit_plane,
     overlap_by_origin,
+    read_height_map,
 )
 from sffscan.stages.mosaic import MosaicWriter
 
@@ -131,3 +132,17 @@ def test_region_is_in_world_px_when_only_one_map_is_placed(tmp_path: Path) -> No
         r = CompareReport.model_validate_json(json_path.read_text())
         assert r.pixels == 100
         assert r.rmse_um == pytest.approx(100.0, rel=1e-5)
+
+
+def test_an_8_bit_photograph_is_not_taken_for_heights_in_um(tmp_path: Path) -> None:
+    """An 8-bit grey image compared as if it held µm gave an RMSE of 154,599 µm and exit 0
+    (issue 26, item 6): refused, naming the file and its type."""
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    photo = rng.integers(0, 256, size=(32, 32), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "photo.tif", photo)
+    np.save(tmp_path / "ref.npy", rng.normal(size=(32, 32)))
+    with pytest.raises(ValueError, match=r"photo\.tif: an 8-bit array \(uint8\)"):
+        read_height_map(tmp_path / "photo.tif")
+    assert main(["compare", str(tmp_path / "photo.tif"), str(tmp_path / "ref.npy")]) == 2

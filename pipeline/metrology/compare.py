@@ -145,6 +145,9 @@ def _as_2d(z: np.ndarray, path: Path) -> np.ndarray:
                                                                               np.integer)):
         raise ValueError(f"{path}: a height map must be a 2-D numeric array, got shape "
                          f"{z.shape} {z.dtype}")
+    if z.dtype.itemsize == 1:  # 256 grey values: a photograph or a mask, not heights in µm
+        raise ValueError(f"{path}: an 8-bit array ({z.dtype}) is an image, not a height map "
+                         "in µm; give heights as float µm (.npy, float TIFF or a mosaic)")
     return z.astype(np.float64)
 
 
