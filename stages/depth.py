@@ -41,6 +41,7 @@ __all__ = [
     "focus_confidence",
     "harmonic_table",
     "level_spread",
+    "levels_from_heights",
     "levels_to_height",
     "median_filter_levels",
     "spc_by_roll",
@@ -752,6 +753,40 @@ def levels_to_height(depth_levels: np.ndarray, *, focus_heights_um: np.ndarray) 
     i = np.clip(np.floor(np.where(finite, d, 0.0)), 0, table.size - 2).astype(np.intp)
     height = table[i] + (d - i) * step[i]
     return height.astype(np.float32)
+
+
+def levels_from_heights(height_um: np.ndarray, *, focus_heights_um: np.ndarray
+                        ) -> np.ndarray:
+    """Heights to fractional focus levels: the inverse of :func:`levels_to_height`.
+
+    Parameters
+    ----------
+    height_um : ndarray of float, any shape
+        Heights, µm (NaN stays NaN).
+    focus_heights_um : (N,) array_like of float
+        Height in focus at each level, µm, strictly monotonic.
+
+    Returns
+    -------
+    ndarray of float64
+        Levels, piecewise linear, extrapolated beyond both ends with the end segments.
+    """
+    table = np.asarray(focus_heights_um, dtype=np.float64)
+    if table.ndim != 1 or table.size < 2:
+        raise ValueError(f"focus_heights_um must be 1-D with at least 2 values, got shape "
+                         f"{table.shape}")
+    step = np.diff(table)
+    if not ((step > 0).all() or (step < 0).all()):
+        raise ValueError("focus_heights_um must be strictly monotonic")
+    if step[0] < 0:
+        table, step = table[::-1], -step[::-1]
+        k = np.arange(table.size, dtype=np.float64)[::-1]
+    else:
+        k = np.arange(table.size, dtype=np.float64)
+    z = np.asarray(height_um, dtype=np.float64)
+    i = np.clip(np.searchsorted(table, z, side="right") - 1, 0, table.size - 2)
+    slope = (k[i + 1] - k[i]) / step[i]
+    return k[i] + (z - table[i]) * slope
 
 
 def all_in_focus(stack: np.ndarray, volume: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ comparison), for the user's own surfaces::
     sffscan study --zarr stack.zarr --truth cmm.tif --roi 20,20,200,150 -o study/
     sffscan study --imdata DIR/imdata.mat -o study/          # a toolbox-format stack
     sffscan study --chapter3 --noise 0.005 -o study/         # the thesis' simulation
+    sffscan study --families [--imdata DIR/imdata.mat] -o study/   # the held-out protocol
 
 A user's stack is read as ``sffscan stack`` reads it (image files in the natural order of
 their names or a Zarr (N, H, W) array; focus positions from ``--focus-file``,
@@ -22,6 +23,15 @@ sinusoidal surface; ``--noise``: the variance of Gaussian noise added to the 0..
 Every combination is scored by RMSE, CORR and PSNR over the truth's scored pixels (the ROI,
 finite truth), raw heights (no post-filter). Exit 0, or 2 for bad input (the message names
 the file or option).
+
+``--families`` runs the protocol that chose the default depth method
+(:mod:`sffscan.stages.depth_study`): leave one synthetic family out
+(:mod:`sffscan.stages.sim.families`: even and lopsided blur, Gaussian and pillbox PSFs, noise
+none to heavy, 8-12 bits, textures, flats, slopes, steps, heights near both ends, N =
+20..100), a tunable candidate tuned on the other families' training seeds, every method
+scored on the held-out family's other seeds; ``--imdata`` adds a third-party stack scored
+with the candidate tuned on all families. Prints the method x family table of held-out
+RMSE (levels) and writes ``held_out.csv`` and ``held_out.md`` (no figure, no matplotlib).
 """
 
 from __future__ import annotations
@@ -47,6 +57,8 @@ from sffscan.pipeline.cli.common import (
 log = logging.getLogger(__name__)
 
 METHODS = DEPTH_METHOD_CHOICES
+DEFAULT_OPERATORS = "glvm,tenv,lapm,teng,lape,sfrq"
+DEFAULT_WINDOWS = [3, 5, 7, 9, 11, 13]
 
 
 @dataclass(frozen=True)
@@ -182,12 +194,11 @@ def chapter3_stack(*, noise: float, seed: int = 5) -> StudyStack:
 def write_outputs(rows: list[StudyRow], out: Path, *, title: str,
                   scored_pixels: int | None = None) -> list[Path]:
     """``study.csv``, ``study.json`` and ``study.png`` (RMSE against window per operator for
-    the best method of each, and RMSE per method at each operator's best window)."""
-    import matplotlib
+    the best method of each, and RMSE per method at each operator's best window).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    The table is written first; the figure needs matplotlib (an optional dependency,
+    imported here only): without it a message says so and the PNG is left out (not in the
+    returned paths)."""
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "study.csv", out / "study.json", out / "study.png"]
     with paths[0].open("w", newline="") as f:
@@ -196,6 +207,16 @@ def write_outputs(rows: list[StudyRow], out: Path, *, title: str,
         writer.writerows(asdict(r) for r in rows)
     paths[1].write_text(json.dumps({"stack": title, "scored_pixels": scored_pixels,
                                     "rows": [asdict(r) for r in rows]}, indent=1))
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("sffscan study: matplotlib is not installed: no figure (study.png); the "
+              "table is in study.csv and study.json (pip install matplotlib for the figure)",
+              file=sys.stderr)
+        return paths[:2]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     ops = sorted({r.operator for r in rows})
     methods = list(dict.fromkeys(r.method for r in rows))
@@ -240,7 +261,61 @@ def _int_list(text: str) -> list[int]:
                                          ) from None
 
 
+def families_study(args: argparse.Namespace) -> int:
+    """``--families``: the leave-one-family-out protocol, printed and written."""
+    from sffscan.stages.depth import levels_from_heights
+    from sffscan.stages.depth_study import format_table, leave_one_family_out
+    from sffscan.stages.focus_measure import focus_measure
+
+    operator = args.operators.split(",")[0].strip().lower() if args.operators else "glvm"
+    window = args.windows[0] if args.windows else 9
+    if operator not in OPERATOR_CHOICES or window < 3 or window % 2 == 0:
+        print(f"sffscan study: unknown operator {operator!r} or a window that is not an odd "
+              f"integer >= 3 ({window})", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    third: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    try:
+        names = ([v.strip() for v in args.family.split(",") if v.strip()]
+                 if args.family else None)
+        if args.imdata is not None:
+            st = read_imdata(Path(args.imdata))
+            vol = focus_measure(st.images, operator=operator, window=window)
+            truth = levels_from_heights(st.truth_um, focus_heights_um=st.focus_um)
+            third[st.name] = (vol, truth, st.mask)
+        if args.seeds < 1:
+            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+        table = leave_one_family_out(families=names, seeds=args.seeds, operator=operator,
+                                     window=window, third_party=third)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"sffscan study: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [(f, "held-out family", r) for f, r in table.rmse.items()]
+    rows += [(n, "third party", r) for n, r in table.third_party.items()]
+    with (out / "held_out.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["set", "kind", "method", "rmse_levels", "ratio_to_best"])
+        for name, kind, r in rows:
+            best = min(v for m, v in r.items() if m in METHODS)
+            for m in table.methods:
+                writer.writerow([name, kind, m, f"{r[m]:.6g}", f"{r[m] / best:.4f}"])
+    md = format_table(table)
+    summary = (f"chosen by the held-out results: {table.chosen} (worst ratio to the best "
+               f"method {table.worst_ratio[table.chosen]:.2f}; {operator.upper()} "
+               f"k={window}, {args.seeds} training + {args.seeds} held-out seeds per family)")
+    (out / "held_out.md").write_text(md + "\n\n" + summary + "\n")
+    print(md)
+    print(summary)
+    print(f"wrote {out / 'held_out.csv'}, {out / 'held_out.md'}")
+    return EXIT_OK
+
+
 def cmd_study(args: argparse.Namespace) -> int:
+    if args.families:
+        return families_study(args)
+    args.operators = args.operators or DEFAULT_OPERATORS
+    args.windows = args.windows or DEFAULT_WINDOWS
     operators = [v.strip().lower() for v in args.operators.split(",") if v.strip()]
     methods = [v.strip().lower() for v in args.methods.split(",") if v.strip()]
     bad = [o for o in operators if o not in OPERATOR_CHOICES]
@@ -315,9 +390,9 @@ def register(sub: Any) -> None:
     p.add_argument("--chapter3", action="store_true", help="the thesis' chapter-3 simulation")
     p.add_argument("--noise", type=float, default=0.0,
                    help="--chapter3: variance of the added Gaussian noise (thesis: 0.005)")
-    p.add_argument("--operators", default="glvm,tenv,lapm,teng,lape,sfrq",
+    p.add_argument("--operators", default=None,
                    help="comma-separated operators (default glvm,tenv,lapm,teng,lape,sfrq)")
-    p.add_argument("--windows", type=_int_list, default=[3, 5, 7, 9, 11, 13],
+    p.add_argument("--windows", type=_int_list, default=None,
                    help="comma-separated odd window sizes (default 3,5,7,9,11,13)")
     p.add_argument("--methods", default=",".join(METHODS),
                    help=f"comma-separated depth methods (default {','.join(METHODS)})")
@@ -325,5 +400,12 @@ def register(sub: Any) -> None:
                    help="median filter of SPC, wcentroid and adaptive, odd, px (default 11)")
     p.add_argument("--top", type=int, default=10,
                    help="rows of the ranking printed (default 10; the CSV holds all)")
+    p.add_argument("--families", action="store_true",
+                   help="the leave-one-family-out protocol on synthetic families (with "
+                        "--imdata: and that stack as a third-party set)")
+    p.add_argument("--family", metavar="NAMES",
+                   help="--families: comma-separated family names (default: all)")
+    p.add_argument("--seeds", type=int, default=3,
+                   help="--families: training seeds per family, as many held out (default 3)")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")
     p.set_defaults(func=cmd_study)

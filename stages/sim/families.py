@@ -1,0 +1,254 @@
+"""Synthetic families of focus stacks with a known surface, for choosing a depth method by
+a protocol that cannot overfit (leave one family out: ``sffscan study --families``).
+
+A *family* is a kind of instrument and surface: how the blur grows with defocus (``even``:
+linearly in z, the same above and below focus; ``lens``: a thin lens, linear in 1/z, so
+the focus curve is lopsided), the point-spread function (Gaussian or pillbox), the sensor
+noise (shot + read noise, quantised to 8..12 bits), the texture (scale and contrast) and
+the surface (sinusoid, flat, steep slope, steps, heights near both ends of the range).
+Within a family each *seed* draws its own number of levels N (20..100), blur per level,
+texture and surface parameters, so a method tuned on some seeds is scored on others.
+
+Rendering is per pixel and exact up to the blur bank: the texture is blurred with a bank
+of PSF radii, and each pixel of the image at level k takes the bank image of its own blur
+radius (linear interpolation between the two nearest radii). Images are small (64 x 64 px
+by default): a stack takes milliseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+__all__ = ["FAMILIES", "Family", "SimStack", "family_stack", "family_names"]
+
+BANK_RADII_PX = np.array([0.0, 0.35, 0.7, 1.0, 1.4, 2.0, 2.8, 3.8, 5.0, 6.5, 8.5, 11.0, 14.0])
+"""Blur radii (px) of the bank; larger blurs are clamped to the last (the texture is gone)."""
+
+STEP_UM = 10.0
+"""Height between focus levels, µm (every family; errors are reported in levels)."""
+
+
+@dataclass(frozen=True)
+class Family:
+    """One kind of instrument and surface; the ranges are drawn per seed.
+
+    Attributes
+    ----------
+    name : str
+        Short name (the table's row).
+    blur : {"even", "lens"}
+        Blur radius ``b |z - f|`` (even in z) or a thin lens' ``b D^2 |1/(D + f) - 1/(D + z)|``
+        with the working distance D equal to the focus range (lopsided: the blur grows
+        about 4x faster at the near end than at the far end).
+    psf : {"gauss", "pillbox"}
+        Gaussian (sigma = radius) or uniform disc of the radius.
+    noise : {"none", "light", "heavy"}
+        Full well and read noise (electrons): none (quantisation only), light (20000, 5),
+        heavy (1500, 15) scaled by the texture's contrast.
+    bits : tuple of int
+        Bit depths drawn from.
+    surface : {"sinus", "flat", "slope", "steps", "ends"}
+        Sinusoid of up to 0.35 of the range; a flat plate (slightly tilted); a slope of
+        0.1..0.45 levels per px (at the focus window's limit: 9 px span 1..4 levels); three
+        or four terraces; two plateaus 1..3 levels from either end of the range.
+    texture_px : (float, float)
+        Range of the texture's grain size, px.
+    contrast : (float, float)
+        Range of the texture's standard deviation (0..1 images, mean 0.5).
+    blur_per_level_px : (float, float)
+        Range of the blur radius added per level of defocus (``b * STEP``), px.
+    """
+
+    name: str
+    blur: Literal["even", "lens"] = "even"
+    psf: Literal["gauss", "pillbox"] = "gauss"
+    noise: Literal["none", "light", "heavy"] = "light"
+    bits: tuple[int, ...] = (8, 10, 12)
+    surface: Literal["sinus", "flat", "slope", "steps", "ends"] = "sinus"
+    texture_px: tuple[float, float] = (1.0, 3.0)
+    contrast: tuple[float, float] = (0.1, 0.25)
+    blur_per_level_px: tuple[float, float] = (0.4, 1.2)
+
+
+FAMILIES: tuple[Family, ...] = (
+    Family("even-gauss"),
+    Family("even-noisy", noise="heavy", contrast=(0.04, 0.12)),
+    Family("lens-gauss", blur="lens"),
+    Family("pillbox", psf="pillbox"),
+    Family("lens-pillbox-noisy", blur="lens", psf="pillbox", noise="heavy",
+           contrast=(0.05, 0.15)),
+    Family("steps", surface="steps"),
+    Family("slopes", surface="slope", blur="lens"),
+    Family("ends", surface="ends", noise="heavy", contrast=(0.06, 0.15)),
+    Family("flat-fine-8bit", surface="flat", bits=(8,), texture_px=(0.7, 1.2),
+           contrast=(0.03, 0.08), noise="heavy"),
+    Family("clean-coarse", noise="none", bits=(12,), texture_px=(2.5, 5.0),
+           contrast=(0.15, 0.3), blur_per_level_px=(0.8, 2.0)),
+)
+"""The families of the study: each differs from the first in one or two ways."""
+
+_NOISE_E = {"none": None, "light": (20000.0, 5.0), "heavy": (1500.0, 15.0)}
+
+
+@dataclass(frozen=True)
+class SimStack:
+    """A rendered stack: ``images`` (N, H, W) float32 0..1, ``focus_um`` (N,) float64,
+    ``truth_um`` (H, W) float32, and the draws that made it (``info``)."""
+
+    images: np.ndarray
+    focus_um: np.ndarray
+    truth_um: np.ndarray
+    family: str
+    seed: int
+    info: dict[str, float]
+
+
+def family_names() -> list[str]:
+    """The names of :data:`FAMILIES`, in order."""
+    return [f.name for f in FAMILIES]
+
+
+def _family(name: str | Family) -> Family:
+    if isinstance(name, Family):
+        return name
+    for f in FAMILIES:
+        if f.name == name:
+            return f
+    raise ValueError(f"unknown family {name!r}; families: {', '.join(family_names())}")
+
+
+def _texture(rng: np.random.Generator, shape: tuple[int, int], grain_px: float,
+             contrast: float) -> np.ndarray:
+    """Band-limited random texture, mean 0.5 and standard deviation ``contrast``."""
+    t = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0),
+                         grain_px * 0.5, borderType=cv2.BORDER_REFLECT)
+    t -= t.mean()
+    t *= contrast / max(float(t.std()), 1e-9)
+    return np.clip(t + 0.5, 0.0, 1.0)
+
+
+def _disc(radius: float) -> np.ndarray:
+    """Anti-aliased uniform disc of ``radius`` px (4x supersampled), sum 1."""
+    r = int(np.ceil(radius)) + 1
+    s = (np.arange(-r * 4, r * 4 + 4) + 0.5) / 4.0 - 0.5
+    yy, xx = np.meshgrid(s, s, indexing="ij")
+    inside = (yy**2 + xx**2 <= radius**2).astype(np.float32)
+    k = inside.reshape(2 * r + 1, 4, 2 * r + 1, 4).mean(axis=(1, 3))
+    return k / k.sum()
+
+
+def _bank(tex: np.ndarray, psf: str) -> np.ndarray:
+    out = np.empty((len(BANK_RADII_PX), *tex.shape), np.float32)
+    for i, r in enumerate(BANK_RADII_PX):
+        if r == 0:
+            out[i] = tex
+        elif psf == "gauss":
+            out[i] = cv2.GaussianBlur(tex, (0, 0), float(r), borderType=cv2.BORDER_REFLECT)
+        else:
+            out[i] = cv2.filter2D(tex, -1, _disc(max(float(r), 0.5)),
+                                  borderType=cv2.BORDER_REFLECT)
+    return out
+
+
+def _surface(fam: Family, rng: np.random.Generator, shape: tuple[int, int], n: int
+             ) -> np.ndarray:
+    """True height in levels (0 .. N-1), (H, W) float64."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    mid = (n - 1) / 2.0
+    if fam.surface == "sinus":
+        amp = rng.uniform(0.15, 0.35) * (n - 1)
+        period = rng.uniform(30.0, 90.0)
+        phase = rng.uniform(0, 2 * np.pi, 2)
+        z = mid + amp * np.sin(2 * np.pi * xx / period + phase[0]) * np.cos(
+            2 * np.pi * yy / (1.3 * period) + phase[1])
+    elif fam.surface == "flat":
+        z = rng.uniform(0.2, 0.8) * (n - 1) + rng.uniform(-0.02, 0.02) * (xx - w / 2)
+    elif fam.surface == "slope":
+        slope = min(rng.uniform(0.1, 0.45), 0.8 * (n - 1) / w)
+        ang = rng.uniform(0, 2 * np.pi)
+        t = (xx - w / 2) * np.cos(ang) + (yy - h / 2) * np.sin(ang)
+        z = mid + slope * t
+    elif fam.surface == "steps":
+        n_steps = int(rng.integers(3, 5))
+        levels = rng.uniform(0.15, 0.85, n_steps) * (n - 1)
+        cuts = np.sort(rng.uniform(0.15, 0.85, n_steps - 1)) * w
+        z = levels[np.searchsorted(cuts, xx)]
+        z = z + np.where(yy > h / 2, rng.uniform(-0.1, 0.1) * (n - 1), 0.0)
+    else:  # ends: plateaus near both ends, gently tilted
+        lo, hi = rng.uniform(1.0, 3.0), (n - 1) - rng.uniform(1.0, 3.0)
+        z = np.where(xx < w / 2, lo, hi) + rng.uniform(-0.01, 0.01) * (yy - h / 2)
+    return np.clip(z, 0.0, n - 1.0)
+
+
+def _blur_radius(fam: Family, z: np.ndarray, f: float, b: float, n: int) -> np.ndarray:
+    """Blur radius, px, of surface heights ``z`` (levels) at focus level ``f``."""
+    if fam.blur == "even":
+        return b * np.abs(z - f)
+    d = float(n - 1)  # the working distance: the whole range
+    return b * d * d * np.abs(1.0 / (d + f) - 1.0 / (d + z))
+
+
+def _sensor(img: np.ndarray, fam: Family, rng: np.random.Generator, bits: int) -> np.ndarray:
+    full = float(2**bits - 1)
+    noise = _NOISE_E[fam.noise]
+    if noise is not None:
+        well, read = noise
+        e = img * well
+        e = e + rng.standard_normal(img.shape) * np.sqrt(np.maximum(e, 0.0) + read**2)
+        img = e / well
+    return (np.clip(np.round(img * full), 0, full) / full).astype(np.float32)
+
+
+def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
+                 n_levels: int | None = None) -> SimStack:
+    """Render one stack of a family.
+
+    Parameters
+    ----------
+    family : str or Family
+        A name of :data:`FAMILIES` or a :class:`Family`.
+    seed : int
+        Seed of every draw (N, blur, texture, surface, noise).
+    size_px : int, keyword-only
+        Image width and height, px. Default 64.
+    n_levels : int, optional, keyword-only
+        Number of focus levels; drawn from 20..100 when not given.
+
+    Returns
+    -------
+    SimStack
+        Images 0..1 (N, size, size) float32, focus heights ``k * STEP_UM`` µm, truth µm.
+    """
+    fam = _family(family)
+    rng = np.random.default_rng([seed, sum(map(ord, fam.name))])
+    n = int(n_levels if n_levels is not None else rng.integers(20, 101))
+    if n < 3:
+        raise ValueError(f"n_levels must be >= 3, got {n}")
+    pad = 16
+    shape = (size_px + 2 * pad, size_px + 2 * pad)
+    grain = float(rng.uniform(*fam.texture_px))
+    contrast = float(rng.uniform(*fam.contrast))
+    b = float(rng.uniform(*fam.blur_per_level_px))
+    bits = int(rng.choice(fam.bits))
+    bank = _bank(_texture(rng, shape, grain, contrast), fam.psf)
+    z = _surface(fam, rng, shape, n)
+    flat_bank = bank.reshape(len(BANK_RADII_PX), -1)
+    idx = np.arange(flat_bank.shape[1])
+    images = np.empty((n, size_px, size_px), np.float32)
+    for k in range(n):
+        r = np.clip(_blur_radius(fam, z, float(k), b, n), 0.0, BANK_RADII_PX[-1]).reshape(-1)
+        i = np.clip(np.searchsorted(BANK_RADII_PX, r, side="right") - 1, 0,
+                    len(BANK_RADII_PX) - 2)
+        t = (r - BANK_RADII_PX[i]) / (BANK_RADII_PX[i + 1] - BANK_RADII_PX[i])
+        img = (1 - t) * flat_bank[i, idx] + t * flat_bank[i + 1, idx]
+        images[k] = _sensor(img.reshape(shape)[pad:-pad, pad:-pad], fam, rng, bits)
+    truth = (z[pad:-pad, pad:-pad] * STEP_UM).astype(np.float32)
+    info = {"n_levels": float(n), "grain_px": grain, "contrast": contrast,
+            "blur_per_level_px": b, "bits": float(bits)}
+    return SimStack(images, np.arange(n) * STEP_UM, truth, fam.name, seed, info)
+
