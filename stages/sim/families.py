@@ -124,11 +124,11 @@ def _family(name: str | Family) -> Family:
 def _texture(rng: np.random.Generator, shape: tuple[int, int], grain_px: float,
              contrast: float) -> np.ndarray:
     """Band-limited random texture, mean 0.5 and standard deviation ``contrast``."""
-    t = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0),
-                         grain_px * 0.5, borderType=cv2.BORDER_REFLECT)
-    t -= t.mean()
-    t *= contrast / max(float(t.std()), 1e-9)
-    return np.clip(t + 0.5, 0.0, 1.0)
+    t = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0),
+                                    grain_px * 0.5, borderType=cv2.BORDER_REFLECT),
+                   dtype=np.float32)
+    t = (t - t.mean()) * np.float32(contrast / max(float(t.std()), 1e-9))
+    return np.clip(t + np.float32(0.5), 0.0, 1.0)
 
 
 def _disc(radius: float) -> np.ndarray:
