@@ -56,7 +56,7 @@ def _selections(rng: np.random.Generator, shape: tuple[int, ...], chunks: tuple[
                         last,  # the last chunk, cut by the array's end where it is
                         (shape[0] - 1,)]  # the last index of the first axis, the rest whole
     for _ in range(n):
-        sel = []
+        sel: list[Any] = []
         for s in shape:
             if s > 1 and rng.random() < 0.25:
                 sel.append(int(rng.integers(-s, s)))  # an integer drops its axis
@@ -175,3 +175,52 @@ def test_bad_selections_and_values_are_refused_naming_the_array(tmp_path: Path) 
         write_many([(direct, 5, np.zeros((24, 40), np.uint16))])
     with pytest.raises(IndexError, match="direct.*only step-1"):
         read_many([(direct, slice(0, 5, 2))])
+
+
+def test_the_direct_path_uses_zarr_s_public_api_only() -> None:
+    """zarr 3.2 to 3.4 moved or removed the private names (``zarr.core.chunk_grids.
+    RegularChunkGrid``...) this module once imported, which broke every mosaic and recording
+    read and write: no import of a private zarr module or name."""
+    import ast
+
+    from sffscan.pipeline.formats import zarr_chunks
+
+    tree = ast.parse(Path(zarr_chunks.__file__).read_text())
+    private = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("zarr"):
+            names = [node.module or "", *(a.name for a in node.names)]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names if a.name.startswith("zarr")]
+        else:
+            continue
+        private += [n for n in names if n.startswith("zarr.core") or any(
+            part.startswith("_") for part in n.split("."))]
+    assert not private, private
+
+
+def test_direct_chunks_need_none_of_zarr_s_internal_classes(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    """As on zarr 3.2+: the internal chunk grid, key encoding and metadata classes gone,
+    the direct path still plans, writes zarr's files and reads them."""
+    import zarr.core.chunk_grids
+    import zarr.core.chunk_key_encodings
+    import zarr.core.metadata
+
+    by_zarr, direct = _pair(tmp_path, "frames", [*frame_codecs("blosc-lz4"), Crc32cCodec()],
+                            write_empty=True, separator=".")
+    for module, name in ((zarr.core.chunk_grids, "RegularChunkGrid"),
+                         (zarr.core.chunk_key_encodings, "DefaultChunkKeyEncoding"),
+                         (zarr.core.metadata, "ArrayV3Metadata")):
+        monkeypatch.delattr(module, name)
+    plan = direct_plan(direct)
+    assert plan is not None and plan.crc and plan.chunks == (1, 24, 40)
+    value = np.arange(2 * 24 * 40, dtype=np.uint16).reshape(2, 24, 40)
+    write_many([(direct, slice(1, 3), value)])
+    got = read_many([(direct, slice(0, 5))])[0]
+    monkeypatch.undo()  # zarr's own indexing needs them
+    by_zarr[1:3] = value
+    np.testing.assert_array_equal(got, by_zarr[:])
+    root = tmp_path / "m.zarr"
+    assert _files(direct, root) == _files(by_zarr, root)

@@ -13,7 +13,11 @@ default chunk key encoding with either separator (``c/i/j/…`` or ``c.i.j.…``
 by the array's own encoding), C order, a numeric data type and the codecs ``bytes`` (little
 endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
 most one ``crc32c`` after it (what :func:`sffscan.stages.mosaic.mosaic_codecs` and the
-recorder's :func:`sffscan.stages.recorder.frame_codecs` make). Each chunk's file is encoded
+recorder's :func:`sffscan.stages.recorder.frame_codecs` make). Which arrays qualify is
+read from zarr's public API only (the array's metadata document, as the Zarr v3
+specification defines ``zarr.json``, its :class:`zarr.storage.LocalStore`, order and
+config), so a zarr release that reorganises its internals sends the arrays through zarr
+rather than breaking the reads and writes. Each chunk's file is encoded
 and decoded with numcodecs (the library zarr's own codecs call), configured from the codec's
 own metadata; ``crc32c`` appends the CRC-32C of the encoded bytes (google_crc32c, as zarr's
 ``Crc32cCodec``), little endian, and a chunk whose checksum does not match raises
@@ -23,7 +27,7 @@ file in the same folder, then renamed over the chunk (a reader never sees half a
 Unless the array's config says ``write_empty_chunks``, a chunk whose every element equals
 the fill value is deleted rather than written (zarr's default). A chunk that a region covers
 whole is encoded from the region's values without reading the stored one. Any other array
-goes through zarr itself.
+goes through zarr itself (its public ``array[selection]`` reads and writes).
 
 Selections: a tuple of step-1 slices and integers (an integer drops its axis, as in numpy);
 missing trailing axes are whole.
@@ -31,7 +35,6 @@ missing trailing axes are whole.
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import os
 import uuid
@@ -42,6 +45,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from zarr.storage import LocalStore
 
 __all__ = ["ChunkChecksumError", "read_many", "write_many", "direct_plan"]
 
@@ -89,41 +93,60 @@ def _compressor(config: dict[str, Any]) -> Any:
 
 def direct_plan(arr: zarr.Array) -> _Plan | None:
     """How to read and write ``arr``'s chunks directly, or None where zarr must (another
-    store, grid, key encoding, order, data type, byte order or codec)."""
-    from zarr.core.chunk_grids import RegularChunkGrid
-    from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
-    from zarr.core.metadata import ArrayV3Metadata
-    from zarr.storage import LocalStore
+    store, zarr format, grid, key encoding, order, data type, byte order or codec).
 
-    meta = arr.metadata
-    store = arr.store_path.store
-    dtype = np.dtype(arr.dtype)
-    config = arr.async_array.config
-    if (not isinstance(meta, ArrayV3Metadata) or not isinstance(store, LocalStore)
-            or not isinstance(meta.chunk_grid, RegularChunkGrid) or len(arr.shape) == 0
-            or dtype.kind not in "biuf" or dtype.byteorder == ">" or config.order != "C"
-            or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding)
-            or meta.chunk_key_encoding.separator not in ("/", ".")):
+    Read from zarr's public API only: the array's metadata document (``zarr.json``, as the
+    Zarr v3 specification defines it), its store (:class:`zarr.storage.LocalStore`), path,
+    order and config. Anything this cannot read the way it expects (a zarr release that
+    moved one of them) makes the array go through zarr itself."""
+    try:
+        store, path, order = arr.store, arr.path, arr.order
+        write_empty = arr.async_array.config.write_empty_chunks
+        doc: dict[str, Any] = dict(arr.metadata.to_dict())
+    except AttributeError:
         return None
-    codecs = [c.to_dict() for c in meta.codecs]
+    if (not isinstance(store, LocalStore) or doc.get("zarr_format") != 3 or order != "C"
+            or doc.get("storage_transformers") or not isinstance(write_empty, bool)):
+        return None
+    dtype = np.dtype(arr.dtype)
+    shape = tuple(int(n) for n in arr.shape)
+    grid, keys = doc.get("chunk_grid"), doc.get("chunk_key_encoding")
+    if (not isinstance(grid, dict) or grid.get("name") != "regular" or len(shape) == 0
+            or dtype.kind not in "biuf" or dtype.byteorder == ">"
+            or not isinstance(keys, dict) or keys.get("name") != "default"):
+        return None
+    chunks = tuple(int(c) for c in (grid.get("configuration") or {}).get("chunk_shape", ()))
+    separator = (keys.get("configuration") or {}).get("separator", "/")
+    if len(chunks) != len(shape) or separator not in ("/", "."):
+        return None
+    codecs = [dict(c) for c in doc.get("codecs") or ()]
     if not codecs or codecs[0].get("name") != "bytes":
         return None
-    endian = (codecs[0].get("configuration") or {}).get("endian")  # type: ignore[union-attr]
+    endian = (codecs[0].get("configuration") or {}).get("endian")
     if not (endian == "little" or (endian is None and dtype.itemsize == 1)):
         return None
     rest = codecs[1:]
-    crc = bool(rest) and rest[-1] == {"name": "crc32c"}
+    crc = bool(rest) and rest[-1].get("name") == "crc32c" and not rest[-1].get("configuration")
     if crc:
         rest = rest[:-1]
     if len(rest) > 1:
         return None
     try:
-        codec = _compressor(rest[0]) if rest else None  # type: ignore[arg-type]
+        codec = _compressor(rest[0]) if rest else None
     except KeyError:
         return None
-    return _Plan(Path(store.root) / arr.store_path.path, tuple(int(c) for c in arr.chunks),
-                 dtype, arr.fill_value, codec, crc, bool(config.write_empty_chunks),
-                 meta.chunk_key_encoding.encode_chunk_key)
+    return _Plan(Path(store.root) / path, chunks, dtype, arr.fill_value, codec, crc,
+                 write_empty, _key_encoding(separator))
+
+
+def _key_encoding(separator: str) -> Callable[[tuple[int, ...]], str]:
+    """The Zarr v3 ``default`` chunk key encoding: ``c`` and the chunk's indices, joined by
+    ``separator``."""
+
+    def encode(key: tuple[int, ...]) -> str:
+        return separator.join(["c", *map(str, key)])
+
+    return encode
 
 
 def _crc32c(data: Any) -> bytes:
@@ -248,7 +271,7 @@ def _overlaps(plan: _Plan, shape: tuple[int, ...], reg: _Region) -> Iterator[
 
 def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]:
     """Several array regions, each a new array: directly where :func:`direct_plan` allows,
-    the others in one round trip of zarr's event loop. A stored chunk whose checksum does
+    the others through zarr (``array[selection]``). A stored chunk whose checksum does
     not match raises :class:`ChunkChecksumError`."""
     out: list[np.ndarray | None] = []
     rest: list[tuple[int, zarr.Array, Selection]] = []
@@ -264,21 +287,15 @@ def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]
             chunk = _load(plan, plan.path(key), copy=False)  # copied into the region
             region[part] = plan.fill if chunk is None else chunk[inner]
         out.append(region.reshape(reg.value_shape))
-    if rest:
-        from zarr.core.sync import sync
-
-        async def run() -> list[Any]:
-            return list(await asyncio.gather(*(a.async_array.getitem(s) for _, a, s in rest)))
-
-        for (n, _, _), value in zip(rest, sync(run()), strict=True):
-            out[n] = np.asarray(value)
+    for n, arr, sel in rest:
+        out[n] = np.asarray(arr[sel])
     return [v for v in out if v is not None]
 
 
 def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]]) -> None:
     """Write several array regions (a chunk partly under a region is read, patched and
     written whole; a chunk under it whole is not read): directly where :func:`direct_plan`
-    allows, the others in one round trip of zarr's event loop. ``value`` has the region's
+    allows, the others through zarr (``array[selection] = value``). ``value`` has the region's
     shape, without the axes indexed by integers."""
     rest = []
     for arr, sel, value in items:
@@ -302,10 +319,5 @@ def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]]) -> Non
                 chunk = np.full(plan.chunks, plan.fill, plan.dtype)
             chunk[inner] = value[part]
             _store(plan, path, chunk)
-    if rest:
-        from zarr.core.sync import sync
-
-        async def run() -> None:
-            await asyncio.gather(*(a.async_array.setitem(s, v) for a, s, v in rest))
-
-        sync(run())
+    for arr, sel, value in rest:
+        arr[sel] = value
