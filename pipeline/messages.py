@@ -21,9 +21,12 @@ class FrameHeader(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    frame_id: int = Field(ge=0, description="Frame counter of the camera, from 0")
-    timestamp_ns: int = Field(ge=0, description="Exposure time stamp, ns (device clock)")
-    focus_index: int = Field(ge=0, description="Focus level of the lens staircase, 0..N-1")
+    frame_id: int = Field(ge=0, le=2**63 - 1, description="Frame counter of the camera, from "
+                          "0 (stored as int64)")
+    timestamp_ns: int = Field(ge=0, le=2**63 - 1, description="Exposure time stamp, ns "
+                              "(device clock; stored as int64)")
+    focus_index: int = Field(ge=0, le=2**31 - 1, description="Focus level of the lens "
+                             "staircase, 0..N-1 (stored as int32)")
     stage_x_um: float | None = Field(
         default=None,
         description="Commanded stage position along x: world x of the frame's first column, "
@@ -33,7 +36,8 @@ class FrameHeader(BaseModel):
         default=None,
         description="Commanded stage position along y: world y of the frame's first row, µm",
     )
-    pass_index: int = Field(default=0, ge=0, description="Index of the parallel scan pass")
+    pass_index: int = Field(default=0, ge=0, le=2**31 - 1,
+                            description="Index of the parallel scan pass (stored as int32)")
 
 
 class DepthBlockHeader(BaseModel):

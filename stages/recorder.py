@@ -23,6 +23,11 @@ default chunk key encoding and the separator ``.`` (``frames/c.i.0.0``, ``header
 all in the array's folder) rather than ``/`` (``frames/c/i/0/0``: two or three new folders
 per frame, each created and fsynced). See ``bench/recorder_results.md``.
 
+Format version 4 (written now): the same, with a ``recording_id`` (uuid4) in the attributes,
+and each header copy holding the frame's array index and the digest of its pixels bound to
+that index and to the id (:func:`~sffscan.pipeline.formats.recording_checks.frame_digest`,
+CRC-32C, about 0.1 ms per MB): a swapped or copied chunk file is found by the reader.
+
 Durability: the files written are fsynced (and their folders) every ``fsync_s`` seconds
 (default :data:`FSYNC_S`, 1 s) and at close: a power cut loses at most the last second of
 the stream. A reserve file (:data:`sffscan.stages.durable.RESERVE_BYTES`) is kept in the
@@ -37,6 +42,7 @@ import datetime as _dt
 import errno
 import logging
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -45,6 +51,7 @@ import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import (
+    GROW,
     HEADER_COLUMNS,
     META_CHUNK,
     PER_FRAME,
@@ -52,6 +59,7 @@ from sffscan.pipeline.formats.recording import (
     chunk_keys_from,
     header_row,
 )
+from sffscan.pipeline.formats.recording_checks import frame_digest
 from sffscan.pipeline.formats.zarr_chunks import write_many
 from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
@@ -61,14 +69,12 @@ from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 
 log = logging.getLogger(__name__)
 
-#: arrays grow by this many frames at a time
-GROW = 1024
 #: the recorder makes what it wrote durable (fsync) at least this often, s
 FSYNC_S = 1.0
 #: default codec of the frames array (see bench/recorder_results.md)
 DEFAULT_CODEC = "blosc-lz4"
 #: chunk key separator of the frames and headers arrays -> the recording's format version
-KEY_SEPARATORS = {".": 3, "/": 2}
+KEY_SEPARATORS = {".": 4, "/": 2}
 #: the recorder's queue holds up to this many bytes of frames (within 16..1024 frames)
 QUEUE_BYTES = 512 * 2**20
 
@@ -119,14 +125,18 @@ class RecordingWriter:
         twice the CPU per frame; for the tests and the benchmark that compare the two).
     key_separator : {".", "/"}
         Separator of the chunk keys of ``frames`` and ``headers``: ``"."`` writes format
-        version 3 (every chunk in the array's folder), ``"/"`` format version 2 (a folder
+        version 4 (every chunk in the array's folder), ``"/"`` format version 2 (a folder
         per frame; for the tests and the benchmark that compare the two).
+    recording_id : str, optional
+        The recording's id (32 hex digits); default: a new uuid4 (tests that compare two
+        recordings byte for byte give both the same).
     """
 
     def __init__(self, path: str | Path, cfg: ScanConfig, *, codec: str = DEFAULT_CODEC,
                  flush_every: int = 16, flush_s: float = 0.25, fsync_s: float = FSYNC_S,
                  account: Any | None = None, via_zarr: bool = False,
-                 key_separator: Literal[".", "/"] = ".") -> None:
+                 key_separator: Literal[".", "/"] = ".",
+                 recording_id: str | None = None) -> None:
         self.path = Path(path)
         self.via_zarr = via_zarr
         if key_separator not in KEY_SEPARATORS:
@@ -147,7 +157,8 @@ class RecordingWriter:
             status="recording", frame_shape=self.shape, dtype=str(self.dtype),  # type: ignore[arg-type]
             scan_config=cfg.model_dump(mode="json"), codec=codec,
             created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), writer="sffscan",
-            fsync_s=fsync_s, format_version=KEY_SEPARATORS[key_separator])
+            fsync_s=fsync_s, format_version=KEY_SEPARATORS[key_separator],
+            recording_id=recording_id or uuid.uuid4().hex)
         self.account = account
         self.sync = SyncTracker(self.path, interval_s=fsync_s)
         self.group: zarr.Group | None = None
@@ -230,7 +241,8 @@ class RecordingWriter:
         # header copy is written after the frame whatever path each takes: a header copy
         # means a whole frame
         self._put([(self.frames, i, image)])
-        self._put([(self.headers, i, header_row(h))])
+        digest = frame_digest(image, index=i, recording_id=self.attrs.recording_id)
+        self._put([(self.headers, i, header_row(h, index=i, digest=digest))])
         enc = self.frames.metadata.encode_chunk_key  # type: ignore[union-attr]
         self.sync.add([f"frames/{enc((i, 0, 0))}",
                        f"headers/{self.headers.metadata.encode_chunk_key((i, 0))}"])  # type: ignore[union-attr]

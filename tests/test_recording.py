@@ -59,8 +59,8 @@ def plain_recording(path: Path, cfg: ScanConfig, frames: list[Frame], *,
 
 def test_writer_layout_round_trips_frames_and_headers(tmp_path: Path) -> None:
     cfg = small_config()
-    frames = _frames(40) + [Frame(h.header.model_copy(update={"frame_id": 40 + i,
-                                                              "stage_x_um": None}), h.image)
+    frames = _frames(40) + [Frame(h.header.model_copy(update={
+        "frame_id": 40 + i, "timestamp_ns": (40 + i) * 6_666_667, "stage_x_um": None}), h.image)
                             for i, h in enumerate(_frames(3, positions=False))]
     w = RecordingWriter(tmp_path / "r.zarr", cfg, flush_every=7)
     for f in frames:
@@ -305,7 +305,7 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
                             root=root: done.add(str(Path(path).relative_to(root.parent))
                                                 .replace(root.name, "<rec>")))
         w = RecordingWriter(root, small_config(), codec=codec, flush_every=5, flush_s=1e9,
-                            fsync_s=3600.0, via_zarr=via_zarr)
+                            fsync_s=3600.0, via_zarr=via_zarr, recording_id="0" * 32)
         for f in frames[:n]:
             w.write(f)
         w.close(status=status, error="stopped" if status == "failed" else None)

@@ -30,7 +30,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
     assert main(["scan", "--config", str(toml), "-o", str(d / "live.zarr"), "--record",
                  str(rec), "-q", "--no-evaluate"]) == 0
     r = open_recording(rec)
-    assert r.attrs.format_version == 3 and r.report.defects == 0
+    assert r.attrs.format_version == 4 and r.report.defects == 0
     assert not (rec / ".sffscan-reserve").exists()  # freed at close
     return rec, r.report.frames
 
@@ -216,10 +216,10 @@ def test_the_recorder_makes_what_it_wrote_durable(tmp_path: Path,
     writer.close()
 
 
-@pytest.mark.parametrize("version", [2, 3])
-def test_versions_2_and_3_open_verify_and_replay_the_same_frames(tmp_path: Path,
+@pytest.mark.parametrize("version", [2, 4])
+def test_versions_2_and_4_open_verify_and_replay_the_same_frames(tmp_path: Path,
                                                                  version: int) -> None:
-    """Version 3 names the frame and header chunks ``c.i.0.0`` (one folder), version 2
+    """Version 4 (as 3) names the frame and header chunks ``c.i.0.0`` (one folder), version 2
     ``c/i/0/0`` (a folder per frame, as recorded before): each opens, verifies and replays
     the frames written; a lost frame chunk is reported lost, a flipped byte corrupt."""
     from sffscan.stages.recorder import RecordingWriter
@@ -230,12 +230,12 @@ def test_versions_2_and_3_open_verify_and_replay_the_same_frames(tmp_path: Path,
     cfg = tiny_config()
     frames = [f for _, f in zip(range(12), simulate_frames(cfg), strict=False)]
     rec = tmp_path / f"v{version}.zarr"
-    writer = RecordingWriter(rec, cfg, key_separator={2: "/", 3: "."}[version])
+    writer = RecordingWriter(rec, cfg, key_separator={2: "/", 4: "."}[version])
     for f in frames:
         writer.write(f)
     writer.close()  # trims the arrays from 1024 entries to 12
     names = sorted(p.name for p in (rec / "frames").iterdir())
-    if version == 3:
+    if version == 4:
         assert names == sorted([*(f"c.{i}.0.0" for i in range(12)), "zarr.json"])
         assert sorted(p.name for p in (rec / "headers").iterdir()) == sorted(
             [*(f"c.{i}.0" for i in range(12)), "zarr.json"])

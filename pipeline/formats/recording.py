@@ -1,14 +1,17 @@
 """Raw-stream recordings: the format (a Zarr v3 group) and a validating reader.
 
-Layout (format ``sffscan-recording``, version 3; schema ``schemas/recording_attrs.v1.json``):
+Layout (format ``sffscan-recording``, version 4; schema ``schemas/recording_attrs.v1.json``):
 
 - ``frames``: uint8 or uint16 (n, H, W), one frame per chunk; version 3 names the chunks of
   ``frames`` and ``headers`` with the separator ``.`` (``frames/c.i.0.0``, every chunk in the
   array's folder), versions 1 and 2 with ``/`` (``frames/c/i/0/0``, a folder per frame);
   zarr reads each array's encoding from its ``zarr.json``;
-- ``headers`` (versions 2, 3): int64 (n, 6), one chunk per frame beside it: a copy of the frame's
-  header (frame_id, timestamp_ns, focus_index, stage_x_um and stage_y_um as the bits of
-  float64, pass_index; -1 = not written), written right after the frame's chunk;
+- ``headers`` (versions 2 to 4): int64 (n, 6) or (n, 8), one chunk per frame beside it: a copy
+  of the frame's header (frame_id, timestamp_ns, focus_index, stage_x_um and stage_y_um as the
+  bits of float64, pass_index; -1 = not written), written right after the frame's chunk;
+  version 4 adds the frame's array index and the digest of its pixels bound to that index
+  and to the recording id (:func:`~sffscan.pipeline.formats.recording_checks.frame_digest`):
+  a frame chunk swapped with another or copied over another is detected;
 - ``frame_id``: int64 (n,), the camera's frame counter; ``-1`` (the fill value) = not written;
 - ``timestamp_ns``: int64 (n,), exposure time stamp, ns;
 - ``focus_index``: int32 (n,), focus level of the lens staircase;
@@ -16,7 +19,8 @@ Layout (format ``sffscan-recording``, version 3; schema ``schemas/recording_attr
   (optional arrays: without them frames are placed by the speed model);
 - ``pass_index``: int32 (n,) (optional when the configuration has one pass);
 - group attributes (:class:`RecordingAttrs`): format, version, status, frame shape and dtype,
-  and the whole scan configuration.
+  the whole scan configuration and (version 4) ``recording_id``, a uuid4 drawn when the
+  recording is created (:func:`read_recording_id`).
 
 Integrity (versions 2 and 3): every chunk of every array ends with a CRC-32C (zarr v3's ``crc32c``
 codec): a flipped byte makes the chunk undecodable, never silently different. No single
@@ -32,12 +36,16 @@ was written (the recorder grows them in steps): entries whose ``frame_id`` is -1
 frames. The reader (:func:`open_recording`) validates all of it and reports every defect
 with counts and frame ids: frame-id gaps, duplicated and out-of-order frames, corrupt or
 truncated chunks, missing chunks or metadata, a shape or dtype that disagrees with the
-attributes. What is recoverable is reported and left out (never filled); what is not
-raises :class:`RecordingError` naming the array, attribute or frame.
+attributes, frames misplaced (version 4), time stamps that go back or jump implausibly,
+array lengths the chunk files present do not support
+(:mod:`~sffscan.pipeline.formats.recording_checks`). What is recoverable is reported and
+left out (never filled); what is not raises :class:`RecordingError` naming the array,
+attribute or frame.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -48,14 +56,22 @@ import numpy as np
 import zarr
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
+from sffscan.pipeline.formats.recording_checks import (
+    Pacer,
+    frame_digest,
+    stored_extent,
+    timestamp_defects,
+)
 from sffscan.pipeline.formats.zarr_chunks import read_many
 from sffscan.pipeline.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount
 
+log = logging.getLogger(__name__)
+
 FORMAT = "sffscan-recording"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: per-frame arrays: name -> (dtype, fill value, required)
 PER_FRAME: dict[str, tuple[str, Any, bool]] = {
     "frame_id": ("int64", -1, True),
@@ -67,9 +83,16 @@ PER_FRAME: dict[str, tuple[str, Any, bool]] = {
 }
 #: chunk length of the per-frame arrays written by the recorder, frames (uncompressed)
 META_CHUNK = 256
-#: columns of the ``headers`` array (version 2), in this order
+#: the recorder grows its arrays this many frames at a time: a recording cut short may
+#: claim up to this many entries past its last chunk file
+GROW = 1024
+#: columns of the ``headers`` array (versions 2 and 3: the first 6; version 4: all), in order
 HEADER_COLUMNS = ("frame_id", "timestamp_ns", "focus_index", "stage_x_um", "stage_y_um",
-                  "pass_index")
+                  "pass_index", "index", "digest")
+#: the header's own columns (the copy of the :class:`FrameHeader`)
+BASE_COLUMNS = 6
+#: pattern of a recording id (uuid4, hex)
+RECORDING_ID_PATTERN = r"^[0-9a-f]{32}$"
 
 
 class RecordingAttrs(BaseModel):
@@ -78,8 +101,10 @@ class RecordingAttrs(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-recording"] = "sffscan-recording"
-    format_version: Literal[1, 2, 3] = Field(
-        3, description="3: as 2, with the chunks of 'frames' and 'headers' named 'c.i.0.0' "
+    format_version: Literal[1, 2, 3, 4] = Field(
+        4, description="4: as 3, with a recording_id and each frame's header copy holding "
+        "its array index and a digest of its pixels bound to the index and the id; "
+        "3: as 2, with the chunks of 'frames' and 'headers' named 'c.i.0.0' "
         "(zarr's default chunk key encoding with the separator '.', every chunk in the "
         "array's folder); 2: CRC-32C on every chunk and a copy of each frame's header beside "
         "it (array 'headers'), chunk keys 'c/i/0/0'; 1: neither (still replayed)")
@@ -91,6 +116,9 @@ class RecordingAttrs(BaseModel):
     dtype: Literal["uint8", "uint16"] = Field(description="Frame pixel type")
     scan_config: dict[str, Any] = Field(description="The scan configuration (scan_config "
                                         "schema) the frames were acquired with")
+    recording_id: str | None = Field(
+        None, pattern=RECORDING_ID_PATTERN, description="Unique id of the recording (uuid4, "
+        "32 hex digits), drawn when it is created (version 4; absent before)")
     created: str | None = Field(None, description="UTC creation time, ISO 8601")
     frames: int | None = Field(None, ge=0, description="Frames written (set when closed)")
     codec: str | None = Field(None, description="Codec of the frames array, informative")
@@ -126,6 +154,12 @@ class RecordingReport:
     missing_metadata: list[int] = field(default_factory=list)  # array indexes without metadata
     missing_chunks: list[int] = field(default_factory=list)  # frame ids without a frame chunk
     corrupt: list[int] = field(default_factory=list)  # frame ids whose chunk cannot be decoded
+    #: frame ids whose pixels are not the ones their header copy's digest names (v4)
+    misplaced: list[int] = field(default_factory=list)
+    time_backwards: list[int] = field(default_factory=list)  # frame ids: time stamp went back
+    time_jumps: list[int] = field(default_factory=list)  # frame ids: implausible time step
+    #: entries the arrays' zarr.json claim, when the chunk files present hold fewer
+    claimed_entries: int | None = None
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -135,7 +169,9 @@ class RecordingReport:
     @property
     def defects(self) -> int:
         return (len(self.gaps) + len(self.duplicates) + len(self.out_of_order)
-                + len(self.missing_metadata) + len(self.missing_chunks) + len(self.corrupt))
+                + len(self.missing_metadata) + len(self.missing_chunks) + len(self.corrupt)
+                + len(self.misplaced) + len(self.time_backwards) + len(self.time_jumps)
+                + (self.claimed_entries is not None))
 
     def lines(self) -> list[str]:
         """The report as text, one finding per line (ids listed up to 20)."""
@@ -149,7 +185,10 @@ class RecordingReport:
                        + _ids([f"{a}..{a + n - 1}" if n > 1 else str(a) for a, n in self.gaps]))
         for name, ids in (("duplicates", self.duplicates), ("out of order", self.out_of_order),
                           ("no metadata", self.missing_metadata),
-                          ("no chunk", self.missing_chunks), ("corrupt", self.corrupt)):
+                          ("no chunk", self.missing_chunks), ("corrupt", self.corrupt),
+                          ("misplaced", self.misplaced),
+                          ("time back", self.time_backwards),
+                          ("time jump", self.time_jumps)):
             if ids:
                 what = "array indexes" if name == "no metadata" else "frame_id"
                 out.append(f"{name:<11} {len(ids)}: {what} " + _ids([str(i) for i in ids]))
@@ -159,11 +198,14 @@ class RecordingReport:
     def as_dict(self) -> dict[str, Any]:
         """A JSON-able summary, stored in the attributes of a mosaic replayed from it."""
         return {"path": self.path, "status": self.status, "frames": self.frames,
-                "entries": self.entries, "frames_lost": self.lost + len(self.corrupt),
+                "entries": self.entries,
+                "frames_lost": self.lost + len(self.corrupt) + len(self.misplaced),
                 "gaps": [list(g) for g in self.gaps[:100]], "duplicates": self.duplicates[:100],
                 "out_of_order": self.out_of_order[:100],
                 "missing_metadata": self.missing_metadata[:100],
-                "missing_chunks": self.missing_chunks[:100], "corrupt": self.corrupt[:100]}
+                "missing_chunks": self.missing_chunks[:100], "corrupt": self.corrupt[:100],
+                "misplaced": self.misplaced[:100], "time_backwards": self.time_backwards[:100],
+                "time_jumps": self.time_jumps[:100]}
 
 
 def _ids(ids: list[str], limit: int = 20) -> str:
@@ -267,8 +309,10 @@ def _read_per_frame(arr: zarr.Array, n: int, fill: Any, bad: set[int], *,
 def _rebuild_from_headers(headers: zarr.Array, meta: dict[str, np.ndarray], bad: set[int],
                           extent: int) -> int:
     """Fill the entries below ``extent`` whose metadata is unreadable or unwritten from the
-    copy of the header beside their frame (version 2); returns how many were rebuilt."""
-    if headers.ndim != 2 or headers.shape[1] != len(HEADER_COLUMNS):
+    copy of the header beside their frame (version 2); returns how many were rebuilt. A
+    version-4 copy whose stored index is not its own (a swapped or copied header chunk) is
+    not used."""
+    if headers.ndim != 2 or headers.shape[1] not in (BASE_COLUMNS, len(HEADER_COLUMNS)):
         return 0
     written = ((meta["frame_id"] >= 0) & (meta["timestamp_ns"] >= 0)
                & (meta["focus_index"] >= 0) & (meta["pass_index"] >= 0))
@@ -288,22 +332,38 @@ def _rebuild_from_headers(headers: zarr.Array, meta: dict[str, np.ndarray], bad:
             continue
         if row[0] < 0 or row[1] < 0 or row[2] < 0 or row[5] < 0:
             continue
+        if row.size > BASE_COLUMNS and row[BASE_COLUMNS] != i:
+            continue
         pos = row[3:5].view(np.float64)
-        for name, value in zip(HEADER_COLUMNS, (row[0], row[1], row[2], pos[0], pos[1],
-                                                row[5]), strict=True):
+        values = (row[0], row[1], row[2], pos[0], pos[1], row[5])
+        for name, value in zip(HEADER_COLUMNS[:BASE_COLUMNS], values, strict=True):
             meta[name][i] = value
         bad.discard(i)
         rebuilt += 1
     return rebuilt
 
 
-def header_row(h: FrameHeader) -> np.ndarray:
-    """The ``headers`` row of a frame header (positions as the bits of float64)."""
+def header_row(h: FrameHeader, *, index: int | None = None,
+               digest: int | None = None) -> np.ndarray:
+    """The ``headers`` row of a frame header (positions as the bits of float64): 6 columns,
+    or 8 with the frame's array ``index`` and pixel ``digest`` (version 4)."""
     pos = np.array([np.nan if h.stage_x_um is None else h.stage_x_um,
                     np.nan if h.stage_y_um is None else h.stage_y_um], np.float64)
     bits = pos.view(np.int64)
-    return np.array([h.frame_id, h.timestamp_ns, h.focus_index, bits[0], bits[1],
-                     h.pass_index], np.int64)
+    row = [h.frame_id, h.timestamp_ns, h.focus_index, bits[0], bits[1], h.pass_index]
+    if index is not None and digest is not None:
+        row += [index, digest]
+    return np.array(row, np.int64)
+
+
+def read_recording_id(path: str | Path) -> str | None:
+    """The ``recording_id`` attribute of the recording at ``path`` (None for a recording
+    made before version 4, or for anything that is not a readable group)."""
+    try:
+        value = zarr.open_group(str(path), mode="r").attrs.get("recording_id")
+    except Exception:  # noqa: BLE001 - not a readable Zarr group: no id
+        return None
+    return value if isinstance(value, str) else None
 
 
 @dataclass
@@ -318,6 +378,45 @@ class Recording:
     #: array indexes of the usable frames, in replay (frame_id) order
     order: np.ndarray
     meta: dict[str, np.ndarray]
+
+    @property
+    def recording_id(self) -> str | None:
+        """The recording's unique id (None for a recording made before version 4)."""
+        return self.attrs.recording_id
+
+    def _headers(self) -> zarr.Array | None:
+        """The ``headers`` array when its copies hold the index and digest (version 4)."""
+        if self.attrs.format_version < 4:
+            return None
+        arr = _array(self.group, "headers", str(self.path))
+        if arr is None or arr.ndim != 2 or arr.shape[1] != len(HEADER_COLUMNS):
+            return None
+        return arr
+
+    def _check_place(self, headers: zarr.Array, index: int, image: np.ndarray,
+                     fid: int) -> str | None:
+        """Why the frame at ``index`` is not where it belongs (None if it is, or if its
+        header copy is unreadable: a lost copy loses no frame, the CRC still holds)."""
+        try:
+            row = read_many([(headers, index)])[0]
+        except Exception:  # noqa: BLE001 - an unreadable copy: reported by verify()
+            return None
+        if int(row[0]) < 0:  # no copy (lost): nothing to check against
+            return None
+        enc = headers.metadata.encode_chunk_key  # type: ignore[union-attr]
+        frames = self.group["frames"]
+        key = frames.metadata.encode_chunk_key((index, 0, 0))  # type: ignore[union-attr]
+        if int(row[BASE_COLUMNS]) != index or int(row[0]) != fid:
+            return (f"frame index {index} (frame_id {fid}): its header copy "
+                    f"{self.path}/headers/{enc((index, 0))} holds index "
+                    f"{int(row[BASE_COLUMNS])}, frame_id {int(row[0])} (a header chunk "
+                    "swapped or copied)")
+        want = frame_digest(image, index=index, recording_id=self.recording_id)
+        if int(row[BASE_COLUMNS + 1]) != want:
+            return (f"frame index {index} (frame_id {fid}): {self.path}/frames/{key} holds "
+                    "pixels that are not this frame's (digest mismatch: a frame chunk "
+                    "swapped with or copied over another)")
+        return None
 
     def header(self, index: int) -> FrameHeader:
         m = self.meta
@@ -335,13 +434,16 @@ class Recording:
         """The usable frames in frame_id order, from the ``start``-th.
 
         A frame whose chunk cannot be decoded is left out (a lost frame for the pipeline)
-        and its frame_id added to ``report.corrupt``. ``realtime`` paces the frames by their
-        time stamps (``clock`` and ``sleep`` are replaceable for tests)."""
+        and its frame_id added to ``report.corrupt``; so is a frame whose pixels are not the
+        ones its header copy's digest names (version 4: ``report.misplaced``, a warning names
+        the frame index and file). ``realtime`` paces the frames by their time stamps, each
+        step bounded (:class:`~sffscan.pipeline.formats.recording_checks.Pacer`; ``clock``
+        and ``sleep`` are replaceable for tests)."""
         arr = _array(self.group, "frames", str(self.path))
         assert arr is not None
         shape = self.attrs.frame_shape
-        t_wall0: float | None = None
-        t_ns0 = 0
+        headers = self._headers()
+        pacer = Pacer(self.config.optics.fps, clock=clock, sleep=sleep) if realtime else None
         for index in self.order[start:]:
             header = self.header(int(index))
             try:
@@ -354,12 +456,17 @@ class Recording:
                     self.report.corrupt.append(header.frame_id)
                     self.report.frames -= 1  # not usable after all
                 continue
-            if realtime:
-                if t_wall0 is None:
-                    t_wall0, t_ns0 = clock(), header.timestamp_ns
-                delay = t_wall0 + (header.timestamp_ns - t_ns0) * 1e-9 - clock()
-                if delay > 0:
-                    sleep(delay)
+            if headers is not None:
+                why = self._check_place(headers, int(index), image, header.frame_id)
+                if why is not None:
+                    if header.frame_id not in self.report.misplaced:
+                        self.report.misplaced.append(header.frame_id)
+                        self.report.frames -= 1
+                        self.report.notes.append(why)
+                        log.warning("%s; the frame is left out (lost)", why)
+                    continue
+            if pacer is not None:
+                pacer.wait(header.frame_id, header.timestamp_ns)
             yield Frame(header, image)
 
     def account(self) -> FrameAccount:
@@ -375,8 +482,11 @@ class Recording:
         """Decode every usable frame; frame ids of the corrupt ones (also in the report).
 
         Version 2: every header copy is decoded and compared with the frame's metadata too;
-        a corrupt or disagreeing copy is a note (the frame itself is still usable)."""
+        a corrupt or disagreeing copy is a note (the frame itself is still usable). Version
+        4: a frame whose pixels are not its header copy's digest's is in ``report.misplaced``
+        (and the returned list)."""
         before = len(self.report.corrupt)
+        before_misplaced = len(self.report.misplaced)
         for _ in self.frames():
             pass
         headers = _array(self.group, "headers", str(self.path)) \
@@ -389,13 +499,16 @@ class Recording:
                     got = np.asarray(headers[int(index)], dtype=np.int64)
                 except Exception:  # noqa: BLE001 - undecodable or truncated chunk
                     got = None
-                if got is None or not np.array_equal(got, want):
+                if got is not None and got.size > BASE_COLUMNS \
+                        and got[BASE_COLUMNS] != int(index):
+                    got = None  # a copy that belongs to another index
+                if got is None or not np.array_equal(got[:BASE_COLUMNS], want):
                     bad.append(int(want[0]))
             if bad:
                 self.report.notes.append(f"header copies: {len(bad)} corrupt, lost or not "
                                          "matching the metadata (the frames are usable): "
                                          "frame_id " + _ids([str(i) for i in bad]))
-        return self.report.corrupt[before:]
+        return self.report.corrupt[before:] + self.report.misplaced[before_misplaced:]
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -484,6 +597,18 @@ def open_recording(path: str | Path) -> Recording:
     frame_keys = _chunk_keys(frames)
     v2 = attrs.format_version >= 2
     headers = _array(group, "headers", where) if v2 else None
+    # the lengths the zarr.json files claim, against the chunk files present: entries past
+    # the last stored chunk of every array hold no data (and 2**40 of them no memory)
+    present = max([stored_extent(_first_indexes(frames, frame_keys), _stored(frames)[0])]
+                  + [stored_extent(_first_indexes(a, _chunk_keys(a)), _stored(a)[0])
+                     for a in arrays.values()])
+    if n > present:
+        if n > present + GROW:  # more than the recorder's growth step: not its doing
+            report.claimed_entries = n
+            report.notes.append(f"the arrays' zarr.json claim {n} entries, the chunk files "
+                                f"present hold at most {present}: entries beyond are not "
+                                "read (metadata edited or chunks lost?)")
+        n = present
     extent = 0
     if v2:
         # the frames written whole: a frame chunk and its header copy (written after it); a
@@ -512,11 +637,14 @@ def open_recording(path: str | Path) -> Recording:
     idx = np.flatnonzero(written)
     # entries up to the last written one, an unreadable one or the count the writer stated
     # when it closed are expected: those without metadata are defects, not an unwritten tail
-    last_written = max(int(idx[-1]) + 1 if idx.size else 0, max(bad) + 1 if bad else 0,
-                       attrs.frames or 0)
-    if attrs.frames is not None and attrs.frames > n:
-        report.notes.append(f"attribute frames says {attrs.frames} but the arrays hold "
+    claimed = attrs.frames or 0
+    if claimed > n:
+        report.notes.append(f"attribute frames says {claimed} but the arrays hold "
                             f"{n} entries")
+        if claimed > n + GROW:  # a claim no chunk file supports: not listed entry by entry
+            report.claimed_entries, claimed = claimed, n
+    last_written = max(int(idx[-1]) + 1 if idx.size else 0, max(bad) + 1 if bad else 0,
+                       claimed)
     report.entries = last_written
     report.unwritten = max(0, n - last_written)
     report.missing_metadata = [i for i in range(last_written) if i >= n or not written[i]]
@@ -554,6 +682,7 @@ def open_recording(path: str | Path) -> Recording:
     report.first_id, report.last_id = int(sorted_ids[0]), int(sorted_ids[-1])
     ts = meta["timestamp_ns"][order]
     report.duration_s = float(ts.max() - ts.min()) * 1e-9
+    report.time_backwards, report.time_jumps = timestamp_defects(sorted_ids, ts, o.fps)
     return Recording(p, attrs, cfg, report, group, order, meta)
 
 
