@@ -1,0 +1,117 @@
+"""Command ``sffscan job``: print jobs scanned layer by layer.
+
+``sffscan job demo`` prints the shipped plate (four objects, 20 layers, sliced by
+PrusaSlicer) in the simulator, with injected defects (under-extrusion gaps, blobs, a lifted
+corner, a missing object, a layer shift), scans every layer at 15 mm/s into a job folder
+and prints each layer's verdict per object as it comes. ``sffscan job show JOB`` prints the
+verdicts of a job folder. Exit codes: 0 done (whatever the verdicts), 2 bad input (a job
+folder that is not one, a layer out of order), 130 interrupted (the done layers stay; rerun
+to resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
+
+
+def _print_verdict(layer: int, v: object, timings: dict[str, float], n: int) -> None:
+    from sffscan.pipeline.printjob.deviation import LayerVerdict
+
+    assert isinstance(v, LayerVerdict)
+    objs = "  ".join(f"{o.name.removesuffix('.stl')}:{o.verdict}" for o in v.objects)
+    scan = timings.get("scan_s")
+    ready = timings.get("verdict_s")
+    extra = (f"  scan {scan:.1f} s" if scan is not None else "") + (
+        f", verdict +{ready:.2f} s" if ready is not None else "")
+    print(f"layer {layer + 1:>3}/{n}  z {v.z_mm:5.2f} mm  {v.verdict.upper():<7}  {objs}{extra}",
+          flush=True)
+    for o in v.objects:
+        if o.verdict in ("warn", "fail") and o.defect_xy_mm is not None:
+            print(f"      {o.name}: {o.area_out_mm2:.2f} mm² out of tolerance (missing "
+                  f"{o.missing_mm2:.2f}, excess {o.excess_mm2:.2f}), largest at printer "
+                  f"({o.defect_xy_mm[0]:.1f}, {o.defect_xy_mm[1]:.1f}) mm, p95 |dev| "
+                  f"{o.p95_abs_um:.0f} µm", flush=True)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.printjob.demo import (
+        demo_config,
+        demo_defects,
+        demo_gcode,
+        run_simulated_print,
+    )
+    from sffscan.pipeline.printjob.gcode import read_gcode
+    from sffscan.pipeline.printjob.jobstore import JobError
+
+    out = Path(args.output)
+    if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
+        print(f"sffscan: {out} exists and is not a job folder", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.overwrite and out.exists():
+        shutil.rmtree(out)
+    program = read_gcode(demo_gcode())
+    n = program.n_layers if args.layers is None else min(args.layers, program.n_layers)
+    defects = () if args.no_defects else demo_defects(program)
+    print(f"printing {demo_gcode().name} in the simulator: {n} of {program.n_layers} layers, "
+          f"objects {', '.join(program.objects)}; {len(defects)} defects injected; each "
+          f"layer scanned at 15 mm/s into {out}", file=sys.stderr)
+    t0 = time.perf_counter()
+    try:
+        verdicts = run_simulated_print(
+            out, defects=defects, layers=list(range(n)), seed=args.seed,
+            config=demo_config(seed=args.seed), record=args.record,
+            on_layer=lambda k, v, t: _print_verdict(k, v, t, n))
+    except JobError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    counts = {s: sum(v.verdict == s for v in verdicts) for s in ("pass", "warn", "fail",
+                                                                 "unknown")}
+    print(f"{len(verdicts)} layers in {time.perf_counter() - t0:.0f} s: "
+          + ", ".join(f"{c} {s}" for s, c in counts.items())
+          + f"; job folder {out} (sffscan.open_job)")
+    return EXIT_OK
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.printjob.jobstore import JobError, JobStore
+
+    try:
+        store = JobStore.open(args.job)
+    except JobError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    n = len(store.manifest.layer_z_mm)
+    done = store.done_layers()
+    print(f"job {store.manifest.job_id} ({store.manifest.printer or 'printer not named'}): "
+          f"{len(done)} of {n} layers done")
+    for k in done:
+        _print_verdict(k, store.read_verdict(k), {}, n)
+    return EXIT_OK
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("job", help="print jobs: every layer scanned and compared with the "
+                       "G-code (demo, show)",
+                       description="Print jobs scanned layer by layer; see 'job demo'.")
+    jsub = p.add_subparsers(dest="job_command", required=True)
+    d = jsub.add_parser("demo", help="print the shipped plate in the simulator with injected "
+                        "defects; scan and judge every layer",
+                        description=__doc__)
+    d.add_argument("-o", "--output", default="sffscan-job-demo",
+                   help="job folder (default sffscan-job-demo; an existing job is resumed)")
+    d.add_argument("--layers", type=int, default=None, help="print only the first N layers")
+    d.add_argument("--no-defects", action="store_true", help="a defect-free print")
+    d.add_argument("--seed", type=int, default=0, help="texture, bead and noise seed")
+    d.add_argument("--record", action="store_true",
+                   help="keep each layer's raw recording in the job (larger, slower)")
+    d.add_argument("--overwrite", action="store_true", help="replace an existing job folder")
+    d.set_defaults(func=cmd_demo)
+    s = jsub.add_parser("show", help="verdicts of a job folder")
+    s.add_argument("job", help="job folder")
+    s.set_defaults(func=cmd_show)
