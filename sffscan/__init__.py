@@ -63,6 +63,7 @@ _LAZY = {
     "ScanReport": "sffscan.pipeline.wiring",
     "StackSettings": "sffscan.stages.fields.stationary",
     "StageFailed": "sffscan.pipeline.runtime",
+    "open_job": "sffscan.pipeline.printjob.layer",
 }
 
 
@@ -101,6 +102,7 @@ __all__ = [
     "demo_config",
     "focus_measure",
     "load_config",
+    "open_job",
     "open_mosaic",
     "reconstruct_stack",
     "replay",
