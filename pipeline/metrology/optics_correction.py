@@ -4,9 +4,11 @@ A calibration (:mod:`sffscan.pipeline.metrology.calibration`) measures three pro
 real objective; this module undoes them where a measurement is made:
 
 * **Magnification per level** (``lateral``: µm/px at each focus level, a non-telecentric
-  objective): every frame is resampled about the optical centre to the scale of the
-  calibration's reference level *before* its focus measure is placed in world coordinates
-  (:func:`unbreathe_frame`), so a world point keeps its pixel at every level.
+  objective): every frame is resampled about the optical centre to the configured scale
+  (``optics.pixel_um``, the scale frames are placed by) *before* its focus measure is
+  placed in world coordinates (:func:`unbreathe_frame`), so a world point keeps its pixel
+  at every level, whatever level the calibration's scale refers to; a configured scale the
+  calibration contradicts is refused (:func:`check_configured_scale`).
 * **Field curvature** (``field_curvature``: the height a flat reference reads over the
   frame): subtracted from the heights. For a stationary field (``stack``, ``stopgo``) each
   pixel has one frame position (:func:`correct_field`). In a continuous scan a world point
@@ -53,27 +55,88 @@ __all__ = [
     "curvature_at",
     "first_view_columns",
     "flat_field",
+    "check_configured_scale",
     "level_magnification",
+    "level_scale",
     "unbreathe_frame",
 ]
 
 
-def level_magnification(lateral: LateralScale, levels: np.ndarray | float) -> np.ndarray:
-    """Magnification at each focus level relative to the reference level, ``s_ref / s(d)``.
+MAX_SCALE_MISMATCH = 0.02
+"""How far (fraction) a configured scale may lie outside the calibrated scales over the focus
+levels before :func:`check_configured_scale` refuses: beyond it the two cannot describe one
+objective (another lens, binning, or a stale ``optics.pixel_um``)."""
+
+
+def level_scale(lateral: LateralScale, levels: np.ndarray | float) -> np.ndarray:
+    """Calibrated object-side scale at each focus level, µm/px (mean of x and y), float64."""
+    d = np.asarray(levels, dtype=np.float64) - lateral.reference_level
+    s_ref = 0.5 * (lateral.um_per_px_x + lateral.um_per_px_y)
+    s: np.ndarray = s_ref + 0.5 * (lateral.slope_x_per_level + lateral.slope_y_per_level) * d
+    if np.any(s <= 0):
+        raise CalibrationError("lateral: the calibrated scale is not positive at every level")
+    return s
+
+
+def level_magnification(lateral: LateralScale, levels: np.ndarray | float, *,
+                        um_per_px: float | None = None) -> np.ndarray:
+    """Magnification at each focus level relative to the target scale, ``s_target / s(d)``.
 
     ``s(d)`` is the calibrated object-side scale (µm/px, mean of x and y) at level d: a level
-    whose pixels cover fewer µm shows the world larger.
+    whose pixels cover fewer µm shows the world larger. A frame resampled by this
+    magnification (:func:`unbreathe_frame`) has pixels of ``s_target`` µm at every level.
+
+    Parameters
+    ----------
+    lateral : LateralScale
+    levels : array_like of float
+        Focus levels.
+    um_per_px : float, optional, keyword-only
+        Target scale, µm/px: the configured ``optics.pixel_um`` the frames are placed by
+        (check it first with :func:`check_configured_scale`). Default the calibration's
+        scale at its ``reference_level``, which is the configured scale only when the
+        reference level is where the objective has it.
 
     Returns
     -------
     ndarray of float64, the shape of ``levels``.
     """
-    d = np.asarray(levels, dtype=np.float64) - lateral.reference_level
-    s_ref = 0.5 * (lateral.um_per_px_x + lateral.um_per_px_y)
-    s = s_ref + 0.5 * (lateral.slope_x_per_level + lateral.slope_y_per_level) * d
-    if np.any(s <= 0):
-        raise CalibrationError("lateral: the calibrated scale is not positive at every level")
-    return s_ref / s
+    s = level_scale(lateral, levels)
+    if um_per_px is None:
+        target = 0.5 * (lateral.um_per_px_x + lateral.um_per_px_y)
+    else:
+        target = float(um_per_px)
+        if not (math.isfinite(target) and target > 0):
+            raise ValueError(f"um_per_px must be > 0, got {um_per_px}")
+    return target / s
+
+
+def check_configured_scale(lateral: LateralScale, um_per_px: float, *, n_levels: int,
+                           field: str = "optics.pixel_um") -> None:
+    """Refuse a configured scale that the lateral calibration cannot resample frames to.
+
+    The frames of every level are resampled to the configured scale (:func:`level_magnification`
+    with ``um_per_px``); a configured scale more than :data:`MAX_SCALE_MISMATCH` outside the
+    calibrated scales of levels ``0 .. n_levels - 1`` means the two do not describe the same
+    objective.
+
+    Raises
+    ------
+    CalibrationError
+        Naming both values and their fields.
+    """
+    s = level_scale(lateral, np.arange(n_levels))
+    lo, hi = float(s.min()), float(s.max())
+    p = float(um_per_px)
+    if lo * (1.0 - MAX_SCALE_MISMATCH) <= p <= hi * (1.0 + MAX_SCALE_MISMATCH):
+        return
+    off = p / lo - 1.0 if p < lo else p / hi - 1.0
+    raise CalibrationError(
+        f"{field} = {p:g} µm/px and the calibration's lateral scale disagree by "
+        f"{100 * off:+.1f} %: lateral.um_per_px_x / um_per_px_y = {lateral.um_per_px_x:.5f} / "
+        f"{lateral.um_per_px_y:.5f} µm/px at lateral.reference_level {lateral.reference_level:g}, "
+        f"{lo:.5f} .. {hi:.5f} µm/px over focus levels 0 .. {n_levels - 1}; set {field} to "
+        "the calibrated scale (the frames are resampled to it) or calibrate this objective")
 
 
 def unbreathe_frame(image: np.ndarray, magnification: float, *,
@@ -153,14 +216,19 @@ def correct_field(result: FieldResult, fit: FieldCurvatureFit) -> FieldResult:
 class StackCorrection:
     """A calibration applied to stationary stacks (``stack``, ``stopgo``).
 
-    Frame k of a stack is taken at focus level k of the calibrated lens.
+    Frame k of a stack is taken at focus level k of the calibrated lens. ``um_per_px`` is
+    the scale the heights are stored at (``--pixel-um``): with ``lateral``, every frame is
+    resampled to it (refused when the calibration disagrees with it,
+    :func:`check_configured_scale`); None resamples to the calibration's reference level.
     """
 
     calibration: Calibration
+    um_per_px: float | None = None
 
     def frames(self, stack: np.ndarray, *, max_value: float | None = None) -> np.ndarray:
-        """Every frame flat-fielded (``vignetting``) and resampled to the reference level's
-        scale (``lateral``); ``max_value`` clips integer frames (default the dtype's)."""
+        """Every frame flat-fielded (``vignetting``) and resampled to ``um_per_px`` (else the
+        reference level's scale) by ``lateral``; ``max_value`` clips integer frames (default
+        the dtype's)."""
         st = np.asarray(stack)
         vig = self.calibration.vignetting
         if vig is not None:
@@ -171,7 +239,10 @@ class StackCorrection:
         lat = self.calibration.lateral
         if lat is None:
             return st
-        mags = level_magnification(lat, np.arange(st.shape[0]))
+        if self.um_per_px is not None:
+            check_configured_scale(lat, self.um_per_px, n_levels=st.shape[0],
+                                   field="--pixel-um")
+        mags = level_magnification(lat, np.arange(st.shape[0]), um_per_px=self.um_per_px)
         return np.stack([unbreathe_frame(f, float(m), centre_px=lat.optical_centre_px)
                          for f, m in zip(st, mags, strict=True)])
 

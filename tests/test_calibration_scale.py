@@ -1,0 +1,112 @@
+"""A lateral calibration whose scale refers to another level than the configured scale's
+(``calibrate lateral --reference-level``) still gives frames of ``optics.pixel_um`` (issue 24,
+item 5); a configured scale the calibration contradicts is refused, naming both."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import config_from_dict
+from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.metrology.calibration import (
+    CalibrationError,
+    LateralScale,
+    load_calibration,
+)
+from sffscan.pipeline.metrology.optics_correction import StackCorrection
+from sffscan.stages.optics_correction import optics_correction_stages
+from sffscan.stages.sim.camera import Optics
+from sffscan.stages.sim.lens import scale_about_centre
+from sffscan.stages.sim.targets import perspective_checkerboards
+
+W, H, N = 320, 256, 20
+PIXEL_UM = 8.5
+STEP_UM = 200.0
+SCALE_PER_MM = -0.05  # µm/px 1 % smaller per level: strong breathing
+MID = 0.5 * (N - 1) * STEP_UM  # where the objective has the configured scale
+
+
+def true_scale(level: float) -> float:
+    return PIXEL_UM * (1.0 + SCALE_PER_MM * (level * STEP_UM - MID) / 1000.0)
+
+
+def config(calibration: Path, pixel_um: float = PIXEL_UM):  # noqa: ANN201 - ScanConfig
+    return config_from_dict({"optics": {"width_px": W, "height_px": H, "pixel_um": pixel_um,
+                                        "n_levels": N, "z_step_um": STEP_UM},
+                             "processing": {"calibration": str(calibration)}}, origin="test")
+
+
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``calibrate lateral --reference-level 0`` on board images of the breathing objective:
+    the stored scale is level 0's, 4.8 % off the configured one."""
+    d = tmp_path_factory.mktemp("lat")
+    levels = np.array([0, 6, 13, 19])
+    imgs, scales = perspective_checkerboards(
+        optics=Optics(width=W, height=H, pixel_um=PIXEL_UM, bit_depth=8),
+        focus_heights_um=levels * STEP_UM, scale_per_mm=SCALE_PER_MM, reference_um=MID,
+        square_um=300.0, squares=(7, 5), rng=np.random.default_rng(3))
+    np.testing.assert_allclose(scales, [true_scale(lv) for lv in levels])
+    out = d / "cal.json"
+    args = ["calibrate", "lateral", "-o", str(out), "--squares", "7", "5", "--square-um",
+            "300", "--reference-level", "0"]
+    for lv, img in zip(levels, imgs, strict=True):
+        f = d / f"board_{lv}.png"
+        assert cv2.imwrite(str(f), img)
+        args += ["--image", str(lv), str(f)]
+    assert main(args) == 0
+    lat = load_calibration(out).lateral
+    assert lat is not None and lat.reference_level == 0.0
+    assert lat.um_per_px_x == pytest.approx(true_scale(0), rel=2e-3)
+    return out
+
+
+def breathing_frame(texture: np.ndarray, level: int) -> np.ndarray:
+    """What the objective shows at ``level`` of a world whose configured-scale image is
+    ``texture`` (padded by 32 px)."""
+    return scale_about_centre(texture, PIXEL_UM / true_scale(level), out_shape=(H, W), pad=32)
+
+
+def test_scan_frames_are_resampled_to_the_configured_scale(calibration: Path) -> None:
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.random((H + 64, W + 64)).astype(np.float32), (0, 0), 2.0)
+    ideal = texture[32:-32, 32:-32]
+    (stage,), _ = optics_correction_stages(config(calibration), [0.0] * N)
+    inner = (slice(24, H - 24), slice(24, W - 24))
+    for level in (0, N // 2, N - 1):
+        hdr = FrameHeader(frame_id=level, timestamp_ns=level, focus_index=level)
+        raw = breathing_frame(texture, level)
+        (out,) = stage.process(Frame(hdr, raw))
+        err = float(np.sqrt(np.mean((out.image[inner] - ideal[inner]) ** 2)))
+        raw_err = float(np.sqrt(np.mean((raw[inner] - ideal[inner]) ** 2)))
+        # every level at the configured scale: what stays is the calibration's error
+        assert err < 0.1 * raw_err or level == N // 2, (level, err, raw_err)
+        assert err < 0.01, (level, err)
+
+
+def test_stack_frames_are_resampled_to_the_given_scale(calibration: Path) -> None:
+    cal = load_calibration(calibration)
+    rng = np.random.default_rng(1)
+    texture = cv2.GaussianBlur(rng.random((H + 64, W + 64)).astype(np.float32), (0, 0), 2.0)
+    stack = np.stack([breathing_frame(texture, k) for k in range(N)])
+    out = StackCorrection(cal, um_per_px=PIXEL_UM).frames(stack)
+    inner = (slice(24, H - 24), slice(24, W - 24))
+    err = np.sqrt(np.mean((out[:, *inner] - texture[32:-32, 32:-32][inner]) ** 2, axis=(1, 2)))
+    assert err.max() < 0.01, err
+
+
+def test_a_scale_the_calibration_contradicts_is_refused(calibration: Path) -> None:
+    with pytest.raises(CalibrationError) as info:
+        optics_correction_stages(config(calibration, pixel_um=17.0), [0.0] * N)
+    msg = str(info.value)
+    assert "optics.pixel_um = 17 µm/px" in msg and "lateral.um_per_px_x" in msg
+    assert "lateral.reference_level 0" in msg
+    lat = LateralScale(um_per_px_x=8.5, um_per_px_y=8.5, reference_level=0.0,
+                       optical_centre_px=(10.0, 10.0))
+    with pytest.raises(CalibrationError, match="--pixel-um = 9 µm/px"):
+        StackCorrection(load_calibration(calibration).model_copy(update={"lateral": lat}),
+                        um_per_px=9.0).frames(np.zeros((3, 21, 21), np.uint8))
