@@ -39,7 +39,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import zarr
+from sffscan.pipeline import locks
 from sffscan.pipeline.metrology.evaluate import store_accuracy, stored_accuracy
+from sffscan.pipeline.run import InputBusy, ResumeRefused
 
 if TYPE_CHECKING:
     from sffscan.pipeline.config import ScanConfig
@@ -54,7 +56,8 @@ __all__ = ["BatchError", "BatchRow", "ResumeRefused",
 CLOSE_TIMEOUT_S = 30.0
 #: statuses of a row: done now, resumed now (and complete), skipped (complete already),
 #: failed, or incomplete (done now, or kept: frames lost in the recording)
-STATUSES = ("complete", "resumed", "skipped", "failed", "incomplete")
+#: or not started: the recording is still being written (a rerun does it)
+STATUSES = ("complete", "resumed", "skipped", "failed", "incomplete", "recording")
 #: mosaic statuses a rerun continues (an interrupted run) and keeps (final)
 RESUMABLE = ("writing", "failed")
 FINAL = ("complete", "incomplete")
@@ -63,11 +66,6 @@ FINAL = ("complete", "incomplete")
 
 class BatchError(ValueError):
     """Bad batch input (nothing found, two recordings mapping to one mosaic)."""
-
-
-class ResumeRefused(ValueError):
-    """An interrupted mosaic that cannot be resumed (made with another configuration,
-    unreadable); it is kept, and the message says how to replace it."""
 
 
 @dataclass
@@ -118,7 +116,8 @@ def find_recordings(inputs: Sequence[str | Path]) -> list[Path]:
             raise BatchError(f"{p}: no such recording or folder")
         if p.is_dir() and not (p / "zarr.json").exists():  # a folder of layers
             layers = sorted(c for c in p.iterdir()
-                            if c.is_dir() and (c.suffix == ".zarr" or _is_recording(c)))
+                            if c.is_dir() and (c.suffix == ".zarr" or _is_recording(c))
+                            and _mosaic_status(c) is None)  # a batch's own outputs
             if not layers:
                 raise BatchError(f"{p}: a folder without recordings")
             out += layers
@@ -164,36 +163,31 @@ def _config(cfg: ScanConfig, mosaic: str, processing: dict[str, Any], *,
 
 def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate: bool,
             overwrite: bool, row: BatchRow) -> None:
-    """Replay ``recording`` into ``mosaic``, resuming it if it was interrupted (and not
+    """Replay ``recording`` into ``mosaic`` through the one run path
+    (:func:`sffscan.pipeline.run.execute`), resuming it if it was interrupted (and not
     ``overwrite``); fills ``row``. Raises what the replay raises."""
-    from sffscan.pipeline.formats.recording import annotate_mosaic, open_recording
-    from sffscan.pipeline.wiring import evaluate_sim, run_scan
-    from sffscan.stages.mosaic import MosaicWriter, config_differences
+    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.run import Job, check_input_free, execute
+    from sffscan.pipeline.wiring import evaluate_sim
 
+    check_input_free(recording)  # before reading it: a recording being written is skipped
     rec = open_recording(recording)
     before = _mosaic_status(Path(mosaic))
     status = before.get("status") if before is not None else None
     resume = not overwrite and status in RESUMABLE
     cfg = _config(rec.config, mosaic, processing, overwrite=not resume)
-    writer = None
-    if resume:
-        # checked here too, to name the fields (reopen refuses any difference)
-        diff = config_differences((before or {}).get("scan_config") or {},
-                                  cfg.model_dump(mode="json"))
-        keep = f"the mosaic (status {status}) is kept: --overwrite replaces it"
-        if diff:
-            raise ResumeRefused(f"{mosaic}: cannot resume with a different configuration "
-                                f"(differs in {', '.join(diff)}); {keep}")
-        try:
-            writer = MosaicWriter.reopen(mosaic, scan_config=cfg.model_dump(mode="json"))
-        except Exception as exc:  # noqa: BLE001 - a corrupt chunk or zarr.json of the mosaic
-            raise ResumeRefused(f"{mosaic}: cannot resume ({type(exc).__name__}: {exc}); "
-                                f"{keep}") from exc
-        row.note = (f"resumed: {writer.done} band write(s) kept, {len(writer.rebuild)} torn "
+    try:
+        run = execute(Job(cfg, recording=rec, resume=resume))
+    except ResumeRefused as exc:
+        raise ResumeRefused(f"{exc}; the mosaic (status {status}) is kept: --overwrite "
+                            "replaces it") from None
+    assert run is not None
+    report = run.report
+    if run.annotate_error:
+        raise OSError(run.annotate_error)
+    if run.resumed is not None:
+        row.note = (f"resumed: {run.resumed[0]} band write(s) kept, {run.resumed[1]} torn "
                     "region(s) rebuilt")
-    report = run_scan(cfg, frames=rec.frames(), progress=False, writer=writer,
-                      account=rec.account())
-    annotate_mosaic(report.output, rec)
     attrs = zarr.open_group(mosaic, mode="r").attrs.asdict()
     row.status = str(attrs.get("status"))
     if resume and row.status == "complete":
@@ -242,10 +236,37 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
             torch.set_num_threads(before)
     except Exception as exc:  # noqa: BLE001 - reported in the row; the batch goes on
         row.status = "failed"
-        text = str(exc) if isinstance(exc, ResumeRefused) else f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, InputBusy):  # not a failure: a rerun does it once it is complete
+            row.status = "recording"
+        text = str(exc) if isinstance(exc, (ResumeRefused, InputBusy)) \
+            else f"{type(exc).__name__}: {exc}"
         row.error = " ".join(text.split())[:500]
     row.wall_s = round(time.perf_counter() - t0, 3)
     return asdict(row)
+
+
+def _same_recording(recording: Path, attrs: dict[str, Any]) -> bool:
+    """The final mosaic was made from the recording as it is now (a recording written on,
+    or replaced, since is reprocessed; a mosaic that does not say is kept)."""
+    from sffscan.pipeline.run import identity_mismatch, recording_identity, stored_identity
+
+    why = identity_mismatch(stored_identity(attrs), recording_identity(recording),
+                            unchanged=True)
+    if why:
+        log.info("%s: reprocessed: %s", recording, why)
+    return why is None
+
+
+def _check_out_dir(recordings: Sequence[Path], out_dir: Path) -> None:
+    """The output folder is not a recording's folder, nor inside a recording."""
+    out = out_dir.resolve()
+    for rec in recordings:
+        r = rec.resolve()
+        if out == r.parent:
+            raise BatchError(f"-o {out_dir}: the folder of the recording {rec}; the mosaics "
+                             "would be taken for recordings on a rerun, choose another folder")
+        if out == r or r in out.parents:
+            raise BatchError(f"-o {out_dir}: inside the recording {rec}; choose another folder")
 
 
 def _kept(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
@@ -302,6 +323,7 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     """
     from distributed import Client, LocalCluster, as_completed
 
+    _check_out_dir(recordings, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     targets = [(r, mosaic_path(r, out_dir)) for r in recordings]
     dupes = {str(m) for _, m in targets if sum(1 for _, n in targets if n == m) > 1}
@@ -311,7 +333,13 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     todo = []
     for i, (rec, mos) in enumerate(targets):
         attrs = _mosaic_status(mos)
-        if not rerun and attrs is not None and attrs.get("status") in FINAL:
+        busy = locks.holder(rec)
+        if busy is not None:
+            rows[i] = BatchRow(recording=str(rec), mosaic=str(mos), status="recording",
+                               note=f"still being written by {locks.describe_holder(busy)}; "
+                                    "a rerun does it once it is complete")
+        elif not rerun and attrs is not None and attrs.get("status") in FINAL \
+                and _same_recording(rec, attrs):
             rows[i] = _kept(rec, mos, attrs)
         else:
             todo.append(i)

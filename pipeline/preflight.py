@@ -11,7 +11,11 @@ feasibility); :func:`preflight` checks what depends on the machine and the comma
 - the memory the pipeline needs (queues, focus volume, mosaic bands, recorder queue) fits in
   the memory available;
 - the simulated world can be built (source.kind ``sim``);
-- a transport receiver beyond loopback has its CURVE keys (``sffscan keys``).
+- a transport receiver beyond loopback has its CURVE keys (``sffscan keys``); a tcp
+  address can be listened on (a socket is bound to it and closed again: a port another
+  program holds is refused here, not after the mosaic was emptied); a loopback receiver's
+  pairing folder is this user's alone (mode 0700);
+- an output that is a symbolic link is not replaced (the message names the link).
 
 Every failure is a :class:`~sffscan.pipeline.config.ConfigError` naming the field or the path;
 ``sffscan scan``, ``demo`` and ``replay`` run it first, so ``--overwrite`` deletes nothing
@@ -28,6 +32,11 @@ from sffscan.pipeline.config import ConfigError, ScanConfig
 
 #: share of the available memory a scan may plan to use
 MEMORY_SHARE = 0.8
+
+
+class OutputExists(ConfigError, FileExistsError):
+    """``output.path`` exists and may not be replaced: bad input (a :class:`ConfigError`)
+    and, as the mosaic writer has always raised it, a :class:`FileExistsError`."""
 
 
 def available_memory_bytes() -> int | None:
@@ -115,12 +124,15 @@ def check_output(cfg: ScanConfig, *, resume: bool = False) -> None:
             raise ConfigError(f"output.path {out}: no mosaic to resume")
         return
     _writable_folder(out, "output.path")
+    if out.is_symlink():
+        raise ConfigError(f"output.path {out}: is a symbolic link (to {os.readlink(out)}); "
+                          "give the mosaic's real path, a link is never replaced")
     if out.exists():
         if not cfg.output.overwrite:
-            raise ConfigError(f"output.path {out}: exists (set output.overwrite, or "
+            raise OutputExists(f"output.path {out}: exists (set output.overwrite, or "
                               "--overwrite, or choose another path)")
         if not is_replaceable(out):
-            raise ConfigError(f"output.path {out}: exists and is not an sffscan mosaic nor "
+            raise OutputExists(f"output.path {out}: exists and is not an sffscan mosaic nor "
                               "an empty folder; refusing to overwrite it")
 
 
@@ -171,13 +183,75 @@ def check_transport(cfg: ScanConfig, address: str | None) -> None:
     from sffscan.pipeline.formats.transport_auth import keys_dir_of, load_pair
 
     address = check_address(address if address is not None else cfg.source.address)
+    check_listen(address)
     if is_loopback(address):
+        check_pairing_folder(address)
         return
     folder = keys_dir_of(cfg)
     load_pair(folder, "receiver")
     if not any((folder / "authorized").glob("*.key")):
         raise ConfigError(f"source.keys_dir {folder}: no authorised sender key in "
                           f"{folder / 'authorized'} (make them with 'sffscan keys')")
+
+
+def _tcp_host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of ``tcp://HOST:PORT`` with a numeric port, else None (ipc, ``*``
+    ports and interface names are left to the transport)."""
+    if not address.startswith("tcp://"):
+        return None
+    host, _, port = address[len("tcp://"):].rpartition(":")
+    if not port.isdigit() or not host:
+        return None
+    host = host.strip("[]")
+    return ("0.0.0.0" if host == "*" else host), int(port)
+
+
+def check_listen(address: str) -> None:
+    """A ``tcp://HOST:PORT`` address can be listened on: a socket is bound to it (with
+    SO_REUSEADDR, as zmq binds) and closed again at once."""
+    import socket
+
+    hp = _tcp_host_port(address)
+    if hp is None:
+        return
+    host, port = hp
+    infos = None
+    for family in (socket.AF_INET, socket.AF_UNSPEC):  # zmq listens on IPv4 by default
+        try:
+            infos = socket.getaddrinfo(host, port, family, socket.SOCK_STREAM, 0,
+                                       socket.AI_PASSIVE)
+            break
+        except OSError:
+            continue
+    if not infos:  # an interface name or an unknown host: the transport says
+        return
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(addr)
+        except OSError as err:
+            raise ConfigError(f"{address}: cannot listen: {err.strerror or err} (another "
+                              "program holds the port?); nothing was changed") from None
+
+
+def check_pairing_folder(address: str) -> None:
+    """The folder of a loopback receiver's pairing file, if it exists, belongs to this
+    user with mode 0700 (it is created so otherwise)."""
+    from sffscan.pipeline.formats.transport_auth import pairing_path
+
+    folder = pairing_path(address).parent
+    try:
+        st = folder.stat()
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise ConfigError(f"{folder}: cannot use the pairing folder ({err})") from None
+    if not folder.is_dir() or (hasattr(os, "getuid") and (st.st_uid != os.getuid()
+                                                          or st.st_mode & 0o077)):
+        raise ConfigError(f"{folder}: the pairing folder must be a folder of this user with "
+                          f"mode 0700 (it is mode {st.st_mode & 0o777:o}; it holds secrets); "
+                          "nothing was changed")
 
 
 def preflight(cfg: ScanConfig, *, record: str | Path | None = None, resume: bool = False,

@@ -78,36 +78,31 @@ def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
     Raises
     ------
     ConfigError
-        Invalid configuration (the message names the field).
+        Invalid configuration (the message names the field), or a check before anything
+        is changed failed (:mod:`sffscan.pipeline.run`: pre-flight, an output that would
+        destroy an input, another writer holding the mosaic's lock).
     StageFailed
         A stage failed; the message names it and the cause, and the mosaic holds what was
         completed (status ``failed``).
     """
     from sffscan.pipeline.config import load_config
-    from sffscan.pipeline.sources import open_feed
-    from sffscan.pipeline.wiring import evaluate_sim, run_scan
+    from sffscan.pipeline.run import Job, execute
+    from sffscan.pipeline.wiring import evaluate_sim
 
     cfg = config if isinstance(config, ScanConfig) else load_config(config)
     cfg = _with(cfg, output=output, overwrite=overwrite, processing=processing)
     if evaluate and (frames is not None or cfg.source.kind != "sim"):
         raise ValueError("evaluate=True needs the simulated source (source.kind = 'sim') "
                          "and frames=None")
-    world = None
-    if frames is None:
-        feed = open_feed(cfg)
-        frames, world = feed.frames, feed.world
-    all_sinks = list(sinks)
-    if record is not None:
-        from sffscan.stages.recorder import recorder_sink
-
-        all_sinks.append(recorder_sink(cfg, str(record)))
-    report = run_scan(cfg, frames=iter(frames), progress=progress, sinks=all_sinks)
+    run = execute(Job(cfg, frames=frames, record=record, progress=progress,
+                      sinks=list(sinks)))
+    assert run is not None  # not check_only
     if evaluate:
-        if world is None:
+        if run.world is None:
             raise ValueError("evaluate=True needs the simulated source (source.kind = 'sim') "
                              "and frames=None")
-        evaluate_sim(report, world)
-    return report
+        evaluate_sim(run.report, run.world)
+    return run.report
 
 
 def replay(recording: str | Path, *, output: str | Path | None = None,
@@ -132,16 +127,24 @@ def replay(recording: str | Path, *, output: str | Path | None = None,
     ------
     RecordingError
         The path is not a usable recording (the message names the file and the field).
+    ConfigError
+        As in :func:`scan`; also a recording still being written. ``overwrite`` defaults
+        to False whatever the recorded configuration says.
     StageFailed
         As in :func:`scan`.
     """
-    from sffscan.pipeline.formats.recording import annotate_mosaic, open_recording
-    from sffscan.pipeline.wiring import evaluate_sim, run_scan
+    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.run import Job, execute
+    from sffscan.pipeline.wiring import evaluate_sim
 
     rec = open_recording(recording)
-    cfg = _with(rec.config, output=output, overwrite=overwrite, processing=processing)
-    report = run_scan(cfg, frames=rec.frames(), progress=progress)
-    annotate_mosaic(report.output, rec)
+    # the recorded [output] overwrite is the recording's, never the caller's
+    cfg = _with(rec.config, output=output, overwrite=bool(overwrite), processing=processing)
+    run = execute(Job(cfg, recording=rec, progress=progress))
+    assert run is not None  # not check_only
+    report = run.report
+    if run.annotate_error:
+        raise OSError(run.annotate_error)
     report.extras["recording"] = rec.report.as_dict()
     if evaluate:
         if cfg.source.kind != "sim":

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator
-from typing import Any, get_args
+from typing import TYPE_CHECKING, Any, get_args
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import (
@@ -25,10 +25,15 @@ from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import Sink, StageFailed
 from sffscan.stages.operators import OPERATORS
 
+if TYPE_CHECKING:
+    from sffscan.pipeline.run import Job
+
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: the scan ended cleanly but fewer frames than expected were received and processed (the
 #: mosaic's status is 'incomplete'; see sffscan.pipeline.completeness)
 EXIT_INCOMPLETE = 3
+#: stopped by SIGTERM (128 + 15); the mosaic is 'failed' and resumable, as after Ctrl-C
+EXIT_TERMINATED = 143
 
 #: focus measure operators (the names alone: importing them loads no torch)
 OPERATOR_CHOICES: tuple[str, ...] = OPERATORS
@@ -84,13 +89,19 @@ def scan_options(p: argparse.ArgumentParser) -> None:
     processing_options(p)
 
 
-def override(cfg: ScanConfig, args: argparse.Namespace) -> ScanConfig:
-    """Apply command-line overrides, re-validating the whole configuration."""
+def override(cfg: ScanConfig, args: argparse.Namespace, *,
+             own_overwrite: bool = True) -> ScanConfig:
+    """Apply command-line overrides, re-validating the whole configuration.
+
+    ``own_overwrite=False`` (a replay: the configuration is the recording's, not the
+    user's): ``output.overwrite`` is ``--overwrite`` alone, never the recorded value."""
     data = cfg.model_dump()
     if getattr(args, "output", None):
         data["output"]["path"] = str(args.output)
     if getattr(args, "overwrite", False):
         data["output"]["overwrite"] = True
+    elif not own_overwrite:
+        data["output"]["overwrite"] = False
     if getattr(args, "speed", None) is not None:
         data["motion"]["speed_mm_s"] = args.speed
     if getattr(args, "wobble", None) is not None:
@@ -168,19 +179,31 @@ def hold_views(sinks: list[Sink] | None) -> None:
 
 
 def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | None,
-                   progress: bool, sinks: list[Sink] | None = None,
-                   writer: Any | None = None, kept: str = "",
+                   progress: bool, sinks: list[Sink] | None = None, kept: str = "",
                    account: FrameAccount | None = None) -> int:
-    """Run a scan over ``frames`` (into ``writer`` if given), print its summary (scored
-    against ``world`` if given) and return the exit code; failures print the stage, the
-    cause and what was kept (``kept`` replaces the default sentence). With ``account``, a
-    scan that received fewer frames than expected ends :data:`EXIT_INCOMPLETE`."""
-    from sffscan.pipeline.wiring import evaluate_sim, format_summary, run_scan
+    """Run a scan over ``frames`` through the one run path (:func:`report_job`), print its
+    summary (scored against ``world`` if given) and return the exit code."""
+    from sffscan.pipeline.run import Job
 
+    return report_job(Job(cfg, frames=frames, progress=progress, sinks=list(sinks or []),
+                          account=account), world=world, kept=kept)
+
+
+def report_job(job: Job, *, world: Any | None = None, evaluate: bool = False,
+               kept: str = "") -> int:
+    """Run ``job`` (:func:`sffscan.pipeline.run.execute`: pre-flight, clash checks, writer
+    lock, completeness), print its summary (scored against ``world``, or the simulated
+    feed's world with ``evaluate``) and return the exit code; failures print the stage, the
+    cause and what was kept (``kept`` replaces the default sentence). A scan that received
+    fewer frames than expected ends :data:`EXIT_INCOMPLETE`. Bad input
+    (:class:`ConfigError`, nothing changed) is raised for the caller to report."""
+    from sffscan.pipeline.run import Terminated, execute
+    from sffscan.pipeline.wiring import evaluate_sim, format_summary
+
+    cfg = job.cfg
     kept = kept or f"the mosaic at {cfg.output.path} holds what was completed"
     try:
-        report = run_scan(cfg, frames=frames, progress=progress, sinks=sinks, writer=writer,
-                          account=account)
+        run = execute(job)
     except StageFailed as err:
         print(f"sffscan: {err}", file=sys.stderr)
         print(f"sffscan: {kept} before the failure (status 'failed')", file=sys.stderr)
@@ -188,15 +211,27 @@ def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | Non
 
         # hardware that is not there is a set-up problem, like a bad configuration
         return EXIT_BAD_INPUT if isinstance(err.cause, DaqNotFoundError) else EXIT_FAILED
+    except Terminated:
+        print(f"sffscan: terminated (SIGTERM); {kept} (status 'failed')", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print(f"sffscan: interrupted; {kept} (status 'failed')", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if run is None:  # check_only: every check passed
+        print("configuration, device, paths and memory checked: ready to scan",
+              file=sys.stderr)
+        return EXIT_OK
+    report, account = run.report, run.account
+    world = world if world is not None else (run.world if evaluate else None)
     if world is not None:
         evaluate_sim(report, world)
     print(format_summary(report), flush=True)
     if account is not None:
         print(f"frames      {account.describe()}", flush=True)
-    hold_views(sinks)
+    hold_views(run.sinks)
+    if run.annotate_error:
+        print(f"sffscan: {run.annotate_error}", file=sys.stderr)
+        return EXIT_FAILED
     if account is not None and not account.complete:
         print(f"sffscan: INCOMPLETE: {account.describe()}; the mosaic at {report.output} has "
               "status 'incomplete'", file=sys.stderr)

@@ -6,7 +6,8 @@ already written stays readable); 2 bad configuration, bad input or bad usage; 3 
 ended cleanly but incomplete: fewer frames than expected (the plan's, or the count the
 sender's end message gave) were received and processed, and the mosaic's status is
 'incomplete' with both counts (``sffscan info MOSAIC`` shows them); 130
-interrupted (Ctrl-C; the mosaic keeps what was completed); 141 the output pipe was closed
+interrupted (Ctrl-C; the mosaic keeps what was completed, status 'failed', resumable); 143
+terminated by SIGTERM (as Ctrl-C); 141 the output pipe was closed
 by its reader (``sffscan info ... | head``), said nowhere.
 
 Logging: ``-q`` (warnings and errors only, no progress display) and ``-v`` (debug lines
@@ -33,7 +34,7 @@ from sffscan.pipeline.cli.common import (
     EXIT_OK,
     describe,
     override,
-    run_and_report,
+    report_job,
     scan_options,
     viewer_sink,
 )
@@ -58,27 +59,21 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:
-    from sffscan.pipeline.preflight import preflight
-    from sffscan.pipeline.sources import open_feed
+    from sffscan.pipeline.run import Job
 
     log.info(describe(cfg))
-    source = getattr(args, "source", None)
-    # every check before anything is created or deleted (--overwrite included)
-    preflight(cfg, record=getattr(args, "record", None), source=source,
-              simulated=source is None and cfg.source.kind == "sim")
-    if getattr(args, "check", False):
-        print("configuration, device, paths and memory checked: ready to scan",
-              file=sys.stderr)
-        return EXIT_OK
-    feed = open_feed(cfg, source=getattr(args, "source", None))
-    view = viewer_sink(cfg, args.viewer, default=viewer_default, rrd=args.rrd)
-    sinks = [view] if view is not None else []
-    if getattr(args, "record", None):
-        from sffscan.stages.recorder import recorder_sink
+    check = bool(getattr(args, "check", False))
+    if check:
+        from sffscan.pipeline.formats.exports import check_scan_exports
 
-        sinks.append(recorder_sink(cfg, args.record, account=feed.account))
-    return run_and_report(cfg, feed.frames, world=feed.world if evaluate else None,
-                          progress=not args.quiet, sinks=sinks, account=feed.account)
+        for warning in check_scan_exports(cfg):
+            log.warning("%s", warning)
+    # pre-flight, clash checks and the writer lock before anything is created or deleted
+    job = Job(cfg, source=getattr(args, "source", None), record=getattr(args, "record", None),
+              rrd=args.rrd, progress=not args.quiet, check_only=check,
+              sinks=lambda: [k for k in (viewer_sink(cfg, args.viewer, default=viewer_default,
+                                                     rrd=args.rrd),) if k is not None])
+    return report_job(job, evaluate=evaluate)
 
 
 DEMO_OUTPUT = "sffscan-demo.zarr"

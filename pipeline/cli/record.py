@@ -14,7 +14,6 @@ import argparse
 import logging
 import sys
 from pathlib import Path
-from typing import Any
 
 import zarr
 from sffscan.pipeline.cli.common import (
@@ -24,14 +23,12 @@ from sffscan.pipeline.cli.common import (
     describe,
     override,
     processing_options,
-    run_and_report,
+    report_job,
     viewer_sink,
 )
-from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import (
     Recording,
     RecordingError,
-    annotate_mosaic,
     open_recording,
 )
 
@@ -47,31 +44,9 @@ def _print_report(rec: Recording) -> None:
             log.warning(line)
 
 
-def _resume(cfg: ScanConfig, rec: Recording, args: argparse.Namespace,
-            sinks: list[Any]) -> int:
-    """Complete an interrupted mosaic: the whole recording runs through the pipeline again;
-    the writer skips the writes already in the mosaic and rebuilds the torn tiles."""
-    from sffscan.stages.mosaic import MosaicWriter
-
-    try:
-        writer = MosaicWriter.reopen(cfg.output.path, scan_config=cfg.model_dump(mode="json"))
-    except ValueError as err:
-        where = "" if str(cfg.output.path) in str(err) else f"{cfg.output.path}: "
-        print(f"sffscan: {where}{err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except Exception as err:  # noqa: BLE001 - a corrupt zarr.json or chunk of the mosaic
-        print(f"sffscan: {cfg.output.path}: cannot resume, unreadable mosaic "
-              f"({type(err).__name__}: {err})", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    log.info("resuming %s: %d writes done, %d torn region(s) to rebuild", writer.path,
-             writer.done, len(writer.rebuild))
-    return run_and_report(cfg, rec.frames(realtime=args.realtime), world=None,
-                          progress=not args.quiet, sinks=sinks, writer=writer,
-                          kept=f"{writer.path} can be resumed again; it holds what was completed",
-                          account=rec.account())
-
-
 def cmd_replay(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.run import Job
+
     try:
         rec = open_recording(args.recording)
     except RecordingError as err:
@@ -84,37 +59,26 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     if args.resume:
         args.overwrite = False
-    cfg = override(rec.config, args)
+    # the recorded [output] overwrite is the recording's, never this command's
+    cfg = override(rec.config, args, own_overwrite=False)
     if not args.resume and not cfg.output.overwrite and Path(cfg.output.path).exists():
         print(f"sffscan: -o {cfg.output.path}: exists; add --overwrite to replace it (or "
               "--resume to complete an interrupted mosaic, or choose another path)",
               file=sys.stderr)
         return EXIT_BAD_INPUT
     log.info(describe(cfg))
-    from sffscan.pipeline.preflight import preflight
+    world = None
+    if args.evaluate and not args.resume and cfg.source.kind == "sim":
+        from sffscan.stages.sim.scanner import make_world
 
-    # every check before --overwrite deletes anything
-    preflight(cfg, resume=args.resume, simulated=False, live=False)
-    sinks = [k for k in (viewer_sink(cfg, args.viewer, default="off", rrd=args.rrd),) if k]
-    if args.resume:
-        code = _resume(cfg, rec, args, sinks)
-    else:
-        world = None
-        if args.evaluate and cfg.source.kind == "sim":
-            from sffscan.stages.sim.scanner import make_world
-
-            world = make_world(cfg)
-        frames = rec.frames(realtime=args.realtime)
-        code = run_and_report(cfg, frames, world=world, progress=not args.quiet, sinks=sinks,
-                              account=rec.account())
-    out = Path(cfg.output.path)
-    if out.exists() and code != EXIT_BAD_INPUT:
-        try:
-            annotate_mosaic(out, rec)
-        except OSError as err:  # a full disk: the failure is the pipeline's (exit 1), not input
-            print(f"sffscan: {out}: cannot record which recording it was replayed from: {err}",
-                  file=sys.stderr)
-            code = code or EXIT_FAILED
+        world = make_world(cfg)
+    job = Job(cfg, recording=rec, rrd=args.rrd, resume=args.resume, realtime=args.realtime,
+              progress=not args.quiet,
+              sinks=lambda: [k for k in (viewer_sink(cfg, args.viewer, default="off",
+                                                     rrd=args.rrd),) if k is not None])
+    kept = (f"{cfg.output.path} can be resumed again; it holds what was completed"
+            if args.resume else "")
+    code = report_job(job, world=world, kept=kept)
     if rec.report.corrupt:  # found while reading the frames
         log.warning("%d frame chunk(s) could not be decoded and were left out (lost "
                     "frames): frame_id %s", len(rec.report.corrupt),
@@ -157,7 +121,12 @@ def _info_mosaic(path: Path) -> int:
         print(f"frames      {attrs.get('frames_received')} of {attrs.get('frames_expected')} "
               "expected frames received and processed")
     rec = attrs.get("recording")
-    if isinstance(rec, dict):
+    ident = rec.get("identity") if isinstance(rec, dict) else None
+    if isinstance(ident, dict) and ident.get("live"):
+        print(f"recorded    into {ident.get('path')} (a live scan)")
+    elif isinstance(rec, dict) and "frames" not in rec:
+        print(f"replaying   from {rec.get('path')} (not finished)")
+    elif isinstance(rec, dict):
         print(f"replayed    from {rec.get('path')} ({rec.get('frames')} frames, "
               f"{rec.get('frames_lost')} lost)")
     if info["incomplete"]:

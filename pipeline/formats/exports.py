@@ -28,8 +28,16 @@ import zarr
 from sffscan.pipeline.messages import MosaicAttrs
 from sffscan.stages.mosaic import mosaic_array
 
-__all__ = ["MosaicRegion", "PLY_DTYPE", "read_ply", "read_region", "region_box", "write_ply",
-           "write_x3p"]
+__all__ = ["EXPORT_MAX_BYTES", "MosaicRegion", "PLY_DTYPE", "check_export_size",
+           "check_scan_exports", "export_bytes", "read_ply", "read_region", "region_box",
+           "trust_problems", "write_ply", "write_x3p"]
+
+#: the most memory a whole-region export (areal parameters, x3p) may plan to use, bytes;
+#: a larger region is refused with its size named (give --region)
+EXPORT_MAX_BYTES = 8 * 2**30
+#: bytes per pixel a region's export holds at its peak: height and texture float32, the
+#: x3p's float64 heights, the areal parameters' float64 copies (levelled surface, mask)
+EXPORT_BYTES_PER_PX = 4 + 4 + 8 + 3 * 8
 
 PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
                       ("blue", "u1")])
@@ -95,6 +103,78 @@ def read_region(path: str | Path, region_px: tuple[int, int, int, int] | None = 
     return MosaicRegion(np.asarray(mosaic_array(group, "height")[sel]),
                         np.asarray(mosaic_array(group, "texture")[sel]),
                         x0, y0, attrs.pixel_um, attrs.model_dump(mode="json"))
+
+
+def export_bytes(rows: int, cols: int) -> int:
+    """Memory an export of a ``rows`` x ``cols`` px region holds at its peak, bytes."""
+    return int(rows) * int(cols) * EXPORT_BYTES_PER_PX
+
+
+def _limit_bytes(limit: int | None) -> int:
+    from sffscan.pipeline.preflight import MEMORY_SHARE, available_memory_bytes
+
+    have = available_memory_bytes()
+    cap = EXPORT_MAX_BYTES if limit is None else int(limit)
+    return min(cap, int(MEMORY_SHARE * have)) if have is not None else cap
+
+
+def check_export_size(path: str | Path, region_px: tuple[int, int, int, int] | None = None,
+                      *, limit_bytes: int | None = None) -> tuple[int, int, int, int]:
+    """The region's box (:func:`region_box`), or ValueError naming its size when its export
+    would need more than ``limit_bytes`` (default :data:`EXPORT_MAX_BYTES`, at most 80 %
+    of the memory available)."""
+    x0, y0, x1, y1 = box = region_box(path, region_px)
+    need, cap = export_bytes(y1 - y0, x1 - x0), _limit_bytes(limit_bytes)
+    if need > cap:
+        side = int((cap / EXPORT_BYTES_PER_PX) ** 0.5)
+        raise ValueError(
+            f"{path}: the region x {x0}..{x1} y {y0}..{y1} px ({y1 - y0} x {x1 - x0} px) "
+            f"needs about {need / 2**30:.1f} GiB to export, more than the "
+            f"{cap / 2**30:.1f} GiB allowed; export it in parts with --region X0,Y0,X1,Y1 "
+            f"(at most about {side} x {side} px each)")
+    return box
+
+
+def check_scan_exports(cfg: Any) -> list[str]:
+    """Warnings about a scan configuration whose whole mosaic could not be exported at once
+    (``sffscan scan --check``)."""
+    from sffscan.pipeline.plan import scan_extent_px
+
+    x0, y0, x1, y1 = scan_extent_px(cfg)
+    need, cap = export_bytes(y1 - y0, x1 - x0), _limit_bytes(None)
+    if need <= cap:
+        return []
+    return [f"the mosaic will be {y1 - y0} x {x1 - x0} px: exporting it whole would need "
+            f"about {need / 2**30:.1f} GiB (more than {cap / 2**30:.1f} GiB); 'sffscan export' "
+            "will need --region boxes"]
+
+
+def trust_problems(path: str | Path) -> list[str]:
+    """Why a mosaic's values cannot all be trusted: torn tiles (a writer killed during a
+    band write, a resume not finished), a writer still at work or gone without a final
+    status. Empty for a mosaic that is not ours (a TIFF, an array), checked elsewhere."""
+    from sffscan.pipeline import locks
+    from sffscan.stages.mosaic import tile_states
+
+    try:
+        fmt = zarr.open_group(str(path), mode="r").attrs.get("format")
+    except Exception:  # noqa: BLE001 - not a Zarr group: not a mosaic
+        return []
+    if fmt != "sffscan-mosaic":
+        return []
+    out = []
+    holder = locks.holder(path)
+    if holder is not None:
+        out.append(f"{path}: being written by {locks.describe_holder(holder)}")
+    _, info = tile_states(path)
+    if info["incomplete"]:
+        out.append(f"{path}: {info['incomplete']} tile(s) torn by an interrupted write hold "
+                   "untrustworthy values ('sffscan info' shows them; complete them with "
+                   "'sffscan replay RECORDING -o MOSAIC --resume')")
+    elif info["status"] == "writing" and holder is None:
+        out.append(f"{path}: status 'writing': its writer stopped without a final status "
+                   "(complete it with 'sffscan replay RECORDING -o MOSAIC --resume')")
+    return out
 
 
 # ----------------------------------------------------------------------------- PLY
