@@ -19,8 +19,18 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
-import torch.nn.functional as F
+
+try:
+    import torch
+    import torch.nn.functional as F
+except ModuleNotFoundError as err:  # torch is the optional extra [torch]
+    if err.name != "torch":
+        raise
+    raise ModuleNotFoundError(
+        "this needs torch, which is not installed: the torch backend and devices "
+        "(processing.backend = 'torch', CUDA) and the focus operators other than GLVM and "
+        "TENV run in torch; install it with: pip install 'sffscan[torch]'",
+        name="torch") from err
 from sffscan.stages.depth import harmonic_table
 from sffscan.stages.focus_measure import _check_window
 from sffscan.stages.operators import check_operator

@@ -7,9 +7,12 @@ in CI with the rest; ``-m "not slow"`` leaves it out locally).
 
 from __future__ import annotations
 
+import ast
+import re
 import shutil
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
@@ -95,3 +98,92 @@ def test_installed_wheel_imports_and_checks_its_schemas(wheel: Path, tmp_path: P
                          check=False)
     text = res.stdout + res.stderr
     assert f"schemas in {site / 'sffscan' / 'schemas'} (the packaged copy)" in text, text
+
+
+# --- what is declared ----------------------------------------------------------------------
+
+#: import name -> distribution name, for imports whose distribution is not installed here
+#: (where it is, importlib.metadata says)
+DISTRIBUTION_OF = {"cv2": "opencv-python-headless", "pywt": "PyWavelets", "zmq": "pyzmq",
+                   "rerun": "rerun-sdk", "PIL": "pillow", "google_crc32c": "google-crc32c"}
+
+
+def _canonical(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _declared() -> dict[str, set[str]]:
+    """pyproject's dependencies: canonical distribution name -> where ("dependencies" or
+    the extra's name)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    groups = {"dependencies": project["dependencies"], **project["optional-dependencies"]}
+    out: dict[str, set[str]] = {}
+    for group, reqs in groups.items():
+        for req in reqs:
+            match = re.match(r"[A-Za-z0-9][A-Za-z0-9._-]*", req)
+            assert match, req
+            out.setdefault(_canonical(match.group()), set()).add(group)
+    return out
+
+
+def _third_party_imports() -> dict[str, set[str]]:
+    """Top-level third-party modules the package imports (anywhere in a module, deferred
+    imports too) -> the files that import them."""
+    found: dict[str, set[str]] = {}
+    for top in ("sffscan", "pipeline", "stages", "schemas"):
+        for path in (ROOT / top).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [node.module]
+                else:
+                    continue
+                for name in names:
+                    first = name.split(".")[0]
+                    if first not in sys.stdlib_module_names and first not in (
+                            "sffscan", "__future__"):
+                        found.setdefault(first, set()).add(str(path.relative_to(ROOT)))
+    return found
+
+
+def test_every_third_party_import_is_declared() -> None:
+    """A module the product imports comes from a distribution that pyproject declares (as
+    a dependency or in a feature's extra; ``[test]`` alone does not count): google_crc32c
+    and numcodecs were imported by the chunk path but came only through zarr."""
+    from importlib.metadata import packages_distributions
+
+    installed = packages_distributions()
+    declared = _declared()
+    imports = _third_party_imports()
+    assert {"numpy", "zarr", "google_crc32c", "numcodecs", "torch"} <= set(imports)
+    missing = {}
+    for module, files in sorted(imports.items()):
+        dists = installed.get(module) or [DISTRIBUTION_OF.get(module, module)]
+        if not any(declared.get(_canonical(d), set()) - {"test"} for d in dists):
+            missing[module] = (dists, sorted(files))
+    assert not missing, f"imported but not declared in pyproject (module: distributions, " \
+                        f"files): {missing}"
+
+
+def test_torch_is_an_extra_and_its_absence_names_it() -> None:
+    """The main install has no torch (the CPU scan does not import it); a torch operator
+    asked for without torch says which extra to install."""
+    declared = _declared()
+    assert declared["torch"] == {"torch"}, declared["torch"]
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"]
+    assert any(r.startswith("sffscan[") and "torch" in r for r in extras["test"])
+    code = ("import sys; sys.modules['torch'] = None\n"  # as if torch were not installed
+            "import numpy as np, sffscan\n"
+            "img = np.eye(16, dtype=np.float32)\n"
+            "assert sffscan.focus_measure(img, operator='glvm', window=3).shape == (16, 16)\n"
+            "try:\n"
+            "    sffscan.focus_measure(img, operator='lapm', window=3)\n"
+            "except ModuleNotFoundError as err:\n"
+            "    print(err.name, '|', err)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=False, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    name, message = res.stdout.split("|", 1)
+    assert name.strip() == "torch" and "pip install 'sffscan[torch]'" in message, res.stdout
