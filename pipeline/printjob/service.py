@@ -12,6 +12,8 @@ does not end within ``scan_timeout_s``, or a strict verdict not ready within
 ``verdict_timeout_s``, releases the hold and records the layer ``unknown`` with the
 reason. A layer is never ``pass`` without an analysis that said so.
 
+The models and the state file are in :mod:`.links_models` (re-exported here).
+
 State: each job is a folder ``STORE/JOB_ID`` holding the handler's outputs and
 ``service_state.json`` (:class:`JobState`, written atomically after every change). After a
 restart, starting the same job id resumes it: finished layers are not scanned again, a
@@ -25,161 +27,37 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from sffscan.pipeline.printjob.links_models import (
+    STATE_FILE,
+    Analysis,
+    JobEnd,
+    JobStart,
+    JobState,
+    JobStatus,
+    LayerEvent,
+    LayerHandler,
+    LayerRecord,
+    LayerReply,
+    ObjectOutline,
+    ScanResult,
+    ScanState,
+    ServiceError,
+    Verdict,
+    read_state,
+    write_state,
+)
 
 log = logging.getLogger(__name__)
 
-Verdict = Literal["pass", "warn", "fail", "unknown", "pending"]
-ScanState = Literal["running", "done", "failed", "timeout", "skipped"]
-STATE_FILE = "service_state.json"
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-class ObjectOutline(_Model):
-    """One object of the print in this layer, as the printer knows it."""
-
-    name: str = Field(min_length=1, max_length=200, description="Object name (slicer's label)")
-    polygon_mm: list[tuple[float, float]] = Field(
-        min_length=3, max_length=10000, description="Outline in printer coordinates (x, y), mm")
-
-
-class JobStart(_Model):
-    """``POST /jobs``: a print starts (or resumes after a restart of the service)."""
-
-    job_id: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$",
-                        description="Job name, also its folder in the store")
-    printer: str = Field("", max_length=200, description="Printer name, for the record")
-    gcode_name: str = Field("", max_length=500, description="G-code file name, for the record")
-    strict: bool | None = Field(None, description="Wait for each verdict before releasing the "
-                                                  "print (null: the service's default)")
-
-
-class LayerEvent(_Model):
-    """``POST /jobs/{job_id}/layers``: layer ``layer`` is printed at height ``z_mm``."""
-
-    layer: int = Field(ge=0, le=1_000_000, description="Layer number, from 0")
-    z_mm: float = Field(ge=-1000, le=10000, description="Nozzle height of the layer, mm")
-    region_mm: tuple[float, float, float, float] | None = Field(
-        None, description="Region to scan (x0, y0, x1, y1) in printer coordinates, mm; null: "
-                          "the handler's configured region")
-    objects: list[ObjectOutline] = Field(default_factory=list, max_length=1000,
-                                         description="Objects printed in this layer")
-
-    @model_validator(mode="after")
-    def _region_order(self) -> LayerEvent:
-        r = self.region_mm
-        if r is not None and not (r[2] > r[0] and r[3] > r[1]):
-            raise ValueError(f"region_mm: need x1 > x0 and y1 > y0, got {r}")
-        return self
-
-
-class JobEnd(_Model):
-    """``POST /jobs/{job_id}/end``."""
-
-    outcome: Literal["completed", "cancelled", "failed", "disconnected"] = "completed"
-    reason: str = Field("", max_length=2000)
-
-
-class LayerRecord(_Model):
-    """What the service knows of one layer."""
-
-    layer: int
-    z_mm: float
-    scan: ScanState
-    verdict: Verdict
-    reason: str = ""
-    late: bool = Field(False, description="The verdict arrived after the hold was released "
-                                          "with 'unknown' (strict timeout)")
-    objects: dict[str, Verdict] = Field(default_factory=dict, description="Verdict per object")
-    scan_s: float | None = Field(None, description="Duration of the scan, s")
-    analysis_s: float | None = Field(None, description="Duration of the analysis, s")
-    output: str | None = Field(None, description="The scan's output, relative to the job folder")
-
-
-class JobState(_Model):
-    """``service_state.json``: the job's record, rewritten after every change."""
-
-    version: Literal[1] = 1
-    job: JobStart
-    status: Literal["open", "ended"] = "open"
-    end: JobEnd | None = None
-    layers: dict[int, LayerRecord] = Field(default_factory=dict)
-
-
-class LayerReply(_Model):
-    """The answer to a layer event."""
-
-    job_id: str
-    record: LayerRecord
-    repeated: bool = Field(False, description="The layer was already done; nothing was scanned")
-    alerts: list[LayerRecord] = Field(
-        default_factory=list, description="Every layer of the job whose verdict is warn or fail")
-
-
-class JobStatus(_Model):
-    job_id: str
-    status: Literal["open", "ended"]
-    resumed: bool = False
-    strict: bool
-    layers_done: list[int] = Field(default_factory=list)
-    pending: list[int] = Field(default_factory=list, description="Layers awaiting a verdict")
-    counts: dict[str, int] = Field(default_factory=dict, description="Layers per verdict")
-
-
-class Analysis(_Model):
-    """A handler's verdict on one layer."""
-
-    verdict: Literal["pass", "warn", "fail", "unknown"]
-    reason: str = ""
-    objects: dict[str, Literal["pass", "warn", "fail", "unknown"]] = Field(default_factory=dict)
-
-
-@dataclass
-class ScanResult:
-    """A handler's scan of one layer: its output (inside the job folder) and free notes."""
-
-    output: Path | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-
-class LayerHandler(Protocol):
-    """Scan and analyse one layer. ``scan`` runs while the print is held; ``analyse`` runs
-    in the background and may read what ``scan`` wrote into ``folder``. Both may raise: the
-    layer is then recorded ``unknown`` with the error as the reason."""
-
-    def scan(self, job: JobStart, event: LayerEvent, folder: Path) -> ScanResult: ...
-
-    def analyse(self, job: JobStart, event: LayerEvent, scan: ScanResult,
-                folder: Path) -> Analysis: ...
-
-
-class ServiceError(Exception):
-    """A request the service refuses: ``status`` is the HTTP status, the message says why."""
-
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-
-
-def write_state(path: Path, state: JobState) -> None:
-    """Write atomically: a reader (or a restart) sees the old or the new file, never half."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(state.model_dump_json(indent=1), encoding="utf-8")
-    os.replace(tmp, path)
-
-
-def read_state(path: Path) -> JobState:
-    try:
-        return JobState.model_validate_json(path.read_bytes())
-    except ValueError as err:
-        raise ServiceError(500, f"{path}: unreadable job state ({err})") from None
+__all__ = ["STATE_FILE", "Analysis", "JobEnd", "JobService", "JobStart", "JobState",
+           "JobStatus", "LayerEvent", "LayerHandler", "LayerRecord", "LayerReply",
+           "ObjectOutline", "ScanResult", "ScanState", "ServiceError", "Verdict",
+           "read_state", "write_state"]
 
 
 @dataclass
@@ -211,11 +89,15 @@ class JobService:
         Longest hold for a scan, and for a strict verdict after it, s.
     analysis_queue : int, keyword-only
         Layers that may wait for the analysis worker; one more is recorded ``unknown``.
+    on_verdict : callable, keyword-only
+        ``(job_id, record)`` called by the analysis worker with each verdict (a printer link
+        that acts on it: a status line, a pause); exceptions are logged, not raised.
     """
 
     def __init__(self, store: str | Path, handler: LayerHandler, *, strict: bool = False,
                  scan_timeout_s: float = 120.0, verdict_timeout_s: float = 30.0,
-                 analysis_queue: int = 4) -> None:
+                 analysis_queue: int = 4,
+                 on_verdict: Callable[[str, LayerRecord], None] | None = None) -> None:
         if scan_timeout_s <= 0 or verdict_timeout_s <= 0 or analysis_queue < 1:
             raise ValueError("scan_timeout_s and verdict_timeout_s must be > 0 and "
                              "analysis_queue >= 1")
@@ -225,6 +107,7 @@ class JobService:
         self.strict = strict
         self.scan_timeout_s = scan_timeout_s
         self.verdict_timeout_s = verdict_timeout_s
+        self.on_verdict = on_verdict
         self._lock = threading.RLock()  # guards _jobs and every JobState
         self._jobs: dict[str, JobState] = {}
         self._verdict_ready: dict[tuple[str, int], threading.Event] = {}
@@ -499,12 +382,13 @@ class JobService:
                 result = Analysis(verdict="unknown",
                                   reason=f"analysis failed: {type(err).__name__}: {err}")
             seconds = round(time.perf_counter() - t0, 3)
+            stored = None
             with self._lock:
                 state = self._jobs.get(work.job.job_id)
                 cur = None if state is None else state.layers.get(work.event.layer)
                 if state is not None and cur is not None:
                     late = cur.verdict == "unknown" and cur.scan == "done"
-                    self._store(state, cur.model_copy(update={
+                    stored = self._store(state, cur.model_copy(update={
                         "verdict": result.verdict, "reason": result.reason,
                         "objects": dict(result.objects), "analysis_s": seconds,
                         "late": late}))
@@ -513,3 +397,9 @@ class JobService:
                                     work.event.layer, result.verdict, result.reason)
                 self._verdict_ready.pop((work.job.job_id, work.event.layer), None)
             ready.set()
+            if stored is not None and self.on_verdict is not None:
+                try:
+                    self.on_verdict(work.job.job_id, stored)
+                except Exception:
+                    log.exception("on_verdict failed for job %s layer %d", work.job.job_id,
+                                  work.event.layer)
