@@ -1,0 +1,153 @@
+"""Issue 23, the run path's parts attacked directly: configuration overrides and resume
+identity (property-based, hypothesis), the writer lock across processes, the clash checks."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sffscan.pipeline import locks
+from sffscan.pipeline.cli.common import override
+from sffscan.pipeline.config import ConfigError, config_from_dict
+from sffscan.pipeline.run import (
+    RUN_ONLY,
+    _with_run_only,
+    check_clashes,
+    check_file_output,
+    identity_mismatch,
+)
+from sffscan.stages.mosaic import config_differences
+
+from tests.scan_helpers import small_config
+
+#: fields a resume must refuse to change (they change what the mosaic measures)
+MEASURING = {
+    ("processing", "window"): st.sampled_from([3, 5, 7, 11]),
+    ("processing", "depth_method"): st.sampled_from(["argmax", "gauss3", "spc", "adaptive"]),
+    ("processing", "focus_operator"): st.sampled_from(["glvm", "lapm", "tenv"]),
+    ("processing", "block_columns"): st.integers(1, 512),
+    ("motion", "speed_mm_s"): st.sampled_from([5.0, 10.0, 15.0]),
+}
+RUN = {
+    ("processing", "execution"): st.sampled_from(["auto", "threads", "processes"]),
+    ("processing", "queue_capacity"): st.integers(1, 64),
+    ("source", "idle_timeout_s"): st.sampled_from([1.0, 5.0, 30.0]),
+    ("source", "max_bad_messages"): st.integers(1, 1000),
+}
+
+
+@settings(max_examples=60, deadline=None)
+@given(recorded=st.booleans(), flag=st.booleans())
+def test_a_replay_overwrites_only_with_its_own_flag(recorded: bool, flag: bool) -> None:
+    cfg = small_config(output={"overwrite": recorded})
+    args = argparse.Namespace(output="m.zarr", overwrite=flag)
+    assert override(cfg, args, own_overwrite=False).output.overwrite is flag
+    # a scan's own configuration file keeps its overwrite
+    assert override(cfg, args).output.overwrite is (recorded or flag)
+
+
+@settings(max_examples=80, deadline=None)
+@given(run=st.fixed_dictionaries({k: st.one_of(st.none(), v) for k, v in RUN.items()}),
+       measuring=st.fixed_dictionaries({k: st.one_of(st.none(), v)
+                                        for k, v in MEASURING.items()}))
+def test_resume_compares_what_a_mosaic_measures_not_how_it_ran(
+        run: dict[tuple[str, str], object], measuring: dict[tuple[str, str], object]) -> None:
+    old = small_config().model_dump(mode="json")
+    data = small_config().model_dump()
+    for (table, name), value in {**run, **measuring}.items():
+        if value is not None:
+            data[table][name] = value
+    try:
+        new = config_from_dict(data, origin="test").model_dump(mode="json")
+    except ConfigError:
+        return  # an infeasible combination: refused before any resume
+    diff = config_differences(old, _with_run_only(new, old))
+    changed = {f"{t}.{n}" for (t, n), v in measuring.items()
+               if v is not None and old[t][n] != new[t][n]}
+    assert set(diff) == changed
+    assert not any(f"{t}.{n}" in diff for t, n in RUN_ONLY)
+
+
+@settings(max_examples=80, deadline=None)
+@given(path_a=st.sampled_from(["/r/a.zarr", "/r/b.zarr"]),
+       path_b=st.sampled_from(["/r/a.zarr", "/r/b.zarr"]),
+       id_a=st.sampled_from([None, "1", "2"]), id_b=st.sampled_from([None, "1", "2"]),
+       dig_a=st.sampled_from(["x", "y"]), dig_b=st.sampled_from(["x", "y"]),
+       frames_a=st.sampled_from([40, 80]), frames_b=st.sampled_from([40, 80]))
+def test_identity_by_id_else_by_digest(path_a: str, path_b: str, id_a: str | None,
+                                       id_b: str | None, dig_a: str, dig_b: str,
+                                       frames_a: int, frames_b: int) -> None:
+    stored = {"path": path_a, "id": id_a, "digest": dig_a, "frames": frames_a,
+              "status": "complete"}
+    current = {"path": path_b, "id": id_b, "digest": dig_b, "frames": frames_b,
+               "status": "complete"}
+    same = id_a == id_b if id_a and id_b else dig_a == dig_b
+    assert (identity_mismatch(stored, current) is None) is same
+    assert (identity_mismatch(stored, current, unchanged=True) is None) is (
+        same and frames_a == frames_b)
+    assert identity_mismatch(None, current) is None  # a mosaic that does not say
+
+
+def test_clashes_between_outputs_and_inputs(tmp_path: Path) -> None:
+    rec = tmp_path / "rec.zarr"
+    rec.mkdir()
+    (rec / "zarr.json").write_text("{}")
+    for out, inputs in ((rec, [rec]), (rec / "m.zarr", [rec]), (tmp_path, [rec])):
+        cfg = small_config(output={"path": str(out)})
+        with pytest.raises(ConfigError, match="would destroy it"):
+            check_clashes(cfg, inputs=inputs)
+    cfg = small_config(output={"path": str(tmp_path / "m.zarr")})
+    check_clashes(cfg, inputs=[rec])  # side by side: fine
+    with pytest.raises(ConfigError, match="overlaps output.path"):
+        check_clashes(cfg, record=tmp_path / "m.zarr" / "rec.zarr")
+    with pytest.raises(ConfigError, match="inside the Zarr store"):
+        check_clashes(cfg, rrd=rec / "zarr.json")
+    with pytest.raises(ConfigError, match="inside the Zarr store"):  # not created yet
+        check_clashes(cfg, rrd=tmp_path / "m.zarr" / "view.rrd")
+    with pytest.raises(ConfigError, match="is a folder"):
+        check_file_output(tmp_path, "--x3p")
+    check_clashes(cfg, rrd=tmp_path / "view.rrd")
+
+
+HOLDER = """
+import sys
+from sffscan.pipeline import locks
+held = locks.acquire(sys.argv[1])
+print("held", flush=True)
+sys.stdin.readline()
+held.release()
+"""
+
+
+def test_the_lock_holds_across_processes_and_names_the_holder(tmp_path: Path) -> None:
+    target = tmp_path / "m.zarr"
+    with subprocess.Popen([sys.executable, "-c", HOLDER, str(target)], stdin=subprocess.PIPE,
+                          stdout=subprocess.PIPE, text=True) as proc:
+        try:
+            assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+            with pytest.raises(locks.LockHeld, match=f"pid {proc.pid}") as err:
+                locks.acquire(target)
+            assert err.value.holder["pid"] == proc.pid
+            assert locks.holder(target) == err.value.holder
+        finally:
+            assert proc.stdin is not None
+            proc.stdin.write("\n")
+            proc.stdin.flush()
+            assert proc.wait(30) == 0
+    assert locks.holder(target) is None and not locks.lock_path(target).exists()
+    with locks.acquire(target):  # free again
+        pass
+    # a holder killed outright (kill -9) leaves its file; the kernel freed the lock
+    with subprocess.Popen([sys.executable, "-c", HOLDER, str(target)], stdin=subprocess.PIPE,
+                          stdout=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+        proc.kill()
+        proc.wait(30)
+    assert locks.lock_path(target).exists() and locks.holder(target) is None
+    with locks.acquire(target) as mine:
+        assert mine.fd is not None
