@@ -10,6 +10,8 @@ site searches the repository root (``paths: [.]`` in mkdocs.yml).
 The line ``<!-- bench-result-tables -->`` becomes the list of ``bench/*.py`` scripts (the
 first paragraph of each docstring) and every ``bench/*.md`` table as its script last wrote
 it, headings moved two levels down: the figures are never copied by hand.
+
+Pages other work adds (:data:`OPTIONAL_PAGES`) join their nav section when they exist.
 """
 
 from __future__ import annotations
@@ -22,6 +24,12 @@ from typing import Any
 
 MARKER = "<!-- sffscan-api-reference -->"
 BENCH_MARKER = "<!-- bench-result-tables -->"
+
+#: nav section -> page patterns added to it when such pages exist and are not in the nav
+OPTIONAL_PAGES = {
+    "Using sffscan": ("printer-links.md", "printjob*.md"),
+    "Methods and results": ("depth-study.md",),
+}
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -94,6 +102,36 @@ def bench_tables() -> str:
         out.append(f"## `bench/{table.name}`\n")
         out.append(_demote(table.read_text(encoding="utf-8"), 2) + "\n")
     return "\n".join(out)
+
+
+def _listed(nav: Any) -> set[str]:
+    if isinstance(nav, str):
+        return {nav}
+    if isinstance(nav, list):
+        return set().union(*(_listed(item) for item in nav)) if nav else set()
+    if isinstance(nav, dict):
+        return set().union(*(_listed(v) for v in nav.values())) if nav else set()
+    return set()
+
+
+def on_config(config: Any, **kwargs: Any) -> Any:
+    nav = config["nav"]
+    if not nav:
+        return config
+    docs = Path(config["docs_dir"])
+    listed = _listed(nav)
+    for section, patterns in OPTIONAL_PAGES.items():
+        pages = sorted({p.relative_to(docs).as_posix() for pattern in patterns
+                        for p in docs.glob(pattern)} - listed)
+        if not pages:
+            continue
+        for item in nav:
+            if isinstance(item, dict) and isinstance(item.get(section), list):
+                item[section].extend(pages)
+                break
+        else:
+            raise ValueError(f"mkdocs.yml: no nav section {section!r} for {pages}")
+    return config
 
 
 def on_page_markdown(markdown: str, **kwargs: Any) -> str:

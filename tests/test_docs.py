@@ -95,3 +95,23 @@ def test_readme_links_resolve() -> None:
     assert local, "no relative links found"
     missing = [link for link in local if not (ROOT / link).exists()]
     assert not missing, missing
+
+
+def test_pages_added_by_other_work_join_the_nav(tmp_path: Path) -> None:
+    """docs/hooks.py puts printer-links, printjob* and depth-study pages into their nav
+    sections when they exist, and leaves the nav alone when they do not."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("sffscan_docs_hooks", DOCS / "hooks.py")
+    assert spec is not None and spec.loader is not None
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    nav = [{"Home": "index.md"}, {"Using sffscan": ["hardware.md"]},
+           {"Methods and results": ["physics.md", "depth-study.md"]}]
+    hooks.on_config({"nav": nav, "docs_dir": str(tmp_path)})
+    assert nav[1] == {"Using sffscan": ["hardware.md"]}
+    for name in ("printjob.md", "printer-links.md", "depth-study.md", "other.md"):
+        (tmp_path / name).write_text("# x\n", encoding="utf-8")
+    hooks.on_config({"nav": nav, "docs_dir": str(tmp_path)})
+    assert nav[1] == {"Using sffscan": ["hardware.md", "printer-links.md", "printjob.md"]}
+    assert nav[2] == {"Methods and results": ["physics.md", "depth-study.md"]}
