@@ -12,7 +12,8 @@ expected part without an error. Here every word of a motion command must be a le
 number, and any error names the file and the line.
 
 Understood: ``G0``/``G1`` (X Y Z E F), ``G2``/``G3`` arcs (I J, linearised into <= 0.1 mm
-chords), ``G20``/``G21`` (inch/mm), ``G90``/``G91``, ``M82``/``M83``, ``G92``; object labels
+chords), ``G20``/``G21`` (inch/mm), ``G90``/``G91``, ``M82``/``M83`` (E is relative under G91 or
+M83, as in Marlin and Klipper), ``G92``; object labels
 from ``EXCLUDE_OBJECT_DEFINE`` / ``EXCLUDE_OBJECT_START`` / ``EXCLUDE_OBJECT_END``
 (Klipper), ``M486 S<n>`` / ``M486 A<name>`` (Marlin, Prusa), ``; printing object NAME`` /
 ``; stop printing object NAME`` (PrusaSlicer ``gcode_label_objects``) and ``;MESH:NAME``
@@ -41,8 +42,8 @@ ARC_CHORD_MM = 0.1  # arcs are split into chords no longer than this, mm
 _WORD = re.compile(r"([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _COMMAND = re.compile(r"^([GMT])(\d+)(?:\.\d+)?(?=[\sA-Z;]|$)")
 _EXTENDED = re.compile(r"^([A-Z_][A-Z0-9_]*)(?:\s|$)")
-_KEYVAL = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)=(\"[^\"]*\"|'[^']*'|\[[^\]]*\]|\S+)")
-_NO_ARGS = {"G90", "G91", "G20", "G21", "M82", "M83", "G28", "G92"}
+_KEYVAL = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)=(\"[^\"]*\"|'[^']*'|\[\[.*?\]\]|\[[^\]]*\]|\S+)")
+_LINE_NO = re.compile(r"^N\d+\s*|\*\d+\s*$")  # line numbers and checksums (host protocol)
 
 
 class GcodeError(ValueError):
@@ -230,7 +231,8 @@ def parse_gcode(text: str | Iterable[str], *, source: str = "<string>",
                 except ValueError:
                     raise GcodeError(f"{where}: cannot read the filament diameter in "
                                      f"{comment!r}") from None
-        if not code:
+        code = _LINE_NO.sub("", code)
+        if not code or code.startswith("@"):  # OctoPrint @-commands never reach the printer
             continue
         up = code.upper()
         m = _COMMAND.match(up)
@@ -238,6 +240,10 @@ def parse_gcode(text: str | Iterable[str], *, source: str = "<string>",
             ext = _EXTENDED.match(up)
             if ext is None:
                 raise GcodeError(f"{where}: not a G-code command: {code!r}")
+            rest = _KEYVAL.sub("", code[ext.end():]).strip()
+            if rest:
+                raise GcodeError(f"{where}: not a G-code command (G/M/T and a number) nor an "
+                                 f"extended command with KEY=VALUE arguments: {code!r}")
             keys = {k.upper(): v.strip("\"'") for k, v in _KEYVAL.findall(code)}
             cmd = ext.group(1)
             if cmd in ("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START"):
@@ -270,7 +276,8 @@ def parse_gcode(text: str | Iterable[str], *, source: str = "<string>",
 
             x1, y1, z1 = target("X", st.x), target("Y", st.y), target("Z", st.z)
             if "E" in w:
-                e1 = st.e + w["E"] * s if st.rel_e else w["E"] * s
+                rel_e = st.rel_e or st.rel_xyz  # G91 makes E relative too (Marlin, Klipper)
+                e1 = st.e + w["E"] * s if rel_e else w["E"] * s
             else:
                 e1 = st.e
             de = e1 - st.e
@@ -300,9 +307,9 @@ def parse_gcode(text: str | Iterable[str], *, source: str = "<string>",
         elif cmd == "G21":
             st.scale = 1.0
         elif cmd == "G90":
-            st.rel_xyz, st.rel_e = False, False
+            st.rel_xyz = False  # E keeps its M82/M83 mode
         elif cmd == "G91":
-            st.rel_xyz, st.rel_e = True, True
+            st.rel_xyz = True
         elif cmd == "M82":
             st.rel_e = False
         elif cmd == "M83":

@@ -1,0 +1,139 @@
+"""The job service's default :class:`~.links_models.LayerHandler`: each job is a job store
+(:class:`~.jobstore.JobStore`) scanned and judged layer by layer by
+:class:`~.layer.LayerRunner`.
+
+- The job's G-code is looked up by the name the printer gives (``JobStart.gcode_name``,
+  its last path component only) in ``gcode_dir``. With it, a layer is scanned into the
+  job store and compared with the G-code (deviation map, per-object verdicts).
+- Without it (no ``gcode_dir``, or no such file), the layer is still scanned, into
+  ``JOB/layer_NNNNN.zarr``, and its verdict is ``unknown`` with the reason: nothing says
+  what should have been printed, and a layer is never ``pass`` without a comparison.
+- With the simulated source (``source.kind = "sim"``) and a G-code, the simulator's world
+  is the print itself, built from the G-code's beads up to the layer
+  (:class:`~sffscan.stages.sim.print_world.PrintWorld`), as in ``sffscan job demo``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+from typing import Any
+
+from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.printjob.deviation import Tolerances
+from sffscan.pipeline.printjob.expected import PrinterMapping
+from sffscan.pipeline.printjob.jobstore import JobStore
+from sffscan.pipeline.printjob.layer import LayerRunner
+from sffscan.pipeline.printjob.links_models import (
+    Analysis,
+    JobStart,
+    LayerEvent,
+    ScanResult,
+)
+
+log = logging.getLogger(__name__)
+
+STORE_DIR = "job"  # the job store inside the service's job folder
+
+
+class _Job:
+    def __init__(self, runner: LayerRunner | None, why: str, world: Any = None) -> None:
+        self.runner = runner
+        self.why = why  # why there is no runner
+        self.world = world
+
+
+class JobStoreHandler:
+    """Scan with ``config``'s source; compare with the job's G-code when there is one.
+
+    Parameters
+    ----------
+    config : ScanConfig
+        The scan of one layer (its ``output.path`` is replaced per layer).
+    gcode_dir : path-like or None, keyword-only
+        Folder of the G-code files the printer prints.
+    mapping : PrinterMapping, keyword-only
+        Printer coordinates -> mosaic coordinates.
+    tolerances : Tolerances, keyword-only
+    record : bool, keyword-only
+        Keep each layer's raw recording in the job store.
+    """
+
+    def __init__(self, config: ScanConfig, *, gcode_dir: str | Path | None = None,
+                 mapping: PrinterMapping | None = None, tolerances: Tolerances | None = None,
+                 record: bool = True) -> None:
+        self.config = config
+        self.gcode_dir = None if gcode_dir is None else Path(gcode_dir)
+        self.mapping = mapping or PrinterMapping()
+        self.tolerances = tolerances or Tolerances()
+        self.record = record
+        self._jobs: dict[str, _Job] = {}
+        self._lock = threading.Lock()  # scan and analysis workers share _jobs
+
+    def _job(self, job: JobStart, folder: Path) -> _Job:
+        with self._lock:
+            cached = self._jobs.get(job.job_id)
+            if cached is None:
+                cached = self._jobs[job.job_id] = self._open(job, folder)
+            return cached
+
+    def _open(self, job: JobStart, folder: Path) -> _Job:
+        path = folder / STORE_DIR
+        if (path / "manifest.json").is_file():  # a resumed job
+            store = JobStore.open(path)
+        else:
+            name = Path(job.gcode_name.replace("\\", "/")).name
+            if self.gcode_dir is None or not name:
+                return _Job(None, "no G-code to compare with (start 'sffscan serve' with "
+                                  "--gcode-dir, and the job with its G-code's name)")
+            gcode = self.gcode_dir / name
+            if not gcode.is_file():
+                return _Job(None, f"no G-code {name!r} in {self.gcode_dir}: nothing to "
+                                  "compare the scan with")
+            store = JobStore.create(path, gcode=gcode, printer=job.printer,
+                                    config=self.config, mapping=self.mapping,
+                                    tolerances=self.tolerances)
+        world = None
+        if self.config.source.kind == "sim":
+            from sffscan.pipeline.printjob.demo import _world_extent
+            from sffscan.stages.sim.print_world import PrintWorld
+
+            program, mapping = store.program, store.manifest.mapping
+            world = PrintWorld(program, mapping, self.config.optics.pixel_um,
+                               _world_extent(program, mapping))
+        return _Job(LayerRunner(store), "", world)
+
+    def scan(self, job: JobStart, event: LayerEvent, folder: Path) -> ScanResult:
+        j = self._job(job, folder)
+        if j.runner is None:
+            from sffscan.api import scan
+
+            out = folder / f"layer_{event.layer:05d}.zarr"
+            report = scan(self.config, output=out, overwrite=True)
+            return ScanResult(output=out, info={"frames": report.frames})
+        j.runner.begin(event.layer, event.z_mm)
+        world = None if j.world is None else j.world.at_layer(event.layer)
+        try:
+            report = j.runner.scan(event.layer, config=self.config, world=world,
+                                   record=self.record)
+        except Exception as err:  # the job store records the layer unknown too
+            j.runner.fail(event.layer, f"the scan failed: {type(err).__name__}: {err}")
+            raise
+        return ScanResult(output=j.runner.store.mosaic_path(event.layer),
+                          info={"frames": report.frames})
+
+    def analyse(self, job: JobStart, event: LayerEvent, scan: ScanResult,
+                folder: Path) -> Analysis:
+        j = self._job(job, folder)
+        if j.runner is None:
+            return Analysis(verdict="unknown", reason=j.why)
+        v = j.runner.analyse(event.layer)
+        reason = v.reason
+        if not reason:
+            bad = [o for o in v.objects if o.verdict != "pass"]
+            reason = "; ".join(
+                f"{o.name}: {o.verdict} (p95 |dev| {o.p95_abs_um or 0:.0f} µm, missing "
+                f"{o.missing_mm2:.2f} mm², excess {o.excess_mm2:.2f} mm²)" for o in bad)
+        return Analysis(verdict=v.verdict, reason=reason,
+                        objects={o.name: o.verdict for o in v.objects})
