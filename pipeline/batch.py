@@ -6,13 +6,21 @@ own mosaic, on one worker, with the worker's numerical libraries capped to
 cannot be processed (unreadable, corrupt, a stage failing) gives a ``failed`` row with the
 cause; the other tasks go on.
 
-A rerun does only what is left. A mosaic that is final is kept: ``complete`` ones are
-skipped, ``incomplete`` ones (frames lost in the recording: a replay ends incomplete again)
-are kept with their status. A mosaic left ``writing`` or ``failed`` (a worker killed, a
+Every task runs through the one run path (:func:`sffscan.pipeline.run.execute`): pre-flight,
+clash checks, the mosaic's writer lock, the recording's identity. A recording still being
+written (its writer holds its lock, :mod:`sffscan.pipeline.locks`) is not processed: its row
+says ``recording`` and a rerun does it. The output folder may not be a recording's folder
+(the mosaics would be taken for recordings on a rerun).
+
+A rerun does only what is left. A mosaic that is final is kept when it was made from the
+recording as it is now (:func:`~sffscan.pipeline.run.identity_mismatch`; one made from a
+recording written on or replaced since is reprocessed): ``complete`` ones are skipped,
+``incomplete`` ones (frames lost in the recording: a replay ends incomplete again) are kept
+with their status. A mosaic left ``writing`` or ``failed`` (a worker killed, a
 machine lost, a stage failing) is resumed as ``sffscan replay --resume`` does
 (:meth:`~sffscan.stages.mosaic.MosaicWriter.reopen`): the band writes already in it are
 kept, torn tiles are rebuilt, and it ends equal to an uninterrupted run; a mosaic made with
-another configuration is not resumed but reported (``overwrite=True`` replaces it). The
+another configuration or from another recording is not resumed but reported (``overwrite=True`` replaces it). The
 choice is made by the task when it starts, so a task that Dask retries after losing its
 worker resumes what that worker left. The accuracy of an evaluated mosaic is stored in its
 attributes (``accuracy``), so that a skipped row still shows it.

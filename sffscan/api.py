@@ -80,7 +80,13 @@ def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
     ConfigError
         Invalid configuration (the message names the field), or a check before anything
         is changed failed (:mod:`sffscan.pipeline.run`: pre-flight, an output that would
-        destroy an input, another writer holding the mosaic's lock).
+        destroy an input, another writer holding the mosaic's lock:
+        :class:`~sffscan.pipeline.locks.LockHeld`). An existing output without
+        ``overwrite`` is :class:`~sffscan.pipeline.preflight.OutputExists`, also a
+        ``FileExistsError``.
+    KeyboardInterrupt
+        Ctrl-C, or SIGTERM (:class:`~sffscan.pipeline.run.Terminated`) when called from
+        the main thread with SIGTERM's default action: the mosaic is ``failed``, resumable.
     StageFailed
         A stage failed; the message names it and the cause, and the mosaic holds what was
         completed (status ``failed``).

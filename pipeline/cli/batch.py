@@ -4,10 +4,12 @@
 layers) into ``OUT/<name>.mosaic.zarr``, one task per recording, on a local cluster of
 worker processes (``--workers``) or on a running Dask scheduler (``--scheduler
 tcp://host:8786``); prints the results table and writes it as CSV (``OUT/batch.csv``).
-A rerun does what is left: complete mosaics are skipped, incomplete ones kept, interrupted
-ones (left ``writing`` or ``failed``) resumed (``--overwrite`` replaces them, ``--rerun``
-redoes everything). Exit 0 when every mosaic is complete, 1 when some failed or are
-incomplete, 2 for bad input. See :mod:`sffscan.pipeline.batch`.
+A rerun does what is left: complete mosaics are skipped, incomplete ones kept (both only
+while the recording is as it was when they were made), interrupted ones (left ``writing``
+or ``failed``) resumed (``--overwrite`` replaces them, ``--rerun`` redoes everything); a
+recording still being written is left for a rerun (status ``recording``). ``-o`` may not
+be the recordings' own folder. Exit 0 when every mosaic is complete, 1 when some failed, are
+incomplete or still being recorded, 2 for bad input. See :mod:`sffscan.pipeline.batch`.
 """
 
 from __future__ import annotations
