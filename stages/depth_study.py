@@ -23,15 +23,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from sffscan.stages.depth import (
+    DEFAULT_METHOD,
     DEPTH_METHODS,
     _argmax,
     depth_from_focus,
 )
+from sffscan.stages.depth_uncertainty import curve_width, depth_scatter
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
 
-__all__ = ["CANDIDATE", "THRESHOLDS", "HeldOutTable", "curve_width", "leave_one_family_out",
-           "format_table", "score_volume", "width_switch"]
+__all__ = ["CANDIDATE", "COVERAGE_TARGET", "THRESHOLDS", "HeldOutTable", "curve_width",
+           "fit_uncertainty", "format_coverage", "format_table", "leave_one_family_out",
+           "score_volume", "width_switch"]
 
 CANDIDATE = "width-switch"
 """Name of the tunable candidate in the tables."""
@@ -39,34 +42,13 @@ CANDIDATE = "width-switch"
 THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0, math.inf)
 """Candidate thresholds (levels) the protocol tunes over (inf: never SPC = adaptive)."""
 
+COVERAGE_TARGET = 0.94
+"""Share of pixels with |error| <= 2 sigma the uncertainty's constants aim at on every
+training family (the bar: 0.90 .. 0.98 on held-out ones)."""
 
-def curve_width(volume: np.ndarray) -> np.ndarray:
-    """Each focus curve's width (levels, one sigma) from its sums and minimum.
-
-    A Gaussian peak of area A and sigma s on a floor b has ``H_0 = N b + A`` and
-    ``|H_1| = A exp(-2 pi^2 s^2 / N^2)``; with b the curve's minimum,
-    ``s = N / (pi sqrt 2) sqrt(-ln(|H_1| / (H_0 - N b)))``. Noise lowers the minimum,
-    which widens the estimate.
-
-    Parameters
-    ----------
-    volume : (N, H, W) ndarray of float
-        Focus volume.
-
-    Returns
-    -------
-    (H, W) ndarray of float64
-        Width in levels (0 for a single-level spike, large for a flat curve).
-    """
-    vol = np.asarray(volume, dtype=np.float64)
-    n = vol.shape[0]
-    k = np.arange(n, dtype=np.float64)
-    h0 = vol.sum(axis=0)
-    re = np.tensordot(np.cos(2 * np.pi * k / n), vol, axes=1)
-    im = np.tensordot(np.sin(2 * np.pi * k / n), vol, axes=1)
-    area = h0 - n * vol.min(axis=0)
-    ratio = np.clip(np.hypot(re, im) / np.where(area > 0, area, 1.0), 1e-9, 1.0)
-    return n / (math.pi * math.sqrt(2.0)) * np.sqrt(-np.log(ratio))
+SCATTER_GRID = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0)
+WIDTH_GRID = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
+COVERAGE_BAND = (0.90, 0.98)
 
 
 def width_switch(spc: np.ndarray, adaptive: np.ndarray, width: np.ndarray, *,
@@ -78,10 +60,14 @@ def width_switch(spc: np.ndarray, adaptive: np.ndarray, width: np.ndarray, *,
 
 @dataclass
 class _Scores:
-    """Sum of squared errors (levels^2) and pixel count per method, one stack."""
+    """Sum of squared errors (levels^2) and pixel count per method, one stack; the default
+    method's errors, depth scatter and curve widths of the scored pixels (levels)."""
 
     sse: dict[str, float]
     count: int
+    error: np.ndarray
+    scatter: np.ndarray
+    width: np.ndarray
 
 
 def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
@@ -100,7 +86,41 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     for t in THRESHOLDS:
         d = width_switch(depth["spc"], depth["adaptive"], width, threshold=t)
         sse[f"{CANDIDATE}@{t:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
-    return _Scores(sse, int(mask.sum()))
+    default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
+        volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
+        argmax=a)[0]
+    scatter = depth_scatter(default, window=spread_size)
+    return _Scores(sse, int(mask.sum()), (default - truth_levels)[mask], scatter[mask],
+                   width[mask])
+
+
+def _coverage(scores: Sequence[_Scores], a: float, b: float) -> float:
+    """Share of the pixels with |error| <= 2 sigma, sigma = sqrt((a s)^2 + (b w)^2)."""
+    e = np.concatenate([x.error for x in scores])
+    sg = np.sqrt((a * np.concatenate([x.scatter for x in scores]).astype(np.float64)) ** 2
+                 + (b * np.concatenate([x.width for x in scores])) ** 2)
+    return float(np.mean(np.abs(e) <= 2.0 * sg))
+
+
+def fit_uncertainty(groups: Sequence[Sequence[_Scores]]) -> tuple[float, float]:
+    """The constants (a, b) of :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`
+    from a grid: the least sum over the groups (families) of the squared distance of a
+    group's coverage outside 0.90 .. 0.98, plus a tenth of its squared distance from
+    :data:`COVERAGE_TARGET` (a family no pair of constants brings into the band does not
+    decide alone, as it would the largest distance)."""
+    lo, hi = COVERAGE_BAND
+    best: tuple[float, float, float] | None = None
+    for a in SCATTER_GRID:
+        for b in WIDTH_GRID:
+            cost = 0.0
+            for g in groups:
+                c = _coverage(g, a, b)
+                cost += (max(0.0, lo - c) ** 2 + max(0.0, c - hi) ** 2
+                         + 0.1 * (c - COVERAGE_TARGET) ** 2)
+            if best is None or cost < best[0]:
+                best = (cost, a, b)
+    assert best is not None
+    return best[1], best[2]
 
 
 @dataclass(frozen=True)
@@ -121,6 +141,8 @@ class HeldOutTable:
     chosen: str
     worst_ratio: dict[str, float]
     methods: tuple[str, ...]
+    coverage: dict[str, float]
+    uncertainty_fit: dict[str, tuple[float, float]]
 
 
 def _stack_scores(stack: SimStack, *, operator: str, window: int,
@@ -184,6 +206,12 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
 
     rmse: dict[str, dict[str, float]] = {}
     tuned: dict[str, float] = {}
+    coverage: dict[str, float] = {}
+    fits: dict[str, tuple[float, float]] = {}
+
+    def train_groups(fams: list[str]) -> list[list[_Scores]]:
+        return [[scores[g, s] for s in range(seeds)] for g in fams]
+
     for f in names:
         t = tune([g for g in names if g != f])
         tuned[f] = t
@@ -191,6 +219,9 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         row = {m: _rmse(held, m) for m in methods}
         row[CANDIDATE] = _rmse(held, f"{CANDIDATE}@{t:g}")
         rmse[f] = row
+        fits[f] = fit_uncertainty(train_groups([g for g in names if g != f]))
+        coverage[f] = _coverage(held, *fits[f])
+    fits["all"] = fit_uncertainty(train_groups(names))
     extra: dict[str, dict[str, float]] = {}
     if third_party:
         t_all = tune(names)
@@ -199,12 +230,13 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
             row = {m: _rmse([sc], m) for m in methods}
             row[CANDIDATE] = _rmse([sc], f"{CANDIDATE}@{t_all:g}")
             extra[name] = row
+            coverage[name] = _coverage([sc], *fits["all"])
     all_methods = (*methods, CANDIDATE)
     worst = {m: max(r[m] / min(r[k] for k in methods) for r in (*rmse.values(),
                                                                  *extra.values()))
              for m in all_methods}
     chosen = min(all_methods, key=worst.__getitem__)
-    return HeldOutTable(rmse, tuned, extra, chosen, worst, all_methods)
+    return HeldOutTable(rmse, tuned, extra, chosen, worst, all_methods, coverage, fits)
 
 
 def format_table(table: HeldOutTable) -> str:
@@ -222,4 +254,16 @@ def format_table(table: HeldOutTable) -> str:
         lines.append(f"| {name} | {cells} | {t} |")
     lines.append("| **worst ratio** | " + " | ".join(f"**{table.worst_ratio[m]:.2f}**"
                                                       for m in methods) + " | |")
+    return "\n".join(lines)
+
+
+def format_coverage(table: HeldOutTable) -> str:
+    """The uncertainty's held-out coverage as Markdown (share of |error| <= 2 sigma)."""
+    lines = ["| held out | share of abs(error) <= 2 sigma | a (scatter) | b (width) |",
+             "|---|---:|---:|---:|"]
+    for name, cov in table.coverage.items():
+        a, b = table.uncertainty_fit.get(name, table.uncertainty_fit["all"])
+        lines.append(f"| {name} | {cov:.3f} | {a:g} | {b:g} |")
+    a, b = table.uncertainty_fit["all"]
+    lines.append(f"| (fit on every family's training seeds) | | {a:g} | {b:g} |")
     return "\n".join(lines)

@@ -149,3 +149,21 @@ def test_study_names_a_bad_truth_or_focus_table(own_stack: tuple[Path, np.ndarra
     assert main([*base, *focus, "--truth", str(d / "truth.npy"), "--chapter3"]) == 2
     assert "one stack" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_study_without_matplotlib_writes_the_table(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture) -> None:
+    """issue 26 item 1: no matplotlib, no crash: the CSV and JSON are written, the message
+    says why there is no figure."""
+    import sys
+
+    from sffscan.pipeline.cli.study import StudyRow, write_outputs
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    rows = [StudyRow("glvm", 9, "spc", 1.0, 0.9, 30.0, 0.01)]
+    paths = write_outputs(rows, tmp_path / "o", title="t")
+    assert [p.name for p in paths] == ["study.csv", "study.json"]
+    assert (tmp_path / "o" / "study.csv").read_text().startswith("operator,")
+    assert not (tmp_path / "o" / "study.png").exists()
+    assert "matplotlib is not installed" in capsys.readouterr().err

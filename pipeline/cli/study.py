@@ -31,7 +31,10 @@ none to heavy, 8-12 bits, textures, flats, slopes, steps, heights near both ends
 20..100), a tunable candidate tuned on the other families' training seeds, every method
 scored on the held-out family's other seeds; ``--imdata`` adds a third-party stack scored
 with the candidate tuned on all families. Prints the method x family table of held-out
-RMSE (levels) and writes ``held_out.csv`` and ``held_out.md`` (no figure, no matplotlib).
+RMSE (levels) and the held-out coverage of the height uncertainty
+(:mod:`sffscan.stages.depth_uncertainty`: share of pixels with |error| <= 2 sigma, its
+constants fitted without the family), and writes ``held_out.csv`` and ``held_out.md`` (no
+figure, no matplotlib).
 """
 
 from __future__ import annotations
@@ -264,7 +267,11 @@ def _int_list(text: str) -> list[int]:
 def families_study(args: argparse.Namespace) -> int:
     """``--families``: the leave-one-family-out protocol, printed and written."""
     from sffscan.stages.depth import levels_from_heights
-    from sffscan.stages.depth_study import format_table, leave_one_family_out
+    from sffscan.stages.depth_study import (
+        format_coverage,
+        format_table,
+        leave_one_family_out,
+    )
     from sffscan.stages.focus_measure import focus_measure
 
     operator = args.operators.split(",")[0].strip().lower() if args.operators else "glvm"
@@ -304,9 +311,12 @@ def families_study(args: argparse.Namespace) -> int:
     summary = (f"chosen by the held-out results: {table.chosen} (worst ratio to the best "
                f"method {table.worst_ratio[table.chosen]:.2f}; {operator.upper()} "
                f"k={window}, {args.seeds} training + {args.seeds} held-out seeds per family)")
-    (out / "held_out.md").write_text(md + "\n\n" + summary + "\n")
+    cov = ("height uncertainty of the default method, held out:\n\n"
+           + format_coverage(table))
+    (out / "held_out.md").write_text(md + "\n\n" + summary + "\n\n" + cov + "\n")
     print(md)
     print(summary)
+    print(cov)
     print(f"wrote {out / 'held_out.csv'}, {out / 'held_out.md'}")
     return EXIT_OK
 
