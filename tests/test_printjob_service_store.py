@@ -12,7 +12,6 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-
 from sffscan.pipeline.config import config_from_dict, config_to_toml
 from sffscan.pipeline.printjob import demo
 from sffscan.pipeline.printjob.jobstore import JobStore
