@@ -119,3 +119,16 @@ def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
     run_simulated_print(tmp_path / "job", gcode=gcode, defects=(blob,), config=cfg,
                         on_layer=lambda k, v, t: again.append(k))
     assert again == []
+
+
+def test_cli_job_show(tmp_path, gcode, capsys) -> None:
+    from sffscan.pipeline.cli.main import main
+
+    s = JobStore.create(tmp_path / "job", gcode=gcode, printer="sim")
+    s.begin_layer(0)
+    s.finish_layer(0, failed_layer_verdict(0, 0.2, ["left", "right"], reason="timeout"))
+    assert main(["job", "show", str(tmp_path / "job")]) == 0
+    out = capsys.readouterr().out
+    assert "1 of 3 layers done" in out and "UNKNOWN" in out and "left:unknown" in out
+    assert main(["job", "show", str(tmp_path)]) == 2
+    assert "not a job folder" in capsys.readouterr().err
