@@ -3,10 +3,11 @@
 The families of :mod:`sffscan.stages.sim.families` are rendered with two disjoint sets of
 seeds, *training* and *held-out*. For each family F in turn:
 
-1. the tunable candidate (:func:`width_switch`, its threshold) is tuned on the training
-   seeds of every family except F: the threshold that minimises the mean over those
-   families of ``log(RMSE / best fixed method's RMSE)``;
-2. every fixed method and the tuned candidate are scored on F's held-out seeds only.
+1. the tunable candidates (:func:`width_switch`: its threshold on the curve's width;
+   :func:`scatter_select`: its window) are tuned on the training seeds of every family
+   except F: the setting that minimises the sum over those families of
+   ``log(RMSE / best fixed method's RMSE)``;
+2. every fixed method and the tuned candidates are scored on F's held-out seeds only.
 
 A third-party stack (pertuz-simu02) is scored with the candidate tuned on the training
 seeds of all the families. Errors are in focus levels (RMSE over the scored pixels of all
@@ -32,15 +33,19 @@ from sffscan.stages.depth_uncertainty import curve_width, depth_scatter
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
 
-__all__ = ["CANDIDATE", "COVERAGE_TARGET", "THRESHOLDS", "HeldOutTable", "curve_width",
+__all__ = ["CANDIDATES", "COVERAGE_TARGET", "THRESHOLDS", "HeldOutTable", "curve_width",
            "fit_uncertainty", "format_coverage", "format_table", "leave_one_family_out",
-           "score_volume", "width_switch"]
-
-CANDIDATE = "width-switch"
-"""Name of the tunable candidate in the tables."""
+           "scatter_select", "score_volume", "width_switch"]
 
 THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0, math.inf)
-"""Candidate thresholds (levels) the protocol tunes over (inf: never SPC = adaptive)."""
+"""``width-switch`` thresholds (levels) the protocol tunes over (inf: never SPC)."""
+
+SCATTER_WINDOWS = (5.0, 9.0, 15.0, 21.0)
+"""``scatter-select`` windows (px) the protocol tunes over."""
+
+CANDIDATES: dict[str, tuple[float, ...]] = {"width-switch": THRESHOLDS,
+                                            "scatter-select": SCATTER_WINDOWS}
+"""The tunable candidates and the settings each is tuned over (on training data only)."""
 
 COVERAGE_TARGET = 0.94
 """Share of pixels with |error| <= 2 sigma the uncertainty's constants aim at on every
@@ -56,6 +61,14 @@ def width_switch(spc: np.ndarray, adaptive: np.ndarray, width: np.ndarray, *,
     """SPC where the curve is wider than ``threshold`` levels (the centroid window and the
     peak fit see only part of it), else ``adaptive``; float32 levels."""
     return np.where(width > threshold, spc, adaptive).astype(np.float32)
+
+
+def scatter_select(spc: np.ndarray, adaptive: np.ndarray, *, window: int) -> np.ndarray:
+    """Per pixel the estimate whose measured scatter (RMS about its 5 x 5 median over
+    ``window`` x ``window`` px, :func:`depth_scatter`) is the smaller: SPC where its map is
+    locally smoother than ``adaptive``'s, else ``adaptive``; float32 levels."""
+    smoother = depth_scatter(spc, window=window) < depth_scatter(adaptive, window=window)
+    return np.where(smoother, spc, adaptive).astype(np.float32)
 
 
 @dataclass
@@ -85,7 +98,10 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     width = curve_width(volume)
     for t in THRESHOLDS:
         d = width_switch(depth["spc"], depth["adaptive"], width, threshold=t)
-        sse[f"{CANDIDATE}@{t:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+        sse[f"width-switch@{t:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+    for k in SCATTER_WINDOWS:
+        d = scatter_select(depth["spc"], depth["adaptive"], window=int(k))
+        sse[f"scatter-select@{k:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
     default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
         volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
         argmax=a)[0]
@@ -127,16 +143,20 @@ def fit_uncertainty(groups: Sequence[Sequence[_Scores]]) -> tuple[float, float]:
 class HeldOutTable:
     """The protocol's result.
 
-    ``rmse[family][method]``: held-out RMSE (levels) of each fixed method and of the
-    candidate tuned without that family (key :data:`CANDIDATE`); ``tuned[family]`` the
-    threshold chosen for it; ``third_party`` the same for third-party stacks (candidate
-    tuned on all families); ``chosen`` the method whose worst ratio to the best fixed
-    method over the held-out families and third-party stacks is the smallest, and
-    ``worst_ratio`` that ratio per method.
+    ``rmse[family][method]``: held-out RMSE (levels) of each fixed method and of each
+    candidate of :data:`CANDIDATES` tuned without that family; ``tuned[family]`` the
+    settings chosen for it (``tuned["all"]``: on every family, for the third-party sets);
+    ``third_party[name][method]`` the same for third-party stacks; ``chosen`` the method
+    whose worst ratio to the best fixed method over the held-out families and third-party
+    stacks is the smallest, ``worst_ratio`` that ratio per method; ``coverage[family]``:
+    share of the held-out pixels whose default-method error is within 2 sigma of the
+    uncertainty fitted without the family (``uncertainty_fit[family]``: the constants
+    (a, b); ``"all"``: fitted on the training seeds of every family, used for the
+    third-party sets, whose coverage is keyed by name).
     """
 
     rmse: dict[str, dict[str, float]]
-    tuned: dict[str, float]
+    tuned: dict[str, dict[str, float]]
     third_party: dict[str, dict[str, float]]
     chosen: str
     worst_ratio: dict[str, float]
@@ -191,21 +211,24 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     scores = {(f, s): _stack_scores(family_stack(f, s, size_px=size_px), operator=operator,
                                     window=window, methods=methods)
               for f in names for s in range(2 * seeds)}
-    cand_keys = [f"{CANDIDATE}@{t:g}" for t in THRESHOLDS]
-
-    def tune(train: list[str]) -> float:
-        cost = []
-        for key in cand_keys:
-            c = 0.0
-            for f in train:
-                group = [scores[f, s] for s in range(seeds)]
-                best = min(_rmse(group, m) for m in methods)
-                c += math.log(max(_rmse(group, key), 1e-12) / max(best, 1e-12))
-            cost.append(c)
-        return THRESHOLDS[int(np.argmin(cost))]
+    def tune(train: list[str]) -> dict[str, float]:
+        """Each candidate's setting: the least sum over the training families of
+        log(RMSE / the family's best fixed method's RMSE)."""
+        out = {}
+        for cand, settings in CANDIDATES.items():
+            cost = []
+            for v in settings:
+                c = 0.0
+                for f in train:
+                    group = [scores[f, s] for s in range(seeds)]
+                    best = min(_rmse(group, m) for m in methods)
+                    c += math.log(max(_rmse(group, f"{cand}@{v:g}"), 1e-12) / max(best, 1e-12))
+                cost.append(c)
+            out[cand] = settings[int(np.argmin(cost))]
+        return out
 
     rmse: dict[str, dict[str, float]] = {}
-    tuned: dict[str, float] = {}
+    tuned: dict[str, dict[str, float]] = {}
     coverage: dict[str, float] = {}
     fits: dict[str, tuple[float, float]] = {}
 
@@ -217,7 +240,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         tuned[f] = t
         held = [scores[f, s] for s in range(seeds, 2 * seeds)]
         row = {m: _rmse(held, m) for m in methods}
-        row[CANDIDATE] = _rmse(held, f"{CANDIDATE}@{t:g}")
+        row.update({c: _rmse(held, f"{c}@{v:g}") for c, v in t.items()})
         rmse[f] = row
         fits[f] = fit_uncertainty(train_groups([g for g in names if g != f]))
         coverage[f] = _coverage(held, *fits[f])
@@ -225,13 +248,14 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     extra: dict[str, dict[str, float]] = {}
     if third_party:
         t_all = tune(names)
+        tuned["all"] = t_all
         for name, (vol, truth, mask) in third_party.items():
             sc = score_volume(vol, truth, mask, methods=methods, spread_size=window)
             row = {m: _rmse([sc], m) for m in methods}
-            row[CANDIDATE] = _rmse([sc], f"{CANDIDATE}@{t_all:g}")
+            row.update({c: _rmse([sc], f"{c}@{v:g}") for c, v in t_all.items()})
             extra[name] = row
             coverage[name] = _coverage([sc], *fits["all"])
-    all_methods = (*methods, CANDIDATE)
+    all_methods = (*methods, *CANDIDATES)
     worst = {m: max(r[m] / min(r[k] for k in methods) for r in (*rmse.values(),
                                                                  *extra.values()))
              for m in all_methods}
@@ -241,12 +265,17 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
 
 def format_table(table: HeldOutTable) -> str:
     """The held-out table as Markdown: RMSE (levels) and, in brackets, the ratio to the best
-    fixed method of the row; the last row the worst ratio of each method."""
+    fixed method of the row; the last row the worst ratio of each method; the last column
+    the candidates' settings tuned without the row's family."""
     methods = table.methods
     lines = ["| held out | " + " | ".join(methods) + " | tuned |",
              "|---|" + "---:|" * (len(methods) + 1)]
-    rows = [(f, r, f"{table.tuned[f]:g}") for f, r in table.rmse.items()]
-    rows += [(f"{n} (third party)", r, "all") for n, r in table.third_party.items()]
+    def settings(key: str) -> str:
+        return ", ".join(f"{v:g}" for v in table.tuned.get(key, {}).values())
+
+    rows = [(f, r, settings(f)) for f, r in table.rmse.items()]
+    rows += [(f"{n} (third party)", r, settings("all")) for n, r in
+             table.third_party.items()]
     fixed = [m for m in methods if m in DEPTH_METHODS]
     for name, r, t in rows:
         best = min(r[m] for m in fixed)

@@ -12,7 +12,7 @@ import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_study import (
-    CANDIDATE,
+    CANDIDATES,
     THRESHOLDS,
     curve_width,
     format_table,
@@ -93,12 +93,12 @@ def test_protocol_holds_out_each_family() -> None:
     fams = ["even-gauss", "slopes", "flat-fine-8bit"]
     t = leave_one_family_out(families=fams, seeds=1, size_px=32)
     assert list(t.rmse) == fams and set(t.tuned) == set(fams)
-    assert all(v in THRESHOLDS for v in t.tuned.values())
-    assert t.methods == (*DEPTH_METHODS, CANDIDATE) and t.chosen in t.methods
+    assert all(v["width-switch"] in THRESHOLDS for v in t.tuned.values())
+    assert all(v["scatter-select"] in CANDIDATES["scatter-select"] for v in t.tuned.values())
+    assert t.methods == (*DEPTH_METHODS, *CANDIDATES) and t.chosen in t.methods
     for row in t.rmse.values():
+        assert set(row) == set(t.methods)
         assert all(np.isfinite(v) and v >= 0 for v in row.values())
-        if math.isinf(THRESHOLDS[-1]):
-            assert row[CANDIDATE] >= 0
     # the worst ratio is the largest held-out ratio of each method to the row's best
     for m in t.methods:
         ratios = [r[m] / min(r[k] for k in DEPTH_METHODS) for r in t.rmse.values()]
@@ -135,7 +135,7 @@ def test_study_families_command(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "| held out |" in text and "chosen by the held-out results" in text
     with (out / "held_out.csv").open() as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == 2 * (len(DEPTH_METHODS) + 1)
+    assert len(rows) == 2 * (len(DEPTH_METHODS) + len(CANDIDATES))
     assert {r["set"] for r in rows} == {"even-gauss", "slopes"}
     assert min(float(r["ratio_to_best"]) for r in rows if r["method"] in DEPTH_METHODS) == 1.0
     assert (out / "held_out.md").read_text().startswith("| held out |")

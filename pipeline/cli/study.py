@@ -28,9 +28,9 @@ the file or option).
 (:mod:`sffscan.stages.depth_study`): leave one synthetic family out
 (:mod:`sffscan.stages.sim.families`: even and lopsided blur, Gaussian and pillbox PSFs, noise
 none to heavy, 8-12 bits, textures, flats, slopes, steps, heights near both ends, N =
-20..100), a tunable candidate tuned on the other families' training seeds, every method
-scored on the held-out family's other seeds; ``--imdata`` adds a third-party stack scored
-with the candidate tuned on all families. Prints the method x family table of held-out
+20..100), the tunable candidates tuned on the other families' training seeds, every
+method scored on the held-out family's other seeds; ``--imdata`` adds a third-party stack
+scored with the candidates tuned on all families. Prints the method x family table of held-out
 RMSE (levels) and the held-out coverage of the height uncertainty
 (:mod:`sffscan.stages.depth_uncertainty`: share of pixels with |error| <= 2 sigma, its
 constants fitted without the family), and writes ``held_out.csv`` and ``held_out.md`` (no
