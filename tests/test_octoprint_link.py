@@ -44,6 +44,8 @@ PLUGIN_SRC = REPO / "printer_links" / "octoprint_sffscan"
 CACHE = Path(os.environ.get("SFFSCAN_CACHE", Path.home() / ".cache" / "sffscan"))
 VENV = CACHE / "octoprint-venv"
 OCTOPRINT_SPEC = "octoprint>=1.10,<2"
+#: the raster of a scanner on the head, sent by the plug-in while the job is held
+SCAN_GCODE = "G1 X37.5 Y42.5 Z{z} F9000\nG1 X52.5 Y42.5 F900\nM400"
 
 
 def _pypi_reachable() -> bool:
@@ -215,14 +217,14 @@ def _write_config(basedir: Path, service_url: str, apikey: str) -> None:
     config = {
         "server": {"firstRun": False, "onlineCheck": {"enabled": False},
                    "pluginBlacklist": {"enabled": False}},
-        "serial": {"autoconnect": False},
+        "serial": {"autoconnect": False, "log": True},
         "plugins": {
             "_disabled": ["announcements", "softwareupdate", "discovery", "errortracking",
                           "tracking", "pluginmanager", "backup", "achievements",
                           "health_check", "gcodeviewer"],
             "virtual_printer": {"enabled": True, "throttle": 0.001},
             "sffscan": {"service_url": service_url, "strict": True, "on_fail": "pause",
-                        "timeout_s": 60},
+                        "timeout_s": 60, "scan_gcode": SCAN_GCODE},
         },
     }
     # JSON is YAML: OctoPrint reads both files as written
@@ -273,6 +275,16 @@ def test_octoprint_virtual_printer_scans_every_layer_and_pauses_on_fail(
     assert [round(z, 2) for j, _, z in handler.scans if j == job_id] == [
         round(0.2 * (n + 1), 2) for n in range(10)]
     assert octo.state() == "Operational"
+    # the scan moves went out while the job was held: each between its layer's Z move and
+    # the next layer's (serial.log holds what OctoPrint sent to the printer)
+    sent = [ln.split("Send: ", 1)[1] for ln in
+            (octo.basedir / "logs" / "serial.log").read_text().splitlines() if "Send: " in ln]
+    raster = [i for i, ln in enumerate(sent) if "G1 X52.5 Y42.5 F900" in ln]
+    layer_z = [next(i for i, ln in enumerate(sent) if f"G1 Z{0.2 * (n + 1):.2f} F12000" in ln)
+               for n in range(10)]
+    assert len(raster) == 10
+    assert all(a < r < b for a, r, b in zip(layer_z, raster, layer_z[1:] + [len(sent)],
+                                               strict=True))
 
     # 2. layer 4 fails, on_fail = pause: the job pauses at layer 4 and says why
     handler.fail_layers = {4}

@@ -47,6 +47,10 @@ class SffscanPlugin(octoprint.plugin.SettingsPlugin, octoprint.plugin.EventHandl
             "on_unknown": "none",
             "on_error": "none",   # the service unreachable or refusing the layer
             "timeout_s": 180.0,   # longest hold for one layer, s (above the service's)
+            # G-code sent while the job is held, after the service was asked to scan (the
+            # raster moves of a scanner on the print head, ending with M400); {layer} and
+            # {z} are replaced. Empty: the scanner moves itself.
+            "scan_gcode": "",
         }
 
     def _action(self, key):
@@ -140,13 +144,40 @@ class SffscanPlugin(octoprint.plugin.SettingsPlugin, octoprint.plugin.EventHandl
                                   name=f"sffscan-layer-{layer}", daemon=True)
         thread.start()
 
+    def _layer_call(self, job_id, layer, z):
+        """The service's layer call; with ``scan_gcode``, the scan moves are sent (they
+        pass the job's hold) while the call is in progress."""
+        template = (self._settings.get(["scan_gcode"]) or "").strip()
+        client = self._client()
+        if not template:
+            return client.layer(job_id, layer, z)
+        out = {}
+
+        def call():
+            try:
+                out["reply"] = client.layer(job_id, layer, z)
+            except ServiceError as err:
+                out["error"] = err
+
+        caller = threading.Thread(target=call, name=f"sffscan-call-{layer}", daemon=True)
+        caller.start()
+        text = template.replace("{layer}", str(layer)).replace("{z}", f"{z:.3f}")
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        self._printer.commands(lines, tags={"source:plugin", "plugin:sffscan"})
+        caller.join(client.timeout_s + 5.0)
+        if caller.is_alive():
+            raise ServiceError(f"no answer for layer {layer} within {client.timeout_s:g} s")
+        if "error" in out:
+            raise out["error"]
+        return out["reply"]
+
     def _scan_layer(self, job_id, layer, z):
         action, why = "none", ""
         t0 = time.monotonic()
         try:
             if not self._job_started and not self._start_job(job_id):
                 raise ServiceError("the job could not be started on the service")
-            reply = self._client().layer(job_id, layer, z)
+            reply = self._layer_call(job_id, layer, z)
             rec = reply.get("record", {})
             verdict = rec.get("verdict", "unknown")
             self._logger.info("sffscan: layer %d (z %.3f mm) scanned in %.1f s: %s%s",
