@@ -122,6 +122,9 @@ def test_3_a_second_writer_is_refused_with_the_holder_named(
         assert f"being written by {socket.gethostname()} pid {os.getpid()}" in err
         with pytest.raises(locks.LockHeld):
             sffscan.replay(layers["a"], output=m, overwrite=True)
+        assert main(["info", str(m)]) == 0
+        assert f"being written now by {socket.gethostname()} pid {os.getpid()}" in \
+            capsys.readouterr().out
         assert held.file.exists()
     assert not locks.lock_path(m).exists()  # released and removed
     assert _stamp(m) == before

@@ -102,8 +102,13 @@ def _info_mosaic(path: Path) -> int:
         print(f"sffscan: {path}: unreadable mosaic ({type(err).__name__}: {err})",
               file=sys.stderr)
         return EXIT_BAD_INPUT
+    from sffscan.pipeline import locks
+
     attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     print(f"mosaic      {path} (status {info['status']})")
+    holder = locks.holder(path)
+    if holder is not None:
+        print(f"writer      being written now by {locks.describe_holder(holder)}")
     print(f"tiles       {info['tiles']}: {info['complete']} complete, {info['incomplete']} "
           f"incomplete, {info['empty']} empty")
     print(f"journal     {info['writes_done']} writes done"
