@@ -34,6 +34,7 @@ class Handler:
         self.scan_gate: threading.Event | None = None
         self.analysis_gate: threading.Event | None = None
         self.scan_error: Exception | None = None
+        self.analysis_started = threading.Event()
 
     def scan(self, job: JobStart, event: LayerEvent, folder: Path) -> ScanResult:
         if self.scan_gate is not None:
@@ -47,6 +48,7 @@ class Handler:
 
     def analyse(self, job: JobStart, event: LayerEvent, scan: ScanResult,
                 folder: Path) -> Analysis:
+        self.analysis_started.set()
         if self.analysis_gate is not None:
             assert self.analysis_gate.wait(10)
         assert scan.output is not None and scan.output.exists()
@@ -151,7 +153,9 @@ def test_analysis_queue_full_is_unknown(tmp_path: Path) -> None:
     h.analysis_gate = threading.Event()
     with JobService(tmp_path, h, analysis_queue=1) as svc:
         svc.start_job(JobStart(job_id="j"))
-        verdicts = [svc.layer("j", _event(n)).record for n in range(3)]
+        verdicts = [svc.layer("j", _event(0)).record]
+        assert h.analysis_started.wait(10)  # layer 0 is in the worker, out of the queue
+        verdicts += [svc.layer("j", _event(n)).record for n in (1, 2)]
         # layer 0 is in the worker, layer 1 waits in the queue, layer 2 finds it full
         assert verdicts[2].verdict == "unknown"
         assert verdicts[2].reason == "analysis queue full (1 layers waiting)"
