@@ -248,3 +248,41 @@ def test_agent_through_a_real_moonraker(real_moonraker: tuple[str, FakeKlippy, P
                               'shift of 0.8 mm"')
         assert scripts[4] == "SFFSCAN_DONE ACTION=NONE"
     assert "sffscan" in log.read_text(errors="replace")  # Moonraker logged the agent
+
+
+def test_serve_command_runs_the_agent(real_moonraker: tuple[str, FakeKlippy, Path],
+                                      tmp_path: Path) -> None:
+    """``sffscan serve --moonraker``: a layer called by the macro is scanned (simulator, no
+    G-code: verdict unknown, action none) and answered through Moonraker."""
+    from sffscan.pipeline.config import config_from_dict, config_to_toml
+
+    url, klippy, _ = real_moonraker
+    cfg = tmp_path / "scan.toml"
+    cfg.write_text(config_to_toml(config_from_dict({
+        "source": {"world": "plate", "plate_length_mm": 12.0, "plate_width_mm": 2.0},
+        "optics": {"width_px": 160, "height_px": 64, "pixel_um": 17.0, "n_levels": 10},
+        "motion": {"x_start_mm": 1.0, "x_end_mm": 9.0},
+        "processing": {"block_columns": 32, "registration_scale": 2},
+        "output": {"chunk_px": 64}}, origin="test")))
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-m", "sffscan", "serve", "--config", str(cfg),
+                             "--store", str(tmp_path / "jobs"), "--port", "0",
+                             "--moonraker", url], cwd=root, stderr=subprocess.PIPE, text=True)
+    try:
+        klippy.wait_for("register_remote_method", timeout_s=90, remote_method="sffscan_layer")
+        klippy.send({"method": "sffscan_layer", "params": {"layer": 0, "z": 0.2,
+                                                           "filename": "cube.gcode"}})
+        req = klippy.wait_for("gcode/script", timeout_s=120)
+        assert req["params"]["script"] == "SFFSCAN_DONE ACTION=NONE"
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    states = list((tmp_path / "jobs").glob("cube.gcode-*/service_state.json"))
+    assert len(states) == 1
+    state = json.loads(states[0].read_text())
+    assert state["layers"]["0"]["verdict"] == "unknown"
+    assert "no G-code" in state["layers"]["0"]["reason"]
