@@ -34,19 +34,19 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _griffe_path(obj: Any, name: str) -> str:
-    """The dotted path griffe finds ``obj`` at, searching the repository root."""
-    module = inspect.getmodule(obj)
-    if module is None or module.__file__ is None:
+    """The dotted path griffe finds ``obj`` at, searching the repository root: the module's
+    own name where the repository holds it so (``sffscan/api.py``), else without the
+    ``sffscan.`` the package-dir mapping adds (``sffscan.pipeline.config`` is
+    ``pipeline/config.py``). Independent of how the package is installed."""
+    module = getattr(obj, "__module__", None)
+    if not module:
         raise ValueError(f"sffscan.{name}: cannot tell which module defines it")
-    path = Path(module.__file__).resolve()
-    try:
-        rel = path.relative_to(ROOT)
-    except ValueError:  # installed elsewhere: its import name is its path
-        return f"{module.__name__}.{obj.__name__}"
-    parts = list(rel.with_suffix("").parts)
-    if parts[-1] == "__init__":
-        parts.pop()
-    return ".".join([*parts, obj.__name__])
+    parts = module.split(".")
+    for cand in (parts, parts[1:]):
+        base = ROOT.joinpath(*cand)
+        if cand and (base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()):
+            return ".".join([*cand, obj.__name__])
+    return f"{module}.{obj.__name__}"
 
 
 def api_blocks() -> str:
