@@ -58,9 +58,13 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
 
 
 def _tcp_feed(cfg: ScanConfig, address: str) -> FrameFeed:
-    """Frames from 'sffscan grab': complete only with the count of the sender's end message."""
-    from sffscan.pipeline.formats.transport import receive_frames
+    """Frames from 'sffscan grab': complete only with the count of the sender's end message
+    and every frame of the receiver's plan (``camera.frames`` if set, else the scan plan's,
+    as a camera would acquire): frame ids past it are not processed. The address is bound
+    now: one in use is a ConfigError before anything is created."""
+    from sffscan.pipeline.formats.transport_receiver import receive_frames
 
-    account = FrameAccount(planned=planned_frames(cfg), needs_sender=True)
+    planned = cfg.camera.frames if cfg.camera.frames is not None else planned_frames(cfg)
+    account = FrameAccount(planned=planned, needs_sender=True)
     return FrameFeed(receive_frames(address, cfg, account=account), f"frames from {address}",
                      account=account)

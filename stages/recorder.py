@@ -234,6 +234,7 @@ class RecordingWriter:
                              f"{image.dtype} shape {image.shape}, the configuration says "
                              f"{self.dtype} {self.shape} (optics.bit_depth, height_px, "
                              "width_px)")
+        _check_ranges(h, self.path)
         self._open()
         self._grow(self.count + 1)
         i = self.count
@@ -321,6 +322,20 @@ class RecordingWriter:
                 raise
         if failure is not None:
             raise failure
+
+
+def _check_ranges(h: Any, path: Path) -> None:
+    """Each header field fits its stored type (a header built without validation, or from a
+    source that bypassed it): a clear error naming the frame and the field, not numpy's
+    OverflowError."""
+    for name, (dtype, _, _) in PER_FRAME.items():
+        value = getattr(h, name)
+        if value is None or isinstance(value, float):
+            continue
+        info = np.iinfo(dtype)
+        if not isinstance(value, int) or not 0 <= value <= info.max:
+            raise ValueError(f"recording {path}: frame_id {h.frame_id}: field {name} = "
+                             f"{value!r} is out of range (0..{info.max}, stored as {dtype})")
 
 
 def _trim(arr: zarr.Array, n: int) -> None:

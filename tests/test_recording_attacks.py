@@ -104,7 +104,7 @@ def test_swapped_or_copied_chunk_files_are_found(recorded: Path, tmp_path: Path,
     assert code == 3
     attrs = zarr.open_group(str(out_mosaic), mode="r").attrs.asdict()
     assert attrs["frames_received"] == N - len(hit) and attrs["status"] == "incomplete"
-    assert attrs["recording"]["misplaced"] == hit
+    assert attrs["recording"]["misplaced"] == hit  # type: ignore[index,call-overload]
 
 
 def test_an_intact_recording_replays_complete(recorded: Path, tmp_path: Path) -> None:

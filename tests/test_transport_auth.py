@@ -27,7 +27,7 @@ from sffscan.pipeline.formats.transport import (
     stream_frames,
 )
 from sffscan.pipeline.formats.transport_auth import make_keys, pairing_path
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.plan import frame_count
 from sffscan.stages.sim.scanner import simulate_frames
 
@@ -124,19 +124,33 @@ def test_third_process_cannot_forge_nor_flood_the_scan(tmp_path: Path) -> None:
 
 
 def test_bad_messages_are_fatal_only_past_the_limit() -> None:
+    """The paired sender's unusable messages (here repeated frame ids) fail the scan past
+    ``max_bad``; unauthenticated ones before them are dropped and never count."""
     cfg = tiny_config()
     address = f"tcp://127.0.0.1:{free_port()}"
-    gen = receive_frames(address, cfg, first_timeout_s=30, max_bad=1)
+    st = ReceiverStats()
+    gen = receive_frames(address, cfg, first_timeout_s=30, max_bad=1, secret=b"s" * 32,
+                         stats=st)
     forger = FrameSender(address, secret=b"w" * 32)
+    paired = FrameSender(address, secret=b"s" * 32)
     frame = next(simulate_frames(cfg))
     try:
-        forger.send(frame)
-        forger.send(Frame(FrameHeader(frame_id=1, timestamp_ns=1, focus_index=1), frame.image))
-        with pytest.raises(TransportError, match="2 messages refused.*max_bad_messages = 1.*"
-                                                 "not authenticated"):
+        for _ in range(3):
+            forger.send(frame)
+        forger.end(timeout_s=5)
+        paired.send(frame)
+        paired.send(Frame(frame.header, frame.image.copy()))
+        paired.send(Frame(frame.header, frame.image.copy()))
+        assert next(gen).header.frame_id == frame.header.frame_id
+        with pytest.raises(TransportError, match="2 messages of the paired sender refused.*"
+                                                 "max_bad_messages = 1.*repeated"):
             next(gen)
+        # zmq queues each peer fairly: some of the forger's may still wait, none counted
+        assert st.rejected - st.unauthenticated == 2
     finally:
         forger.close(linger_s=0)
+        paired.close(linger_s=0)
+        gen.close()
 
 
 def test_curve_beyond_loopback_refuses_a_wrong_key(tmp_path: Path) -> None:

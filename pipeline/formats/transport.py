@@ -22,12 +22,15 @@ Authentication: only the paired sender can deliver frames or end a scan.
   folder. Copy ``sender.key_secret`` and ``receiver.key`` to the sending machine's keys
   folder. The tag part is empty there (the connection is authenticated).
 
-Robustness: the receiver refuses messages larger than the configured frame
-(:func:`max_message_bytes`, zmq's ``MAXMSGSIZE``: an oversized message drops its connection
-before it is buffered); a malformed, unauthenticated or out-of-order message is refused,
-logged and counted (:class:`ReceiverStats`), and the scan fails only once more than
-``source.max_bad_messages`` were refused. A sender silent for ``source.idle_timeout_s``
-after its first frame ends the stream without a count: the scan ends ``incomplete``.
+Robustness (the receiver, :mod:`sffscan.pipeline.formats.transport_receiver`): it refuses
+messages larger than the configured frame (:func:`max_message_bytes`, zmq's ``MAXMSGSIZE``:
+an oversized message drops its connection before it is buffered); an unauthenticated
+message is dropped, counted and logged, never fatal (any local process can send one); a
+malformed or out-of-order message of the paired sender is refused, logged and counted, and
+the scan fails only once more than ``source.max_bad_messages`` of those were refused.
+Frames past the receiver's plan are not processed and the scan is ``incomplete``. A sender
+silent for ``source.idle_timeout_s`` after its first frame ends the stream without a count:
+the scan ends ``incomplete``.
 
 - Sockets: the receiver binds a PULL socket (it is the long-running scan), the sender
   connects a PUSH socket and reconnects by itself if the receiver restarts.
@@ -52,9 +55,8 @@ import threading
 import time
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import zmq
@@ -62,17 +64,13 @@ from pydantic import BaseModel, ConfigDict, Field, RootModel, ValidationError
 from sffscan.pipeline.config import ConfigError, ScanConfig
 from sffscan.pipeline.formats.transport_auth import (
     auth_tag,
+    check_pairing_dir,
     keys_dir_of,
     load_pair,
     load_public,
     read_pairing,
-    remove_pairing,
-    write_pairing,
 )
 from sffscan.pipeline.messages import Frame, FrameHeader
-
-if TYPE_CHECKING:
-    from sffscan.pipeline.completeness import FrameAccount
 
 logger = logging.getLogger(__name__)
 
@@ -84,6 +82,10 @@ MAX_HEADER_BYTES = 64 * 1024
 
 class TransportError(RuntimeError):
     """A message that cannot be used, or a peer that went silent; names the frame."""
+
+
+class Unauthenticated(TransportError):
+    """A message that is not the paired sender's (dropped and counted, never fatal)."""
 
 
 class FrameMessage(BaseModel):
@@ -158,19 +160,21 @@ def _buffer(part: Any) -> memoryview:
 def decode_message(parts: list[Any], *, secret: bytes | None = None) -> Frame | EndMessage:
     """A received message (``zmq.Frame``s or bytes) as a :class:`Frame` or the end.
 
-    With ``secret`` the second part must be the header's tag (:func:`auth_tag`); without
-    it (CURVE) the second part is ignored. Raises :class:`TransportError` naming the frame
-    for anything else."""
+    With ``secret`` the second part must be the header's tag (:func:`auth_tag`), and a
+    message that is not authenticated raises :class:`Unauthenticated` (whatever else is
+    wrong with it); without it (CURVE: the connection is authenticated) the second part is
+    ignored. Raises :class:`TransportError` naming the frame for anything else."""
+    auth = Unauthenticated if secret is not None else TransportError
     if len(parts) not in (2, 3):
-        raise TransportError(f"{len(parts)} message parts, expected 2 (end) or 3 (frame)")
+        raise auth(f"{len(parts)} message parts, expected 2 (end) or 3 (frame)")
     head = _buffer(parts[0])
     if head.nbytes > MAX_HEADER_BYTES:
-        raise TransportError(f"header of {head.nbytes} bytes, more than {MAX_HEADER_BYTES}")
+        raise auth(f"header of {head.nbytes} bytes, more than {MAX_HEADER_BYTES}")
     head_bytes = bytes(head)
     if secret is not None and not hmac.compare_digest(bytes(_buffer(parts[1])),
                                                       auth_tag(secret, head_bytes)):
-        raise TransportError("message not authenticated: its tag does not match this scan's "
-                             "secret (not the paired sender)")
+        raise Unauthenticated("message not authenticated: its tag does not match this "
+                              "scan's secret (not the paired sender)")
     try:
         msg = TransportMessage.model_validate_json(head_bytes).root
     except ValidationError as err:
@@ -246,6 +250,7 @@ class FrameSender:
                 self._sock.curve_publickey = public
                 self._sock.curve_serverkey = load_public(folder, "receiver")
             elif not self._fixed:
+                check_pairing_dir(address)  # a folder others can write: refused now
                 self._monitor = self._sock.get_monitor_socket(
                     zmq.EVENT_CONNECTED | zmq.EVENT_ACCEPTED)
             (self._sock.bind if bind else self._sock.connect)(address)
@@ -329,179 +334,6 @@ class FrameSender:
         self.close(linger_s=0 if exc[0] is not None else 10.0)
 
 
-# --- receiver -----------------------------------------------------------------------------
-
-
-@dataclass
-class ReceiverStats:
-    frames: int = 0
-    bytes: int = 0
-    ended: bool = False
-    frames_sent: int | None = None
-    lost: int = 0  # frames the end message says were sent that never arrived here
-    rejected: int = 0  # messages refused: malformed, unauthenticated, out of order
-    dropped_connections: int = 0  # peers cut off: oversized message, failed handshake
-    silent: bool = False  # the stream ended because the sender went silent
-
-
-_DROP_EVENTS = (zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
-                | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
-
-
-class _Receiver:
-    """The PULL socket of :func:`receive_frames`, its authentication and its monitor."""
-
-    def __init__(self, address: str, cfg: ScanConfig, hwm: int, secret: bytes | None,
-                 keys_dir: str | Path | None, curve: bool | None) -> None:
-        self.address = address
-        self.loopback = not curve if curve is not None else is_loopback(address)
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.PULL)
-        self.sock.setsockopt(zmq.RCVHWM, hwm)
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.setsockopt(zmq.MAXMSGSIZE, max_message_bytes(cfg))
-        self.auth: Any = None
-        self.own_secret = False
-        self.secret: bytes | None = None
-        self.monitor: zmq.Socket | None = None
-        try:
-            if self.loopback:
-                if secret is None:
-                    secret, self.own_secret = write_pairing(address), True
-                self.secret = secret
-            else:
-                from zmq.auth.thread import ThreadAuthenticator
-
-                folder = keys_dir_of(cfg, keys_dir)
-                public, secret_key = load_pair(folder, "receiver")
-                if not (folder / "authorized").is_dir():
-                    raise ConfigError(f"{folder / 'authorized'}: no authorised sender keys")
-                self.auth = ThreadAuthenticator(self.ctx)
-                self.auth.start()
-                self.auth.configure_curve(domain="*", location=str(folder / "authorized"))
-                self.sock.curve_server = True
-                self.sock.curve_secretkey = secret_key
-                self.sock.curve_publickey = public
-                logger.warning("transport: listening on %s, beyond this machine (CURVE, keys "
-                               "in %s)", address, folder)
-            self.monitor = self.sock.get_monitor_socket(_DROP_EVENTS)
-            try:
-                self.sock.bind(address)
-            except zmq.ZMQError as err:
-                raise ConfigError(f"{address}: cannot listen: {err}") from None
-        except BaseException:
-            self.close()
-            raise
-
-    def drops(self) -> int:
-        n = 0
-        mon = self.monitor
-        while mon is not None and mon.poll(0):
-            mon.recv_multipart()
-            n += 1
-        return n
-
-    def close(self) -> None:
-        if self.monitor is not None:
-            self.sock.disable_monitor()
-            self.monitor.close(linger=0)
-            self.monitor = None
-        self.sock.close(linger=0)
-        if self.auth is not None:
-            self.auth.stop()
-        self.ctx.term()
-        if self.own_secret and self.secret is not None:
-            remove_pairing(self.address, self.secret)
-
-
-def receive_frames(address: str, cfg: ScanConfig, *, hwm: int | None = None,
-                   idle_timeout_s: float | None = None, first_timeout_s: float | None = None,
-                   stats: ReceiverStats | None = None, account: FrameAccount | None = None,
-                   secret: bytes | None = None, keys_dir: str | Path | None = None,
-                   max_bad: int | None = None, curve: bool | None = None) -> Iterator[Frame]:
-    """Frames sent by ``sffscan grab`` to ``address`` (bound here), until the end message.
-
-    The receive high-water mark defaults to ``processing.queue_capacity``; ``idle_timeout_s``
-    and ``max_bad`` to ``source.idle_timeout_s`` and ``source.max_bad_messages``. A loopback
-    receiver writes a new pairing secret unless ``secret`` is given; beyond loopback CURVE
-    keys come from ``keys_dir`` (default ``source.keys_dir``); ``curve`` forces CURVE on or
-    off. The end message's count goes to ``account.sent``.
-
-    Raises :class:`TransportError` for an end message saying the sender failed, for no
-    message at all within ``first_timeout_s`` (None waits indefinitely), and once more
-    than ``max_bad`` messages were refused. A sender silent for ``idle_timeout_s`` after its
-    first frame ends the stream (``stats.silent``; no count: the scan is incomplete). The
-    socket is closed when the generator is closed, so a new receiver may bind the address
-    again.
-    """
-    check_address(address)
-    st = stats if stats is not None else ReceiverStats()
-    idle = idle_timeout_s if idle_timeout_s is not None else cfg.source.idle_timeout_s
-    limit_bad = max_bad if max_bad is not None else cfg.source.max_bad_messages
-    rx = _Receiver(address, cfg, hwm if hwm is not None else cfg.processing.queue_capacity,
-                   secret, keys_dir, curve)
-    last_id = -1
-
-    def refuse(why: str) -> None:
-        st.rejected += 1
-        logger.warning("transport: message %d refused: %s", st.rejected, why)
-        if st.rejected > limit_bad:
-            raise TransportError(f"{st.rejected} messages refused at {address}, more than "
-                                 f"source.max_bad_messages = {limit_bad}; last: {why}")
-
-    try:
-        last = time.monotonic()
-        while True:
-            ready = rx.sock.poll(_WAIT_MS)
-            dropped = rx.drops()
-            if dropped and not st.ended:
-                st.dropped_connections += dropped
-            if not ready:
-                limit = idle if st.frames else first_timeout_s
-                if limit is not None and time.monotonic() - last > limit:
-                    if not st.frames:
-                        raise TransportError(f"no message from the sender at {address} for "
-                                             f"{limit:g} s; is 'sffscan grab' running?")
-                    st.silent = True
-                    logger.warning("transport: no message from the sender at %s for %g s "
-                                   "after %d frames and no end message: the stream ends "
-                                   "here, incomplete", address, limit, st.frames)
-                    return
-                continue
-            parts = rx.sock.recv_multipart(copy=False)
-            try:
-                item = decode_message(parts, secret=rx.secret)
-            except TransportError as err:
-                refuse(str(err))
-                continue
-            last = time.monotonic()
-            if isinstance(item, EndMessage):
-                st.ended, st.frames_sent = True, item.frames_sent
-                st.lost = max(item.frames_sent - st.frames, 0)
-                if st.lost:  # at a receiver restart; also after the last frame_id seen
-                    logger.warning("transport: received %d of the %d frames sent: %d lost in "
-                                   "transit", st.frames, item.frames_sent, st.lost)
-                if item.reason != "complete":  # the scan fails, keeping what it measured
-                    raise TransportError(f"the sender stopped after {item.frames_sent} "
-                                         f"frames: {item.reason}")
-                if account is not None:
-                    account.sent = item.frames_sent
-                return
-            fid = item.header.frame_id
-            if fid <= last_id:
-                refuse(f"frame_id {fid} after frame_id {last_id}: repeated or out of order")
-                continue
-            last_id = fid
-            st.frames += 1
-            st.bytes += item.image.nbytes
-            yield item
-    finally:
-        rx.close()
-        if st.rejected or st.dropped_connections:
-            logger.warning("transport: %d message(s) refused, %d connection(s) dropped at %s",
-                           st.rejected, st.dropped_connections, address)
-
-
 def stream_frames(frames: Iterator[Frame], sender: FrameSender, *,
                   progress_every_s: float = 5.0) -> int:
     """Send every frame of ``frames``, then the end message; returns frames sent."""
@@ -529,3 +361,13 @@ def stream_frames(frames: Iterator[Frame], sender: FrameSender, *,
         except TransportError:
             pass
     return sender.sent
+
+
+def __getattr__(name: str) -> Any:
+    """The receiver's names, from :mod:`sffscan.pipeline.formats.transport_receiver` (which
+    imports this module)."""
+    if name in ("receive_frames", "ReceiverStats", "FrameStream"):
+        from sffscan.pipeline.formats import transport_receiver
+
+        return getattr(transport_receiver, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

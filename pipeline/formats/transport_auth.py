@@ -7,6 +7,13 @@ BLAKE2b-256 tag on every message header. Beyond loopback: CURVE key pairs made b
 accepts). Why a tag of the header only: the header holds the pixels' CRC-32, which the
 receiver checks, and a third process on this machine cannot see the traffic on loopback, so
 it cannot reuse a tagged header; hashing 2.6 MB frames at 150 frames/s would cost a core.
+
+Permissions are checked like ssh does, on every side (``scan --check``, the CURVE receiver,
+``grab --keys``, ``grab``'s pairing file), and refused with the path named: a keys folder,
+its ``authorized/`` folder or a key file that others can write, a secret key file that
+others can read, a pairing folder or file that another user owns or can enter, read or
+write. The pairing file is named by the address normalised (:func:`pairing_key`):
+``tcp://localhost:P`` and ``tcp://127.0.0.1:P`` are the same receiver.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import os
 import secrets
+import stat
 import tempfile
 from pathlib import Path
 
@@ -23,21 +31,61 @@ from sffscan.pipeline.config import ConfigError, ScanConfig
 TAG_BYTES = 32
 
 
+def _check_private(path: Path, *, mask: int, what: str) -> None:
+    """Refuse ``path`` (ConfigError naming it) if another user owns it or its mode has any
+    bit of ``mask`` (group/other permissions). A symbolic link is judged by its target."""
+    if not hasattr(os, "getuid"):
+        return
+    st = path.stat()
+    if st.st_uid != os.getuid():
+        raise ConfigError(f"{path}: belongs to another user (uid {st.st_uid}); {what} must "
+                          "belong to this user")
+    if st.st_mode & mask:
+        mode = stat.S_IMODE(st.st_mode)
+        others = ("readable or writable" if mask & 0o044 else "writable")
+        raise ConfigError(f"{path}: mode {mode:04o} is {others} by other users; {what} "
+                          f"must not be (chmod {mode & ~mask:04o} {path})")
+
+
 def _private_dir(base: Path) -> Path:
     """``base`` created with mode 0700, refused if another user owns it or can enter it."""
     base.mkdir(mode=0o700, parents=True, exist_ok=True)
-    st = base.stat()
-    if hasattr(os, "getuid") and (st.st_uid != os.getuid() or st.st_mode & 0o077):
-        raise ConfigError(f"{base}: must belong to this user with mode 0700 (it holds secrets)")
+    _check_private(base, mask=0o077, what="a folder of secrets (mode 0700)")
     return base
+
+
+def pairing_key(address: str) -> str:
+    """``address`` normalised for naming its pairing file: ``localhost`` and ``127.0.0.1``
+    (and ``::1``, ``[::1]``) are the same host, the port a number, an ipc:// path absolute."""
+    if address.startswith("ipc://"):
+        return "ipc://" + os.path.abspath(address[len("ipc://"):])
+    if not address.startswith("tcp://"):
+        return address
+    host, sep, port = address[len("tcp://"):].rpartition(":")
+    if not sep:
+        return address
+    host = host.lower()
+    if host in ("localhost", "127.0.0.1"):
+        host = "127.0.0.1"
+    elif host in ("::1", "[::1]"):
+        host = "[::1]"
+    return f"tcp://{host}:{int(port) if port.isdigit() else port}"
 
 
 def pairing_path(address: str) -> Path:
     """The pairing file of a loopback receiver at ``address`` (see the module notes)."""
     root = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
     uid = os.getuid() if hasattr(os, "getuid") else 0
-    name = hashlib.sha256(address.encode()).hexdigest()[:24]
+    name = hashlib.sha256(pairing_key(address).encode()).hexdigest()[:24]
     return Path(root) / f"sffscan-{uid}" / f"{name}.secret"
+
+
+def check_pairing_dir(address: str) -> None:
+    """Refuse (ConfigError naming it) a pairing folder that another user owns or can enter,
+    if it exists (a sender before the receiver: nothing to check yet)."""
+    folder = pairing_path(address).parent
+    if folder.exists():
+        _check_private(folder, mask=0o077, what="the pairing folder (mode 0700)")
 
 
 def write_pairing(address: str) -> bytes:
@@ -56,9 +104,18 @@ def write_pairing(address: str) -> bytes:
 
 
 def read_pairing(address: str) -> bytes | None:
-    """The secret of the receiver at ``address``, or None while there is none."""
+    """The secret of the receiver at ``address``, or None while there is none.
+
+    Raises ConfigError (naming the path) for a pairing folder or file that another user
+    owns or can read or write: its secret cannot be trusted."""
+    path = pairing_path(address)
+    check_pairing_dir(address)
     try:
-        text = pairing_path(address).read_text(encoding="ascii").strip()
+        _check_private(path, mask=0o077, what="a pairing file (mode 0600)")
+    except FileNotFoundError:  # no receiver yet, or it just stopped
+        return None
+    try:
+        text = path.read_text(encoding="ascii").strip()
         return bytes.fromhex(text) if len(text) == 64 else None
     except (OSError, ValueError):
         return None
@@ -66,7 +123,11 @@ def read_pairing(address: str) -> bytes | None:
 
 def remove_pairing(address: str, secret: bytes) -> None:
     """Remove the pairing file if it still holds ``secret`` (not a later receiver's)."""
-    if read_pairing(address) == secret:
+    try:
+        current = read_pairing(address)
+    except ConfigError:
+        return
+    if current == secret:
         try:
             pairing_path(address).unlink()
         except OSError:
@@ -106,10 +167,32 @@ def make_keys(folder: str | Path, *, overwrite: bool = False) -> list[Path]:
     return [d / n for n in names] + [auth / "sender.key"]
 
 
+def _check_keys_dir(folder: Path) -> None:
+    """A keys folder others can write is refused (they could replace the keys)."""
+    if folder.is_dir():
+        _check_private(folder, mask=0o022, what="a CURVE keys folder")
+
+
+def check_authorized_dir(folder: Path) -> None:
+    """The receiver's ``authorized/`` folder: present, and neither it nor a key in it
+    writable by others (they could authorise themselves)."""
+    auth = folder / "authorized"
+    if not auth.is_dir():
+        raise ConfigError(f"{auth}: no authorised sender keys")
+    _check_private(auth, mask=0o022, what="the folder of authorised sender keys")
+    for key in sorted(auth.glob("*.key")):
+        _check_private(key, mask=0o022, what="an authorised sender key")
+
+
 def load_pair(folder: Path, who: str) -> tuple[bytes, bytes]:
+    """The public and secret CURVE keys of ``who``; the folder and the secret key file are
+    checked first (see the module notes)."""
     import zmq.auth
 
     path = folder / f"{who}.key_secret"
+    _check_keys_dir(folder)
+    if path.exists():
+        _check_private(path, mask=0o077, what="a secret key file (mode 0600)")
     try:
         public, secret = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as err:
@@ -124,6 +207,9 @@ def load_public(folder: Path, who: str) -> bytes:
     import zmq.auth
 
     path = folder / f"{who}.key"
+    _check_keys_dir(folder)
+    if path.exists():
+        _check_private(path, mask=0o022, what="a public key file")
     try:
         return zmq.auth.load_certificate(str(path))[0]
     except (OSError, ValueError) as err:
