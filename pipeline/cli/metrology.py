@@ -311,30 +311,8 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- compare
 
 
-def _untrustworthy(paths: list[str], allow: bool) -> int:
-    """Exit code refusing a mosaic torn by a kill or still being written (0 if none is, or
-    ``--allow-untrustworthy``: then each problem is a warning)."""
-    from sffscan.pipeline.formats.exports import trust_problems
-
-    problems = []
-    for path in paths:
-        try:
-            problems += trust_problems(path)
-        except (ValueError, KeyError) as err:
-            return _fail(f"{path}: unreadable mosaic: {err}")
-    for text in problems:
-        if allow:
-            log.warning("%s; --allow-untrustworthy: used all the same", text)
-        else:
-            print(f"sffscan: {text}", file=sys.stderr)
-    if problems and not allow:
-        print("sffscan: refusing an untrustworthy mosaic (--allow-untrustworthy uses it all "
-              "the same)", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    return EXIT_OK
-
-
 def cmd_compare(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.formats.exports import check_trust
     from sffscan.pipeline.metrology.compare import (
         compare_height_maps,
         format_report,
@@ -343,10 +321,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         region_mask,
     )
 
-    bad = _untrustworthy([args.estimate, args.reference], args.allow_untrustworthy)
-    if bad:
-        return bad
     try:
+        check_trust([args.estimate, args.reference], allow=args.allow_untrustworthy)
         est = read_height_map(args.estimate, array=args.array)
         ref = read_height_map(args.reference, array=args.array)
         a, b, origin = overlap_by_origin(est, ref)
@@ -377,12 +353,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.formats.exports import (
-        check_export_size,
-        read_region,
-        write_ply,
-        write_x3p,
-    )
+    from sffscan.pipeline.formats import exports as ex
     from sffscan.pipeline.metrology.areal import areal_parameters
     from sffscan.pipeline.run import check_file_output
 
@@ -390,23 +361,18 @@ def cmd_export(args: argparse.Namespace) -> int:
         for flag, value in (("--ply", args.ply), ("--x3p", args.x3p), ("--json", args.json)):
             if value:  # never into a Zarr store (the mosaic's zarr.json...)
                 check_file_output(value, flag, stores=[args.mosaic])
-    except ValueError as err:
-        return _fail(str(err))
-    bad = _untrustworthy([args.mosaic], args.allow_untrustworthy)
-    if bad:
-        return bad
-    try:
+        ex.check_trust([args.mosaic], allow=args.allow_untrustworthy)
         region = _region(args.region)
-        check_export_size(args.mosaic, region)
+        ex.check_export_size(args.mosaic, region)
         if args.ply:
-            n = write_ply(args.ply, args.mosaic, region)
+            n = ex.write_ply(args.ply, args.mosaic, region)
             print(f"wrote {args.ply}: {n['points']} points (x y z mm, red green blue = texture)"
                   + (f", {n['no_texture']} without texture (black)" if n["no_texture"] else ""))
         if args.x3p:
-            n = write_x3p(args.x3p, args.mosaic, region)
+            n = ex.write_x3p(args.x3p, args.mosaic, region)
             print(f"wrote {args.x3p}: {n['rows']}x{n['cols']} surface, {n['missing']} points "
                   "not measured")
-        reg = read_region(args.mosaic, region)
+        reg = ex.read_region(args.mosaic, region)
         params = areal_parameters(reg.height_um, level=args.level)
     except ValueError as err:
         return _fail(str(err))
@@ -444,6 +410,12 @@ def stack_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focus-unit", choices=sorted(UNIT_TO_UM), default="um",
                    help="unit of the focus positions (default um)")
     p.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+
+
+def _allow_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-untrustworthy", action="store_true",
+                   help="use a mosaic with torn tiles, or still being written, or without a "
+                        "final status (refused otherwise, exit 2)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -509,9 +481,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--range-um", type=float, nargs=2, metavar=("LO", "HI"),
                    help="histogram range, µm (default +-99.9th percentile of |error|)")
     p.add_argument("--json", help="write the report (schemas/compare_report.v1.json)")
-    p.add_argument("--allow-untrustworthy", action="store_true",
-                   help="use a mosaic with torn tiles or without a final status (refused "
-                        "otherwise, exit 2)")
+    _allow_option(p)
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("export", help="export a mosaic region (PLY, x3p) and its Sa, Sq, ...",
@@ -526,7 +496,5 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--level", choices=["plane", "mean", "none"], default="plane",
                    help="reference surface of the areal parameters (default plane)")
     p.add_argument("--json", help="write the areal parameters as JSON")
-    p.add_argument("--allow-untrustworthy", action="store_true",
-                   help="export a mosaic with torn tiles or without a final status (refused "
-                        "otherwise, exit 2)")
+    _allow_option(p)
     p.set_defaults(func=cmd_export)

@@ -30,7 +30,7 @@ from sffscan.stages.mosaic import mosaic_array
 
 __all__ = ["EXPORT_MAX_BYTES", "MosaicRegion", "PLY_DTYPE", "check_export_size",
            "check_scan_exports", "export_bytes", "read_ply", "read_region", "region_box",
-           "trust_problems", "write_ply", "write_x3p"]
+           "trust_problems", "check_trust", "write_ply", "write_x3p"]
 
 #: the most memory a whole-region export (areal parameters, x3p) may plan to use, bytes;
 #: a larger region is refused with its size named (give --region)
@@ -175,6 +175,26 @@ def trust_problems(path: str | Path) -> list[str]:
         out.append(f"{path}: status 'writing': its writer stopped without a final status "
                    "(complete it with 'sffscan replay RECORDING -o MOSAIC --resume')")
     return out
+
+
+def check_trust(paths: list[str | Path], *, allow: bool = False) -> None:
+    """ValueError naming each mosaic among ``paths`` whose values cannot all be trusted
+    (:func:`trust_problems`); with ``allow`` each problem is logged as a warning instead."""
+    import logging
+
+    problems: list[str] = []
+    for path in paths:
+        try:
+            problems += trust_problems(path)
+        except KeyError as err:
+            raise ValueError(f"{path}: unreadable mosaic: {err}") from None
+    if allow:
+        for text in problems:
+            logging.getLogger(__name__).warning("%s; --allow-untrustworthy: used all the same",
+                                                text)
+    elif problems:
+        raise ValueError("; ".join(problems) + "\nsffscan: refusing an untrustworthy mosaic "
+                         "(--allow-untrustworthy uses it all the same)")
 
 
 # ----------------------------------------------------------------------------- PLY
