@@ -205,6 +205,17 @@ def test_the_pacer_replaces_implausible_steps_by_the_nominal_interval() -> None:
     assert p.replaced == [2, 4]
 
 
+def test_the_pacer_never_waits_past_the_plausible_scan_duration() -> None:
+    """Each step just under the per-step bound: the whole still fits the span's bound."""
+    now = [0.0]
+    p = Pacer(100.0, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
+    step_ns = int(plausible_step_s(1, 100.0) * 0.99e9)
+    for fid in range(50):
+        p.wait(fid, fid * step_ns)
+    assert p.replaced == []
+    assert now[0] <= plausible_step_s(49, 100.0) + 1e-9
+
+
 headers = st.builds(
     FrameHeader, frame_id=st.integers(0, 2**63 - 1), timestamp_ns=st.integers(0, 2**63 - 1),
     focus_index=st.integers(0, 2**31 - 1), pass_index=st.integers(0, 2**31 - 1),

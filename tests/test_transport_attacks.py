@@ -369,3 +369,33 @@ def test_valid_headers_round_trip_on_the_wire(fid: int, ts: int, focus: int) -> 
     head, img = encode_frame(frame)
     item = decode_message([head, auth_tag(SECRET, head), img.tobytes()], secret=SECRET)
     assert isinstance(item, Frame) and item.header == frame.header
+
+
+def test_a_busy_address_or_a_loose_pairing_folder_touch_no_mosaic(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Defect 2 (the transport's part): the receiver binds, and checks its pairing folder,
+    before the mosaic is created or an old one replaced (``--overwrite``)."""
+    cfg = tiny_config(path=str(tmp_path / "keep.zarr"))
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    keep = zarr.open_group(str(tmp_path / "keep.zarr"), mode="w")
+    keep.update_attributes({"mine": 1})
+    before = sorted(p.name for p in (tmp_path / "keep.zarr").iterdir())
+    address = f"tcp://127.0.0.1:{free_port()}"
+    first = receive_frames(address, tiny_config(), first_timeout_s=30)
+    try:
+        rc = main(["scan", "--config", str(toml), "-q", "--no-evaluate", "--source", address,
+                   "--overwrite"])
+    finally:
+        first.close()
+    assert rc == 2 and "cannot listen" in capsys.readouterr().err
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    folder = pairing_path(address).parent
+    folder.mkdir(mode=0o700)
+    folder.chmod(0o777)
+    rc = main(["scan", "--config", str(toml), "-q", "--no-evaluate", "--source", address,
+               "--overwrite"])
+    assert rc == 2 and f"{folder}: " in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "keep.zarr").iterdir()) == before
+    assert zarr.open_group(str(tmp_path / "keep.zarr"), mode="r").attrs["mine"] == 1

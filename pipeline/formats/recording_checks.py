@@ -100,8 +100,10 @@ class Pacer:
 
     The wait before a frame is its time stamp's step from the previous frame; a step that
     goes back, or that is longer than :func:`plausible_step_s`, is replaced by the nominal
-    frame interval of its frame_id step and logged as a warning naming the frame. So a
-    replay never waits longer than the plausible duration of the recorded scan.
+    frame interval of its frame_id step and logged as a warning naming the frame; and the
+    time since the first frame never exceeds the plausible time of the whole frame_id span
+    (:func:`plausible_step_s` of it). So a replay never waits longer than the plausible
+    duration of the recorded scan plus :data:`JUMP_MARGIN_S`.
     """
 
     def __init__(self, fps: float, *, clock: Callable[[], float] = time.monotonic,
@@ -110,6 +112,7 @@ class Pacer:
         self.clock = clock
         self.sleep = sleep
         self._target: float | None = None
+        self._start: tuple[float, int] = (0.0, 0)  # wall time and frame_id of the first frame
         self._prev: tuple[int, int] | None = None
         self.replaced: list[int] = []  # frame_id of the steps replaced
 
@@ -118,6 +121,7 @@ class Pacer:
         now = self.clock()
         if self._target is None or self._prev is None:
             self._target, self._prev = now, (frame_id, timestamp_ns)
+            self._start = (now, frame_id)
             return
         prev_id, prev_ts = self._prev
         step = (timestamp_ns - prev_ts) * 1e-9
@@ -130,7 +134,9 @@ class Pacer:
                         abs(step), prev_id, nominal)
             step = nominal
         self._prev = (frame_id, timestamp_ns)
-        self._target += step
+        t0, first = self._start
+        self._target = min(self._target + step,
+                           t0 + plausible_step_s(frame_id - first, self.fps))
         delay = self._target - now
         if delay > 0:
             self.sleep(delay)
