@@ -115,3 +115,17 @@ def test_pages_added_by_other_work_join_the_nav(tmp_path: Path) -> None:
     hooks.on_config({"nav": nav, "docs_dir": str(tmp_path)})
     assert nav[1] == {"Using sffscan": ["hardware.md", "printer-links.md", "printjob.md"]}
     assert nav[2] == {"Methods and results": ["physics.md", "depth-study.md"]}
+
+
+def test_readme_command_table_has_every_command() -> None:
+    """The README's command table names every sub-command of `sffscan --help`."""
+    import argparse
+
+    from sffscan.pipeline.cli.main import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    table = readme.split("\n## Commands\n", 1)[1].split("\n## ", 1)[0]
+    missing = [c for c in sub.choices if f"| `sffscan {c}" not in table]
+    assert not missing, f"README's command table lacks {missing}"
