@@ -26,11 +26,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
-from sffscan.pipeline.printjob.expected import Grid, PrinterMapping, rasterise_expected
+from sffscan.pipeline.printjob.expected import (
+    ExpectedMap,
+    Grid,
+    PrinterMapping,
+    rasterise_expected,
+)
 from sffscan.pipeline.printjob.gcode import GcodeProgram
 from sffscan.stages.sim.world import PlateWorld
 
@@ -103,6 +108,8 @@ class PrintWorld:
     seed: int = 0
     bead_jitter_um: float = 3.0
     layer: int = -1
+    #: the beads stacked so far, shared by the copies :meth:`at_layer` makes (same defects)
+    cache: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
     _raster: np.ndarray | None = field(default=None, init=False, repr=False)
     _texture: PlateWorld | None = field(default=None, init=False, repr=False)
 
@@ -129,17 +136,18 @@ class PrintWorld:
     def at_layer(self, layer: int, *, defects: tuple[PrintDefect, ...] | None = None
                  ) -> PrintWorld:
         """The same print after layer ``layer`` (optionally with other defects)."""
-        return replace(self, layer=layer,
-                       defects=self.defects if defects is None else defects)
+        if defects is None or defects == self.defects:
+            return replace(self, layer=layer)
+        return replace(self, layer=layer, defects=defects, cache={})
 
     # ------------------------------------------------------------------ heights
-    def _moves(self, upto: int) -> tuple[np.ndarray, np.ndarray]:
+    def _moves(self) -> tuple[np.ndarray, np.ndarray]:
+        """Moves left out and per-move offsets of all defects (those of a later layer only
+        touch moves not printed yet, so every layer's stack is a prefix of one sequence)."""
         prog = self.program
         exclude = np.zeros(prog.layer.size, bool)
         shift = np.zeros((prog.layer.size, 2))
         for d in self.defects:
-            if d.layer > upto:
-                continue
             if d.kind == "missing_object":
                 k = prog.objects.index(d.object)
                 exclude |= (prog.object_id == k) & (prog.layer >= d.layer)
@@ -155,15 +163,9 @@ class PrintWorld:
         if k < 0:
             self._raster = np.zeros(grid.shape, np.float32)
             return self._raster
-        exclude, shift = self._moves(k)
-        if self.bead_jitter_um > 0:
-            rng = np.random.default_rng([self.seed, 0xB3AD])
-            jitter = rng.normal(0.0, self.bead_jitter_um / 1000.0, prog.layer.size)
-            prog = replace(prog, z_mm=prog.z_mm + jitter)
-        below = rasterise_expected(prog, grid, upto_layer=k - 1, mapping=self.mapping,
-                                   exclude=exclude, shift_mm=shift)
-        top = rasterise_expected(prog, grid, upto_layer=k, mapping=self.mapping,
-                                 exclude=exclude, shift_mm=shift, base=below)
+        below = self._stack(k - 1)
+        top = self._stack(k)
+        shift = self.cache["moves"][1]
         h = top.height_um
         xs, ys = grid.xy_um()
         gx, gy = np.meshgrid(xs, ys)
@@ -189,6 +191,32 @@ class PrintWorld:
                     h = np.where(obj, h + lift, h)
         self._raster = np.ascontiguousarray(h, dtype=np.float32)
         return self._raster
+
+    def _stack(self, upto: int) -> ExpectedMap:
+        """The beads of layers <= upto (incremental over the cached stacks)."""
+        c = self.cache
+        if "moves" not in c:
+            prog = self.program
+            if self.bead_jitter_um > 0:
+                rng = np.random.default_rng([self.seed, 0xB3AD])
+                jitter = rng.normal(0.0, self.bead_jitter_um / 1000.0, prog.layer.size)
+                prog = replace(prog, z_mm=prog.z_mm + jitter)
+            c["moves"] = self._moves()
+            c["program"] = prog
+            c["stacks"] = {}
+        stacks: dict[int, ExpectedMap] = c["stacks"]
+        if upto in stacks:
+            return stacks[upto]
+        lower = [k for k in stacks if k < upto]
+        base = stacks[max(lower)] if lower else None
+        exclude, shift = c["moves"]
+        out = rasterise_expected(c["program"], self.grid, upto_layer=upto, mapping=self.mapping,
+                                 exclude=exclude, shift_mm=shift, base=base)
+        stacks[upto] = out
+        for k in sorted(stacks)[:-3]:  # keep a few: the scan goes up layer by layer
+            if k != upto:
+                del stacks[k]
+        return out
 
     def height_um(self, x0: float, y0: float, width: int, height: int) -> np.ndarray:
         """True surface height over a window of world pixels (as PlateWorld.height_um).
