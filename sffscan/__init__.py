@@ -16,15 +16,24 @@ from __future__ import annotations
 import typing as _typing
 from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
 from importlib.metadata import version as _version
+from pathlib import Path as _Path
 
-from sffscan.api import (
+# Imported from a source tree (the clone's folder on sys.path: ``python -m pytest`` or a
+# script run in the clone): the sub-packages are the clone's top-level folders pipeline/,
+# stages/ and schemas/, which an installed sffscan holds inside this folder (pyproject's
+# package-dir mapping), so they are looked for there too.
+_HERE = _Path(__file__).parent
+if not (_HERE / "pipeline").is_dir() and (_HERE.parent / "pipeline" / "__init__.py").is_file():
+    __path__.append(str(_HERE.parent))
+
+from sffscan.api import (  # noqa: E402 (after the source tree's path)
     focus_measure,
     open_mosaic,
     reconstruct_stack,
     replay,
     scan,
 )
-from sffscan.pipeline.config import (
+from sffscan.pipeline.config import (  # noqa: E402 (after the source tree's path)
     ConfigError,
     MotionConfig,
     OpticsConfig,
@@ -35,7 +44,7 @@ from sffscan.pipeline.config import (
     demo_config,
     load_config,
 )
-from sffscan.pipeline.messages import (
+from sffscan.pipeline.messages import (  # noqa: E402 (after the source tree's path)
     DepthBlock,
     DepthBlockHeader,
     FocusFrame,

@@ -187,3 +187,51 @@ def test_torch_is_an_extra_and_its_absence_names_it() -> None:
     assert res.returncode == 0, res.stderr
     name, message = res.stdout.split("|", 1)
     assert name.strip() == "torch" and "pip install 'sffscan[torch]'" in message, res.stdout
+
+
+# --- where sffscan is found --------------------------------------------------------------
+
+#: the README's install (a static path, so that a folder named sffscan beside a script does
+#: not shadow the package, and mypy and IDEs find it)
+INSTALL_HINT = "pip install -e . --config-settings editable_mode=strict (see the README)"
+
+
+def _python(code: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True,
+                          text=True, timeout=120, check=False)
+
+
+def test_a_folder_named_sffscan_beside_a_script_does_not_shadow_the_package(
+        tmp_path: Path) -> None:
+    """A script or notebook in the folder that holds the clone (a folder ``sffscan`` without
+    ``__init__.py``) imports the installed package, not the folder as an empty namespace
+    package (``module 'sffscan' has no attribute 'demo_config'``)."""
+    (tmp_path / "sffscan" / "pipeline").mkdir(parents=True)  # as a clone named sffscan
+    res = _python("import sffscan; print(sffscan.demo_config().optics.width_px)", tmp_path)
+    assert res.returncode == 0 and res.stdout.split() == ["1280"], \
+        f"{res.stderr[-600:]}\ninstalled as the README says? {INSTALL_HINT}"
+
+
+def test_the_source_tree_imports_whole_from_the_clone_s_folder() -> None:
+    """From the clone's own folder (on sys.path first: ``python -m pytest``, a script in the
+    clone) ``sffscan`` is the source folder, and its sub-packages are the clone's top-level
+    folders: the package-dir mapping holds without the install's import hook."""
+    res = _python("import sffscan, sffscan.pipeline.config as c, sffscan.stages.depth as d, "
+                  "sffscan.schemas as s; print(sffscan.__file__, c.__file__, d.__file__)", ROOT)
+    assert res.returncode == 0, res.stderr[-600:]
+    init, config, depth = (Path(p) for p in res.stdout.split())
+    assert init == ROOT / "sffscan" / "__init__.py"
+    assert (config, depth) == (ROOT / "pipeline" / "config.py", ROOT / "stages" / "depth.py")
+
+
+def test_mypy_finds_sffscan_for_a_user_script(tmp_path: Path) -> None:
+    """mypy on a user's script outside the clone finds the installed sffscan (an import hook,
+    which the default editable install uses, is invisible to mypy and IDEs)."""
+    script = tmp_path / "user_script.py"
+    script.write_text("import sffscan\n\ncfg: sffscan.ScanConfig = sffscan.demo_config()\n")
+    res = subprocess.run([sys.executable, "-m", "mypy", "--follow-imports=skip",
+                          "--cache-dir", str(tmp_path / ".mypy_cache"), "--no-incremental",
+                          str(script)], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300, check=False)
+    assert res.returncode == 0, f"{res.stdout[-600:]}\ninstalled as the README says? " \
+                                f"{INSTALL_HINT}"
