@@ -151,6 +151,8 @@ class RecordingReport:
     misplaced: list[int] = field(default_factory=list)
     time_backwards: list[int] = field(default_factory=list)  # frame ids: time stamp went back
     time_jumps: list[int] = field(default_factory=list)  # frame ids: implausible time step
+    #: of those, frame ids left out: no stage position, so placed by the wrong time stamp
+    time_left_out: list[int] = field(default_factory=list)
     #: entries the arrays' zarr.json claim, when the chunk files present hold fewer
     claimed_entries: int | None = None
     notes: list[str] = field(default_factory=list)
@@ -192,13 +194,15 @@ class RecordingReport:
         """A JSON-able summary, stored in the attributes of a mosaic replayed from it."""
         return {"path": self.path, "status": self.status, "frames": self.frames,
                 "entries": self.entries,
-                "frames_lost": self.lost + len(self.corrupt) + len(self.misplaced),
+                "frames_lost": (self.lost + len(self.corrupt) + len(self.misplaced)
+                                + len(self.time_left_out)),
                 "gaps": [list(g) for g in self.gaps[:100]], "duplicates": self.duplicates[:100],
                 "out_of_order": self.out_of_order[:100],
                 "missing_metadata": self.missing_metadata[:100],
                 "missing_chunks": self.missing_chunks[:100], "corrupt": self.corrupt[:100],
                 "misplaced": self.misplaced[:100], "time_backwards": self.time_backwards[:100],
-                "time_jumps": self.time_jumps[:100]}
+                "time_jumps": self.time_jumps[:100],
+                "time_left_out": self.time_left_out[:100]}
 
 
 def _ids(ids: list[str], limit: int = 20) -> str:

@@ -71,7 +71,11 @@ def plausible_step_s(id_step: int, fps: float) -> float:
 def timestamp_defects(ids: np.ndarray, ts_ns: np.ndarray,
                       fps: float) -> tuple[list[int], list[int]]:
     """Frames whose time stamp goes back, and frames whose time stamp jumps forward more
-    than :func:`plausible_step_s`, from the previous frame (both in frame_id order).
+    than :func:`plausible_step_s`, in frame_id order.
+
+    Each frame is compared with the last good one before it: a frame that goes back is not
+    a reference for the next, and a jump followed by a frame that goes back to the line of
+    the frames before it is a single wrong time stamp (a spike), flagged alone.
 
     Parameters
     ----------
@@ -87,12 +91,26 @@ def timestamp_defects(ids: np.ndarray, ts_ns: np.ndarray,
     backwards, jumps : list of int
         frame_id of the frames concerned.
     """
-    if ids.size < 2:
-        return [], []
-    dt = np.diff(ts_ns.astype(np.float64)) * 1e-9
-    limit = JUMP_FACTOR * np.maximum(np.diff(ids), 1) / fps + JUMP_MARGIN_S
-    later = ids[1:]
-    return ([int(i) for i in later[dt < 0]], [int(i) for i in later[dt > limit]])
+    backwards: list[int] = []
+    jumps: list[int] = []
+    idl = [int(i) for i in ids]
+    t = [int(v) for v in ts_ns]
+
+    def fits(i: int, ref: int) -> bool:
+        dt = (t[i] - t[ref]) * 1e-9
+        return 0 <= dt <= plausible_step_s(idl[i] - idl[ref], fps)
+
+    ref = 0
+    for i in range(1, len(idl)):
+        if t[i] < t[ref]:
+            backwards.append(idl[i])
+            continue
+        if not fits(i, ref):
+            jumps.append(idl[i])
+            if i + 1 < len(idl) and t[i + 1] < t[i] and fits(i + 1, ref):
+                continue  # a spike: the next frame is back on the line of the good ones
+        ref = i
+    return backwards, jumps
 
 
 class Pacer:

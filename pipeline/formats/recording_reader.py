@@ -438,6 +438,20 @@ def open_recording(path: str | Path) -> Recording:
     report.frames = int(order.size)
     report.first_id, report.last_id = int(sorted_ids[0]), int(sorted_ids[-1])
     ts = meta["timestamp_ns"][order]
-    report.duration_s = float(ts.max() - ts.min()) * 1e-9
     report.time_backwards, report.time_jumps = timestamp_defects(sorted_ids, ts, o.fps)
+    # a frame without a stage position is placed by the speed model from its time stamp:
+    # with a wrong one it would land elsewhere (or stop the scan as moving backwards)
+    wrong = set(report.time_backwards) | set(report.time_jumps)
+    drop = np.array([int(i) in wrong and np.isnan(meta["stage_x_um"][k])
+                     for i, k in zip(sorted_ids, order, strict=True)], dtype=bool)
+    if drop.any():
+        report.time_left_out = [int(i) for i in sorted_ids[drop]]
+        report.notes.append(f"{int(drop.sum())} frame(s) without a stage position and with a "
+                            "wrong time stamp (placed by it) are left out (lost): frame_id "
+                            + _ids([str(i) for i in report.time_left_out]))
+        order, sorted_ids, ts = order[~drop], sorted_ids[~drop], ts[~drop]
+        report.frames = int(order.size)
+        if order.size == 0:
+            raise RecordingError(f"{where}: no usable frame (every time stamp is wrong)")
+    report.duration_s = float(ts.max() - ts.min()) * 1e-9
     return Recording(p, attrs, cfg, report, group, order, meta)
