@@ -13,6 +13,18 @@ import pytest
 PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "pertuz-simu02"
 
 
+#: the files whose tests take longest (``--durations`` on the 2-core VM: test_crash's
+#: recorder kills, test_parallel's process-mode scans, test_transport's two-process scans,
+#: test_replay's live-vs-replay scans): collected first, so that with pytest-xdist's
+#: ``--dist loadfile`` no worker is left alone with one of them at the end of the run
+SLOW_FIRST = ("test_crash.py", "test_parallel.py", "test_transport.py", "test_replay.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: k for k, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))  # stable
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--device", default="cpu", help="torch device for operator tests (cpu, cuda)")
 
