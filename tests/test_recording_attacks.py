@@ -112,6 +112,8 @@ def test_an_intact_recording_replays_complete(recorded: Path, tmp_path: Path) ->
     assert main(["replay", str(recorded), "-o", str(tmp_path / "m.zarr"), "-q"]) == 0
     r = open_recording(recorded)
     assert r.verify() == [] and r.report.defects == 0 and not r.report.notes
+    attrs = zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs.asdict()
+    assert attrs["recording"]["identity"]["id"] == r.recording_id  # type: ignore[index,call-overload]
 
 
 def _claim(rec: Path, entries: int) -> None:
@@ -282,3 +284,38 @@ def test_a_backwards_time_stamp_is_named_not_a_backwards_stage(
     assert "moves" not in caplog.text
     attrs = zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs.asdict()
     assert attrs["frames_received"] == 29 and attrs["status"] == "incomplete"
+
+
+@settings(max_examples=12, deadline=None)
+@given(edits=st.lists(st.tuples(
+    st.sampled_from(["frame_id", "timestamp_ns", "focus_index", "pass_index", "headers"]),
+    st.integers(0, N - 1), st.integers(-2**63, 2**63 - 1)), min_size=1, max_size=4))
+def test_any_metadata_values_are_reported_never_crash(recorded: Path, edits: list[
+        tuple[str, int, int]]) -> None:
+    """Arbitrary values written into the per-frame metadata and the header copies: the
+    reader reports (or refuses with RecordingError), replays only valid headers, never
+    raises anything else."""
+    import tempfile
+
+    from sffscan.pipeline.formats.recording import RecordingError
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = _copy(recorded, Path(tmp) / "rec.zarr")
+        g = zarr.open_group(str(rec), mode="r+")
+        for name, index, value in edits:
+            arr = g[name]
+            if name == "headers":
+                row = np.asarray(arr[index])  # type: ignore[index]
+                row[value % 8] = value
+                arr[index] = row  # type: ignore[index]
+            else:
+                info = np.iinfo(arr.dtype)  # type: ignore[union-attr]
+                arr[index] = min(max(value, info.min), info.max)  # type: ignore[index]
+        try:
+            r = open_recording(rec)
+        except RecordingError:
+            return
+        r.verify()
+        got = [f.header for f in r.frames()]
+        assert len(got) == r.report.frames
+        assert all(a.frame_id < b.frame_id for a, b in zip(got, got[1:], strict=False))
