@@ -208,8 +208,6 @@ class Job:
     #: the live view and other side branches, made once every check has passed
     sinks: Callable[[], list[Sink]] | Sequence[Sink] = ()
     account: FrameAccount | None = None
-    #: filled by :func:`execute` as it goes
-    notes: list[str] = field(default_factory=list)
 
 
 @dataclass

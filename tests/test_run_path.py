@@ -174,6 +174,10 @@ def test_5_batch_skips_a_recording_being_written_and_redoes_it_when_complete(
         printed = capsys.readouterr()
         assert "recording" in printed.out and "still being written" in printed.out
         assert not mosaic.exists()
+        # a replay of it is refused too, naming the writer
+        assert main(["replay", str(rec), "-o", str(tmp_path / "x.zarr"), "-q"]) == 2
+        assert f"still being written by {socket.gethostname()}" in capsys.readouterr().err
+        assert not (tmp_path / "x.zarr").exists()
     # a mosaic made meanwhile from the half-written recording (as the old batch did)
     sffscan.replay(rec, output=mosaic)
     assert _attrs(mosaic)["status"] == "incomplete"
