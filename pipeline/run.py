@@ -256,6 +256,18 @@ def _reopen(cfg: ScanConfig, identity: dict[str, Any] | None) -> Any:
         raise ResumeRefused(f"{path}: cannot resume ({type(err).__name__}: {err})") from err
 
 
+def _mark_failed(writer: Any) -> None:
+    """A mosaic interrupted before its pipeline ran (which marks it itself) is ``failed``."""
+    if writer is None:
+        return
+    with contextlib.suppress(Exception):  # the interruption is what is reported
+        # the group read afresh (the stages may have run elsewhere: a worker process); the
+        # status alone changes, the journal stays as written for a resume
+        group = zarr.open_group(str(writer.path), mode="r+")
+        if group.attrs.get("status") == "writing":
+            group.update_attributes({"status": "failed"})
+
+
 def _annotate(path: Path, rec: Recording, identity: dict[str, Any]) -> None:
     """Record in the mosaic which recording it was replayed from (its report and identity)."""
     from sffscan.pipeline.messages import MosaicAttrs
@@ -356,17 +368,20 @@ def _run(job: Job, identity: dict[str, Any] | None) -> Run:
         from sffscan.stages.recorder import recorder_sink
 
         sinks.append(recorder_sink(cfg, str(job.record), account=account))
-    if writer is None:
-        writer = open_writer(cfg)
-        if identity is not None:  # before any frame: an interrupted mosaic says it too
-            writer.group.update_attributes({"recording": {"path": identity["path"],
-                                                          "identity": identity}})
     out = Run(report=None, world=world, account=account, resumed=resumed,  # type: ignore[arg-type]
               sinks=sinks)
     try:
         with sigterm_interrupts():
+            if writer is None:
+                writer = open_writer(cfg)
+                if identity is not None:  # before any frame: an interrupted mosaic says it too
+                    writer.group.update_attributes({"recording": {"path": identity["path"],
+                                                                  "identity": identity}})
             out.report = run_scan(cfg, frames=frames, progress=job.progress, sinks=sinks,
                                   writer=writer, account=account)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM, maybe before the pipeline's own handling
+        _mark_failed(writer)
+        raise
     finally:
         if rec is not None and identity is not None:
             try:

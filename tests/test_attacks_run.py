@@ -151,3 +151,20 @@ def test_the_lock_holds_across_processes_and_names_the_holder(tmp_path: Path) ->
     assert locks.lock_path(target).exists() and locks.holder(target) is None
     with locks.acquire(target) as mine:
         assert mine.fd is not None
+
+
+def test_an_interruption_before_the_pipeline_runs_marks_the_mosaic_failed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import zarr
+    from sffscan.pipeline import wiring
+    from sffscan.pipeline.run import Job, execute
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt  # Ctrl-C (or SIGTERM) before the stages start
+
+    monkeypatch.setattr(wiring, "run_scan", interrupted)
+    out = tmp_path / "m.zarr"
+    with pytest.raises(KeyboardInterrupt):
+        execute(Job(small_config(output={"path": str(out)}), frames=[]))
+    assert zarr.open_group(str(out), mode="r").attrs["status"] == "failed"
+    assert not locks.lock_path(out).exists()
