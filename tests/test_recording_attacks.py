@@ -4,6 +4,7 @@ back or jump by decades (defects 15, 16); property-based round trips of the meta
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
@@ -33,10 +34,15 @@ from tests.test_transport import tiny_config
 N = 12
 
 
+@functools.cache
+def _simulated(n: int) -> tuple[Frame, ...]:
+    return tuple(f for _, f in zip(range(n), simulate_frames(tiny_config()), strict=False))
+
+
 def _write(path: Path, frames: list[Frame] | None = None) -> list[Frame]:
     cfg = tiny_config()
     if frames is None:
-        frames = [f for _, f in zip(range(N), simulate_frames(cfg), strict=False)]
+        frames = list(_simulated(N))
     writer = RecordingWriter(path, cfg, account=FrameAccount(planned=len(frames)))
     for f in frames:
         writer.write(f)
@@ -88,7 +94,7 @@ def test_swapped_or_copied_chunk_files_are_found(recorded: Path, tmp_path: Path,
         hit = [5]
     else:  # the same frame index of another recording of the same configuration
         other = tmp_path / "other.zarr"
-        frames = [f for _, f in zip(range(N), simulate_frames(tiny_config()), strict=False)]
+        frames = list(_simulated(N))
         frames[5] = Frame(frames[5].header, frames[5].image ^ np.uint16(1))
         _write(other, frames)
         shutil.copyfile(other / "frames" / "c.5.0.0", f5)
@@ -269,7 +275,7 @@ def test_a_backwards_time_stamp_is_named_not_a_backwards_stage(
     (lost) and the replay is incomplete."""
     frames = [Frame(f.header.model_copy(update={"stage_x_um": None, "stage_y_um": None}),
                     f.image)
-              for _, f in zip(range(30), simulate_frames(tiny_config()), strict=False)]
+              for f in _simulated(30)]
     frames[10] = Frame(frames[10].header.model_copy(
         update={"timestamp_ns": frames[2].header.timestamp_ns}), frames[10].image)
     rec = tmp_path / "rec.zarr"

@@ -5,6 +5,7 @@ headers."""
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -47,8 +48,15 @@ from tests.test_transport import finish, free_port, start_grab, tiny_config
 SECRET = b"s" * 32
 
 
+@functools.cache
+def _simulated() -> tuple[Frame, ...]:
+    return tuple(f for _, f in zip(range(12), simulate_frames(tiny_config()), strict=False))
+
+
 def _frames(n: int) -> list[Frame]:
-    return [f for _, f in zip(range(n), simulate_frames(tiny_config()), strict=False)]
+    """The first ``n`` (up to 12) simulated frames, each image a fresh copy (a sender takes
+    its frames over)."""
+    return [Frame(f.header, f.image.copy()) for f in _simulated()[:n]]
 
 
 def _receive(address: str, account: FrameAccount, send: list[Frame], *,
