@@ -2,6 +2,7 @@
 accuracy on the scans of the issue's bars.
 
     python bench/bench_depth_default.py [--frames 300] [--rounds 3] [--methods spc,adaptive]
+    python bench/bench_depth_default.py --methods adaptive/no-unc,adaptive --rounds 5
     python bench/bench_depth_default.py --e2e RECORDING [--rounds 3] [--execution threads]
     python bench/bench_depth_default.py --accuracy RECORDING
 
@@ -11,7 +12,10 @@ method, *interleaved* in rounds in one process so that all see the same machine 
 and CPU ms per frame including the reduction of the completed blocks, and the bytes each
 keeps per pass. The focus values are random (gamma distributed), so the depth methods'
 data-dependent paths (adaptive's peak fit or centroid) take their share of a textured
-surface's pixels, not a flat plate's.
+surface's pixels, not a flat plate's. A method written ``NAME/no-unc`` runs without the
+per-pixel height uncertainty (the depth stage before it had one): the cost of the
+uncertainty is ``NAME`` over ``NAME/no-unc``. This mode writes its table to
+``bench/depth_default_results.md`` (and ``.json``).
 
 ``--e2e``: the whole pipeline over a recording (``sffscan demo --record``), frames read
 into memory first, SPC and the default interleaved: frames/s and CPU ms per frame.
@@ -30,6 +34,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import demo_config
@@ -53,15 +58,17 @@ def frames(n: int) -> list[tuple[int, int, int, int, int]]:
     return out
 
 
-def run(method: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.ndarray],
+def run(spec: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.ndarray],
         tex: np.ndarray) -> tuple[float, float, int]:
+    method, _, flag = spec.partition("/")
     cfg = demo_config()
     o, p = cfg.optics, cfg.processing
     vol = FocusVolume(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
                       focus_heights_um=focus_heights(n_levels=o.n_levels, z_min_um=o.z_min_um,
                                                      z_step_um=o.z_step_um),
                       margin=p.focus_reach_px, method=method, median_size=p.median_size,
-                      spread_size=p.window, block_columns=p.block_columns)
+                      spread_size=p.window, block_columns=p.block_columns,
+                      uncertainty=flag != "no-unc")
     t0 = time.perf_counter()  # after the volume's start-up (its pages are touched there)
     c0_cpu = time.process_time()
     for i, (x, y, level, c0, c1) in enumerate(plan):
@@ -186,7 +193,8 @@ def main() -> int:
     ap.add_argument("--execution", default="threads", choices=["threads", "processes"])
     args = ap.parse_args()
     methods = [m for m in args.methods.split(",") if m]
-    bad = [m for m in methods if m not in DEPTH_METHODS]
+    bad = [m for m in methods if m.partition("/")[0] not in DEPTH_METHODS
+           or m.partition("/")[2] not in ("", "no-unc")]
     if bad:
         ap.error(f"unknown methods {bad}; choose from {DEPTH_METHODS}")
     if args.accuracy:
@@ -194,8 +202,30 @@ def main() -> int:
     elif args.e2e:
         print(json.dumps(end_to_end(args.e2e, args.rounds, args.execution, methods)))
     else:
-        print(json.dumps(focus_volume_cost(methods, args.frames, args.rounds)))
+        res = focus_volume_cost(methods, args.frames, args.rounds)
+        print(json.dumps(res))
+        write_results(res, methods, args)
     return 0
+
+
+def write_results(res: dict[str, Any], methods: list[str], args: argparse.Namespace) -> None:
+    """bench/depth_default_results.md and .json: the table of this run."""
+    here = Path(__file__).resolve().parent
+    ref = methods[0]
+    lines = ["# Depth stage: CPU per frame of the demo scan (bench_depth_default.py)", "",
+             f"Command: `python bench/bench_depth_default.py --frames {args.frames} --rounds "
+             f"{args.rounds} --methods {','.join(methods)}` ({time.strftime('%Y-%m-%d %H:%M')}"
+             ", the shared 2-core VM, methods interleaved in every round; best of the "
+             "rounds).", "",
+             f"| method | wall ms/frame (rounds) | best | CPU ms/frame best | state MiB | "
+             f"wall / {ref} | CPU / {ref} |", "|---|---|---:|---:|---:|---:|---:|"]
+    for m in methods:
+        lines.append(f"| {m} | {', '.join(f'{v:.2f}' for v in res['ms_per_frame'][m])} | "
+                     f"{res['best_ms_per_frame'][m]:.2f} | "
+                     f"{res['best_cpu_ms_per_frame'][m]:.2f} | {res['state_MiB'][m]} | "
+                     f"{res[f'over_{ref}_wall'][m]:.3f} | {res[f'over_{ref}_cpu'][m]:.3f} |")
+    (here / "depth_default_results.md").write_text("\n".join(lines) + "\n")
+    (here / "depth_default_results.json").write_text(json.dumps(res, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -91,12 +91,14 @@ class FocusFrame:
 
 @dataclass(slots=True)
 class DepthBlock:
-    """Completed world columns: height (µm, NaN invalid), texture (0..1), confidence."""
+    """Completed world columns: height (µm, NaN invalid), texture (0..1), confidence, and
+    the height's uncertainty (µm, one sigma, NaN invalid; None where not computed)."""
 
     header: DepthBlockHeader
     height_um: np.ndarray
     texture: np.ndarray
     confidence: np.ndarray
+    uncertainty_um: np.ndarray | None = None
 
 
 class FrameError(ValueError):
@@ -146,9 +148,10 @@ class MosaicAttrs(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-mosaic"] = "sffscan-mosaic"
-    format_version: Literal[1, 2] = Field(
-        default=2, description="2: an OME-Zarr (NGFF 0.5) image with a resolution pyramid "
-        "(attribute 'ome'); 1: the four arrays only (still read)")
+    format_version: Literal[1, 2, 3] = Field(
+        default=3, description="3: as 2, with 1-D coordinate arrays y, x (µm) at every level "
+        "and metadata consolidated at the final status; 2: an OME-Zarr (NGFF 0.5) image with "
+        "a resolution pyramid (attribute 'ome'); 1: the four arrays only (still read)")
     status: Literal["writing", "complete", "incomplete", "failed"] = Field(
         description="'complete' after a clean end of stream in which every expected frame "
         "(frames_expected) was received and processed; 'incomplete' after a clean end with "

@@ -29,8 +29,8 @@ Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan
   a recorder of channel capacity ``Cr = min(its queue, 32)``, else 0): the registration
   holds N + 2 frames (its sliding window), every queue and channel on the way holds its
   capacity, and each stage one in hand;
-- block ring: ``2 * C + 8`` slots of ``3 * (H + 2 * slack) * block_columns * 4`` bytes
-  (depth blocks: height, texture, confidence, float32).
+- block ring: ``2 * C + 8`` slots of ``4 * (H + 2 * slack) * block_columns * 4`` bytes
+  (depth blocks: height, texture, confidence, uncertainty, float32).
 
 A relayed sink (the viewer, channel and queue capacity ``Cv = min(its capacity, 16)``)
 holds at most ``V = 3 * (4 + 1) + 2 * Cv + 2`` items (:func:`relay_holdings`): ``V`` more
@@ -130,7 +130,7 @@ def ring_plan(cfg: ScanConfig, hosted: list[HostedSink], relays: list[Relay] | N
     frames = (o.n_levels + 40 + 2 * c + sum(2 * k.capacity + 8 for k in hosted)
               + sum(relay_holdings(r) for r in relays))
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
-    block_bytes = 3 * (o.height_px + 2 * slack) * p.block_columns * 4 + 3 * 64
+    block_bytes = 4 * (o.height_px + 2 * slack) * p.block_columns * 4 + 4 * 64
     blocks = 2 * c + 8 + sum(relay_holdings(r) for r in relays if "depth" in r.taps)
     plan = [("frames", frames, frame_bytes, ("frame", "placed")),
             ("blocks", blocks, block_bytes, ("block",))]

@@ -58,7 +58,8 @@ def _fields(item: Any, arrays: list[np.ndarray]) -> dict[str, Any]:
     if isinstance(item, DepthBlock):
         return {"t": "block", "h": item.header.model_dump(mode="json"),
                 "height": arr(item.height_um), "texture": arr(item.texture),
-                "conf": arr(item.confidence)}
+                "conf": arr(item.confidence),
+                "unc": None if item.uncertainty_um is None else arr(item.uncertainty_um)}
     if isinstance(item, Tapped):
         return {"t": "tap", "stage": item.stage, "item": _fields(item.item, arrays)}
     raise WireError(f"{type(item).__name__} cannot be sent between processes")
@@ -80,8 +81,10 @@ def _build(d: dict[str, Any], arrays: Sequence[np.ndarray]) -> Any:
         return FocusFrame(_build(d["placed"], arrays), arrays[d["image01"]],
                           arrays[d["focus"]], d["col0"])
     if t == "block":
+        unc = d.get("unc")
         return DepthBlock(DepthBlockHeader.model_validate(d["h"]), arrays[d["height"]],
-                          arrays[d["texture"]], arrays[d["conf"]])
+                          arrays[d["texture"]], arrays[d["conf"]],
+                          None if unc is None else arrays[unc])
     if t == "tap":
         return Tapped(d["stage"], _build(d["item"], arrays))
     raise WireError(f"unknown message type {t!r}")

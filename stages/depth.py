@@ -39,6 +39,7 @@ __all__ = [
     "depth_from_focus",
     "depth_from_harmonics",
     "focus_confidence",
+    "focus_sums",
     "harmonic_table",
     "level_spread",
     "levels_from_heights",
@@ -172,13 +173,19 @@ def focus_confidence(volume: np.ndarray) -> np.ndarray:
     (H, W) ndarray of float32
         ``|H_1| / H_0`` in [0, 1] (0 where ``H_0 <= 0``).
     """
+    h0, re, im = focus_sums(volume)
+    return _confidence(h0, re, im)
+
+
+def focus_sums(volume: np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` float32: H_0, Re H_1 and Im H_1 of every curve (the sums of
+    :func:`focus_confidence`, from the same float32 product over strips)."""
     n, height, width = volume.shape
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
     sums = np.empty((3, height * width), np.float32)
     for p0, p1, strip in volume_strips(volume):
         np.matmul(table, strip, out=sums[:, p0:p1])
-    h0, re, im = sums.reshape(3, height, width)
-    return _confidence(h0, re, im)
+    return sums.reshape(3, height, width)
 
 
 def volume_strips(volume: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:

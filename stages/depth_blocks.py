@@ -58,7 +58,9 @@ def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: fl
 
 def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                    half_window: int = ADAPTIVE_HALF_WINDOW,
-                   max_spread: int = ADAPTIVE_MAX_SPREAD) -> tuple[np.ndarray, np.ndarray]:
+                   max_spread: int = ADAPTIVE_MAX_SPREAD,
+                   sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
 
     The depth is :func:`sffscan.stages.depth.adaptive_peak`'s (documented there), the
@@ -79,6 +81,11 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         Centroid half width h >= 2.
     max_spread : int, keyword-only
         Largest spread for which the curve's maximum is taken.
+    sums_out : (3, H, W) ndarray of float32, optional, keyword-only
+        Receives H_0, Re H_1 and Im H_1 of every curve (the confidence's sums; the curve's
+        width, :func:`sffscan.stages.depth_uncertainty.width_from_sums`, needs them).
+    min_out : (H, W) ndarray of float32, optional, keyword-only
+        Receives every curve's smallest value (from the same strips, while in cache).
 
     Returns
     -------
@@ -100,8 +107,11 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
     sums = np.empty((3, height * width), np.float32)
     done_peak = done_wide = 0
+    low = None if min_out is None else min_out.reshape(-1)
     for p0, p1, strip in volume_strips(vol):
         np.matmul(table, strip, out=sums[:, p0:p1])
+        if low is not None:
+            np.min(strip, axis=0, out=low[p0:p1])
         sel = peak[p0:p1]
         local = np.flatnonzero(sel)
         k = c[p0:p1]
@@ -123,4 +133,6 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         masks = _outside(cw, h, n, wide, np.inf)
         depth[~peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
     h0, re, im = sums.reshape(3, height, width)
+    if sums_out is not None:
+        sums_out[...] = sums.reshape(3, height, width)
     return depth.reshape(height, width), _confidence(h0, re, im)

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 __all__ = ["SCATTER_SCALE", "WIDTH_SCALE", "curve_width", "depth_scatter",
-           "depth_uncertainty", "uncertainty_um"]
+           "depth_uncertainty", "height_uncertainty_um", "uncertainty_um", "width_from_sums"]
 
 SCATTER_SCALE = 5.0
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
@@ -128,3 +128,57 @@ def uncertainty_um(sigma_levels: np.ndarray, depth_levels: np.ndarray, *,
     d = np.nan_to_num(np.asarray(depth_levels, np.float64), nan=0.0)
     i = np.clip(np.floor(d), 0, step.size - 1).astype(np.intp)
     return (np.asarray(sigma_levels, np.float64) * step[i]).astype(np.float32)
+
+
+def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: np.ndarray,
+                          *, n_levels: int, focus_heights_um: np.ndarray, window: int = 9
+                          ) -> np.ndarray:
+    """The height uncertainty, µm, one sigma, from a depth map and its curves' sums.
+
+    What the streaming depth stage computes per block (and a whole-field stack per field):
+    :func:`depth_uncertainty` of ``depth_levels`` with the curves' widths from
+    :func:`width_from_sums`, in µm by :func:`uncertainty_um`.
+
+    Parameters
+    ----------
+    depth_levels : (H, W) ndarray of float
+        Depth, fractional levels; non-finite values count as 0 for the scatter (mark those
+        pixels invalid afterwards).
+    sums : (3, H, W) ndarray of float
+        H_0, Re H_1, Im H_1 of every curve (:func:`sffscan.stages.depth.focus_sums`).
+    minimum : (H, W) ndarray of float
+        Each curve's smallest value.
+    n_levels : int, keyword-only
+        N.
+    focus_heights_um : (N,) array_like, keyword-only
+        Height in focus at each level, µm.
+    window : int, keyword-only
+        The focus measure's window, px (the scatter's window).
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        µm.
+    """
+    d = np.nan_to_num(np.asarray(depth_levels, np.float32), nan=0.0, posinf=0.0,
+                      neginf=0.0)
+    # float32 throughout (a block of 1000 x 64 px per few frames of a scan)
+    h0, re, im = (np.asarray(v, np.float32) for v in sums)
+    area = h0 - np.float32(n_levels) * np.asarray(minimum, np.float32)
+    ratio = np.hypot(re, im)
+    np.divide(ratio, area, out=ratio, where=area > 0)
+    ratio[area <= 0] = 1.0
+    np.clip(ratio, np.float32(1e-9), np.float32(1.0), out=ratio)
+    w2 = np.log(ratio)
+    w2 *= np.float32(-(n_levels / math.pi) ** 2 / 2.0)  # width^2, levels^2
+    s = depth_scatter(d, window=window)
+    var = s * s
+    var *= np.float32(SCATTER_SCALE**2)
+    var += np.float32(WIDTH_SCALE**2) * w2
+    sigma = np.sqrt(var)
+    table = np.asarray(focus_heights_um, dtype=np.float64)
+    step = np.abs(np.diff(table)).astype(np.float32)
+    if np.all(step == step[0]):
+        return sigma * step[0]
+    i = np.clip(d.astype(np.intp), 0, step.size - 1)  # d >= 0 here: floor
+    return sigma * step[i]

@@ -20,6 +20,11 @@ is known only once the column and its neighbours are complete: for them the ring
 every level of every pixel (N planes: bounded by the ring, the columns in view, never the
 whole stack), and the running argmax is kept as frames arrive.
 
+Every block also carries the height's uncertainty (µm, one sigma,
+:mod:`sffscan.stages.depth_uncertainty`): from the block's depth (its scatter about its
+local median) and each curve's width (its sums and its minimum: from the stored levels at
+the reduction, or for the accumulating methods a running minimum kept like the maximum).
+
 Motion along -x is handled by mirroring: internally columns are numbered so that they
 always complete in increasing order.
 """
@@ -35,9 +40,10 @@ from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, 
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import (
     STREAMING_METHODS,
+    _confidence,
     depth_from_focus,
     depth_from_harmonics,
-    focus_confidence,
+    focus_sums,
     harmonic_table,
     level_spread,
     levels_to_height,
@@ -45,6 +51,7 @@ from sffscan.stages.depth import (
     windowed_centroid,
 )
 from sffscan.stages.depth_blocks import adaptive_block
+from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
 
 def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,
@@ -86,6 +93,7 @@ class BlockResult(NamedTuple):
     texture: np.ndarray
     confidence: np.ndarray
     complete: int
+    uncertainty_um: np.ndarray | None
 
 
 class FocusVolume:
@@ -121,6 +129,10 @@ class FocusVolume:
     reuse : FocusVolume, optional
         A finished volume (the last pass's) of the same size whose N-level ring this one
         takes over instead of allocating its own.
+    uncertainty : bool
+        Compute each block's height uncertainty (a running minimum of every curve, and
+        :func:`sffscan.stages.depth_uncertainty.height_uncertainty_um` per block); False
+        (the benchmark's reference) leaves ``uncertainty_um`` None.
     """
 
     #: bytes of focus values added per strip of rows (kept in cache across the passes)
@@ -141,6 +153,7 @@ class FocusVolume:
         row_slack: int = 8,
         col_slack: int = 8,
         reuse: FocusVolume | None = None,
+        uncertainty: bool = True,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
@@ -150,6 +163,10 @@ class FocusVolume:
         self.margin = margin
         self.direction = direction
         self.method = method
+        self.uncertainty = uncertainty
+        # the curves' minima: kept as frames arrive where no N-level ring holds the curves
+        # (the ring's methods take them from the levels at the reduction)
+        self.track_low = uncertainty and method in STREAMING_METHODS
         self.median_size = median_size
         self.spread_size = spread_size
         # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
@@ -190,6 +207,10 @@ class FocusVolume:
         self.row_lo = np.zeros((self.n, self.ring), np.int32)
         self.row_hi = np.zeros((self.n, self.ring), np.int32)
         self.best = np.full((self.rows, self.ring), -1.0, np.float32)
+        # the running minimum of every curve (its floor, for the curve's width), kept for
+        # the accumulating methods only (see track_low)
+        self.low = np.full((self.rows, self.ring) if method in STREAMING_METHODS and
+                           uncertainty else (0, 0), np.inf, np.float32)
         self.tex = np.zeros((self.rows, self.ring), np.float32)
         self.y0: int | None = None  # world row of accumulator row 0
         self.next_u: int | None = None  # first internal column not yet reduced
@@ -334,6 +355,9 @@ class FocusVolume:
                 lower = np.where(amax > level, 255, 0).astype(np.uint8)  # rare: ties only
                 cv2.bitwise_or(sharper, cv2.bitwise_and(tie, lower), dst=sharper)
             cv2.max(f, best, dst=best)
+            if self.track_low:
+                low = self.low[rows, cs]
+                cv2.min(f, low, dst=low)
             cv2.copyTo(lv[:b - a], sharper, amax)
             cv2.copyTo(img[a:b], sharper, self.tex[rows, cs])
 
@@ -385,37 +409,53 @@ class FocusVolume:
             NaN height / texture and zero confidence where a pixel's curve lacks levels.
         complete : int
             Number of columns seen at all N levels.
+        uncertainty_um : ndarray, float32, (rows, u1 - u0)
+            The height's uncertainty, µm, one sigma
+            (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`: the depth's
+            scatter is measured within the block, replicated at its edges); NaN invalid.
         """
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
         inner = slice(u0 - a0, u1 - a0)  # the halo serves the filters only
+        width = u1 - u0
+        sums = np.empty((3, self.rows, width), np.float32)  # H_0, Re H_1, Im H_1
+        low = np.empty((self.rows, width), np.float32)  # each curve's minimum
         if self.fv is None:
             planes = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
-            sums = np.zeros((4, *planes.shape[1:]), np.float32)
-            sums[0], sums[2], sums[3] = planes[0], planes[1], planes[2]
+            full = np.zeros((4, *planes.shape[1:]), np.float32)
+            full[0], full[2], full[3] = planes[0], planes[1], planes[2]
             if planes.shape[0] == 4:  # only the centroid uses sum k y
-                sums[1] = planes[3]
+                full[1] = planes[3]
             depth, conf = depth_from_harmonics(
-                sums, self._gather(self.argmax, a0, a1), n_levels=self.n,
+                full, self._gather(self.argmax, a0, a1), n_levels=self.n,
                 method=self.method, median_size=self.median_size)
             depth, conf = depth[:, inner], conf[:, inner]
+            sums[:] = full[[0, 2, 3]][:, :, inner]
+            if self.uncertainty:
+                low[:] = self._gather(self.low, u0, u1)
         elif self.method in ("wcentroid", "adaptive"):  # the levels about the filtered argmax
             centre = median_filter_levels(self._gather(self.argmax, a0, a1),
                                           self.median_size, self.n)
             levels = self._gather(self.fv, u0, u1)
             if self.method == "adaptive":  # depth and confidence in one pass over the levels
                 spread = level_spread(centre, self.spread_size, self.n)
-                depth, conf = adaptive_block(levels, centre[:, inner], spread[:, inner])
+                depth, conf = adaptive_block(levels, centre[:, inner], spread[:, inner],
+                                             sums_out=sums,
+                                             min_out=low if self.uncertainty else None)
             else:
                 depth = windowed_centroid(levels, centre[:, inner])
-                conf = focus_confidence(levels)
+                sums[:] = focus_sums(levels)
+                conf = _confidence(*sums)
+                low[:] = levels.min(axis=0)
         else:
             vol = self._gather(self.fv, a0, a1)
             depth, conf = depth_from_focus(vol, method=self.method,
                                            median_size=self.median_size,
                                            argmax=self._gather(self.argmax, a0, a1))
             depth, conf = depth[:, inner], conf[:, inner]
+            sums[:] = focus_sums(vol[:, :, inner])
+            low[:] = vol[:, :, inner].min(axis=0)
         complete = self._gather(self.count, u0, u1) == self.n
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
@@ -423,13 +463,23 @@ class FocusVolume:
         valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
         height = levels_to_height(depth, focus_heights_um=self.heights).astype(np.float32)
         height[~valid] = np.nan
+        unc: np.ndarray | None = None
+        if self.uncertainty:
+            # invalid pixels (curves that lack levels) take the block's mean depth, so
+            # that their values do not count as scatter of their valid neighbours
+            fill = float(depth[valid].mean()) if valid.any() else 0.0
+            unc = height_uncertainty_um(np.where(valid, depth, fill), sums, low,
+                                        n_levels=self.n, focus_heights_um=self.heights,
+                                        window=self.spread_size)
+            unc[~valid] = np.nan
         conf = np.where(valid, conf, 0.0).astype(np.float32)
         tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32)
         self._release(u0 - self.halo)
         if self.direction == -1:
             height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
+            unc = None if unc is None else unc[:, ::-1]
         x0 = self._block_x0(u0, u1)
-        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()))
+        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
 
     def _release(self, below: int) -> None:
         """Free ring slots of columns below ``below`` (they will not be read again).
@@ -444,6 +494,7 @@ class FocusVolume:
             self.filled[:, cs] = False
             self.count[cs] = 0
             self.best[:, cs] = -1.0
+            self.low[:, cs] = np.inf
             self.tex[:, cs] = 0.0
             self.sums[:, :, cs] = 0.0
             self.argmax[:, cs] = 0
@@ -452,7 +503,7 @@ class FocusVolume:
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-pixel state (fixed for the life of the volume)."""
-        planes = [self.best, self.tex, self.argmax] + ([self.fv] if self.fv is not None
+        planes = [self.best, self.low, self.tex, self.argmax] + ([self.fv] if self.fv is not None
                                                        else []) + [self.sums]
         return sum(a.nbytes for a in planes)
 
@@ -499,7 +550,7 @@ class DepthStage(Stage):
                                    height_px=r.height_um.shape[0], pass_index=self.pass_index,
                                    complete_columns=r.complete,
                                    incomplete_columns=width - r.complete)
-            yield DepthBlock(hdr, r.height_um, r.texture, r.confidence)
+            yield DepthBlock(hdr, r.height_um, r.texture, r.confidence, r.uncertainty_um)
 
     def process(self, item: FocusFrame) -> Iterator[DepthBlock]:
         hdr = item.placed.header

@@ -14,7 +14,8 @@ Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time
 - ``scan/camera/image``: camera frames, every ``frame_step``-th frame_id, reduced by
   ``frame_scale``, JPEG; ``scan/focus/measure``: the focus measure of the same frames
   (the columns that were measured, sqrt-scaled grey, JPEG);
-- ``scan/depth/height`` and ``scan/depth/confidence``: each completed depth block, reduced;
+- ``scan/depth/height``, ``scan/depth/confidence`` and ``scan/depth/uncertainty`` (the
+  height's one-sigma uncertainty, µm): each completed depth block, reduced;
 - ``scan/mosaic/height/tile_NNNN`` (µm, colour-mapped, 0 where invalid) and
   ``scan/mosaic/texture/tile_NNNN`` (all in focus), with ``scan/mosaic/fov`` (the camera's
   field of view): the growing mosaic, rebuilt from the depth blocks by the mosaic's own
@@ -235,6 +236,9 @@ class VizSink(Sink):
         self.rec.log("scan/depth/confidence",
                      rr.Image(to_u8(b.confidence[::s, ::s], scale=255.0, reduce=1),
                               color_model="L"))
+        if b.uncertainty_um is not None:  # µm, one sigma, 0 where invalid
+            self.rec.log("scan/depth/uncertainty", rr.DepthImage(
+                shown(b.uncertainty_um[::s, ::s]), meter=1e6, colormap="viridis"))
 
     def _mosaic(self) -> None:
         """Log the mosaic tiles that changed since the last time (image and 3D points)."""

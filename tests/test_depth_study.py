@@ -206,3 +206,23 @@ def test_uncertainty_covers_held_out_errors_of_a_noisy_family() -> None:
     share = float(np.mean(inside))
     print(f"even-gauss seeds 10, 11: {share:.3f} within 2 sigma")
     assert 0.85 <= share <= 1.0
+
+
+def test_a_depth_block_crosses_processes_with_its_uncertainty() -> None:
+    """The wire format carries the block's uncertainty (and a block without one)."""
+    from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
+    from sffscan.pipeline.wire import _build, _fields
+
+    hdr = DepthBlockHeader(x0_px=3, y0_px=4, width_px=2, height_px=2, pass_index=0,
+                           complete_columns=2, incomplete_columns=0)
+    arrays = [np.full((2, 2), v, np.float32) for v in (1.0, 2.0, 3.0, 4.0)]
+    for unc in (arrays[3], None):
+        block = DepthBlock(hdr, arrays[0], arrays[1], arrays[2], unc)
+        sent: list[np.ndarray] = []
+        got = _build(_fields(block, sent), sent)
+        assert got.header == hdr and len(sent) == (4 if unc is not None else 3)
+        np.testing.assert_array_equal(got.confidence, arrays[2])
+        if unc is None:
+            assert got.uncertainty_um is None
+        else:
+            np.testing.assert_array_equal(got.uncertainty_um, unc)

@@ -202,3 +202,42 @@ def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
     np.testing.assert_allclose(cmp_h, want_h, atol=1e-3)  # µm
     np.testing.assert_allclose(cmp_c, conf, atol=1e-5)
     assert np.isnan(got_h[:, ~complete]).all()
+
+
+@pytest.mark.parametrize("method", ["spc", "adaptive", "gauss3"])
+def test_blocks_carry_the_height_uncertainty(method: str) -> None:
+    """Every block has an uncertainty (µm) where it has a height, NaN where not; away from
+    the block's edges (its scatter window) it is the whole field's
+    height_uncertainty_um of the same depth and curves."""
+    from sffscan.stages.depth import focus_sums
+    from sffscan.stages.depth_uncertainty import height_uncertainty_um
+
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      method=method, median_size=3, block_columns=16, row_slack=0,
+                      spread_size=3)
+    positions = [7 * k for k in range(40)]
+    levels = [(k + 5) % N for k in range(40)]
+    blocks = []
+    for x, level in zip(positions, levels, strict=True):
+        fm, img = _frame(x, 0, level)
+        blocks += vol.add(fm, img, x=x, y=0, level=level)
+    blocks += vol.finish()
+    for b in blocks:
+        assert b.uncertainty_um.shape == b.height_um.shape
+        np.testing.assert_array_equal(np.isnan(b.uncertainty_um), np.isnan(b.height_um))
+        assert (b.uncertainty_um[np.isfinite(b.uncertainty_um)] > 0).all()
+    xs = np.concatenate([np.arange(b.x0, b.x0 + b.height_um.shape[1]) for b in blocks])
+    got = np.concatenate([b.uncertainty_um for b in blocks], axis=1)
+    got_h = np.concatenate([b.height_um for b in blocks], axis=1)
+    ref = _reference_volume(positions, levels, _frame, xs, H, 3)
+    complete = ~np.isnan(ref).any(axis=(0, 1))
+    ref = np.nan_to_num(ref[:, 3:-3])
+    depth = (got_h[3:-3] / 100.0).astype(np.float32)  # the streamed depth, levels
+    want = height_uncertainty_um(np.where(complete, depth, 0.0), focus_sums(ref),
+                                 ref.min(axis=0), n_levels=N, focus_heights_um=HEIGHTS,
+                                 window=3)
+    edge = np.concatenate([np.arange(b.height_um.shape[1]) for b in blocks])
+    core = complete & (edge >= 3) & (edge < 13)  # 2 px (median) + 1 px (window) in
+    core &= np.roll(complete, 3) & np.roll(complete, -3)
+    assert core.sum() > 50
+    np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4)
