@@ -1,6 +1,6 @@
 """Mosaic: completed depth blocks, stitched in world coordinates into a Zarr v3 group.
 
-Layout of the group (format ``sffscan-mosaic``, version 2; schema in
+Layout of the group (format ``sffscan-mosaic``, version 3; schema in
 ``schemas/mosaic_attrs.v1.json``):
 
 - ``height``: float32 (y, x), µm, NaN where nothing valid was measured;
@@ -13,11 +13,14 @@ Layout of the group (format ``sffscan-mosaic``, version 2; schema in
   level-k chunk is written when the band writes leave it, or after at most 5 s, and at the
   end); the chunks not yet written are journaled (``pyramid_stale``) and recomputed on
   resume.
+- ``y``, ``x`` and ``pyramid/<k>/y``, ``pyramid/<k>/x`` (version 3): float64 µm centres of
+  each level's rows and columns, so ``xarray.open_zarr`` gets µm coordinates; the metadata
+  is consolidated when the writer sets the final status (a resume drops it first).
 
 Each array carries its unit in its own attributes (``units``); the group is an OME-Zarr
 (NGFF 0.5) image (attribute ``ome``, :mod:`sffscan.pipeline.formats.ngff`), so OME-Zarr
-readers and viewers open it. Version 1 mosaics (no pyramid, no ``ome``) are still read and
-resumed.
+readers and viewers open it. Version 1 mosaics (no pyramid, no ``ome``) and version 2
+(no coordinate arrays, not consolidated) are still read and resumed as they are.
 
 Pixel (row, col) of the arrays is world pixel (origin_px[1] + row, origin_px[0] + col);
 world pixel (x, y) has its centre at (x, y) * pixel_um µm. All passes of a plate land in
@@ -50,7 +53,7 @@ from typing import Any
 import numpy as np
 import zarr
 from pydantic import ValidationError
-from sffscan.pipeline.formats.ngff import mosaic_ngff
+from sffscan.pipeline.formats.ngff import consolidate, mosaic_ngff
 from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
 from sffscan.pipeline.runtime import Stage
 from sffscan.stages.durable import free_reserve, make_reserve
@@ -58,12 +61,15 @@ from sffscan.stages.mosaic_pyramid import (
     LAG_S,
     PyramidCache,
     aligned,
+    coord_arrays,
+    create_coords,
     create_pyramid,
     default_levels,
     pyramid_arrays,
     read_many,
     resize_pyramid,
     update_pyramid,
+    write_coords,
     write_many,
 )
 from zarr.codecs import BloscCodec, BloscShuffle
@@ -253,6 +259,11 @@ class MosaicWriter:
         create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
                        units=UNITS, compressors=compressors)
         self.pyramid = pyramid_arrays(self.group, ARRAYS, levels)
+        # 1-D µm coordinates of every level, for xarray (format version 3)
+        self.pixel_um = pixel_um
+        self.origin_um = (origin_px[0] * pixel_um, origin_px[1] * pixel_um)
+        self.coords = create_coords(self.group, shape=shape, levels=levels, pixel_um=pixel_um,
+                                    origin_um=self.origin_um)
         lag = LAG_S if pyramid_lag_s is None else pyramid_lag_s
         self.cache = PyramidCache(self.pyramid, lag_s=lag, empty=True) if self.pyramid else None
         attrs = dict(attrs or {})
@@ -292,7 +303,9 @@ class MosaicWriter:
         """
         p = Path(path)
         try:
-            group = zarr.open_group(str(p), mode="r+")
+            # not through consolidated metadata (stale once arrays change); the first
+            # attribute write below drops it, and set_status consolidates again
+            group = zarr.open_group(str(p), mode="r+", use_consolidated=False)
         except Exception as exc:  # noqa: BLE001 - anything that is not a group
             raise ValueError(f"{p}: cannot resume, not a readable Zarr group ({exc})") from exc
         if group.attrs.get("format") != "sffscan-mosaic":
@@ -315,6 +328,9 @@ class MosaicWriter:
         levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
         self.pyramid = pyramid_arrays(group, ARRAYS, levels)
         self.cache = PyramidCache(self.pyramid, lag_s=LAG_S) if self.pyramid else None
+        group.update_attributes({})  # drops consolidated metadata, if any
+        self.pixel_um, self.origin_um = attrs.pixel_um, attrs.origin_um
+        self.coords = coord_arrays(group, levels)  # None before format version 3
         rebuild = [tuple(b) for b in attrs.rebuild]
         if attrs.writing is not None and tuple(attrs.writing) not in rebuild:
             rebuild.append(tuple(attrs.writing))
@@ -379,6 +395,9 @@ class MosaicWriter:
                 if arr.shape != (rows, cols):
                     arr.resize((rows, cols))
             resize_pyramid(self.pyramid, (rows, cols))
+            if self.coords is not None:
+                write_coords(self.coords, (rows, cols), pixel_um=self.pixel_um,
+                             origin_um=self.origin_um)
 
     def _blend(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         r0, c0 = y0 - self.origin[1], x0 - self.origin[0]
@@ -464,6 +483,12 @@ class MosaicWriter:
                                             "pyramid_stale": stale, **extra})
         free_reserve(self.path)  # the final status is written even when the disk is full
         self.group.update_attributes(attrs.model_dump(mode="json"))
+        if self.coords is not None:  # format version 3: one read opens it (xarray, NGFF)
+            try:
+                consolidate(self.path)
+            except OSError as err:
+                log.warning("%s: metadata not consolidated (%s); readers open it without",
+                            self.path, err)
 
 
 def read_mosaic_attrs(group: zarr.Group, path: str | Path) -> MosaicAttrs:

@@ -55,7 +55,7 @@ from typing import Any
 
 import numpy as np
 import zarr
-from sffscan.pipeline.formats.ngff import level_path
+from sffscan.pipeline.formats.ngff import COORDS, REDUCTION, level_coords, level_path
 from sffscan.pipeline.formats.zarr_chunks import read_many, write_many
 
 #: fewest levels a mosaic gets (level 0 included)
@@ -109,9 +109,11 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
     Parameters
     ----------
     values : dict of ndarray, float32, (rows, cols)
-        ``height``, ``texture``, ``confidence``, ``weight`` of a level-0 region whose first
-        row and column are multiples of 2^(levels-1) in the array, and whose end is either
-        such a multiple or the array's end.
+        The mosaic arrays (``height``, ``texture``, ``confidence``, ``weight``, and any
+        other) of a level-0 region whose first row and column are multiples of
+        2^(levels-1) in the array, and whose end is either such a multiple or the array's
+        end. Each is reduced as :data:`~sffscan.pipeline.formats.ngff.REDUCTION` says
+        (``nanmean`` for a name it does not list).
     levels : int
         Number of levels, level 0 included.
 
@@ -120,7 +122,7 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
     list of dict of ndarray, float32
         Element k-1 is level k: each array (ceil(rows / 2^k), ceil(cols / 2^k)).
     """
-    rows, cols = values["height"].shape
+    rows, cols = next(iter(values.values())).shape
     f = 2 ** (levels - 1)
     pr, pc = -(-rows // f) * f, -(-cols // f) * f
 
@@ -133,15 +135,16 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
 
     # level 1 straight from float32 (NaN set to 0) into float64 sums; counts of the finite
     # values in float32 (exact: at most 4^9 per element)
+    how = {name: REDUCTION.get(name, "nanmean") for name in values}
     sums: dict[str, np.ndarray] = {}
     counts: dict[str, np.ndarray] = {}
-    for name in ("height", "texture"):
-        v = values[name]
-        valid = np.isfinite(v)
-        sums[name] = _halve(padded(np.where(valid, v, np.float32(0))), np.float64)
-        counts[name] = _halve(padded(valid).view(np.uint8), np.float32)
-    for name in ("confidence", "weight"):
-        sums[name] = _halve(padded(values[name]), np.float64)
+    for name, v in values.items():
+        if how[name] == "nanmean":
+            valid = np.isfinite(v)
+            sums[name] = _halve(padded(np.where(valid, v, np.float32(0))), np.float64)
+            counts[name] = _halve(padded(valid).view(np.uint8), np.float32)
+        else:
+            sums[name] = _halve(padded(v), np.float64)
     # elements of the array (not padding) under each block: rows x columns present
     rp = np.zeros(pr, np.float64)
     cp = np.zeros(pc, np.float64)
@@ -156,14 +159,16 @@ def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.
         r, c = level_shape((rows, cols), k)
         level: dict[str, np.ndarray] = {}
         with np.errstate(invalid="ignore", divide="ignore"):
-            for name in ("height", "texture"):  # a block without finite values: 0 / 0 = NaN
+            for name in values:
+                if how[name] == "sum":
+                    level[name] = sums[name][:r, :c].astype(np.float32)
+                    continue
+                # nanmean: a block without finite values is 0 / 0 = NaN; mean: over the
+                # elements present
+                den = counts[name][:r, :c] if how[name] == "nanmean" else np.outer(rp[:r],
+                                                                                     cp[:c])
                 level[name] = np.empty((r, c), np.float32)
-                np.divide(sums[name][:r, :c], counts[name][:r, :c], out=level[name],
-                          casting="same_kind")
-            level["confidence"] = np.empty((r, c), np.float32)
-            np.divide(sums["confidence"][:r, :c], np.outer(rp[:r], cp[:c]),
-                      out=level["confidence"], casting="same_kind")
-        level["weight"] = sums["weight"][:r, :c].astype(np.float32)
+                np.divide(sums[name][:r, :c], den, out=level[name], casting="same_kind")
         out.append(level)
     return out
 
@@ -202,6 +207,53 @@ def resize_pyramid(arrays: list[dict[str, zarr.Array]], shape: tuple[int, int]) 
         for arr in level.values():
             if arr.shape != want:
                 arr.resize(want)
+
+
+#: chunk length of the 1-D coordinate arrays, elements
+COORD_CHUNK = 4096
+CoordArrays = list[tuple[zarr.Array, zarr.Array]]
+
+
+def create_coords(group: zarr.Group, *, shape: tuple[int, int], levels: int, pixel_um: float,
+                  origin_um: tuple[float, float]) -> CoordArrays:
+    """Create and write the 1-D coordinate arrays ``y``, ``x`` of levels 0 .. levels-1
+    (float64, µm, element centres: :func:`~sffscan.pipeline.formats.ngff.level_coords`;
+    ``origin_um``: world (x, y) µm of level-0 element [0, 0]). Element k is level k's
+    (y, x) pair."""
+    out: CoordArrays = []
+    for k in range(levels):
+        ny, nx = level_shape(shape, k)
+        y, x = (group.create_array(name=level_path(name, k), shape=(n,), chunks=(COORD_CHUNK,),
+                                   dtype="float64", fill_value=np.nan, dimension_names=(name,),
+                                   attributes={"units": "µm"})
+                for name, n in zip(COORDS, (ny, nx), strict=True))
+        out.append((y, x))
+    write_coords(out, shape, pixel_um=pixel_um, origin_um=origin_um, force=True)
+    return out
+
+
+def coord_arrays(group: zarr.Group, levels: int) -> CoordArrays | None:
+    """The coordinate arrays of every level, or None if the mosaic has none (format
+    version 2 or older)."""
+    out: CoordArrays = []
+    for k in range(levels):
+        pair = [group.get(level_path(name, k)) for name in COORDS]
+        if not all(isinstance(a, zarr.Array) for a in pair):
+            return None
+        out.append((pair[0], pair[1]))  # type: ignore[arg-type]
+    return out
+
+
+def write_coords(coords: CoordArrays, shape: tuple[int, int], *, pixel_um: float,
+                 origin_um: tuple[float, float], force: bool = False) -> None:
+    """Resize the coordinate arrays to a level-0 ``shape`` and write the ones resized (all
+    with ``force``)."""
+    for k, (y, x) in enumerate(coords):
+        for arr, n, o in zip((y, x), level_shape(shape, k), (origin_um[1], origin_um[0]),
+                             strict=True):
+            if arr.shape != (n,) or force:
+                arr.resize((n,))
+                arr[:] = level_coords(n, level=k, pixel_um=pixel_um, origin_um=o)
 
 
 def aligned(sel: Slices, shape: tuple[int, int], levels: int) -> Slices:

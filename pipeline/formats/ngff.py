@@ -11,18 +11,27 @@ at ``i * scale_k + translation_k`` with ``scale_k = 2**k * pixel_um`` and
 ``translation_k = origin_um + (2**k - 1) / 2 * pixel_um``: a level-k pixel is the mean of a
 2^k x 2^k block of level-0 pixels, and its centre is the centre of that block.
 
+For xarray (format version 3): every level also holds 1-D coordinate arrays ``y`` and
+``x`` (float64, µm, the element centres above; :data:`COORDS`, :func:`level_coords`), so
+``xarray.open_zarr(path)`` (level 0) and ``xarray.open_zarr(path, group="pyramid/<k>")``
+get µm coordinates; and the writer consolidates the metadata when it sets the final status
+(:func:`consolidate`), not while the arrays still change.
+
 Specification: https://ngff.openmicroscopy.org/0.5/ (validated in the tests with the
 ``ome-zarr`` reader and the ``ome-zarr-models`` package).
 """
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["NGFF_VERSION", "NgffAxis", "NgffDataset", "NgffMultiscale", "NgffOme",
-           "level_path", "mosaic_ngff"]
+__all__ = ["COORDS", "NGFF_VERSION", "NgffAxis", "NgffDataset", "NgffMultiscale", "NgffOme",
+           "consolidate", "level_coords", "level_path", "mosaic_ngff"]
 
 NGFF_VERSION: Literal["0.5"] = "0.5"
 
@@ -75,7 +84,10 @@ class NgffOme(BaseModel):
 
 
 #: reduction of each array from one level to the next
-REDUCTION = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum"}
+REDUCTION = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum",
+             "uncertainty": "nanmean"}
+#: the 1-D coordinate arrays of every level (format version 3): (y, x) element centres, µm
+COORDS = ("y", "x")
 
 
 def level_path(name: str, level: int) -> str:
@@ -112,3 +124,31 @@ def mosaic_ngff(*, pixel_um: float, origin_px: tuple[int, int], levels: int,
         multiscales.append(NgffMultiscale(name=name, axes=axes, datasets=datasets,
                                           type=REDUCTION.get(name, "nanmean")))
     return NgffOme(multiscales=multiscales)
+
+
+def level_coords(n: int, *, level: int, pixel_um: float, origin_um: float) -> np.ndarray:
+    """Centres, µm (float64, (n,)), of the first ``n`` elements along one axis of ``level``:
+    ``origin_um + (2**level - 1) / 2 * pixel_um + i * 2**level * pixel_um`` (the NGFF
+    scale and translation of :func:`mosaic_ngff`; ``origin_um``: level-0 element 0's
+    centre on that axis)."""
+    f = 2 ** level
+    return origin_um + (f - 1) / 2 * pixel_um + f * pixel_um * np.arange(n, dtype=np.float64)
+
+
+def consolidate(path: str | Path) -> None:
+    """Consolidate the metadata of the Zarr v3 group at ``path`` (``zarr.consolidate_metadata``:
+    the metadata of every array and group, copied into the root ``zarr.json``, so a reader
+    opens the mosaic with one read; xarray no longer warns).
+
+    Only for a group whose arrays no longer change: a reader that uses the copy sees the
+    shapes of the moment it was made; a writer that reopens the group opens it with
+    ``use_consolidated=False`` and its first attribute write drops the copy. zarr 3.1 warns
+    that consolidated metadata is not part of the Zarr v3 specification (readers that do
+    not know it read each ``zarr.json`` as before); that warning is expected here.
+    """
+    import zarr
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part",
+                                category=UserWarning)
+        zarr.consolidate_metadata(str(path))
