@@ -20,10 +20,11 @@ with their status. A mosaic left ``writing`` or ``failed`` (a worker killed, a
 machine lost, a stage failing) is resumed as ``sffscan replay --resume`` does
 (:meth:`~sffscan.stages.mosaic.MosaicWriter.reopen`): the band writes already in it are
 kept, torn tiles are rebuilt, and it ends equal to an uninterrupted run; a mosaic made with
-another configuration or from another recording is not resumed but reported (``overwrite=True`` replaces it). The
-choice is made by the task when it starts, so a task that Dask retries after losing its
-worker resumes what that worker left. The accuracy of an evaluated mosaic is stored in its
-attributes (``accuracy``), so that a skipped row still shows it.
+another configuration or from another recording is not resumed but reported
+(``overwrite=True`` replaces it). The choice is made by the task when it starts, so a task
+that Dask retries after losing its worker resumes what that worker left. The accuracy of an
+evaluated mosaic is stored in its attributes (``accuracy``), so that a skipped row still
+shows it.
 
 The cluster is a :class:`distributed.LocalCluster` of worker processes on this machine by
 default, or any running Dask scheduler given by its address (``tcp://host:8786``): there,
@@ -57,7 +58,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 __all__ = ["BatchError", "BatchRow", "ResumeRefused",
-           "find_recordings", "format_table", "mosaic_path", "process_recording", "run_batch",
+           "find_recordings", "format_table", "mosaic_path", "plan_targets",
+           "process_recording", "run_batch",
            "store_accuracy", "stored_accuracy", "write_csv"]
 
 #: seconds a local worker process is given to exit when the batch ends
@@ -293,6 +295,28 @@ def _kept(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
     return row
 
 
+def plan_targets(targets: Sequence[tuple[Path, Path]], *, rerun: bool = False
+                 ) -> tuple[dict[int, BatchRow], list[int]]:
+    """What a batch does with each (recording, mosaic): the rows decided now (a recording
+    still being written; a final mosaic of the recording as it is now, kept unless
+    ``rerun``) and the indexes left to process."""
+    rows: dict[int, BatchRow] = {}
+    todo: list[int] = []
+    for i, (rec, mos) in enumerate(targets):
+        attrs = _mosaic_status(mos)
+        busy = locks.holder(rec)
+        if busy is not None:
+            rows[i] = BatchRow(recording=str(rec), mosaic=str(mos), status="recording",
+                               note=f"still being written by {locks.describe_holder(busy)}; "
+                                    "a rerun does it once it is complete")
+        elif not rerun and attrs is not None and attrs.get("status") in FINAL \
+                and _same_recording(rec, attrs):
+            rows[i] = _kept(rec, mos, attrs)
+        else:
+            todo.append(i)
+    return rows, todo
+
+
 def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | None = None,
               workers: int = 2, threads: int = 1, processing: dict[str, Any] | None = None,
               evaluate: bool = True, rerun: bool = False, overwrite: bool = False,
@@ -337,20 +361,7 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     dupes = {str(m) for _, m in targets if sum(1 for _, n in targets if n == m) > 1}
     if dupes:
         raise BatchError(f"recordings with the same name would share a mosaic: {sorted(dupes)}")
-    rows: dict[int, BatchRow] = {}
-    todo = []
-    for i, (rec, mos) in enumerate(targets):
-        attrs = _mosaic_status(mos)
-        busy = locks.holder(rec)
-        if busy is not None:
-            rows[i] = BatchRow(recording=str(rec), mosaic=str(mos), status="recording",
-                               note=f"still being written by {locks.describe_holder(busy)}; "
-                                    "a rerun does it once it is complete")
-        elif not rerun and attrs is not None and attrs.get("status") in FINAL \
-                and _same_recording(rec, attrs):
-            rows[i] = _kept(rec, mos, attrs)
-        else:
-            todo.append(i)
+    rows, todo = plan_targets(targets, rerun=rerun)
     total, done = len(targets), 0
     for i in sorted(rows):
         done += 1
