@@ -238,8 +238,10 @@ def open_mosaic(path: str | Path, *, level: int = 0) -> xarray.Dataset:
     Returns
     -------
     xarray.Dataset
-        Variables ``height`` (µm), ``texture`` (0..1), ``confidence`` (0..1) and ``weight``,
-        each (y, x) float32 backed by dask with the mosaic's chunks (nothing is read until
+        Variables ``height`` (µm), ``texture`` (0..1), ``confidence`` (0..1) and ``weight``
+        (and any other array the mosaic was written with; the same as
+        ``xarray.open_zarr`` gives from format version 3 on), each (y, x) float32 backed by
+        dask with the mosaic's chunks (nothing is read until
         computed); coordinates ``y`` and ``x`` are the pixel centres in µm (for level k the
         centres of the 2^k x 2^k blocks); ``attrs`` are the mosaic's attributes plus
         ``level`` and ``pixel_um_level`` (the level's pixel size, µm).
@@ -266,8 +268,12 @@ def open_mosaic(path: str | Path, *, level: int = 0) -> xarray.Dataset:
     levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
     if not 0 <= level < levels:
         raise ValueError(f"{p}: no pyramid level {level} (the mosaic has levels 0..{levels - 1})")
+    # the arrays this mosaic has (its NGFF pyramids; version 1: the ones present), so a
+    # mosaic written before an array was added still opens
+    names = ([m.name for m in attrs.ome.multiscales] if attrs.ome is not None else
+             [n for n in ARRAYS if isinstance(group.get(n), zarr.Array)])
     variables = {}
-    for name in ARRAYS:
+    for name in names:
         arr = mosaic_array(group, level_path(name, level))
         variables[name] = (("y", "x"), da.from_array(arr, chunks=arr.chunks),
                            {"units": attrs.units.get(name, "")})

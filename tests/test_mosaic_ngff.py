@@ -224,3 +224,14 @@ def test_version_2_mosaics_still_read_and_resume(tmp_path: Path) -> None:
     assert ds.attrs["format_version"] == 2 and ds["height"].shape == (14, 8)
     assert ds["y"].values[1] - ds["y"].values[0] == pytest.approx(4.0)
     assert "y" not in zarr.open_group(str(path), mode="r")
+
+
+def test_open_mosaic_reads_the_arrays_the_mosaic_has(mosaic: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A mosaic written before an array was added to the format (here: a fifth array such
+    as an uncertainty) still opens, with the arrays it has."""
+    import sffscan.stages.mosaic as mosaic_module
+
+    monkeypatch.setattr(mosaic_module, "ARRAYS", (*ARRAYS, "uncertainty"))
+    ds = open_mosaic(mosaic, level=1)
+    assert set(ds.data_vars) == set(ARRAYS)
