@@ -14,7 +14,8 @@ at 25 µm/px) and writes ``bench/printjob_results.md`` (and ``.json``):
    the compared region): RMS(measured - expected) against RMS(measured - truth);
 4. verdict latency: from the end of a layer's scan (mosaic complete) to its verdict
    written (the verdict's ``compute_s``: ``LayerRunner.analyse`` is called when the scan
-   returns), compared region 22.6 x 22.6 mm;
+   returns), compared region 22.6 x 22.6 mm; and re-measured over the stored scans along
+   the service's path (warm runner, expected map prepared at the layer event);
 5. the printer -> mosaic translation fitted from the defect-free job's first-layer scan,
    starting 0.72 mm off.
 
@@ -91,6 +92,16 @@ def run(layers: int, workdir: Path) -> dict:
     vc = run_simulated_print(workdir / "clean", defects=(), config=cfg2, seed=2,
                              layers=list(range(layers)), on_layer=log("clean"))
     wall = time.perf_counter() - t0
+    saved = workdir / "timings.json"  # a rerun over kept job folders scans nothing again
+    scanned_now = len(timings["defects"]) + len(timings["clean"])
+    if saved.is_file():
+        old = json.loads(saved.read_text(encoding="utf-8"))
+        for name in timings:
+            have = {t["layer"] for t in timings[name]}
+            timings[name] += [t for t in old["timings"][name] if t["layer"] not in have]
+        if scanned_now == 0:
+            wall = old["wall_s"]
+    saved.write_text(json.dumps({"timings": timings, "wall_s": wall}), encoding="utf-8")
 
     # 1. detection
     world = PrintWorld(program, DEMO_MAPPING, cfg.optics.pixel_um,
@@ -156,6 +167,19 @@ def run(layers: int, workdir: Path) -> dict:
                   for name, verdicts in (("defects", vd), ("clean", vc))}
     lat = lat_by_job["defects"] + lat_by_job["clean"]
     scan = [t["scan_s"] for name in ("defects", "clean") for t in timings[name]] or [0.0]
+    # 4b. the service's path re-measured over the stored scans of the defect-free job: a
+    # warm runner (imports paid at start), the expected map prepared at the layer event
+    # (not for layer 0: no grid known yet); then analyse() timed from the scan's end
+    from sffscan.pipeline.printjob.layer import LayerRunner
+
+    runner = LayerRunner(JobStore.open(workdir / "clean"))
+    service = []
+    for k in range(layers):
+        if k > 0:
+            runner.prepare(k)
+        t_a = time.perf_counter()
+        runner.analyse(k)
+        service.append(time.perf_counter() - t_a)
     # 5. the printer mapping fitted from the first layer's scan (defect-free job)
     from sffscan.pipeline.printjob.deviation import fit_printer_mapping
     from sffscan.pipeline.printjob.expected import PrinterMapping
@@ -188,6 +212,8 @@ def run(layers: int, workdir: Path) -> dict:
                                                           for n in ("defects", "clean")],
                               "after_first": max(max(lat_by_job[n][1:])
                                                  for n in ("defects", "clean"))},
+        "service_latency_s": {"median": statistics.median(service), "max": max(service),
+                              "per_layer": service},
         "mapping_fit": {"guess_error_um": 721.1, "error_um": fit_err, "seconds": t_fit,
                         "fitted_offset_um": list(fit.offset_um)},
         "scan_s": {"median": statistics.median(scan), "max": max(scan)},
@@ -198,7 +224,10 @@ def write(res: dict, out: Path) -> None:
     m = res["meta"]
     L = ["# Print-job bench (issue 25): `python bench/bench_printjob.py`", "",
          f"Machine: {m['machine']}. Scan: {m['config']}. {m['layers']} layers per print; "
-         f"wall {m['wall_s']:.0f} s for both prints.", "",
+         f"wall {m['wall_s']:.0f} s for both prints. The in-run rows (detection, false "
+         "alarms, the first latency row, scan times) come from the run that scanned the "
+         "layers (a rerun with --keep resumes the job folders and keeps them); the service "
+         "path row and the mapping fit are measured by every run.", "",
          "| bar | measured | target |", "|---|---|---|",
          f"| defects found at the right layer and object, within 1 mm | {res['found']} / "
          f"{res['n_defects']} ({100 * res['found'] / res['n_defects']:.0f} %), kinds: "
@@ -214,6 +243,10 @@ def write(res: dict, out: Path) -> None:
          f"{res['verdict_latency_s']['median']:.2f} s, max {res['verdict_latency_s']['max']:.2f}"
          f" s (first layer of a job, cold: {res['verdict_latency_s']['first_layer_of_each_job']}"
          f"; later layers max {res['verdict_latency_s']['after_first']:.2f} s) | <= 3 s |",
+         f"| verdict latency, service path re-measured (warm runner, expected map "
+         f"prepared at the layer event; layer 0 cold) | median "
+         f"{res['service_latency_s']['median']:.2f} s, max "
+         f"{res['service_latency_s']['max']:.2f} s | <= 3 s |",
          f"| printer mapping fitted from the first layer's scan (guess 0.72 mm off) | "
          f"error {res['mapping_fit']['error_um']:.1f} µm in "
          f"{res['mapping_fit']['seconds']:.2f} s | - |",

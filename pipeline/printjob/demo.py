@@ -187,6 +187,7 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
             out.append(store.read_verdict(k))
             continue
         runner.begin(k, float(program.layer_z_mm[k]))
+        runner.prepare(k)  # a service does this while the layer is scanned
         w = world.at_layer(k)
         t0 = time.perf_counter()
         try:

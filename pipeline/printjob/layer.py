@@ -29,7 +29,12 @@ from sffscan.pipeline.printjob.deviation import (
     compare_layer,
     failed_layer_verdict,
 )
-from sffscan.pipeline.printjob.expected import ExpectedMap, Grid, rasterise_expected
+from sffscan.pipeline.printjob.expected import (
+    ExpectedMap,
+    Grid,
+    PrinterMapping,
+    rasterise_expected,
+)
 from sffscan.pipeline.printjob.jobstore import JobError, JobStore
 
 if TYPE_CHECKING:
@@ -79,10 +84,34 @@ class LayerRunner:
         The job.
     """
 
-    def __init__(self, store: JobStore) -> None:
+    def __init__(self, store: JobStore, *, warm: bool = True) -> None:
         self.store = store
         self._expected: ExpectedMap | None = None
         self._grid: Grid | None = None
+        self._mapping: PrinterMapping | None = None
+        if warm:  # the service pays the imports at start, not after a layer's scan
+            import scipy.ndimage  # noqa: F401
+            import xarray  # noqa: F401
+            import zarr  # noqa: F401
+
+            import sffscan.api  # noqa: F401
+
+    def prepare(self, layer: int) -> bool:
+        """Rasterise the expected map of ``layer`` ahead (call it at the layer event, while
+        the layer is scanned): the G-code says what it should be before it is measured.
+        Uses the compared grid of the last done layer's mosaic (same configuration, same
+        grid); returns False when there is none yet (the first layer)."""
+        from sffscan.api import open_mosaic
+
+        for k in reversed(self.store.done_layers()):
+            try:
+                ds = open_mosaic(self.store.mosaic_path(k))
+            except (ValueError, FileNotFoundError, OSError):
+                continue
+            grid, _, _ = roi_grid(self.store, Grid.of_dataset(ds))
+            self.expected(layer, grid)
+            return True
+        return False
 
     def begin(self, layer: int, z_mm: float | None = None) -> Path:
         """Check the layer event and prepare the layer's folder (:meth:`JobStore.begin_layer`)."""
@@ -134,10 +163,13 @@ class LayerRunner:
         """Expected map of layers ``<= layer`` on ``grid`` (incremental when possible)."""
         prog, mapping = self.store.program, self.store.manifest.mapping
         base = self._expected
-        if base is None or self._grid != grid or base.upto_layer > layer:
+        if (base is None or self._grid != grid or self._mapping != mapping
+                or base.upto_layer > layer):
             base = None
+        elif base.upto_layer == layer:
+            return base
         exp = rasterise_expected(prog, grid, upto_layer=layer, mapping=mapping, base=base)
-        self._expected, self._grid = exp, grid
+        self._expected, self._grid, self._mapping = exp, grid, mapping
         return exp
 
     def analyse(self, layer: int) -> LayerVerdict:
