@@ -13,8 +13,7 @@ at 25 µm/px) and writes ``bench/printjob_results.md`` (and ``.json``):
 3. on the defect-free layers, over the same judged pixels (known, off the edge band, in
    the compared region): RMS(measured - expected) against RMS(measured - truth);
 4. verdict latency: from the end of a layer's scan (mosaic complete) to its verdict
-   written (the verdict's ``compute_s``: ``LayerRunner.analyse`` is called when the scan
-   returns), compared region 22.6 x 22.6 mm; and re-measured over the stored scans along
+   written (``LayerRunner.analyse`` is called when the scan returns), compared region 22.6 x 22.6 mm; and re-measured over the stored scans along
    the service's path (warm runner, expected map prepared at the layer event);
 5. the printer -> mosaic translation fitted from the defect-free job's first-layer scan,
    starting 0.72 mm off.
@@ -163,8 +162,9 @@ def run(layers: int, workdir: Path) -> dict:
         n_px += int(ok.sum())
     rms_exp, rms_true = np.sqrt(se_exp / n_px), np.sqrt(se_true / n_px)
     # 4. latency: the verdict's own compute time (analyse() starts when the scan has ended)
-    lat_by_job = {name: [v.compute_s for v in verdicts]
-                  for name, verdicts in (("defects", vd), ("clean", vc))}
+    lat_by_job = {name: [t["verdict_s"] for t in sorted(timings[name],
+                                                        key=lambda t: t["layer"])]
+                  for name in ("defects", "clean")}
     lat = lat_by_job["defects"] + lat_by_job["clean"]
     scan = [t["scan_s"] for name in ("defects", "clean") for t in timings[name]] or [0.0]
     # 4b. the service's path re-measured over the stored scans of the defect-free job: a
