@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.formats.ngff import level_path
+from sffscan.pipeline.formats.ngff import REDUCTION, level_path
 from sffscan.pipeline.formats.recording import open_recording
 from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
 from sffscan.pipeline.wiring import run_scan
@@ -40,7 +40,9 @@ def block_reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
     return out
 
 
-HOW = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum"}
+def how(name: str) -> str:
+    """The reduction of array ``name`` from one level to the next."""
+    return REDUCTION.get(name, "nanmean")
 
 
 def assert_pyramid_consistent(path: Path, *, stale: list[int] | None = None) -> int:
@@ -53,7 +55,7 @@ def assert_pyramid_consistent(path: Path, *, stale: list[int] | None = None) -> 
         base = np.asarray(g[name])  # type: ignore[index]
         for k in range(1, levels):
             got = np.asarray(g[level_path(name, k)])  # type: ignore[index]
-            want = block_reduce(base, 2 ** k, HOW[name])
+            want = block_reduce(base, 2 ** k, how(name))
             assert got.shape == want.shape, (name, k)
             if stale is not None:  # leave out the blocks under the box
                 f = 2 ** k
@@ -82,8 +84,8 @@ def test_downsample_is_the_blockwise_reduction_not_a_mean_of_means() -> None:
     levels = downsample(values, 4)
     assert len(levels) == 3
     for k, level in enumerate(levels, start=1):
-        for name in ARRAYS:
-            want = block_reduce(values[name], 2 ** k, HOW[name])
+        for name in values:
+            want = block_reduce(values[name], 2 ** k, how(name))
             np.testing.assert_allclose(level[name], want, rtol=2e-6, equal_nan=True)
     assert np.isnan(levels[2]["height"][0, 0]) and levels[2]["height"][1, 0] == 7.0
     # a mean of level-1 means would weigh this block's one value like a full pair
@@ -92,6 +94,24 @@ def test_downsample_is_the_blockwise_reduction_not_a_mean_of_means() -> None:
         warnings.simplefilter("ignore", RuntimeWarning)
         mean_of_means = np.nanmean(l1[:2, :2])
     assert not np.isclose(mean_of_means, levels[0 + 1]["height"][0, 0])
+
+
+def test_downsample_reduces_any_mosaic_array() -> None:
+    """An array beyond the four (an uncertainty, or one the format does not list yet) gets
+    its reduction too, without changing the others' values."""
+    rng = np.random.default_rng(1)
+    shape = (21, 34)
+    base = {name: rng.random(shape).astype(np.float32) for name in ARRAYS}
+    u = rng.random(shape).astype(np.float32)
+    u[rng.random(shape) < 0.3] = np.nan
+    extra = {**base, "uncertainty": u, "other": u}
+    plain, more = downsample(base, 3), downsample(extra, 3)
+    for k, (a, b) in enumerate(zip(plain, more, strict=True), start=1):
+        for name in ARRAYS:
+            assert np.array_equal(a[name], b[name], equal_nan=True)
+        for name in ("uncertainty", "other"):  # NaN-aware means
+            np.testing.assert_allclose(b[name], block_reduce(u, 2 ** k, "nanmean"),
+                                       rtol=2e-6, equal_nan=True)
 
 
 def test_default_levels() -> None:
