@@ -30,9 +30,14 @@ Protocol (`sffscan.stages.depth_study`): ten synthetic families of focus stacks
 shot + read noise none / light / heavy, 8-12 bits, textures of several grains and
 contrasts, sinusoids, flats, steep slopes, steps, heights near both ends of the range,
 N = 20..100 levels drawn per seed; 64 x 64 px, GLVM 9). For each family in turn the tunable
-candidate (`width-switch`: SPC where the focus curve is wider than a threshold, else
-`adaptive`) and the uncertainty's two constants are tuned on the *training* seeds of the
-other families, and every method is scored on the *held-out* seeds of that family. RMSE in
+candidates and the uncertainty's two constants are tuned on the *training* seeds of the
+other families, and every method is scored on the *held-out* seeds of that family. The
+candidates (settings in the last column, in this order): `width-switch` (SPC where the
+focus curve is wider than a threshold, levels, else `adaptive`), `scatter-select` (per
+pixel SPC or `adaptive`, whichever depth map is locally smoother over a window, px),
+`gauss-fit` (weighted least-squares Gaussian on log values over 2h + 1 levels about the
+filtered peak, weights the squared height above the curve's minimum; h) and `window-pc`
+(phase correlation over a window of a factor x the curve's measured width; the factor). RMSE in
 focus levels over the pixels of all held-out seeds of a family; in brackets the ratio to the
 best fixed method of the row. pertuz-simu02 (a third-party stack with ground truth) is
 scored with the candidate tuned on all families.

@@ -4,7 +4,9 @@ The families of :mod:`sffscan.stages.sim.families` are rendered with two disjoin
 seeds, *training* and *held-out*. For each family F in turn:
 
 1. the tunable candidates (:func:`width_switch`: its threshold on the curve's width;
-   :func:`scatter_select`: its window) are tuned on the training seeds of every family
+   :func:`scatter_select`: its window; :func:`sffscan.stages.depth_candidates.
+   gauss_window_fit`: its half window; :func:`sffscan.stages.depth_candidates.window_pc`:
+   its window's factor on the curve's width) are tuned on the training seeds of every family
    except F: the setting that minimises the sum over those families of
    ``log(RMSE / best fixed method's RMSE)``;
 2. every fixed method and the tuned candidates are scored on F's held-out seeds only.
@@ -28,7 +30,9 @@ from sffscan.stages.depth import (
     DEPTH_METHODS,
     _argmax,
     depth_from_focus,
+    median_filter_levels,
 )
+from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
 from sffscan.stages.depth_uncertainty import curve_width, depth_scatter
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
@@ -44,7 +48,9 @@ SCATTER_WINDOWS = (5.0, 9.0, 15.0, 21.0)
 """``scatter-select`` windows (px) the protocol tunes over."""
 
 CANDIDATES: dict[str, tuple[float, ...]] = {"width-switch": THRESHOLDS,
-                                            "scatter-select": SCATTER_WINDOWS}
+                                            "scatter-select": SCATTER_WINDOWS,
+                                            "gauss-fit": (3.0, 5.0, 7.0),
+                                            "window-pc": (3.0, 4.0, 5.0)}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
 
 COVERAGE_TARGET = 0.94
@@ -102,6 +108,13 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     for k in SCATTER_WINDOWS:
         d = scatter_select(depth["spc"], depth["adaptive"], window=int(k))
         sse[f"scatter-select@{k:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+    centre = median_filter_levels(a, median_size, volume.shape[0])
+    for h in CANDIDATES["gauss-fit"]:
+        d = gauss_window_fit(volume, centre, depth["adaptive"], half_window=int(h))
+        sse[f"gauss-fit@{h:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+    for g in CANDIDATES["window-pc"]:
+        d = window_pc(volume, centre, factor=g)
+        sse[f"window-pc@{g:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
     default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
         volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
         argmax=a)[0]

@@ -226,3 +226,27 @@ def test_a_depth_block_crosses_processes_with_its_uncertainty() -> None:
             assert got.uncertainty_um is None
         else:
             np.testing.assert_array_equal(got.uncertainty_um, unc)
+
+
+def test_candidate_estimators_known_answers() -> None:
+    """The weighted log-Gaussian fit finds a sampled Gaussian on a floor; the windowed PC a
+    symmetric peak; both at sub-level positions either side of the window's centre."""
+    from sffscan.stages.depth_candidates import (
+        gauss_window_fit,
+        half_height_run,
+        window_pc,
+    )
+
+    n = 40
+    k = np.arange(n, dtype=np.float64).reshape(n, 1, 1)
+    peaks = np.array([[17.3, 18.8, 20.0]])
+    vol = np.exp(-((k - peaks) ** 2) / (2 * 1.6**2)) + 0.2
+    centre = np.round(peaks).astype(int)
+    fit = gauss_window_fit(vol, centre, np.zeros((1, 3)), half_window=5)
+    np.testing.assert_allclose(fit, peaks, atol=0.02)  # the floor is the curve's minimum
+    run = half_height_run(vol, centre)
+    assert (run >= 3).all() and (run <= 5).all()  # FWHM 3.8 levels
+    pc = window_pc(vol, centre, factor=4.0)
+    np.testing.assert_allclose(pc, peaks, atol=0.05)
+    flat = np.ones((n, 1, 1))  # no maximum: the fallback
+    assert gauss_window_fit(flat, np.array([[7]]), np.array([[3.5]]), half_window=3)[0, 0] == 3.5

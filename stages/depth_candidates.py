@@ -1,0 +1,121 @@
+"""Depth estimators tried as candidates by the leave-one-family-out study
+(:mod:`sffscan.stages.depth_study`); none is a method of scan, replay or stack.
+
+Both fit a model over more than the 3 points of ``gauss3``, in a window about the
+median-filtered argmax (``centre``, as for SPC and ``adaptive``):
+
+* :func:`gauss_window_fit`: a Gaussian on log values over 2h + 1 levels, each level
+  weighted by the square of its height above the curve's minimum (the inverse of the
+  variance of a log value under additive noise), so the levels far down the curve's flanks
+  count little: the effective window follows the curve's width;
+* :func:`window_pc`: phase correlation over a window of P levels about the centre, P set
+  per pixel from the curve's measured width (its run of levels above half its height,
+  median over 11 x 11 px) times a factor: the whole curve's PC (SPC) for wide curves, a
+  short one for narrow curves on a noisy floor.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["gauss_window_fit", "half_height_run", "window_pc"]
+
+
+def _window(volume: np.ndarray, centre: np.ndarray, h: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levels centre - h .. centre + h (float64, (2h + 1, H, W)), the mask of those in the
+    range, and the offsets j (column vector)."""
+    n = volume.shape[0]
+    j = np.arange(-h, h + 1)[:, None, None]
+    k = np.asarray(centre)[None] + j
+    inside = (k >= 0) & (k < n)
+    vals = np.take_along_axis(volume, np.clip(k, 0, n - 1), axis=0).astype(np.float64)
+    return vals, inside, j.astype(np.float64)
+
+
+def gauss_window_fit(volume: np.ndarray, centre: np.ndarray, fallback: np.ndarray, *,
+                     half_window: int) -> np.ndarray:
+    """Weighted least-squares Gaussian (a parabola on log values) over 2h + 1 levels.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus volume.
+    centre : (H, W) ndarray of int
+        Window centres (median-filtered argmax), levels.
+    fallback : (H, W) ndarray of float
+        Depth where the fit fails (no maximum in the window, a singular system).
+    half_window : int, keyword-only
+        h >= 1.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    vals, inside, j = _window(volume, centre, half_window)
+    floor = np.asarray(volume, np.float64).min(axis=0)
+    w = np.where(inside, np.maximum(vals - floor[None], 0.0), 0.0)
+    q = w * w
+    y = np.log(np.maximum(w, 1e-30))
+    s = [np.sum(q * j**p, axis=0) for p in range(5)]
+    t = [np.sum(q * y * j**p, axis=0) for p in range(3)]
+    m = np.stack([np.stack([s[0], s[1], s[2]]), np.stack([s[1], s[2], s[3]]),
+                  np.stack([s[2], s[3], s[4]])])
+    m = np.moveaxis(m, (0, 1), (-2, -1))
+    det = np.linalg.det(m)
+    ok = np.abs(det) > 1e-9 * np.maximum(s[0], 1e-30) ** 3
+    coef = np.linalg.solve(np.where(ok[..., None, None], m, np.eye(3)),
+                           np.moveaxis(np.stack(t), 0, -1)[..., None])[..., 0]
+    b, c = coef[..., 1], coef[..., 2]
+    ok &= c < 0
+    off = np.where(ok, -b / (2.0 * np.where(ok, c, -1.0)), 0.0)
+    ok &= np.abs(off) <= half_window
+    return np.where(ok, np.asarray(centre) + off, fallback).astype(np.float32)
+
+
+def half_height_run(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15) -> np.ndarray:
+    """Levels in the run above half the curve's height (over its minimum) through the
+    window's maximum, within ``reach`` levels of ``centre``; (H, W) int."""
+    vals, inside, _ = _window(volume, centre, reach)
+    top = np.where(inside, vals, -np.inf)
+    peak = top.max(axis=0)
+    half = 0.5 * (peak + np.asarray(volume, np.float64).min(axis=0))
+    above = inside & (vals > half[None])
+    at = top.argmax(axis=0)
+    count = np.ones(at.shape, np.int64)
+    for sign in (1, -1):
+        run = np.ones(at.shape, bool)
+        for d in range(1, 2 * reach + 1):
+            idx = at + sign * d
+            run &= (idx >= 0) & (idx <= 2 * reach)
+            run &= np.take_along_axis(above, np.clip(idx, 0, 2 * reach)[None], 0)[0]
+            count += run
+    return count
+
+
+def window_pc(volume: np.ndarray, centre: np.ndarray, *, factor: float) -> np.ndarray:
+    """Phase correlation over P levels about ``centre``, P = factor x the curve's width
+    (:func:`half_height_run`, median over 11 x 11 px), odd, 5 .. N (kept inside the range).
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    n = volume.shape[0]
+    run = half_height_run(volume, centre)
+    pooled = cv2.medianBlur(np.clip(run, 0, 255).astype(np.uint8), 11).astype(np.int64)
+    top = n if n % 2 else n - 1
+    period = np.clip(np.round(factor * pooled).astype(np.int64) // 2 * 2 + 1, 5, top)
+    h = int(period.max()) // 2
+    c = np.asarray(centre).astype(np.int64)
+    shift = np.clip(period // 2 - c, 0, None) - np.clip(c + period // 2 - (n - 1), 0, None)
+    vals, inside, j = _window(volume, c + shift, h)
+    use = inside & (np.abs(j) <= (period // 2)[None])
+    theta = 2.0 * np.pi * (j + shift[None]) / period[None]
+    v = np.where(use, vals, 0.0)
+    re = np.sum(v * np.cos(theta), axis=0)
+    im = np.sum(v * np.sin(theta), axis=0)
+    return (c + np.arctan2(im, re) * period / (2.0 * np.pi)).astype(np.float32)
