@@ -407,3 +407,42 @@ def test_a_busy_address_or_a_loose_pairing_folder_touch_no_mosaic(
     assert rc == 2 and f"{folder}: " in capsys.readouterr().err
     assert sorted(p.name for p in (tmp_path / "keep.zarr").iterdir()) == before
     assert zarr.open_group(str(tmp_path / "keep.zarr"), mode="r").attrs["mine"] == 1
+
+
+def test_a_scan_fed_ids_jumping_to_2_62_is_incomplete_and_records_no_gap(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Defect 6 end to end: it ended 'complete' with 'frames_lost 4611686018427387874'."""
+    cfg = tiny_config(path=str(tmp_path / "m.zarr"))
+    toml = tmp_path / "scan.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    address = f"tcp://127.0.0.1:{free_port()}"
+    frames = _frames(12)
+    n = cfg.optics.n_levels  # in step with the focus staircase: only the ids are wrong
+    send = frames[:8] + [Frame(f.header.model_copy(update={
+        "frame_id": 2**62 + i, "focus_index": (2**62 + i) % n}), f.image)
+        for i, f in enumerate(frames[8:])]
+
+    def run() -> None:
+        with FrameSender(address) as sender:  # paired through the receiver's file
+            for f in send:
+                sender.send(f)
+            sender.end()
+
+    t = threading.Thread(target=run)
+    t.start()
+    try:
+        rc = main(["scan", "--config", str(toml), "-q", "--no-evaluate", "--source", address,
+                   "--record", str(tmp_path / "rec.zarr")])
+    finally:
+        t.join(60)
+    out = capsys.readouterr()
+    assert rc == EXIT_INCOMPLETE, out.err
+    assert "frame_id 4611686018427387904 is past the receiver's plan of" in out.err
+    assert "frames_lost 4611686018427387" not in out.out + out.err
+    attrs = zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs.asdict()
+    assert attrs["status"] == "incomplete" and attrs["frames_received"] == 8
+    assert attrs["frames_expected"] == frame_count(cfg)
+    from sffscan.pipeline.formats.recording import open_recording
+
+    r = open_recording(tmp_path / "rec.zarr")
+    assert r.report.frames == 8 and r.report.gaps == [] and r.report.last_id == 7
