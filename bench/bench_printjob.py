@@ -13,8 +13,9 @@ at 25 µm/px) and writes ``bench/printjob_results.md`` (and ``.json``):
 3. on the defect-free layers, over the same judged pixels (known, off the edge band, in
    the compared region): RMS(measured - expected) against RMS(measured - truth);
 4. verdict latency: from the end of a layer's scan (mosaic complete) to its verdict
-   written (``LayerRunner.analyse`` is called when the scan returns), compared region 22.6 x 22.6 mm; and re-measured over the stored scans along
-   the service's path (warm runner, expected map prepared at the layer event);
+   written (``LayerRunner.analyse`` is called when the scan returns), compared region
+   22.6 x 22.6 mm; and re-measured over the stored scans along the service's path (warm
+   runner, expected map prepared at the layer event);
 5. the printer -> mosaic translation fitted from the defect-free job's first-layer scan,
    starting 0.72 mm off.
 
