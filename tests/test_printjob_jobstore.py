@@ -93,11 +93,10 @@ def test_restart_redoes_an_unfinished_layer_and_keeps_the_done_ones(tmp_path, gc
 
 
 def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
-    from sffscan.pipeline.printjob.demo import demo_config, run_simulated_print
+    from sffscan.pipeline.printjob.demo import run_simulated_print
     from sffscan.stages.sim.print_world import PrintDefect
 
-    cfg = demo_config(frame_px=(160, 128), x_mm=(0.0, 8.0), y_start_mm=0.2, passes=2,
-                      optics={"n_levels": 12, "z_min_um": -400.0, "z_step_um": 150.0})
+    cfg = _tiny_config()
     blob = PrintDefect("blob", 2, "right", (6.2, 2.2), size_mm=0.8, height_um=400.0)
     seen = []
     verdicts = run_simulated_print(tmp_path / "job", gcode=gcode, defects=(blob,), config=cfg,
@@ -119,6 +118,36 @@ def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
     run_simulated_print(tmp_path / "job", gcode=gcode, defects=(blob,), config=cfg,
                         on_layer=lambda k, v, t: again.append(k))
     assert again == []
+
+
+def test_a_missing_or_failed_scan_is_unknown_never_pass(tmp_path, gcode) -> None:
+    from sffscan.pipeline.printjob.layer import LayerRunner
+
+    store = JobStore.create(tmp_path / "job", gcode=gcode)
+    runner = LayerRunner(store, warm=False)
+    runner.begin(0, 0.2)
+    v = runner.analyse(0)  # the scan never wrote its mosaic
+    assert v.verdict == "unknown" and "no readable mosaic" in v.reason
+    assert store.done_layers() == [0] and store.read_verdict(0).verdict == "unknown"
+    runner.begin(1, 0.4)
+    d = runner.scan(1, config=_tiny_config(), frames=iter(()))  # no frame at all
+    assert store.mosaic_path(1).is_dir() and d.frames == 0
+    v = runner.analyse(1)
+    assert v.verdict == "unknown" and "100 % unknown" in v.reason  # nothing measured
+    import zarr
+
+    zarr.open_group(str(store.mosaic_path(1)), mode="r+").attrs["status"] = "failed"
+    v = runner.analyse(1)  # a stage failed mid-scan
+    assert v.verdict == "unknown" and "not 'complete'" in v.reason
+    v = runner.fail(2, "scan timed out after 60 s")  # a timeout releases the printer
+    assert v.verdict == "unknown" and store.done_layers() == [0, 1, 2]
+
+
+def _tiny_config():
+    from sffscan.pipeline.printjob.demo import demo_config
+
+    return demo_config(frame_px=(160, 128), x_mm=(0.0, 8.0), y_start_mm=0.2, passes=2,
+                       optics={"n_levels": 12, "z_min_um": -400.0, "z_step_um": 150.0})
 
 
 def test_cli_job_show(tmp_path, gcode, capsys) -> None:
