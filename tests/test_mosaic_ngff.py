@@ -235,3 +235,17 @@ def test_open_mosaic_reads_the_arrays_the_mosaic_has(mosaic: Path,
     monkeypatch.setattr(mosaic_module, "ARRAYS", (*ARRAYS, "uncertainty"))
     ds = open_mosaic(mosaic, level=1)
     assert set(ds.data_vars) == set(ARRAYS)
+
+
+def test_consolidation_is_quiet_beside_the_writers_reserve(tmp_path: Path) -> None:
+    """The writer's disk-full reserve (a plain file in the folder) is not a Zarr node:
+    consolidating beside it warns nothing (warnings are errors in the tests)."""
+    from sffscan.pipeline.formats.ngff import consolidate
+    from sffscan.stages.durable import RESERVE_NAME
+    from sffscan.stages.mosaic import MosaicWriter
+
+    path = tmp_path / "q.zarr"
+    MosaicWriter(path, origin_px=(0, 0), shape=(16, 16), pixel_um=2.0, chunk_px=8, levels=2)
+    assert (path / RESERVE_NAME).exists()
+    consolidate(path)
+    assert "consolidated_metadata" in json.loads((path / "zarr.json").read_text())

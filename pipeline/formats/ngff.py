@@ -144,11 +144,15 @@ def consolidate(path: str | Path) -> None:
     shapes of the moment it was made; a writer that reopens the group opens it with
     ``use_consolidated=False`` and its first attribute write drops the copy. zarr 3.1 warns
     that consolidated metadata is not part of the Zarr v3 specification (readers that do
-    not know it read each ``zarr.json`` as before); that warning is expected here.
+    not know it read each ``zarr.json`` as before); that warning is expected here, and so is
+    the one about files in the folder that are not Zarr nodes (the writer's reserve).
     """
     import zarr
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part",
                                 category=UserWarning)
+        # a file of the writer's own in the folder (its disk-full reserve) is not a node
+        warnings.filterwarnings("ignore", message="Object at .* is not recognized as a "
+                                "component of a Zarr hierarchy", category=UserWarning)
         zarr.consolidate_metadata(str(path))
