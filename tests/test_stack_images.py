@@ -205,3 +205,71 @@ def test_readme_stack_example_runs_as_written(pertuz_dir: Path, tmp_path: Path) 
                           struct_as_record=False)["imdata"]
     np.testing.assert_allclose(g.attrs["focus_heights_um"], np.asarray(im.focus) * 1e6,
                                rtol=1e-12)
+
+
+def test_stack_names_an_unmatched_glob_and_a_missing_file_first(
+        pertuz_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # issue 26 item 7: a shell glob that matches nothing arrives as its pattern
+    common = ["--focus-start", "0", "--focus-step", "1", "--pixel-um", "1",
+              "-o", str(tmp_path / "a.zarr")]
+    assert main(["stack", str(tmp_path / "*.tif"), *common]) == 2
+    err = capsys.readouterr().err
+    assert "no file matches the pattern" in err and "*.tif" in err
+    assert "at least 3" not in err
+    # a missing file is named before any word on the order of the names
+    names = ["im_1.tif", "im_01.tif", "im_2.tif"]
+    for i, name in enumerate(names[:2], start=1):
+        shutil.copy(pertuz_dir / f"im_{i:02d}.tif", tmp_path / name)
+    assert main(["stack", *(str(tmp_path / n) for n in names), *common]) == 2
+    err = capsys.readouterr().err
+    assert "im_2.tif: file not found" in err and "ambiguous" not in err
+    assert not (tmp_path / "a.zarr").exists()
+
+
+def _weighted_median_by_argsort(z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
+    """The filter as it was written before (argsort and gathers), the reference."""
+    valid = np.isfinite(z)
+    wz = np.where(valid, np.maximum(w, 1e-3), 0.0).astype(np.float32)
+    zz = np.where(valid, z, np.inf).astype(np.float32)
+    r = size // 2
+    zs = np.lib.stride_tricks.sliding_window_view(np.pad(zz, r, mode="edge"), (size, size))
+    ws = np.lib.stride_tricks.sliding_window_view(np.pad(wz, r, mode="edge"), (size, size))
+    zs = zs.reshape(*z.shape, size * size)
+    ws = ws.reshape(*z.shape, size * size)
+    order = np.argsort(zs, axis=-1, kind="stable")
+    zs = np.take_along_axis(zs, order, axis=-1)
+    cum = np.cumsum(np.take_along_axis(ws, order, axis=-1), axis=-1, dtype=np.float64)
+    k = np.count_nonzero(cum < 0.5 * cum[..., -1:], axis=-1)
+    return np.where(valid, np.take_along_axis(zs, k[..., None], axis=-1)[..., 0], np.nan)
+
+
+@pytest.mark.parametrize("size", [3, 15])
+def test_weighted_median_equals_the_argsort_form(size: int) -> None:
+    from sffscan.stages.fields.stationary import confidence_weighted_median
+
+    rng = np.random.default_rng(size)
+    z = (rng.normal(size=(37, 53)) * 100).astype(np.float32)
+    z[rng.random(z.shape) < 0.1] = np.nan
+    z[:6, :6] = -0.0  # ties, and a negative zero
+    z[30:, 40:] = 12.5
+    z[0, 40:] = -np.inf
+    w = rng.random(z.shape).astype(np.float32)
+    w[rng.random(z.shape) < 0.2] = 0.0
+    calls: list[tuple[int, int]] = []
+    got = confidence_weighted_median(z, w, size=size, block_rows=8,
+                                     progress=lambda d, n: calls.append((d, n)))
+    np.testing.assert_array_equal(got, _weighted_median_by_argsort(z, w, size))
+    assert calls[-1] == (37, 37) and len(calls) == 5
+
+
+def test_stack_shows_its_progress(pertuz_dir: Path, tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    # issue 26 item 4: a long stack said nothing until it ended
+    padded = [str(pertuz_dir / f"im_{i:02d}.tif") for i in range(1, 31)]
+    assert main(["stack", *padded, "--focus-start", "0", "--focus-step", "1", "--pixel-um",
+                 "1", "--filter-size", "5", "-o", str(tmp_path / "a.zarr")]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"images 1/30 \(3\.3 %\)", err) and "read 30 images in" in err, err
+    assert "reconstruction done in" in err
+    assert re.search(r"median rows \d+/256", err), err
+    assert "weighted median 5x5 done in" in err

@@ -28,6 +28,11 @@ from sffscan.pipeline.cli.common import (
     EXIT_OK,
     OPERATOR_CHOICES,
 )
+from sffscan.pipeline.cli.stack_steps import (
+    image_order,
+    read_images,
+    reconstruct_with_progress,
+)
 
 UNIT_TO_UM = {"um": 1.0, "mm": 1000.0, "m": 1e6}
 
@@ -124,27 +129,6 @@ def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None)
     return table
 
 
-def _image_order(args: argparse.Namespace) -> list[str]:
-    """The image files in focus order: natural order of their names (``im_2`` before
-    ``im_10``, whatever the shell's glob did), said in a status line, with a warning when the
-    names leave the order ambiguous; ``--keep-order`` keeps the order given."""
-    from sffscan.stages.fields.image_io import natural_order
-
-    given = [str(p) for p in args.images]
-    if args.keep_order or len(given) < 2:
-        return given
-    ordered, ambiguous = natural_order(given)
-    names = [p.name for p in ordered]
-    span = f"{names[0]}, {names[1]}, ... {names[-1]}" if len(names) > 2 else ", ".join(names)
-    moved = [str(p) for p in ordered] != given
-    log.info("stack: images in natural order of their names (%s)%s; --keep-order keeps the "
-             "order given", span, ", reordered" if moved else "")
-    if ambiguous:
-        log.warning("stack: the focus order of the images is ambiguous: %s. Check it, or give "
-                    "the files in focus order with --keep-order", ambiguous)
-    return [str(p) for p in ordered]
-
-
 def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
     """The (N, H, W) stack and its (N,) focus table (µm) that the options of
     :func:`stack_input_options` name (used by ``stack`` and ``study``).
@@ -155,14 +139,14 @@ def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
         If a file cannot be read, or the focus table is missing, not monotonic or of another
         length than the stack (the message names the file or option).
     """
-    from sffscan.stages.fields.stationary import read_image_stack, read_zarr_stack
+    from sffscan.stages.fields.stationary import read_zarr_stack
 
     if args.zarr:
         if args.images:
             raise ValueError("give image files or --zarr, not both")
         stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
     else:
-        stack, zarr_table = read_image_stack(_image_order(args), grey=args.grey), None
+        stack, zarr_table = read_images(image_order(args), grey=args.grey), None
     return stack, _focus_table(args, stack.shape[0], zarr_table)
 
 
@@ -171,7 +155,6 @@ def cmd_stack(args: argparse.Namespace) -> int:
 
     from sffscan.pipeline.metrology.optics_correction import applied
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
-    from sffscan.stages.fields.stationary import reconstruct_field
     from sffscan.stages.fields.stop_and_go import feather_weights, stitch_field
     from sffscan.stages.mosaic import MosaicWriter
 
@@ -194,8 +177,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
                  f"k={settings.window}, {settings.method}, weighted median "
                  f"{settings.filter_size}x{settings.filter_size}")
         t0 = time.perf_counter()
-        result = reconstruct_field(stack, focus_heights_um=table, settings=settings,
-                                   max_value=max_value)
+        result = reconstruct_with_progress(stack, table, settings, max_value)
         if correction is not None:
             result = correction.field(result)
         if covered is not None:  # pixels some aligned frame does not cover: not measured

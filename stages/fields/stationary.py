@@ -21,7 +21,7 @@ Image stacks are read from image files (:func:`read_image_stack`) or a Zarr arra
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -140,7 +140,9 @@ class FieldResult:
 
 
 def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size: int,
-                               block_rows: int = 64) -> np.ndarray:
+                               block_rows: int = 16,
+                               progress: Callable[[int, int], None] | None = None
+                               ) -> np.ndarray:
     """Weighted median of ``values`` over ``size x size`` windows, weights ``weights``.
 
     For each finite pixel, the neighbours' finite values are sorted and the first one at
@@ -158,7 +160,9 @@ def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size:
         Odd window size, px; 1 returns a float32 copy.
     block_rows : int, keyword-only
         Rows processed at once (bounds the temporary memory: ``block_rows * W * size**2``
-        elements).
+        8-byte keys).
+    progress : callable, keyword-only
+        Called as ``progress(rows_done, rows)`` after each block of rows (a progress display).
 
     Returns
     -------
@@ -183,23 +187,39 @@ def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size:
     valid = np.isfinite(z)
     wz = np.where(valid, np.maximum(w, MIN_WEIGHT), 0.0).astype(np.float32)
     zz = np.where(valid, z, np.inf).astype(np.float32)  # invalid sort last, with weight 0
+    # One uint64 key per pixel: the value's order-preserving bits above, the weight's float32
+    # bits below. A plain sort of the keys (numpy's SIMD sort) orders the values and carries
+    # the weights along: no argsort and no gathers (3-5x faster, the same medians; measured
+    # in tests/test_stack_images.py against the argsort form).
+    key = (_order_bits(zz).astype(np.uint64) << np.uint64(32)) | wz.view(np.uint32)
     r = size // 2
-    zp = np.pad(zz, r, mode="edge")
-    wp = np.pad(wz, r, mode="edge")
+    kp = np.pad(key, r, mode="edge")
     out = np.full(z.shape, np.nan, dtype=np.float32)
+    low = np.uint64(0xFFFFFFFF)
     for i0 in range(0, z.shape[0], block_rows):
         i1 = min(i0 + block_rows, z.shape[0])
-        zw = np.lib.stride_tricks.sliding_window_view(zp[i0 : i1 + 2 * r], (size, size))
-        ww = np.lib.stride_tricks.sliding_window_view(wp[i0 : i1 + 2 * r], (size, size))
-        zs = zw.reshape(i1 - i0, z.shape[1], size * size)
-        ws = ww.reshape(i1 - i0, z.shape[1], size * size)
-        order = np.argsort(zs, axis=-1)
-        zs = np.take_along_axis(zs, order, axis=-1)
-        cum = np.cumsum(np.take_along_axis(ws, order, axis=-1), axis=-1, dtype=np.float64)
+        kw = np.lib.stride_tricks.sliding_window_view(kp[i0 : i1 + 2 * r], (size, size))
+        ks = np.sort(kw.reshape(i1 - i0, z.shape[1], size * size), axis=-1)
+        ws = (ks & low).astype(np.uint32).view(np.float32)
+        cum = np.cumsum(ws, axis=-1, dtype=np.float64)
         k = np.count_nonzero(cum < 0.5 * cum[..., -1:], axis=-1)
-        med = np.take_along_axis(zs, k[..., None], axis=-1)[..., 0]
-        out[i0:i1] = np.where(valid[i0:i1], med, np.nan)
+        med = np.take_along_axis(ks, k[..., None], axis=-1)[..., 0] >> np.uint64(32)
+        out[i0:i1] = np.where(valid[i0:i1], _from_order_bits(med.astype(np.uint32)), np.nan)
+        if progress is not None:
+            progress(i1, z.shape[0])
     return out
+
+
+def _order_bits(z: np.ndarray) -> np.ndarray:
+    """float32 -> uint32 whose unsigned order is the floats' order (-inf < ... < inf)."""
+    b = z.view(np.uint32)
+    return np.where(b & np.uint32(0x80000000), ~b, b | np.uint32(0x80000000))
+
+
+def _from_order_bits(b: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_order_bits`."""
+    bits = np.where(b & np.uint32(0x80000000), b & np.uint32(0x7FFFFFFF), ~b)
+    return bits.astype(np.uint32).view(np.float32)
 
 
 # ----------------------------------------------------------------------------- reconstruction

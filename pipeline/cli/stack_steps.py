@@ -1,0 +1,104 @@
+"""The steps of ``sffscan stack`` that say what they do: the image files checked and read
+with a progress display, the reconstruction timed, the weighted median with a progress
+display (on large photographs it is the longest step)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from sffscan.stages.fields.stationary import FieldResult, StackSettings
+
+log = logging.getLogger("sffscan.pipeline.cli.metrology")
+
+
+def check_files_exist(paths: list[str]) -> None:
+    """Every image file exists: a shell glob that matched nothing comes as its own pattern
+    (``'d/*.tif'``), named as such, before anything else is said about the images."""
+    for p in paths:
+        if Path(p).exists():
+            continue
+        if any(c in p for c in "*?["):
+            raise ValueError(f"no file matches the pattern {p!r} (the shell passes a pattern "
+                             "that matches nothing as it is)")
+        raise ValueError(f"{p}: file not found")
+
+
+def read_images(paths: list[str], *, grey: bool) -> np.ndarray:
+    """The images of ``paths`` as an (N, H, W) stack, with a progress display of the files
+    read; the checks of :func:`sffscan.stages.fields.stationary.read_image_stack`."""
+    from sffscan.pipeline.progress import ProgressDisplay
+    from sffscan.stages.fields.image_io import read_image
+
+    if len(paths) < 3:
+        raise ValueError(f"a focus stack needs at least 3 images, got {len(paths)}")
+    images: list[np.ndarray] = []
+    t0 = time.perf_counter()
+    with ProgressDisplay(len(paths), desc="images") as display:
+        for p in paths:
+            img = read_image(p, grey=grey)
+            if images and (img.shape != images[0].shape or img.dtype != images[0].dtype):
+                raise ValueError(f"{p}: shape {img.shape} {img.dtype} differs from the first "
+                                 f"image's {images[0].shape} {images[0].dtype}")
+            images.append(img)
+            display.update(len(images), time.perf_counter() - t0)
+    log.info("stack: read %d images in %.1f s", len(images), time.perf_counter() - t0)
+    return np.stack(images)
+
+
+def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: StackSettings,
+                              max_value: float | None) -> FieldResult:
+    """:func:`~sffscan.stages.fields.stationary.reconstruct_field` with what it does said on
+    stderr: the reconstruction (its time), then the weighted median with a progress display
+    of its rows (on large photographs it is the longer part)."""
+    from dataclasses import replace
+
+    from sffscan.pipeline.progress import ProgressDisplay
+    from sffscan.stages.fields.stationary import confidence_weighted_median, reconstruct_field
+
+    t0 = time.perf_counter()
+    log.info("stack: reconstruction (focus measure, depth, all-in-focus image) ...")
+    raw = reconstruct_field(stack, focus_heights_um=table, max_value=max_value,
+                            settings=replace(settings, filter_size=1, min_confidence=0.0))
+    log.info("stack: reconstruction done in %.1f s", time.perf_counter() - t0)
+    if settings.filter_size == 1:
+        height = raw.height_um
+    else:
+        t1 = time.perf_counter()
+        with ProgressDisplay(raw.height_um.shape[0], desc="median rows") as display:
+            height = confidence_weighted_median(
+                raw.raw_height_um, raw.confidence, size=settings.filter_size,
+                progress=lambda done, _n: display.update(done, time.perf_counter() - t1))
+        log.info("stack: weighted median %dx%d done in %.1f s", settings.filter_size,
+                 settings.filter_size, time.perf_counter() - t1)
+    if settings.min_confidence > 0:
+        height[raw.confidence < settings.min_confidence] = np.nan
+    return replace(raw, height_um=height, settings=settings)
+
+
+def image_order(args: argparse.Namespace) -> list[str]:
+    """The image files in focus order: natural order of their names (``im_2`` before
+    ``im_10``, whatever the shell's glob did), said in a status line, with a warning when the
+    names leave the order ambiguous; ``--keep-order`` keeps the order given."""
+    from sffscan.stages.fields.image_io import natural_order
+
+    given = [str(p) for p in args.images]
+    check_files_exist(given)
+    if args.keep_order or len(given) < 2:
+        return given
+    ordered, ambiguous = natural_order(given)
+    names = [p.name for p in ordered]
+    span = f"{names[0]}, {names[1]}, ... {names[-1]}" if len(names) > 2 else ", ".join(names)
+    moved = [str(p) for p in ordered] != given
+    log.info("stack: images in natural order of their names (%s)%s; --keep-order keeps the "
+             "order given", span, ", reordered" if moved else "")
+    if ambiguous:
+        log.warning("stack: the focus order of the images is ambiguous: %s. Check it, or give "
+                    "the files in focus order with --keep-order", ambiguous)
+    return [str(p) for p in ordered]
