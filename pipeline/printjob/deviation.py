@@ -13,8 +13,8 @@ Each pixel belongs to the object of the expected bead on it, or, off the part, t
 nearest object within ``object_margin_um`` (material pushed off the part: a layer shift).
 An object's verdict is ``fail`` when its largest blob is >= ``fail_area_mm2``, ``warn``
 when its blobs total >= ``warn_area_mm2``, else ``unknown`` when more than
-``max_unknown_fraction`` of its footprint's pixels (where its expected beads are) are
-unknown, else ``pass``. The layer's verdict is
+``max_unknown_fraction`` of its footprint's pixels (where its expected beads are, off the
+edge band) are unknown, else ``pass``. The layer's verdict is
 the worst of its objects' (fail > warn > unknown > pass); a failed scan is ``unknown``.
 """
 
@@ -70,7 +70,8 @@ class ObjectVerdict(BaseModel):
     name: str
     verdict: Verdict
     pixels: int = Field(description="Pixels of the object's expected footprint")
-    unknown_fraction: float = Field(description="Unknown fraction of the footprint's pixels")
+    unknown_fraction: float = Field(description="Unknown fraction of the footprint's pixels "
+                                    "off the edge band")
     p95_abs_um: float | None = Field(description="95th percentile of |deviation| over the "
                                      "judged pixels, µm; None without any")
     rms_um: float | None
@@ -212,7 +213,10 @@ def compare_layer(measured_um: np.ndarray, expected: ExpectedMap, *, grid: Grid,
         if n == 0:  # not printed on this layer's area (or not yet): nothing to judge
             continue
         mine = region == k  # its own pixels and the off-part ones nearest to it
-        unk = float((unknown & own).sum()) / n  # unscanned margins do not count
+        core = own & ~edge  # unscanned margins and the edge band (not judged) do not count
+        if not core.any():
+            core = own
+        unk = float((unknown & core).sum()) / float(core.sum())
         jm = judged & mine
         vals = adev[jm]
         p95 = float(np.percentile(vals, 95)) if vals.size else None
