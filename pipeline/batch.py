@@ -42,13 +42,15 @@ import csv
 import glob
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import zarr
 from sffscan.pipeline import locks
+from sffscan.pipeline.cover import plan_cover, planned_box_px
 from sffscan.pipeline.metrology.evaluate import store_accuracy, stored_accuracy
 from sffscan.pipeline.run import InputBusy, ResumeRefused
 
@@ -58,7 +60,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 __all__ = ["BatchError", "BatchRow", "ResumeRefused",
-           "find_recordings", "format_table", "mosaic_path", "plan_targets",
+           "find_recordings", "format_table", "mosaic_path", "plan_cover", "plan_targets",
+           "planned_box_px",
            "process_recording", "run_batch",
            "store_accuracy", "stored_accuracy", "write_csv"]
 
@@ -89,6 +92,7 @@ class BatchRow:
     frames_lost: int | None = None
     valid_pixels: int | None = None
     rmse_um: float | None = None
+    #: valid pixels / pixels the scan's plan measures (:func:`plan_cover`)
     coverage: float | None = None
     wall_s: float | None = None
     worker: str = ""
@@ -212,7 +216,8 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
         evaluate_sim(report, make_world(cfg))  # also stored in the mosaic's attributes
         acc = stored_accuracy(zarr.open_group(str(mosaic), mode="r").attrs.asdict())
         if acc is not None:
-            row.rmse_um, row.coverage = acc.rmse_um, acc.coverage
+            row.rmse_um = acc.rmse_um
+    row.coverage = plan_cover(mosaic)
 
 
 def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any],
@@ -234,16 +239,9 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
                    worker=socket.gethostname())
     t0 = time.perf_counter()
     try:
-        import torch
-
-        before = torch.get_num_threads()
-        torch.set_num_threads(threads)
-        try:
-            with threadpool_limits(limits=threads):
-                _replay(recording, mosaic, processing=processing, evaluate=evaluate,
-                        overwrite=overwrite, row=row)
-        finally:  # a worker of a shared cluster runs other tasks after this one
-            torch.set_num_threads(before)
+        with _torch_threads(threads), threadpool_limits(limits=threads):
+            _replay(recording, mosaic, processing=processing, evaluate=evaluate,
+                    overwrite=overwrite, row=row)
     except Exception as exc:  # noqa: BLE001 - reported in the row; the batch goes on
         row.status = "failed"
         if isinstance(exc, InputBusy):  # not a failure: a rerun does it once it is complete
@@ -253,6 +251,26 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
         row.error = " ".join(text.split())[:500]
     row.wall_s = round(time.perf_counter() - t0, 3)
     return asdict(row)
+
+
+@contextmanager
+def _torch_threads(threads: int) -> Iterator[None]:
+    """torch's intra-op threads limited to ``threads`` for the block (restored after: a
+    worker of a shared cluster runs other tasks); nothing when torch is not installed (it
+    is the optional extra ``sffscan[torch]``) or not imported yet."""
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is None:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _same_recording(recording: Path, attrs: dict[str, Any]) -> bool:
@@ -287,7 +305,7 @@ def _kept(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
                    frames=rec.get("frames"), frames_lost=rec.get("frames_lost"),
                    valid_pixels=attrs.get("valid_pixels"),
                    rmse_um=acc.rmse_um if acc is not None else None,
-                   coverage=acc.coverage if acc is not None else None)
+                   coverage=plan_cover(mosaic))
     if attrs.get("status") == "incomplete":
         row.status = "incomplete"
         row.note = ("kept: frames lost in the recording, a replay ends incomplete again "

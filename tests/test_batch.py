@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import csv
 import shutil
+import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -60,7 +62,8 @@ def test_batch_reports_the_bad_recording_completes_the_others_and_resumes(
         g = zarr.open_group(row["mosaic"], mode="r")
         assert g.attrs["status"] == "complete"
         assert g.attrs["valid_pixels"] == int(np.isfinite(np.asarray(g["height"])).sum())  # type: ignore[index]
-        assert len(g.attrs["ome"]["multiscales"][0]["datasets"]) >= 4  # type: ignore[index]
+        ome: Any = g.attrs.asdict()["ome"]
+        assert len(ome["multiscales"][0]["datasets"]) >= 4
     # the three identical recordings give identical mosaics, whichever worker ran them
     first = np.asarray(zarr.open_group(rows["layer_000.zarr"]["mosaic"], mode="r")["height"])  # type: ignore[index]
     for i in (1, 2):
@@ -106,3 +109,32 @@ def test_bad_batch_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[s
     with pytest.raises(BatchError, match="no such"):
         find_recordings([tmp_path / "missing.zarr"])
     assert mosaic_path(Path("a/layer_7.zarr"), Path("o")) == Path("o/layer_7.mosaic.zarr")
+
+
+def test_cover_is_valid_pixels_over_the_planned_area_and_batch_runs_without_torch(
+        layers: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 26: without torch (the optional extra) every batch row failed (import torch);
+    # issue 26 item 5: cover read 1.000 for a layer that lost a fifth of its valid pixels
+    from sffscan.pipeline.batch import plan_targets, process_recording
+    from sffscan.pipeline.config import ScanConfig
+    from sffscan.pipeline.cover import plan_cover, planned_box_px
+    from sffscan.stages.mosaic import mosaic_array
+
+    monkeypatch.setitem(sys.modules, "torch", None)  # import torch raises ImportError
+    rec, mos = layers / "layer_000.zarr", tmp_path / "layer_000.mosaic.zarr"
+    row = process_recording(str(rec), str(mos), processing={}, evaluate=True, threads=1)
+    assert row["status"] == "complete", row["error"]
+    assert row["coverage"] == 1.0  # a clean scan measures its whole strip
+    g = zarr.open_group(str(mos), mode="r+")
+    attrs: dict[str, Any] = g.attrs.asdict()
+    assert attrs["accuracy"]["coverage"] == 1.0
+    # a corrupt frame's worth of heights lost: the first fifth of the strip's rows
+    x0, y0, x1, y1 = planned_box_px(ScanConfig.model_validate(attrs["scan_config"]))
+    ox, oy = attrs["origin_px"]
+    height = mosaic_array(g, "height")
+    lost = (y1 - y0) // 5
+    block = np.asarray(height[y0 - oy:y0 - oy + lost, x0 - ox:x1 - ox])
+    height[y0 - oy:y0 - oy + lost, x0 - ox:x1 - ox] = np.full_like(block, np.nan)
+    assert plan_cover(mos) == pytest.approx(1 - lost / (y1 - y0))
+    rows, todo = plan_targets([(rec, mos)])  # the rerun's row of the kept mosaic says so
+    assert todo == [] and rows[0].coverage == pytest.approx(0.8, abs=0.01)

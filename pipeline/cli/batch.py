@@ -96,8 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                     "others complete. A rerun skips complete mosaics, keeps incomplete ones "
                     "(frames lost in the recording) and resumes interrupted ones (left "
                     "'writing' or 'failed': a worker killed, a machine lost) as 'replay "
-                    "--resume' does. A results table is printed and written as CSV. Exit 1 if "
-                    "any recording failed or is incomplete.",
+                    "--resume' does. A results table is printed and written as CSV; its "
+                    "'cover' is the valid pixels as a fraction of the area the scan's plan "
+                    "measures (its strip), whatever the truth. Exit 1 if any recording failed "
+                    "or is incomplete.",
         epilog="Several machines: start 'dask scheduler' on one (port 8786), 'dask worker "
                "tcp://HOST:8786 --nworkers 2 --nthreads 1' on each, with sffscan installed and "
                "the recordings and OUT on a shared file system at the same paths; then "
