@@ -284,7 +284,10 @@ def _format_validation(err: ValidationError, origin: str) -> str:
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
         got = f" (got {e['input']!r})" if "input" in e and not isinstance(e["input"], dict) else ""
-        lines.append(f"{origin}: {loc}: {e['msg']}{got}")
+        msg = e["msg"].removeprefix("Value error, ")  # a validator's own message, as is
+        if got and f"got {e['input']!r}" in msg:  # the validator's message names it
+            got = ""
+        lines.append(f"{origin}: {loc}: {msg}{got}")
     return "\n".join(lines)
 
 

@@ -55,7 +55,10 @@ from sffscan.pipeline.messages import (  # noqa: E402 (after the source tree's p
 )
 
 if _typing.TYPE_CHECKING:
+    from sffscan.pipeline.batch import BatchError, BatchRow, find_recordings, run_batch
+    from sffscan.pipeline.formats.exports import MosaicRegion, read_region, write_ply, write_x3p
     from sffscan.pipeline.formats.recording import RecordingError
+    from sffscan.pipeline.metrology.areal import ArealParameters, areal_parameters
     from sffscan.pipeline.runtime import StageFailed
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
@@ -67,7 +70,17 @@ except _PackageNotFoundError:  # pragma: no cover - running from a source tree, 
 
 #: Names of the API whose modules load zarr, OpenCV or torch: imported on first use.
 _LAZY = {
+    "ArealParameters": "sffscan.pipeline.metrology.areal",
+    "BatchError": "sffscan.pipeline.batch",
+    "BatchRow": "sffscan.pipeline.batch",
     "FieldResult": "sffscan.stages.fields.stationary",
+    "MosaicRegion": "sffscan.pipeline.formats.exports",
+    "areal_parameters": "sffscan.pipeline.metrology.areal",
+    "find_recordings": "sffscan.pipeline.batch",
+    "read_region": "sffscan.pipeline.formats.exports",
+    "run_batch": "sffscan.pipeline.batch",
+    "write_ply": "sffscan.pipeline.formats.exports",
+    "write_x3p": "sffscan.pipeline.formats.exports",
     "RecordingError": "sffscan.pipeline.formats.recording",
     "ScanReport": "sffscan.pipeline.wiring",
     "StackSettings": "sffscan.stages.fields.stationary",
@@ -88,6 +101,9 @@ def __getattr__(name: str) -> _typing.Any:
 
 
 __all__ = [
+    "ArealParameters",
+    "BatchError",
+    "BatchRow",
     "ConfigError",
     "DepthBlock",
     "DepthBlockHeader",
@@ -96,6 +112,7 @@ __all__ = [
     "Frame",
     "FrameHeader",
     "MosaicAttrs",
+    "MosaicRegion",
     "MotionConfig",
     "OpticsConfig",
     "OutputConfig",
@@ -108,12 +125,18 @@ __all__ = [
     "StackSettings",
     "StageFailed",
     "__version__",
+    "areal_parameters",
     "demo_config",
+    "find_recordings",
     "focus_measure",
     "load_config",
     "open_job",
     "open_mosaic",
+    "read_region",
     "reconstruct_stack",
     "replay",
+    "run_batch",
     "scan",
+    "write_ply",
+    "write_x3p",
 ]

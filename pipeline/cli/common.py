@@ -8,11 +8,13 @@ sub-commands to the ``sffscan`` parser; :data:`pipeline.cli.main.COMMAND_MODULES
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import re
 import sys
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any, get_args
 
-from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import (
     ConfigError,
     ProcessingConfig,
@@ -21,12 +23,14 @@ from sffscan.pipeline.config import (
     max_speed_sliding_mm_s,
     max_speed_thesis_mm_s,
 )
-from sffscan.pipeline.messages import Frame
-from sffscan.pipeline.runtime import Sink, StageFailed
 from sffscan.stages.operators import OPERATORS
 
 if TYPE_CHECKING:
+    from sffscan.pipeline.completeness import FrameAccount
+    from sffscan.pipeline.messages import Frame
     from sffscan.pipeline.run import Job
+    from sffscan.pipeline.runtime import Sink
+    from sffscan.pipeline.wiring import ScanReport
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: the scan ended cleanly but fewer frames than expected were received and processed (the
@@ -73,10 +77,17 @@ def processing_options(p: argparse.ArgumentParser) -> None:
                         "implies --viewer save)")
 
 
-def scan_options(p: argparse.ArgumentParser) -> None:
+def json_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--json``: the command's result as one JSON object on stdout, for scripts."""
+    p.add_argument("--json", action="store_true",
+                   help=f"print {what} as one JSON object on stdout (for scripts), instead "
+                        "of the text lines")
+
+
+def scan_options(p: argparse.ArgumentParser, *,
+                 output_help: str = "mosaic path, a Zarr v3 group") -> None:
     """Options of the commands that acquire a scan (demo, scan)."""
-    p.add_argument("-o", "--output",
-                   help="mosaic path, a Zarr v3 group (demo: sffscan-demo.zarr, replaced)")
+    p.add_argument("-o", "--output", help=output_help)
     p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
     p.add_argument("--record", metavar="PATH",
                    help="also record the raw stream (frames, headers, configuration) into "
@@ -156,7 +167,13 @@ def viewer_sink(cfg: ScanConfig, viewer: str | None, *, default: str = "off",
     mode = viewer_mode(viewer, rrd, default=default)
     if mode == ["off"]:
         return None
-    from sffscan.stages.viz_sink import viz_sink_for
+    from sffscan.stages.viz_sink import native_viewer_possible, viz_sink_for
+
+    if mode == ["spawn"] and not native_viewer_possible():
+        raise ConfigError("--viewer spawn: no display to open the native viewer on (neither "
+                          "DISPLAY nor WAYLAND_DISPLAY is set); use '--viewer serve' (a web "
+                          "viewer on this machine) or '--rrd PATH.rrd' (a recording to open "
+                          "later with 'rerun PATH.rrd')")
 
     return viz_sink_for(cfg, mode)
 
@@ -190,14 +207,16 @@ def run_and_report(cfg: ScanConfig, frames: Iterator[Frame], *, world: Any | Non
 
 
 def report_job(job: Job, *, world: Any | None = None, evaluate: bool = False,
-               kept: str = "") -> int:
+               kept: str = "", as_json: bool = False) -> int:
     """Run ``job`` (:func:`sffscan.pipeline.run.execute`: pre-flight, clash checks, writer
     lock, completeness), print its summary (scored against ``world``, or the simulated
     feed's world with ``evaluate``) and return the exit code; failures print the stage, the
     cause and what was kept (``kept`` replaces the default sentence). A scan that received
     fewer frames than expected ends :data:`EXIT_INCOMPLETE`. Bad input
-    (:class:`ConfigError`, nothing changed) is raised for the caller to report."""
+    (:class:`ConfigError`, nothing changed) is raised for the caller to report. With
+    ``as_json`` the summary is one JSON object (:func:`summary_dict`) on stdout."""
     from sffscan.pipeline.run import Terminated, execute
+    from sffscan.pipeline.runtime import StageFailed
     from sffscan.pipeline.wiring import evaluate_sim, format_summary
 
     cfg = job.cfg
@@ -225,9 +244,12 @@ def report_job(job: Job, *, world: Any | None = None, evaluate: bool = False,
     world = world if world is not None else (run.world if evaluate else None)
     if world is not None:
         evaluate_sim(report, world)
-    print(format_summary(report), flush=True)
-    if account is not None:
-        print(f"frames      {account.describe()}", flush=True)
+    if as_json:
+        print(json.dumps(summary_dict(report, account)), flush=True)
+    else:
+        print(format_summary(report), flush=True)
+        if account is not None:
+            print(f"frames      {account.describe()}", flush=True)
     hold_views(run.sinks)
     if run.annotate_error:
         print(f"sffscan: {run.annotate_error}", file=sys.stderr)
@@ -237,3 +259,79 @@ def report_job(job: Job, *, world: Any | None = None, evaluate: bool = False,
               "status 'incomplete'", file=sys.stderr)
         return EXIT_INCOMPLETE
     return EXIT_OK
+
+
+def summary_dict(report: ScanReport, account: FrameAccount | None = None) -> dict[str, Any]:
+    """A scan's or replay's summary as plain JSON values: mosaic path, frames, wall time (s),
+    dropped frames, each stage's and queue's counters, the accuracy (µm, dB) when scored,
+    and the frame account (expected, received, complete)."""
+    import dataclasses
+
+    r = report.result
+    out: dict[str, Any] = {
+        "mosaic": str(report.output),
+        "frames": report.frames,
+        "wall_s": r.wall_s,
+        "frames_per_s": report.frames / r.wall_s if r.wall_s else 0.0,
+        "dropped": r.dropped,
+        "stages": [{**dataclasses.asdict(st), "per_s": st.frames_per_s} for st in r.stages],
+        "queues": [dataclasses.asdict(q) for q in r.queues],
+        "extras": r.extras,
+        "accuracy": (None if report.accuracy is None
+                     else dataclasses.asdict(report.accuracy)),
+    }
+    if account is not None:
+        out["account"] = {"planned": account.planned, "sent": account.sent,
+                          "expected": account.expected, "received": account.received,
+                          "complete": account.complete}
+    return json.loads(json.dumps(out, default=str))  # plain values (paths, tuples) only
+
+
+#: one coordinate of ``--region``: a number and an optional unit
+_COORD = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(px|mm|um|µm|μm)?\s*$")
+#: µm per unit of a ``--region`` coordinate (px: the mosaic's pixel size)
+REGION_UNITS_UM = {"mm": 1000.0, "um": 1.0, "µm": 1.0, "μm": 1.0}
+REGION_HELP = ("box X0,Y0,X1,Y1 in world coordinates, each with a unit: mm, µm (or um) or "
+               "px (a plain number is world px), e.g. 1mm,0,5mm,2mm")
+
+
+def is_region(text: str) -> bool:
+    """Whether ``text`` reads as a ``--region`` box (four coordinates)."""
+    parts = text.split(",")
+    return len(parts) == 4 and all(_COORD.match(v) for v in parts)
+
+
+def parse_region(text: str | None, *, pixel_um: float | None = None
+                 ) -> tuple[int, int, int, int] | None:
+    """World px box ``(x0, y0, x1, y1)`` of ``--region X0,Y0,X1,Y1``; each coordinate a
+    number with an optional unit (``mm``, ``µm``/``um``, ``px``; none: world px), converted
+    with ``pixel_um`` (µm/px, the mosaic's) to the world px box that covers it (starts
+    rounded down, ends up). None for None; ``ValueError`` naming the option otherwise."""
+    if text is None:
+        return None
+    parts = text.split(",") if "," in text else text.split()
+    matches = [_COORD.match(v) for v in parts]
+    if len(parts) != 4 or not all(matches):
+        raise ValueError(f"--region must be four coordinates X0,Y0,X1,Y1, each a number with "
+                         f"an optional unit mm, µm or px (world px without one), e.g. "
+                         f"1mm,0,5mm,2mm; got {text!r}")
+    box: list[int] = []
+    for k, m in enumerate(matches):
+        assert m is not None
+        value, unit = float(m.group(1)), m.group(2) or "px"
+        if unit == "px":
+            if value != int(value):
+                raise ValueError(f"--region {text}: {parts[k].strip()}: a px coordinate is a "
+                                 "whole number")
+            box.append(int(value))
+            continue
+        if pixel_um is None:
+            raise ValueError(f"--region {text}: {unit} needs the pixel size (give px)")
+        px = value * REGION_UNITS_UM[unit] / pixel_um
+        # starts down, ends up, to cover the box asked for (a hair of rounding forgiven)
+        box.append(math.floor(px + 1e-9) if k < 2 else math.ceil(px - 1e-9))
+    x0, y0, x1, y1 = box
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"--region {text}: empty box (world px {x0},{y0},{x1},{y1}); X1 must "
+                         "exceed X0 and Y1 exceed Y0")
+    return x0, y0, x1, y1

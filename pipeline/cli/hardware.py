@@ -8,7 +8,13 @@ import logging
 import sys
 from typing import Any
 
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from sffscan.pipeline.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    json_option,
+)
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict, load_config
 
 log = logging.getLogger(__name__)
@@ -36,7 +42,16 @@ def cmd_plan(args: argparse.Namespace) -> int:
     except PlanError as err:
         print(f"sffscan plan: refused: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    print(format_plan(plan))
+    if args.json:
+        import dataclasses
+        import json
+
+        out = dataclasses.asdict(plan)
+        for rule in ("thesis", "sliding"):
+            out[rule]["total_time_s"] = getattr(plan, rule).total_time_s
+        print(json.dumps(out))
+    else:
+        print(format_plan(plan))
     return EXIT_OK
 
 
@@ -118,6 +133,7 @@ def register(sub: Any) -> None:
                    metavar=("ALONG_MM", "ACROSS_MM"), help="area to cover, mm (default 100 100)")
     p.add_argument("--speed", type=float, help="requested speed, mm/s (default: each rule's "
                    "maximum)")
+    json_option(p, "the plan (both rules; speeds mm/s, times s, exposure µs)")
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("grab", help="acquire frames and send them to 'sffscan scan --source'",

@@ -20,6 +20,7 @@ progress display to stderr.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import os
@@ -27,25 +28,23 @@ import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sffscan.pipeline.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
     describe,
+    is_region,
+    json_option,
     override,
     report_job,
     scan_options,
     viewer_sink,
 )
-from sffscan.pipeline.config import (
-    REALISTIC_OPTICS,
-    ConfigError,
-    ScanConfig,
-    config_to_toml,
-    demo_config,
-    load_config,
-)
+
+if TYPE_CHECKING:
+    from sffscan.pipeline.config import ScanConfig
 
 log = logging.getLogger(__name__)
 
@@ -74,13 +73,15 @@ def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_de
               rrd=args.rrd, progress=not args.quiet, check_only=check,
               sinks=lambda: [k for k in (viewer_sink(cfg, args.viewer, default=viewer_default,
                                                      rrd=args.rrd),) if k is not None])
-    return report_job(job, evaluate=evaluate)
+    return report_job(job, evaluate=evaluate, as_json=bool(getattr(args, "json", False)))
 
 
 DEMO_OUTPUT = "sffscan-demo.zarr"
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.config import REALISTIC_OPTICS, demo_config
+
     if args.output is None:  # the demo's own default output is replaced on every run
         args.output, args.overwrite = DEMO_OUTPUT, True
     optics = dict(REALISTIC_OPTICS) if getattr(args, "realistic", False) else {}
@@ -89,11 +90,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.config import load_config
+
     cfg = override(load_config(args.config), args)
     return _run(cfg, args, evaluate=not args.no_evaluate, viewer_default="off")
 
 
 def cmd_config(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.config import config_to_toml, demo_config
+
     cfg = demo_config(passes=args.passes)
     text = config_to_toml(cfg)
     if args.output:
@@ -145,21 +150,31 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real non-telecentric tunable-lens optics: +2 %% magnification over "
                         "the focus range, 150 µm field curvature at the corner, 20 %% "
                         "vignetting (default: ideal optics)")
-    scan_options(p)
+    scan_options(p, output_help=f"mosaic path, a Zarr v3 group (default {DEMO_OUTPUT}, "
+                                "replaced on every run)")
+    json_option(p, "the summary")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("scan", help="run the pipeline from a TOML configuration")
+    p = sub.add_parser("scan", help="run the pipeline from a TOML configuration",
+                       description="Scan as a TOML configuration says (source, optics, "
+                                   "motion, processing, output), with the options below "
+                                   "overriding it, and write a Zarr height mosaic. "
+                                   "'sffscan config' prints one to start from; --check "
+                                   "tests it without scanning.")
     p.add_argument("--config", required=True, help="TOML file (see 'sffscan config')")
     p.add_argument("--no-evaluate", action="store_true",
                    help="skip the comparison with the simulated true surface")
     p.add_argument("--check", action="store_true",
                    help="check the configuration, device, paths and memory, then exit "
                         "without scanning (0 = ready, 2 = the error names the field)")
-    scan_options(p)
+    scan_options(p, output_help="mosaic path, a Zarr v3 group (default: the "
+                                "configuration's output.path)")
+    json_option(p, "the summary")
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("config", help="print the demo configuration as TOML, to edit")
-    p.add_argument("--passes", type=int, default=1)
+    p.add_argument("--passes", type=int, default=1,
+                   help="parallel passes across the part (default 1)")
     p.add_argument("-o", "--output", help="write to this file instead of stdout")
     p.set_defaults(func=cmd_config)
 
@@ -177,7 +192,31 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(module).register(sub)
     for p in sub.choices.values():  # -q / -v after the sub-command too
         _log_options(p)
+    _plain_texts(parser)
     return parser
+
+
+_ROLE = re.compile(r":[a-z]+:`~?([^`<]+?)(?:\s*<[^>]*>)?`")
+_LITERAL = re.compile(r"``(.+?)``", re.S)
+
+
+def plain_text(text: str) -> str:
+    """A docstring's reStructuredText as the terminal shows it: ``:mod:`x``` -> x,
+    ````x```` -> 'x'."""
+    return _LITERAL.sub(r"'\1'", _ROLE.sub(r"\1", text))
+
+
+def _plain_texts(parser: argparse.ArgumentParser) -> None:
+    """Descriptions and option help of every (sub-)command as plain text: a module
+    docstring used as a description shows no reStructuredText markup."""
+    if parser.description:
+        parser.description = plain_text(parser.description)
+    for action in parser._actions:
+        if isinstance(action.help, str):
+            action.help = plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _plain_texts(sub)
 
 
 def _version() -> str:
@@ -204,11 +243,10 @@ def _log_options(p: argparse.ArgumentParser) -> None:
             pass
 
 
-#: Options whose value may start with '-' (a world px box left of the origin):
-#: ``--region -1299,-16,0,100`` is passed on as ``--region=-1299,-16,0,100``, which argparse
-#: would otherwise take for an unknown option.
+#: Options whose value may start with '-' (a box left of the origin):
+#: ``--region -1299,-16,0,100`` (or ``-1mm,0,5mm,2mm``) is passed on as
+#: ``--region=-1299,-16,0,100``, which argparse would otherwise take for an unknown option.
 NEGATIVE_VALUE_OPTIONS = ("--region",)
-_BOX = re.compile(r"^-?\d+(\s*,\s*-?\d+){3}$")
 
 
 def _joined_values(argv: Sequence[str]) -> list[str]:
@@ -217,7 +255,7 @@ def _joined_values(argv: Sequence[str]) -> list[str]:
     i = 0
     while i < len(args):
         a = args[i]
-        if a in NEGATIVE_VALUE_OPTIONS and i + 1 < len(args) and _BOX.match(args[i + 1]):
+        if a in NEGATIVE_VALUE_OPTIONS and i + 1 < len(args) and is_region(args[i + 1]):
             out.append(f"{a}={args[i + 1]}")
             i += 2
             continue
@@ -238,13 +276,47 @@ def _pipe_closed() -> int:
     return EXIT_PIPE_CLOSED
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    from sffscan.pipeline.cli.logsetup import cli_logging, level_for
+def _subcommand_parser(parser: argparse.ArgumentParser, args: argparse.Namespace
+                       ) -> argparse.ArgumentParser:
+    """The innermost sub-command's parser that ``args`` came through (``sffscan job
+    demo``: job's demo), or ``parser`` itself."""
+    current = parser
+    while True:
+        subs = [a for a in current._actions if isinstance(a, argparse._SubParsersAction)]
+        name = getattr(args, subs[0].dest, None) if subs and subs[0].dest else None
+        if name is None or name not in subs[0].choices:
+            return current
+        current = subs[0].choices[name]
 
+
+def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args``, except that an unknown option is reported with the usage of
+    the sub-command it was given to (argparse reports it with the top level's), with the
+    closest option names."""
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        where = _subcommand_parser(parser, args)
+        known = [o for a in where._actions for o in a.option_strings]
+        hints = []
+        for word in extra:
+            close = difflib.get_close_matches(word.split("=", 1)[0], known, n=2)
+            if word.startswith("-") and close:
+                hints.append(f"{word} (did you mean {' or '.join(close)}?)")
+            else:
+                hints.append(word)
+        where.error(f"unrecognized arguments: {' '.join(hints)}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
     try:
-        args = build_parser().parse_args(_joined_values(sys.argv[1:] if argv is None else argv))
+        args = parse_args(build_parser(),
+                          _joined_values(sys.argv[1:] if argv is None else argv))
         args.quiet = bool(getattr(args, "quiet", False))
         args.verbose = int(getattr(args, "verbose", 0) or 0)
+        from sffscan.pipeline.cli.logsetup import cli_logging, level_for
+        from sffscan.pipeline.config import ConfigError
+
         with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)):
             try:
                 code = int(args.func(args))
