@@ -100,7 +100,7 @@ def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
     blob = PrintDefect("blob", 2, "right", (6.2, 2.2), size_mm=0.8, height_um=400.0)
     seen = []
     verdicts = run_simulated_print(tmp_path / "job", gcode=gcode, defects=(blob,), config=cfg,
-                                   mapping=PrinterMapping(offset_um=(0.0, 0.0)),
+                                   mapping=PrinterMapping(offset_um=(0.0, 0.0)), record=True,
                                    on_layer=lambda k, v, t: seen.append(k))
     assert seen == [0, 1, 2]
     assert [v.verdict for v in verdicts] == ["pass", "pass", "fail"]
@@ -108,6 +108,9 @@ def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
     assert right.name == "right" and right.verdict == "fail"
     assert right.defect_xy_mm == pytest.approx((6.2, 2.2), abs=0.3)
     assert verdicts[2].objects[0].verdict == "pass"
+    store = JobStore.open(tmp_path / "job")
+    assert all(store.recording_path(k).is_dir() and store.mosaic_path(k).is_dir()
+               for k in range(3))  # each layer keeps its raw frames, for 'sffscan replay'
     ds = sffscan.open_job(tmp_path / "job")
     assert ds.sizes["layer"] == 3 and list(ds["verdict"].values) == ["pass", "pass", "fail"]
     np.testing.assert_allclose(ds["z_mm"].values, [0.2, 0.4, 0.6])
@@ -146,7 +149,7 @@ def test_a_missing_or_failed_scan_is_unknown_never_pass(tmp_path, gcode) -> None
 def _tiny_config():
     from sffscan.pipeline.printjob.demo import demo_config
 
-    return demo_config(frame_px=(160, 128), x_mm=(0.0, 8.0), y_start_mm=0.2, passes=2,
+    return demo_config(frame_px=(160, 176), x_mm=(0.6, 7.8), y_start_mm=0.3, passes=1,
                        optics={"n_levels": 12, "z_min_um": -400.0, "z_step_um": 150.0})
 
 
