@@ -29,7 +29,9 @@ shows it.
 The cluster is a :class:`distributed.LocalCluster` of worker processes on this machine by
 default, or any running Dask scheduler given by its address (``tcp://host:8786``): there,
 every worker must see the recordings and the output folder at the same paths (a shared
-file system) and have sffscan installed.
+file system) and have sffscan installed. Paths are made absolute before they are sent. The
+workers of ``dask worker`` are daemonic processes, which may not start processes: there a
+task runs the stages as threads (``processing.execution = "threads"``, the same mosaic).
 
 Results travel back as plain dicts of numbers and strings; nothing of the pipeline crosses
 the process boundary but paths.
@@ -231,6 +233,7 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
     mosaic. Never raises for a bad recording or a failing stage: the row says ``failed``
     and why. Returns a :class:`BatchRow` as a dict.
     """
+    import multiprocessing
     import socket
 
     from threadpoolctl import threadpool_limits
@@ -238,6 +241,10 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
     row = BatchRow(recording=recording, mosaic=mosaic, status="failed",
                    worker=socket.gethostname())
     t0 = time.perf_counter()
+    if multiprocessing.current_process().daemon:
+        # a Dask worker is a daemonic process (dask worker, LocalCluster's default): it may
+        # not start processes, so the stages run as threads (the same mosaic, bit for bit)
+        processing = {**processing, "execution": "threads"}
     try:
         with _torch_threads(threads), threadpool_limits(limits=threads):
             _replay(recording, mosaic, processing=processing, evaluate=evaluate,
@@ -373,6 +380,10 @@ def run_batch(recordings: Sequence[Path], out_dir: Path, *, scheduler: str | Non
     """
     from distributed import Client, LocalCluster, as_completed
 
+    # the workers see paths, not this process's working folder (another one, or another
+    # machine's with the same shared file system): every path goes absolute
+    recordings = [Path(r).resolve() for r in recordings]
+    out_dir = Path(out_dir).resolve()
     _check_out_dir(recordings, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     targets = [(r, mosaic_path(r, out_dir)) for r in recordings]
