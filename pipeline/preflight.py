@@ -3,7 +3,12 @@
 :func:`sffscan.pipeline.config.config_from_dict` checks the configuration on its own (ranges,
 feasibility); :func:`preflight` checks what depends on the machine and the command line:
 
+- torch is installed when the configuration needs it (``processing.backend = "torch"``,
+  a focus operator other than GLVM and TENV): it is the extra ``sffscan[torch]``;
 - the torch device of ``processing.backend = "torch"`` exists;
+- the calibration file ``processing.calibration`` names exists and is a calibration;
+- a live ``camera`` source has harvesters and a GenTL producer (``camera.cti``, ...); a
+  DAQ set for simulated frames is refused (the simulator drives no lens);
 - ``output.path`` can be written: its folder exists and is writable, and an existing path is
   only replaced when ``output.overwrite`` is set and it is an sffscan mosaic (or an empty
   folder);
@@ -78,6 +83,78 @@ def memory_needed_bytes(cfg: ScanConfig, *, recording: bool = False) -> int:
     bands = (-(-ring // cfg.output.chunk_px) + 2) * rows * cfg.output.chunk_px * 8 * 4
     rec = min(QUEUE_BYTES, queue_capacity(cfg) * raw) if recording else 0
     return int(queues + volume + bands + rec)
+
+
+#: focus operators the CPU path computes without torch (OpenCV), as
+#: :mod:`sffscan.stages.focus_measure` does; the others run in torch
+OPENCV_OPERATORS = ("glvm", "tenv")
+#: what installs torch for sffscan
+TORCH_EXTRA = "pip install 'sffscan[torch]'"
+
+
+def _installed(module: str) -> bool:
+    """``module`` can be imported (found without importing it)."""
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a parent missing, or sys.modules[module] = None
+        return False
+
+
+def check_torch(cfg: ScanConfig) -> None:
+    """torch is installed when the configuration needs it: ``processing.backend = "torch"``
+    or a focus operator other than GLVM and TENV (torch is the optional extra
+    ``sffscan[torch]``)."""
+    p = cfg.processing
+    if _installed("torch"):
+        return
+    if p.backend == "torch":
+        raise ConfigError(f"processing.backend = 'torch' needs torch, which is not installed: "
+                          f"{TORCH_EXTRA} (or use backend = 'opencv')")
+    if p.focus_operator not in OPENCV_OPERATORS:
+        raise ConfigError(f"processing.focus_operator = {p.focus_operator!r} runs in torch, "
+                          f"which is not installed: {TORCH_EXTRA} (or use "
+                          f"{' or '.join(OPENCV_OPERATORS)}, which run without it)")
+
+
+def check_calibration(cfg: ScanConfig) -> None:
+    """The file ``processing.calibration`` names can be read, is a calibration and has the
+    z response the scan's focus heights come from."""
+    path = cfg.processing.calibration
+    if not path:
+        return
+    from sffscan.pipeline.metrology.calibration import (
+        calibrated_focus_heights,
+        load_calibration,
+    )
+
+    if not Path(path).is_file():
+        raise ConfigError(f"processing.calibration = {path!r}: no such file")
+    try:
+        calibrated_focus_heights(load_calibration(path), cfg.optics.n_levels)
+    except (ConfigError, ValueError) as err:
+        raise ConfigError(f"processing.calibration = {path!r}: {err}") from None
+
+
+def check_hardware(cfg: ScanConfig, *, simulated: bool, camera: bool) -> None:
+    """The hardware the configuration names is there, before anything is created: a
+    ``camera`` source's GenTL producer and its harvesters package (a missing NI-DAQmx
+    driver is found when the camera opens, exit 2). A DAQ configured for a scan whose
+    frames are ``simulated`` is refused: the simulator drives no lens (it would be ignored
+    without a word)."""
+    if cfg.daq.kind == "nidaqmx" and simulated:
+        raise ConfigError("daq.kind = 'nidaqmx' with source.kind = 'sim': the simulated "
+                          "scanner drives no DAQ, the setting would be ignored; set daq.kind "
+                          "= 'sim', or source.kind = 'camera' for the real lens and camera")
+    if not camera:
+        return
+    if not _installed("harvesters"):
+        raise ConfigError("source.kind = 'camera' needs harvesters, which is not installed: "
+                          "pip install 'sffscan[camera]'")
+    from sffscan.stages.camera_source import find_cti
+
+    find_cti(cfg)  # ConfigError naming camera.cti / $SFFSCAN_CTI / $GENICAM_GENTL64_PATH
 
 
 def _check_device(cfg: ScanConfig) -> None:
@@ -264,11 +341,16 @@ def preflight(cfg: ScanConfig, *, record: str | Path | None = None, resume: bool
     ``--source`` address; a ``live`` scan (not a replay) from a transport beyond loopback
     has its CURVE keys checked.
     """
+    sim = simulated if simulated is not None else cfg.source.kind == "sim"
+    check_torch(cfg)
     _check_device(cfg)
+    check_calibration(cfg)
+    check_hardware(cfg, simulated=live and sim,
+                   camera=live and source is None and cfg.source.kind == "camera")
     if live:
         check_transport(cfg, source)
     check_memory(cfg, recording=record is not None)
-    if simulated if simulated is not None else cfg.source.kind == "sim":
+    if sim:
         check_world(cfg)
     if record is not None:
         check_record(cfg, record)
