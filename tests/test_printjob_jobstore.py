@@ -123,9 +123,11 @@ def test_a_three_layer_simulated_job_end_to_end(tmp_path, gcode) -> None:
     assert again == []
 
 
-def test_a_missing_or_failed_scan_is_unknown_never_pass(tmp_path, gcode) -> None:
+def test_a_missing_or_failed_scan_is_unknown_never_pass(tmp_path) -> None:
     from sffscan.pipeline.printjob.layer import LayerRunner
 
+    gcode = tmp_path / "six.gcode"
+    gcode.write_text(tiny_gcode(6))
     store = JobStore.create(tmp_path / "job", gcode=gcode)
     runner = LayerRunner(store, warm=False)
     runner.begin(0, 0.2)
@@ -144,6 +146,14 @@ def test_a_missing_or_failed_scan_is_unknown_never_pass(tmp_path, gcode) -> None
     assert v.verdict == "unknown" and "not 'complete'" in v.reason
     v = runner.fail(2, "scan timed out after 60 s")  # a timeout releases the printer
     assert v.verdict == "unknown" and store.done_layers() == [0, 1, 2]
+    # a restart while layer 3's analysis ran and layer 4 was being scanned
+    store.begin_layer(3)
+    store.begin_layer(4)
+    again = LayerRunner(JobStore.open(tmp_path / "job"), warm=False)
+    (v3,) = again.recover()  # layer 3 finished (no mosaic: unknown), layer 4 left to redo
+    assert v3.layer == 3 and v3.verdict == "unknown"
+    assert again.store.done_layers() == [0, 1, 2, 3]
+    again.begin(4)  # the next event for layer 4 redoes it
 
 
 def _tiny_config():

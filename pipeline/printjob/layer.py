@@ -208,6 +208,19 @@ class LayerRunner:
         self.store.finish_layer(layer, verdict)
         return verdict
 
+    def recover(self) -> list[LayerVerdict]:
+        """After a restart: finish every layer begun but not done below the last begun one
+        (its analysis was interrupted): analysed when its mosaic is complete, else
+        ``unknown``. The last begun layer is left to the next layer event (begun again, it
+        is cleared and redone). Returns the verdicts written."""
+        done = set(self.store.done_layers())
+        begun = self.store.begun_layers()
+        out = []
+        for k in begun[:-1]:
+            if k not in done:
+                out.append(self.analyse(k))
+        return out
+
     def fail(self, layer: int, reason: str) -> LayerVerdict:
         """Record the layer as ``unknown`` (scan failed, timed out...): never ``pass``."""
         man = self.store.manifest
