@@ -27,6 +27,7 @@ import argparse
 import logging
 import re
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -195,6 +196,7 @@ def cmd_targets(args: argparse.Namespace) -> int:
     import shlex
 
     from sffscan.pipeline.config import REALISTIC_OPTICS, demo_config, load_config
+    from sffscan.pipeline.progress import ProgressDisplay
     from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
     from sffscan.stages.sim.scanner import make_optics
 
@@ -202,9 +204,25 @@ def cmd_targets(args: argparse.Namespace) -> int:
         cfg = load_config(args.config)
     else:
         cfg = demo_config(optics=dict(REALISTIC_OPTICS) if args.realistic else {})
-    t = write_optics_targets(args.folder, optics=make_optics(cfg),
-                             focus_heights_um=np.array(cfg.optics.focus_heights_um()),
-                             seed=args.seed)
+    log.info("rendering the calibration targets through the optics (%d focus levels of "
+             "%d x %d px) into %s ...", cfg.optics.n_levels, cfg.optics.width_px,
+             cfg.optics.height_px, args.folder)
+    t0 = time.perf_counter()
+    shown: list[ProgressDisplay] = []  # made at the first count (it gives the total)
+
+    def progress(done: int, total: int) -> None:
+        if not shown:
+            shown.append(ProgressDisplay(total, desc="images"))
+        shown[0].update(done, time.perf_counter() - t0)
+
+    try:
+        t = write_optics_targets(args.folder, optics=make_optics(cfg),
+                                 focus_heights_um=np.array(cfg.optics.focus_heights_um()),
+                                 seed=args.seed, progress=progress)
+    finally:
+        for display in shown:
+            display.close()
+    log.info("rendered in %.1f s", time.perf_counter() - t0)
     print(f"wrote {len(t.gauges)} gauge stacks, {len(t.boards)} board images and 2 flat stacks "
           f"under {t.folder}; calibrate with:")
     for cmd in calibration_commands(t, args.output):

@@ -15,6 +15,7 @@ field curvature and vignetting included) at its focus levels:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,7 +53,8 @@ def _write_stack(folder: Path, stack: np.ndarray) -> Path:
 
 
 def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um: np.ndarray,
-                         seed: int = 0, n_boards: int = 5) -> OpticsTargets:
+                         seed: int = 0, n_boards: int = 5,
+                         progress: Callable[[int, int], None] | None = None) -> OpticsTargets:
     """Render every calibration target through ``optics`` and write it under ``folder``.
 
     Parameters
@@ -67,6 +69,8 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
         Texture and noise seed.
     n_boards : int, keyword-only
         Focus levels the board is imaged at (spread over the range, ends included).
+    progress : callable, keyword-only
+        Called as ``progress(images_done, images)`` after each target is written.
 
     Returns
     -------
@@ -79,6 +83,14 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
     p = optics.pixel_um
     w_um, h_um = optics.width * p, optics.height * p
     lo, hi = float(zs.min()), float(zs.max())
+    levels = np.unique(np.rint(np.linspace(0, zs.size - 1, n_boards)).astype(int))
+    total, done = (len(GAUGE_FRACTIONS) + 2) * zs.size + levels.size, 0
+
+    def step(images: int) -> None:
+        nonlocal done
+        done += images
+        if progress is not None:
+            progress(done, total)
 
     gauges = []
     for i, frac in enumerate(GAUGE_FRACTIONS):
@@ -87,11 +99,11 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
         st = render_stack(world, x0=-(optics.width - 1) / 2, y0=-(optics.height - 1) / 2,
                           focus_heights_um=zs, optics=optics, rng=rng)
         gauges.append((h, _write_stack(out / f"gauge_{h:g}", st)))
+        step(zs.size)
 
     nx, ny = BOARD_SQUARES
     square = round(0.6 * min(w_um / nx, h_um / ny), 1)  # board covers <= 60 % of the frame
     boards = []
-    levels = np.unique(np.rint(np.linspace(0, zs.size - 1, n_boards)).astype(int))
     for k in levels:
         world = CheckerboardWorld(pixel_um=p, base_um=float(zs[k]), square_um=square,
                                   squares=(nx, ny), texture_tile_px=64,
@@ -102,12 +114,15 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
         if not cv2.imwrite(str(path), img):
             raise OSError(f"{path}: cannot write")
         boards.append((int(k), path))
+        step(1)
 
     flat = PlateWorld(seed=seed + 100, pixel_um=p, base_um=round(0.5 * (lo + hi), 1),
                       texture_tile_px=1024)
-    flats = tuple(_write_stack(out / name, render_stack(
-        flat, x0=0.0, y0=0.0, focus_heights_um=zs, optics=optics, rng=rng))
-        for name in ("flat1", "flat2"))
+    flats = []
+    for name in ("flat1", "flat2"):
+        flats.append(_write_stack(out / name, render_stack(
+            flat, x0=0.0, y0=0.0, focus_heights_um=zs, optics=optics, rng=rng)))
+        step(zs.size)
     return OpticsTargets(folder=out, gauges=tuple(gauges), boards=tuple(boards),
                          squares=(nx, ny), square_um=square, flats=(flats[0], flats[1]),
                          bit_depth=optics.bit_depth)

@@ -1,0 +1,29 @@
+"""``sffscan calibrate targets`` says what it does while it renders (issue 26 item 4: over
+5 minutes without a word at the real optics' size)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+from sffscan.pipeline.cli.main import main
+
+
+def test_targets_show_their_progress(tmp_path: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from sffscan.pipeline.config import REALISTIC_OPTICS, config_to_toml, demo_config
+
+    cfg = demo_config(optics={**REALISTIC_OPTICS, "width_px": 128, "height_px": 64,
+                              "n_levels": 6, "z_step_um": 800.0},
+                      motion={"speed_mm_s": 1.0})
+    toml = tmp_path / "small.toml"
+    toml.write_text(config_to_toml(cfg), encoding="utf-8")
+    assert main(["calibrate", "targets", str(tmp_path / "t"), "--config", str(toml),
+                 "-o", str(tmp_path / "c.json")]) == 0
+    err = capsys.readouterr().err
+    assert "rendering the calibration targets" in err and "6 focus levels" in err
+    # 5 gauge stacks and 2 flat stacks of 6 images, 5 board images: 47; the first count
+    # comes after the first gauge stack
+    assert re.search(r"images 6/47 \(12\.8 %\)", err), err
+    assert re.search(r"rendered in \d+\.\d s", err), err
