@@ -7,6 +7,9 @@ Layout of the group (format ``sffscan-mosaic``, version 3; schema in
 - ``texture``: float32 (y, x), all-in-focus grey value 0..1, NaN where invalid;
 - ``confidence``: float32 (y, x), the largest confidence of the contributions, 0..1;
 - ``weight``: float32 (y, x), the sum of contribution weights used to blend overlaps;
+- ``uncertainty``: float32 (y, x), µm, one sigma: the weighted mean of the contributions'
+  height uncertainties (the depth stage's), NaN where invalid or where a contribution had
+  none;
 - ``pyramid/<k>/<name>``, k = 1 .. L-1 (L >= 4): the resolution pyramid of each array,
   level k the 2^k x 2^k reduction of level 0 (:mod:`sffscan.stages.mosaic_pyramid`),
   kept current while the scan runs through a write-back cache of upper-level chunks (a
@@ -76,10 +79,12 @@ from zarr.codecs import BloscCodec, BloscShuffle
 
 log = logging.getLogger(__name__)
 
-ARRAYS = ("height", "texture", "confidence", "weight")
+ARRAYS = ("height", "texture", "confidence", "weight", "uncertainty")
 MIN_WEIGHT = 1e-3
-FILL = {"height": np.nan, "texture": np.nan, "confidence": 0.0, "weight": 0.0}
-UNITS = {"height": "µm", "texture": "1 (0..1 grey)", "confidence": "1 (0..1)", "weight": "1"}
+FILL = {"height": np.nan, "texture": np.nan, "confidence": 0.0, "weight": 0.0,
+        "uncertainty": np.nan}
+UNITS = {"height": "µm", "texture": "1 (0..1 grey)", "confidence": "1 (0..1)", "weight": "1",
+         "uncertainty": "µm (one sigma)"}
 #: codec of the mosaic arrays (measured in bench/recorder_results.md)
 DEFAULT_CODEC = "blosc-lz4"
 #: tile states of :func:`tile_states`
@@ -137,6 +142,15 @@ def blend(
             out[key] = np.where(w > 0, val, np.nan).astype(np.float32)
     out["confidence"] = np.maximum(old["confidence"], new["confidence"]).astype(np.float32)
     out["weight"] = w.astype(np.float32)
+    if "uncertainty" in old:  # the weighted mean of the contributions' sigmas (errors of
+        # overlapping contributions are not independent: no sqrt(n) gain); a contribution
+        # without one makes it unknown (NaN), never 0
+        su = new.get("uncertainty")
+        if su is None:
+            su = np.where(w_new > 0, np.nan, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            prev = np.where(w_old > 0, old["uncertainty"], 0.0) * w_old
+            out["uncertainty"] = np.where(w > 0, (prev + su) / w, np.nan).astype(np.float32)
     return out
 
 
@@ -150,6 +164,7 @@ class _Band:
     wt: np.ndarray
     w: np.ndarray
     conf: np.ndarray
+    wu: np.ndarray
 
 
 def config_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
@@ -592,7 +607,7 @@ class MosaicStage(Stage):
             c = self.writer.chunk
             x0 = self.writer.origin[0] + cx * c
             z = np.zeros((rows, c), np.float64)
-            band = _Band(x0, y0, z.copy(), z.copy(), z.copy(), z.astype(np.float32))
+            band = _Band(x0, y0, z.copy(), z.copy(), z.copy(), z.astype(np.float32), z.copy())
             self.bands[cx] = band
         return band
 
@@ -601,7 +616,7 @@ class MosaicStage(Stage):
         if not (b.w > 0).any():
             return
         self.writer.write_region(b.x0, b.y0, {"height": b.wh, "texture": b.wt, "weight": b.w,
-                                              "confidence": b.conf})
+                                              "confidence": b.conf, "uncertainty": b.wu})
 
     def process(self, item: DepthBlock) -> Iterator[None]:
         h = item.header
@@ -626,6 +641,10 @@ class MosaicStage(Stage):
             band.wh[:, dst] += np.where(valid[:, src], item.height_um[:, src], 0.0) * w
             band.wt[:, dst] += np.where(valid[:, src], item.texture[:, src], 0.0) * w
             band.conf[:, dst] = np.maximum(band.conf[:, dst], item.confidence[:, src])
+            if item.uncertainty_um is None:  # unknown: NaN where this block contributes
+                band.wu[:, dst] += np.where(w > 0, np.nan, 0.0)
+            else:
+                band.wu[:, dst] += np.where(valid[:, src], item.uncertainty_um[:, src], 0.0) * w
         # bands the motion has left behind are final for this pass
         for cx in [k for k in self.bands if k < first or k > last]:
             self._flush_band(cx)

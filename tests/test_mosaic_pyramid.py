@@ -101,13 +101,14 @@ def test_downsample_reduces_any_mosaic_array() -> None:
     its reduction too, without changing the others' values."""
     rng = np.random.default_rng(1)
     shape = (21, 34)
-    base = {name: rng.random(shape).astype(np.float32) for name in ARRAYS}
+    base = {name: rng.random(shape).astype(np.float32) for name in ARRAYS
+            if name != "uncertainty"}  # the four before it
     u = rng.random(shape).astype(np.float32)
     u[rng.random(shape) < 0.3] = np.nan
     extra = {**base, "uncertainty": u, "other": u}
     plain, more = downsample(base, 3), downsample(extra, 3)
     for k, (a, b) in enumerate(zip(plain, more, strict=True), start=1):
-        for name in ARRAYS:
+        for name in base:
             assert np.array_equal(a[name], b[name], equal_nan=True)
         for name in ("uncertainty", "other"):  # NaN-aware means
             np.testing.assert_allclose(b[name], block_reduce(u, 2 ** k, "nanmean"),

@@ -1,0 +1,56 @@
+"""The height uncertainty in the mosaic: blended like the height (the weighted mean of the
+contributions' sigmas), NaN where a contribution had none (never 0)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
+from sffscan.stages.mosaic import UNITS, MosaicStage, MosaicWriter, blend
+
+
+def _block(x0: int, height: float, conf: float, unc: float | None, *, pass_index: int = 0,
+           width: int = 8) -> DepthBlock:
+    hdr = DepthBlockHeader(x0_px=x0, y0_px=0, width_px=width, height_px=16,
+                           pass_index=pass_index, complete_columns=width,
+                           incomplete_columns=0)
+    one = np.ones((16, width), np.float32)
+    return DepthBlock(hdr, height * one, 0.5 * one, conf * one,
+                      None if unc is None else unc * one)
+
+
+def test_mosaic_blends_the_uncertainty_and_keeps_unknown_unknown(tmp_path: Path) -> None:
+    path = tmp_path / "m.zarr"
+    stage = MosaicStage(MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5,
+                                     chunk_px=16))
+    list(stage.process(_block(0, 10.0, 0.5, 2.0)))  # columns 0..7, sigma 2 µm
+    list(stage.process(_block(4, 20.0, 1.0, 4.0, pass_index=1)))  # 4..11, overlap 4..7
+    list(stage.process(_block(32, 30.0, 1.0, None, pass_index=2)))  # no uncertainty
+    stage.close(failed=False)
+    g = zarr.open_group(str(path), mode="r")
+    u, h = np.asarray(g["uncertainty"]), np.asarray(g["height"])
+    assert g["uncertainty"].attrs["units"] == UNITS["uncertainty"]
+    assert u[3, 1] == pytest.approx(2.0)
+    assert u[3, 5] == pytest.approx((0.5 * 2.0 + 1.0 * 4.0) / 1.5, rel=1e-5)  # like height
+    assert h[3, 5] == pytest.approx((0.5 * 10.0 + 1.0 * 20.0) / 1.5, rel=1e-5)
+    assert u[3, 9] == pytest.approx(4.0)
+    assert np.isfinite(h[:, 32:40]).all() and np.isnan(u[:, 32:40]).all()  # unknown
+    assert np.isnan(u[:, 16:32]).all() and np.isnan(h[:, 16:32]).all()  # nothing measured
+
+
+def test_blend_without_an_uncertainty_in_either_input() -> None:
+    """Writers of the four arrays only (stop-and-go, old callers): their contribution's
+    sigma is unknown; a region without the array blends as before."""
+    one = np.ones((2, 2))
+    old = {"height": np.full((2, 2), np.nan), "texture": np.full((2, 2), np.nan),
+           "confidence": 0 * one, "weight": 0 * one}
+    new = {"height": 5 * one, "texture": 0.5 * one, "confidence": one, "weight": one}
+    assert "uncertainty" not in blend(old, new)
+    out = blend({**old, "uncertainty": np.full((2, 2), np.nan)}, new)
+    assert np.isnan(out["uncertainty"]).all() and (out["height"] == 5).all()
+    out = blend({**old, "uncertainty": np.full((2, 2), np.nan)},
+                {**new, "uncertainty": 3 * one})
+    np.testing.assert_array_equal(out["uncertainty"], 3.0)
