@@ -8,12 +8,14 @@ quarter; so a scan of a 20 mm strip takes about 250 frames and a few seconds on 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig, config_from_dict
+from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.metrology.evaluate import Accuracy, accuracy
 from sffscan.pipeline.wiring import ScanReport, run_scan
 from sffscan.stages.depth import depth_from_focus, levels_to_height
@@ -41,6 +43,78 @@ def scan(cfg: ScanConfig, out: Path) -> ScanReport:
     return run_scan(cfg, frames=simulate_frames(cfg), output=out, progress=False)
 
 
+def replay(frames: Sequence[Frame]) -> Iterator[Frame]:
+    """``frames`` (rendered once by a test) fed again, each image a fresh copy: a stage may
+    keep or alter the array it gets, and no other run must see that."""
+    for f in frames:
+        yield Frame(f.header, np.array(f.image))  # a plain ndarray, also of a memmap
+
+
+class RenderedScan:
+    """``simulate_frames(cfg)``, each frame rendered once, however many times it is read.
+
+    Iterating yields the scan's frames from the first (as :func:`replay` does: fresh copies),
+    rendering only those no earlier iteration reached; tests that feed the same scan to
+    several runs (bad-input variants, with and without positions) render it once.
+    """
+
+    def __init__(self, cfg: ScanConfig) -> None:
+        self.cfg = cfg
+        self._source = simulate_frames(cfg)
+        self._frames: list[Frame] = []
+
+    def __iter__(self) -> Iterator[Frame]:
+        i = 0
+        while True:
+            if i == len(self._frames):
+                f = next(self._source, None)
+                if f is None:
+                    return
+                self._frames.append(f)
+            yield Frame(self._frames[i].header, self._frames[i].image.copy())
+            i += 1
+
+
+def save_frames(frames: Sequence[Frame], folder: Path) -> Path:
+    """``frames`` to ``folder`` (images.npy, headers.json) for :func:`load_frames` in a child
+    process: read from the page cache, not pickled through a pipe."""
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "images.npy", np.stack([f.image for f in frames]))
+    (folder / "headers.json").write_text(
+        "[" + ",".join(f.header.model_dump_json() for f in frames) + "]", encoding="utf-8")
+    return folder
+
+
+def load_frames(folder: Path) -> list[Frame]:
+    """The frames :func:`save_frames` wrote (images memory-mapped, read-only)."""
+    import json
+
+    images = np.load(folder / "images.npy", mmap_mode="r")
+    headers = json.loads((folder / "headers.json").read_text(encoding="utf-8"))
+    return [Frame(FrameHeader.model_validate(h), images[i]) for i, h in enumerate(headers)]
+
+
+def rendered_scanner(cfg: ScanConfig, frames: Sequence[Frame]
+                     ) -> Callable[..., Iterator[Frame]]:
+    """A stand-in for ``stages.sim.scanner.simulate_frames`` that replays ``frames`` (the
+    whole of ``simulate_frames(cfg)``, rendered once) for ``cfg`` and renders any other
+    configuration as before: set it on the scanner module and the command line's simulated
+    source (``pipeline.sources.open_feed``) feeds the same frames without rendering them.
+    Rendering is not what the crash tests test, and it was about half of their scans' CPU
+    (the 115-frame scan of tests/test_crash.py: 2.4-3.0 s CPU rendered, 1.1 s replayed,
+    interleaved runs on the shared 2-core VM)."""
+    from sffscan.stages.sim import scanner
+
+    render = scanner.simulate_frames
+
+    def simulate_frames(c: ScanConfig, *, world: Any = None) -> Iterator[Frame]:
+        # the same scan but for where its output goes (the command line's ``-o``)
+        same = c.model_copy(update={"output": cfg.output}) == cfg
+        return replay(frames) if same else render(c, world=world)
+
+    return simulate_frames
+
+
 def max_depth(cfg: ScanConfig) -> float:
     return (cfg.optics.n_levels - 1) * cfg.optics.z_step_um
 
@@ -63,7 +137,7 @@ def strip_region(cfg: ScanConfig) -> tuple[int, int, int, int]:
 def mosaic_height(path: Path, region: tuple[int, int, int, int]) -> np.ndarray:
     """The mosaic's height over a world px box (NaN where the mosaic has nothing)."""
     g = zarr.open_group(str(path), mode="r")
-    ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr]
+    ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr,arg-type]
     x0, y0, x1, y1 = region
     return np.asarray(g["height"][y0 - oy:y1 - oy, x0 - ox:x1 - ox])  # type: ignore[index]
 
