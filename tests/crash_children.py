@@ -5,13 +5,26 @@ from __future__ import annotations
 
 import os
 import signal
+from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.config import ScanConfig
+
+from tests.scan_helpers import load_frames, rendered_scanner
 
 
-def quiet_main(argv: list[str]) -> None:
-    """``sffscan ARGV`` with stdout and stderr discarded."""
+def quiet_main(argv: list[str], rendered: tuple[ScanConfig, Path] | None = None) -> None:
+    """``sffscan ARGV`` with stdout and stderr discarded; with ``rendered = (cfg, folder)``,
+    the simulated scanner feeds the frames saved in ``folder`` (``save_frames``: all of
+    ``simulate_frames(cfg)``, rendered once by the test) when the scan's configuration is
+    ``cfg``, instead of rendering them again."""
+    if rendered is not None:
+        from sffscan.stages.sim import scanner
+
+        cfg, folder = rendered
+        scanner.simulate_frames = rendered_scanner(  # type: ignore[assignment]
+            cfg, load_frames(folder))
     fd = os.open(os.devnull, os.O_WRONLY)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
