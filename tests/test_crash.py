@@ -26,11 +26,12 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ScanConfig, config_to_toml
 from sffscan.pipeline.formats.recording import RecordingError, open_recording
+from sffscan.pipeline.messages import Frame
 from sffscan.stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
 from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.crash_children import quiet_main, torn_replay
-from tests.scan_helpers import small_config
+from tests.scan_helpers import rendered_scanner, save_frames, small_config
 
 
 def _cfg(passes: int = 1) -> ScanConfig:
@@ -99,6 +100,15 @@ def _kill_at_close(proc: Any, recording: Path) -> bool:
     return _kill_when(proc, reached)
 
 
+@pytest.fixture(scope="module")
+def one_pass() -> tuple[ScanConfig, list[Frame]]:
+    """The one-pass scan of ``_cfg()`` and all its frames, rendered once for the module: the
+    scans below feed them again (``rendered_scanner``) instead of rendering each time, and
+    check what they recorded against them."""
+    cfg = _cfg()
+    return cfg, list(simulate_frames(cfg))
+
+
 def _attrs(path: Path) -> dict[str, Any]:
     return zarr.open_group(str(path), mode="r").attrs.asdict()
 
@@ -108,11 +118,12 @@ def _arrays(path: Path) -> dict[str, np.ndarray]:
     return {n: np.asarray(g[n]) for n in ARRAYS}
 
 
-def test_recorder_killed_at_random_moments_keeps_every_complete_frame(tmp_path: Path) -> None:
-    cfg = _cfg()
+def test_recorder_killed_at_random_moments_keeps_every_complete_frame(
+        tmp_path: Path, one_pass: tuple[ScanConfig, list[Frame]]) -> None:
+    cfg, reference = one_pass
     toml = tmp_path / "scan.toml"
     toml.write_text(config_to_toml(cfg))
-    reference = list(simulate_frames(cfg))
+    saved = save_frames(reference, tmp_path / "frames")  # the children's feed
     rng = random.Random(_seed("recorder kills"))
     ctx = _ctx()
     kills, recovered, interrupted = 0, [], None
@@ -120,7 +131,7 @@ def test_recorder_killed_at_random_moments_keeps_every_complete_frame(tmp_path: 
         rec = tmp_path / f"rec{trial}.zarr"
         proc = ctx.Process(target=quiet_main, args=([
             "scan", "--config", str(toml), "-o", str(tmp_path / f"m{trial}.zarr"),
-            "--record", str(rec), "-q", "--no-evaluate"],))
+            "--record", str(rec), "-q", "--no-evaluate"], (cfg, saved)))
         proc.start()
         if trial < 8:  # killed at a random point: once a random number of frames is stored
             kills += _kill_at_frame(proc, rec, rng.randint(1, len(reference) - 2))
@@ -238,10 +249,13 @@ def test_mosaic_writer_killed_at_random_moments_resumes(
 
 
 def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture,
+        one_pass: tuple[ScanConfig, list[Frame]]) -> None:
     from sffscan.stages import recorder
+    from sffscan.stages.sim import scanner
 
-    cfg = _cfg()
+    cfg, reference = one_pass
+    monkeypatch.setattr(scanner, "simulate_frames", rendered_scanner(cfg, reference))
     toml = tmp_path / "scan.toml"
     toml.write_text(config_to_toml(cfg))
     orig = recorder.RecordingWriter.write
@@ -262,12 +276,17 @@ def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
     r = open_recording(rec)
     assert r.attrs.status == "failed" and "disk full at frame_id 37" in str(r.attrs.error)
     assert r.report.frames == 37 and r.report.defects == 0
-    for got, want in zip(r.frames(), simulate_frames(cfg), strict=False):
+    for got, want in zip(r.frames(), reference, strict=False):
         assert got.header == want.header and np.array_equal(got.image, want.image)
     assert zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs["status"] == "failed"
 
 
-def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                        monkeypatch: pytest.MonkeyPatch,
+                                        one_pass: tuple[ScanConfig, list[Frame]]) -> None:
+    from sffscan.stages.sim import scanner
+
+    monkeypatch.setattr(scanner, "simulate_frames", rendered_scanner(*one_pass))
     mnt = tmp_path / "small"
     mnt.mkdir()
     done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mnt)],
@@ -276,7 +295,7 @@ def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureF
         pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.decode().strip()}")
     try:
         toml = tmp_path / "scan.toml"
-        toml.write_text(config_to_toml(_cfg()))
+        toml.write_text(config_to_toml(one_pass[0]))
         rec = mnt / "rec.zarr"
         code = main(["scan", "--config", str(toml), "-o", str(tmp_path / "m.zarr"), "--record",
                      str(rec), "-q", "--no-evaluate"])
