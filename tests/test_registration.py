@@ -188,7 +188,7 @@ def test_phase_correlate_recovers_the_whole_shift_of_a_low_contrast_crop(contras
     img = np.random.default_rng(0).random((300, 300)).astype(np.float32)
     world = 0.5 + contrast * (cv2.GaussianBlur(img, (0, 0), 2.0) - 0.5)
     for t in ((2.0, -1.5), (-2.5, 1.0), (1.2, 2.7)):
-        m = np.float32([[1, 0, t[0]], [0, 1, t[1]]])
+        m = np.array([[1, 0, t[0]], [0, 1, t[1]]], dtype=np.float32)
         moved = cv2.warpAffine(world, m, (300, 300), flags=cv2.INTER_CUBIC)
         sx, sy, _ = phase_correlate(world[64:192, 64:192], moved[64:192, 64:192])
         assert sx == pytest.approx(t[0], abs=0.06) and sy == pytest.approx(t[1], abs=0.06)
