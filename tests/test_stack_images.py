@@ -203,7 +203,8 @@ def test_readme_stack_example_runs_as_written(pertuz_dir: Path, tmp_path: Path) 
     assert g.attrs["status"] == "complete"
     im = scipy.io.loadmat(pertuz_dir / "imdata.mat", squeeze_me=True,
                           struct_as_record=False)["imdata"]
-    np.testing.assert_allclose(g.attrs["focus_heights_um"], np.asarray(im.focus) * 1e6,
+    np.testing.assert_allclose(np.asarray(g.attrs.asdict()["focus_heights_um"], dtype=float),
+                               np.asarray(im.focus) * 1e6,
                                rtol=1e-12)
 
 
@@ -273,3 +274,24 @@ def test_stack_shows_its_progress(pertuz_dir: Path, tmp_path: Path,
     assert "reconstruction done in" in err
     assert re.search(r"median rows \d+/256", err), err
     assert "weighted median 5x5 done in" in err
+
+
+def test_the_stack_command_reconstructs_as_reconstruct_field(pertuz_dir: Path) -> None:
+    """The command's steps shown one by one (reconstruction, then the filter with its
+    progress) give what reconstruct_field gives."""
+    from dataclasses import fields as dc_fields
+
+    from sffscan.pipeline.cli.stack_steps import reconstruct_with_progress
+    from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
+
+    stack = read_image_stack([pertuz_dir / f"im_{i:02d}.tif" for i in range(1, 31)])
+    table = np.arange(30, dtype=np.float64)
+    settings = StackSettings(filter_size=5, min_confidence=0.3)
+    a = reconstruct_with_progress(stack, table, settings, None)
+    b = reconstruct_field(stack, focus_heights_um=table, settings=settings)
+    assert a.settings == b.settings
+    assert np.isnan(b.height_um).any()  # min_confidence took some pixels
+    for f in dc_fields(b):
+        if f.name != "settings":
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            assert (x is None and y is None) or np.array_equal(x, y, equal_nan=True), f.name

@@ -79,7 +79,13 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
                  settings.filter_size, time.perf_counter() - t1)
     if settings.min_confidence > 0:
         height[raw.confidence < settings.min_confidence] = np.nan
-    return replace(raw, height_um=height, settings=settings)
+    out = replace(raw, height_um=height, settings=settings)
+    unc = getattr(out, "uncertainty_um", None)
+    if unc is not None:  # as reconstruct_field leaves it: NaN where the height is
+        unc = np.array(unc, dtype=np.float32)
+        unc[~np.isfinite(height)] = np.nan
+        out = replace(out, uncertainty_um=unc)  # type: ignore[call-arg,unused-ignore]
+    return out
 
 
 def image_order(args: argparse.Namespace) -> list[str]:
