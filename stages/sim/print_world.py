@@ -3,10 +3,10 @@
 A :class:`PrintWorld` has the interface the simulated camera uses (``pixel_um``,
 ``height_um``, ``texture``), like :class:`~sffscan.stages.sim.world.PlateWorld`, so
 :func:`sffscan.stages.sim.scanner.simulate_frames` scans it unchanged. Its surface is the
-top of the beads of layers ``0 .. layer`` (:meth:`PrintWorld.at_layer`), rasterised with
-the same bead model the expected map uses
-(:func:`sffscan.pipeline.printjob.expected.rasterise_expected`), plus a small random bead
-height jitter, plus the defects whose layer has been reached:
+top of the beads of layers ``0 .. layer`` (:meth:`PrintWorld.at_layer`), rasterised by
+:func:`rasterise_beads` (the bead model, defined here and used by the expected map of
+:mod:`sffscan.pipeline.printjob.expected` too: stages compute, pipeline runs), plus a
+small random bead height jitter, plus the defects whose layer has been reached:
 
 - ``gap`` (under-extrusion): the layer's material is missing in a disc of diameter
   ``size_mm`` (the previous layer shows); the next layer bridges it (transient);
@@ -30,20 +30,212 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from sffscan.pipeline.printjob.expected import (
-    ExpectedMap,
-    Grid,
-    PrinterMapping,
-    rasterise_expected,
-)
-from sffscan.pipeline.printjob.gcode import GcodeProgram
 from sffscan.stages.sim.world import PlateWorld
 
-__all__ = ["DefectKind", "PrintDefect", "PrintWorld"]
+__all__ = ["DefectKind", "ExpectedMap", "Grid", "PrintDefect", "PrintWorld", "bead_width_mm",
+           "rasterise_beads"]
 
 DefectKind = Literal["gap", "blob", "lifted_corner", "layer_shift", "missing_object"]
 PERSISTENT = ("lifted_corner", "layer_shift", "missing_object")
 
+
+# ------------------------------------------------------------------ the bead model
+# (shared with the expected map: sffscan.pipeline.printjob.expected re-exports these)
+
+@dataclass(frozen=True)
+class Grid:
+    """A pixel grid in mosaic coordinates.
+
+    Parameters
+    ----------
+    origin_um : (float, float)
+        Centre of pixel (0, 0), (x, y) µm.
+    pixel_um : float
+        Pixel size, µm/px.
+    shape : (int, int)
+        (rows, columns).
+    """
+
+    origin_um: tuple[float, float]
+    pixel_um: float
+    shape: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.pixel_um) and self.pixel_um > 0):
+            raise ValueError(f"Grid.pixel_um must be > 0, got {self.pixel_um}")
+        if len(self.shape) != 2 or min(self.shape) < 1:
+            raise ValueError(f"Grid.shape must be two positive sizes, got {self.shape}")
+
+    @classmethod
+    def of_dataset(cls, ds: Any) -> Grid:
+        """The grid of an xarray Dataset with ``x`` and ``y`` pixel-centre coordinates (µm),
+        as :func:`sffscan.open_mosaic` returns."""
+        x, y = np.asarray(ds["x"]), np.asarray(ds["y"])
+        p = float(x[1] - x[0]) if x.size > 1 else float(ds.attrs["pixel_um"])
+        return cls((float(x[0]), float(y[0])), p, (int(y.size), int(x.size)))
+
+    def xy_um(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-centre coordinates: (columns,) x and (rows,) y, µm."""
+        return (self.origin_um[0] + self.pixel_um * np.arange(self.shape[1]),
+                self.origin_um[1] + self.pixel_um * np.arange(self.shape[0]))
+
+
+@dataclass
+class ExpectedMap:
+    """An expected top surface on a grid.
+
+    Attributes
+    ----------
+    height_um : (rows, columns) float32
+        Expected height, µm (0 = the bed).
+    label : (rows, columns) int16
+        Object of the highest bead at each pixel (index into the program's ``objects``);
+        -1 where no labelled bead lies.
+    upto_layer : int
+        Layers ``0 .. upto_layer`` are included (-1: none).
+    """
+
+    height_um: np.ndarray
+    label: np.ndarray
+    upto_layer: int
+
+
+def bead_width_mm(e_mm: np.ndarray, length_mm: np.ndarray, layer_height_mm: np.ndarray, *,
+                  filament_diameter_mm: float) -> np.ndarray:
+    """Width of the stadium bead a move lays, mm (see the module's bead model).
+
+    Parameters
+    ----------
+    e_mm, length_mm, layer_height_mm : array_like of float
+        Filament extruded (mm), move length (mm, > 0) and layer height (mm, > 0).
+    filament_diameter_mm : float, keyword-only
+        Filament diameter, mm.
+
+    Returns
+    -------
+    ndarray of float64, mm
+    """
+    area = np.asarray(e_mm) * math.pi * filament_diameter_mm**2 / 4.0 / np.asarray(length_mm)
+    h = np.asarray(layer_height_mm, dtype=np.float64)
+    return area / h + h * (1.0 - math.pi / 4.0)
+
+
+def rasterise_beads(program: Any, grid: Grid, *, upto_layer: int, mapping: Any = None,
+                    base: ExpectedMap | None = None, exclude: np.ndarray | None = None,
+                    shift_mm: np.ndarray | None = None) -> ExpectedMap:
+    """Expected height map of the extrusion of layers ``<= upto_layer``.
+
+    Parameters
+    ----------
+    program : GcodeProgram
+        The print's moves (any object with ``start``, ``end``, ``z_mm``, ``e_mm``,
+        ``layer``, ``object_id``, ``layer_height_mm()`` and ``filament_diameter_mm`` as
+        :class:`sffscan.pipeline.printjob.gcode.GcodeProgram` has).
+    grid : Grid
+        Output grid, mosaic coordinates.
+    upto_layer : int, keyword-only
+        Last layer included (0-based; ``program.n_layers - 1`` for the whole part).
+    mapping : PrinterMapping, keyword-only
+        Printer -> mosaic coordinates (an object with ``apply((..., 2) mm) -> µm``); default
+        the identity (printer mm * 1000 = µm).
+    base : ExpectedMap, keyword-only
+        A map of the same grid with layers ``<= base.upto_layer`` already rasterised (and
+        the same mapping): only the later layers are added (a copy; ``base`` is unchanged).
+    exclude : (M,) bool ndarray, keyword-only
+        Moves to leave out (the simulator's defects).
+    shift_mm : (M, 2) float ndarray, keyword-only
+        Per-move XY offsets, mm, added before the mapping (the simulator's layer shifts).
+
+    Returns
+    -------
+    ExpectedMap
+    """
+    def apply(xy_mm: np.ndarray) -> np.ndarray:
+        return xy_mm * 1000.0 if mapping is None else np.asarray(mapping.apply(xy_mm))
+
+    if base is not None:
+        if base.height_um.shape != grid.shape:
+            raise ValueError(f"base map shape {base.height_um.shape} != grid {grid.shape}")
+        height, label, first = base.height_um.copy(), base.label.copy(), base.upto_layer + 1
+    else:
+        height = np.zeros(grid.shape, np.float32)
+        label = np.full(grid.shape, -1, np.int16)
+        first = 0
+    if upto_layer < first:
+        return ExpectedMap(height, label, max(upto_layer, first - 1))
+    sel = (program.layer >= first) & (program.layer <= upto_layer)
+    if exclude is not None:
+        sel &= ~exclude
+    idx = np.flatnonzero(sel)
+    a_mm, b_mm = program.start[idx], program.end[idx]
+    if shift_mm is not None:
+        a_mm, b_mm = a_mm + shift_mm[idx], b_mm + shift_mm[idx]
+    length = np.hypot(*(b_mm - a_mm).T)
+    h_mm = program.layer_height_mm()[program.layer[idx]]
+    w_mm = bead_width_mm(program.e_mm[idx], np.maximum(length, 1e-6), h_mm,
+                         filament_diameter_mm=program.filament_diameter_mm)
+    a = apply(a_mm)
+    b = apply(b_mm)
+    p = grid.pixel_um
+    ox, oy = grid.origin_um
+    ny, nx = grid.shape
+    for k in range(idx.size):
+        half = w_mm[k] * 500.0
+        hh = h_mm[k] * 500.0  # half the layer height, µm
+        top = program.z_mm[idx[k]] * 1000.0
+        flat = max(half - hh, 0.0)
+        (ax, ay), (bx, by) = a[k], b[k]
+        j0 = max(0, math.floor((min(ax, bx) - half - ox) / p))
+        j1 = min(nx, math.ceil((max(ax, bx) + half - ox) / p) + 1)
+        i0 = max(0, math.floor((min(ay, by) - half - oy) / p))
+        i1 = min(ny, math.ceil((max(ay, by) + half - oy) / p) + 1)
+        if j0 >= j1 or i0 >= i1:
+            continue
+        rows, cols = _capsule_pixels(ax, ay, bx, by, half, grid, i0, i1, j0, j1)
+        if rows.size == 0:
+            continue
+        xs = ox + p * cols - ax
+        ys = oy + p * rows - ay
+        dx, dy = bx - ax, by - ay
+        ll = dx * dx + dy * dy
+        t = np.clip((xs * dx + ys * dy) / ll, 0.0, 1.0) if ll > 0 else 0.0
+        d = np.hypot(xs - t * dx, ys - t * dy)
+        edge = np.clip(d - flat, 0.0, None)
+        z = (top - hh + np.sqrt(np.clip(hh * hh - edge * edge, 0.0, None))).astype(np.float32)
+        up = (d <= half) & (z > height[rows, cols])
+        height[rows[up], cols[up]] = z[up]
+        label[rows[up], cols[up]] = program.object_id[idx[k]]
+    return ExpectedMap(height, label, upto_layer)
+
+
+def _capsule_pixels(ax: float, ay: float, bx: float, by: float, half: float, grid: Grid,
+                    i0: int, i1: int, j0: int, j1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of the pixels of box [i0, i1) x [j0, j1) whose centres lie
+    in the band of half-width ``half`` (µm) around segment a-b, per row (a superset of the
+    capsule; the caller tests the distance)."""
+    p = grid.pixel_um
+    ox, oy = grid.origin_um
+    rows = np.arange(i0, i1)
+    lo = np.full(rows.size, j0, dtype=np.int64)
+    hi = np.full(rows.size, j1 - 1, dtype=np.int64)
+    dx, dy = bx - ax, by - ay
+    if abs(dy) > 1e-9:
+        y = oy + p * rows
+        xc = ax + (y - ay) * dx / dy
+        reach = half * math.hypot(dx, dy) / abs(dy) + p
+        lo = np.maximum(lo, np.ceil((xc - reach - ox) / p).astype(np.int64))
+        hi = np.minimum(hi, np.floor((xc + reach - ox) / p).astype(np.int64))
+    counts = np.clip(hi - lo + 1, 0, None)
+    total = int(counts.sum())
+    if total == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    r = np.repeat(rows, counts)
+    starts = np.repeat(np.cumsum(counts) - counts, counts)
+    c = np.repeat(lo, counts) + (np.arange(total) - starts)
+    return r, c
+
+
+# ------------------------------------------------------------------ the simulated print
 
 @dataclass(frozen=True)
 class PrintDefect:
@@ -100,8 +292,8 @@ class PrintWorld:
         Current layer (-1: the empty bed); :meth:`at_layer` gives another.
     """
 
-    program: GcodeProgram
-    mapping: PrinterMapping
+    program: Any
+    mapping: Any
     pixel_um: float
     extent_um: tuple[float, float, float, float]
     defects: tuple[PrintDefect, ...] = ()
@@ -210,7 +402,7 @@ class PrintWorld:
         lower = [k for k in stacks if k < upto]
         base = stacks[max(lower)] if lower else None
         exclude, shift = c["moves"]
-        out = rasterise_expected(c["program"], self.grid, upto_layer=upto, mapping=self.mapping,
+        out = rasterise_beads(c["program"], self.grid, upto_layer=upto, mapping=self.mapping,
                                  exclude=exclude, shift_mm=shift, base=base)
         stacks[upto] = out
         for k in sorted(stacks)[:-3]:  # keep a few: the scan goes up layer by layer
