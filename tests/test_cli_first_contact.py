@@ -44,6 +44,7 @@ def _recording(tmp_path: Path, n: int = 12) -> Path:
     from sffscan.stages.recorder import RecordingWriter
 
     cfg = tiny_config()
+    tmp_path.mkdir(parents=True, exist_ok=True)
     rec = tmp_path / "rec.zarr"
     writer = RecordingWriter(rec, cfg, account=FrameAccount(planned=n))
     for _, f in zip(range(n), simulate_frames(cfg), strict=False):
@@ -123,6 +124,10 @@ def test_resume_of_a_complete_mosaic_is_not_an_error(tmp_path: Path,
     err = capsys.readouterr().err
     assert "complete already" in err
     assert zarr.open_group(str(out), mode="r").attrs["status"] == "complete"
+    # another recording's complete mosaic is still refused, naming it
+    other = _recording(tmp_path / "other", n=10)
+    assert main(["replay", str(other), "-o", str(out), "--resume", "-q"]) == 2
+    assert "cannot resume from the recording" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------- 10: regions, info
@@ -239,7 +244,7 @@ def test_replay_and_info_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 def test_parser_construction_imports_nothing_heavy() -> None:
     code = ("import sys; from sffscan.pipeline.cli.main import build_parser; build_parser(); "
             "print(sorted(m for m in ('zarr', 'torch', 'rerun', 'xarray', 'dask', 'tqdm', "
-            "'sffscan.pipeline.formats.recording') if m in sys.modules))")
+            "'shtab', 'sffscan.pipeline.formats.recording') if m in sys.modules))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=120, cwd=ROOT)
     assert res.stdout.strip() == "[]"
@@ -270,3 +275,22 @@ def test_info_verify_fails_on_misplaced_frames(tmp_path: Path,
     err = capsys.readouterr().err
     assert "misplaced frame_id" in err and "3" in err and "5" in err
     shutil.rmtree(rec)
+
+
+def test_bash_completion_completes_commands_and_options(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    assert main(["completion", "bash"]) == 0
+    script = tmp_path / "sffscan.bash"
+    script.write_text(capsys.readouterr().out)
+    bash = shutil.which("bash")
+    assert bash is not None
+    probe = (f"source '{script}'; "
+             "COMP_WORDS=(sffscan rep); COMP_CWORD=1; _shtab_sffscan; echo \"${COMPREPLY[@]}\"; "
+             "COMP_WORDS=(sffscan info --ver); COMP_CWORD=2; _shtab_sffscan; "
+             "echo \"${COMPREPLY[@]}\"")
+    res = subprocess.run([bash, "-c", probe], capture_output=True, text=True, timeout=60,
+                         check=True)
+    assert res.stdout.splitlines() == ["replay", "--verify --verbose"], res.stdout
+    assert main(["completion", "zsh"]) == 0
+    assert "#compdef sffscan" in capsys.readouterr().out

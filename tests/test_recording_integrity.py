@@ -63,7 +63,7 @@ def test_twenty_flipped_bytes_in_frame_chunks_are_all_detected(
         data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
         path.write_bytes(bytes(data))
     want = sorted(int(fid[i]) for i in flipped)
-    assert main(["info", str(rec), "--verify"]) == 0
+    assert main(["info", str(rec), "--verify"]) == 3  # frames a replay leaves out
     out = capsys.readouterr().out
     assert "verified    every usable frame decoded; 20 corrupt" in out, out
     assert "corrupt     20: frame_id " + ", ".join(map(str, want)) in out

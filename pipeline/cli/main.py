@@ -132,6 +132,20 @@ def cmd_schemas(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+COMPLETION_SHELLS = ("bash", "zsh", "tcsh")
+
+
+def cmd_completion(args: argparse.Namespace) -> int:
+    try:
+        import shtab
+    except ImportError:
+        print("sffscan completion: needs the package 'shtab' (pip install shtab)",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(shtab.complete(build_parser(), shell=args.shell))
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sffscan",
@@ -188,6 +202,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="schema folder (default: the packaged copy, sffscan.schemas)")
     p.add_argument("--check", action="store_true", help="fail if the files differ")
     p.set_defaults(func=cmd_schemas)
+
+    p = sub.add_parser("completion", help="print a shell completion script (bash, zsh, tcsh)",
+                       description="Print the completion script of a shell for every "
+                                   "sffscan command and option (made by shtab). Bash: "
+                                   "'sffscan completion bash > ~/.local/share/bash-completion/"
+                                   "completions/sffscan'; zsh: 'sffscan completion zsh > "
+                                   "~/.zfunc/_sffscan' with ~/.zfunc on fpath.")
+    p.add_argument("shell", choices=COMPLETION_SHELLS, help="the shell: bash, zsh or tcsh")
+    p.set_defaults(func=cmd_completion)
     for module in COMMAND_MODULES:
         importlib.import_module(module).register(sub)
     for p in sub.choices.values():  # -q / -v after the sub-command too

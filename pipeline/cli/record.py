@@ -48,15 +48,18 @@ def _print_report(rec: Recording) -> None:
             log.warning(line)
 
 
-def _complete_mosaic(path: str | Path) -> bool:
-    """Whether ``path`` is an sffscan mosaic whose status is 'complete'."""
+def _complete_from(path: str | Path, recording: str | Path) -> bool:
+    """Whether ``path`` is an sffscan mosaic made from ``recording`` whose status is
+    'complete' (another recording's is refused by the resume, naming it)."""
     import zarr
+    from sffscan.pipeline.run import identity_mismatch, recording_identity, stored_identity
 
     try:
-        attrs = zarr.open_group(str(path), mode="r").attrs
-        return bool(attrs.get("format") == "sffscan-mosaic" and attrs.get("status") == "complete")
+        attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
     except Exception:  # noqa: BLE001 - not a mosaic: the resume itself says why
         return False
+    return (attrs.get("format") == "sffscan-mosaic" and attrs.get("status") == "complete"
+            and identity_mismatch(stored_identity(attrs), recording_identity(recording)) is None)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -75,7 +78,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     if args.resume:
         args.overwrite = False
-        if _complete_mosaic(args.output):  # nothing wrong, nothing to do
+        if _complete_from(args.output, args.recording):  # nothing wrong, nothing to do
             print(f"sffscan: {args.output} is complete already (status 'complete'): nothing "
                   "to resume; 'sffscan info' summarises it, --overwrite re-processes it",
                   file=sys.stderr)
