@@ -256,11 +256,13 @@ def test_weighted_median_equals_the_argsort_form(size: int) -> None:
     z[0, 40:] = -np.inf
     w = rng.random(z.shape).astype(np.float32)
     w[rng.random(z.shape) < 0.2] = 0.0
-    calls: list[tuple[int, int]] = []
-    got = confidence_weighted_median(z, w, size=size, block_rows=8,
-                                     progress=lambda d, n: calls.append((d, n)))
-    np.testing.assert_array_equal(got, _weighted_median_by_argsort(z, w, size))
-    assert calls[-1] == (37, 37) and len(calls) == 5
+    ref = _weighted_median_by_argsort(z, w, size)
+    for threads in (1, 3):  # blocks of rows in threads: the same result, progress in order
+        calls: list[tuple[int, int]] = []
+        got = confidence_weighted_median(z, w, size=size, block_rows=8, threads=threads,
+                                         progress=lambda d, n, c=calls: c.append((d, n)))
+        np.testing.assert_array_equal(got, ref)
+        assert calls == [(8, 37), (16, 37), (24, 37), (32, 37), (37, 37)]
 
 
 def test_stack_shows_its_progress(pertuz_dir: Path, tmp_path: Path,

@@ -21,6 +21,7 @@ Image stacks are read from image files (:func:`read_image_stack`) or a Zarr arra
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,7 +141,7 @@ class FieldResult:
 
 
 def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size: int,
-                               block_rows: int = 16,
+                               block_rows: int = 8, threads: int | None = None,
                                progress: Callable[[int, int], None] | None = None
                                ) -> np.ndarray:
     """Weighted median of ``values`` over ``size x size`` windows, weights ``weights``.
@@ -159,8 +160,11 @@ def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size:
     size : int, keyword-only
         Odd window size, px; 1 returns a float32 copy.
     block_rows : int, keyword-only
-        Rows processed at once (bounds the temporary memory: ``block_rows * W * size**2``
-        8-byte keys).
+        Rows processed at once by one thread (bounds the temporary memory: about
+        ``block_rows * W * size**2 * 28`` bytes per thread).
+    threads : int, keyword-only
+        Threads that filter blocks of rows at once (numpy releases the GIL in the sort);
+        default the machine's cores, at most 8. The result does not depend on it.
     progress : callable, keyword-only
         Called as ``progress(rows_done, rows)`` after each block of rows (a progress display).
 
@@ -196,7 +200,8 @@ def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size:
     kp = np.pad(key, r, mode="edge")
     out = np.full(z.shape, np.nan, dtype=np.float32)
     low = np.uint64(0xFFFFFFFF)
-    for i0 in range(0, z.shape[0], block_rows):
+
+    def block(i0: int) -> int:
         i1 = min(i0 + block_rows, z.shape[0])
         kw = np.lib.stride_tricks.sliding_window_view(kp[i0 : i1 + 2 * r], (size, size))
         ks = np.sort(kw.reshape(i1 - i0, z.shape[1], size * size), axis=-1)
@@ -205,8 +210,19 @@ def confidence_weighted_median(values: np.ndarray, weights: np.ndarray, *, size:
         k = np.count_nonzero(cum < 0.5 * cum[..., -1:], axis=-1)
         med = np.take_along_axis(ks, k[..., None], axis=-1)[..., 0] >> np.uint64(32)
         out[i0:i1] = np.where(valid[i0:i1], _from_order_bits(med.astype(np.uint32)), np.nan)
-        if progress is not None:
-            progress(i1, z.shape[0])
+        return i1
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    n = threads if threads is not None else min(os.cpu_count() or 1, 8)
+    # blocks write disjoint rows of ``out``; map runs at most n at once, results in order
+    pool = ThreadPoolExecutor(max(1, int(n)))
+    try:
+        for i1 in pool.map(block, range(0, z.shape[0], block_rows)):
+            if progress is not None:
+                progress(i1, z.shape[0])
+    finally:  # an error or Ctrl-C: the blocks not started are dropped, not waited for
+        pool.shutdown(wait=True, cancel_futures=True)
     return out
 
 
