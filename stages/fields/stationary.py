@@ -127,6 +127,10 @@ class FieldResult:
         ``|H1| / H0`` of each focus curve, 0..1.
     settings : StackSettings
         The settings used.
+    uncertainty_um : (H, W) float32 or None
+        The height's uncertainty, µm, one sigma (of the raw height:
+        :func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`); NaN where the height
+        is; None where not computed.
     """
 
     height_um: np.ndarray
@@ -135,6 +139,7 @@ class FieldResult:
     texture: np.ndarray
     confidence: np.ndarray
     settings: StackSettings = field(default_factory=StackSettings)
+    uncertainty_um: np.ndarray | None = None
 
 
 # ----------------------------------------------------------------------------- filter
@@ -337,8 +342,16 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
+    from sffscan.stages.depth import focus_sums
+    from sffscan.stages.depth_uncertainty import height_uncertainty_um
+
+    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    unc = height_uncertainty_um(levels, focus_sums(vol), vol.min(axis=0),
+                                n_levels=vol.shape[0], focus_heights_um=heights,
+                                window=settings.window)
+    unc[~np.isfinite(height)] = np.nan
     return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
-                       confidence=confidence, settings=settings)
+                       confidence=confidence, settings=settings, uncertainty_um=unc)
 
 
 # ----------------------------------------------------------------------------- reading stacks

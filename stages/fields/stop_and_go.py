@@ -206,12 +206,15 @@ def stitch_field(writer: MosaicWriter, result: FieldResult, *, x0_px: int, y0_px
     """
     valid = np.isfinite(result.height_um)
     w = np.where(valid, np.maximum(result.confidence, MIN_WEIGHT) * feather, 0.0)
-    writer.write_region(x0_px, y0_px, {
+    sums = {
         "height": np.where(valid, result.height_um, 0.0) * w,
         "texture": np.where(valid, result.texture, 0.0) * w,
         "weight": w,
         "confidence": np.where(valid, result.confidence, 0.0),
-    })
+    }
+    if result.uncertainty_um is not None:  # else unknown (NaN) in the mosaic
+        sums["uncertainty"] = np.where(valid, result.uncertainty_um, 0.0) * w
+    writer.write_region(x0_px, y0_px, sums)
     return int(valid.sum())
 
 
