@@ -8,7 +8,8 @@ pixel by pixel, as the focus-stack program does. Here:
    (:func:`cv2.findTransformECC`, affine model, coarse to fine on an image pyramid, each
    pair started from the previous pair's result), and the pair transforms are chained to
    the middle frame: neighbours differ little in blur, so the correlation holds even where
-   the middle frame is sharp and the far frames are not;
+   the middle frame is sharp and the far frames are not; for ``"scale"``, a step between
+   two featureless frames that strays from the others gives way to them (:func:`_smooth_steps`);
 2. the chained affine transform is reduced to the model asked for: ``"scale"`` (one
    magnification about the frame centre plus a shift, the breathing of a lens),
    ``"similarity"`` (plus a rotation) or ``"affine"``;
@@ -217,6 +218,8 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
         raise ValueError(f"reference must be in 0..{n - 1}, got {reference}")
     full = [np.eye(3) for _ in range(n)]
     rho = np.ones(n)
+    # "scale": the steps frame k - 1 -> k px (log s, shift x, y), their variances (row k)
+    steps, variances = np.zeros((n, 3)), np.full((n, 3), np.inf)
     for direction in (-1, 1):
         step_init: np.ndarray | None = None
         k = ref + direction
@@ -228,7 +231,13 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
                 raise ValueError(f"frame {k}: cannot align to frame {j}: {err}") from None
             step_init = a
             full[k] = _h(a) @ full[j]  # reference px -> frame j px -> frame k px
+            if model == "scale":
+                i = max(j, k)  # the step from frame i - 1 to frame i
+                step, var = _scale_step(st[j], st[k], a)
+                steps[i], variances[i] = (step if direction > 0 else _invert_step(step)), var
             k += direction
+    if model == "scale" and n >= 6:
+        full = _chain_steps(_smooth_steps(steps[1:], variances[1:]), ref, st.shape[1:])
     mats, scales, shifts, rots = [], [], [], []
     for k in range(n):
         m, s, sh, r = _reduce(full[k][:2], st.shape[1:], model)
@@ -240,17 +249,123 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
                      rotation_deg=np.array(rots), reference=ref, correlation=rho, model=model)
 
 
+# ----------------------------------------------------------------------------- scale steps
+
+
+def _scale_step(template: np.ndarray, image: np.ndarray, a: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A pair's ``(log s, shift x, shift y)`` about the frame centre (:func:`_reduce`) and
+    each one's variance (Cramér-Rao: the residual variance times its correlation area, over
+    the sum of the frames' shared squared derivatives along the parameter)."""
+    t, im = _to_float(template), _to_float(image)
+    h, w = t.shape
+    m, s, shift, _ = _reduce(a, (h, w), "scale")
+    t = cv2.GaussianBlur(t, (5, 5), 0)
+    wi = cv2.warpAffine(cv2.GaussianBlur(im, (5, 5), 0), m, (w, h),
+                        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    ok = _coverage(m, (h, w), 2.0)
+    ok[:2], ok[-2:], ok[:, :2], ok[:, -2:] = False, False, False, False
+    if ok.sum() < 64:
+        return np.array([math.log(s), *shift]), np.full(3, np.inf)
+    tv, wv = t[ok].astype(np.float64), wi[ok].astype(np.float64)
+    gain, offset = np.polyfit(tv, wv, 1)  # the photometric fit ECC makes implicitly
+    res = np.zeros((h, w))
+    res[ok] = wv - (gain * tv + offset)
+    var_r = float(np.mean(res[ok] ** 2))
+    # correlation of the residual between neighbours: its correlation area (Gaussian model)
+    r1 = float(np.sum(res[:, 1:] * res[:, :-1]) / max(np.sum(res[:, 1:] ** 2), 1e-30))
+    r1 = min(max(r1, 0.01), 0.99)
+    area = max(1.0, 4.0 * math.pi * (-1.0 / (4.0 * math.log(r1))))
+    # the derivatives of both frames multiplied: their noise is independent, so the sums
+    # hold the structure the frames share, not the noise (a blurred, noisy pair tells little)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    xx -= (w - 1) / 2.0
+    yy -= (h - 1) / 2.0
+    d = []
+    for img in (t, wi):
+        gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3) / 8.0
+        gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3) / 8.0
+        d.append((gx * xx + gy * yy, gx, gy))
+    info = gain * np.array([max(0.0, float(np.sum((a * b)[ok])))
+                            for a, b in zip(*d, strict=True)])
+    var = np.where(info > 0, var_r * area / np.maximum(info, 1e-300), np.inf)
+    return np.array([math.log(s), *shift]), var
+
+
+def _invert_step(step: np.ndarray) -> np.ndarray:
+    """The inverse of a scale step: ``x' = c + s (x - c) + t`` -> ``x = c + (x' - c - t) / s``."""
+    s = math.exp(step[0])
+    return np.array([-step[0], -step[1] / s, -step[2] / s])
+
+
+def _smooth_steps(steps: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Each parameter's steps, shrunk toward their robust mean.
+
+    A lens breathes smoothly with the focus: neighbouring steps are nearly equal. Where ECC
+    settles on a wrong step between two featureless frames (blurred, noisy: a bias its
+    variance does not show), the chain would carry the error to every frame beyond; such a
+    step gives way to the others' mean. Per parameter: the weighted mean (weights
+    ``1 / (var + tau2)`` times Tukey's biweight of the standardised residual, 4.685), ``tau2``
+    the scatter of the steps beyond their variances (median-based: a few wild steps do not
+    set it), then each step's inverse-variance mean with the robust mean, its weight times
+    its biweight. A lens whose steps really differ (uneven focus steps) has a large ``tau2``
+    and keeps its well-measured steps.
+    """
+    out = steps.copy()
+    for p in range(steps.shape[1]):
+        y, v = steps[:, p], var[:, p]
+        fin = np.isfinite(v)
+        if fin.sum() < 4:
+            continue
+        vf = np.where(fin, v, np.inf)
+        tau2, bw, mean = 0.0, fin.astype(np.float64), float(np.median(y[fin]))
+        for _ in range(6):
+            wts = bw / (vf + tau2 + 1e-30)
+            mean = float(np.sum(wts * y) / np.sum(wts)) if wts.sum() > 0 else mean
+            r2 = (y - mean) ** 2
+            tau2 = max(0.0, float(np.median(r2[fin] - v[fin])) / 0.455)  # chi2(1) median
+            bw = np.clip(1.0 - r2 / ((vf + tau2 + 1e-30) * 4.685**2), 0.0, None) ** 2
+        if tau2 == 0.0:
+            out[:, p] = mean
+        else:
+            wm = bw / vf  # a wild step (biweight 0): the mean
+            out[:, p] = (wm * y + mean / tau2) / (wm + 1.0 / tau2)
+    return out
+
+
+def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np.ndarray]:
+    """Reference px -> frame k px (3 x 3) from the steps frame k - 1 -> k (``steps[k - 1]``)."""
+    h, w = shape
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+
+    def mat(step: np.ndarray) -> np.ndarray:
+        s = math.exp(step[0])
+        return np.array([[s, 0.0, c[0] - s * c[0] + step[1]],
+                         [0.0, s, c[1] - s * c[1] + step[2]], [0.0, 0.0, 1.0]])
+
+    n = steps.shape[0] + 1
+    full = [np.eye(3) for _ in range(n)]
+    for k in range(ref + 1, n):
+        full[k] = mat(steps[k - 1]) @ full[k - 1]
+    for k in range(ref - 1, -1, -1):
+        full[k] = np.linalg.inv(mat(steps[k])) @ full[k + 1]
+    return full
+
+
 def warp_frame(image: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (Lanczos).
 
-    Returns an array of ``image``'s shape and dtype; pixels mapping outside the frame
-    replicate its border (:func:`align_stack` reports them as not valid).
+    Returns an array of ``image``'s shape and dtype, clipped to the frame's own range (the
+    kernel's ringing must not push a 10-bit frame past its full scale); pixels mapping
+    outside the frame replicate its border (:func:`align_stack` reports them as not valid).
     """
     img = np.asarray(image)
     h, w = img.shape
-    return cv2.warpAffine(img, np.asarray(matrix, dtype=np.float64), (w, h),
-                          flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.warpAffine(img, np.asarray(matrix, dtype=np.float64), (w, h),
+                         flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE)
+    lo, hi = (np.asarray(v, dtype=img.dtype) for v in cv2.minMaxLoc(img)[:2])
+    return np.clip(out, lo, hi, out=out)
 
 
 def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.ndarray:
