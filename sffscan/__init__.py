@@ -14,8 +14,6 @@ with the first call that needs them.
 from __future__ import annotations
 
 import typing as _typing
-from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
-from importlib.metadata import version as _version
 from pathlib import Path as _Path
 
 # Imported from a source tree (the clone's folder on sys.path: ``python -m pytest`` or a
@@ -26,78 +24,86 @@ _HERE = _Path(__file__).parent
 if not (_HERE / "pipeline").is_dir() and (_HERE.parent / "pipeline" / "__init__.py").is_file():
     __path__.append(str(_HERE.parent))
 
-from sffscan.api import (  # noqa: E402 (after the source tree's path)
-    focus_measure,
-    open_mosaic,
-    reconstruct_stack,
-    replay,
-    scan,
-)
-from sffscan.pipeline.config import (  # noqa: E402 (after the source tree's path)
-    ConfigError,
-    MotionConfig,
-    OpticsConfig,
-    OutputConfig,
-    ProcessingConfig,
-    ScanConfig,
-    SourceConfig,
-    demo_config,
-    load_config,
-)
-from sffscan.pipeline.messages import (  # noqa: E402 (after the source tree's path)
-    DepthBlock,
-    DepthBlockHeader,
-    FocusFrame,
-    Frame,
-    FrameHeader,
-    MosaicAttrs,
-    PlacedFrame,
-)
-
 if _typing.TYPE_CHECKING:
+    from sffscan.api import focus_measure, open_mosaic, reconstruct_stack, replay, scan
     from sffscan.pipeline.batch import BatchError, BatchRow, find_recordings, run_batch
+    from sffscan.pipeline.config import (
+        ConfigError,
+        MotionConfig,
+        OpticsConfig,
+        OutputConfig,
+        ProcessingConfig,
+        ScanConfig,
+        SourceConfig,
+        demo_config,
+        load_config,
+    )
     from sffscan.pipeline.formats.exports import MosaicRegion, read_region, write_ply, write_x3p
     from sffscan.pipeline.formats.recording import RecordingError
+    from sffscan.pipeline.messages import (
+        DepthBlock,
+        DepthBlockHeader,
+        FocusFrame,
+        Frame,
+        FrameHeader,
+        MosaicAttrs,
+        PlacedFrame,
+    )
     from sffscan.pipeline.metrology.areal import ArealParameters, areal_parameters
     from sffscan.pipeline.runtime import StageFailed
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
 
-try:
-    __version__ = _version("sffscan")
-except _PackageNotFoundError:  # pragma: no cover - running from a source tree, not installed
-    __version__ = "0+unknown"
+    __version__: str
 
-#: Names of the API whose modules load zarr, OpenCV or torch: imported on first use.
+#: Where each name of the API lives: imported on first use, so that ``import sffscan`` (and
+#: the command line's ``--help``) loads neither numpy, pydantic nor zarr.
 _LAZY = {
-    "ArealParameters": "sffscan.pipeline.metrology.areal",
-    "BatchError": "sffscan.pipeline.batch",
-    "BatchRow": "sffscan.pipeline.batch",
-    "FieldResult": "sffscan.stages.fields.stationary",
-    "MosaicRegion": "sffscan.pipeline.formats.exports",
-    "areal_parameters": "sffscan.pipeline.metrology.areal",
-    "find_recordings": "sffscan.pipeline.batch",
-    "read_region": "sffscan.pipeline.formats.exports",
-    "run_batch": "sffscan.pipeline.batch",
-    "write_ply": "sffscan.pipeline.formats.exports",
-    "write_x3p": "sffscan.pipeline.formats.exports",
+    **dict.fromkeys(("focus_measure", "open_mosaic", "reconstruct_stack", "replay", "scan"),
+                    "sffscan.api"),
+    **dict.fromkeys(("ConfigError", "MotionConfig", "OpticsConfig", "OutputConfig",
+                     "ProcessingConfig", "ScanConfig", "SourceConfig", "demo_config",
+                     "load_config"), "sffscan.pipeline.config"),
+    **dict.fromkeys(("DepthBlock", "DepthBlockHeader", "FocusFrame", "Frame", "FrameHeader",
+                     "MosaicAttrs", "PlacedFrame"), "sffscan.pipeline.messages"),
+    **dict.fromkeys(("ArealParameters", "areal_parameters"), "sffscan.pipeline.metrology.areal"),
+    **dict.fromkeys(("BatchError", "BatchRow", "find_recordings", "run_batch"),
+                    "sffscan.pipeline.batch"),
+    **dict.fromkeys(("MosaicRegion", "read_region", "write_ply", "write_x3p"),
+                    "sffscan.pipeline.formats.exports"),
+    **dict.fromkeys(("FieldResult", "StackSettings"), "sffscan.stages.fields.stationary"),
     "RecordingError": "sffscan.pipeline.formats.recording",
     "ScanReport": "sffscan.pipeline.wiring",
-    "StackSettings": "sffscan.stages.fields.stationary",
     "StageFailed": "sffscan.pipeline.runtime",
     "open_job": "sffscan.pipeline.printjob.layer",
 }
 
 
-def __getattr__(name: str) -> _typing.Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'sffscan' has no attribute {name!r}")
-    import importlib
+def _distribution_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
 
-    value = getattr(importlib.import_module(module), name)
+    try:
+        return version("sffscan")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree, not installed
+        return "0+unknown"
+
+
+def __getattr__(name: str) -> _typing.Any:
+    if name == "__version__":
+        value: _typing.Any = _distribution_version()
+    else:
+        module = _LAZY.get(name)
+        if module is None:
+            raise AttributeError(f"module 'sffscan' has no attribute {name!r}")
+        import importlib
+
+        value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
 
 
 __all__ = [

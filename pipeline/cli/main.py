@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="sffscan",
         description="Shape-from-focus in continuous motion: scan a part while it prints and "
                     "write a Zarr height mosaic.")
-    parser.add_argument("--version", action="version", version=f"sffscan {_version()}")
+    parser.add_argument("--version", action=_VersionAction, help="print the version and exit")
     _log_options(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -240,6 +240,21 @@ def _plain_texts(parser: argparse.ArgumentParser) -> None:
         if isinstance(action, argparse._SubParsersAction):
             for sub in action.choices.values():
                 _plain_texts(sub)
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the installed distribution's version, looked up only when asked for
+    (importlib.metadata's look-up costs as much as the rest of the parser)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0,
+                         help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        parser._print_message(f"sffscan {_version()}\n", sys.stdout)
+        parser.exit()
 
 
 def _version() -> str:
