@@ -250,6 +250,17 @@ def test_parser_construction_imports_nothing_heavy() -> None:
     assert res.stdout.strip() == "[]"
 
 
+def test_import_sffscan_loads_only_the_standard_library() -> None:
+    code = ("import sys, sffscan; "
+            "print(sorted(m for m in ('numpy', 'pydantic', 'zarr', 'sffscan.pipeline.config', "
+            "'sffscan.api') if m in sys.modules)); print(sffscan.__version__)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120, cwd=ROOT)
+    loaded, version = res.stdout.splitlines()
+    assert loaded == "[]"
+    assert version == sffscan.__version__ != "0+unknown"
+
+
 def test_public_api_has_export_areal_and_batch() -> None:
     for name in ("areal_parameters", "ArealParameters", "read_region", "write_ply",
                  "write_x3p", "run_batch", "find_recordings", "BatchRow"):
