@@ -305,3 +305,12 @@ def test_bash_completion_completes_commands_and_options(tmp_path: Path,
     assert res.stdout.splitlines() == ["replay", "--verify --verbose"], res.stdout
     assert main(["completion", "zsh"]) == 0
     assert "#compdef sffscan" in capsys.readouterr().out
+
+
+def test_json_values_are_plain() -> None:
+    from sffscan.pipeline.cli.common import plain_json
+
+    got = plain_json({"n": np.int64(3), "x": np.float32(1.5), "ok": np.bool_(True),
+                      "path": Path("/m.zarr"), "box": (1, 2)})
+    assert got == {"n": 3, "x": 1.5, "ok": True, "path": "/m.zarr", "box": [1, 2]}
+    assert type(got["n"]) is int and type(got["ok"]) is bool

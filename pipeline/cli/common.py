@@ -284,7 +284,17 @@ def summary_dict(report: ScanReport, account: FrameAccount | None = None) -> dic
         out["account"] = {"planned": account.planned, "sent": account.sent,
                           "expected": account.expected, "received": account.received,
                           "complete": account.complete}
-    return json.loads(json.dumps(out, default=str))  # plain values (paths, tuples) only
+    return plain_json(out)
+
+
+def plain_json(value: Any) -> Any:
+    """``value`` as plain JSON values: numpy scalars as numbers, paths and other objects as
+    strings, tuples as lists."""
+    def convert(obj: Any) -> Any:
+        item = getattr(obj, "item", None)  # a numpy scalar
+        return item() if callable(item) and getattr(obj, "ndim", None) == 0 else str(obj)
+
+    return json.loads(json.dumps(value, default=convert))
 
 
 #: one coordinate of ``--region``: a number and an optional unit

@@ -25,6 +25,7 @@ from sffscan.pipeline.cli.common import (
     describe,
     json_option,
     override,
+    plain_json,
     processing_options,
     report_job,
     viewer_sink,
@@ -172,7 +173,7 @@ def mosaic_info(path: Path) -> dict[str, Any]:
         "frames_received": attrs.get("frames_received"),
         "recording": attrs.get("recording"),
     }
-    return json.loads(json.dumps(out, default=str))
+    return plain_json(out)
 
 
 def _processing_line(p: Any) -> str:
@@ -280,7 +281,7 @@ def _recording_info(rec: Recording) -> dict[str, Any]:
            "processing": {"focus_operator": p.focus_operator, "window": p.window,
                           "depth_method": p.depth_method, "registration": p.registration},
            "scan_config": rec.config.model_dump(mode="json")}
-    return json.loads(json.dumps(out, default=str))
+    return plain_json(out)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
