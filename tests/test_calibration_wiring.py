@@ -10,8 +10,9 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError, config_to_toml
 from sffscan.pipeline.metrology.calibration import Calibration, ZResponse, save_calibration
+from sffscan.pipeline.wiring import run_scan
 
-from tests.scan_helpers import scan, small_config
+from tests.scan_helpers import RenderedScan, small_config
 
 
 def _calibration(path: Path) -> Path:
@@ -22,9 +23,14 @@ def _calibration(path: Path) -> Path:
 
 def test_scan_heights_follow_the_calibrated_z_response(tmp_path: Path) -> None:
     cal = _calibration(tmp_path / "cal.json")
-    nominal = scan(small_config(), tmp_path / "nominal.zarr")
-    calibrated = scan(small_config(processing={"calibration": str(cal)}),
-                      tmp_path / "calibrated.zarr")
+    # the calibration is processing only: both scans read the same frames, rendered once
+    frames = RenderedScan(small_config())
+    nominal = run_scan(frames.cfg, frames=iter(frames), output=tmp_path / "nominal.zarr",
+                       progress=False)
+    cfg = small_config(processing={"calibration": str(cal)})
+    assert cfg.model_copy(update={"processing": frames.cfg.processing}) == frames.cfg
+    calibrated = run_scan(cfg, frames=iter(frames), output=tmp_path / "calibrated.zarr",
+                          progress=False)
     h_nom = np.asarray(zarr.open_group(str(nominal.output), mode="r")["height"][:])
     g = zarr.open_group(str(calibrated.output), mode="r")
     h_cal = np.asarray(g["height"][:])
