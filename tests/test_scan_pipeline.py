@@ -19,7 +19,14 @@ from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.sim.scanner import make_world, simulate_frames
 
-from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
+from tests.scan_helpers import (
+    RenderedScan,
+    mosaic_height,
+    scan,
+    score,
+    small_config,
+    strip_region,
+)
 
 
 def test_three_passes_blend_without_seams(tmp_path: Path) -> None:
@@ -106,15 +113,22 @@ def _with_bad_frame(frames: Iterator[Frame], at: int, kind: str) -> Iterator[Fra
         yield f
 
 
+@pytest.fixture(scope="module")
+def small_scan() -> RenderedScan:
+    """The small scan, its frames rendered once for the eight bad-frame variants (each reads
+    the same frames up to the bad one; rendering is most of a small scan's time)."""
+    return RenderedScan(small_config())
+
+
 @pytest.mark.parametrize(("kind", "message"), [
     ("shape", "shape"), ("dtype", "dtype"), ("nan", "NaN"), ("overflow", "full scale"),
     ("level", "out of step"), ("pass", "pass_index 5"), ("position", "stage_y_um"),
     ("duplicate", "duplicated or out of order")])
 def test_bad_frame_stops_with_its_id_and_keeps_what_was_written(
-        tmp_path: Path, kind: str, message: str) -> None:
-    cfg = small_config()
+        tmp_path: Path, kind: str, message: str, small_scan: RenderedScan) -> None:
+    cfg = small_scan.cfg
     out = tmp_path / "bad.zarr"
-    frames = _with_bad_frame(simulate_frames(cfg), 200, kind)
+    frames = _with_bad_frame(iter(small_scan), 200, kind)
     with pytest.raises(StageFailed, match=f"frame_id 200.*{message}") as info:
         run_scan(cfg, frames=frames, output=out, progress=False)
     assert info.value.stage == "source"
@@ -184,8 +198,9 @@ def test_frames_without_stage_positions_follow_the_speed_model(tmp_path: Path) -
             yield Frame(f.header.model_copy(update={"stage_x_um": None, "stage_y_um": None}),
                         f.image)
 
-    scan(cfg, tmp_path / "with.zarr")
-    run_scan(cfg, frames=no_positions(simulate_frames(cfg)), output=tmp_path / "without.zarr",
+    frames = RenderedScan(cfg)  # rendered once, fed to both scans
+    run_scan(cfg, frames=iter(frames), output=tmp_path / "with.zarr", progress=False)
+    run_scan(cfg, frames=no_positions(iter(frames)), output=tmp_path / "without.zarr",
              progress=False)
     with_pos = score(cfg, mosaic_height(tmp_path / "with.zarr", region), region)
     without = score(cfg, mosaic_height(tmp_path / "without.zarr", region), region)
