@@ -80,6 +80,8 @@ from zarr.codecs import BloscCodec, BloscShuffle
 log = logging.getLogger(__name__)
 
 ARRAYS = ("height", "texture", "confidence", "weight", "uncertainty")
+#: arrays an older mosaic may lack (format version 3 and earlier wrote no ``uncertainty``)
+OPTIONAL = ("uncertainty",)
 MIN_WEIGHT = 1e-3
 FILL = {"height": np.nan, "texture": np.nan, "confidence": 0.0, "weight": 0.0,
         "uncertainty": np.nan}
@@ -181,6 +183,13 @@ def config_differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     return out
 
 
+def present_arrays(group: zarr.Group) -> tuple[str, ...]:
+    """The mosaic arrays a group holds, in :data:`ARRAYS` order: all of them for a mosaic of
+    this version, the first four for one written before ``uncertainty`` existed (it still
+    resumes, without that array)."""
+    return tuple(n for n in ARRAYS if n not in OPTIONAL or isinstance(group.get(n), zarr.Array))
+
+
 def mosaic_array(group: zarr.Group, name: str) -> zarr.Array:
     """One array of a mosaic group; a clear error if it is missing or not an array."""
     node = group.get(name)
@@ -270,6 +279,7 @@ class MosaicWriter:
                                     compressors=compressors, dimension_names=("y", "x"),
                                     attributes={"units": UNITS[name]})
         # the level-0 arrays, looked up once (a lookup reads the array's metadata: 0.5 ms)
+        self.arrays: tuple[str, ...] = ARRAYS
         self.level0 = {name: mosaic_array(self.group, name) for name in ARRAYS}
         create_pyramid(self.group, shape=shape, levels=levels, chunk_px=chunk_px, fill=FILL,
                        units=UNITS, compressors=compressors)
@@ -334,14 +344,15 @@ class MosaicWriter:
                              f"(differs in {', '.join(diff)})")
         self = cls.__new__(cls)
         self.path, self.group = p, group
-        self.level0 = {name: mosaic_array(group, name) for name in ARRAYS}
+        self.arrays = present_arrays(group)
+        self.level0 = {name: mosaic_array(group, name) for name in self.arrays}
         self.origin = attrs.origin_px
         self.chunk = int(self.level0["height"].chunks[0])
         self.blocks_written = 0
         self.writes = 0
         self.done = attrs.writes_done
         levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
-        self.pyramid = pyramid_arrays(group, ARRAYS, levels)
+        self.pyramid = pyramid_arrays(group, self.arrays, levels)
         self.cache = PyramidCache(self.pyramid, lag_s=LAG_S) if self.pyramid else None
         group.update_attributes({})  # drops consolidated metadata, if any
         self.pixel_um, self.origin_um = attrs.pixel_um, attrs.origin_um
@@ -393,7 +404,7 @@ class MosaicWriter:
             return
         height = self.level0["height"]
         self.valid_px -= int(np.isfinite(np.asarray(height[sel])).sum())
-        for name in ARRAYS:
+        for name in self.arrays:
             self.level0[name][sel] = FILL[name]
         self._update_pyramid(sel)
 
@@ -401,11 +412,11 @@ class MosaicWriter:
         update_pyramid(self.level0, self.pyramid, sel)
 
     def _ensure(self, r1: int, c1: int) -> None:
-        shapes = [self.level0[n].shape for n in ARRAYS]
+        shapes = [self.level0[n].shape for n in self.arrays]
         if any(r1 > r or c1 > c for r, c in shapes) or len(set(shapes)) > 1:
             rows = max([r1] + [r for r, _ in shapes])
             cols = max([c1] + [c for _, c in shapes])
-            for name in ARRAYS:
+            for name in self.arrays:
                 arr = self.level0[name]
                 if arr.shape != (rows, cols):
                     arr.resize((rows, cols))
@@ -424,7 +435,8 @@ class MosaicWriter:
         # blended, the pyramid's
         shape = (int(arrays["height"].shape[0]), int(arrays["height"].shape[1]))
         region = aligned(sel, shape, len(self.pyramid) + 1) if self.pyramid else sel
-        buf = dict(zip(ARRAYS, read_many([(arrays[n], region) for n in ARRAYS]), strict=True))
+        buf = dict(zip(self.arrays, read_many([(arrays[n], region) for n in self.arrays]),
+                       strict=True))
         a, b = r0 - region[0].start, c0 - region[1].start
         sub = (slice(a, a + rows), slice(b, b + cols))
         old = {name: v[sub] for name, v in buf.items()}
@@ -558,10 +570,11 @@ def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     attrs = read_mosaic_attrs(group, path)
     h = mosaic_array(group, "height")
     chunk = int(h.chunks[0])
-    rows = max(mosaic_array(group, n).shape[0] for n in ARRAYS)
-    cols = max(mosaic_array(group, n).shape[1] for n in ARRAYS)
+    names = present_arrays(group)
+    rows = max(mosaic_array(group, n).shape[0] for n in names)
+    cols = max(mosaic_array(group, n).shape[1] for n in names)
     states = np.zeros((-(-rows // chunk), -(-cols // chunk)), np.uint8)
-    for name in ARRAYS:
+    for name in names:
         arr = mosaic_array(group, name)
         sp = arr.store_path
         prefix = f"{sp.path}/c/"

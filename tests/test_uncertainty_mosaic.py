@@ -79,3 +79,31 @@ def test_the_stack_path_computes_and_stores_the_uncertainty(tmp_path: Path) -> N
     stitch_field(writer, r, x0_px=0, y0_px=0, feather=np.ones(s.truth_um.shape))
     u = np.asarray(zarr.open_group(str(tmp_path / "f.zarr"), mode="r")["uncertainty"])
     np.testing.assert_allclose(u[finite], r.uncertainty_um[finite], rtol=1e-5)
+
+
+def test_a_mosaic_written_before_the_uncertainty_array_still_resumes(tmp_path: Path) -> None:
+    """A mosaic of an earlier version has no ``uncertainty`` array: reopening it for a resume
+    looked the array up and failed ("mosaic has no array 'uncertainty'"). It resumes with the
+    arrays it has, and no uncertainty array appears half-filled."""
+    from sffscan.stages.mosaic import present_arrays, tile_states
+    from sffscan.stages.mosaic_pyramid import level_path
+
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5, chunk_px=16)
+    list(MosaicStage(writer).process(_block(0, 10.0, 0.5, 2.0)))  # then the writer stops
+    g = zarr.open_group(str(path), mode="r+")
+    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])
+    del g["uncertainty"]
+    for k in range(1, levels):
+        del g[level_path("uncertainty", k)]
+    assert present_arrays(g) == ("height", "texture", "confidence", "weight")
+    resumed = MosaicWriter.reopen(path, scan_config={})
+    stage = MosaicStage(resumed)
+    list(stage.process(_block(0, 10.0, 0.5, 2.0)))  # written already: skipped
+    list(stage.process(_block(16, 20.0, 1.0, 4.0, pass_index=1)))
+    stage.close(failed=False)
+    g = zarr.open_group(str(path), mode="r")
+    h = np.asarray(g["height"])
+    assert h[3, 2] == pytest.approx(10.0) and h[3, 20] == pytest.approx(20.0)
+    assert "uncertainty" not in g and g.attrs["status"] == "complete"
+    tile_states(path)  # the tile account reads the arrays the mosaic has
