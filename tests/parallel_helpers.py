@@ -1,8 +1,9 @@
-"""Stages and child processes for tests/test_parallel.py (kept free of pytest, so that
-worker processes and child scans start fast)."""
+"""Stages and child processes for tests/test_parallel.py and tests/test_parallel_scan.py
+(kept free of pytest, so that worker processes and child scans start fast)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from typing import Any
@@ -10,6 +11,12 @@ from typing import Any
 import numpy as np
 from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.runtime import Stage
+
+
+def shm_names(pid: int | None = None) -> list[str]:
+    """The shared-memory blocks of sffscan in /dev/shm (of process ``pid`` only, if given)."""
+    prefix = f"sffscan-{pid}-" if pid is not None else "sffscan-"
+    return sorted(n for n in os.listdir("/dev/shm") if n.startswith(prefix))
 
 
 class FrameNumbers(Stage):
