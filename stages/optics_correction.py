@@ -37,15 +37,13 @@ __all__ = ["CurvatureStage", "FrameOpticsStage", "corrections_applied",
 
 
 class FrameOpticsStage(Stage):
-    """Flat-fields each frame (vignetting), then resamples it to the configured scale about
-    the optical centre (magnification per level).
+    """Flat-fields each frame (vignetting), then resamples it to the reference level's scale
+    about the optical centre (magnification per level).
 
     Parameters
     ----------
     magnifications : (N,) array_like of float, or None
-        Magnification of each focus level relative to the configured scale
-        (:func:`~sffscan.pipeline.metrology.optics_correction.level_magnification` with
-        ``optics.pixel_um``); None: not resampled.
+        Relative magnification of each focus level (1 = reference); None: not resampled.
     centre_px : (x, y)
         Optical centre, frame px.
     illumination : (H, W) float32 or None
@@ -116,11 +114,10 @@ def optics_correction_stages(cfg: ScanConfig, focus_heights_um: Sequence[float],
         o = cfg.optics
         centre = lat.optical_centre_px if lat is not None else \
             ((o.width_px - 1) / 2.0, (o.height_px - 1) / 2.0)
-        if lat is not None:  # every level resampled to the scale the frames are placed by
-            check_configured_scale(lat, o.pixel_um, n_levels=o.n_levels)
+        if lat is not None:  # the reference level's scale must be the one frames are placed by
+            check_configured_scale(lat, o.pixel_um, frame_px=(o.width_px, o.height_px))
         pre.append(FrameOpticsStage(
-            None if lat is None else level_magnification(lat, np.arange(o.n_levels),
-                                                         um_per_px=o.pixel_um),
+            None if lat is None else level_magnification(lat, np.arange(o.n_levels)),
             centre_px=centre, illumination=None if vig is None else illumination_map(vig),
             max_value=o.max_value))
     if calibration.field_curvature is not None:
