@@ -13,11 +13,13 @@ import pytest
 PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "pertuz-simu02"
 
 
-#: the files whose tests take longest (``--durations`` on the 2-core VM: test_crash's
-#: recorder kills, test_parallel's process-mode scans, test_transport's two-process scans,
+#: the files whose tests take longest, longest first (``-n 0 --durations`` per file on the
+#: loaded 2-core VM, issue 27: test_scan_pipeline ~190 s, test_parallel_scan ~115 s,
+#: test_crash ~105 s, test_parallel ~60 s; then test_transport's two-process scans and
 #: test_replay's live-vs-replay scans): collected first, so that with pytest-xdist's
 #: ``--dist loadfile`` no worker is left alone with one of them at the end of the run
-SLOW_FIRST = ("test_crash.py", "test_parallel.py", "test_transport.py", "test_replay.py")
+SLOW_FIRST = ("test_scan_pipeline.py", "test_parallel_scan.py", "test_crash.py",
+              "test_parallel.py", "test_transport.py", "test_replay.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
