@@ -204,7 +204,7 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     if run.resumed is not None:
         row.note = (f"resumed: {run.resumed[0]} band write(s) kept, {run.resumed[1]} torn "
                     "region(s) rebuilt")
-    attrs = zarr.open_group(mosaic, mode="r").attrs.asdict()
+    attrs = zarr.open_group(mosaic, mode="r", use_consolidated=False).attrs.asdict()
     row.status = str(attrs.get("status"))
     if resume and row.status == "complete":
         row.status = "resumed"
@@ -216,7 +216,8 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
         from sffscan.stages.sim.scanner import make_world
 
         evaluate_sim(report, make_world(cfg))  # also stored in the mosaic's attributes
-        acc = stored_accuracy(zarr.open_group(str(mosaic), mode="r").attrs.asdict())
+        group = zarr.open_group(str(mosaic), mode="r", use_consolidated=False)
+        acc = stored_accuracy(group.attrs.asdict())
         if acc is not None:
             row.rmse_um = acc.rmse_um
     row.coverage = plan_cover(mosaic)

@@ -42,7 +42,7 @@ def plan_cover(mosaic: str | Path, *, band_rows: int = 512) -> float | None:
     from sffscan.pipeline.config import ScanConfig
     from sffscan.stages.mosaic import mosaic_array
 
-    group = zarr.open_group(str(mosaic), mode="r")
+    group = zarr.open_group(str(mosaic), mode="r", use_consolidated=False)
     attrs = group.attrs.asdict()
     try:
         cfg = ScanConfig.model_validate(attrs.get("scan_config"))

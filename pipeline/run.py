@@ -85,7 +85,7 @@ def recording_identity(path: str | Path) -> dict[str, Any]:
     attrs: dict[str, Any] = {}
     entries: int | None = None
     with contextlib.suppress(Exception):  # an unreadable recording: refused elsewhere
-        group = zarr.open_group(str(p), mode="r")
+        group = zarr.open_group(str(p), mode="r", use_consolidated=False)
         attrs = dict(group.attrs.asdict())
         frames = group.get("frames")
         if isinstance(frames, zarr.Array):
@@ -235,7 +235,7 @@ def _reopen(cfg: ScanConfig, identity: dict[str, Any] | None) -> Any:
 
     path = Path(cfg.output.path)
     try:
-        attrs = dict(zarr.open_group(str(path), mode="r").attrs.asdict())
+        attrs = dict(zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.asdict())
     except Exception as err:  # noqa: BLE001 - reopen names it below
         attrs = {}
         log.debug("%s: attributes unreadable (%s)", path, err)
@@ -263,7 +263,7 @@ def _mark_failed(writer: Any) -> None:
     with contextlib.suppress(Exception):  # the interruption is what is reported
         # the group read afresh (the stages may have run elsewhere: a worker process); the
         # status alone changes, the journal stays as written for a resume
-        group = zarr.open_group(str(writer.path), mode="r+")
+        group = zarr.open_group(str(writer.path), mode="r+", use_consolidated=False)
         if group.attrs.get("status") == "writing":
             group.update_attributes({"status": "failed"})
 
@@ -272,7 +272,7 @@ def _annotate(path: Path, rec: Recording, identity: dict[str, Any]) -> None:
     """Record in the mosaic which recording it was replayed from (its report and identity)."""
     from sffscan.pipeline.messages import MosaicAttrs
 
-    group = zarr.open_group(str(path), mode="r+")
+    group = zarr.open_group(str(path), mode="r+", use_consolidated=False)
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(), "recording": {
         **rec.report.as_dict(), "identity": identity}})
     group.update_attributes(attrs.model_dump(mode="json"))

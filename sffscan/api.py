@@ -261,7 +261,7 @@ def open_mosaic(path: str | Path, *, level: int = 0) -> xarray.Dataset:
 
     p = Path(path)
     try:
-        group = zarr.open_group(str(p), mode="r")
+        group = zarr.open_group(str(p), mode="r", use_consolidated=False)
     except (FileNotFoundError, ValueError, KeyError) as err:
         raise ValueError(f"{p}: not a Zarr group ({err})") from None
     attrs = read_mosaic_attrs(group, p)

@@ -203,7 +203,7 @@ def is_replaceable(path: Path) -> bool:
     if path.is_dir() and not any(path.iterdir()):
         return True
     try:
-        group = zarr.open_group(str(path), mode="r")
+        group = zarr.open_group(str(path), mode="r", use_consolidated=False)
     except Exception:  # noqa: BLE001 - anything that is not a readable group
         return False
     return group.attrs.get("format") == "sffscan-mosaic"
@@ -533,7 +533,7 @@ def pyramid_levels(path: str | Path) -> list[dict[str, Any]]:
     """The resolution levels of a mosaic, finest first: ``level``, ``path`` (of the height
     array), ``shape`` (rows, cols) and ``pixel_um`` (µm per element, from the NGFF
     metadata; version 1 mosaics have level 0 only)."""
-    group = zarr.open_group(str(path), mode="r")
+    group = zarr.open_group(str(path), mode="r", use_consolidated=False)
     attrs = read_mosaic_attrs(group, path)
     if attrs.ome is None:
         paths = [("height", attrs.pixel_um)]
@@ -566,7 +566,7 @@ def tile_states(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     """
     from zarr.core.sync import sync
 
-    group = zarr.open_group(str(path), mode="r")
+    group = zarr.open_group(str(path), mode="r", use_consolidated=False)
     attrs = read_mosaic_attrs(group, path)
     h = mosaic_array(group, "height")
     chunk = int(h.chunks[0])

@@ -54,13 +54,20 @@ def _complete_from(path: str | Path, recording: str | Path) -> bool:
     'complete' (another recording's is refused by the resume, naming it)."""
     import zarr
     from sffscan.pipeline.run import identity_mismatch, recording_identity, stored_identity
+    from sffscan.stages.mosaic import mosaic_array, present_arrays
 
     try:
-        attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
-    except Exception:  # noqa: BLE001 - not a mosaic: the resume itself says why
+        group = zarr.open_group(str(path), mode="r", use_consolidated=False)
+        attrs = group.attrs.asdict()
+        if not (attrs.get("format") == "sffscan-mosaic" and attrs.get("status") == "complete"
+                and identity_mismatch(stored_identity(attrs),
+                                      recording_identity(recording)) is None):
+            return False
+        for name in present_arrays(group):  # complete, and every array still readable
+            mosaic_array(group, name)
+    except Exception:  # noqa: BLE001 - not a mosaic, or a damaged one: the resume says why
         return False
-    return (attrs.get("format") == "sffscan-mosaic" and attrs.get("status") == "complete"
-            and identity_mismatch(stored_identity(attrs), recording_identity(recording)) is None)
+    return True
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -125,7 +132,7 @@ def _height_range(path: Path, levels: list[dict[str, Any]]) -> dict[str, Any] | 
     if not fits:
         return None
     lv = fits[0]
-    height = mosaic_array(zarr.open_group(str(path), mode="r"), lv["path"])
+    height = mosaic_array(zarr.open_group(str(path), mode="r", use_consolidated=False), lv["path"])
     lo, hi, step, count = np.inf, -np.inf, int(height.chunks[0]), 0
     for r in range(0, int(height.shape[0]), step):
         block = np.asarray(height[r:r + step])
@@ -148,7 +155,7 @@ def mosaic_info(path: Path) -> dict[str, Any]:
 
     _, info = tile_states(path)
     levels = pyramid_levels(path)
-    attrs = zarr.open_group(str(path), mode="r").attrs.asdict()
+    attrs = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.asdict()
     holder = locks.holder(path)
     shape = levels[0]["shape"] if levels else None
     height_range = _height_range(path, levels)
@@ -290,7 +297,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     path = Path(args.path)
     try:
-        fmt = zarr.open_group(str(path), mode="r").attrs.get("format")
+        fmt = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.get("format")
     except Exception:  # noqa: BLE001 - reported by open_recording below
         fmt = None
     if fmt == "sffscan-mosaic":

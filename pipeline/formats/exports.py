@@ -65,7 +65,7 @@ def _open(path: str | Path) -> tuple[zarr.Group, MosaicAttrs]:
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such mosaic")
     try:
-        group = zarr.open_group(str(p), mode="r")
+        group = zarr.open_group(str(p), mode="r", use_consolidated=False)
     except Exception as err:  # noqa: BLE001 - not a Zarr group: bad input
         raise ValueError(f"{p}: not a Zarr mosaic ({err})") from None
     if group.attrs.get("format") != "sffscan-mosaic":
@@ -157,7 +157,7 @@ def trust_problems(path: str | Path) -> list[str]:
     from sffscan.stages.mosaic import tile_states
 
     try:
-        fmt = zarr.open_group(str(path), mode="r").attrs.get("format")
+        fmt = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.get("format")
     except Exception:  # noqa: BLE001 - not a Zarr group: not a mosaic
         return []
     if fmt != "sffscan-mosaic":

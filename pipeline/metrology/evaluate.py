@@ -97,7 +97,7 @@ def mosaic_accuracy(path: str | Path, world: HeightWorld, *, max_depth: float,
     ``region_px`` = (x0, y0, x1, y1) world px limits the score to that box (coverage is
     then the finite fraction of it); by default every finite mosaic pixel counts.
     """
-    group = zarr.open_group(str(path), mode="r")
+    group = zarr.open_group(str(path), mode="r", use_consolidated=False)
     height = mosaic_array(group, "height")
     ox, oy = MosaicAttrs.model_validate(group.attrs.asdict()).origin_px
     rows, cols = height.shape
@@ -126,7 +126,7 @@ def _finite(v: float, lo: float = -math.inf, hi: float = math.inf) -> float | No
 def store_accuracy(mosaic: str | Path, acc: Accuracy, *, truth: str) -> MosaicAccuracy:
     """Store ``acc`` (of :func:`~sffscan.pipeline.metrology.evaluate.mosaic_accuracy`) in the
     mosaic's attributes (``accuracy``), validated with the other attributes; returns it."""
-    group = zarr.open_group(str(mosaic), mode="r+")
+    group = zarr.open_group(str(mosaic), mode="r+", use_consolidated=False)
     stored = MosaicAccuracy(truth=truth, rmse_um=_finite(acc.rmse_um, 0.0),
                             corr=_finite(acc.corr, -1.0, 1.0), psnr_db=_finite(acc.psnr_db),
                             pixels=acc.pixels, coverage=min(max(acc.coverage, 0.0), 1.0))
