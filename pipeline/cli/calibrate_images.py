@@ -148,6 +148,9 @@ def cmd_lateral(args: argparse.Namespace) -> int:
     print(f"lateral scale at level {lat.reference_level:g}: {lat.um_per_px_x:.5f} x "
           f"{lat.um_per_px_y:.5f} µm/px; change {lat.slope_x_per_level:+.6f} / "
           f"{lat.slope_y_per_level:+.6f} µm/px per level")
+    print(f"every level is resampled to the scale at level {lat.reference_level:g}: a scan or "
+          f"stack using this file needs optics.pixel_um / --pixel-um "
+          f"{0.5 * (lat.um_per_px_x + lat.um_per_px_y):.5f} (refused when 1 px off at a corner)")
     cal = cal.model_copy(update={"lateral": lat})
     print(f"wrote {save_calibration(cal, args.output)}")
     return EXIT_OK
