@@ -61,8 +61,14 @@ def make_stack(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     return np.stack(real), np.stack(ideal), truth, zs, mags
 
 
+# One stack on which the code before this fix failed twice: its Lanczos warp rang past full
+# scale (the reconstruction refused the aligned stack) and the scale chain drifted 6 % on
+# the noisy frames. This is a regression test of those two defects, not evidence for the
+# issue's general bar: on other seeds of this heavy-noise generator the aligned stack is
+# 1.02-1.29x the no-breathing one (bench/bench_align_breathing.py), and the 1.10x bar is
+# not met there (see the note).
 @pytest.mark.parametrize("seed", [5])
-def test_aligned_breathing_stack_within_ten_percent_of_no_breathing(seed: int) -> None:
+def test_aligned_breathing_stack_neither_rings_nor_drifts(seed: int) -> None:
     real, ideal, truth, zs, mags = make_stack(seed)
     assert (real == 1023).any()  # saturated pixels: the warp must not ring past full scale
     aligned, valid, al = align_stack(real)
