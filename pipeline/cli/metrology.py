@@ -232,7 +232,7 @@ def _stack_correction(args: argparse.Namespace):  # noqa: ANN202 - StackCorrecti
     cal = load_calibration(args.calibration)
     log.info("calibration %s: correcting %s", args.calibration,
              ", ".join(applied(cal)) or "nothing (the file has no section that applies)")
-    return StackCorrection(cal)
+    return StackCorrection(cal, um_per_px=args.pixel_um)
 
 
 def cmd_stopgo(args: argparse.Namespace) -> int:
