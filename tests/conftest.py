@@ -6,6 +6,8 @@ run ``pytest --device cuda`` on a machine with a GPU to test the CUDA path too.
 
 from __future__ import annotations
 
+import signal
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -14,12 +16,13 @@ PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" 
 
 
 #: the files whose tests take longest, longest first (``-n 0 --durations`` per file on the
-#: loaded 2-core VM, issue 27: test_scan_pipeline ~190 s, test_parallel_scan ~115 s,
-#: test_crash ~105 s, test_parallel ~60 s; then test_transport's two-process scans and
-#: test_replay's live-vs-replay scans): collected first, so that with pytest-xdist's
-#: ``--dist loadfile`` no worker is left alone with one of them at the end of the run
-SLOW_FIRST = ("test_scan_pipeline.py", "test_parallel_scan.py", "test_crash.py",
-              "test_parallel.py", "test_transport.py", "test_replay.py")
+#: loaded 2-core VM, issue 27: test_parallel_scan ~115 s, test_crash ~105 s,
+#: test_scan_pipeline 70-110 s, test_scan_errors ~75 s, test_parallel ~60 s; then
+#: test_transport's two-process scans and test_replay's live-vs-replay scans): collected
+#: first, so that with pytest-xdist's ``--dist loadfile`` no worker is left alone with one
+#: of them at the end of the run
+SLOW_FIRST = ("test_parallel_scan.py", "test_crash.py", "test_scan_pipeline.py",
+              "test_scan_errors.py", "test_parallel.py", "test_transport.py", "test_replay.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -48,3 +51,16 @@ def pertuz_dir() -> Path:
         pytest.fail(f"pertuz-simu02 dataset not found at {PERTUZ_DIR} "
                     "(expected ../shared beside the checkout)")
     return PERTUZ_DIR
+
+
+@pytest.fixture
+def sigint_handled() -> Iterator[None]:
+    """SIGINT handled, not ignored, in this process while the test runs, so that a child it
+    starts gets Python's Ctrl-C handling: a process started with SIGINT ignored (a background
+    job of a shell without job control) hands SIG_IGN on to its children, which then run to
+    their end through a Ctrl-C (the test fails, after a whole scan)."""
+    old = signal.getsignal(signal.SIGINT)
+    if old == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
