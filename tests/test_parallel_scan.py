@@ -258,7 +258,8 @@ def start_scan(tmp_path: Path) -> tuple[subprocess.Popen[bytes], list[int]]:
     raise AssertionError("the workers did not start")
 
 
-def test_ctrl_c_exits_130_with_everything_closed(tmp_path: Path) -> None:
+def test_ctrl_c_exits_130_with_everything_closed(
+        tmp_path: Path, sigint_handled: None) -> None:
     proc, workers = start_scan(tmp_path)
     os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
     _, err = proc.communicate(timeout=60)
