@@ -262,7 +262,8 @@ class MosaicWriter:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
-                raise FileExistsError(f"{self.path}: exists (set output.overwrite or remove it)")
+                raise FileExistsError(f"{self.path}: exists; --overwrite (output.overwrite in a "
+                                      "configuration) replaces it, or remove it")
             if not is_replaceable(self.path):
                 raise FileExistsError(f"{self.path}: exists and is not an sffscan mosaic nor an "
                                       "empty folder; refusing to overwrite it")

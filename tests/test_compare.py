@@ -146,3 +146,26 @@ def test_an_8_bit_photograph_is_not_taken_for_heights_in_um(tmp_path: Path) -> N
     with pytest.raises(ValueError, match=r"photo\.tif: an 8-bit array \(uint8\)"):
         read_height_map(tmp_path / "photo.tif")
     assert main(["compare", str(tmp_path / "photo.tif"), str(tmp_path / "ref.npy")]) == 2
+
+
+def test_region_in_mm_scores_the_same_box_as_in_world_px(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--region`` of compare and export in mm (issue 26, item 10): the mosaics' 8.5 µm
+    pixels give the world px box that covers it; an array without a pixel size refuses mm."""
+    ref = _surface((60, 70))
+    _mosaic(tmp_path / "a.zarr", ref, (0, 0))
+    _mosaic(tmp_path / "b.zarr", ref + 1.0, (0, 0))
+    a, b = str(tmp_path / "a.zarr"), str(tmp_path / "b.zarr")
+    capsys.readouterr()
+    assert main(["compare", a, b, "--region", "10,5,40,30"]) == 0
+    in_px = capsys.readouterr().out
+    # 0.085 mm = 10 px, 42.5 µm = 5 px, 0.34 mm = 40 px, 255 µm = 30 px
+    assert main(["compare", a, b, "--region", "0.085mm,42.5um,0.34mm,255µm"]) == 0
+    assert capsys.readouterr().out == in_px
+    assert main(["export", a, "--region", "0.085mm,42.5um,0.34mm,255um",
+                 "--x3p", str(tmp_path / "r.x3p")]) == 0
+    assert "25x30 surface" in capsys.readouterr().out  # rows 5..30, columns 10..40
+    np.save(tmp_path / "r.npy", ref)
+    assert main(["compare", str(tmp_path / "r.npy"), str(tmp_path / "r.npy"),
+                 "--region", "0,0,1mm,1mm"]) == 2
+    assert "needs the pixel size" in capsys.readouterr().err

@@ -212,7 +212,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q.add_argument("--seed", type=int, default=0, help="texture and noise seed")
     q.set_defaults(func=cmd_calibrate_sim)
     q = cs.add_parser("show", help="validate and print a calibration file")
-    q.add_argument("file")
+    q.add_argument("file", help="calibration JSON file to validate and print")
     q.set_defaults(func=cmd_calibrate_show)
     from sffscan.pipeline.cli.calibrate_images import register_subcommands
 
@@ -227,7 +227,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="coarse prior's uncertainty = margin, µm (default 50)")
     p.add_argument("--pad-levels", type=int, default=8,
                    help="levels added beyond the range on each side (default 8)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulated surface's texture and noise (default 0)")
     p.set_defaults(func=cmd_twostep)
 
     p = sub.add_parser("restrict", help="restrict a scan's focus levels by a coarse prior",

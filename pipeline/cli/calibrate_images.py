@@ -296,18 +296,21 @@ def register_subcommands(cs: argparse._SubParsersAction) -> None:  # type: ignor
                                   "several levels, two flat stacks) through the simulated "
                                   "scanner's optics into a folder, and print the calibrate "
                                   "commands that use them.")
-    q.add_argument("folder")
+    q.add_argument("folder", help="folder to write the target images into (created)")
     q.add_argument("--config", help="scan configuration whose [optics] to use (default demo)")
     q.add_argument("--realistic", action="store_true",
                    help="the demo with real-lens optics (as 'demo --realistic')")
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--seed", type=int, default=0,
+                   help="seed of the targets' texture and noise (default 0)")
     q.add_argument("-o", "--output", default="sffscan-calibration.json",
                    help="calibration file the printed commands write")
     q.set_defaults(func=_guarded(cmd_targets))
 
     q = cs.add_parser("noise", help="noise N_M from two back-to-back stacks of one surface")
-    q.add_argument("stack1")
-    q.add_argument("stack2")
+    q.add_argument("stack1", help="first focus stack of the surface (image folder, glob or "
+                                  "Zarr array)")
+    q.add_argument("stack2", help="second stack of the same surface, taken right after the "
+                                  "first with nothing moved")
     _table_options(q)
     _common(q)
     q.set_defaults(func=_guarded(cmd_noise))

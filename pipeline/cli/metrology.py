@@ -27,6 +27,8 @@ from sffscan.pipeline.cli.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     OPERATOR_CHOICES,
+    REGION_HELP,
+    parse_region,
 )
 from sffscan.pipeline.cli.stack_steps import (
     image_order,
@@ -77,16 +79,15 @@ def _settings(args: argparse.Namespace):  # noqa: ANN202 - StackSettings, import
                          min_confidence=args.min_confidence)
 
 
-def _region(text: str | None) -> tuple[int, int, int, int] | None:
-    if text is None:
-        return None
-    parts = text.replace(",", " ").split()
+def _mosaic_pixel_um(path: str) -> float | None:
+    """µm per px of an sffscan mosaic (for ``--region`` in mm or µm), None for anything else."""
+    import zarr
+
     try:
-        x0, y0, x1, y1 = (int(v) for v in parts)
-    except ValueError:
-        raise ValueError(f"--region must be four integers X0,Y0,X1,Y1 (world px), got {text!r}"
-                         ) from None
-    return x0, y0, x1, y1
+        value = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.get("pixel_um")
+    except Exception:  # noqa: BLE001 - not a group: the reader names the problem
+        return None
+    return float(value) if isinstance(value, int | float) else None
 
 
 # ----------------------------------------------------------------------------- stack
@@ -308,7 +309,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         est = read_height_map(args.estimate, array=args.array)
         ref = read_height_map(args.reference, array=args.array)
         a, b, origin = overlap_by_origin(est, ref)
-        region = _region(args.region)
+        region = parse_region(args.region, pixel_um=est.pixel_um or ref.pixel_um)
         mask = None if region is None else region_mask(a.shape, origin, region)
         max_depth = args.max_depth_um or est.max_depth_um or ref.max_depth_um
         note = ""
@@ -344,7 +345,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             if value:  # never into a Zarr store (the mosaic's zarr.json...)
                 check_file_output(value, flag, stores=[args.mosaic])
         ex.check_trust([args.mosaic], allow=args.allow_untrustworthy)
-        region = _region(args.region)
+        region = parse_region(args.region, pixel_um=_mosaic_pixel_um(args.mosaic))
         ex.check_export_size(args.mosaic, region)
         if args.ply:
             n = ex.write_ply(args.ply, args.mosaic, region)
@@ -426,7 +427,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                                    "plate: a grid of stationary fields, blended by stage "
                                    "position into one mosaic, scored against the true surface.")
     p.add_argument("-o", "--output", default="sffscan-stopgo.zarr", help="mosaic Zarr group")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
     p.add_argument("--area-mm", type=float, nargs=4, default=[2.0, 22.0, 0.0, 4.0],
                    metavar=("X0", "X1", "Y0", "Y1"), help="area to cover, mm")
     p.add_argument("--field", type=int, nargs=2, default=[320, 256], metavar=("W", "H"),
@@ -435,9 +436,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--overlap-px", type=int, default=40, help="least overlap, px (default 40)")
     p.add_argument("--levels", type=int, default=50, help="focus levels (default 50)")
     p.add_argument("--z-step-um", type=float, default=200.0, help="focus step, µm")
-    p.add_argument("--plate-length-mm", type=float, default=24.0)
-    p.add_argument("--plate-width-mm", type=float, default=4.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plate-length-mm", type=float, default=24.0,
+                   help="simulated characterisation plate's length (x), mm (default 24)")
+    p.add_argument("--plate-width-mm", type=float, default=4.0,
+                   help="simulated plate's width (y), mm (default 4)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the simulated texture and sensor noise (default 0)")
     p.add_argument("--realistic", action="store_true",
                    help="real-lens optics as 'demo --realistic' (breathing, field curvature, "
                         "vignetting)")
@@ -450,14 +454,15 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        description="Compare a height map (mosaic, Zarr array, .npy or float "
                                    "TIFF, µm) with a reference; mosaics are lined up by their "
                                    "world origin.")
-    p.add_argument("estimate")
-    p.add_argument("reference")
+    p.add_argument("estimate", help="height map to score, µm (mosaic, Zarr array, .npy or "
+                                    "float TIFF)")
+    p.add_argument("reference", help="reference height map, µm, same kinds")
     p.add_argument("--array", default="height", help="array of a Zarr group (default height)")
     p.add_argument("--align", choices=["none", "offset", "plane", "shift"], default="none",
                    help="remove an offset, a plane, or a lateral shift and a plane first")
     p.add_argument("--max-shift-px", type=int, default=10, help="shift search range, px")
-    p.add_argument("--region", help="score only this box X0,Y0,X1,Y1 (world px; array px "
-                                    "when neither map has a world origin)")
+    p.add_argument("--region", help="score only this " + REGION_HELP + " (array px when "
+                                    "neither map has a world origin)")
     p.add_argument("--max-depth-um", type=float, help="MAX_d of the PSNR, µm")
     p.add_argument("--bins", type=int, default=20, help="histogram bins (default 20)")
     p.add_argument("--range-um", type=float, nargs=2, metavar=("LO", "HI"),
@@ -471,8 +476,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                                    "mm, the texture as red/green/blue) and/or an ISO 25178-72 "
                                    "x3p surface, and print its areal parameters Sa, Sq, Sz, "
                                    "Ssk, Sku.")
-    p.add_argument("mosaic")
-    p.add_argument("--region", help="world px box X0,Y0,X1,Y1 (default: whole mosaic)")
+    p.add_argument("mosaic", help="mosaic to export (a Zarr group written by sffscan)")
+    p.add_argument("--region", help=REGION_HELP + " (default: the whole mosaic)")
     p.add_argument("--ply", help="write a binary PLY point cloud")
     p.add_argument("--x3p", help="write an ISO 25178-72 x3p file")
     p.add_argument("--level", choices=["plane", "mean", "none"], default="plane",
