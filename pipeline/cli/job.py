@@ -95,9 +95,26 @@ def cmd_show(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.printjob.jobstore import JobError
+    from sffscan.pipeline.printjob.report import write_report
+
+    try:
+        out = write_report(args.job, args.output)
+    except JobError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as err:  # the output cannot be written
+        print(f"sffscan: {args.output or args.job}: cannot write the report: {err}",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"report written to {out}")
+    return EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("job", help="print jobs: every layer scanned and compared with the "
-                       "G-code (demo, show)",
+                       "G-code (demo, show, report)",
                        description="Print jobs scanned layer by layer; see 'job demo'.")
     jsub = p.add_subparsers(dest="job_command", required=True)
     d = jsub.add_parser("demo", help="print the shipped plate in the simulator with injected "
@@ -115,3 +132,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     s = jsub.add_parser("show", help="verdicts of a job folder")
     s.add_argument("job", help="job folder")
     s.set_defaults(func=cmd_show)
+    r = jsub.add_parser("report", help="a self-contained HTML report of a job folder "
+                        "(tables and deviation maps per layer and object)")
+    r.add_argument("job", help="job folder")
+    r.add_argument("-o", "--output", default=None,
+                   help="HTML file to write (default JOB/report.html)")
+    r.set_defaults(func=cmd_report)
