@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import base64
 import re
+from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -137,3 +139,51 @@ def test_the_tolerance_band_is_neutral_and_the_sides_diverge() -> None:
     assert tuple(c[0, 10]) == NODATA_RGB
     with pytest.raises(ValueError, match="limit_um"):
         deviation_colours(d, tolerance_um=100.0, limit_um=50.0)
+
+
+def _rrd_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
+    """Temporal rows per entity of an .rrd (rerun's public RrdReader), by layer."""
+    import pyarrow as pa
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        cols = {n: (c.cast(pa.int64()) if pa.types.is_timestamp(c.type) else c).to_pylist()
+                for n, c in zip(batch.schema.names, batch.columns, strict=True)}
+        rows[chunk.entity_path].extend(dict(zip(cols, v, strict=True))
+                                       for v in zip(*cols.values(), strict=True))
+    for r in rows.values():
+        r.sort(key=lambda x: x["layer"])
+    return dict(rows)
+
+
+def test_the_rerun_layer_timeline_has_each_layer_map_and_verdict(job: Path,
+                                                                 tmp_path: Path) -> None:
+    from sffscan.pipeline.printjob.viewer import save_job_rrd
+
+    assert save_job_rrd(job, tmp_path / "j.rrd") == [0, 2, 3]
+    rows = _rrd_rows(tmp_path / "j.rrd")
+    assert [r["layer"] for r in rows["/job/verdict"]] == [0, 2, 3]
+    texts = [r["TextDocument:text"][0] for r in rows["/job/verdict"]]
+    assert "**PASS**" in texts[0] and "**FAIL**" in texts[1] and "**UNKNOWN**" in texts[2]
+    assert "| left | fail | 250 |" in texts[1] and "scan timed out" in texts[2]
+    imgs = [r for r in rows["/job/deviation"] if r.get("Image:buffer")]
+    assert [r["layer"] for r in imgs] == [0, 2]
+    fmt = imgs[1]["Image:format"][0]
+    img = np.frombuffer(bytes(imgs[1]["Image:buffer"][0]), np.uint8).reshape(
+        fmt["height"], fmt["width"], 3)
+    dev = JobStore.open(job).deviation_path(2)
+    import zarr
+
+    want = deviation_colours(np.asarray(zarr.open_array(str(dev), mode="r")[...]),
+                             tolerance_um=100.0, limit_um=500.0)
+    assert np.array_equal(img, want)
+    assert tuple(img[15, 20]) != NEUTRAL_RGB and tuple(img[35, 70]) == NEUTRAL_RGB
+    # layer 3 (failed scan, no map) clears the image instead of showing layer 2's
+    assert any(r["layer"] == 3 for r in rows["/job/deviation"] if not r.get("Image:buffer"))
+    outl = rows["/job/deviation/outlines"]
+    assert [r["layer"] for r in outl] == [0, 2]
+    assert sorted(outl[1]["LineStrips2D:labels"]) == ["left: fail", "right: pass"]

@@ -24,7 +24,8 @@ import numpy as np
 from sffscan.pipeline.printjob.deviation import LayerVerdict, ObjectVerdict
 from sffscan.pipeline.printjob.jobstore import JobError, JobStore
 
-__all__ = ["NEUTRAL_RGB", "NODATA_RGB", "deviation_colours", "write_report"]
+__all__ = ["NEUTRAL_RGB", "NODATA_RGB", "deviation_colours", "layer_deviation",
+           "write_report"]
 
 NEUTRAL_RGB = (224, 224, 224)  # the tolerance band
 NODATA_RGB = (47, 62, 70)  # no measurement (NaN)
@@ -106,9 +107,17 @@ def _outlines_mm(store: JobStore, layer: int) -> dict[str, np.ndarray]:
     return out
 
 
-def _figure(store: JobStore, layer: int, *, limit_um: float) -> str | None:
-    """Base64 PNG of a layer's deviation map with the objects' outlines, or None."""
-    import cv2
+def layer_deviation(store: JobStore, layer: int
+                    ) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
+    """A layer's stored deviation map and its objects' outlines in its pixel coordinates.
+
+    Returns
+    -------
+    (deviation, outlines) or None
+        ``deviation`` (rows, columns) float32, µm (NaN not measured); ``outlines`` object
+        name -> (K, 2) float64 (column, row) pixel coordinates, pixel centres at integers.
+        None when the layer has no deviation map.
+    """
     import zarr
 
     path = store.deviation_path(layer)
@@ -120,16 +129,29 @@ def _figure(store: JobStore, layer: int, *, limit_um: float) -> str | None:
     assert isinstance(origin, list)
     ox, oy = float(origin[0]), float(origin[1])  # type: ignore[arg-type]
     p = float(arr.attrs["pixel_um"])  # type: ignore[arg-type]
+    mapping = store.manifest.mapping
+    outlines = {}
+    for name, poly_mm in _outlines_mm(store, layer).items():
+        xy = mapping.apply(poly_mm)
+        outlines[name] = np.stack([(xy[:, 0] - ox) / p, (xy[:, 1] - oy) / p], axis=-1)
+    return dev, outlines
+
+
+def _figure(store: JobStore, layer: int, *, limit_um: float) -> str | None:
+    """Base64 PNG of a layer's deviation map with the objects' outlines, or None."""
+    import cv2
+
+    got = layer_deviation(store, layer)
+    if got is None:
+        return None
+    dev, outlines = got
     rgb = deviation_colours(dev, tolerance_um=store.manifest.tolerances.tolerance_um,
                             limit_um=limit_um)
     scale = _FIG_PX / max(dev.shape)
     size = (max(1, round(dev.shape[1] * scale)), max(1, round(dev.shape[0] * scale)))
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST
     img = np.ascontiguousarray(cv2.resize(rgb, size, interpolation=interp))
-    mapping = store.manifest.mapping
-    for name, poly_mm in _outlines_mm(store, layer).items():
-        xy = mapping.apply(poly_mm)
-        px = np.stack([(xy[:, 0] - ox) / p, (xy[:, 1] - oy) / p], axis=-1)
+    for name, px in outlines.items():
         pts = np.round((px + 0.5) * scale - 0.5).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(img, [pts], isClosed=True, color=(20, 20, 20), thickness=1,
                       lineType=cv2.LINE_AA)
