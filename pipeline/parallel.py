@@ -253,8 +253,8 @@ class ProcessPipeline:
                 w.proc.start()
             abort.started()
             self._await_ready(workers, results)
-            for p in pools:  # every process has mapped them: no name is left behind
-                p.unlink()
+            for pool in pools:  # every process has mapped them: no name is left behind
+                pool.unlink()
             startup_s = time.perf_counter() - t_start
             cpu0 = time.process_time()
             with gc_frozen():
@@ -277,8 +277,8 @@ class ProcessPipeline:
             abort.set()
             self._join(workers)
             abort.close()
-            for p in pools:
-                p.close()
+            for pool in pools:
+                pool.close()
 
     # -- start and stop ------------------------------------------------------------------
     def _await_ready(self, workers: list[_Worker], results: Any) -> None:
@@ -350,10 +350,10 @@ class ProcessPipeline:
                 raise ValueError(f"hosted sink '{k.name}' may tap only the main process's "
                                  f"head stages {sorted(head_names)}")
         known = head_names | tail_names | {n for g in self.groups for n in g.stages}
-        for k in self.sinks:
-            if not set(k.taps) <= known:
-                raise ValueError(f"sink '{k.name}' taps unknown stages "
-                                 f"{sorted(set(k.taps) - known)}")
+        for sink in self.sinks:
+            if not set(sink.taps) <= known:
+                raise ValueError(f"sink '{sink.name}' taps unknown stages "
+                                 f"{sorted(set(sink.taps) - known)}")
         # each local chain has its own stop flag: a chain that ends sets it
         head_stop, tail_stop = stop, threading.Event()
         forwards: list[Sink] = [

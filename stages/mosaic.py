@@ -62,6 +62,7 @@ from sffscan.pipeline.runtime import Stage
 from sffscan.stages.durable import free_reserve, make_reserve
 from sffscan.stages.mosaic_pyramid import (
     LAG_S,
+    CoordArrays,
     PyramidCache,
     aligned,
     coord_arrays,
@@ -288,8 +289,8 @@ class MosaicWriter:
         # 1-D µm coordinates of every level, for xarray (format version 3)
         self.pixel_um = pixel_um
         self.origin_um = (origin_px[0] * pixel_um, origin_px[1] * pixel_um)
-        self.coords = create_coords(self.group, shape=shape, levels=levels, pixel_um=pixel_um,
-                                    origin_um=self.origin_um)
+        self.coords: CoordArrays | None = create_coords(
+            self.group, shape=shape, levels=levels, pixel_um=pixel_um, origin_um=self.origin_um)
         lag = LAG_S if pyramid_lag_s is None else pyramid_lag_s
         self.cache = PyramidCache(self.pyramid, lag_s=lag, empty=True) if self.pyramid else None
         attrs = dict(attrs or {})

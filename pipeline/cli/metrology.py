@@ -19,6 +19,7 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from sffscan.pipeline.cli.common import (
@@ -216,7 +217,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- stop-and-go
 
 
-def _realistic_optics(zs: np.ndarray) -> dict[str, float]:
+def _realistic_optics(zs: np.ndarray) -> dict[str, Any]:
     """The simulator's realistic [optics] (``demo --realistic``), breathing about mid-range."""
     from sffscan.pipeline.config import REALISTIC_OPTICS
 

@@ -415,10 +415,10 @@ def open_recording(path: str | Path) -> Recording:
     per_chunk, cy, cx = _stored(frames)
     tiles = [(y, x) for y in range(-(-attrs.frame_shape[0] // cy))
              for x in range(-(-attrs.frame_shape[1] // cx))]
-    present = np.array([all(enc((int(i) // per_chunk, y, x)) in keys for y, x in tiles)
-                        for i in idx], dtype=bool)
-    report.missing_chunks = [int(fid[i]) for i in idx[~present]]
-    idx = idx[present]
+    whole = np.array([all(enc((int(i) // per_chunk, y, x)) in keys for y, x in tiles)
+                      for i in idx], dtype=bool)
+    report.missing_chunks = [int(fid[i]) for i in idx[~whole]]
+    idx = idx[whole]
     # storage order -> frame_id order; the first copy of a repeated frame_id is kept
     ids = fid[idx]
     running_max = np.maximum.accumulate(ids) if ids.size else ids
