@@ -17,7 +17,12 @@ import sys
 import time
 from pathlib import Path
 
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from sffscan.pipeline.cli.common import (
+    DEPTH_METHOD_CHOICES,
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+)
 
 
 def _print_verdict(layer: int, v: object, timings: dict[str, float], n: int) -> None:
@@ -112,9 +117,56 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.printjob.jobstore import JobError
+    from sffscan.pipeline.printjob.reprocess import calibrate_mapping
+
+    try:
+        c = calibrate_mapping(args.job, layer=args.layer, apply=args.apply)
+    except JobError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    (x, y), (dx, dy) = c.new.offset_um, c.change_um
+    print(f"layer {c.layer}: printer -> mosaic offset ({x:.1f}, {y:.1f}) µm, rotation "
+          f"{c.new.rotation_deg:g}° (kept); change from the manifest's mapping "
+          f"({dx:+.1f}, {dy:+.1f}) µm")
+    print("stored in the manifest: later layers use it ('sffscan job reprocess' redoes the "
+          "done ones)" if c.applied else "not stored (--apply stores it in the manifest)")
+    return EXIT_OK
+
+
+def cmd_reprocess(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.printjob.jobstore import JobError, JobStore
+    from sffscan.pipeline.printjob.reprocess import LayerRedo, parse_layers, reprocess_job
+
+    try:
+        store = JobStore.open(args.job)
+        layers = parse_layers(args.layers, len(store.manifest.layer_z_mm))
+    except JobError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    processing = {"depth_method": args.method} if args.method else None
+
+    def show(r: LayerRedo) -> None:
+        new = r.new or ("(kept)" if r.status == "failed" else "-")
+        extra = f"  {r.error}" if r.error else ""
+        print(f"layer {r.layer:>4}  {r.status:<8} {r.old or '-':>7} -> {new:<8}"
+              f"{r.seconds:6.1f} s{extra}", flush=True)
+
+    print(f"{'layer':>10}  {'status':<8} {'old':>7} -> {'new':<8}  time")
+    rows = reprocess_job(store, layers=layers, processing=processing, on_layer=show)
+    failed = [r for r in rows if r.status == "failed"]
+    n = {s: sum(r.status == s for r in rows) for s in ("done", "skipped", "failed")}
+    print(", ".join(f"{c} {s}" for s, c in n.items()))
+    for r in failed:
+        print(f"sffscan: {store.path}: layer {r.layer}: reprocessing failed, its old "
+              f"verdict kept: {r.error}", file=sys.stderr)
+    return EXIT_FAILED if failed else EXIT_OK
+
+
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("job", help="print jobs: every layer scanned and compared with the "
-                       "G-code (demo, show, report)",
+                       "G-code (demo, show, report, calibrate, reprocess)",
                        description="Print jobs scanned layer by layer; see 'job demo'.")
     jsub = p.add_subparsers(dest="job_command", required=True)
     d = jsub.add_parser("demo", help="print the shipped plate in the simulator with injected "
@@ -138,3 +190,31 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     r.add_argument("-o", "--output", default=None,
                    help="HTML file to write (default JOB/report.html)")
     r.set_defaults(func=cmd_report)
+    c = jsub.add_parser("calibrate", help="fit the printer -> mosaic mapping from a done "
+                        "layer's mosaic (--apply stores it in the manifest)",
+                        description="Fit the printer -> mosaic translation (phase correlation "
+                        "of the layer's mosaic with its expected map from the G-code, started "
+                        "from the manifest's mapping; the rotation is kept). Prints the offset "
+                        "and its change, µm. Exit 2 for a missing layer, a layer without a "
+                        "mosaic or a fit that fails.")
+    c.add_argument("job", help="job folder")
+    c.add_argument("--layer", type=int, default=None,
+                   help="layer to fit on, 0-based (default the first done layer)")
+    c.add_argument("--apply", action="store_true",
+                   help="store the fitted mapping in the job's manifest (later layers use it)")
+    c.set_defaults(func=cmd_calibrate)
+    rp = jsub.add_parser("reprocess", help="replay each done layer's raw recording into a "
+                         "fresh mosaic, recompute its deviation and verdict",
+                         description="Reprocess a job's layers from their recordings "
+                         "('job demo --record'): replay, compare with the G-code under the "
+                         "manifest's current mapping and tolerances, then replace the layer's "
+                         "mosaic, deviation and verdict. A layer that fails keeps its old "
+                         "results; layers without a recording are skipped. Exit 1 if any "
+                         "layer failed, 2 for bad input.")
+    rp.add_argument("job", help="job folder")
+    rp.add_argument("--layers", metavar="A-B", default=None,
+                    help="layers to redo, 0-based, inclusive: 'A-B', 'A' or 'A,B-C' "
+                    "(default every done layer)")
+    rp.add_argument("--method", choices=DEPTH_METHOD_CHOICES,
+                    help="depth method of the replay (default the recorded one)")
+    rp.set_defaults(func=cmd_reprocess)
