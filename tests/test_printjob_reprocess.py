@@ -114,3 +114,16 @@ def test_reprocess_replaces_verdicts_and_reports_failures_and_skips(job, capsys)
     assert not [p for p in store.layer_dir(1).iterdir() if p.name.startswith(".")]
     assert main(["job", "reprocess", str(job), "--layers", "5"]) == 2
     assert "outside the job's layers 0..2" in capsys.readouterr().err
+
+
+def test_batch_reprocesses_a_job_folder_in_place(job, capsys, tmp_path) -> None:
+    store = JobStore.open(job)
+    store.finish_layer(1, failed_layer_verdict(1, 0.4, store.manifest.objects, reason="x"))
+    assert main(["batch", str(job), "--method", "gauss3"]) == 0
+    out = capsys.readouterr().out
+    assert "unknown -> pass" in out and "2 done, 0 skipped, 0 failed" in out
+    assert store.read_verdict(1).verdict == "pass"
+    assert main(["batch", str(job), "-o", str(tmp_path / "out")]) == 2
+    assert "is a job folder" in capsys.readouterr().err
+    assert main(["batch", str(tmp_path / "none*.zarr")]) == 2  # recordings still need -o
+    assert "-o/--output is required" in capsys.readouterr().err

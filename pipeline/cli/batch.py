@@ -50,6 +50,19 @@ def cmd_batch(args: argparse.Namespace) -> int:
         write_csv,
     )
 
+    if len(args.recordings) == 1 and (Path(args.recordings[0]) / "manifest.json").is_file():
+        # a print job's folder: its layers are reprocessed in place ('sffscan job reprocess')
+        if args.output is not None or args.scheduler:
+            print(f"sffscan: {args.recordings[0]} is a job folder: its layers are reprocessed "
+                  "in place, in this process (no -o, no --scheduler)", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        from sffscan.pipeline.cli.job import run_reprocess
+
+        return run_reprocess(args.recordings[0], processing=_processing(args))
+    if args.output is None:
+        print("sffscan: batch: -o/--output is required (the folder of the mosaics)",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.workers < 1 or args.threads < 1:
         print("sffscan: --workers and --threads must be >= 1", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -99,7 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                     "--resume' does. A results table is printed and written as CSV; its "
                     "'cover' is the valid pixels as a fraction of the area the scan's plan "
                     "measures (its strip), whatever the truth. Exit 1 if any recording failed "
-                    "or is incomplete.",
+                    "or is incomplete. A print job's folder (sffscan job) as the only argument is "
+                    "reprocessed in place, as 'sffscan job reprocess JOB'.",
         epilog="Several machines: start 'dask scheduler' on one (port 8786), 'dask worker "
                "tcp://HOST:8786 --nworkers 2 --nthreads 1' on each, with sffscan installed and "
                "the recordings and OUT on a shared file system at the same paths; then "
@@ -107,8 +121,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("recordings", nargs="+",
                    help="recordings (Zarr v3 groups), glob patterns ('layers/*.zarr') or "
                         "folders of recordings")
-    p.add_argument("-o", "--output", required=True,
-                   help="folder of the mosaics (OUT/<name>.mosaic.zarr) and of batch.csv")
+    p.add_argument("-o", "--output", default=None,
+                   help="folder of the mosaics (OUT/<name>.mosaic.zarr) and of batch.csv "
+                        "(required, except for a job folder)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="a running Dask scheduler (tcp://host:8786) instead of a local cluster")
     p.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) // 2),

@@ -135,17 +135,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def cmd_reprocess(args: argparse.Namespace) -> int:
+def run_reprocess(job: str, *, layers: str | None = None,
+                  processing: dict[str, object] | None = None) -> int:
+    """Reprocess a job folder's layers and print the table (``job reprocess``, and
+    ``batch JOB``); returns the exit code."""
     from sffscan.pipeline.printjob.jobstore import JobError, JobStore
     from sffscan.pipeline.printjob.reprocess import LayerRedo, parse_layers, reprocess_job
 
     try:
-        store = JobStore.open(args.job)
-        layers = parse_layers(args.layers, len(store.manifest.layer_z_mm))
+        store = JobStore.open(job)
+        todo = parse_layers(layers, len(store.manifest.layer_z_mm))
     except JobError as err:
         print(f"sffscan: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    processing = {"depth_method": args.method} if args.method else None
 
     def show(r: LayerRedo) -> None:
         new = r.new or ("(kept)" if r.status == "failed" else "-")
@@ -154,7 +156,8 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
               f"{r.seconds:6.1f} s{extra}", flush=True)
 
     print(f"{'layer':>10}  {'status':<8} {'old':>7} -> {'new':<8}  time")
-    rows = reprocess_job(store, layers=layers, processing=processing, on_layer=show)
+    rows = reprocess_job(store, layers=todo, processing=dict(processing or {}) or None,
+                         on_layer=show)
     failed = [r for r in rows if r.status == "failed"]
     n = {s: sum(r.status == s for r in rows) for s in ("done", "skipped", "failed")}
     print(", ".join(f"{c} {s}" for s, c in n.items()))
@@ -162,6 +165,11 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
         print(f"sffscan: {store.path}: layer {r.layer}: reprocessing failed, its old "
               f"verdict kept: {r.error}", file=sys.stderr)
     return EXIT_FAILED if failed else EXIT_OK
+
+
+def cmd_reprocess(args: argparse.Namespace) -> int:
+    return run_reprocess(args.job, layers=args.layers,
+                         processing={"depth_method": args.method} if args.method else None)
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
