@@ -21,7 +21,9 @@ PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" 
 #: test_transport's two-process scans and test_replay's live-vs-replay scans): collected
 #: first, so that with pytest-xdist's ``--dist loadfile`` no worker is left alone with one
 #: of them at the end of the run
-SLOW_FIRST = ("test_parallel_scan.py", "test_crash.py", "test_scan_pipeline.py",
+SLOW_FIRST = ("test_parallel_scan.py", "test_crash.py", "test_optics_bars.py",
+              "test_optics_bars_fields.py", "test_mosaic_pyramid.py", "test_mosaic_ngff.py",
+              "test_scan_pipeline.py",
               "test_scan_errors.py", "test_parallel.py", "test_transport.py", "test_replay.py")
 
 
