@@ -8,13 +8,12 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from schema_tables import field_table  # noqa: E402
+from schema_tables import field_table, page_main  # noqa: E402
 
 PAGE = Path(__file__).resolve().parent / "configuration.md"
 
@@ -76,25 +75,10 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true",
-                        help="exit 1 if the committed page differs from the model")
-    parser.add_argument("--page", type=Path, default=PAGE,
-                        help=f"the page to write or check (default {PAGE.name})")
-    args = parser.parse_args(argv)
-    text = render()
-    page: Path = args.page
-    if args.check:
-        current = page.read_text(encoding="utf-8") if page.exists() else ""
-        if current != text:
-            print(f"{page}: out of date; run python docs/gen_config_reference.py",
-                  file=sys.stderr)
-            return 1
-        print(f"{page}: up to date")
-        return 0
-    page.write_text(text, encoding="utf-8")
-    print(f"wrote {page}")
-    return 0
+    return page_main(argv, render=render, page=PAGE,
+                     source="model",
+                     script="gen_config_reference.py",
+                     description=(__doc__ or "").splitlines()[0])
 
 
 if __name__ == "__main__":

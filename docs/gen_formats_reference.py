@@ -9,7 +9,6 @@ The schemas themselves are generated from the typed models (``sffscan schemas``)
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -17,7 +16,14 @@ from typing import Any
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from schema_tables import _cell, anchor, defs_in_order, field_table, type_text  # noqa: E402
+from schema_tables import (  # noqa: E402
+    _cell,
+    anchor,
+    defs_in_order,
+    field_table,
+    page_main,
+    type_text,
+)
 
 SCHEMAS = HERE.parent / "schemas"
 PAGE = HERE / "formats.md"
@@ -83,25 +89,10 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true",
-                        help="exit 1 if the committed page differs from the schemas")
-    parser.add_argument("--page", type=Path, default=PAGE,
-                        help=f"the page to write or check (default {PAGE.name})")
-    args = parser.parse_args(argv)
-    text = render()
-    page: Path = args.page
-    if args.check:
-        current = page.read_text(encoding="utf-8") if page.exists() else ""
-        if current != text:
-            print(f"{page}: out of date; run python docs/gen_formats_reference.py",
-                  file=sys.stderr)
-            return 1
-        print(f"{page}: up to date")
-        return 0
-    page.write_text(text, encoding="utf-8")
-    print(f"wrote {page}")
-    return 0
+    return page_main(argv, render=render, page=PAGE,
+                     source="schemas",
+                     script="gen_formats_reference.py",
+                     description=(__doc__ or "").splitlines()[0])
 
 
 if __name__ == "__main__":

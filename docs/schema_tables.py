@@ -6,7 +6,11 @@ Used by ``docs/gen_config_reference.py`` (the pydantic ``ScanConfig`` model's sc
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 Schema = dict[str, Any]
@@ -122,3 +126,27 @@ def defs_in_order(schema: Schema) -> list[tuple[str, Schema]]:
     """The ``$defs`` that are objects with properties, in the schema's order."""
     return [(name, sub) for name, sub in schema.get("$defs", {}).items()
             if sub.get("properties")]
+
+
+def page_main(argv: list[str] | None, *, render: Callable[[], str], page: Path, source: str,
+              script: str, description: str) -> int:
+    """The command line of a generated page: write it, or ``--check`` that the committed
+    page equals what ``render`` makes from ``source`` (exit 1, naming ``script``, if not)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--check", action="store_true",
+                        help=f"exit 1 if the committed page differs from the {source}")
+    parser.add_argument("--page", type=Path, default=page,
+                        help=f"the page to write or check (default {page.name})")
+    args = parser.parse_args(argv)
+    text = render()
+    out: Path = args.page
+    if args.check:
+        current = out.read_text(encoding="utf-8") if out.exists() else ""
+        if current != text:
+            print(f"{out}: out of date; run python docs/{script}", file=sys.stderr)
+            return 1
+        print(f"{out}: up to date")
+        return 0
+    out.write_text(text, encoding="utf-8")
+    print(f"wrote {out}")
+    return 0
