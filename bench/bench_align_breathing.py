@@ -25,14 +25,12 @@ the estimate from the resampling). Not a test: nothing here asserts.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import statistics
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import cv2
@@ -40,6 +38,9 @@ import numpy as np
 from sffscan.pipeline.metrology.compare import compare_height_maps
 from sffscan.stages.fields.align import Alignment, align_stack, mask_uncovered
 from sffscan.stages.fields.stationary import reconstruct_field
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from against import load_module  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -152,16 +153,6 @@ def true_alignment(st: Stack) -> Alignment:
     return Alignment(matrices=mats, scale=st.mags.copy(), shift_px=np.zeros((n, 2)),
                      rotation_deg=np.zeros(n), reference=n // 2, correlation=np.ones(n),
                      model="scale")
-
-
-def load_module(name: str, path: Path) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"{path}: cannot be imported")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:

@@ -20,7 +20,6 @@ Not a test: nothing here asserts.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -33,15 +32,8 @@ from sffscan.pipeline.wiring import build_stages
 from sffscan.stages import registration
 from sffscan.stages.sim.scanner import simulate_frames, wobble_px
 
-
-def load_module(name: str, path: Path) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"{path}: cannot be imported")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from against import load_module  # noqa: E402
 
 
 def geometry_config(geometry: str, *, seed: int, wobble: float) -> ScanConfig:

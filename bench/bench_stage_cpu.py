@@ -18,7 +18,6 @@ focus measure: bit for bit). Not a test: nothing here asserts.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
 import sys
 import tempfile
@@ -30,20 +29,11 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from against import load_module  # noqa: E402
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, replay_frames  # noqa: E402
 from sffscan.pipeline.wiring import build_stages  # noqa: E402
 from sffscan.stages import focus_measure, registration  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
-
-
-def load_module(name: str, path: Path) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"{path}: cannot be imported")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def main(argv: list[str] | None = None) -> int:
