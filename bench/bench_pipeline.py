@@ -44,7 +44,6 @@ from typing import Any
 import numpy as np
 import torch
 from sffscan.pipeline.config import ScanConfig, demo_config
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.plan import plan_frames
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.focus_measure import (
@@ -56,6 +55,7 @@ from sffscan.stages.focus_measure import (
     tenv_cv,
     to_unit_float,
 )
+from sffscan.stages.messages import Frame
 from sffscan.stages.sim.scanner import header_of, simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]

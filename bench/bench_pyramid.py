@@ -40,8 +40,8 @@ import zarr
 from sffscan.pipeline import wiring
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import open_recording
-from sffscan.pipeline.messages import Frame
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
+from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import MosaicWriter
 
 

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import zarr
 from sffscan.pipeline.config import demo_config
-from sffscan.pipeline.messages import Frame
+from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import MosaicWriter, mosaic_codecs
 from sffscan.stages.recorder import RecordingWriter, frame_codecs
 from sffscan.stages.sim.scanner import simulate_frames

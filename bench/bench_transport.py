@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.transport import FrameSender, ReceiverStats, receive_frames
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.messages import Frame, FrameHeader
 
 H, W = 1024, 1280
 

@@ -35,10 +35,10 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig, demo_config
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.plan import plan_frames
-from sffscan.pipeline.runtime import Sink
 from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.messages import Frame
+from sffscan.stages.protocol import Sink
 from sffscan.stages.sim.scanner import header_of, simulate_frames
 from sffscan.stages.viz_sink import VizSink, open_recording
 

@@ -18,16 +18,10 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
-from sffscan.pipeline.runtime import (
-    END_OF_STREAM,
-    FullPolicy,
-    PipelineStopped,
-    QueueStats,
-    Sink,
-    Stage,
-)
+from sffscan.pipeline.runtime import PipelineStopped, QueueStats
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
 from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 
 #: longest single wait of a channel before the stop flag is checked again, s
 WAIT_S = 0.25

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.messages import Frame
+from sffscan.stages.messages import Frame
 
 
 def planned_frames(cfg: ScanConfig) -> int:

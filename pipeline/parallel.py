@@ -58,16 +58,11 @@ from typing import Any
 
 import numpy as np
 from sffscan.pipeline.channels import WAIT_S, ForwardSink, RecvStage, SendStage
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import (
-    END_OF_STREAM,
-    FullPolicy,
     Pipeline,
     PipelineResult,
     PipelineStopped,
     QueueStats,
-    Sink,
-    Stage,
     StageFailed,
     StageStats,
     StatsSnapshot,
@@ -86,6 +81,8 @@ from sffscan.pipeline.worker import (
     relay_of,
     worker_main,
 )
+from sffscan.stages.messages import Frame
+from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 
 log = logging.getLogger(__name__)
 

@@ -44,9 +44,9 @@ from sffscan.pipeline.config import ConfigError, ScanConfig
 
 if TYPE_CHECKING:
     from sffscan.pipeline.formats.recording import Recording
-    from sffscan.pipeline.messages import Frame
-    from sffscan.pipeline.runtime import Sink
     from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.messages import Frame
+    from sffscan.stages.protocol import Sink
 
 log = logging.getLogger(__name__)
 
@@ -270,7 +270,7 @@ def _mark_failed(writer: Any) -> None:
 
 def _annotate(path: Path, rec: Recording, identity: dict[str, Any]) -> None:
     """Record in the mosaic which recording it was replayed from (its report and identity)."""
-    from sffscan.pipeline.messages import MosaicAttrs
+    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 
     group = zarr.open_group(str(path), mode="r+", use_consolidated=False)
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(), "recording": {

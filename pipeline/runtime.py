@@ -24,7 +24,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import copy
-import enum
 import functools
 import gc
 import itertools
@@ -34,25 +33,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage, Tapped
 from threadpoolctl import threadpool_limits
-
-
-class EndOfStream:
-    """The end-of-stream marker; use the single instance :data:`END_OF_STREAM`."""
-
-    def __repr__(self) -> str:
-        return "END_OF_STREAM"
-
-
-END_OF_STREAM = EndOfStream()
-
-
-class FullPolicy(enum.StrEnum):
-    """What a queue does when it is full."""
-
-    BLOCK = "block"
-    DROP_OLDEST = "drop_oldest"
-    DROP_NEWEST = "drop_newest"
 
 
 @contextlib.contextmanager
@@ -197,50 +179,6 @@ class StageStats:
         return self.frames / self.busy_s if self.busy_s > 0 else 0.0
 
 
-class Stage:
-    """Base class of a pipeline stage.
-
-    Subclasses implement :meth:`process` (one input item to zero or more outputs) and may
-    implement :meth:`finish` (flush at end of stream) and :meth:`close` (release resources;
-    ``failed`` tells whether the pipeline is stopping on an error). A source implements
-    :meth:`produce` instead of :meth:`process`.
-    """
-
-    name = "stage"
-    #: What one input item of this stage is, for the statistics ("frames", "blocks").
-    unit = "frames"
-
-    def process(self, item: Any) -> Iterable[Any]:
-        raise NotImplementedError
-
-    def produce(self) -> Iterator[Any]:
-        raise NotImplementedError
-
-    def finish(self) -> Iterable[Any]:
-        return ()
-
-    def prepare(self) -> None:
-        """Allocate (and touch) what the stream will need, before its first item: called
-        once before the pipeline starts (in a worker process: before it reports ready), so
-        that no frame waits for it. Default: nothing."""
-        return None
-
-    def close(self, *, failed: bool) -> None:
-        return None
-
-    def extra_stats(self) -> dict[str, Any]:
-        """Stage-specific figures for the summary (dropped frames, corrections, ...)."""
-        return {}
-
-
-@dataclass(frozen=True, slots=True)
-class Tapped:
-    """An output of stage ``stage``, as a sink receives it (``item`` is shared: read only)."""
-
-    stage: str
-    item: Any
-
-
 @dataclass(frozen=True, slots=True)
 class StatsSnapshot:
     """The pipeline's statistics at ``elapsed_s``, sent to sinks with ``wants_stats``."""
@@ -248,23 +186,6 @@ class StatsSnapshot:
     elapsed_s: float
     stages: tuple[StageStats, ...]
     queues: tuple[QueueStats, ...]
-
-
-class Sink(Stage):
-    """A side branch: consumes :class:`Tapped` outputs of the stages named in ``taps``.
-
-    A sink implements :meth:`Stage.process` (its outputs are discarded), :meth:`finish`
-    and :meth:`close` like any stage. If it raises, the pipeline stops like for any stage.
-    """
-
-    #: Names of the stages whose outputs this sink receives.
-    taps: tuple[str, ...] = ()
-    #: Capacity and full policy of the sink's own input queue.
-    capacity: int = 64
-    policy: FullPolicy = FullPolicy.BLOCK
-    #: Receive a :class:`StatsSnapshot` about every ``progress_s`` seconds.
-    wants_stats: bool = False
-    unit = "items"
 
 
 def _process_all(stage: Stage, item: Any) -> list[Any]:

@@ -52,9 +52,9 @@ import numpy as np
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.parallel import HostedSink, ProcessPipeline, WorkerGroup, relayed_sinks
 from sffscan.pipeline.plan import frame_count
-from sffscan.pipeline.runtime import Sink, Stage
 from sffscan.pipeline.worker import RELAY_LOCAL_CAPACITY, Relay, relay_of
 from sffscan.stages.mosaic import MosaicWriter
+from sffscan.stages.protocol import Sink, Stage
 
 log = logging.getLogger(__name__)
 

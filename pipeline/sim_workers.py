@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.worker import die_with_parent
+from sffscan.stages.messages import Frame, FrameHeader
 
 log = logging.getLogger(__name__)
 

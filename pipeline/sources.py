@@ -3,7 +3,7 @@
 ``source.kind`` picks the simulated scanner (default), a GenICam camera (harvesters) or
 frames sent over zmq by ``sffscan grab``; ``--source tcp://...`` on the command line
 overrides it. Replay of a recording has its own command (``sffscan replay``). Every feed
-is a plain iterator of :class:`sffscan.pipeline.messages.Frame`; generators release their device
+is a plain iterator of :class:`sffscan.stages.messages.Frame`; generators release their device
 or socket when closed (the source stage closes them, on failure too).
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount, planned_frames
 from sffscan.pipeline.config import ConfigError, ScanConfig
-from sffscan.pipeline.messages import Frame
+from sffscan.stages.messages import Frame
 
 
 @dataclass

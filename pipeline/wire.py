@@ -1,6 +1,6 @@
 """Stage messages between processes: a JSON header, the arrays in shared-memory slots.
 
-:func:`encode` turns a pipeline item (:class:`~sffscan.pipeline.messages.Frame`,
+:func:`encode` turns a pipeline item (:class:`~sffscan.stages.messages.Frame`,
 ``PlacedFrame``, ``FocusFrame``, ``DepthBlock``, a sink's ``Tapped`` item, ``None`` or the
 end of stream) into JSON bytes: the typed headers as their pydantic JSON, the scalar fields
 as JSON values (floats round-trip exactly), and for each array a reference to shared
@@ -19,7 +19,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from sffscan.pipeline.messages import (
+from sffscan.pipeline.shm_ring import SlotPool, aligned
+from sffscan.stages.messages import (
     DepthBlock,
     DepthBlockHeader,
     FocusFrame,
@@ -27,8 +28,7 @@ from sffscan.pipeline.messages import (
     FrameHeader,
     PlacedFrame,
 )
-from sffscan.pipeline.runtime import END_OF_STREAM, Tapped
-from sffscan.pipeline.shm_ring import SlotPool, aligned
+from sffscan.stages.protocol import END_OF_STREAM, Tapped
 
 
 class WireError(TypeError):

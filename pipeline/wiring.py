@@ -17,7 +17,6 @@ from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.metrology.evaluate import (
     SIM_TRUTH,
     Accuracy,
@@ -27,13 +26,15 @@ from sffscan.pipeline.metrology.evaluate import (
 from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
-from sffscan.pipeline.runtime import Pipeline, PipelineResult, Sink, Stage
+from sffscan.pipeline.runtime import Pipeline, PipelineResult
 from sffscan.pipeline.scan_processes import process_pipeline, use_processes
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import DepthStage
 from sffscan.stages.frame_source import SourceStage
+from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import MosaicStage, MosaicWriter
 from sffscan.stages.optics_correction import corrections_applied, optics_correction_stages
+from sffscan.stages.protocol import Sink, Stage
 from sffscan.stages.registration import RegistrationStage
 from sffscan.stages.speed_shift import SpeedShiftStage
 

@@ -29,15 +29,14 @@ from typing import Any
 
 from sffscan.pipeline.channels import ForwardSink, RecvStage, SendStage
 from sffscan.pipeline.runtime import (
-    FullPolicy,
     Pipeline,
     PipelineCancelled,
     QueueStats,
-    Stage,
     StageFailed,
     StageStats,
 )
 from sffscan.pipeline.shm_ring import PoolSpec, SlotPool
+from sffscan.stages.protocol import FullPolicy, Stage
 
 #: capacity of the queues between the stages inside one process (the channels between
 #: processes have the pipeline's ``capacity``)
@@ -84,7 +83,7 @@ class Relay:
     with its own ``policy`` (:class:`~sffscan.pipeline.parallel.ProcessPipeline`).
 
     ``keep`` is ``("module:function", kwargs)`` of a factory returning a predicate on
-    :class:`~sffscan.pipeline.runtime.Tapped` items, or None (all of them).
+    :class:`~sffscan.stages.protocol.Tapped` items, or None (all of them).
     """
 
     name: str

@@ -39,20 +39,20 @@ if _typing.TYPE_CHECKING:
         load_config,
     )
     from sffscan.pipeline.formats.exports import MosaicRegion, read_region, write_ply, write_x3p
+    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
     from sffscan.pipeline.formats.recording import RecordingError
-    from sffscan.pipeline.messages import (
+    from sffscan.pipeline.metrology.areal import ArealParameters, areal_parameters
+    from sffscan.pipeline.runtime import StageFailed
+    from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.fields.stationary import FieldResult, StackSettings
+    from sffscan.stages.messages import (
         DepthBlock,
         DepthBlockHeader,
         FocusFrame,
         Frame,
         FrameHeader,
-        MosaicAttrs,
         PlacedFrame,
     )
-    from sffscan.pipeline.metrology.areal import ArealParameters, areal_parameters
-    from sffscan.pipeline.runtime import StageFailed
-    from sffscan.pipeline.wiring import ScanReport
-    from sffscan.stages.fields.stationary import FieldResult, StackSettings
 
     __version__: str
 
@@ -65,7 +65,8 @@ _LAZY = {
                      "ProcessingConfig", "ScanConfig", "SourceConfig", "demo_config",
                      "load_config"), "sffscan.pipeline.config"),
     **dict.fromkeys(("DepthBlock", "DepthBlockHeader", "FocusFrame", "Frame", "FrameHeader",
-                     "MosaicAttrs", "PlacedFrame"), "sffscan.pipeline.messages"),
+                     "PlacedFrame"), "sffscan.stages.messages"),
+    "MosaicAttrs": "sffscan.pipeline.formats.mosaic_attrs",
     **dict.fromkeys(("ArealParameters", "areal_parameters"), "sffscan.pipeline.metrology.areal"),
     **dict.fromkeys(("BatchError", "BatchRow", "find_recordings", "run_batch"),
                     "sffscan.pipeline.batch"),

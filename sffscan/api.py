@@ -18,10 +18,10 @@ from sffscan.pipeline.config import ScanConfig, config_from_dict
 if TYPE_CHECKING:
     import xarray
 
-    from sffscan.pipeline.messages import Frame
-    from sffscan.pipeline.runtime import Sink
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
+    from sffscan.stages.messages import Frame
+    from sffscan.stages.protocol import Sink
 
 
 def _with(cfg: ScanConfig, *, output: str | Path | None, overwrite: bool | None,

@@ -44,8 +44,8 @@ import numpy as np
 from sffscan.pipeline.config import ConfigError, ScanConfig
 from sffscan.pipeline.hardware.daq import Daq, open_daq, waveform_for
 from sffscan.pipeline.hardware.lens_waveform import exposure_window_us, max_exposure_us
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.plan import frame_count, pass_bounds_px
+from sffscan.stages.messages import Frame, FrameHeader
 
 log = logging.getLogger(__name__)
 

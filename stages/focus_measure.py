@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from sffscan.pipeline.messages import FocusFrame, PlacedFrame
-from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import check_odd_size
 from sffscan.stages.focus_volume import new_columns
+from sffscan.stages.messages import FocusFrame, PlacedFrame
 from sffscan.stages.operators import OPERATORS, check_operator, operator_alignment
+from sffscan.stages.protocol import Stage
 
 if TYPE_CHECKING:  # at run time through __getattr__ below (torch loads with first use)
     from sffscan.stages.focus_torch import DeviceFocus, glvm, glvm_conv2d_baseline, tenv

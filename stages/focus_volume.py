@@ -36,8 +36,6 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
-from sffscan.pipeline.runtime import Stage
 from sffscan.stages.depth import (
     STREAMING_METHODS,
     _confidence,
@@ -52,6 +50,8 @@ from sffscan.stages.depth import (
 )
 from sffscan.stages.depth_blocks import adaptive_block
 from sffscan.stages.depth_uncertainty import height_uncertainty_um
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
+from sffscan.stages.protocol import Stage
 
 
 def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,

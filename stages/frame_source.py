@@ -1,7 +1,7 @@
 """The pipeline's source stage: any frame iterator, every frame checked on the way in.
 
 Sources (the simulated scanner, a replay, a camera) are plain iterators of
-:class:`sffscan.pipeline.messages.Frame`; this stage is what puts them at the head of a pipeline.
+:class:`sffscan.stages.messages.Frame`; this stage is what puts them at the head of a pipeline.
 """
 
 from __future__ import annotations
@@ -9,15 +9,15 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import numpy as np
-from sffscan.pipeline.messages import Frame, FrameError, check_frame
-from sffscan.pipeline.runtime import Stage
+from sffscan.stages.messages import Frame, FrameError, check_frame
+from sffscan.stages.protocol import Stage
 
 
 class SourceStage(Stage):
     """Any frame iterator as the pipeline's source; every frame is checked on the way in.
 
     Stops the pipeline with an error naming the frame_id
-    (:class:`sffscan.pipeline.messages.FrameError`) for: a wrong shape or dtype, NaN pixels, values
+    (:class:`sffscan.stages.messages.FrameError`) for: a wrong shape or dtype, NaN pixels, values
     above the bit depth's full scale, a focus index out of range or out of step with the
     staircase ((frame_id - focus_index) mod N must stay constant), a frame_id that repeats
     or goes back, a pass index that goes back or exceeds the configured passes, and a stage

@@ -56,10 +56,10 @@ from typing import Any
 import numpy as np
 import zarr
 from pydantic import ValidationError
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.formats.ngff import consolidate, mosaic_ngff
-from sffscan.pipeline.messages import DepthBlock, MosaicAttrs
-from sffscan.pipeline.runtime import Stage
 from sffscan.stages.durable import free_reserve, make_reserve
+from sffscan.stages.messages import DepthBlock
 from sffscan.stages.mosaic_pyramid import (
     LAG_S,
     CoordArrays,
@@ -76,6 +76,7 @@ from sffscan.stages.mosaic_pyramid import (
     write_coords,
     write_many,
 )
+from sffscan.stages.protocol import Stage
 from zarr.codecs import BloscCodec, BloscShuffle
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,6 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.messages import DepthBlock, Frame, FrameError
 from sffscan.pipeline.metrology.calibration import (
     Calibration,
     illumination_map,
@@ -30,7 +29,8 @@ from sffscan.pipeline.metrology.optics_correction import (
     level_magnification,
     unbreathe_frame,
 )
-from sffscan.pipeline.runtime import Stage
+from sffscan.stages.messages import DepthBlock, Frame, FrameError
+from sffscan.stages.protocol import Stage
 
 __all__ = ["CurvatureStage", "FrameOpticsStage", "corrections_applied",
            "optics_correction_stages"]

@@ -62,9 +62,9 @@ from sffscan.pipeline.formats.recording import (
 )
 from sffscan.pipeline.formats.recording_checks import frame_digest
 from sffscan.pipeline.formats.zarr_chunks import write_many
-from sffscan.pipeline.messages import Frame
-from sffscan.pipeline.runtime import FullPolicy, Sink, Tapped
 from sffscan.stages.durable import SyncTracker, free_reserve, make_reserve
+from sffscan.stages.messages import Frame
+from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
 from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 

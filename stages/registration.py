@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from sffscan.pipeline.messages import PlacedFrame
-from sffscan.pipeline.runtime import Stage
+from sffscan.stages.messages import PlacedFrame
+from sffscan.stages.protocol import Stage
 
 
 def downsample(image: np.ndarray, *, factor: int) -> np.ndarray:

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 
-from sffscan.pipeline.messages import Frame, FrameError, FrameHeader, PlacedFrame
-from sffscan.pipeline.runtime import Stage
+from sffscan.stages.messages import Frame, FrameError, FrameHeader, PlacedFrame
+from sffscan.stages.protocol import Stage
 
 
 def position_from_speed_px(

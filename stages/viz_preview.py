@@ -16,8 +16,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from sffscan.pipeline.messages import DepthBlock, FocusFrame
-from sffscan.pipeline.runtime import Tapped
+from sffscan.stages.messages import DepthBlock, FocusFrame
+from sffscan.stages.protocol import Tapped
 
 MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
 

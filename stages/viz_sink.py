@@ -46,10 +46,11 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
-from sffscan.pipeline.messages import DepthBlock, FocusFrame, PlacedFrame
 from sffscan.pipeline.plan import scan_extent_px
-from sffscan.pipeline.runtime import FullPolicy, Sink, StatsSnapshot, Tapped
+from sffscan.pipeline.runtime import StatsSnapshot
 from sffscan.pipeline.wiring import focus_heights_um
+from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
+from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 from sffscan.stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 
 MODES = "spawn | serve | save (with --rrd PATH) | auto | off"

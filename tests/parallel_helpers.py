@@ -9,8 +9,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-from sffscan.pipeline.messages import Frame, FrameHeader
-from sffscan.pipeline.runtime import Stage
+from sffscan.stages.messages import Frame, FrameHeader
+from sffscan.stages.protocol import Stage
 
 
 def shm_names(pid: int | None = None) -> list[str]:
@@ -80,8 +80,8 @@ def pass_group() -> list[Stage]:
 def failing_focus_group(cfg: dict[str, Any], at: int) -> list[Stage]:
     """Worker factory: the scan's focus measure and depth stages; depth fails at frame
     ``at`` with a FrameError (as for a frame it cannot place)."""
-    from sffscan.pipeline.messages import FocusFrame, FrameError
     from sffscan.pipeline.scan_processes import focus_group
+    from sffscan.stages.messages import FocusFrame, FrameError
 
     fm, depth = focus_group(cfg)
     real = depth.process

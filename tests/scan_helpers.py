@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig, config_from_dict
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.metrology.evaluate import Accuracy, accuracy
 from sffscan.pipeline.wiring import ScanReport, run_scan
 from sffscan.stages.depth import depth_from_focus, levels_to_height
 from sffscan.stages.focus_measure import focus_measure, to_unit_float
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.sim.camera import render_stack
 from sffscan.stages.sim.scanner import make_optics, make_world, simulate_frames
 

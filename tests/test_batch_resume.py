@@ -18,8 +18,8 @@ import pytest
 import zarr
 from sffscan.pipeline.batch import process_recording, store_accuracy, stored_accuracy
 from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.formats.ngff import level_path
-from sffscan.pipeline.messages import MosaicAttrs
 from sffscan.pipeline.metrology.evaluate import Accuracy
 from sffscan.stages.mosaic import ARRAYS
 from sffscan.stages.recorder import RecordingWriter

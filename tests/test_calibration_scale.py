@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_from_dict
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.metrology.calibration import CalibrationError, load_calibration
 from sffscan.pipeline.metrology.optics_correction import StackCorrection
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.optics_correction import optics_correction_stages
 from sffscan.stages.sim.camera import Optics
 from sffscan.stages.sim.lens import scale_about_centre

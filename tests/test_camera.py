@@ -14,7 +14,6 @@ import pytest
 import zarr
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
 from sffscan.pipeline.hardware.daq import SimDaq
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.wiring import run_scan
@@ -26,6 +25,7 @@ from sffscan.stages.camera_source import (
     camera_frames,
     find_cti,
 )
+from sffscan.stages.messages import Frame
 
 
 def viky_cti() -> Path:

@@ -26,7 +26,7 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ScanConfig, config_to_toml
 from sffscan.pipeline.formats.recording import RecordingError, open_recording
-from sffscan.pipeline.messages import Frame
+from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
 from sffscan.stages.sim.scanner import simulate_frames
 

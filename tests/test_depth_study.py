@@ -210,8 +210,8 @@ def test_uncertainty_covers_held_out_errors_of_a_noisy_family() -> None:
 
 def test_a_depth_block_crosses_processes_with_its_uncertainty() -> None:
     """The wire format carries the block's uncertainty (and a block without one)."""
-    from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
     from sffscan.pipeline.wire import _build, _fields
+    from sffscan.stages.messages import DepthBlock, DepthBlockHeader
 
     hdr = DepthBlockHeader(x0_px=3, y0_px=4, width_px=2, height_px=2, pass_index=0,
                            complete_columns=2, incomplete_columns=0)

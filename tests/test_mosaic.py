@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader, MosaicAttrs
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader
 from sffscan.stages.mosaic import MosaicStage, MosaicWriter, blend
 
 

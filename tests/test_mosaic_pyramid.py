@@ -14,8 +14,8 @@ import pytest
 import zarr
 from sffscan.pipeline.formats.ngff import REDUCTION, level_path
 from sffscan.pipeline.formats.recording import open_recording
-from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
 from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader
 from sffscan.stages.mosaic import ARRAYS, MosaicStage, MosaicWriter, tile_states
 from sffscan.stages.mosaic_pyramid import default_levels, downsample
 from sffscan.stages.recorder import RecordingWriter

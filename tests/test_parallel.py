@@ -19,7 +19,12 @@ import numpy as np
 import pytest
 from sffscan.pipeline.channels import RecvStage, SendStage
 from sffscan.pipeline.config import demo_config
-from sffscan.pipeline.messages import (
+from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
+from sffscan.pipeline.runtime import Pipeline, StageFailed
+from sffscan.pipeline.scan_processes import ring_plan, use_processes
+from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.stages.messages import (
     DepthBlock,
     DepthBlockHeader,
     FocusFrame,
@@ -27,11 +32,7 @@ from sffscan.pipeline.messages import (
     FrameHeader,
     PlacedFrame,
 )
-from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
-from sffscan.pipeline.runtime import END_OF_STREAM, Pipeline, Stage, StageFailed, Tapped
-from sffscan.pipeline.scan_processes import ring_plan, use_processes
-from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
-from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.stages.protocol import END_OF_STREAM, Stage, Tapped
 from sffscan.stages.sim.scanner import simulate_frames
 from sffscan.stages.viz_sink import VizSink
 
@@ -196,7 +197,7 @@ def test_frames_cross_processes_unchanged_and_in_order() -> None:
 def test_channel_stages_refuse_drop_oldest() -> None:
     p = pool()
     try:
-        from sffscan.pipeline.runtime import FullPolicy
+        from sffscan.stages.protocol import FullPolicy
 
         with pytest.raises(ValueError, match="drop_oldest"):
             SendStage("x", CTX.Queue(2), capacity=2, pools=[p], stop=__import__(
@@ -215,8 +216,8 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
     (the chain it taps goes on); what ``keep`` leaves out is neither sent nor a drop."""
     import threading
 
-    from sffscan.pipeline.runtime import FullPolicy
     from sffscan.pipeline.worker import Relay, relay_forwarder
+    from sffscan.stages.protocol import FullPolicy
     from sffscan.stages.viz_preview import logged_items
 
     p = pool(slots=1, slot_bytes=4096, kinds=("frame", "placed", "focus"))

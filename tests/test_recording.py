@@ -11,7 +11,7 @@ import zarr
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import RecordingAttrs, RecordingError, open_recording
 from sffscan.pipeline.formats.schema_gen import SCHEMAS
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.recorder import RecordingWriter
 
 from tests.scan_helpers import small_config

@@ -25,7 +25,7 @@ from sffscan.pipeline.formats.recording import (
     read_recording_id,
 )
 from sffscan.pipeline.formats.recording_checks import Pacer, plausible_step_s
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.recorder import RecordingWriter
 from sffscan.stages.sim.scanner import simulate_frames
 

@@ -7,7 +7,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from sffscan.pipeline.messages import FrameHeader, PlacedFrame
+from sffscan.stages.messages import FrameHeader, PlacedFrame
 from sffscan.stages.registration import (
     RegistrationStage,
     correlate_spectra,

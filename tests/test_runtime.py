@@ -7,17 +7,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sffscan.pipeline.runtime import (
-    END_OF_STREAM,
-    BoundedQueue,
-    FullPolicy,
-    Pipeline,
-    PipelineStopped,
-    Sink,
-    Stage,
-    StageFailed,
-    Tapped,
-)
+from sffscan.pipeline.runtime import BoundedQueue, Pipeline, PipelineStopped, StageFailed
+from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage, Tapped
 
 
 class Numbers(Stage):

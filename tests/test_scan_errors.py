@@ -15,9 +15,9 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.messages import Frame
 
 from tests.scan_helpers import RenderedScan, small_config
 

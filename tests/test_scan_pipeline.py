@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sffscan.pipeline.config import ScanConfig, pass_pitch_px
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.wiring import run_scan
+from sffscan.stages.messages import Frame
 from sffscan.stages.sim.scanner import make_world, simulate_frames
 
 from tests.scan_helpers import (

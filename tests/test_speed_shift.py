@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from sffscan.pipeline.messages import Frame, FrameError, FrameHeader
+from sffscan.stages.messages import Frame, FrameError, FrameHeader
 from sffscan.stages.speed_shift import (
     SpeedShiftStage,
     position_from_speed_px,

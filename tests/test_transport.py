@@ -28,8 +28,8 @@ from sffscan.pipeline.formats.transport import (
     receive_frames,
     stream_frames,
 )
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.plan import frame_count
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.sim.scanner import simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]

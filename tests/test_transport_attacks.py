@@ -38,8 +38,8 @@ from sffscan.pipeline.formats.transport_auth import (
     read_pairing,
 )
 from sffscan.pipeline.formats.transport_receiver import ReceiverStats, receive_frames
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.plan import frame_count
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.recorder import RecordingWriter
 from sffscan.stages.sim.scanner import simulate_frames
 

@@ -27,8 +27,8 @@ from sffscan.pipeline.formats.transport import (
     stream_frames,
 )
 from sffscan.pipeline.formats.transport_auth import make_keys, pairing_path
-from sffscan.pipeline.messages import Frame
 from sffscan.pipeline.plan import frame_count
+from sffscan.stages.messages import Frame
 from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.test_transport import ROOT, finish, free_port, start_grab, tiny_config

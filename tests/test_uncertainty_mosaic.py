@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader
 from sffscan.stages.mosaic import UNITS, MosaicStage, MosaicWriter, blend
 
 

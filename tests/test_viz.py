@@ -24,8 +24,8 @@ import zarr
 from rerun.chunk import RrdReader
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError
-from sffscan.pipeline.messages import DepthBlock, DepthBlockHeader
 from sffscan.pipeline.wiring import ScanReport, run_scan
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader
 from sffscan.stages.mosaic import MosaicStage, MosaicWriter
 from sffscan.stages.sim.scanner import simulate_frames
 from sffscan.stages.viz_preview import (

@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from sffscan.pipeline.messages import FrameHeader, PlacedFrame
 from sffscan.stages.focus_measure import FocusMeasureStage, focus_measure
+from sffscan.stages.messages import FrameHeader, PlacedFrame
 from sffscan.stages.operators import operator_alignment, operator_reach
 from sffscan.stages.operators.wavelets import LEVELS, WAVELET_OPERATORS
 

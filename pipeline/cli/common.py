@@ -27,10 +27,10 @@ from sffscan.stages.operators import OPERATORS
 
 if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount
-    from sffscan.pipeline.messages import Frame
     from sffscan.pipeline.run import Job
-    from sffscan.pipeline.runtime import Sink
     from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.messages import Frame
+    from sffscan.stages.protocol import Sink
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 #: the scan ended cleanly but fewer frames than expected were received and processed (the

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import zarr
-from sffscan.pipeline.messages import MosaicAttrs
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.stages.mosaic import mosaic_array
 
 __all__ = ["EXPORT_MAX_BYTES", "MosaicRegion", "PLY_DTYPE", "check_export_size",

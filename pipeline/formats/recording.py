@@ -53,7 +53,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import zarr
 from pydantic import BaseModel, ConfigDict, Field
-from sffscan.pipeline.messages import FrameHeader
+from sffscan.stages.messages import FrameHeader
 
 if TYPE_CHECKING:
     from sffscan.pipeline.formats.recording_reader import Recording, open_recording
@@ -289,7 +289,7 @@ def read_recording_id(path: str | Path) -> str | None:
 
 def annotate_mosaic(path: str | Path, rec: Recording) -> None:
     """Record in a mosaic's attributes which recording it was replayed from."""
-    from sffscan.pipeline.messages import MosaicAttrs
+    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 
     group = zarr.open_group(str(path), mode="r+")
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(),

@@ -39,7 +39,7 @@ from sffscan.pipeline.formats.recording_checks import (
     timestamp_defects,
 )
 from sffscan.pipeline.formats.zarr_chunks import read_many
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount

@@ -2,7 +2,7 @@
 
 Messages (``schemas/transport_message.v1.json``): a frame is three parts, a small JSON
 header validated against :class:`TransportMessage` (the
-:class:`~sffscan.pipeline.messages.FrameHeader`, dtype, shape and the CRC-32 of the pixels,
+:class:`~sffscan.stages.messages.FrameHeader`, dtype, shape and the CRC-32 of the pixels,
 always present and always verified), an authentication tag, and the raw pixel bytes, C
 order. The end of the stream is a message of its own (``kind = "end"``, with the number of
 frames sent): header and tag. Never pickle.
@@ -70,7 +70,7 @@ from sffscan.pipeline.formats.transport_auth import (
     load_public,
     read_pairing,
 )
-from sffscan.pipeline.messages import Frame, FrameHeader
+from sffscan.stages.messages import Frame, FrameHeader
 
 logger = logging.getLogger(__name__)
 

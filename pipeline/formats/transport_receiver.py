@@ -46,7 +46,7 @@ from sffscan.pipeline.formats.transport_auth import (
     remove_pairing,
     write_pairing,
 )
-from sffscan.pipeline.messages import Frame
+from sffscan.stages.messages import Frame
 
 if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount

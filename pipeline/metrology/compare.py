@@ -28,7 +28,7 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from sffscan.pipeline.messages import MosaicAttrs
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.metrology.evaluate import accuracy
 
 __all__ = [

@@ -16,7 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 import zarr
 from pydantic import ValidationError
-from sffscan.pipeline.messages import MosaicAccuracy, MosaicAttrs
+from sffscan.pipeline.formats.mosaic_attrs import MosaicAccuracy, MosaicAttrs
 from sffscan.stages.mosaic import mosaic_array
 
 

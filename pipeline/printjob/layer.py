@@ -40,8 +40,8 @@ from sffscan.pipeline.printjob.jobstore import JobError, JobStore
 if TYPE_CHECKING:
     import xarray
     from sffscan.pipeline.config import ScanConfig
-    from sffscan.pipeline.messages import Frame
     from sffscan.pipeline.wiring import ScanReport
+    from sffscan.stages.messages import Frame
 
 __all__ = ["LayerRunner", "open_job", "roi_grid"]
 

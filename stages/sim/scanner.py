@@ -14,8 +14,8 @@ from collections.abc import Iterator
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.messages import Frame, FrameHeader
 from sffscan.pipeline.plan import PlannedFrame, plan_frames
+from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.sim.camera import Optics, render_frame
 from sffscan.stages.sim.world import PlateWorld, characterisation_plate, sinusoid_world
 
