@@ -10,25 +10,27 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.formats.schema_gen import SCHEMAS, check_schemas
-from sffscan.pipeline.metrology.calibration import (
+from sffscan.pipeline.metrology.calibration_fit import (
+    calibrate_lateral,
+    calibrate_z,
+    fit_field_curvature,
+    fit_z_response,
+    lateral_scale,
+    measure_height,
+    noise_by_subtraction,
+    symmetric_peak,
+)
+from sffscan.pipeline.metrology.calibration_model import (
     Calibration,
     CalibrationError,
     FieldCurvatureFit,
     ZResponse,
     apply_calibration,
-    calibrate_lateral,
-    calibrate_z,
     calibrated_focus_heights,
     curvature_correction,
-    fit_field_curvature,
-    fit_z_response,
-    lateral_scale,
     load_calibration,
-    measure_height,
-    noise_by_subtraction,
     pixel_positions_um,
     save_calibration,
-    symmetric_peak,
 )
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.targets import (

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_from_dict
-from sffscan.pipeline.metrology.calibration import CalibrationError, load_calibration
+from sffscan.pipeline.metrology.calibration_model import CalibrationError, load_calibration
+from sffscan.pipeline.metrology.correction_stages import optics_correction_stages
 from sffscan.pipeline.metrology.optics_correction import StackCorrection
 from sffscan.stages.messages import Frame, FrameHeader
-from sffscan.stages.optics_correction import optics_correction_stages
 from sffscan.stages.sim.camera import Optics
 from sffscan.stages.sim.lens import scale_about_centre
 from sffscan.stages.sim.targets import perspective_checkerboards

@@ -9,7 +9,7 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError, config_to_toml
-from sffscan.pipeline.metrology.calibration import Calibration, ZResponse, save_calibration
+from sffscan.pipeline.metrology.calibration_model import Calibration, ZResponse, save_calibration
 from sffscan.pipeline.wiring import run_scan
 
 from tests.scan_helpers import RenderedScan, small_config

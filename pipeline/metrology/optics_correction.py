@@ -1,6 +1,6 @@
 """Applying a calibration's optics: magnification per focus level, field curvature, z response.
 
-A calibration (:mod:`sffscan.pipeline.metrology.calibration`) measures three properties of a
+A calibration (:mod:`sffscan.pipeline.metrology.calibration_fit`) measures three properties of a
 real objective; this module undoes them where a measurement is made:
 
 * **Magnification per level** (``lateral``: µm/px at each focus level, a non-telecentric
@@ -22,7 +22,8 @@ real objective; this module undoes them where a measurement is made:
 * **z response**: the focus table (already applied by the depth stage,
   :func:`sffscan.pipeline.wiring.focus_heights_um`).
 
-All functions are pure; the pipeline stages are in :mod:`sffscan.stages.optics_correction`.
+All functions are pure; the pipeline stages are in
+:mod:`sffscan.pipeline.metrology.correction_stages`.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from sffscan.pipeline.metrology.calibration import (
+from sffscan.pipeline.metrology.calibration_model import (
     Calibration,
     CalibrationError,
     FieldCurvatureFit,

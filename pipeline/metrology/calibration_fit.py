@@ -1,6 +1,7 @@
-"""Calibration in the style of ISO 25178-700 (SFF_NOTES.md section 6), stored and applied.
+"""Calibration routines: each a pure function on images, stacks or height maps.
 
-Routines, each a pure function on images, stacks or height maps:
+They measure what a :class:`~sffscan.pipeline.metrology.calibration_model.Calibration`
+file stores (``sffscan calibrate`` runs them and saves the file):
 
 * z response -- :func:`calibrate_z`: per gauge block, the focus curve averaged over a
   central patch, its sub-level peak (:func:`peak_level`), then a linear fit of the peaks
@@ -10,162 +11,43 @@ Routines, each a pure function on images, stacks or height maps:
   inner corners OpenCV finds on a checkerboard; :func:`calibrate_lateral` repeats it at
   several focus levels and fits the scale's linear change with the level (perspective of
   a non-telecentric objective).
-* field curvature -- :func:`fit_field_curvature`: quadratic surface fitted to the height map
-  of a flat reference; :func:`curvature_correction` is what gets subtracted.
+* field curvature -- :func:`fit_field_curvature`: quadratic surface fitted to the height
+  map of a flat reference (:func:`measure_height`).
+* vignetting -- :func:`fit_vignetting`: the relative illumination of a flat reference.
 * noise -- :func:`noise_by_subtraction`: ``N_M = Sq(z1 - z2) / sqrt(2)``.
-
-The results go into one versioned :class:`Calibration` (``schemas/calibration.v1.json``),
-saved and loaded as JSON; :func:`apply_calibration` maps depth levels (or heights from the
-nominal table) to calibrated µm and removes the field curvature, and
-:func:`calibrated_focus_heights` gives the table the depth stage can use instead of the
-nominal one.
 """
 
 from __future__ import annotations
 
 import math
-from datetime import UTC, datetime
-from pathlib import Path
-from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from sffscan.pipeline.config import ConfigError
+from sffscan.pipeline.metrology.calibration_model import (
+    CalibrationError,
+    FieldCurvatureFit,
+    LateralScale,
+    LevelScale,
+    VignettingFit,
+    ZResponse,
+    quadratic_terms,
+)
 
 __all__ = [
-    "Calibration",
-    "CalibrationError",
-    "FieldCurvatureFit",
-    "LateralScale",
-    "LevelScale",
-    "VignettingFit",
-    "ZResponse",
-    "apply_calibration",
     "calibrate_lateral",
     "calibrate_z",
-    "calibrated_focus_heights",
     "chessboard_corners",
-    "curvature_correction",
     "fit_field_curvature",
     "fit_vignetting",
     "fit_z_response",
-    "illumination_map",
+    "focus_volume_of",
     "lateral_scale",
-    "load_calibration",
     "measure_height",
     "noise_by_subtraction",
     "patch_focus_curve",
     "peak_level",
-    "pixel_positions_um",
-    "save_calibration",
     "symmetric_peak",
 ]
-
-CALIBRATION_FORMAT = "sffscan-calibration"
-
-
-class CalibrationError(ConfigError):
-    """A calibration that cannot be computed, read or applied; the message names the cause."""
-
-
-# ---------------------------------------------------------------------- the file
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-class ZResponse(_Model):
-    """Linear z response: height = intercept_um + um_per_level * level."""
-
-    um_per_level: float = Field(description="Amplification coefficient a_z, µm per focus level")
-    intercept_um: float = Field(description="Height in focus at level 0, µm")
-    pearson_r: float = Field(ge=-1, le=1, description="Pearson r of peak levels vs heights")
-    heights_um: list[float] = Field(description="Known gauge heights, µm")
-    peak_levels: list[float] = Field(description="Measured peak focus level per gauge")
-    residuals_um: list[float] = Field(description="Calibrated minus known height, µm")
-
-
-class LevelScale(_Model):
-    level: float = Field(description="Focus level of the measurement")
-    um_per_px_x: float = Field(gt=0, description="Object-side scale along x, µm/px")
-    um_per_px_y: float = Field(gt=0, description="Object-side scale along y, µm/px")
-
-
-class LateralScale(_Model):
-    """Lateral scale, and its linear change with the focus level (perspective)."""
-
-    um_per_px_x: float = Field(gt=0, description="Scale along x at reference_level, µm/px")
-    um_per_px_y: float = Field(gt=0, description="Scale along y at reference_level, µm/px")
-    reference_level: float = Field(description="Focus level the scales above refer to")
-    slope_x_per_level: float = Field(0.0, description="d(um_per_px_x)/d(level), µm/px per level")
-    slope_y_per_level: float = Field(0.0, description="d(um_per_px_y)/d(level), µm/px per level")
-    optical_centre_px: tuple[float, float] = Field(
-        description="Frame pixel (x, y) the scale change is centred on")
-    per_level: list[LevelScale] = Field(default_factory=list,
-                                        description="The individual measurements")
-
-
-class FieldCurvatureFit(_Model):
-    """Quadratic fit of a flat reference: c0 + cu u + cv v + cuu u² + cuv u v + cvv v²."""
-
-    frame_width_px: int = Field(ge=1)
-    frame_height_px: int = Field(ge=1)
-    centre_px: tuple[float, float] = Field(description="Frame pixel (x, y) where u = v = 0")
-    coefficients_um: tuple[float, float, float, float, float, float] = Field(
-        description="c0, cu, cv, cuu, cuv, cvv; u, v in px from centre_px, result µm")
-    rms_residual_um: float = Field(ge=0, description="RMS of the reference minus the fit, µm")
-
-
-class VignettingFit(_Model):
-    """Relative illumination over the frame: quadratic surface, 1 at the centre."""
-
-    frame_width_px: int = Field(ge=1)
-    frame_height_px: int = Field(ge=1)
-    centre_px: tuple[float, float] = Field(description="Frame pixel (x, y) where u = v = 0")
-    coefficients: tuple[float, float, float, float, float, float] = Field(
-        description="1, cu, cv, cuu, cuv, cvv: illumination relative to the centre; u, v in px "
-                    "from centre_px")
-    corner_loss: float = Field(description="Illumination lost at the frame corners (mean of "
-                                           "the four), fraction")
-
-
-class Calibration(_Model):
-    """One instrument's calibration (schemas/calibration.v1.json)."""
-
-    format: Literal["sffscan-calibration"] = "sffscan-calibration"
-    format_version: Literal[1] = 1
-    created: str = Field(default_factory=lambda: datetime.now(UTC).isoformat(timespec="seconds"))
-    description: str = Field("", description="Instrument, objective, targets used")
-    z_response: ZResponse | None = None
-    lateral: LateralScale | None = None
-    field_curvature: FieldCurvatureFit | None = None
-    noise_um: float | None = Field(None, ge=0, description="N_M by subtraction, µm")
-    vignetting: VignettingFit | None = Field(
-        None, description="Illumination over the frame (flat field), from a flat reference")
-
-
-def save_calibration(cal: Calibration, path: str | Path) -> Path:
-    """Write a calibration as JSON (UTF-8); returns the path."""
-    p = Path(path)
-    p.write_text(cal.model_dump_json(indent=2) + "\n", encoding="utf-8")
-    return p
-
-
-def load_calibration(path: str | Path) -> Calibration:
-    """Read and validate a calibration file; errors name the file and the field."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as err:
-        raise CalibrationError(f"{p}: cannot read calibration: {err.strerror or err}") from err
-    try:
-        return Calibration.model_validate_json(text)
-    except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(v) for v in first["loc"]) or "(file)"
-        raise CalibrationError(f"{p}: {where}: {first['msg']}") from err
 
 
 # ---------------------------------------------------------------------- z response
@@ -370,37 +252,7 @@ def calibrate_lateral(images: np.ndarray, *, levels: np.ndarray, squares: tuple[
                                    for a, b, c in zip(lv, sx, sy, strict=True)])
 
 
-def pixel_positions_um(depth_levels: np.ndarray, *, lateral: LateralScale,
-                       frame_origin_px: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
-    """Perspective-corrected lateral positions of a field's pixels, µm from the optical axis.
-
-    Pixel (u, v) of the frame, at depth level d, lies at ``(u - cx) * s_x(d)``,
-    ``(v - cy) * s_y(d)`` with ``s(d) = s_ref + slope * (d - reference_level)``.
-
-    Parameters
-    ----------
-    depth_levels : (H, W) array of float
-        Depth of each pixel in focus levels (NaN stays NaN).
-    lateral : LateralScale
-    frame_origin_px : (x, y)
-        Frame pixel of the array's element [0, 0] (for a crop of the frame).
-
-    Returns
-    -------
-    x_um, y_um : (H, W) float64 each.
-    """
-    d = np.asarray(depth_levels, dtype=np.float64)
-    if d.ndim != 2:
-        raise ValueError(f"depth_levels must be (H, W), got shape {d.shape}")
-    cx, cy = lateral.optical_centre_px
-    u = np.arange(d.shape[1]) + frame_origin_px[0] - cx
-    v = np.arange(d.shape[0]) + frame_origin_px[1] - cy
-    sx = lateral.um_per_px_x + lateral.slope_x_per_level * (d - lateral.reference_level)
-    sy = lateral.um_per_px_y + lateral.slope_y_per_level * (d - lateral.reference_level)
-    return u[None, :] * sx, v[:, None] * sy
-
-
-# ---------------------------------------------------------------------- curvature, noise
+# ------------------------------------------------------------ curvature, vignetting, noise
 
 
 def measure_height(stack: np.ndarray, *, focus_heights_um: np.ndarray, max_value: float,
@@ -413,10 +265,6 @@ def measure_height(stack: np.ndarray, *, focus_heights_um: np.ndarray, max_value
     depth, _ = depth_from_focus(vol, method=method, median_size=median_size,
                                 spread_size=window)
     return levels_to_height(depth, focus_heights_um=focus_heights_um), depth
-
-
-def _design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
 
 
 def fit_field_curvature(height_um: np.ndarray, *, margin_px: int = 0) -> FieldCurvatureFit:
@@ -448,41 +296,12 @@ def fit_field_curvature(height_um: np.ndarray, *, margin_px: int = 0) -> FieldCu
         keep &= inner
     if keep.sum() < 6:
         raise CalibrationError("field curvature: fewer than 6 valid reference pixels")
-    a = _design(uu[keep] - cx, vv[keep] - cy)
+    a = quadratic_terms(uu[keep] - cx, vv[keep] - cy)
     coef, *_ = np.linalg.lstsq(a, z[keep], rcond=None)
     rms = float(np.sqrt(np.mean((a @ coef - z[keep]) ** 2)))
     return FieldCurvatureFit(frame_width_px=w, frame_height_px=h, centre_px=(cx, cy),
                              coefficients_um=tuple(float(c) for c in coef),  # type: ignore[arg-type]
                              rms_residual_um=rms)
-
-
-def curvature_correction(fit: FieldCurvatureFit, shape: tuple[int, int], *,
-                         frame_origin_px: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """What to subtract from a measurement: the fit minus its value at the centre, µm.
-
-    Parameters
-    ----------
-    fit : FieldCurvatureFit
-    shape : (H, W)
-        Shape of the height map to correct.
-    frame_origin_px : (x, y)
-        Frame pixel of its element [0, 0].
-
-    Returns
-    -------
-    (H, W) float32, µm; 0 at the frame centre.
-    """
-    h, w = shape
-    x0, y0 = frame_origin_px
-    if x0 < 0 or y0 < 0 or x0 + w > fit.frame_width_px or y0 + h > fit.frame_height_px:
-        raise CalibrationError(
-            f"field curvature: region {w} x {h} px at ({x0}, {y0}) lies outside the "
-            f"calibrated {fit.frame_width_px} x {fit.frame_height_px} px frame")
-    cx, cy = fit.centre_px
-    vv, uu = np.mgrid[y0:y0 + h, x0:x0 + w].astype(np.float64)
-    c = np.asarray(fit.coefficients_um)
-    out = _design(uu - cx, vv - cy) @ c - c[0]
-    return out.astype(np.float32)
 
 
 def fit_vignetting(stack: np.ndarray, *, margin_px: int = 0) -> VignettingFit:
@@ -513,27 +332,15 @@ def fit_vignetting(stack: np.ndarray, *, margin_px: int = 0) -> VignettingFit:
     z = mean[vv, uu]
     if z.size < 6 or not np.isfinite(z).all():
         raise CalibrationError("vignetting: too few valid pixels in the flat reference")
-    a = _design((uu - cx).ravel().astype(np.float64), (vv - cy).ravel().astype(np.float64))
+    a = quadratic_terms((uu - cx).ravel().astype(np.float64), (vv - cy).ravel().astype(np.float64))
     coef, *_ = np.linalg.lstsq(a, z.ravel(), rcond=None)
     if not coef[0] > 0:
         raise CalibrationError("vignetting: the flat reference is dark at the frame centre")
     coef = coef / coef[0]
-    corners = _design(np.array([-cx, cx, -cx, cx]), np.array([-cy, -cy, cy, cy])) @ coef
+    corners = quadratic_terms(np.array([-cx, cx, -cx, cx]), np.array([-cy, -cy, cy, cy])) @ coef
     return VignettingFit(frame_width_px=w, frame_height_px=h, centre_px=(cx, cy),
                          coefficients=tuple(float(c) for c in coef),  # type: ignore[arg-type]
                          corner_loss=float(1.0 - corners.mean()))
-
-
-def illumination_map(fit: VignettingFit) -> np.ndarray:
-    """Relative illumination of every frame pixel, (H, W) float32 (1 at the centre)."""
-    h, w = fit.frame_height_px, fit.frame_width_px
-    cx, cy = fit.centre_px
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
-    out = _design(uu - cx, vv - cy) @ np.asarray(fit.coefficients)
-    if not np.all(out > 0.05):
-        raise CalibrationError("vignetting: the fitted illumination falls below 5 % in the "
-                               "frame")
-    return out.astype(np.float32)
 
 
 def noise_by_subtraction(z1: np.ndarray, z2: np.ndarray) -> float:
@@ -550,65 +357,3 @@ def noise_by_subtraction(z1: np.ndarray, z2: np.ndarray) -> float:
     if d.size < 2:
         raise CalibrationError("noise: fewer than 2 pixels valid in both height maps")
     return float(np.sqrt(np.mean((d - d.mean()) ** 2)) / math.sqrt(2.0))
-
-
-# ---------------------------------------------------------------------- applying
-
-
-def calibrated_focus_heights(cal: Calibration, n_levels: int) -> np.ndarray:
-    """Height in focus at each level 0..n_levels-1 by the z response, (N,) float64 µm.
-
-    The table ``sffscan.stages.depth.levels_to_height`` takes; the pipeline's depth stage uses it
-    in place of the nominal ``z_min_um + k * z_step_um``.
-    """
-    if cal.z_response is None:
-        raise CalibrationError("calibration has no z_response")
-    z = cal.z_response
-    return z.intercept_um + z.um_per_level * np.arange(int(n_levels), dtype=np.float64)
-
-
-def apply_calibration(depth: np.ndarray, *, calibration: Calibration,
-                      units: Literal["levels", "um"] = "levels",
-                      nominal_heights_um: np.ndarray | None = None,
-                      curvature: Literal["field", "off"] = "field",
-                      frame_origin_px: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """Calibrated heights of a stationary field, µm.
-
-    Parameters
-    ----------
-    depth : (H, W) array of float
-        Depth in focus levels (``units="levels"``), or heights in µm from the nominal focus
-        table (``units="um"``, then ``nominal_heights_um`` is required to recover the
-        levels). NaN stays NaN.
-    calibration : Calibration
-        Must have ``z_response``; ``field_curvature`` is applied when present and
-        ``curvature="field"``.
-    nominal_heights_um : (N,) array_like of float, optional
-        The nominal table the µm were computed with (linear).
-    frame_origin_px : (x, y)
-        Frame pixel of ``depth[0, 0]`` (for a crop of the frame).
-
-    Returns
-    -------
-    (H, W) float32 heights, µm: ``intercept + a_z * level - curvature_correction``.
-    """
-    if calibration.z_response is None:
-        raise CalibrationError("calibration has no z_response: cannot map levels to µm")
-    d = np.asarray(depth, dtype=np.float64)
-    if units == "um":
-        if nominal_heights_um is None:
-            raise CalibrationError("units='um' needs nominal_heights_um to recover the levels")
-        t = np.asarray(nominal_heights_um, dtype=np.float64)
-        if t.ndim != 1 or t.size < 2 or not np.allclose(np.diff(t), t[1] - t[0]):
-            raise CalibrationError("nominal_heights_um must be a linear table of >= 2 levels")
-        d = (d - t[0]) / (t[1] - t[0])
-    elif units != "levels":
-        raise ValueError(f"units must be 'levels' or 'um', got {units!r}")
-    z = calibration.z_response
-    out = z.intercept_um + z.um_per_level * d
-    if curvature == "field" and calibration.field_curvature is not None:
-        out = out - curvature_correction(calibration.field_curvature, d.shape,
-                                         frame_origin_px=frame_origin_px)
-    elif curvature not in ("field", "off"):
-        raise ValueError(f"curvature must be 'field' or 'off', got {curvature!r}")
-    return out.astype(np.float32)
