@@ -149,8 +149,8 @@ def accuracy_table(recording: str, methods: list[str]) -> dict[str, dict[str, fl
     """RMSE (µm) of every method over the recording and over the ±3 px wobble scan."""
     from sffscan.pipeline.formats.recording import open_recording
     from sffscan.pipeline.metrology.evaluate import mosaic_accuracy
+    from sffscan.pipeline.sim_source import make_world
     from sffscan.pipeline.wiring import run_scan
-    from sffscan.stages.sim.scanner import make_world
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.scan_helpers
     from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region

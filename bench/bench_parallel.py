@@ -68,7 +68,7 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
 def make_recording(cache: Path, bank: Path, frames: int) -> Path:
     """A full-size recording of the bank's first ``frames`` frames (made once, cached)."""
     from bench_pipeline import bench_config, load_bank, replay_frames
-    from sffscan.stages.recorder import RecordingWriter
+    from sffscan.pipeline.formats.recording_writer import RecordingWriter
 
     path = cache / f"rec-u16-{frames}.zarr"
     if path.is_dir() and (path / "zarr.json").is_file():
@@ -93,8 +93,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     os.sched_setaffinity(0, cpus)
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_writer import recorder_sink
     from sffscan.pipeline.wiring import run_scan
-    from sffscan.stages.recorder import recorder_sink
 
     cfg = case_config(case)
     images = None

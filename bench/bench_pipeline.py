@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from sffscan.pipeline.config import ScanConfig, demo_config
 from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.sim_source import header_of, simulate_frames
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.focus_measure import (
     focus_measure_raw,
@@ -56,7 +57,6 @@ from sffscan.stages.focus_measure import (
     to_unit_float,
 )
 from sffscan.stages.messages import Frame
-from sffscan.stages.sim.scanner import header_of, simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -2,7 +2,8 @@
 
 The camera makes 150 frames/s of 1280 x 1024 uint16 = 393 MB/s. For each codec of the
 frames array, frames go through the recorder's own writer
-(:class:`sffscan.stages.recorder.RecordingWriter`: one chunk per frame, metadata every 16 frames)
+(:class:`sffscan.pipeline.formats.recording_writer.RecordingWriter`: one chunk per
+frame, metadata every 16 frames)
 to a temporary folder, by both of its write paths, interleaved (zarr's setitem, then the
 direct chunk writes of :mod:`sffscan.pipeline.formats.zarr_chunks`, ``--repeat`` times): the
 median and best of MB/s of raw frame data, CPU ms per frame of the whole process (blosc and
@@ -35,10 +36,10 @@ from typing import Any
 import numpy as np
 import zarr
 from sffscan.pipeline.config import demo_config
+from sffscan.pipeline.formats.recording_writer import RecordingWriter, frame_codecs
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import MosaicWriter, mosaic_codecs
-from sffscan.stages.recorder import RecordingWriter, frame_codecs
-from sffscan.stages.sim.scanner import simulate_frames
 
 CAMERA_MB_S = 1280 * 1024 * 2 * 150 / 1e6
 

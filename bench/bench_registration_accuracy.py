@@ -3,9 +3,9 @@
     python bench/bench_registration_accuracy.py --against /tmp/old     # old tree too
     python bench/bench_registration_accuracy.py --geometry full --seeds 0 1
 
-The simulated scan (:func:`sffscan.stages.sim.scanner.simulate_frames`) places every frame
+The simulated scan (:func:`sffscan.pipeline.sim_source.simulate_frames`) places every frame
 at its commanded position plus a periodic wobble of ±``--wobble`` px along and across the
-motion (:func:`sffscan.stages.sim.scanner.wobble_px`): the truth. Each frame is placed by
+motion (:func:`sffscan.pipeline.sim_source.wobble_px`): the truth. Each frame is placed by
 the speed-shift stage and refined by a registration stage; its position error is
 ``predicted + correction - truth``, less the pass's mean (the absolute offset is a free
 constant of the solve). Reported: RMS error x / y, px, per configuration (tree x pair lags),
@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 from sffscan.pipeline.config import ScanConfig, config_from_dict, demo_config
 from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.sim_source import simulate_frames, wobble_px
 from sffscan.pipeline.wiring import build_stages
 from sffscan.stages import registration
-from sffscan.stages.sim.scanner import simulate_frames, wobble_px
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402

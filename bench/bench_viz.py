@@ -36,11 +36,11 @@ from pathlib import Path
 import numpy as np
 from sffscan.pipeline.config import ScanConfig, demo_config
 from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.sim_source import header_of, simulate_frames
+from sffscan.pipeline.viz.sink import VizSink, open_recording
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import Sink
-from sffscan.stages.sim.scanner import header_of, simulate_frames
-from sffscan.stages.viz_sink import VizSink, open_recording
 
 
 def machine() -> str:

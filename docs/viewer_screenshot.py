@@ -38,9 +38,9 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu",
 
 def main() -> int:
     from sffscan.pipeline.config import demo_config
+    from sffscan.pipeline.sim_source import simulate_frames
+    from sffscan.pipeline.viz.sink import VizSink, open_recording
     from sffscan.pipeline.wiring import run_scan
-    from sffscan.stages.sim.scanner import simulate_frames
-    from sffscan.stages.viz_sink import VizSink, open_recording
 
     from tests.scan_helpers import small_config
 

@@ -213,7 +213,7 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     valid = attrs.get("valid_pixels")
     row.valid_pixels = int(valid) if isinstance(valid, int) else None
     if evaluate and cfg.source.kind == "sim":
-        from sffscan.stages.sim.scanner import make_world
+        from sffscan.pipeline.sim_source import make_world
 
         evaluate_sim(report, make_world(cfg))  # also stored in the mosaic's attributes
         group = zarr.open_group(str(mosaic), mode="r", use_consolidated=False)

@@ -67,7 +67,7 @@ def memory_needed_bytes(cfg: ScanConfig, *, recording: bool = False) -> int:
     focus volume's ring (N float32 planes, or the streaming sums); the mosaic's bands
     (four float64 planes of a frame height each); the recorder's queue when recording.
     """
-    from sffscan.stages.recorder import QUEUE_BYTES, queue_capacity
+    from sffscan.pipeline.formats.recording_writer import QUEUE_BYTES, queue_capacity
 
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     h, w = o.height_px, o.width_px
@@ -124,7 +124,7 @@ def check_calibration(cfg: ScanConfig) -> None:
     path = cfg.processing.calibration
     if not path:
         return
-    from sffscan.pipeline.metrology.calibration import (
+    from sffscan.pipeline.metrology.calibration_model import (
         calibrated_focus_heights,
         load_calibration,
     )
@@ -152,7 +152,7 @@ def check_hardware(cfg: ScanConfig, *, simulated: bool, camera: bool) -> None:
     if not _installed("harvesters"):
         raise ConfigError("source.kind = 'camera' needs harvesters, which is not installed: "
                           "pip install 'sffscan[camera]'")
-    from sffscan.stages.camera_source import find_cti
+    from sffscan.pipeline.hardware.camera_source import find_cti
 
     find_cti(cfg)  # ConfigError naming camera.cti / $SFFSCAN_CTI / $GENICAM_GENTL64_PATH
 
@@ -243,7 +243,7 @@ def check_world(cfg: ScanConfig) -> None:
     """The simulated world of source.kind ``sim`` can be built."""
     if cfg.source.kind != "sim":
         return
-    from sffscan.stages.sim.scanner import make_world
+    from sffscan.pipeline.sim_source import make_world
 
     try:
         make_world(cfg)

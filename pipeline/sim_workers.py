@@ -43,7 +43,7 @@ START_TIMEOUT_S = 300.0
 def noise_steps(cfg: ScanConfig, *, world: Any = None) -> int | None:
     """PCG64 steps the renderer's noise draws per frame, checked on frame 0; None when
     the renderer draws otherwise (then frames must be rendered in order)."""
-    from sffscan.stages.sim.scanner import simulate_frames
+    from sffscan.pipeline.sim_source import simulate_frames
 
     o = cfg.optics
     n = o.height_px * o.width_px
@@ -72,8 +72,8 @@ def _pcg(rng: np.random.Generator) -> np.random.PCG64:
 def _render_one(cfg: ScanConfig, i: int, rng: np.random.Generator, *, world: Any,
                 plan: list[Any] | None) -> Frame:
     from sffscan.pipeline.plan import plan_frames
+    from sffscan.pipeline.sim_source import header_of, make_optics, make_world, wobble_px
     from sffscan.stages.sim.camera import render_frame
-    from sffscan.stages.sim.scanner import header_of, make_optics, make_world, wobble_px
 
     world = world if world is not None else make_world(cfg)
     pf = plan[i] if plan is not None else next(p for k, p in enumerate(plan_frames(cfg))
@@ -92,7 +92,7 @@ def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
     die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from sffscan.pipeline.plan import plan_frames
-    from sffscan.stages.sim.scanner import make_world
+    from sffscan.pipeline.sim_source import make_world
 
     cfg = ScanConfig.model_validate(cfg_json)
     pool = SlotPool(PoolSpec.from_json(spec), sync, create=False)
@@ -233,7 +233,7 @@ class ParallelSimFrames:
     """
 
     def __init__(self, cfg: ScanConfig, *, workers: int, world: Any = None) -> None:
-        from sffscan.stages.sim.scanner import simulate_frames
+        from sffscan.pipeline.sim_source import simulate_frames
 
         steps = noise_steps(cfg, world=world)
         self._renderers: _Renderers | None = None

@@ -39,8 +39,8 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
         return _tcp_feed(cfg, source)
     kind = cfg.source.kind
     if kind == "sim":
+        from sffscan.pipeline.sim_source import make_world, simulate_frames
         from sffscan.pipeline.sim_workers import ParallelSimFrames, render_workers
-        from sffscan.stages.sim.scanner import make_world, simulate_frames
 
         world = make_world(cfg)
         workers = render_workers(cfg)
@@ -50,7 +50,7 @@ def open_feed(cfg: ScanConfig, *, source: str | None = None) -> FrameFeed:
             f" ({workers} render processes)" if workers else ""), world,
             FrameAccount(planned=planned_frames(cfg)))
     if kind == "camera":
-        from sffscan.stages.camera_source import camera_frames
+        from sffscan.pipeline.hardware.camera_source import camera_frames
 
         return FrameFeed(camera_frames(cfg), "GenICam camera",
                          account=FrameAccount(planned=planned_frames(cfg)))

@@ -17,6 +17,10 @@ from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.metrology.correction_stages import (
+    corrections_applied,
+    optics_correction_stages,
+)
 from sffscan.pipeline.metrology.evaluate import (
     SIM_TRUTH,
     Accuracy,
@@ -28,12 +32,11 @@ from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, sc
 from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline, PipelineResult
 from sffscan.pipeline.scan_processes import process_pipeline, use_processes
+from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
-from sffscan.stages.focus_volume import DepthStage
 from sffscan.stages.frame_source import SourceStage
 from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import MosaicStage, MosaicWriter
-from sffscan.stages.optics_correction import corrections_applied, optics_correction_stages
 from sffscan.stages.protocol import Sink, Stage
 from sffscan.stages.registration import RegistrationStage
 from sffscan.stages.speed_shift import SpeedShiftStage
@@ -43,7 +46,7 @@ def focus_heights_um(cfg: ScanConfig) -> list[float]:
     """Height in focus at each level, µm: from the calibration file's z response when
     ``processing.calibration`` is set, else the nominal optics table."""
     if cfg.processing.calibration:
-        from sffscan.pipeline.metrology.calibration import (
+        from sffscan.pipeline.metrology.calibration_model import (
             calibrated_focus_heights,
             load_calibration,
         )

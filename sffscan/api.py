@@ -155,7 +155,7 @@ def replay(recording: str | Path, *, output: str | Path | None = None,
     if evaluate:
         if cfg.source.kind != "sim":
             raise ValueError("evaluate=True needs a recording of the simulator")
-        from sffscan.stages.sim.scanner import make_world
+        from sffscan.pipeline.sim_source import make_world
 
         evaluate_sim(report, make_world(cfg))
     return report

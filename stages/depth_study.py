@@ -28,10 +28,10 @@ import numpy as np
 from sffscan.stages.depth import (
     DEFAULT_METHOD,
     DEPTH_METHODS,
-    _argmax,
     depth_from_focus,
     median_filter_levels,
 )
+from sffscan.stages.depth import first_argmax as _argmax
 from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
 from sffscan.stages.depth_uncertainty import curve_width, depth_scatter
 from sffscan.stages.focus_measure import focus_measure

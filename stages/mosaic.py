@@ -56,9 +56,9 @@ from typing import Any
 import numpy as np
 import zarr
 from pydantic import ValidationError
+from sffscan.pipeline.formats.durable import free_reserve, make_reserve
 from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.formats.ngff import consolidate, mosaic_ngff
-from sffscan.stages.durable import free_reserve, make_reserve
 from sffscan.stages.messages import DepthBlock
 from sffscan.stages.mosaic_pyramid import (
     LAG_S,

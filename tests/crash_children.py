@@ -20,7 +20,7 @@ def quiet_main(argv: list[str], rendered: tuple[ScanConfig, Path] | None = None)
     ``simulate_frames(cfg)``, rendered once by the test) when the scan's configuration is
     ``cfg``, instead of rendering them again."""
     if rendered is not None:
-        from sffscan.stages.sim import scanner
+        from sffscan.pipeline import sim_source as scanner
 
         cfg, folder = rendered
         scanner.simulate_frames = rendered_scanner(  # type: ignore[assignment]

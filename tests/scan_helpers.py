@@ -16,12 +16,12 @@ import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig, config_from_dict
 from sffscan.pipeline.metrology.evaluate import Accuracy, accuracy
+from sffscan.pipeline.sim_source import make_optics, make_world, simulate_frames
 from sffscan.pipeline.wiring import ScanReport, run_scan
 from sffscan.stages.depth import depth_from_focus, levels_to_height
 from sffscan.stages.focus_measure import focus_measure, to_unit_float
 from sffscan.stages.messages import Frame, FrameHeader
 from sffscan.stages.sim.camera import render_stack
-from sffscan.stages.sim.scanner import make_optics, make_world, simulate_frames
 
 SMALL: dict[str, dict[str, Any]] = {
     "source": {"world": "plate", "plate_length_mm": 24.0, "plate_width_mm": 4.0},
@@ -96,14 +96,14 @@ def load_frames(folder: Path) -> list[Frame]:
 
 def rendered_scanner(cfg: ScanConfig, frames: Sequence[Frame]
                      ) -> Callable[..., Iterator[Frame]]:
-    """A stand-in for ``stages.sim.scanner.simulate_frames`` that replays ``frames`` (the
+    """A stand-in for ``sffscan.pipeline.sim_source.simulate_frames`` that replays ``frames`` (the
     whole of ``simulate_frames(cfg)``, rendered once) for ``cfg`` and renders any other
     configuration as before: set it on the scanner module and the command line's simulated
     source (``pipeline.sources.open_feed``) feeds the same frames without rendering them.
     Rendering is not what the crash tests test, and it was about half of their scans' CPU
     (the 115-frame scan of tests/test_crash.py: 2.4-3.0 s CPU rendered, 1.1 s replayed,
     interleaved runs on the shared 2-core VM)."""
-    from sffscan.stages.sim import scanner
+    from sffscan.pipeline import sim_source as scanner
 
     render = scanner.simulate_frames
 

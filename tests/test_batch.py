@@ -14,8 +14,8 @@ import pytest
 import zarr
 from sffscan.pipeline.batch import BatchError, find_recordings, mosaic_path
 from sffscan.pipeline.cli.main import main
-from sffscan.stages.recorder import RecordingWriter
-from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
+from sffscan.pipeline.sim_source import simulate_frames
 
 from tests.scan_helpers import small_config
 

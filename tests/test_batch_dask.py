@@ -12,8 +12,8 @@ import pytest
 import zarr
 from distributed import Client, LocalCluster
 from sffscan.pipeline.batch import run_batch
-from sffscan.stages.recorder import RecordingWriter
-from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
+from sffscan.pipeline.sim_source import simulate_frames
 
 from tests.scan_helpers import small_config
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
-from sffscan.pipeline.metrology.calibration import load_calibration
+from sffscan.pipeline.metrology.calibration_model import load_calibration
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.targets import (
     curved_field_stack,

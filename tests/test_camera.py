@@ -1,4 +1,5 @@
-"""Camera source (sffscan.stages.camera_source): real acquisition from the GenTL producer shipped in
+"""Camera source (sffscan.pipeline.hardware.camera_source): real acquisition from the GenTL
+producer shipped in
 the genicam wheel (viky.cti: continuous mode only, no trigger, no time stamps), and the
 frame_id / focus-level / time-stamp rules against a fake camera."""
 
@@ -13,11 +14,7 @@ import numpy as np
 import pytest
 import zarr
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict
-from sffscan.pipeline.hardware.daq import SimDaq
-from sffscan.pipeline.plan import frame_count
-from sffscan.pipeline.runtime import StageFailed
-from sffscan.pipeline.wiring import run_scan
-from sffscan.stages.camera_source import (
+from sffscan.pipeline.hardware.camera_source import (
     CameraError,
     CameraStats,
     FrameIdUnwrapper,
@@ -25,6 +22,10 @@ from sffscan.stages.camera_source import (
     camera_frames,
     find_cti,
 )
+from sffscan.pipeline.hardware.daq import SimDaq
+from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.runtime import StageFailed
+from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.messages import Frame
 
 
@@ -267,7 +268,7 @@ def test_frames_lost_at_the_end_of_the_scan_are_counted() -> None:
 def test_an_exposure_longer_than_half_a_step_is_refused_before_anything_starts() -> None:
     """The trigger sits at the step's centre: an exposure past 1 / (2 fps) (2500 µs at
     200 fps) runs into the lens's next step, mixing two focus levels in one frame."""
-    from sffscan.stages.camera_source import check_exposure
+    from sffscan.pipeline.hardware.camera_source import check_exposure
 
     cfg = viky_config(frames=5, exposure_us=3000.0)
     cam = FakeCamera(list(range(1, 10)))

@@ -17,8 +17,8 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import _joined_values, build_parser, main
 from sffscan.pipeline.config import config_to_toml
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.mosaic import MosaicWriter
-from sffscan.stages.sim.scanner import simulate_frames
 
 import sffscan
 from tests.scan_helpers import small_config
@@ -41,7 +41,7 @@ def _recording(tmp_path: Path, n: int = 12) -> Path:
     """A complete recording (format 4: each frame's digest in its header copy) of the first
     ``n`` frames of a tiny simulated scan, made by sffscan's own writer."""
     from sffscan.pipeline.completeness import FrameAccount
-    from sffscan.stages.recorder import RecordingWriter
+    from sffscan.pipeline.formats.recording_writer import RecordingWriter
 
     cfg = tiny_config()
     tmp_path.mkdir(parents=True, exist_ok=True)

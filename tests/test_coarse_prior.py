@@ -9,13 +9,12 @@ import pytest
 import zarr
 from sffscan.pipeline.config import max_speed_sliding_mm_s
 from sffscan.pipeline.metrology.evaluate import accuracy
+from sffscan.pipeline.restrict import restrict_scan, scan_level_range
 from sffscan.stages.fields.coarse_prior import (
     CoarsePrior,
     field_levels,
     level_range,
     reconstruct_levels,
-    restrict_scan,
-    scan_level_range,
     simulated_prior,
     two_step_fields,
 )
@@ -137,7 +136,7 @@ def test_previous_layer_mosaic_restricts_a_continuous_scan(tmp_path: Path) -> No
     range over the strip plus the uncertainty, and loads as a valid scan."""
     from sffscan.pipeline.cli.main import main
     from sffscan.pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
-    from sffscan.stages.fields.coarse_prior import prior_from_mosaic, strip_level_range
+    from sffscan.pipeline.restrict import prior_from_mosaic, strip_level_range
 
     from tests.scan_helpers import scan
 

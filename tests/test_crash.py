@@ -26,9 +26,9 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ScanConfig, config_to_toml
 from sffscan.pipeline.formats.recording import RecordingError, open_recording
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame
 from sffscan.stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
-from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.crash_children import quiet_main, torn_replay
 from tests.scan_helpers import rendered_scanner, save_frames, small_config
@@ -42,7 +42,7 @@ def _cfg(passes: int = 1) -> ScanConfig:
 def _ctx() -> Any:
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["tests.crash_children", "sffscan.pipeline.wiring",
-                                "sffscan.stages.recorder",
+                                "sffscan.pipeline.formats.recording_writer",
                                 "sffscan.pipeline.cli.record"])
     return ctx
 
@@ -251,8 +251,8 @@ def test_mosaic_writer_killed_at_random_moments_resumes(
 def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture,
         one_pass: tuple[ScanConfig, list[Frame]]) -> None:
-    from sffscan.stages import recorder
-    from sffscan.stages.sim import scanner
+    from sffscan.pipeline import sim_source as scanner
+    from sffscan.pipeline.formats import recording_writer as recorder
 
     cfg, reference = one_pass
     monkeypatch.setattr(scanner, "simulate_frames", rendered_scanner(cfg, reference))
@@ -284,7 +284,7 @@ def test_injected_disk_full_stops_the_scan_and_keeps_what_was_written(
 def test_real_disk_full_on_a_small_tmpfs(tmp_path: Path, capsys: pytest.CaptureFixture,
                                         monkeypatch: pytest.MonkeyPatch,
                                         one_pass: tuple[ScanConfig, list[Frame]]) -> None:
-    from sffscan.stages.sim import scanner
+    from sffscan.pipeline import sim_source as scanner
 
     monkeypatch.setattr(scanner, "simulate_frames", rendered_scanner(*one_pass))
     mnt = tmp_path / "small"

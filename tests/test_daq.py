@@ -136,10 +136,10 @@ def _triggered_camera_with_ni_daq(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     """A fake triggered camera in place of the real one, and a configuration file that
     asks for it with daq.kind = 'nidaqmx'."""
     import genicam
-    import sffscan.stages.camera_source
+    import sffscan.pipeline.hardware.camera_source
 
     cam = _TriggeredCamera()
-    monkeypatch.setattr(sffscan.stages.camera_source, "open_camera", lambda cfg: cam)
+    monkeypatch.setattr(sffscan.pipeline.hardware.camera_source, "open_camera", lambda cfg: cam)
     cfg = config_from_dict({
         "source": {"kind": "camera"},
         "optics": {"width_px": 160, "height_px": 100, "pixel_um": 17.0, "n_levels": 10,

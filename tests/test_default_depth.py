@@ -31,7 +31,7 @@ from sffscan.stages.depth import (
     levels_to_height,
     windowed_centroid,
 )
-from sffscan.stages.depth_blocks import adaptive_block
+from sffscan.stages.depth_peak import adaptive_block
 from sffscan.stages.fields.stationary import (
     StackSettings,
     confidence_weighted_median,

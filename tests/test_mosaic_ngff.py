@@ -240,8 +240,8 @@ def test_open_mosaic_reads_the_arrays_the_mosaic_has(mosaic: Path,
 def test_consolidation_is_quiet_beside_the_writers_reserve(tmp_path: Path) -> None:
     """The writer's disk-full reserve (a plain file in the folder) is not a Zarr node:
     consolidating beside it warns nothing (warnings are errors in the tests)."""
+    from sffscan.pipeline.formats.durable import RESERVE_NAME
     from sffscan.pipeline.formats.ngff import consolidate
-    from sffscan.stages.durable import RESERVE_NAME
     from sffscan.stages.mosaic import MosaicWriter
 
     path = tmp_path / "q.zarr"

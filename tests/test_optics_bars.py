@@ -12,11 +12,11 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import REALISTIC_OPTICS, ScanConfig
+from sffscan.pipeline.formats.recording_writer import recorder_sink
+from sffscan.pipeline.sim_source import make_optics, simulate_frames
 from sffscan.pipeline.wiring import run_scan
-from sffscan.stages.recorder import recorder_sink
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
-from sffscan.stages.sim.scanner import make_optics, simulate_frames
 
 from sffscan.api import replay
 from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region

@@ -23,6 +23,8 @@ from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
 from sffscan.pipeline.runtime import Pipeline, StageFailed
 from sffscan.pipeline.scan_processes import ring_plan, use_processes
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.sim_source import simulate_frames
+from sffscan.pipeline.viz.sink import VizSink
 from sffscan.pipeline.wire import decode, discard, encode
 from sffscan.stages.messages import (
     DepthBlock,
@@ -33,8 +35,6 @@ from sffscan.stages.messages import (
     PlacedFrame,
 )
 from sffscan.stages.protocol import END_OF_STREAM, Stage, Tapped
-from sffscan.stages.sim.scanner import simulate_frames
-from sffscan.stages.viz_sink import VizSink
 
 from tests.parallel_helpers import Collect, FrameNumbers, shm_names
 from tests.scan_helpers import small_config
@@ -216,15 +216,15 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
     (the chain it taps goes on); what ``keep`` leaves out is neither sent nor a drop."""
     import threading
 
+    from sffscan.pipeline.viz.preview import logged_items
     from sffscan.pipeline.worker import Relay, relay_forwarder
     from sffscan.stages.protocol import FullPolicy
-    from sffscan.stages.viz_preview import logged_items
 
     p = pool(slots=1, slot_bytes=4096, kinds=("frame", "placed", "focus"))
     q = CTX.Queue(4)
     try:
         relay = Relay("viewer", ("registration", "focus_measure"), 4, FullPolicy.DROP_OLDEST,
-                      ("sffscan.stages.viz_preview:logged_items", {"frame_step": 15}))
+                      ("sffscan.pipeline.viz.preview:logged_items", {"frame_step": 15}))
         fwd = relay_forwarder(relay, relay.taps, q, pools=[p], stop=threading.Event())
         assert fwd.policy is FullPolicy.DROP_NEWEST
         held = p.acquire(lambda: False)  # every slot held

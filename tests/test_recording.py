@@ -10,9 +10,9 @@ import pytest
 import zarr
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import RecordingAttrs, RecordingError, open_recording
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.formats.schema_gen import SCHEMAS
 from sffscan.stages.messages import Frame, FrameHeader
-from sffscan.stages.recorder import RecordingWriter
 
 from tests.scan_helpers import small_config
 
@@ -262,7 +262,7 @@ def test_frames_found_corrupt_while_replaying_are_counted_as_lost(tmp_path: Path
 
 
 def test_a_failing_final_flush_still_marks_the_recording_failed(tmp_path: Path) -> None:
-    from sffscan.stages.sim.scanner import simulate_frames
+    from sffscan.pipeline.sim_source import simulate_frames
 
     cfg = small_config()
     writer = RecordingWriter(tmp_path / "rec.zarr", cfg)
@@ -289,7 +289,8 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
     same files made durable; arrays grown and metadata chunks crossed several times."""
     import json
 
-    from sffscan.stages import durable, recorder
+    from sffscan.pipeline.formats import durable
+    from sffscan.pipeline.formats import recording_writer as recorder
 
     monkeypatch.setattr(recorder, "GROW", 8)
     monkeypatch.setattr(recorder, "META_CHUNK", 8)
@@ -331,7 +332,7 @@ def _files_of(folder: Path) -> list[str]:
 
 
 def test_trimming_at_close_deletes_what_zarr_s_resize_deletes(tmp_path: Path) -> None:
-    from sffscan.stages.recorder import _trim
+    from sffscan.pipeline.formats.recording_writer import _trim
 
     g = zarr.open_group(str(tmp_path / "g.zarr"), mode="w")
     arrays = [g.create_array(name="frames", shape=(12, 4, 5), chunks=(1, 4, 5), dtype="uint16",

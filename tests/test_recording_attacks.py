@@ -25,9 +25,9 @@ from sffscan.pipeline.formats.recording import (
     read_recording_id,
 )
 from sffscan.pipeline.formats.recording_checks import Pacer, plausible_step_s
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame, FrameHeader
-from sffscan.stages.recorder import RecordingWriter
-from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.test_transport import tiny_config
 

@@ -183,9 +183,9 @@ def test_the_recorder_makes_what_it_wrote_durable(tmp_path: Path,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """fsync of every frame chunk, header copy, metadata chunk and zarr.json, and of their
     folders: at the interval (here: every write) and at close."""
-    from sffscan.stages import durable
-    from sffscan.stages.recorder import RecordingWriter
-    from sffscan.stages.sim.scanner import simulate_frames
+    from sffscan.pipeline.formats import durable
+    from sffscan.pipeline.formats.recording_writer import RecordingWriter
+    from sffscan.pipeline.sim_source import simulate_frames
 
     from tests.test_transport import tiny_config
 
@@ -222,8 +222,8 @@ def test_versions_2_and_4_open_verify_and_replay_the_same_frames(tmp_path: Path,
     """Version 4 (as 3) names the frame and header chunks ``c.i.0.0`` (one folder), version 2
     ``c/i/0/0`` (a folder per frame, as recorded before): each opens, verifies and replays
     the frames written; a lost frame chunk is reported lost, a flipped byte corrupt."""
-    from sffscan.stages.recorder import RecordingWriter
-    from sffscan.stages.sim.scanner import simulate_frames
+    from sffscan.pipeline.formats.recording_writer import RecordingWriter
+    from sffscan.pipeline.sim_source import simulate_frames
 
     from tests.test_transport import tiny_config
 

@@ -18,8 +18,8 @@ from sffscan.pipeline import locks
 from sffscan.pipeline.batch import plan_targets, process_recording
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError, config_to_toml
-from sffscan.stages.recorder import RecordingWriter
-from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
+from sffscan.pipeline.sim_source import simulate_frames
 
 import sffscan
 from tests.scan_helpers import small_config
@@ -273,7 +273,7 @@ SIGTERM_CHILD = """
 import os, signal, sys
 from sffscan.pipeline.cli.common import report_job
 from sffscan.pipeline.run import Job
-from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.pipeline.sim_source import simulate_frames
 from tests.scan_helpers import small_config
 
 cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 4.5},

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sffscan.pipeline.config import ScanConfig, pass_pitch_px
+from sffscan.pipeline.sim_source import make_world, simulate_frames
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.messages import Frame
-from sffscan.stages.sim.scanner import make_world, simulate_frames
 
 from tests.scan_helpers import (
     RenderedScan,

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from sffscan.pipeline.config import REALISTIC_OPTICS, demo_config
-from sffscan.pipeline.metrology.calibration import fit_field_curvature, measure_height
+from sffscan.pipeline.metrology.calibration_fit import fit_field_curvature, measure_height
+from sffscan.pipeline.sim_source import make_optics
 from sffscan.stages.sim.camera import Optics, focus_heights, render_frame, render_stack
 from sffscan.stages.sim.lens import radius2_map, scale_about_centre
-from sffscan.stages.sim.scanner import make_optics
 from sffscan.stages.sim.world import PlateWorld
 
 

@@ -1,4 +1,4 @@
-"""Tests of stages.fields.stop_and_go: grid planning, placement and blending, a simulated grid."""
+"""Tests of pipeline.stopgo: grid planning, placement and blending, a simulated grid."""
 
 from __future__ import annotations
 
@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
-from sffscan.stages.fields.stationary import FieldResult
-from sffscan.stages.fields.stop_and_go import (
+from sffscan.pipeline.stopgo import (
     SimFieldCamera,
     feather_weights,
     plan_grid,
     run_stop_and_go,
     stitch_field,
 )
+from sffscan.stages.fields.stationary import FieldResult
 from sffscan.stages.mosaic import MosaicWriter, mosaic_array
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.world import sinusoid_world

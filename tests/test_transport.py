@@ -29,8 +29,8 @@ from sffscan.pipeline.formats.transport import (
     stream_frames,
 )
 from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame, FrameHeader
-from sffscan.stages.sim.scanner import simulate_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -23,6 +23,7 @@ from sffscan.pipeline.cli.common import EXIT_INCOMPLETE
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ConfigError, config_to_toml
+from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.formats.transport import (
     EndMessage,
     FrameSender,
@@ -39,9 +40,8 @@ from sffscan.pipeline.formats.transport_auth import (
 )
 from sffscan.pipeline.formats.transport_receiver import ReceiverStats, receive_frames
 from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame, FrameHeader
-from sffscan.stages.recorder import RecordingWriter
-from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.test_transport import finish, free_port, start_grab, tiny_config
 

@@ -28,8 +28,8 @@ from sffscan.pipeline.formats.transport import (
 )
 from sffscan.pipeline.formats.transport_auth import make_keys, pairing_path
 from sffscan.pipeline.plan import frame_count
+from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame
-from sffscan.stages.sim.scanner import simulate_frames
 
 from tests.test_transport import ROOT, finish, free_port, start_grab, tiny_config
 
@@ -59,7 +59,7 @@ KILLED_SENDER = r"""
 import os, signal, sys
 from sffscan.pipeline.config import load_config
 from sffscan.pipeline.formats.transport import FrameSender
-from sffscan.stages.sim.scanner import simulate_frames
+from sffscan.pipeline.sim_source import simulate_frames
 cfg = load_config(sys.argv[1])
 n = int(sys.argv[3])
 sender = FrameSender(sys.argv[2])

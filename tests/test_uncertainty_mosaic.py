@@ -59,8 +59,8 @@ def test_blend_without_an_uncertainty_in_either_input() -> None:
 def test_the_stack_path_computes_and_stores_the_uncertainty(tmp_path: Path) -> None:
     """reconstruct_field (``sffscan stack``) gives the height an uncertainty, stitched into
     the mosaic; on a family seed the fit never saw, most raw errors lie within 2 sigma."""
+    from sffscan.pipeline.stopgo import stitch_field
     from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
-    from sffscan.stages.fields.stop_and_go import stitch_field
     from sffscan.stages.sim.families import family_stack
 
     s = family_stack("lens-gauss", 12)

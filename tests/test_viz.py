@@ -1,4 +1,4 @@
-"""Live view (stages/viz_sink.py): a saved Rerun recording read back with rerun.chunk.RrdReader.
+"""Live view (pipeline/viz/sink.py): a saved Rerun recording read back with rerun.chunk.RrdReader.
 
 One small simulated scan (tests/scan_helpers.py optics) is recorded with ``--viewer save``;
 the test reads the .rrd back and checks the entity paths, the frames logged, and that the
@@ -24,17 +24,17 @@ import zarr
 from rerun.chunk import RrdReader
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError
-from sffscan.pipeline.wiring import ScanReport, run_scan
-from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import MosaicStage, MosaicWriter
-from sffscan.stages.sim.scanner import simulate_frames
-from sffscan.stages.viz_preview import (
+from sffscan.pipeline.sim_source import simulate_frames
+from sffscan.pipeline.viz.preview import (
     MosaicPreview,
     downsample_mosaic,
     point_stride,
     surface_points,
 )
-from sffscan.stages.viz_sink import VizOptions, VizSink, parse_mode, viz_sink_for
+from sffscan.pipeline.viz.sink import VizOptions, VizSink, parse_mode, viz_sink_for
+from sffscan.pipeline.wiring import ScanReport, run_scan
+from sffscan.stages.messages import DepthBlock, DepthBlockHeader
+from sffscan.stages.mosaic import MosaicStage, MosaicWriter
 
 from tests.scan_helpers import small_config
 
@@ -396,7 +396,11 @@ def test_calibrated_focus_table_is_shown(tmp_path: Path) -> None:
     """With a calibration, the view's focus table and colour range are the calibrated
     heights the depth stage uses, not the nominal optics table."""
     import rerun as rr
-    from sffscan.pipeline.metrology.calibration import Calibration, ZResponse, save_calibration
+    from sffscan.pipeline.metrology.calibration_model import (
+        Calibration,
+        ZResponse,
+        save_calibration,
+    )
     from sffscan.pipeline.wiring import focus_heights_um
 
     z = ZResponse(um_per_level=150.0, intercept_um=2000.0, pearson_r=1.0,
@@ -459,7 +463,7 @@ def test_focus_images_keep_the_frame_shape(recorded: tuple[ScanReport, VizSink, 
 def test_blueprint_shows_the_views_own_drops_apart() -> None:
     """The view's own drop count has a view of its own (a legend of six queues is cut)."""
     import rerun.blueprint as rrb
-    from sffscan.stages.viz_sink import blueprint
+    from sffscan.pipeline.viz.sink import blueprint
 
     views: list[Any] = []
 

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.formats.recording_writer import frame_codecs
 from sffscan.pipeline.formats.zarr_chunks import (
     ChunkChecksumError,
     direct_plan,
@@ -15,7 +16,6 @@ from sffscan.pipeline.formats.zarr_chunks import (
     write_many,
 )
 from sffscan.stages.mosaic import mosaic_codecs
-from sffscan.stages.recorder import frame_codecs
 from zarr.codecs import Crc32cCodec, GzipCodec
 
 #: name -> (shape, chunks, dtype, fill): the mosaic's tiles (chunks cut by the array's end),

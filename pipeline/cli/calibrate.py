@@ -19,14 +19,16 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
-from sffscan.pipeline.metrology.calibration import (
-    Calibration,
+from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
     calibrate_z,
     fit_field_curvature,
-    load_calibration,
     measure_height,
     noise_by_subtraction,
+)
+from sffscan.pipeline.metrology.calibration_model import (
+    Calibration,
+    load_calibration,
     save_calibration,
 )
 
@@ -169,11 +171,7 @@ def cmd_twostep(args: argparse.Namespace) -> int:
 
 def cmd_restrict(args: argparse.Namespace) -> int:
     from sffscan.pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
-    from sffscan.stages.fields.coarse_prior import (
-        prior_from_mosaic,
-        restrict_scan,
-        strip_level_range,
-    )
+    from sffscan.pipeline.restrict import prior_from_mosaic, restrict_scan, strip_level_range
 
     cfg = load_config(args.config)
     try:

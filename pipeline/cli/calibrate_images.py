@@ -1,7 +1,7 @@
 """``sffscan calibrate z | lateral | curvature | noise``: calibration from a user's own images.
 
 Each command reads image files (or a Zarr stack), runs one routine of
-:mod:`sffscan.pipeline.metrology.calibration` and writes its result into the calibration JSON
+:mod:`sffscan.pipeline.metrology.calibration_fit` and writes its result into the calibration JSON
 given with ``-o``: an existing file is updated (its other sections kept), so a setup is
 calibrated step by step into one file, in this order:
 
@@ -33,17 +33,19 @@ from pathlib import Path
 import numpy as np
 from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
 from sffscan.pipeline.config import ConfigError
-from sffscan.pipeline.metrology.calibration import (
-    Calibration,
-    CalibrationError,
+from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
     calibrate_z,
-    calibrated_focus_heights,
     fit_field_curvature,
     fit_vignetting,
-    load_calibration,
     measure_height,
     noise_by_subtraction,
+)
+from sffscan.pipeline.metrology.calibration_model import (
+    Calibration,
+    CalibrationError,
+    calibrated_focus_heights,
+    load_calibration,
     save_calibration,
 )
 
@@ -200,8 +202,8 @@ def cmd_targets(args: argparse.Namespace) -> int:
 
     from sffscan.pipeline.config import REALISTIC_OPTICS, demo_config, load_config
     from sffscan.pipeline.progress import ProgressDisplay
+    from sffscan.pipeline.sim_source import make_optics
     from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
-    from sffscan.stages.sim.scanner import make_optics
 
     if args.config:
         cfg = load_config(args.config)

@@ -167,7 +167,7 @@ def viewer_sink(cfg: ScanConfig, viewer: str | None, *, default: str = "off",
     mode = viewer_mode(viewer, rrd, default=default)
     if mode == ["off"]:
         return None
-    from sffscan.stages.viz_sink import native_viewer_possible, viz_sink_for
+    from sffscan.pipeline.viz.sink import native_viewer_possible, viz_sink_for
 
     if mode == ["spawn"] and not native_viewer_possible():
         raise ConfigError("--viewer spawn: no display to open the native viewer on (neither "

@@ -71,8 +71,8 @@ def cmd_grab(args: argparse.Namespace) -> int:
         keys_dir_of,
         stream_frames,
     )
+    from sffscan.pipeline.hardware.camera_source import CameraError
     from sffscan.pipeline.hardware.daq import DaqNotFoundError
-    from sffscan.stages.camera_source import CameraError
 
     cfg = _grab_config(args)
     address = args.to or cfg.source.address
@@ -80,11 +80,11 @@ def cmd_grab(args: argparse.Namespace) -> int:
         raise ConfigError("source.kind = 'tcp': 'sffscan grab' acquires frames itself; set "
                           "source.kind to 'camera' (or 'sim')")
     if cfg.source.kind == "camera":
-        from sffscan.stages.camera_source import camera_frames
+        from sffscan.pipeline.hardware.camera_source import camera_frames
 
         frames = camera_frames(cfg)
     else:
-        from sffscan.stages.sim.scanner import simulate_frames
+        from sffscan.pipeline.sim_source import simulate_frames
 
         frames = simulate_frames(cfg)
     log.info("grab: %s frames to %s", cfg.source.kind, address)

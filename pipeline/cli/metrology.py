@@ -156,8 +156,8 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from sffscan.pipeline.metrology.optics_correction import applied
+    from sffscan.pipeline.stopgo import feather_weights, stitch_field
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
-    from sffscan.stages.fields.stop_and_go import feather_weights, stitch_field
     from sffscan.stages.mosaic import MosaicWriter
 
     try:
@@ -228,7 +228,7 @@ def _stack_correction(args: argparse.Namespace):  # noqa: ANN202 - StackCorrecti
     """The calibration ``--calibration`` names, as applied to stationary stacks (or None)."""
     if not getattr(args, "calibration", None):
         return None
-    from sffscan.pipeline.metrology.calibration import load_calibration
+    from sffscan.pipeline.metrology.calibration_model import load_calibration
     from sffscan.pipeline.metrology.optics_correction import StackCorrection, applied
 
     cal = load_calibration(args.calibration)
@@ -239,11 +239,7 @@ def _stack_correction(args: argparse.Namespace):  # noqa: ANN202 - StackCorrecti
 
 def cmd_stopgo(args: argparse.Namespace) -> int:
     from sffscan.pipeline.progress import ProgressDisplay
-    from sffscan.stages.fields.stop_and_go import (
-        SimFieldCamera,
-        plan_grid,
-        run_stop_and_go,
-    )
+    from sffscan.pipeline.stopgo import SimFieldCamera, plan_grid, run_stop_and_go
     from sffscan.stages.sim.camera import Optics, focus_heights
     from sffscan.stages.sim.world import characterisation_plate
 

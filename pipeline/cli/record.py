@@ -1,6 +1,7 @@
 """Commands ``sffscan replay`` and ``sffscan info``: re-process and summarise recordings.
 
-``sffscan scan --record PATH`` writes a recording (:mod:`sffscan.stages.recorder`); ``replay`` runs
+``sffscan scan --record PATH`` writes a recording
+(:mod:`sffscan.pipeline.formats.recording_writer`); ``replay`` runs
 the same pipeline over its frames (as fast as possible, or paced by the recorded time
 stamps with ``--realtime``), with the recorded configuration and the processing options
 given on the command line; ``--resume`` completes an interrupted mosaic. ``info``
@@ -101,7 +102,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     log.info(describe(cfg))
     world = None
     if args.evaluate and not args.resume and cfg.source.kind == "sim":
-        from sffscan.stages.sim.scanner import make_world
+        from sffscan.pipeline.sim_source import make_world
 
         world = make_world(cfg)
     job = Job(cfg, recording=rec, rrd=args.rrd, resume=args.resume, realtime=args.realtime,

@@ -18,7 +18,7 @@ from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.formats.recording import RecordingAttrs
 from sffscan.pipeline.formats.transport import TransportMessage
-from sffscan.pipeline.metrology.calibration import Calibration
+from sffscan.pipeline.metrology.calibration_model import Calibration
 from sffscan.pipeline.metrology.compare import CompareReport
 from sffscan.stages.messages import DepthBlockHeader, FrameHeader
 

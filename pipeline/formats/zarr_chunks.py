@@ -13,7 +13,8 @@ default chunk key encoding with either separator (``c/i/j/…`` or ``c.i.j.…``
 by the array's own encoding), C order, a numeric data type and the codecs ``bytes`` (little
 endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
 most one ``crc32c`` after it (what :func:`sffscan.stages.mosaic.mosaic_codecs` and the
-recorder's :func:`sffscan.stages.recorder.frame_codecs` make). Which arrays qualify is
+recorder's :func:`sffscan.pipeline.formats.recording_writer.frame_codecs` make). Which
+arrays qualify is
 read from zarr's public API only (the array's metadata document, as the Zarr v3
 specification defines ``zarr.json``, its :class:`zarr.storage.LocalStore`, order and
 config), so a zarr release that reorganises its internals sends the arrays through zarr

@@ -6,7 +6,8 @@ and regenerates it continuously from ``start`` until ``stop``. :class:`SimDaq` (
 writes both waves to one analogue-output task of an NI DAQ (thesis: USB-6343), so they
 share one sample clock and one start trigger.
 
-Synchronisation rule (what :mod:`sffscan.stages.camera_source` relies on): the camera is armed
+Synchronisation rule (what :mod:`sffscan.pipeline.hardware.camera_source` relies on): the
+camera is armed
 (acquisition started, waiting for triggers) before the DAQ starts; the first falling edge
 of the trigger is at the centre of step 0, so the k-th frame after the start is at focus
 level (k + camera.focus_phase) mod N.

@@ -148,7 +148,7 @@ class LayerRunner:
         cfg = config if config is not None else ScanConfig.model_validate(
             self.store.manifest.config)
         if frames is None and world is not None:
-            from sffscan.stages.sim.scanner import simulate_frames
+            from sffscan.pipeline.sim_source import simulate_frames
 
             frames = simulate_frames(cfg, world=world)
         report = scan(cfg, output=self.store.mosaic_path(layer), overwrite=True, frames=frames,

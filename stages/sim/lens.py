@@ -13,7 +13,7 @@ and use the normalised squared radius ``rho2 = ((u - cx)^2 + (v - cy)^2) / (cx^2
 * **Vignetting**: the illumination is multiplied by ``1 - vignetting * rho2``.
 
 The functions here are the pure pieces :mod:`sffscan.stages.sim.camera` composes; the
-calibration (:mod:`sffscan.pipeline.metrology.calibration`) measures the same quantities.
+calibration (:mod:`sffscan.pipeline.metrology.calibration_fit`) measures the same quantities.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A :class:`PrintWorld` has the interface the simulated camera uses (``pixel_um``,
 ``height_um``, ``texture``), like :class:`~sffscan.stages.sim.world.PlateWorld`, so
-:func:`sffscan.stages.sim.scanner.simulate_frames` scans it unchanged. Its surface is the
+:func:`sffscan.pipeline.sim_source.simulate_frames` scans it unchanged. Its surface is the
 top of the beads of layers ``0 .. layer`` (:meth:`PrintWorld.at_layer`), rasterised by
 :func:`rasterise_beads` (the bead model, defined here and used by the expected map of
 :mod:`sffscan.pipeline.printjob.expected` too: stages compute, pipeline runs), plus a

@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.metrology.calibration import (
+from sffscan.pipeline.metrology.calibration_model import (
     Calibration,
     illumination_map,
     load_calibration,

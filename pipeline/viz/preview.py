@@ -5,7 +5,7 @@ with the mosaic stage's own weighted blend (w = max(confidence, 1e-3) for valid 
 so that it equals :func:`downsample_mosaic` of the Zarr mosaic whatever the order of the
 blocks; :func:`surface_points` turns a reduced mosaic into a point cloud in mm;
 :func:`logged_items` selects what the view uses where the stages run in other processes.
-Used by :mod:`sffscan.stages.viz_sink`; no Rerun here (worker processes import it).
+Used by :mod:`sffscan.pipeline.viz.sink`; no Rerun here (worker processes import it).
 """
 
 from __future__ import annotations

@@ -48,10 +48,10 @@ import rerun.blueprint as rrb
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
 from sffscan.pipeline.plan import scan_extent_px
 from sffscan.pipeline.runtime import StatsSnapshot
+from sffscan.pipeline.viz.preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 from sffscan.pipeline.wiring import focus_heights_um
 from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
-from sffscan.stages.viz_preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 
 MODES = "spawn | serve | save (with --rrd PATH) | auto | off"
 
@@ -125,7 +125,7 @@ class VizSink(Sink):
         o = cfg.optics
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
         #: what the view uses, selected where the stages run (process mode)
-        self.relay_keep = ("sffscan.stages.viz_preview:logged_items",
+        self.relay_keep = ("sffscan.pipeline.viz.preview:logged_items",
                            {"frame_step": self.frame_step})
         x0, y0, x1, y1 = scan_extent_px(cfg)
         self.factor = max(1, -(-max(x1 - x0, y1 - y0) // self.opt.mosaic_max_px))

@@ -31,7 +31,7 @@ swapped or copied chunk file is found by the reader.
 
 Durability: the files written are fsynced (and their folders) every ``fsync_s`` seconds
 (default :data:`FSYNC_S`, 1 s) and at close: a power cut loses at most the last second of
-the stream. A reserve file (:data:`sffscan.stages.durable.RESERVE_BYTES`) is kept in the
+the stream. A reserve file (:data:`sffscan.pipeline.formats.durable.RESERVE_BYTES`) is kept in the
 recording while it is written and freed on close, so that after a disk-full error the
 metadata and the status 'failed' can still be written; the error message names the frames
 that are readable.
@@ -51,6 +51,7 @@ from typing import Any, Literal
 import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.formats.durable import SyncTracker, free_reserve, make_reserve
 from sffscan.pipeline.formats.recording import (
     GROW,
     HEADER_COLUMNS,
@@ -62,7 +63,6 @@ from sffscan.pipeline.formats.recording import (
 )
 from sffscan.pipeline.formats.recording_checks import frame_digest
 from sffscan.pipeline.formats.zarr_chunks import write_many
-from sffscan.stages.durable import SyncTracker, free_reserve, make_reserve
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
