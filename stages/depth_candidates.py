@@ -1,5 +1,7 @@
 """Depth estimators tried as candidates by the leave-one-family-out study
-(:mod:`sffscan.stages.depth_study`); none is a method of scan, replay or stack.
+(:mod:`sffscan.stages.depth_study`); none is a method of scan, replay or stack, both are
+selectable by name in :func:`sffscan.stages.depth.depth_from_focus`
+(:data:`sffscan.stages.depth.CANDIDATE_METHODS`, at the settings below).
 
 Both fit a model over more than the 3 points of ``gauss3``, in a window about the
 median-filtered argmax (``centre``, as for SPC and ``adaptive``):
@@ -19,7 +21,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["gauss_window_fit", "half_height_run", "window_pc"]
+__all__ = ["GAUSS_FIT_HALF_WINDOW", "WINDOW_PC_FACTOR", "gauss_window_fit", "half_height_run",
+           "window_pc"]
+
+GAUSS_FIT_HALF_WINDOW = 3
+"""Half window h of ``"gauss_window_fit"`` by name: the study's setting tuned on the training
+seeds of all its families (docs/depth-study.md, the pertuz-simu02 row's ``tuned``)."""
+
+WINDOW_PC_FACTOR = 3.0
+"""Factor on the curve's width of ``"window_pc"`` by name, tuned as
+:data:`GAUSS_FIT_HALF_WINDOW`."""
 
 
 def _window(volume: np.ndarray, centre: np.ndarray, h: int

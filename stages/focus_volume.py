@@ -1,4 +1,5 @@
-"""Streaming focus volume in world coordinates, and the depth stage built on it.
+"""Streaming focus volume in world coordinates: the accumulation of the depth stage
+(:mod:`sffscan.stages.depth_stage`).
 
 Because the lens staircase repeats, any N consecutive frames hold every focus level once:
 a world column is complete as soon as it has been seen at all N levels, whatever stack
@@ -12,13 +13,13 @@ left the view (those are returned invalid: NaN height, zero confidence, never fi
 
 What a column keeps depends on the depth method. argmax, centroid, PC and SPC need only
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
-:func:`sffscan.stages.depth.harmonic_table`) and its argmax, so each frame is *accumulated* into
-per-pixel sums and a running maximum as it arrives (a few passes of OpenCV arithmetic,
-no N-level volume: 6 planes instead of N). The 3-point fits (gauss3, quadratic3), the
-windowed centroid (wcentroid) and the default (adaptive) need the levels about a peak that
-is known only once the column and its neighbours are complete: for them the ring stores
-every level of every pixel (N planes: bounded by the ring, the columns in view, never the
-whole stack), and the running argmax is kept as frames arrive.
+:func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
+*accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
+OpenCV arithmetic, no N-level volume: 6 planes instead of N). The 3-point fits (gauss3,
+quadratic3), the windowed centroid (wcentroid) and the default (adaptive) need the levels
+about a peak that is known only once the column and its neighbours are complete: for them
+the ring stores every level of every pixel (N planes: bounded by the ring, the columns in
+view, never the whole stack), and the running argmax is kept as frames arrive.
 
 Every block also carries the height's uncertainty (µm, one sigma,
 :mod:`sffscan.stages.depth_uncertainty`): from the block's depth (its scatter about its
@@ -36,22 +37,17 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-from sffscan.stages.depth import (
+from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
-    _confidence,
-    depth_from_focus,
+    confidence_from_sums,
     depth_from_harmonics,
     focus_sums,
     harmonic_table,
-    level_spread,
-    levels_to_height,
-    median_filter_levels,
-    windowed_centroid,
 )
-from sffscan.stages.depth_blocks import adaptive_block
+from sffscan.stages.depth_levels import level_spread, levels_to_height, median_filter_levels
+from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import height_uncertainty_um
-from sffscan.stages.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
-from sffscan.stages.protocol import Stage
 
 
 def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,
@@ -113,8 +109,8 @@ class FocusVolume:
         Direction of the motion along x for this pass.
     method : str
         Depth method (see :func:`sffscan.stages.depth.depth_from_focus`). The methods of
-        :data:`sffscan.stages.depth.STREAMING_METHODS` accumulate sums and the argmax (``fv`` is
-        None); gauss3, quadratic3, wcentroid and adaptive store the N-level ring ``fv``.
+        :data:`sffscan.stages.depth.STREAMING_METHODS` accumulate sums and the argmax
+        (``fv`` is None); gauss3, quadratic3, wcentroid and adaptive store the N-level ring ``fv``.
     median_size : int
         SPC median filter size; also sets the halo of columns kept around a block.
     spread_size : int
@@ -222,9 +218,6 @@ class FocusVolume:
     def _to_internal(self, x: int) -> int:
         """Internal index of the frame's first column (after mirroring for -x)."""
         return x if self.direction == 1 else -x - self.w + 1
-
-    def _block_x0(self, u0: int, u1: int) -> int:
-        return u0 if self.direction == 1 else -(u1 - 1)
 
     # -- streaming ------------------------------------------------------------------------
     def add(self, focus: np.ndarray, image01: np.ndarray, *, x: int, y: int,
@@ -446,7 +439,7 @@ class FocusVolume:
             else:
                 depth = windowed_centroid(levels, centre[:, inner])
                 sums[:] = focus_sums(levels)
-                conf = _confidence(*sums)
+                conf = confidence_from_sums(*sums)
                 low[:] = levels.min(axis=0)
         else:
             vol = self._gather(self.fv, a0, a1)
@@ -478,7 +471,7 @@ class FocusVolume:
         if self.direction == -1:
             height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
             unc = None if unc is None else unc[:, ::-1]
-        x0 = self._block_x0(u0, u1)
+        x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
 
     def _release(self, below: int) -> None:
@@ -503,76 +496,5 @@ class FocusVolume:
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-pixel state (fixed for the life of the volume)."""
-        planes = [self.best, self.low, self.tex, self.argmax] + ([self.fv] if self.fv is not None
-                                                       else []) + [self.sums]
-        return sum(a.nbytes for a in planes)
-
-
-class DepthStage(Stage):
-    """Accumulates focus frames per pass and emits completed blocks of depth."""
-
-    name = "depth"
-
-    def __init__(self, *, n_levels: int, frame_shape: tuple[int, int],
-                 focus_heights_um: Sequence[float], margin: int, method: str = "spc",
-                 median_size: int = 11, block_columns: int = 64,
-                 directions: Sequence[int] = (1,), slack_px: int = 8,
-                 spread_size: int = 9) -> None:
-        self.kwargs = dict(n_levels=n_levels, frame_shape=frame_shape,
-                           focus_heights_um=focus_heights_um, margin=margin, method=method,
-                           median_size=median_size, spread_size=spread_size,
-                           block_columns=block_columns,
-                           row_slack=slack_px, col_slack=slack_px)
-        self.directions = list(directions)
-        self.volume: FocusVolume | None = None
-        self.spare: FocusVolume | None = None  # the last pass's, whose ring the next reuses
-        self.pass_index: int | None = None
-        self.complete_columns = 0
-        self.incomplete_columns = 0
-
-    def prepare(self) -> None:
-        """The first pass's N-level ring (325 MiB at 1280 x 1024, N = 50), allocated and
-        touched now rather than at the first frame (0.68 s of CPU on the 2-core VM)."""
-        if self.spare is None and self.kwargs["method"] not in STREAMING_METHODS:
-            self.spare = FocusVolume(direction=self.directions[0],
-                                     **self.kwargs)  # type: ignore[arg-type]
-
-    def _direction(self, pass_index: int) -> int:
-        return self.directions[pass_index % len(self.directions)]
-
-    def _blocks(self, results: list[BlockResult]) -> Iterator[DepthBlock]:
-        assert self.pass_index is not None
-        for r in results:
-            width = r.height_um.shape[1]
-            self.complete_columns += r.complete
-            self.incomplete_columns += width - r.complete
-            hdr = DepthBlockHeader(x0_px=r.x0, y0_px=r.y0, width_px=width,
-                                   height_px=r.height_um.shape[0], pass_index=self.pass_index,
-                                   complete_columns=r.complete,
-                                   incomplete_columns=width - r.complete)
-            yield DepthBlock(hdr, r.height_um, r.texture, r.confidence, r.uncertainty_um)
-
-    def process(self, item: FocusFrame) -> Iterator[DepthBlock]:
-        hdr = item.placed.header
-        if self.volume is None or hdr.pass_index != self.pass_index:
-            yield from self.finish()
-            self.pass_index = hdr.pass_index
-            self.volume = FocusVolume(direction=self._direction(hdr.pass_index),
-                                      reuse=self.spare, **self.kwargs)  # type: ignore[arg-type]
-            self.spare = None
-        x, y = item.placed.offset_px
-        try:
-            results = self.volume.add(item.focus, item.image01, x=x, y=y,
-                                      level=hdr.focus_index, col0=item.col0)
-        except ValueError as err:
-            raise FrameError(f"frame_id {hdr.frame_id}: {err}") from err
-        yield from self._blocks(results)
-
-    def finish(self) -> Iterator[DepthBlock]:
-        if self.volume is not None:
-            yield from self._blocks(self.volume.finish())
-            self.spare, self.volume = self.volume, None
-
-    def extra_stats(self) -> dict[str, int]:
-        return {"complete_columns": self.complete_columns,
-                "incomplete_columns": self.incomplete_columns}
+        planes = [self.best, self.low, self.tex, self.argmax, self.sums, self.fv]
+        return sum(a.nbytes for a in planes if a is not None)

@@ -10,16 +10,18 @@ import pytest
 import scipy.io
 from scipy import ndimage
 from sffscan.stages.depth import (
+    CANDIDATE_METHODS,
     DEPTH_METHODS,
-    _argmax,
+    ESTIMATORS,
     all_in_focus,
     depth_from_focus,
     depth_from_harmonics,
+    first_argmax,
     harmonic_table,
     levels_to_height,
     median_filter_levels,
-    spc_by_roll,
 )
+from sffscan.stages.depth_levels import check_volume, raise_not_finite
 from sffscan.stages.focus_measure import focus_measure, to_unit_float
 
 # Largest |depth - true peak| on clean sampled Gaussians (sigma 2 at N = 30, 3 at N = 50,
@@ -42,6 +44,28 @@ PEAK_TOL = {
     # (exact: 1.2e-6); where this ramp spans 3 (sigma 3), the 11-level centroid: 0.0068
     "adaptive": 0.01,
 }
+
+
+def spc_by_roll(volume: np.ndarray, *, median_size: int = 11) -> np.ndarray:
+    """SPC by its literal definition, the reference of ``depth_from_focus(method="spc")``:
+    roll every curve, PC by FFT, undo the shift.
+
+    Each pixel's curve is circularly shifted with ``np.roll`` semantics by
+    ``s = round(N/2) - a_med`` (a_med: the argmax median filtered over ``median_size`` px;
+    MATLAB's round, halves away from zero), its first DFT harmonic is taken with
+    ``np.fft.fft`` in float64, ``d = (-angle(H_1) N / (2 pi)) mod N`` and ``d - s`` is
+    returned, (H, W) float64. Slow.
+    """
+    vol = check_volume(volume)
+    if not np.isfinite(vol).all():
+        raise_not_finite(vol)
+    n = vol.shape[0]
+    s = (n + 1) // 2 - median_filter_levels(first_argmax(vol), median_size, n)
+    k = np.arange(n).reshape(n, 1, 1)
+    rolled = np.take_along_axis(vol, (k - s[None]) % n, axis=0)  # rolled[k] = y[k - s]
+    h1 = np.fft.fft(rolled.astype(np.float64), axis=0)[1]
+    d = np.mod(-np.angle(h1) * n / (2.0 * np.pi), n)
+    return d - s
 
 
 def gaussian_volume(peaks: np.ndarray, n: int, sigma: float) -> np.ndarray:
@@ -101,6 +125,47 @@ def test_centroid_and_pc_values() -> None:
     assert c[0, 0] == pytest.approx(2.75, abs=1e-6)
     p, conf = depth_from_focus(vol, method="pc")
     assert p[0, 1] == 0.0 and conf[0, 1] == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------- the registry
+
+
+def test_every_method_is_selectable_by_name() -> None:
+    """One registry: the scan's methods (the configuration's choices) and the study's
+    candidates are its names, and ``depth_from_focus`` runs each candidate as the study
+    does, at the settings it tuned on all its families' training seeds."""
+    import typing
+
+    from sffscan.pipeline.config import ProcessingConfig
+    from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
+
+    assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
+    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc")
+    choices = typing.get_args(ProcessingConfig.model_fields["depth_method"].annotation)
+    assert choices == DEPTH_METHODS
+    rng = np.random.default_rng(11)
+    vol = gaussian_volume(rng.uniform(4, 26, (24, 30)), 30, 2.5)
+    vol += 0.02 * rng.random(vol.shape, dtype=np.float32)
+    centre = median_filter_levels(first_argmax(vol), 11, 30)
+    adaptive, _ = depth_from_focus(vol, method="adaptive")
+    expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
+                "window_pc": window_pc(vol, centre, factor=3.0)}
+    for method in CANDIDATE_METHODS:
+        depth, confidence = depth_from_focus(vol, method=method)
+        np.testing.assert_array_equal(depth, expected[method])
+        np.testing.assert_array_equal(confidence, depth_from_focus(vol, method="spc")[1])
+
+
+@pytest.mark.parametrize("method", CANDIDATE_METHODS)
+@pytest.mark.parametrize(("n", "sigma"), [(30, 2.0), (50, 3.0)])
+def test_candidates_recover_gaussian_peak(method: str, n: int, sigma: float) -> None:
+    # as test_recovers_gaussian_peak; measured worst cases: gauss_window_fit 2.0e-6
+    # (a Gaussian fit), window_pc 1.7e-5 levels
+    margin = 4.0 * sigma
+    cols = np.linspace(margin, n - 1 - margin, 97) + 0.123
+    peaks = np.broadcast_to(cols, (13, cols.size)) + np.linspace(0, 0.05, 13)[:, None]
+    depth, _ = depth_from_focus(gaussian_volume(peaks, n, sigma), method=method)
+    assert depth.dtype == np.float32 and np.abs(depth - peaks).max() <= 1e-4
 
 
 # ----------------------------------------------------------------------------- SPC identity
@@ -188,7 +253,7 @@ def test_confidence_range_and_order() -> None:
 
 def test_argmax_matches_numpy_with_ties() -> None:
     vol = np.random.default_rng(5).integers(0, 3, (20, 30, 40)).astype(np.float32)
-    np.testing.assert_array_equal(_argmax(vol), np.argmax(vol, axis=0))
+    np.testing.assert_array_equal(first_argmax(vol), np.argmax(vol, axis=0))
 
 
 def test_median_filter_paths_agree() -> None:

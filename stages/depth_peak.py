@@ -1,0 +1,353 @@
+"""The depth estimators that read the levels about each curve's peak (SFF_NOTES.md section 3).
+
+* the 3-point fits of ``gauss3`` and ``quadratic3`` (:func:`three_point_offset`): a
+  parabola through the argmax and its two neighbours, on log values for the Gaussian;
+* the windowed centroid of ``wcentroid`` (:func:`windowed_centroid`): the baseline-free
+  centroid of the 2h + 1 levels about the median-filtered argmax;
+* the default, ``adaptive`` (:func:`adaptive_peak`): the curve's maximum (a 3-point
+  Gaussian) where the focus window sees one height, else the windowed centroid.
+
+The streaming depth stage (:mod:`sffscan.stages.focus_volume`) keeps the N focus levels of
+the columns in view in a ring of ``(N, rows, ring)`` float32 planes and reduces a block of
+columns once it is complete. For ``"adaptive"`` the reduction needs, per pixel, the 5 or 11
+levels about its filtered peak and the curve's first harmonic over all N levels
+(:func:`sffscan.stages.depth_harmonics.focus_confidence`). Done separately, those are two
+passes over a block that does not fit in cache (N = 50, 1040 rows, 64 columns: 13 MB), and
+the first one gathers values scattered over N planes of 5 MB each. :func:`adaptive_block`
+does both in one pass: the block is copied in strips of rows that stay in cache
+(:func:`sffscan.stages.depth_harmonics.volume_strips`, the copy the confidence's matrix
+product needs anyway), and the levels about each pixel's peak are gathered from that copy.
+Measured with ``bench/bench_depth_default.py`` (the depth stage's CPU per frame of a demo
+scan). The confidence equals :func:`~sffscan.stages.depth_harmonics.focus_confidence`'s
+(the same float32 matrix product over the same strips). The public names are also those of
+:mod:`sffscan.stages.depth`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sffscan.stages.depth_harmonics import confidence_from_sums, harmonic_table, volume_strips
+
+__all__ = [
+    "ADAPTIVE_HALF_WINDOW",
+    "ADAPTIVE_MAX_SPREAD",
+    "WCENTROID_HALF_WINDOW",
+    "adaptive_block",
+    "adaptive_peak",
+    "three_point_offset",
+    "windowed_centroid",
+]
+
+WCENTROID_HALF_WINDOW = 4
+"""Half width h of the ``"wcentroid"`` window: 2h + 1 = 9 levels around the filtered peak."""
+
+ADAPTIVE_HALF_WINDOW = 5
+"""Half width h of the ``"adaptive"`` method's centroid: 2h + 1 = 11 levels."""
+
+ADAPTIVE_MAX_SPREAD = 2
+"""Largest spread of filtered peaks (levels) in the focus window for which ``"adaptive"``
+takes the curve's maximum (Gaussian 3-point fit) instead of its windowed centroid."""
+
+
+# ----------------------------------------------------------------------------- internals
+
+
+def _flat_view(vol: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    """One 1-D float32 view over ``vol``'s memory, first to last element (all inside its
+    buffer), and its element strides; a float32 view with positive strides (a block of a
+    ring buffer) is read in place, anything else is copied first."""
+    n, rows, cols = vol.shape
+    if vol.dtype != np.float32 or any(st <= 0 or st % 4 for st in vol.strides):
+        vol = np.ascontiguousarray(vol, dtype=np.float32)
+    st0, st1, st2 = (st // 4 for st in vol.strides)
+    span = (n - 1) * st0 + (rows - 1) * st1 + (cols - 1) * st2 + 1
+    return np.lib.stride_tricks.as_strided(vol, shape=(span,), strides=(4,)), st0, st1, st2
+
+
+def _pixel_offsets(shape: tuple[int, ...], st1: int, st2: int) -> np.ndarray:
+    """Element offset of every pixel's level 0, flat ``(H * W,)`` intp."""
+    rows = np.arange(shape[0], dtype=np.intp)[:, None] * st1
+    return (rows + np.arange(shape[1], dtype=np.intp)[None, :] * st2).reshape(-1)
+
+
+def _beyond(c: np.ndarray, half_window: int, n: int) -> list[np.ndarray | None]:
+    """For each window offset j = -h .. h, the mask of the pixels whose level ``c + j`` is
+    beyond the range 0..N-1, or None where no pixel's is."""
+    lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
+    masks: list[np.ndarray | None] = []
+    for j in range(-half_window, half_window + 1):
+        if lowest + j < 0 or highest + j > n - 1:
+            k = c + j
+            masks.append((k < 0) | (k > n - 1))
+        else:
+            masks.append(None)
+    return masks
+
+
+def _levels_at(flat: np.ndarray, at: np.ndarray, c: np.ndarray, st0: int, n: int,
+               half_window: int, fill: float
+               ) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+    """Levels ``c - h .. c + h`` of the pixels at offsets ``at``: 2h + 1 flat float32 arrays
+    (levels beyond the range set to ``fill``), and for each a mask of those beyond the range
+    (None where none is: :func:`_beyond`)."""
+    vals: list[np.ndarray] = []
+    outside = _beyond(c, half_window, n)
+    first = at + c * st0
+    for j, out in zip(range(-half_window, half_window + 1), outside, strict=True):
+        if out is not None:
+            v = flat.take(np.clip(c + j, 0, n - 1) * st0 + at)
+            v[out] = fill
+        else:  # every pixel's level exists: no clipping
+            v = flat.take(first + j * st0)
+        vals.append(v)
+    return vals, outside
+
+
+def _centroid_offset(vals: list[np.ndarray], outside: list[np.ndarray | None]) -> np.ndarray:
+    """Centroid offset (levels, float32) of the window values above their minimum, 0 where
+    nothing is above it; ``vals`` (levels beyond the range: +inf) is overwritten."""
+    half_window = len(vals) // 2
+    floor = vals[0].copy()
+    for v in vals[1:]:
+        np.minimum(floor, v, out=floor)
+    s0 = np.zeros(floor.shape, np.float32)
+    s1 = np.zeros(floor.shape, np.float32)
+    for j, v, out in zip(range(-half_window, half_window + 1), vals, outside, strict=True):
+        wgt = np.subtract(v, floor, out=v)
+        if out is not None:
+            wgt[out] = 0.0
+        s0 += wgt
+        if j:
+            s1 += np.float32(j) * wgt
+    good = s0 > 0
+    return np.where(good, s1 / np.where(good, s0, np.float32(1.0)), np.float32(0.0))
+
+
+def _gaussian_top(vals: list[np.ndarray], c: np.ndarray, n: int) -> np.ndarray:
+    """The 3-point Gaussian at the largest of the levels ``c - 1 .. c + 1`` (the first of
+    ties), from the levels ``c - 2 .. c + 2`` (beyond the range: -1, never the largest and
+    never positive). Offset within ±0.5; none at the ends of the range, on a flat top or
+    on values <= 0. Float32 levels."""
+    ymm, ym, y0, yp, ypp = vals
+    below = (ym >= y0) & (ym >= yp)  # the largest is c - 1
+    above = ~below & (yp > y0)  # ... c + 1
+    a = np.where(below, ymm, np.where(above, y0, ym))
+    b = np.where(below, ym, np.where(above, yp, y0))
+    d = np.where(below, y0, np.where(above, ypp, yp))
+    top = c - below + above
+    ok = (a > 0) & (b > 0) & (d > 0) & (top > 0) & (top < n - 1)
+    la, lb, ld = (np.log(np.where(ok, v, np.float32(1.0))) for v in (a, b, d))
+    return (top + _parabola_offset(la, lb, ld, ok)).astype(np.float32)
+
+
+def _parabola_offset(ym: np.ndarray, y0: np.ndarray, yp: np.ndarray, ok: np.ndarray
+                     ) -> np.ndarray:
+    """Vertex offset in [-0.5, 0.5] of the parabola through (-1, ym), (0, y0), (1, yp);
+    0 where not ``ok`` or the denominator is not negative (a flat top)."""
+    den = ym - 2 * y0 + yp
+    ok = ok & (den < 0)
+    off = np.where(ok, np.float32(0.5) * (ym - yp) / np.where(ok, den, np.float32(-1.0)),
+                   np.float32(0.0))
+    return np.clip(off, -0.5, 0.5)
+
+def _gather(strip: np.ndarray, local: np.ndarray, k: np.ndarray, half_window: int,
+            n: int, out: np.ndarray) -> None:
+    """Levels ``k - h .. k + h`` (clipped to the range) of the strip's pixels ``local``:
+    ``out[j]`` gets level ``k + j - h``; ``strip`` is ``(N, P)`` C-ordered."""
+    offsets = np.arange(-half_window, half_window + 1, dtype=np.intp)[:, None]
+    idx = np.clip(k[None, :] + offsets, 0, n - 1)
+    idx *= strip.shape[1]
+    idx += local[None, :]
+    np.take(strip.reshape(-1), idx, out=out)
+
+
+def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: float
+             ) -> list[np.ndarray | None]:
+    """The masks of :func:`_beyond`; the values of ``vals`` they mark
+    are set to ``fill``."""
+    masks = _beyond(c, half_window, n)
+    for row, out in zip(vals, masks, strict=True):
+        if out is not None:
+            row[out] = fill
+    return masks
+
+
+def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
+                   half_window: int = ADAPTIVE_HALF_WINDOW,
+                   max_spread: int = ADAPTIVE_MAX_SPREAD,
+                   sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
+
+    The depth is :func:`adaptive_peak`'s (documented there), the confidence
+    :func:`~sffscan.stages.depth_harmonics.focus_confidence`'s, bit for bit; see the module
+    for why it is one pass.
+
+    Parameters
+    ----------
+    vol : (N, H, W) ndarray of float32
+        Focus volume, finite (not checked); a strided view (a block of a ring) is read in
+        place.
+    centre : (H, W) ndarray of int
+        Median-filtered argmax, levels 0..N-1.
+    spread : (H, W) ndarray of int
+        Levels spanned by ``centre`` over the focus window
+        (:func:`sffscan.stages.depth_levels.level_spread`).
+    half_window : int, keyword-only
+        Centroid half width h >= 2.
+    max_spread : int, keyword-only
+        Largest spread for which the curve's maximum is taken.
+    sums_out : (3, H, W) ndarray of float32, optional, keyword-only
+        Receives H_0, Re H_1 and Im H_1 of every curve (the confidence's sums; the curve's
+        width, :func:`sffscan.stages.depth_uncertainty.width_from_sums`, needs them).
+    min_out : (H, W) ndarray of float32, optional, keyword-only
+        Receives every curve's smallest value (from the same strips, while in cache).
+
+    Returns
+    -------
+    depth : (H, W) ndarray of float32
+        Depth in fractional levels.
+    confidence : (H, W) ndarray of float32
+        ``|H_1| / H_0`` in [0, 1].
+    """
+    if half_window < 2:
+        raise ValueError(f"half_window must be >= 2, got {half_window}")
+    n, height, width = vol.shape
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    peak = np.asarray(spread).reshape(-1) <= max_spread
+    n_peak = int(np.count_nonzero(peak))
+    h = half_window
+    top = np.empty((5, n_peak), np.float32)  # levels c - 2 .. c + 2 of the peak pixels
+    wide = np.empty((2 * h + 1, c.size - n_peak), np.float32)  # c - h .. c + h, the others
+
+    table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
+    sums = np.empty((3, height * width), np.float32)
+    done_peak = done_wide = 0
+    low = None if min_out is None else min_out.reshape(-1)
+    for p0, p1, strip in volume_strips(vol):
+        np.matmul(table, strip, out=sums[:, p0:p1])
+        if low is not None:
+            np.min(strip, axis=0, out=low[p0:p1])
+        sel = peak[p0:p1]
+        local = np.flatnonzero(sel)
+        k = c[p0:p1]
+        if local.size:
+            _gather(strip, local, k[local], 2, n, top[:, done_peak:done_peak + local.size])
+            done_peak += local.size
+        if local.size < p1 - p0:
+            others = np.flatnonzero(~sel)
+            _gather(strip, others, k[others], h, n, wide[:, done_wide:done_wide + others.size])
+            done_wide += others.size
+
+    depth = np.empty(c.shape, np.float32)
+    if n_peak:
+        cp = c[peak]
+        _outside(cp, 2, n, top, -1.0)
+        depth[peak] = _gaussian_top(list(top), cp, n)
+    if n_peak < c.size:
+        cw = c[~peak]
+        masks = _outside(cw, h, n, wide, np.inf)
+        depth[~peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
+    h0, re, im = sums.reshape(3, height, width)
+    if sums_out is not None:
+        sums_out[...] = sums.reshape(3, height, width)
+    return depth.reshape(height, width), confidence_from_sums(h0, re, im)
+
+
+# ----------------------------------------------------------------------------- estimators
+
+
+def three_point_offset(vol: np.ndarray, a: np.ndarray, *, log: bool) -> np.ndarray:
+    """Sub-level offset in [-0.5, 0.5] of a 3-point parabola through (a-1, a, a+1).
+
+    On ``log`` values this is the Gaussian fit. Where ``a`` is 0 or N-1, a value is <= 0 (log
+    fit), or the denominator is not negative (flat top), the offset is 0 (argmax fallback).
+    """
+    n = vol.shape[0]
+    pixels = a.size
+    interior = (a > 0) & (a < n - 1)
+    flat = vol.reshape(-1)
+    at = np.clip(a, 1, n - 2) * pixels + np.arange(pixels).reshape(a.shape)  # flat index
+    ym, y0, yp = flat[at - pixels], flat[at], flat[at + pixels]
+    if log:
+        positive = (ym > 0) & (y0 > 0) & (yp > 0)
+        interior &= positive
+        ym, y0, yp = (np.log(np.where(positive, v, 1.0)) for v in (ym, y0, yp))
+    return _parabola_offset(ym, y0, yp, interior).astype(np.float32)
+
+
+def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
+                      half_window: int = WCENTROID_HALF_WINDOW) -> np.ndarray:
+    """Baseline-free centroid of each curve over the 2h + 1 levels around ``centre``.
+
+    For every pixel the levels ``centre - h .. centre + h`` that exist (the window is cut at
+    0 and N - 1) are read; their minimum is subtracted (the floor of the curve, which
+    otherwise pulls the centroid towards the window's middle) and the centroid of what is
+    left is returned, in levels. Where the window holds no signal above its minimum (a flat
+    curve) the result is ``centre``.
+
+    Parameters
+    ----------
+    vol : (N, H, W) ndarray of float
+        Focus volume; a float32 view with positive strides (a block of a ring buffer) is
+        read in place, anything else is copied first.
+    centre : (H, W) ndarray of int
+        Window centres, levels 0..N-1.
+    half_window : int, keyword-only
+        h >= 1. Default :data:`WCENTROID_HALF_WINDOW`.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    flat, st0, st1, st2 = _flat_view(vol)
+    c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
+    at = _pixel_offsets(vol.shape[1:], st1, st2)
+    vals, outside = _levels_at(flat, at, c, st0, vol.shape[0], half_window, np.inf)
+    return (c + _centroid_offset(vals, outside)).astype(np.float32).reshape(vol.shape[1:])
+
+
+def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
+                  half_window: int = ADAPTIVE_HALF_WINDOW,
+                  max_spread: int = ADAPTIVE_MAX_SPREAD) -> np.ndarray:
+    """The curve's maximum where the focus window sees one height, else its windowed centroid.
+
+    ``spread`` is the number of levels that the median-filtered peaks ``centre`` span over
+    the focus measure's window about each pixel
+    (:func:`~sffscan.stages.depth_levels.level_spread`): how many heights
+    the window mixes into the pixel's focus curve.
+
+    * ``spread > max_spread`` (a slope or an edge: the curve is a blend of peaks at the
+      heights the window covers): the baseline-free centroid of the 2h + 1 levels about
+      ``centre`` (:func:`windowed_centroid`), which takes the middle of that blend.
+    * ``spread <= max_spread`` (one height): the curve's own maximum: the largest of the
+      levels ``centre - 1 .. centre + 1``, refined by the Gaussian (log-parabola) through it
+      and its two neighbours (offset within ±0.5; none at the ends of the range, on a
+      flat top or on values <= 0). A maximum does not move when the focus axis is
+      stretched unevenly, where a centroid does: on lopsided curves (a thin lens' blur is
+      even in 1/z, not in z) the centroid is pulled towards the longer tail.
+
+    Parameters
+    ----------
+    vol : (N, H, W) ndarray of float
+        Focus volume, finite (not checked); read in strips of rows
+        (:func:`adaptive_block`).
+    centre : (H, W) ndarray of int
+        Median-filtered argmax, levels 0..N-1.
+    spread : (H, W) ndarray of int
+        Levels spanned by ``centre`` over the focus window
+        (:func:`~sffscan.stages.depth_levels.level_spread`).
+    half_window : int, keyword-only
+        Centroid half width h >= 2. Default :data:`ADAPTIVE_HALF_WINDOW`.
+    max_spread : int, keyword-only
+        Default :data:`ADAPTIVE_MAX_SPREAD`.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        Depth in fractional levels.
+    """
+    # one implementation: the streaming reduction's, whose confidence is left unused here
+    return adaptive_block(vol, centre, spread, half_window=half_window,
+                          max_spread=max_spread)[0]
