@@ -6,7 +6,8 @@ One command writes ``bench/transport_results.md``::
 
 The sender runs in its own process (as ``sffscan grab`` does) and sends through
 :class:`sffscan.pipeline.formats.transport.FrameSender`; the receiver is
-:func:`pipeline.formats.transport.receive_frames` in this process, as ``sffscan scan --source``
+:func:`pipeline.formats.transport_receiver.receive_frames` in this process, as
+``sffscan scan --source``
 uses it. Every frame is a fresh array (a copy of one of 8 distinct 10-bit noise images,
 as the camera source copies each image out of the producer's buffer), so the sender never
 reuses a buffer that zmq may still read. Timing runs from the first frame received to the
@@ -30,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.formats.transport import FrameSender, ReceiverStats, receive_frames
+from sffscan.pipeline.formats.transport import FrameSender
+from sffscan.pipeline.formats.transport_receiver import ReceiverStats, receive_frames
 from sffscan.stages.messages import Frame, FrameHeader
 
 H, W = 1024, 1280

@@ -21,13 +21,12 @@ from sffscan.pipeline.config import ScanConfig, config_from_dict, config_to_toml
 from sffscan.pipeline.formats.transport import (
     EndMessage,
     FrameSender,
-    ReceiverStats,
     TransportError,
     decode_message,
     encode_frame,
-    receive_frames,
     stream_frames,
 )
+from sffscan.pipeline.formats.transport_receiver import ReceiverStats, receive_frames
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame, FrameHeader

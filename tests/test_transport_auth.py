@@ -19,13 +19,8 @@ from sffscan.pipeline.cli.common import EXIT_INCOMPLETE
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.transport import (
-    FrameSender,
-    ReceiverStats,
-    TransportError,
-    receive_frames,
-    stream_frames,
-)
+from sffscan.pipeline.formats.transport import FrameSender, TransportError, stream_frames
+from sffscan.pipeline.formats.transport_receiver import ReceiverStats, receive_frames
 from sffscan.pipeline.formats.transport_auth import make_keys, pairing_path
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.sim_source import simulate_frames

@@ -361,13 +361,3 @@ def stream_frames(frames: Iterator[Frame], sender: FrameSender, *,
         except TransportError:
             pass
     return sender.sent
-
-
-def __getattr__(name: str) -> Any:
-    """The receiver's names, from :mod:`sffscan.pipeline.formats.transport_receiver` (which
-    imports this module)."""
-    if name in ("receive_frames", "ReceiverStats", "FrameStream"):
-        from sffscan.pipeline.formats import transport_receiver
-
-        return getattr(transport_receiver, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
