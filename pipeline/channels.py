@@ -15,16 +15,33 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from typing import Any
 
-from sffscan.pipeline.runtime import PipelineStopped, QueueStats
+from sffscan.pipeline.runtime import PipelineStopped, QueueStats, StageStats
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
+from sffscan.pipeline.spawn import WAIT_S
 from sffscan.pipeline.wire import decode, discard, encode
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 
-#: longest single wait of a channel before the stop flag is checked again, s
-WAIT_S = 0.25
+
+def is_channel_stage(name: str) -> bool:
+    """Whether ``name`` (a stage, a queue ``a->b`` or an extras key) is or names one of a
+    channel's stages (``recv:...``, ``send:...``), which the statistics leave out."""
+    return "recv:" in name or "send:" in name
+
+
+def own_stages(stages: Iterable[StageStats], leave_out: Collection[str]) -> list[StageStats]:
+    """One process's own stages among ``stages``: without the channels' and the sinks named
+    in ``leave_out`` (whose figures come from elsewhere)."""
+    return [s for s in stages if not is_channel_stage(s.name) and s.name not in leave_out]
+
+
+def own_queues(queues: Iterable[QueueStats], leave_out: Collection[str]) -> list[QueueStats]:
+    """One process's own queues among ``queues``: without the channels' and those feeding
+    the sinks named in ``leave_out``."""
+    return [q for q in queues if not is_channel_stage(q.name)
+            and q.name.rsplit("->", 1)[-1] not in leave_out]
 
 
 class _Sender:

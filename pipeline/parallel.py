@@ -42,14 +42,9 @@ Memory is bounded by the pools: ``sum(slots * slot_bytes)``, fixed at start (see
 
 from __future__ import annotations
 
-import contextlib
-import copy
-import dataclasses
 import json
 import logging
-import multiprocessing as mp
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -57,43 +52,39 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from sffscan.pipeline.channels import WAIT_S, ForwardSink, RecvStage, SendStage
+from sffscan.pipeline.channels import (
+    ForwardSink,
+    RecvStage,
+    SendStage,
+)
+from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
+from sffscan.pipeline.relays import AfterRelays, Relay, RelayRun, relay_of, relayed_sinks
 from sffscan.pipeline.runtime import (
     Pipeline,
     PipelineResult,
     PipelineStopped,
-    QueueStats,
     StageFailed,
     StageStats,
-    StatsSnapshot,
     gc_frozen,
 )
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
-from sffscan.pipeline.wire import encode
+from sffscan.pipeline.spawn import (
+    START_TIMEOUT_S,
+    StopPipes,
+    join_or_kill,
+    spawn_context,
+)
 from sffscan.pipeline.worker import (
     INNER_CAPACITY,
     HostedSink,
-    Relay,
     WorkerGroup,
-    is_channel_stage,
     rebuild_exception,
-    relay_forwarder,
-    relay_of,
     worker_main,
 )
 from sffscan.stages.messages import Frame
-from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
+from sffscan.stages.protocol import Sink, Stage
 
 log = logging.getLogger(__name__)
-
-#: longest wait for the workers to import and build their stages, s
-START_TIMEOUT_S = 300.0
-#: how long a worker gets to finish after the abort before it is terminated, s
-JOIN_TIMEOUT_S = 10.0
-def relayed_sinks(sinks: list[Sink], head: list[str], tail: list[str]) -> list[Sink]:
-    """The main process's sinks that are relayed: those that tap stages other than the
-    head's alone or the tail's alone (``head``, ``tail``: the stage names)."""
-    return [k for k in sinks if not (set(k.taps) <= set(head) or set(k.taps) <= set(tail))]
 
 
 class PooledSource(Stage):
@@ -127,45 +118,6 @@ class PooledSource(Stage):
         return self.inner.extra_stats()
 
 
-class _Abort:
-    """The main process's stop order to every worker: one pipe each (a worker polls its
-    read end; end of file there means the main process died)."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self._writers: list[Any] = []
-        self._readers: list[Any] = []
-
-    def pipe(self, ctx: Any) -> Any:
-        r, w = ctx.Pipe(duplex=False)
-        self._readers.append(r)
-        self._writers.append(w)
-        return r
-
-    def started(self) -> None:
-        """The workers have their read ends: close ours."""
-        for r in self._readers:
-            r.close()
-        self._readers.clear()
-
-    def is_set(self) -> bool:
-        return self.event.is_set()
-
-    def set(self) -> None:
-        if self.event.is_set():
-            return
-        self.event.set()
-        for w in self._writers:
-            with contextlib.suppress(OSError):
-                w.send_bytes(b"stop")
-
-    def close(self) -> None:
-        self.started()
-        for w in self._writers:
-            w.close()
-        self._writers.clear()
-
-
 @dataclass
 class _Worker:
     label: str
@@ -173,6 +125,11 @@ class _Worker:
     stages: tuple[str, ...]
     report: dict[str, Any] | None = None
     ready: bool = False
+
+
+def _reports(workers: list[_Worker]) -> list[dict[str, Any]]:
+    """The workers' reports (an empty dict for one not in yet)."""
+    return [w.report or {} for w in workers]
 
 
 @dataclass
@@ -213,12 +170,12 @@ class ProcessPipeline:
     progress_s: float = 1.0
 
     def run(self) -> PipelineResult:
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         specs = [new_spec(label, slots=n, slot_bytes=b, kinds=k) for label, n, b, k in self.pools]
         syncs = [(ctx.Lock(), ctx.Semaphore(s.slots)) for s in specs]
         pools: list[SlotPool] = []
         workers: list[_Worker] = []
-        abort = _Abort()
+        abort = StopPipes()
         results = ctx.Queue()
         stop = threading.Event()
         t_start = time.perf_counter()  # wall_s counts from the workers' readiness
@@ -272,7 +229,7 @@ class ProcessPipeline:
             raise
         finally:
             abort.set()
-            self._join(workers)
+            join_or_kill((w.label, w.proc) for w in workers)
             abort.close()
             for pool in pools:
                 pool.close()
@@ -316,29 +273,13 @@ class ProcessPipeline:
                     elif w.report is None or w.report["kind"] != "error":
                         w.report = msg
 
-    @staticmethod
-    def _join(workers: list[_Worker]) -> None:
-        deadline = time.monotonic() + JOIN_TIMEOUT_S
-        for w in workers:
-            if w.proc.pid is None:
-                continue
-            w.proc.join(max(0.1, deadline - time.monotonic()))
-            if w.proc.is_alive():
-                log.warning("worker %s did not stop within %g s: terminated", w.label,
-                            JOIN_TIMEOUT_S)
-                w.proc.terminate()
-                w.proc.join(5.0)
-                if w.proc.is_alive():
-                    w.proc.kill()
-                    w.proc.join()
-
     # -- run -----------------------------------------------------------------------------
     def _relayed(self) -> list[Sink]:
         return relayed_sinks(self.sinks, [s.name for s in self.head],
                              [s.name for s in self.tail])
 
     def _run(self, pools: list[SlotPool], workers: list[_Worker], chans: list[Any],
-             sink_qs: list[Any], results: Any, abort: _Abort, stop: threading.Event,
+             sink_qs: list[Any], results: Any, abort: StopPipes, stop: threading.Event,
              t_start: float, relays: list[tuple[Relay, Any]]) -> PipelineResult:
         head_names = {s.name for s in self.head}
         tail_names = {s.name for s in self.tail}
@@ -353,14 +294,14 @@ class ProcessPipeline:
                                  f"{sorted(set(sink.taps) - known)}")
         # each local chain has its own stop flag: a chain that ends sets it
         head_stop, tail_stop = stop, threading.Event()
-        forwards: list[Sink] = [
+        forwards = [
             ForwardSink(k.name, k.taps, q, capacity=k.capacity, policy=k.policy, pools=pools,
                         stop=head_stop) for k, q in zip(self.hosted, sink_qs, strict=True)]
         relayed = {r.name for r, _ in relays}
         head_sinks = [k for k in self.sinks if set(k.taps) <= head_names
                       and k.name not in relayed]
         tail_sinks = [k for k in self.sinks if k not in head_sinks and k.name not in relayed]
-        relay_runs = [_RelayRun(r, q, next(k for k in self.sinks if k.name == r.name), pools,
+        relay_runs = [RelayRun(r, q, next(k for k in self.sinks if k.name == r.name), pools,
                                 head_names, tail_names, head_stop, tail_stop,
                                 sum(1 for g in self.groups if set(r.taps) & set(g.stages)))
                       for r, q in relays]
@@ -377,7 +318,7 @@ class ProcessPipeline:
         relays_done = threading.Event()
         last: Stage = self.tail[-1]
         if relay_runs:
-            last = _AfterRelays(last, relays_done, abort.is_set)
+            last = AfterRelays(last, relays_done, abort.is_set)
         tail = Pipeline([recv, *self.tail[:-1], last], capacity=INNER_CAPACITY,
                         stop=tail_stop,
                         sinks=tail_sinks + [r.forwards[-1] for r in relay_runs if r.in_tail])
@@ -413,13 +354,12 @@ class ProcessPipeline:
         def end_relays() -> None:
             """Every chain has ended (the tail's last stage waits to be closed): the
             relayed sinks get the last statistics, then the end of stream."""
-            final = [*head.stats[:-1],
-                     *(StageStats(**s) for w in workers[:len(self.groups)]
-                       for s in (w.report or {}).get("stages", [])), *tail.stats[1:]]
+            reports = _reports(workers)
+            final = live_stages(self, head.stats, tail.stats, reports)
             for r in relay_runs:
-                r.finish(time.perf_counter() - t_start, final, self._chain_queues(
-                    [q.stats for q in head.queues], [q.stats for q in tail.queues],
-                    send.stats, workers), workers)
+                r.finish(time.perf_counter() - t_start, final, chain_queues(
+                    self, [q.stats for q in head.queues], [q.stats for q in tail.queues],
+                    send.stats, reports), reports)
             for t in relay_threads:
                 t.join()
             relays_done.set()
@@ -430,7 +370,7 @@ class ProcessPipeline:
                 reported = all(w.report is not None for w in workers)
                 if relay_runs and reported and not threads[0].is_alive():
                     # only the tail is left: its end, then the relays'
-                    assert isinstance(last, _AfterRelays)
+                    assert isinstance(last, AfterRelays)
                     if relays_done.is_set():  # the tail is closing
                         threads[1].join(self.progress_s)
                     elif last.ended.wait(self.progress_s):
@@ -459,9 +399,10 @@ class ProcessPipeline:
                 live = head.stats[:-1] + tail.stats[1:]
                 for r in relay_runs:
                     if not relays_done.is_set():
-                        r.snapshot(elapsed, live, self._chain_queues(
-                            [q.stats for q in head.queues], [q.stats for q in tail.queues],
-                            send.stats, workers), workers)
+                        r.snapshot(elapsed, live, chain_queues(
+                            self, [q.stats for q in head.queues],
+                            [q.stats for q in tail.queues], send.stats, _reports(workers)),
+                            _reports(workers))
             if relay_runs and not relays_done.is_set():  # the tail failed: nothing waits
                 stop_all()
         except BaseException:  # Ctrl-C or the progress display: stop everything cleanly
@@ -470,34 +411,8 @@ class ProcessPipeline:
         for t in threads + relay_threads:
             t.join()
         self._raise_failure(workers, outcome, [r.key for r in relay_runs])
-        return self._result(head, tail, send, forwards, workers, outcome, t_start, relay_runs)
-
-    def _chain_queues(self, head_q: list[QueueStats], tail_q: list[QueueStats],
-                      send: QueueStats, workers: list[_Worker]) -> list[QueueStats]:
-        """The queues of the main chain, in order, named as in the thread runtime: the
-        head's, each channel (``stage->next stage``) and worker's, the tail's (a worker
-        that has not reported yet shows zeros)."""
-        sinks = {k.name for k in self.sinks} | {k.name for k in self.hosted}
-
-        def own(qs: list[QueueStats]) -> list[QueueStats]:
-            return [q for q in qs if not is_channel_stage(q.name)
-                    and q.name.rsplit("->", 1)[-1] not in sinks]
-
-        queues = own(head_q)
-        channel, prev = send, self.head[-1].name
-        for w, g in zip(workers, self.groups, strict=False):
-            rep = w.report or {}
-            queues.append(dataclasses.replace(channel, name=f"{prev}->{g.stages[0]}"))
-            if rep.get("queues") is not None:
-                queues += [QueueStats(**q) for q in rep["queues"]]
-            else:
-                queues += [QueueStats(f"{a}->{b}", INNER_CAPACITY, "block")
-                           for a, b in zip(g.stages[:-1], g.stages[1:], strict=True)]
-            channel = QueueStats(**rep["channel"]) if rep.get("channel") else QueueStats(
-                "", self.capacity, "block")
-            prev = g.stages[-1]
-        queues.append(dataclasses.replace(channel, name=f"{prev}->{self.tail[0].name}"))
-        return queues + own(tail_q)
+        return process_result(self, outcome, send.stats, forwards, [w.label for w in workers],
+                              _reports(workers), relay_runs, t_start)
 
     def _raise_failure(self, workers: list[_Worker], outcome: dict[str, Any],
                        relay_keys: list[str]) -> None:
@@ -517,172 +432,3 @@ class ProcessPipeline:
             exc = outcome.get(key)
             if isinstance(exc, BaseException):
                 raise exc
-
-    def _result(self, head: Pipeline, tail: Pipeline, send: SendStage,
-                forwards: list[Sink], workers: list[_Worker], outcome: dict[str, Any],
-                t_start: float, relay_runs: list[_RelayRun]) -> PipelineResult:
-        rh: PipelineResult = outcome["head"]
-        rt: PipelineResult = outcome["tail"]
-        hosted = {k.name for k in self.hosted}
-        relayed = {r.relay.name for r in relay_runs}
-        sink_names = tuple(k.name for k in self.sinks) + tuple(hosted)
-        stages = [s for s in rh.stages
-                  if not is_channel_stage(s.name) and s.name not in sink_names]
-        extras = {k: v for k, v in rh.extras.items() if not is_channel_stage(k)}
-        for w in workers[:len(self.groups)]:
-            rep = w.report or {}
-            stages += [StageStats(**s) for s in rep.get("stages", [])]
-            extras.update(rep.get("extras", {}))
-        stages += [s for s in rt.stages
-                   if not is_channel_stage(s.name) and s.name not in sink_names]
-        queues = self._chain_queues(rh.queues, rt.queues, send.stats, workers)
-        extras.update({k: v for k, v in rt.extras.items() if not is_channel_stage(k)})
-        local = hosted | relayed  # sinks whose figures come from elsewhere
-        sink_stages = [s for s in rh.stages + rt.stages
-                       if s.name in sink_names and s.name not in local]
-        sink_queues = [q for q in rh.queues + rt.queues
-                       if q.name.rsplit("->", 1)[-1] in sink_names and not any(
-                           q.name.endswith("->" + h) for h in local)]
-        for k in forwards:
-            assert isinstance(k, ForwardSink)
-            rep = next((w.report or {} for w in workers if w.label == k.name), {})
-            sink_stages += [StageStats(**s) for s in rep.get("stages", [])]
-            sink_queues.append(k.stats)
-            waited = rh.extras.get(k.name, {}).get("pipeline_waited_s", 0.0)
-            extras[k.name] = {**rep.get("extras", {}).get(k.name, {}),
-                              "pipeline_waited_s": waited}
-        for r in relay_runs:
-            rr: PipelineResult = outcome[r.key]
-            sink_stages.append(rr.stages[-1])
-            sink_queues.append(r.queue_stats(workers))
-            extras[r.relay.name] = {**rr.extras.get(r.relay.name, {}),
-                                    "pipeline_waited_s": round(r.waited_s(
-                                        workers, rh, rt), 3)}
-        return PipelineResult(wall_s=time.perf_counter() - t_start,
-                              stages=stages + sink_stages, queues=queues + sink_queues,
-                              extras=extras, sinks=sink_names)
-
-
-class _AfterRelays(Stage):
-    """The tail's last stage, closed only once the relayed sinks have ended (``done``);
-    ``ended`` is set when it has finished its stream. Closed as failed if anything failed
-    meanwhile (``failed_elsewhere``); a failing tail closes at once."""
-
-    def __init__(self, inner: Stage, done: threading.Event,
-                 failed_elsewhere: Callable[[], bool]) -> None:
-        self.inner, self.done, self.failed_elsewhere = inner, done, failed_elsewhere
-        self.name, self.unit = inner.name, inner.unit
-        self.ended = threading.Event()
-
-    def process(self, item: Any) -> Any:
-        return self.inner.process(item)
-
-    def finish(self) -> list[Any]:
-        out = list(self.inner.finish())
-        self.ended.set()
-        return out
-
-    def close(self, *, failed: bool) -> None:
-        # ``done`` is set by the main thread whatever happens (end_relays, stop_all)
-        while not failed and not self.done.wait(WAIT_S) and not self.failed_elsewhere():
-            continue
-        self.inner.close(failed=failed or self.failed_elsewhere())
-
-    def extra_stats(self) -> dict[str, Any]:
-        return self.inner.extra_stats()
-
-
-class _RelayRun:
-    """A relayed sink in the main process: its forwarders in the head and tail, and the
-    chain ``recv -> sink`` (the sink behind a queue of the relay's capacity and the sink's
-    own policy) that the workers' forwarders, these and the main process feed.
-
-    The producers of the channel are the workers that run some of the taps, the head and
-    tail forwarders, and the main process itself, which sends the end of stream once every
-    chain has ended (after the last statistics): so the sink ends after everything it taps.
-    """
-
-    def __init__(self, relay: Relay, q: Any, sink: Sink, pools: list[SlotPool],
-                 head_names: set[str], tail_names: set[str], head_stop: threading.Event,
-                 tail_stop: threading.Event, remote_producers: int) -> None:
-        self.relay, self.q, self.sink, self.pools = relay, q, sink, pools
-        self.key = f"relay-{relay.name}"
-        head_taps = tuple(t for t in relay.taps if t in head_names)
-        tail_taps = tuple(t for t in relay.taps if t in tail_names)
-        self.in_head, self.in_tail = bool(head_taps), bool(tail_taps)
-        self.forwards: list[ForwardSink] = []
-        if head_taps:
-            self.forwards.append(relay_forwarder(relay, head_taps, q, pools=pools,
-                                                 stop=head_stop))
-        if tail_taps:
-            self.forwards.append(relay_forwarder(relay, tail_taps, q, pools=pools,
-                                                 stop=tail_stop))
-        self.stop = threading.Event()
-        self.local_queues: list[QueueStats] = []
-        self.recv = RecvStage(relay.name, q, pools=pools, stop=self.stop,
-                              producers=remote_producers + len(self.forwards) + 1)
-        self.pipe = Pipeline([self.recv, sink], capacity=relay.capacity,
-                             policies={sink.name: relay.policy}, stop=self.stop)
-
-    @property
-    def _inbox(self) -> Any:
-        return self.pipe.queues[0]
-
-    def queue_stats(self, workers: list[_Worker]) -> QueueStats:
-        """The sink's queue as the summary shows it: the queue in front of the sink, with
-        the drops of every forwarder and channel on the way added."""
-        own = self._inbox.stats
-        dropped = own.dropped + sum(f.stats.dropped for f in self.forwards) + sum(
-            q.dropped for q in self.local_queues)
-        for w in workers:
-            rep = ((w.report or {}).get("relays") or {}).get(self.relay.name)
-            if rep:
-                dropped += rep["queue"]["dropped"] + rep["channel"]["dropped"]
-        return QueueStats(f"{'+'.join(self.relay.taps)}->{self.relay.name}", own.capacity,
-                          self.relay.policy.value, own.puts, dropped, own.max_fill,
-                          own.fill_sum)
-
-    def bind(self, pipes: list[Pipeline]) -> None:
-        """Take the queues of ``pipes`` (head, tail) that feed this relay's forwarders."""
-        self.local_queues = [q.stats for p in pipes for q in p.sink_queues
-                             if q.name.rsplit("->", 1)[-1] == self.relay.name]
-
-    def snapshot(self, elapsed: float, stages: list[StageStats], queues: list[QueueStats],
-                 workers: list[_Worker]) -> QueueStats | None:
-        """The pipeline's statistics to a sink that wants them (not to a blocking one);
-        returns the sink's own queue figures in them."""
-        if not self.sink.wants_stats or self.relay.policy is FullPolicy.BLOCK:
-            return None
-        # the main process is one of the channel's producers and sends its end of stream
-        # after the last statistics (finish): none can come after the end of stream
-        mine = self.queue_stats(workers)
-        snap = StatsSnapshot(elapsed, tuple(copy.copy(s) for s in stages),
-                             tuple([*(copy.copy(q) for q in queues), mine]))
-        self._inbox.put(snap)
-        return mine
-
-    def finish(self, elapsed: float, stages: list[StageStats], queues: list[QueueStats],
-               workers: list[_Worker]) -> None:
-        """The last statistics, then the main process's end of stream."""
-        mine = self.snapshot(elapsed, stages, queues, workers)
-        if mine is not None:
-            # putting them into a full queue dropped its oldest item: count that one too
-            # (the sink reads these figures only after the items ahead of them, and a
-            # queue is full only when there are many)
-            mine.dropped = self.queue_stats(workers).dropped
-        data = encode(END_OF_STREAM, self.pools, lambda: True)
-        while True:
-            try:
-                self.q.put(data, timeout=WAIT_S)
-                return
-            except queue.Full:
-                if self.stop.is_set():
-                    return
-
-    def waited_s(self, workers: list[_Worker], rh: PipelineResult,
-                 rt: PipelineResult) -> float:
-        """Time the chains waited for this sink (a blocking one falling behind)."""
-        name = self.relay.name
-        local = sum(r.extras.get(name, {}).get("pipeline_waited_s", 0.0) for r in (rh, rt))
-        return local + sum(((w.report or {}).get("relays") or {}).get(name, {}).get(
-            "pipeline_waited_s", 0.0) for w in workers)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import copy
+import dataclasses
 import functools
 import gc
 import itertools
@@ -87,6 +88,10 @@ class QueueStats:
     @property
     def mean_fill(self) -> float:
         return self.fill_sum / self.puts if self.puts else 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        """The figures as JSON (``QueueStats(**d)`` rebuilds them: a worker's report)."""
+        return dataclasses.asdict(self)
 
 
 class BoundedQueue:
@@ -178,6 +183,10 @@ class StageStats:
         """Items handled per second of this stage's own busy time."""
         return self.frames / self.busy_s if self.busy_s > 0 else 0.0
 
+    def to_json(self) -> dict[str, Any]:
+        """The figures as JSON (``StageStats(**d)`` rebuilds them: a worker's report)."""
+        return dataclasses.asdict(self)
+
 
 @dataclass(frozen=True, slots=True)
 class StatsSnapshot:
@@ -186,6 +195,23 @@ class StatsSnapshot:
     elapsed_s: float
     stages: tuple[StageStats, ...]
     queues: tuple[QueueStats, ...]
+
+
+def stats_snapshot(elapsed_s: float, stages: Iterable[StageStats],
+                   queues: Iterable[QueueStats]) -> StatsSnapshot:
+    """A copy of the figures as they are now (the stages go on counting in theirs)."""
+    return StatsSnapshot(elapsed_s, tuple(copy.copy(s) for s in stages),
+                         tuple(copy.copy(q) for q in queues))
+
+
+def offer_stats(sink: Sink, q: BoundedQueue, snap: StatsSnapshot, *, last: bool) -> None:
+    """Put ``snap`` into the queue ``q`` of ``sink`` if the sink wants the statistics and
+    its queue may drop (a blocking sink's would hold the pipeline back for them).
+
+    The ``last`` statistics wait for room: put into a full queue they would drop its
+    oldest item after their copy of the count was taken (one too few)."""
+    if sink.wants_stats and q.policy is not FullPolicy.BLOCK:
+        q.put(snap, keep=last)
 
 
 def _process_all(stage: Stage, item: Any) -> list[Any]:
@@ -353,13 +379,10 @@ class Pipeline:
         self.stop.set()
 
     def _snapshot(self, elapsed: float, *, last: bool = False) -> None:
-        snap = StatsSnapshot(elapsed, tuple(copy.copy(s) for s in self.stats + self.sink_stats),
-                             tuple(copy.copy(q.stats) for q in self.queues + self.sink_queues))
+        snap = stats_snapshot(elapsed, self.stats + self.sink_stats,
+                              (q.stats for q in self.queues + self.sink_queues))
         for k, q in zip(self.sinks, self.sink_queues, strict=True):
-            if k.wants_stats and q.policy is not FullPolicy.BLOCK:
-                # the last statistics wait for room: put into a full queue they would drop
-                # its oldest item after their copy of the count was taken (one too few)
-                q.put(snap, keep=last)
+            offer_stats(k, q, snap, last=last)
 
     def run(self, *, freeze_gc: bool = True) -> PipelineResult:
         """Run to the end of the stream; raise :class:`StageFailed` if a stage failed.

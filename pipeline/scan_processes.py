@@ -50,9 +50,10 @@ from typing import Any, cast
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.parallel import HostedSink, ProcessPipeline, WorkerGroup, relayed_sinks
+from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count
-from sffscan.pipeline.worker import RELAY_LOCAL_CAPACITY, Relay, relay_of
+from sffscan.pipeline.relays import RELAY_LOCAL_CAPACITY, Relay, relay_of, relayed_sinks
+from sffscan.pipeline.worker import HostedSink, WorkerGroup
 from sffscan.stages.mosaic import MosaicWriter
 from sffscan.stages.protocol import Sink, Stage
 

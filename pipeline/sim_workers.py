@@ -17,10 +17,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import multiprocessing as mp
 import os
 import queue
-import signal
 import threading
 import weakref
 from collections.abc import Iterator
@@ -29,15 +27,21 @@ from typing import Any
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
-from sffscan.pipeline.worker import die_with_parent
+from sffscan.pipeline.spawn import (
+    START_TIMEOUT_S,
+    WAIT_S,
+    StopPipes,
+    helper_start,
+    join_or_kill,
+    spawn_context,
+    watch_stop,
+)
 from sffscan.stages.messages import Frame, FrameHeader
 
 log = logging.getLogger(__name__)
 
 #: frames each worker may have rendered ahead of the consumer
 AHEAD = 2
-WAIT_S = 0.25
-START_TIMEOUT_S = 300.0
 
 
 def noise_steps(cfg: ScanConfig, *, world: Any = None) -> int | None:
@@ -89,21 +93,14 @@ def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
                   spec: dict[str, Any], sync: tuple[Any, Any], out: Any, control: Any,
                   parent: int) -> None:
     """Worker process: renders frames k, k + workers, ... into the pool, in order."""
-    die_with_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    helper_start(parent)
     from sffscan.pipeline.plan import plan_frames
     from sffscan.pipeline.sim_source import make_world
 
     cfg = ScanConfig.model_validate(cfg_json)
     pool = SlotPool(PoolSpec.from_json(spec), sync, create=False)
-    stop = threading.Event()
-
-    def watch() -> None:
-        with contextlib.suppress(EOFError, OSError):
-            control.recv_bytes()
-        stop.set()
-
-    threading.Thread(target=watch, daemon=True).start()
+    stop, done = threading.Event(), threading.Event()
+    watch_stop(control, parent, stop.set, done)
     world = make_world(cfg)
     plan = list(plan_frames(cfg))
     rng = np.random.default_rng(cfg.source.seed + 1)
@@ -136,6 +133,7 @@ def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
         with contextlib.suppress(Exception):
             out.put(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), timeout=5)
     finally:
+        done.set()
         if stop.is_set():
             out.cancel_join_thread()  # nobody reads what is left
         pool.close()
@@ -160,7 +158,7 @@ class _Renderers:
     """The render workers, their pool and pipes; :meth:`stop` ends them (idempotent)."""
 
     def __init__(self, cfg: ScanConfig, workers: int, steps: int) -> None:
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         o = cfg.optics
         frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
         spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes)
@@ -168,35 +166,27 @@ class _Renderers:
         self.workers = workers
         self.pool = SlotPool(spec, sync, create=True)
         self.outs = [ctx.Queue(AHEAD) for _ in range(workers)]
-        self.pipes = [ctx.Pipe(duplex=False) for _ in range(workers)]
+        self.stops = StopPipes()
         self.procs = [ctx.Process(target=render_worker, name=f"sffscan-render-{k}",
                                   daemon=True,
                                   args=(cfg.model_dump(mode="json"), k, workers, steps,
                                         spec.to_json(), sync, self.outs[k],
-                                        self.pipes[k][0], os.getpid()))
+                                        self.stops.pipe(ctx), os.getpid()))
                       for k in range(workers)]
         self.stopped = False
         try:
             for p in self.procs:
                 p.start()
         finally:
-            for r, _ in self.pipes:
-                r.close()
+            self.stops.started()
 
     def stop(self) -> None:
         if self.stopped:
             return
         self.stopped = True
-        for _, w in self.pipes:
-            with contextlib.suppress(OSError):
-                w.send_bytes(b"stop")
-            w.close()
-        for p in self.procs:
-            if p.pid is not None:
-                p.join(10)
-                if p.is_alive():
-                    p.kill()
-                    p.join()
+        self.stops.set()
+        join_or_kill((p.name, p) for p in self.procs)
+        self.stops.close()
         self.pool.close()
 
     def frames(self) -> Iterator[Frame]:

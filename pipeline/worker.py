@@ -7,19 +7,14 @@ runtime between a :class:`~sffscan.pipeline.channels.RecvStage` and a
 :class:`~sffscan.pipeline.channels.SendStage`, and reports ``ready``, then ``done`` (with
 its statistics), ``error`` (stage, exception type, message, traceback) or ``cancelled``
 as JSON on the results queue. It stops when the main process writes to its control pipe,
-and dies with the main process (``PR_SET_PDEATHSIG``, end of file on the pipe,
-``os.getppid()``).
+and dies with the main process (:mod:`sffscan.pipeline.spawn`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
-import faulthandler
 import importlib
 import json
-import os
-import signal
 import sys
 import threading
 import time
@@ -27,21 +22,16 @@ import traceback
 from dataclasses import dataclass
 from typing import Any
 
-from sffscan.pipeline.channels import ForwardSink, RecvStage, SendStage
-from sffscan.pipeline.runtime import (
-    Pipeline,
-    PipelineCancelled,
-    QueueStats,
-    StageFailed,
-    StageStats,
-)
+from sffscan.pipeline.channels import RecvStage, SendStage, is_channel_stage, own_queues, own_stages
+from sffscan.pipeline.relays import Relay, relay_forwarder, relay_report
+from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.pipeline.shm_ring import PoolSpec, SlotPool
+from sffscan.pipeline.spawn import call_factory, helper_start, watch_stop
 from sffscan.stages.protocol import FullPolicy, Stage
 
 #: capacity of the queues between the stages inside one process (the channels between
 #: processes have the pipeline's ``capacity``)
 INNER_CAPACITY = 2
-_PR_SET_PDEATHSIG = 1
 #: glibc ``mallopt`` parameters (malloc.h) and the values a worker sets (see keep_freed_memory)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 MMAP_THRESHOLD_BYTES = 32 * 2**20  # glibc's largest on 64-bit
@@ -75,56 +65,6 @@ class HostedSink:
     kwargs: dict[str, Any]
 
 
-@dataclass(frozen=True)
-class Relay:
-    """A sink of the main process fed from stages in worker processes: each process that
-    runs some of ``taps`` forwards their outputs (those ``keep`` selects) through one
-    channel to the main process, where the sink runs behind a queue of ``capacity`` items
-    with its own ``policy`` (:class:`~sffscan.pipeline.parallel.ProcessPipeline`).
-
-    ``keep`` is ``("module:function", kwargs)`` of a factory returning a predicate on
-    :class:`~sffscan.stages.protocol.Tapped` items, or None (all of them).
-    """
-
-    name: str
-    taps: tuple[str, ...]
-    capacity: int
-    policy: FullPolicy
-    keep: tuple[str, dict[str, Any]] | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "taps": list(self.taps), "capacity": self.capacity,
-                "policy": self.policy.value, "keep": list(self.keep) if self.keep else None}
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Relay:
-        keep = (d["keep"][0], d["keep"][1]) if d["keep"] else None
-        return cls(d["name"], tuple(d["taps"]), d["capacity"], FullPolicy(d["policy"]), keep)
-
-
-#: queue of a relay's forwarder in each process that taps (the channel applies the policy)
-RELAY_LOCAL_CAPACITY = 4
-#: a relay's channel, and the queue in front of its sink, hold at most this many items each
-RELAY_CAPACITY = 16
-
-
-def relay_of(sink: Any) -> Relay:
-    """The relay of a main-process sink: its name, taps and policy, its capacity capped
-    at :data:`RELAY_CAPACITY` (what it holds stays in shared-memory slots), and the
-    selection it declares as ``relay_keep`` (see :class:`Relay`), if any."""
-    return Relay(sink.name, tuple(sink.taps), min(sink.capacity, RELAY_CAPACITY),
-                 FullPolicy(sink.policy), getattr(sink, "relay_keep", None))
-
-
-def relay_forwarder(relay: Relay, taps: tuple[str, ...], q: Any, *,
-                    pools: list[SlotPool], stop: threading.Event) -> ForwardSink:
-    """The sink, in one process, that forwards ``taps`` (this process's part of the
-    relay's) to the relay's channel ``q``."""
-    keep = _call(relay.keep[0], relay.keep[1]) if relay.keep is not None else None
-    return ForwardSink(relay.name, taps, q, capacity=RELAY_LOCAL_CAPACITY,
-                       policy=relay.policy, pools=pools, stop=stop, keep=keep)
-
-
 class RemoteError(RuntimeError):
     """The cause of a failure in a worker, when its exception type cannot be rebuilt."""
 
@@ -147,36 +87,6 @@ def rebuild_exception(info: dict[str, Any]) -> BaseException:
         pass
     err = RemoteError(info["type"], info["message"], info.get("traceback", ""))
     return err
-
-
-def _call(factory: str, kwargs: dict[str, Any]) -> Any:
-    module, _, func = factory.partition(":")
-    return getattr(importlib.import_module(module), func)(**kwargs)
-
-
-def _stats_json(st: StageStats) -> dict[str, Any]:
-    return {"name": st.name, "unit": st.unit, "items_in": st.items_in,
-            "items_out": st.items_out, "frames": st.frames, "busy_s": st.busy_s,
-            "cpu_s": st.cpu_s}
-
-
-def _queue_json(q: QueueStats) -> dict[str, Any]:
-    return {"name": q.name, "capacity": q.capacity, "policy": q.policy, "puts": q.puts,
-            "dropped": q.dropped, "max_fill": q.max_fill, "fill_sum": q.fill_sum}
-
-
-def is_channel_stage(name: str) -> bool:
-    return name.startswith(("recv:", "send:")) or "recv:" in name or "send:" in name
-
-
-def die_with_parent(parent: int) -> None:
-    """Ask the kernel to SIGKILL this process when its parent dies (Linux)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    if os.getppid() != parent:  # the parent died before prctl: leave now
-        os._exit(1)
 
 
 def keep_freed_memory() -> bool:
@@ -217,10 +127,8 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
     ``relays``: (relay as JSON, its channel) for each sink of the main process that taps
     some of this worker's stages; their forwarders' statistics come back in the report.
     """
-    die_with_parent(parent)
+    helper_start(parent)
     keep_freed_memory()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
-    faulthandler.register(signal.SIGUSR1)  # kill -USR1 <pid>: the worker's stacks on stderr
     label = group["label"]
     pools = [SlotPool(PoolSpec.from_json(s), sync, create=False)
              for s, sync in zip(pool_specs, syncs, strict=True)]
@@ -231,22 +139,12 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
     def report(msg: dict[str, Any]) -> None:
         results.put(json.dumps({"label": label, **msg}))
 
-    def watch() -> None:
-        while not done.is_set():
-            try:
-                if not control.poll(0.5):
-                    if os.getppid() != parent:
-                        os._exit(1)
-                    continue
-                control.recv_bytes()
-            except (EOFError, OSError):  # the main process is gone: nothing to report to
-                os._exit(1)
-            aborted.set()
-            pipe.cancel()
-            return
+    def on_stop() -> None:
+        aborted.set()
+        pipe.cancel()
 
     try:
-        built = _call(group["factory"], group["kwargs"])
+        built = call_factory(group["factory"], group["kwargs"])
         stages: list[Stage] = [built] if kind == "sink" else list(built)
         recv = RecvStage(label, in_q, pools=pools, stop=stop, producers=producers)
         chain: list[Stage] = [recv, *stages]
@@ -268,8 +166,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         return
     report({"kind": "ready"})
     cpu0 = time.process_time()
-    watcher = threading.Thread(target=watch, name="abort-watch", daemon=True)
-    watcher.start()
+    watch_stop(control, parent, on_stop, done)
     try:
         result = pipe.run()
     except StageFailed as err:
@@ -281,12 +178,9 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         send = chain[-1]
         fw = {f.name for f in forwards}
         report({"kind": "done", "cpu_s": time.process_time() - cpu0,
-                "channel": _queue_json(send.stats) if isinstance(send, SendStage) else None,
-                "stages": [_stats_json(s) for s in result.stages
-                           if not is_channel_stage(s.name) and s.name not in fw],
-                "queues": [_queue_json(q) for q in result.queues
-                           if not is_channel_stage(q.name) and q.name.rsplit("->", 1)[-1]
-                           not in fw],
+                "channel": send.stats.to_json() if isinstance(send, SendStage) else None,
+                "stages": [st.to_json() for st in own_stages(result.stages, fw)],
+                "queues": [q.to_json() for q in own_queues(result.queues, fw)],
                 "extras": {k: v for k, v in result.extras.items()
                            if not is_channel_stage(k) and k not in fw},
                 "relays": {f.name: relay_report(f, result) for f in forwards}})
@@ -298,13 +192,6 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
                     q.cancel_join_thread()
         for p in pools:
             p.close()
-
-
-def relay_report(fwd: ForwardSink, result: Any) -> dict[str, Any]:
-    """A relay forwarder's figures: its local queue, its channel, the pipeline's wait."""
-    local = next(q for q in result.queues if q.name.rsplit("->", 1)[-1] == fwd.name)
-    return {"queue": _queue_json(local), "channel": _queue_json(fwd.stats),
-            "pipeline_waited_s": result.extras.get(fwd.name, {}).get("pipeline_waited_s", 0.0)}
 
 
 def _exc_info(exc: BaseException) -> dict[str, Any]:

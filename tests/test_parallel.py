@@ -19,13 +19,14 @@ import numpy as np
 import pytest
 from sffscan.pipeline.channels import RecvStage, SendStage
 from sffscan.pipeline.config import demo_config
-from sffscan.pipeline.parallel import ProcessPipeline, WorkerGroup
+from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.runtime import Pipeline, StageFailed
 from sffscan.pipeline.scan_processes import ring_plan, use_processes
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.viz.sink import VizSink
 from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.pipeline.worker import WorkerGroup
 from sffscan.stages.messages import (
     DepthBlock,
     DepthBlockHeader,
@@ -216,8 +217,8 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
     (the chain it taps goes on); what ``keep`` leaves out is neither sent nor a drop."""
     import threading
 
+    from sffscan.pipeline.relays import Relay, relay_forwarder
     from sffscan.pipeline.viz.preview import logged_items
-    from sffscan.pipeline.worker import Relay, relay_forwarder
     from sffscan.stages.protocol import FullPolicy
 
     p = pool(slots=1, slot_bytes=4096, kinds=("frame", "placed", "focus"))

@@ -23,11 +23,11 @@ import zarr
 from sffscan.pipeline.cli.common import run_and_report
 from sffscan.pipeline.config import config_to_toml
 from sffscan.pipeline.formats.recording_writer import recorder_sink
-from sffscan.pipeline.parallel import WorkerGroup
 from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.viz.sink import VizOptions, VizSink, viz_sink_for
 from sffscan.pipeline.wiring import format_summary, run_scan
+from sffscan.pipeline.worker import WorkerGroup
 
 from tests.parallel_helpers import shm_names
 from tests.scan_helpers import RenderedScan, small_config
