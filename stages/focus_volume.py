@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
     confidence_from_sums,
@@ -108,9 +108,9 @@ class FocusVolume:
     direction : {+1, -1}
         Direction of the motion along x for this pass.
     method : str
-        Depth method (see :func:`sffscan.stages.depth.depth_from_focus`). The methods of
-        :data:`sffscan.stages.depth.STREAMING_METHODS` accumulate sums and the argmax
-        (``fv`` is None); gauss3, quadratic3, wcentroid and adaptive store the N-level ring ``fv``.
+        One of :data:`sffscan.stages.depth.DEPTH_METHODS` (the study's candidates read
+        beyond a block's halo). Those of :data:`~sffscan.stages.depth.STREAMING_METHODS`
+        accumulate sums and the argmax (``fv`` is None); the others store the N-level ring.
     median_size : int
         SPC median filter size; also sets the halo of columns kept around a block.
     spread_size : int
@@ -153,6 +153,8 @@ class FocusVolume:
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
+        if method not in DEPTH_METHODS:
+            raise ValueError(f"method must be one of {DEPTH_METHODS}, got {method!r}")
         self.n = n_levels
         self.h, self.w = frame_shape
         self.heights = np.asarray(focus_heights_um, dtype=np.float64)
@@ -160,9 +162,10 @@ class FocusVolume:
         self.direction = direction
         self.method = method
         self.uncertainty = uncertainty
+        self.streaming = method in STREAMING_METHODS
         # the curves' minima: kept as frames arrive where no N-level ring holds the curves
         # (the ring's methods take them from the levels at the reduction)
-        self.track_low = uncertainty and method in STREAMING_METHODS
+        self.track_low = uncertainty and self.streaming
         self.median_size = median_size
         self.spread_size = spread_size
         # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
@@ -173,7 +176,6 @@ class FocusVolume:
         self.col_slack = col_slack
         self.rows = self.h + 2 * row_slack
         self.ring = self.w + 2 * self.halo + 2 * block_columns + 2 * col_slack
-        self.streaming = method in STREAMING_METHODS
         plane = (self.rows, self.ring)
         # filled now, so the pages are touched at start-up and not during the scan
         self.fv: np.ndarray | None = None
@@ -203,10 +205,8 @@ class FocusVolume:
         self.row_lo = np.zeros((self.n, self.ring), np.int32)
         self.row_hi = np.zeros((self.n, self.ring), np.int32)
         self.best = np.full((self.rows, self.ring), -1.0, np.float32)
-        # the running minimum of every curve (its floor, for the curve's width), kept for
-        # the accumulating methods only (see track_low)
-        self.low = np.full((self.rows, self.ring) if method in STREAMING_METHODS and
-                           uncertainty else (0, 0), np.inf, np.float32)
+        # the running minimum of every curve (its floor, for the curve's width)
+        self.low = np.full(plane if self.track_low else (0, 0), np.inf, np.float32)
         self.tex = np.zeros((self.rows, self.ring), np.float32)
         self.y0: int | None = None  # world row of accumulator row 0
         self.next_u: int | None = None  # first internal column not yet reduced
@@ -315,12 +315,11 @@ class FocusVolume:
         """Add level ``level``'s values ``fm`` to the sums (streaming methods) and the running
         maximum, argmax and texture of a region.
 
-        OpenCV arithmetic in place on the (strided) views: one pass each, about 4x faster
-        than numpy on strided 2-D views, done in strips of rows (about 512 KiB of ``fm``)
-        so that a strip is still in cache for its next pass: about 2x faster than whole
-        regions, which are memory bound. Ties keep the lowest level, as
-        :func:`sffscan.stages.depth.depth_from_focus`'s argmax does: a later frame of a lower level
-        (the staircase wrapped while the column was in view) wins a tie.
+        OpenCV arithmetic in place on the (strided) views (about 4x faster than numpy's), in
+        strips of rows (about 512 KiB of ``fm``) still in cache for their next pass (about
+        2x faster than whole regions, which are memory bound). Ties keep the lowest level, as
+        :func:`~sffscan.stages.depth_levels.first_argmax` does: a later frame of a lower
+        level (the staircase wrapped while the column was in view) wins a tie.
         """
         if fm.strides[1] != 4:
             fm = np.ascontiguousarray(fm, dtype=np.float32)
@@ -396,16 +395,14 @@ class FocusVolume:
 
         Returns
         -------
-        x0, y0 : int
-            World position of the block's first column and row, px.
-        height_um, texture, confidence : ndarray, float32, (rows, u1 - u0)
-            NaN height / texture and zero confidence where a pixel's curve lacks levels.
-        complete : int
-            Number of columns seen at all N levels.
-        uncertainty_um : ndarray, float32, (rows, u1 - u0)
-            The height's uncertainty, µm, one sigma
-            (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`: the depth's
-            scatter is measured within the block, replicated at its edges); NaN invalid.
+        BlockResult
+            ``x0``, ``y0``: world position of the block's first column and row, px;
+            ``height_um``, ``texture``, ``confidence``: float32 (rows, u1 - u0), NaN height
+            and texture and zero confidence where a pixel's curve lacks levels;
+            ``complete``: columns seen at all N levels; ``uncertainty_um``: the height's
+            uncertainty, µm, one sigma, NaN where invalid
+            (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`; the depth's
+            scatter measured within the block, replicated at its edges).
         """
         assert self.y0 is not None
         a0 = max(u0 - self.halo, self.first_u)

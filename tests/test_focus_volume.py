@@ -241,3 +241,12 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     core &= np.roll(complete, 3) & np.roll(complete, -3)
     assert core.sum() > 50
     np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4)
+
+
+@pytest.mark.parametrize("method", ["window_pc", "gauss_window_fit", "wavr"])
+def test_refuses_a_method_the_scan_does_not_run(method: str) -> None:
+    """Only the scan's methods: the study's candidates read beyond a block's halo (window_pc
+    pools the curve widths over 11 x 11 px), so a block's depth would depend on its edges."""
+    with pytest.raises(ValueError, match=f"method must be one of .*got '{method}'"):
+        FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                    method=method)
