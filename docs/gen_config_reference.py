@@ -36,6 +36,13 @@ also checks the torch device, the output and `--record` paths, the memory the pi
 needs, the simulated world and the transport keys; `sffscan scan --config FILE --check`
 runs those checks alone.
 
+Each table's fields are listed by group (the parts the table is composed of in
+`sffscan.pipeline.config_groups`): **what is measured** decides the mosaic's values (a
+resume refuses a mosaic made with others); **how it runs** places and feeds the stages
+and names the output; **the simulator's own parameters** (`source.kind = "sim"`) describe
+the simulated world, lens and stage, which a real instrument does not have. The files keep
+every key in its table, as every configuration of format version 1 has it.
+
 Columns: the TOML key, its type, its default ("(not set)": no value, the meaning says
 what is used then), the accepted range and the field's description from the model.
 """
@@ -50,20 +57,66 @@ def _resolve(schema: dict[str, Any], prop: dict[str, Any]) -> dict[str, Any] | N
     return sub if sub.get("properties") else None
 
 
-def _sections(schema: dict[str, Any], obj: dict[str, Any], prefix: str) -> list[str]:
+def _parts(model: Any) -> list[Any]:
+    """The parts a table's model is composed of (classes that name their group), in the
+    order of the table's fields; empty for a table that is not made of parts."""
+    return [cls for cls in reversed(getattr(model, "__mro__", ()))
+            if cls.__dict__.get("group") is not None]
+
+
+def _table(obj: dict[str, Any], names: Any) -> str:
+    props = {k: obj["properties"][k] for k in names}
+    required = [k for k in obj.get("required", []) if k in props]
+    return field_table({"properties": props, "required": required})
+
+
+def _sections(schema: dict[str, Any], obj: dict[str, Any], prefix: str,
+              model: Any = None) -> list[str]:
+    from sffscan.pipeline.config_groups import GROUP_TITLES
+
     out: list[str] = []
     plain = {k: v for k, v in obj["properties"].items() if _resolve(schema, v) is None}
     if plain:
         title = f"`[{prefix}]`" if prefix else "Top level"
-        required = [k for k in obj.get("required", []) if k in plain]
-        doc = obj.get("description", "")
-        table = field_table({"properties": plain, "required": required})
-        out.append(f"## {title}\n\n" + (f"{doc}\n\n" if doc and prefix else "") + table + "\n")
+        doc = obj.get("description", "").replace("``", "`")
+        text = f"## {title}\n\n" + (f"{doc}\n\n" if doc and prefix else "")
+        parts = _parts(model)
+        loose = set(plain) - {k for part in parts for k in part.model_fields}
+        if parts and loose:  # a field declared on the table itself has no group
+            raise ValueError(f"[{prefix}] {sorted(loose)}: not in any part of "
+                             f"sffscan.pipeline.config_groups")
+        if parts:
+            for part in parts:
+                head = (part.__doc__ or "").strip().splitlines()[0].replace("``", "`")
+                head = "" if len(parts) == 1 else f"{head}\n\n"  # the table's own doc
+                text += (f"### {GROUP_TITLES[part.group]}\n\n{head}"
+                         + _table(obj, part.model_fields) + "\n\n")
+            out.append(text.rstrip("\n") + "\n")
+        else:
+            out.append(text + _table(obj, plain) + "\n")
+    fields = getattr(model, "model_fields", {})
     for key, prop in obj["properties"].items():
         sub = _resolve(schema, prop)
         if sub is not None:
-            out += _sections(schema, sub, f"{prefix}.{key}" if prefix else key)
+            inner = fields[key].annotation if key in fields else None
+            out += _sections(schema, sub, f"{prefix}.{key}" if prefix else key, inner)
     return out
+
+
+def _by_group(model: Any) -> str:
+    """The overview: each group's fields, table by table."""
+    from sffscan.pipeline.config_groups import GROUP_TITLES
+
+    rows: dict[str, list[str]] = {group: [] for group in GROUP_TITLES}
+    for table, info in model.model_fields.items():
+        for part in _parts(info.annotation):
+            keys = ", ".join(f"`{k}`" for k in part.model_fields)
+            rows[part.group].append(f"`[{table}]` {keys}")
+    lines = ["## Settings by group", ""]
+    lines += [f"- **{GROUP_TITLES[g]}**: " + "; ".join(r) + "." for g, r in rows.items()]
+    lines.append("- **Hardware drivers** (`source.kind = \"camera\"`, `daq.kind`): "
+                 "`[camera]`, `[daq]`.")
+    return "\n".join(lines) + "\n"
 
 
 def render() -> str:
@@ -71,7 +124,8 @@ def render() -> str:
     from sffscan.pipeline.config import ScanConfig
 
     schema = ScanConfig.model_json_schema()
-    return INTRO + "\n" + "\n".join(_sections(schema, schema, ""))
+    return (INTRO + "\n" + _by_group(ScanConfig) + "\n"
+            + "\n".join(_sections(schema, schema, "", ScanConfig)))
 
 
 def main(argv: list[str] | None = None) -> int:

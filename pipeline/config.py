@@ -1,8 +1,12 @@
-"""Scan configuration: typed models, TOML loading and feasibility checks.
+"""Scan configuration: the file's tables, TOML loading and writing, feasibility checks.
 
-A configuration has five tables: ``[source]``, ``[optics]``, ``[motion]``,
-``[processing]`` and ``[output]`` (see README, "Configuration reference"). Every error
-names the field, for example ``optics.pixel_um``.
+A configuration has the tables ``[source]``, ``[optics]``, ``[motion]``, ``[processing]``,
+``[output]``, ``[camera]`` and ``[daq]`` (docs/configuration.md, generated from these
+models). Each table is composed of parts from :mod:`sffscan.pipeline.config_groups`, one
+per group of settings: what is measured, how it runs, the simulator's own parameters
+(``[optics]`` = the instrument's :class:`~sffscan.pipeline.config_groups.Optics` + the
+simulated lens, :class:`~sffscan.pipeline.config_groups.SimLens`). Every error names the
+field, for example ``optics.pixel_um``.
 """
 
 from __future__ import annotations
@@ -13,83 +17,59 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError
+from sffscan.pipeline.config_groups import (
+    ConfigModel,
+    Execution,
+    Method,
+    Motion,
+    Optics,
+    Output,
+    SimLens,
+    SimMotion,
+    SimWorld,
+    SourceKind,
+    Transport,
+)
 from sffscan.pipeline.hardware.config import CameraConfig, DaqConfig
+
+__all__ = [
+    "REALISTIC_OPTICS",
+    "ConfigError",
+    "MotionConfig",
+    "OpticsConfig",
+    "OutputConfig",
+    "ProcessingConfig",
+    "ScanConfig",
+    "SourceConfig",
+    "check_feasible",
+    "config_from_dict",
+    "config_to_toml",
+    "demo_config",
+    "load_config",
+    "max_speed_sliding_mm_s",
+    "max_speed_thesis_mm_s",
+    "pass_pitch_px",
+    "shift_per_frame_px",
+    "usable_width_px",
+]
 
 
 class ConfigError(ValueError):
     """An invalid or impossible configuration; the message names the field."""
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+# The tables of the file, each composed of parts (config_groups). A table lists its parts
+# last to first: pydantic orders the fields base class first, so the TOML keys follow the
+# parts' order.
 
 
-class SourceConfig(_Model):
-    kind: Literal["sim", "camera", "tcp"] = Field(
-        "sim", description="Frame source: 'sim' = simulated scanner, 'camera' = GenICam camera "
-        "([camera] table), 'tcp' = frames sent by 'sffscan grab' to source.address")
-    address: str = Field("tcp://127.0.0.1:5555", description="zmq address of 'sffscan grab' "
-                         "(tcp:// or ipc://), for kind 'tcp'")
-    idle_timeout_s: float = Field(
-        30.0, gt=0, le=86400, description="Transport: a sender silent this long after its first "
-        "frame has stopped; the stream ends there and the scan is 'incomplete', s")
-    max_bad_messages: int = Field(
-        100, ge=0, le=10**6, description="Transport: malformed or unauthenticated messages "
-        "refused (and counted) before the scan fails")
-    keys_dir: str | None = Field(
-        None, description="Transport beyond loopback: folder of the CURVE keys made by "
-        "'sffscan keys' (default $XDG_CONFIG_HOME/sffscan/keys, else ~/.config/sffscan/keys)")
-    seed: int = Field(0, ge=0, le=2**32 - 1,
-                      description="Seed of the simulated world texture and sensor noise")
-    world: Literal["plate", "sinusoid"] = Field(
-        "plate", description="Simulated world: characterisation plate or sinusoidal surface"
-    )
-    plate_length_mm: float = Field(60.0, gt=0, le=2000,
-                                   description="Length of the simulated plate, mm")
-    plate_width_mm: float = Field(9.0, gt=0, le=2000,
-                                  description="Width of the simulated plate, mm")
+class SourceConfig(SimWorld, Transport, SourceKind):
+    """The frame source, the network transport and the simulated world."""
 
 
-class OpticsConfig(_Model):
-    width_px: int = Field(1280, ge=32, le=65536, description="Frame width (along the motion), px")
-    height_px: int = Field(1024, ge=32, le=65536,
-                           description="Frame height (across the motion), px")
-    pixel_um: float = Field(8.5, gt=0, le=10000, description="Object-side pixel scale, µm/px")
-    n_levels: int = Field(50, ge=3, le=255, description="Focus levels N of the lens staircase")
-    z_min_um: float = Field(0.0, ge=-1e6, le=1e6, description="Height in focus at level 0, µm")
-    z_step_um: float = Field(200.0, gt=0, le=1e5,
-                             description="Height step between focus levels, µm")
-    fps: float = Field(150.0, gt=0, le=1e6, description="Camera frame rate, frames/s")
-    bit_depth: Literal[8, 10] = Field(10, description="8 -> uint8 frames, 10 -> 10-bit in uint16")
-    psf_s0_px: float = Field(0.6, ge=0, le=100, description="Sim: PSF sigma in focus, px")
-    psf_c_px_per_um: float = Field(0.004, gt=0, le=10,
-                                   description="Sim: PSF sigma growth, px per µm")
-    sigma_max_px: float = Field(16.0, gt=0, le=256,
-                                description="Sim: largest PSF sigma rendered, px")
-    noise_sigma: float = Field(0.005, ge=0, le=1, description="Sim: sensor noise std, full scale")
-    magnification_per_mm: float = Field(
-        0.0, gt=-0.1, lt=0.1, description="Sim: relative change of the magnification per mm of "
-        "focus height, about the optical centre (focus breathing), 1/mm; 0 = telecentric")
-    magnification_ref_um: float | None = Field(
-        None, ge=-1e6, le=1e6, description="Sim: focus height where the magnification is 1, "
-        "µm; default the middle of the focus range")
-    field_curvature_um: float = Field(
-        0.0, ge=-1e5, le=1e5, description="Sim: surface of best focus above the nominal focus "
-        "at the frame corner (quadratic in the radius from the centre), µm; 0 = flat field")
-    vignetting: float = Field(0.0, ge=0, lt=1, description="Sim: illumination lost at the "
-                              "frame corner (quadratic in the radius), fraction")
-
-    @property
-    def dtype(self) -> str:
-        return "uint8" if self.bit_depth == 8 else "uint16"
-
-    @property
-    def max_value(self) -> float:
-        return 255.0 if self.bit_depth == 8 else 1023.0
-
-    def focus_heights_um(self) -> list[float]:
-        return [self.z_min_um + k * self.z_step_um for k in range(self.n_levels)]
+class OpticsConfig(SimLens, Optics):
+    """The instrument's optics and the simulated lens."""
 
     def magnification_reference_um(self) -> float:
         """Focus height where the simulated magnification is 1, µm."""
@@ -98,101 +78,21 @@ class OpticsConfig(_Model):
         return self.z_min_um + 0.5 * (self.n_levels - 1) * self.z_step_um
 
 
-class MotionConfig(_Model):
-    speed_mm_s: float = Field(15.0, gt=0, le=10000, description="Stage speed, mm/s")
-    x_start_mm: float = Field(0.0, ge=-1e5, le=1e5,
-                              description="Start of the strip to cover completely, mm")
-    x_end_mm: float = Field(60.0, ge=-1e5, le=1e5,
-                            description="End of the strip to cover completely, mm")
-    y_start_mm: float = Field(0.0, ge=-1e5, le=1e5,
-                              description="World y of the first pass's first row, mm")
-    passes: int = Field(1, ge=1, le=10000, description="Parallel passes, stepped along y")
-    pass_overlap: float = Field(0.15, ge=0, lt=1, description="Pass overlap, fraction")
-    serpentine: bool = Field(True, description="Alternate the direction of successive passes")
-    wobble_along_px: float = Field(0.0, ge=0, le=1000, description="Sim: wobble along, ±px")
-    wobble_across_px: float = Field(0.0, ge=0, le=1000, description="Sim: wobble across, ±px")
-    wobble_period_mm: float = Field(2.0, gt=0, le=1e5,
-                                    description="Sim: wobble period, mm of travel")
+class MotionConfig(SimMotion, Motion):
+    """The stage's travel and the simulated stage's wobble."""
 
 
-class ProcessingConfig(_Model):
-    focus_operator: Literal[
-        "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
-        "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
-        "lapm", "lapv", "sfil", "sfrq", "teng", "tenv", "tenv_std", "vola", "vols", "wavr",
-        "wavs", "wavv",
-    ] = Field("glvm", description="Focus measure operator: an acronym of Pertuz's toolbox "
-              "(focusmeasure.m), any case")
-    window: int = Field(9, ge=3, le=255, description="Focus measure window k (odd), px")
-    depth_method: Literal["argmax", "gauss3", "quadratic3", "centroid", "pc", "spc",
-                          "wcentroid", "adaptive"] = Field(
-        "adaptive", description="Focus curve -> depth method (adaptive: about the "
-        "median-filtered peak, the curve's maximum (3-point Gaussian) where the filtered "
-        "peaks span <= 2 levels over the focus window, else the centroid of 11 levels)"
-    )
-    median_size: int = Field(11, ge=3, le=255, description="SPC median filter size (odd), px")
-    registration: bool = Field(True, description="Refine speed offsets by phase correlation")
-    registration_scale: int = Field(
-        4, ge=1, le=16, description="Image reduction for registration (4 = quarter resolution)")
-    backend: Literal["opencv", "torch"] = Field("opencv", description="Focus measure backend")
-    device: str = Field("cpu", description="Torch device for backend 'torch' (cpu, cuda, ...)")
-    calibration: str | None = Field(
-        None, description="Calibration file (JSON, 'sffscan calibrate'): its z response maps "
-        "focus levels to µm in place of optics.z_min_um + k * optics.z_step_um; its "
-        "vignetting and magnification per level are corrected in the frames, its field "
-        "curvature in the heights")
-    queue_capacity: int = Field(8, ge=1, le=4096, description="Capacity of every inter-stage queue")
-    block_columns: int = Field(128, ge=1, le=65536, description="Columns reduced to depth at once")
-    execution: Literal["auto", "threads", "processes"] = Field(
-        "auto", description="How the stages run: 'processes' = groups of stages in worker "
-        "processes with frames in shared memory (uses several cores), 'threads' = one "
-        "process (debugging, tiny scans), 'auto' = processes for scans of at least 2e8 "
-        "pixels on a machine with 2 or more cores")
-
-    @field_validator("focus_operator", mode="before")
-    @classmethod
-    def _lower(cls, v: object) -> object:
-        return v.lower() if isinstance(v, str) else v
-
-    @field_validator("window", "median_size")
-    @classmethod
-    def _odd(cls, v: int) -> int:
-        if v % 2 == 0:
-            raise ValueError(f"must be odd, got {v}")
-        return v
-
-    @property
-    def focus_reach_px(self) -> int:
-        """How far the frame border reaches into the focus measure, px.
-
-        GLVM filters twice with the k x k box (reach 2 * (k // 2)); TENV is a 3 x 3 Sobel
-        then the box (reach k // 2 + 1); every operator's reach is
-        :func:`sffscan.stages.operators.operator_reach`. Columns and rows closer to the
-        border than this see the padded border and are not used.
-        """
-        from sffscan.stages.operators import operator_reach  # torch-free
-
-        return operator_reach(self.focus_operator, self.window)
-
-    @property
-    def edge_margin_px(self) -> int:
-        """Frame border the scan plan leaves unused, px.
-
-        The focus measure's reach + 1, plus 2 px when registration is on: the focus volume
-        keeps every pixel beyond the reach, so a frame that registration places up to 3 px
-        off (measured: at most 2 px without any wobble) still covers the planned strip at
-        every focus level.
-        """
-        return self.focus_reach_px + 1 + (2 if self.registration else 0)
+class ProcessingConfig(Execution, Method):
+    """The measuring method, and where and how the stages compute."""
 
 
-class OutputConfig(_Model):
-    path: str = Field("sffscan-mosaic.zarr", description="Zarr v3 group of the height mosaic")
-    chunk_px: int = Field(256, ge=16, le=16384, description="Chunk edge of the mosaic arrays, px")
-    overwrite: bool = Field(False, description="Replace an existing mosaic at path")
+class OutputConfig(Output):
+    """The Zarr store of the height mosaic."""
 
 
-class ScanConfig(_Model):
+class ScanConfig(ConfigModel):
+    """A scan: what is measured, how it runs, and the simulator's parameters."""
+
     version: Literal[1] = Field(1, description="Configuration format version")
     source: SourceConfig = Field(default_factory=lambda: SourceConfig())
     optics: OpticsConfig = Field(default_factory=lambda: OpticsConfig())

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import typing
 from pathlib import Path
 
 import pytest
 from sffscan.pipeline.config import (
     ConfigError,
+    ProcessingConfig,
+    ScanConfig,
     config_from_dict,
     config_to_toml,
     demo_config,
@@ -15,6 +18,7 @@ from sffscan.pipeline.config import (
     max_speed_thesis_mm_s,
     shift_per_frame_px,
 )
+from sffscan.pipeline.config_groups import ConfigModel
 from sffscan.pipeline.formats.schema_gen import check_schemas
 from sffscan.pipeline.plan import frame_count, pass_bounds_px, plan_frames, scan_extent_px
 
@@ -91,3 +95,116 @@ def test_plan_covers_the_strip_and_stays_in_extent() -> None:
 def test_schemas_match_the_models() -> None:
     stale = check_schemas(SCHEMA_DIR)
     assert stale == [], f"schemas out of date: {stale}; run 'sffscan schemas'"
+
+
+# Format version 1 as users' files hold it: the groups of settings (what is measured, how
+# it runs, the simulator's own) are a split of the code and the docs, not of the file.
+V1_KEYS = {
+    "source": {"kind", "address", "idle_timeout_s", "max_bad_messages", "keys_dir", "seed",
+               "world", "plate_length_mm", "plate_width_mm"},
+    "optics": {"width_px", "height_px", "pixel_um", "n_levels", "z_min_um", "z_step_um", "fps",
+               "bit_depth", "psf_s0_px", "psf_c_px_per_um", "sigma_max_px", "noise_sigma",
+               "magnification_per_mm", "magnification_ref_um", "field_curvature_um",
+               "vignetting"},
+    "motion": {"speed_mm_s", "x_start_mm", "x_end_mm", "y_start_mm", "passes", "pass_overlap",
+               "serpentine", "wobble_along_px", "wobble_across_px", "wobble_period_mm"},
+    "processing": {"focus_operator", "window", "depth_method", "median_size", "registration",
+                   "registration_scale", "backend", "device", "calibration", "queue_capacity",
+                   "block_columns", "execution"},
+    "output": {"path", "chunk_px", "overwrite"},
+}
+
+V1_FILE = """\
+version = 1
+[source]
+kind = "sim"
+seed = 7
+world = "sinusoid"
+[optics]
+width_px = 640
+height_px = 256
+n_levels = 20
+psf_s0_px = 0.7
+noise_sigma = 0.01
+magnification_per_mm = 0.002
+field_curvature_um = 150.0
+vignetting = 0.2
+[motion]
+x_end_mm = 20.0
+speed_mm_s = 5.0
+wobble_along_px = 1.5
+wobble_period_mm = 3.0
+[processing]
+focus_operator = "TENV"
+depth_method = "spc"
+backend = "opencv"
+calibration = "cal.json"
+queue_capacity = 4
+execution = "threads"
+[output]
+path = "m.zarr"
+"""
+
+
+def test_a_version_1_file_loads_with_every_key_where_it_was(tmp_path: Path) -> None:
+    cfg = ScanConfig()
+    for table, keys in V1_KEYS.items():
+        assert set(type(getattr(cfg, table)).model_fields) == keys, table
+    path = tmp_path / "v1.toml"
+    path.write_text(V1_FILE, encoding="utf-8")
+    cfg = load_config(path)
+    assert (cfg.source.seed, cfg.source.world) == (7, "sinusoid")
+    assert (cfg.optics.psf_s0_px, cfg.optics.noise_sigma, cfg.optics.vignetting) == (
+        0.7, 0.01, 0.2)
+    assert (cfg.optics.magnification_per_mm, cfg.optics.field_curvature_um) == (0.002, 150.0)
+    assert (cfg.motion.wobble_along_px, cfg.motion.wobble_period_mm) == (1.5, 3.0)
+    p = cfg.processing
+    assert (p.focus_operator, p.depth_method, p.calibration, p.queue_capacity, p.execution) == (
+        "tenv", "spc", "cal.json", 4, "threads")
+    assert load_config(_written(tmp_path, config_to_toml(cfg))) == cfg
+
+
+def _written(folder: Path, text: str) -> Path:
+    path = folder / "again.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_choices_of_operator_and_depth_method_are_the_registries() -> None:
+    from sffscan.stages.depth import DEPTH_METHODS
+    from sffscan.stages.operators import FOCUS_OPERATORS
+
+    fields = ProcessingConfig.model_fields
+    assert typing.get_args(fields["focus_operator"].annotation) == tuple(FOCUS_OPERATORS)
+    assert typing.get_args(fields["depth_method"].annotation) == tuple(DEPTH_METHODS)
+    for name in FOCUS_OPERATORS:
+        assert config_from_dict({"processing": {"focus_operator": name.upper()}}
+                                ).processing.focus_operator == name
+
+
+def _parts(table: object) -> list[type[ConfigModel]]:
+    """The parts a table is composed of, in the order of its fields."""
+    assert isinstance(table, type) and issubclass(table, ConfigModel)
+    return [cls for cls in reversed(table.__mro__)
+            if issubclass(cls, ConfigModel) and cls.__dict__.get("group") is not None]
+
+
+def test_every_field_of_a_table_is_in_exactly_one_group() -> None:
+    composed = 0
+    for info in ScanConfig.model_fields.values():
+        table = info.annotation
+        if not (isinstance(table, type) and issubclass(table, ConfigModel)):
+            continue  # version; [camera] and [daq] (pipeline.hardware.config)
+        names = [k for part in _parts(table) for k in part.model_fields]
+        assert names == list(table.model_fields), table.__name__  # each once, in order
+        composed += 1
+    assert composed == 5
+
+
+def test_what_a_resume_may_change_is_how_it_runs() -> None:
+    from sffscan.pipeline.run import RUN_ONLY
+
+    tables = {k: v.annotation for k, v in ScanConfig.model_fields.items()}
+    for table, name in RUN_ONLY:
+        owner = next(p for p in _parts(tables[table]) if name in p.model_fields)
+        assert owner.group == "execution", f"{table}.{name}"
