@@ -161,18 +161,21 @@ def test_protocol_reports_the_uncertainty_coverage() -> None:
     t = leave_one_family_out(families=fams, seeds=1, size_px=32)
     assert set(t.coverage) == set(fams) and set(t.uncertainty_fit) == {*fams, "all"}
     assert all(0.0 <= c <= 1.0 for c in t.coverage.values())
-    from sffscan.stages.depth_study import SCATTER_GRID, WIDTH_GRID, format_coverage
+    from sffscan.stages.depth_study import format_coverage
 
-    for a, b in t.uncertainty_fit.values():
-        assert a in SCATTER_GRID and b in WIDTH_GRID
+    for a, c in t.uncertainty_fit.values():
+        assert 0.1 - 1e-9 <= a <= 100.0 + 1e-9 and 1e-4 - 1e-9 <= c <= 10.0 + 1e-9
     assert format_coverage(t).count("\n") == len(fams) + 2
 
 
 def test_depth_uncertainty_known_answers() -> None:
     from sffscan.stages.depth_uncertainty import (
+        MIX_SCALE,
         depth_scatter,
         depth_uncertainty,
+        floor_share,
         uncertainty_um,
+        width_excess,
     )
 
     smooth = np.add.outer(np.arange(40.0), np.arange(40.0)) * 0.1  # a plane: no scatter
@@ -182,30 +185,98 @@ def test_depth_uncertainty_known_answers() -> None:
     s = depth_scatter(noisy)
     assert 0.3 < float(np.median(s)) < 0.7  # about the noise (the median takes a little)
     width = np.full(smooth.shape, 4.0)
-    sig = depth_uncertainty(noisy, width, scatter_scale=2.0, width_scale=0.5)
-    np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + 2.0**2), rtol=1e-5)
+    clean = np.zeros(smooth.shape)  # curves on a zero floor
+    sig = depth_uncertainty(noisy, width, clean, scatter_scale=2.0, floor_levels=0.1)
+    np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + 0.1**2), rtol=1e-5)
+    # a curve twice as wide as those about it (a window that sees two heights)
+    wide = width.copy()
+    wide[20, 20] = 8.0
+    x = width_excess(wide, clean, window=9)
+    mean = (8.0 + 360 * 4.0) / 361  # the mean width over 19 x 19 px
+    assert x[20, 20] == pytest.approx(math.sqrt(64.0 - mean**2), rel=1e-4)
+    assert x[0, 0] == 0.0 and x[20, 21] == 0.0  # narrower than the mean: no excess
+    sig = depth_uncertainty(smooth, wide, clean, scatter_scale=2.0, floor_levels=0.0)
+    assert sig[20, 20] == pytest.approx(MIX_SCALE * x[20, 20], rel=1e-4)
+    # half the mass in the floor: the width tells the noise, no excess counted
+    assert width_excess(wide, np.full(smooth.shape, 0.5), window=9).max() == 0.0
+    np.testing.assert_allclose(width_excess(wide, np.full(smooth.shape, 0.25), window=9),
+                               x * 0.5, rtol=1e-6)
+    np.testing.assert_allclose(floor_share(np.array([10.0, 0.0, 4.0]),
+                                           np.array([0.5, 0.0, 0.0]), 10), [0.5, 1.0, 0.0])
     um = uncertainty_um(np.ones((1, 3)), np.array([[0.2, 1.5, 9.0]]),
                         focus_heights_um=np.array([0.0, 10.0, 30.0]))
     np.testing.assert_allclose(um, [[10.0, 20.0, 20.0]])
 
 
+def test_height_uncertainty_from_sums_matches_the_volume_path() -> None:
+    """The streaming form (sums and minima) gives the whole-volume form's sigma, in µm."""
+    from sffscan.stages.depth import focus_sums
+    from sffscan.stages.depth_uncertainty import (
+        curve_width,
+        depth_uncertainty,
+        floor_share,
+        height_uncertainty_um,
+    )
+    from sffscan.stages.focus_measure import focus_measure
+
+    s = family_stack("steps", 0, size_px=48, n_levels=30)
+    vol = focus_measure(s.images, window=9)
+    d = depth_from_focus(vol, method="adaptive")[0]
+    sums = focus_sums(vol)
+    want = depth_uncertainty(d, curve_width(vol), floor_share(sums[0], vol.min(axis=0), 30))
+    got = height_uncertainty_um(d, sums, vol.min(axis=0), n_levels=30,
+                                focus_heights_um=s.focus_um)
+    np.testing.assert_allclose(got, want * 10.0, rtol=2e-3, atol=1e-3)
+
+
+def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
+    """Leave one family out at a small scale: the constants fitted on the training seeds of
+    four families give 90 .. 98 % of |error| <= 2 sigma on held-out seeds of a fifth: steps,
+    whose large errors are at the terraces' edges, where the depth map shows no scatter
+    (the scatter and width model of 681dca9 fitted without steps covered 0.79 .. 0.90;
+    the protocol's figure with 3 + 3 seeds of 64 px: docs/depth-study.md)."""
+    from sffscan.stages.depth_study import (
+        fit_uncertainty,
+        uncertainty_coverage,
+        uncertainty_sample,
+    )
+    from sffscan.stages.focus_measure import focus_measure
+
+    def sample(name: str, seed: int) -> object:
+        s = family_stack(name, seed, size_px=64)
+        vol = focus_measure(s.images, window=9)
+        mask = np.zeros(s.truth_um.shape, bool)
+        mask[4:-4, 4:-4] = True
+        return uncertainty_sample(vol, s.truth_um / 10.0, mask)
+
+    train = [[sample(f, seed) for seed in (0, 1)]
+             for f in ("even-gauss", "lens-gauss", "pillbox", "ends")]
+    a, c = fit_uncertainty(train)  # type: ignore[arg-type]
+    held = [sample("steps", seed) for seed in (3, 4, 5)]
+    share = uncertainty_coverage(held, a, c)  # type: ignore[arg-type]
+    print(f"fit without steps: a={a:.3f} c={c:.4f}; steps seeds 3-5: {share:.3f}")
+    assert 0.90 <= share <= 0.98
+
+
 def test_uncertainty_covers_held_out_errors_of_a_noisy_family() -> None:
-    """The shipped constants on seeds the fit never saw (seeds 10, 11): between 85 % and
-    100 % of the pixels within 2 sigma (the protocol's figure for this family: 0.94)."""
-    from sffscan.stages.depth_uncertainty import curve_width, depth_uncertainty
+    """The shipped constants on seeds the fit never saw (seeds 10, 11): between 90 % and
+    98 % of the pixels within 2 sigma."""
+    from sffscan.stages.depth import focus_sums
+    from sffscan.stages.depth_uncertainty import height_uncertainty_um
     from sffscan.stages.focus_measure import focus_measure
 
     inside = []
     for seed in (10, 11):
-        s = family_stack("even-gauss", seed)
+        s = family_stack("even-noisy", seed)
         vol = focus_measure(s.images, window=9)
         d = depth_from_focus(vol, method="adaptive")[0]
-        sig = depth_uncertainty(d, curve_width(vol))
-        err = np.abs(d - s.truth_um / 10.0)[4:-4, 4:-4]
+        sig = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0),
+                                    n_levels=vol.shape[0], focus_heights_um=s.focus_um)
+        err = np.abs(d * 10.0 - s.truth_um)[4:-4, 4:-4]
         inside.append(err <= 2 * sig[4:-4, 4:-4])
     share = float(np.mean(inside))
-    print(f"even-gauss seeds 10, 11: {share:.3f} within 2 sigma")
-    assert 0.85 <= share <= 1.0
+    print(f"even-noisy seeds 10, 11: {share:.3f} within 2 sigma")
+    assert 0.90 <= share <= 0.98
 
 
 def test_a_depth_block_crosses_processes_with_its_uncertainty() -> None:
