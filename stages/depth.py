@@ -108,7 +108,8 @@ class FocusCurves:
     volume: np.ndarray
     """(N, H, W) float32, finite."""
     moments: np.ndarray
-    """(4, H, W) float64: H_0, sum k y, Re H_1, Im H_1 (:func:`curve_moments`)."""
+    """(4, H, W) float64: H_0, sum k y, Re H_1, Im H_1
+    (:func:`~sffscan.stages.depth_harmonics.curve_moments`)."""
     argmax: np.ndarray | None
     """(H, W) intp, each curve's first maximum; None for a method that does not use it."""
     median_size: int
@@ -125,6 +126,7 @@ class Estimator(NamedTuple):
 
     depth: Callable[[FocusCurves], np.ndarray]
     uses_argmax: bool = True
+    """Reads each curve's argmax (given to :func:`depth_from_focus` or computed there)."""
     candidate: bool = False
     """A candidate of the study (:mod:`sffscan.stages.depth_study`): selectable by
     :func:`depth_from_focus`, not by scan, replay or stack."""
