@@ -12,9 +12,16 @@ import pytest
 import scipy.stats
 import x3pio
 from sffscan.pipeline.cli.main import main
-from sffscan.pipeline.formats.exports import read_region, write_ply, write_x3p
+from sffscan.pipeline.formats.exports import (
+    X3P_UNCERTAINTY_ID,
+    read_ply,
+    read_region,
+    read_x3p_uncertainty,
+    write_ply,
+    write_x3p,
+)
 from sffscan.pipeline.metrology.areal import areal_parameters, level_surface
-from sffscan.stages.mosaic import MosaicWriter
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 
 PX = 8.5
 ORIGIN = (300, 40)
@@ -26,6 +33,8 @@ def mosaic(tmp_path: Path) -> tuple[Path, np.ndarray, np.ndarray]:
     h = rng.uniform(100.0, 900.0, (30, 40)).astype(np.float32)
     t = rng.uniform(0.0, 1.0, (30, 40)).astype(np.float32)
     h[3, 4] = h[10:12, 20:25] = np.nan
+    u = rng.uniform(0.5, 9.0, (30, 40)).astype(np.float32)
+    u[5, 6] = np.nan  # a measured height whose uncertainty is not known
     path = tmp_path / "m.zarr"
     w = MosaicWriter(path, origin_px=ORIGIN, shape=h.shape, pixel_um=PX,
                      attrs={"focus_heights_um": [0.0, 500.0, 1000.0],
@@ -33,23 +42,31 @@ def mosaic(tmp_path: Path) -> tuple[Path, np.ndarray, np.ndarray]:
     ok = np.isfinite(h)
     wt = ok.astype(np.float32)
     w.write_region(*ORIGIN, {"height": np.where(ok, h, 0) * wt, "texture": t * wt,
-                             "weight": wt, "confidence": wt})
+                             "weight": wt, "confidence": wt, "uncertainty": u * wt})
     w.set_status("complete")
     return path, np.where(ok, h, np.nan), np.where(ok, t, np.nan)
 
 
+def _uncertainty_of(path: Path) -> np.ndarray:
+    import zarr
+
+    return np.asarray(zarr.open_group(str(path), mode="r")["uncertainty"])
+
+
 def _parse_ply(path: Path) -> tuple[list[str], np.ndarray]:
-    """Independent minimal reader: header lines, then (n, 6) float64 rows x y z r g b."""
+    """Independent minimal reader: header lines, then (n, 6) float64 rows x y z r g b, and
+    a 7th column, the uncertainty (µm), when the header declares it."""
     data = path.read_bytes()
     head, body = data.split(b"end_header\n", 1)
     lines = head.decode("ascii").splitlines()
     n = int(next(line for line in lines if line.startswith("element vertex")).split()[-1])
-    rec = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"),
-                    ("b", "u1")])
-    assert len(body) == n * 15
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+    if lines[-1] == "property float uncertainty_um":
+        fields.append(("u", "<f4"))
+    rec = np.dtype(fields)
+    assert len(body) == n * rec.itemsize
     arr = np.frombuffer(body, rec)
-    return lines, np.column_stack([arr[k] for k in ("x", "y", "z", "r", "g", "b")]
-                                  ).astype(np.float64)
+    return lines, np.column_stack([arr[k] for k in rec.names]).astype(np.float64)
 
 
 def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
@@ -58,7 +75,8 @@ def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path)
     info = write_ply(out, path, band_rows=7)  # several bands
     lines, v = _parse_ply(out)
     assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
-    assert lines[-3:] == ["property uchar red", "property uchar green", "property uchar blue"]
+    assert lines[-4:] == ["property uchar red", "property uchar green", "property uchar blue",
+                          "property float uncertainty_um"]
     rows, cols = np.nonzero(np.isfinite(h))
     assert info["points"] == rows.size == v.shape[0] and info["no_texture"] == 0
     np.testing.assert_allclose(v[:, 0], (ORIGIN[0] + cols) * PX / 1000, rtol=1e-6)
@@ -66,6 +84,29 @@ def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path)
     np.testing.assert_allclose(v[:, 2], h[rows, cols] / 1000, rtol=1e-6)
     for c in (3, 4, 5):
         np.testing.assert_array_equal(v[:, c], np.rint(t[rows, cols] * 255))
+    u = _uncertainty_of(path)
+    np.testing.assert_allclose(v[:, 6], u[rows, cols], rtol=1e-6)  # µm, NaN kept
+    assert np.isnan(v[:, 6]).sum() == 1 and any("uncertainty_um in um" in x for x in lines)
+    rec, _ = read_ply(out)
+    np.testing.assert_array_equal(rec["uncertainty_um"], v[:, 6].astype(np.float32))
+
+
+def test_exports_of_a_mosaic_without_an_uncertainty(
+        mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
+    """A mosaic of format 3 (no uncertainty array): the PLY has no such property and the x3p
+    no such file."""
+    import shutil
+
+    path, h, _ = mosaic
+    shutil.rmtree(path / "uncertainty")
+    out = tmp_path / "old.ply"
+    write_ply(out, path)
+    lines, v = _parse_ply(out)
+    assert v.shape == (int(np.isfinite(h).sum()), 6) and lines[-1] == "property uchar blue"
+    assert read_ply(out)[0].dtype.names[-1] == "blue"
+    assert write_x3p(tmp_path / "old.x3p", path)["uncertainty"] == 0
+    assert read_x3p_uncertainty(tmp_path / "old.x3p") is None
+    assert read_region(path).uncertainty_um is None
 
 
 def test_trimesh_loads_the_ply_with_colours(mosaic: tuple[Path, np.ndarray, np.ndarray],
@@ -105,7 +146,8 @@ def test_x3p_export_reads_back(mosaic: tuple[Path, np.ndarray, np.ndarray],
     path, h, _ = mosaic
     out = tmp_path / "a.x3p"
     info = write_x3p(out, path)
-    assert info == {"rows": 30, "cols": 40, "missing": int(np.isnan(h).sum())}
+    assert info == {"rows": 30, "cols": 40, "missing": int(np.isnan(h).sum()),
+                    "uncertainty": 1}
     with zipfile.ZipFile(out) as archive:  # ISO 25178-72 container: main.xml + binary data
         assert "main.xml" in archive.namelist()
     f = x3pio.read(out)  # checks the MD5 checksums too
@@ -119,6 +161,13 @@ def test_x3p_export_reads_back(mosaic: tuple[Path, np.ndarray, np.ndarray],
     assert f.metadata is not None
     assert f.metadata.probing_system.type == x3pio.ProbingType.NON_CONTACTING
     assert json.loads(f.metadata.comment or "{}")["processing"] == {"mode": "test"}
+    # the uncertainty: a vendor-specific file the standard lets a reader ignore
+    assert list(f.extensions) == [X3P_UNCERTAINTY_ID]
+    u = read_x3p_uncertainty(out)
+    assert u is not None and u.shape == z.shape
+    want = _uncertainty_of(path).astype(np.float64) * 1e-6
+    np.testing.assert_array_equal(np.isnan(u), np.isnan(want))
+    np.testing.assert_allclose(u[np.isfinite(u)], want[np.isfinite(want)], rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- areal

@@ -7,17 +7,28 @@ finite height are exported; missing pixels are not filled:
 - PLY (binary little-endian): one vertex per finite pixel, ``float x, y, z`` in **mm** and
   ``uchar red, green, blue`` = round(255 * texture) each (the all-in-focus grey as a colour
   that point-cloud tools such as trimesh, open3d, CloudCompare and MeshLab show; 0 where the
-  texture is missing, counted). Units are in the header's comments. Written band by band,
-  so memory stays bounded for any region.
+  texture is missing, counted), then, for a mosaic with an ``uncertainty`` array (format 4
+  and later), ``float uncertainty_um``: the height's uncertainty, µm, one sigma, NaN where
+  it is not known (PLY allows any number of named vertex properties; tools that do not know
+  one carry or ignore it: CloudCompare shows it as a scalar field). Units are in the
+  header's comments. Written band by band, so memory stays bounded for any region.
 - x3p (ISO 25178-72, through the ``x3pio`` library): a surface on the regular grid of the
   region, heights in metres (float64), NaN = not measured; x and y increments = the pixel
   size; the placement's offset is the world position (x, y) of the region's first pixel.
   Metadata names sffscan as the instrument (non-contacting probing: shape from focus) and
-  keeps the processing settings in the comment.
+  keeps the processing settings in the comment. The format has no field for a per-point
+  uncertainty: its data matrix holds heights only (several layers of a surface are several
+  height maps, which readers would take for heights), and Record2 describes the instrument,
+  not each point. What it does allow is vendor-specific files in the container, registered in
+  ``main.xml`` by a ``VendorSpecificID`` (Amd 1:2020: one per file) and ignored by software
+  that does not know the ID. The uncertainty goes there: :data:`X3P_UNCERTAINTY_ID`, a NumPy
+  ``.npy`` file of float64, metres, one sigma, shaped and ordered as the height matrix
+  (rows = y), NaN where unknown. Generic x3p viewers show the heights only.
 """
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,12 +36,13 @@ from typing import Any
 
 import numpy as np
 import zarr
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
-from sffscan.stages.mosaic import mosaic_array
+from sffscan.pipeline.mosaic.attrs import MosaicAttrs
+from sffscan.pipeline.mosaic.layout import mosaic_array
 
-__all__ = ["EXPORT_MAX_BYTES", "MosaicRegion", "PLY_DTYPE", "check_export_size",
+__all__ = ["EXPORT_MAX_BYTES", "MosaicRegion", "PLY_DTYPE", "PLY_UNCERTAINTY_DTYPE",
+           "X3P_UNCERTAINTY_ID", "X3P_VENDOR", "check_export_size",
            "check_scan_exports", "export_bytes", "read_ply", "read_region", "region_box",
-           "trust_problems", "check_trust", "write_ply", "write_x3p"]
+           "trust_problems", "check_trust", "read_x3p_uncertainty", "write_ply", "write_x3p"]
 
 #: the most memory a whole-region export (areal parameters, x3p) may plan to use, bytes;
 #: a larger region is refused with its size named (give --region)
@@ -44,6 +56,9 @@ PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), (
 """Record layout of a PLY vertex as written here (15 bytes, little-endian)."""
 _PLY_PROPS = [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "red"),
               ("uchar", "green"), ("uchar", "blue")]
+PLY_UNCERTAINTY_DTYPE = np.dtype([*PLY_DTYPE.descr, ("uncertainty_um", "<f4")])
+"""Record layout of a PLY vertex of a mosaic with an uncertainty (19 bytes)."""
+_PLY_UNC_PROPS = [*_PLY_PROPS, ("float", "uncertainty_um")]
 #: the first exports' layout (a ``grey`` property that point-cloud tools ignore), still read
 PLY_GREY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("grey", "u1")])
 
@@ -58,6 +73,8 @@ class MosaicRegion:
     y0_px: int
     pixel_um: float
     attrs: dict[str, Any]
+    uncertainty_um: np.ndarray | None = None
+    """Height uncertainty, µm, one sigma (NaN: not known); None for a mosaic without one."""
 
 
 def _open(path: str | Path) -> tuple[zarr.Group, MosaicAttrs]:
@@ -100,9 +117,17 @@ def read_region(path: str | Path, region_px: tuple[int, int, int, int] | None = 
     x0, y0, x1, y1 = region_box(path, region_px)
     ox, oy = attrs.origin_px
     sel = (slice(y0 - oy, y1 - oy), slice(x0 - ox, x1 - ox))
+    unc = _uncertainty(group)
     return MosaicRegion(np.asarray(mosaic_array(group, "height")[sel]),
                         np.asarray(mosaic_array(group, "texture")[sel]),
-                        x0, y0, attrs.pixel_um, attrs.model_dump(mode="json"))
+                        x0, y0, attrs.pixel_um, attrs.model_dump(mode="json"),
+                        None if unc is None else np.asarray(unc[sel]))
+
+
+def _uncertainty(group: zarr.Group) -> zarr.Array | None:
+    """The mosaic's ``uncertainty`` array; None for a mosaic written before it existed."""
+    node = group.get("uncertainty")
+    return node if isinstance(node, zarr.Array) else None
 
 
 def export_bytes(rows: int, cols: int) -> int:
@@ -154,7 +179,7 @@ def trust_problems(path: str | Path) -> list[str]:
     band write, a resume not finished), a writer still at work or gone without a final
     status. Empty for a mosaic that is not ours (a TIFF, an array), checked elsewhere."""
     from sffscan.pipeline import locks
-    from sffscan.stages.mosaic import tile_states
+    from sffscan.pipeline.mosaic.reader import tile_states
 
     try:
         fmt = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.get("format")
@@ -200,22 +225,29 @@ def check_trust(paths: list[str | Path], *, allow: bool = False) -> None:
 # ----------------------------------------------------------------------------- PLY
 
 
-def _ply_header(count: int, comment: str) -> bytes:
+def _ply_header(count: int, comment: str, *, uncertainty: bool = False) -> bytes:
+    units = "comment units: x y z in mm, red green blue 0..255 (the texture's grey)"
+    if uncertainty:
+        units += ", uncertainty_um in um (the height's, one sigma; nan: not known)"
     lines = ["ply", "format binary_little_endian 1.0", "comment sffscan height mosaic export",
-             "comment units: x y z in mm, red green blue 0..255 (the texture's grey)"]
+             units]
     lines += [f"comment {c}" for c in comment.splitlines() if c]
-    lines += [f"element vertex {count}", "property float x", "property float y",
-              "property float z", "property uchar red", "property uchar green",
-              "property uchar blue", "end_header"]
+    lines += [f"element vertex {count}"]
+    lines += [f"property {t} {n}" for t, n in (_PLY_UNC_PROPS if uncertainty else _PLY_PROPS)]
+    lines += ["end_header"]
     # PLY headers are ASCII: other characters (a mosaic named "Prüfkörper") are escaped
     return ("\n".join(lines) + "\n").encode("ascii", errors="backslashreplace")
 
 
 def ply_vertices(height_um: np.ndarray, texture: np.ndarray, *, x0_px: int, y0_px: int,
-                 pixel_um: float) -> np.ndarray:
-    """PLY records (:data:`PLY_DTYPE`) of the finite pixels of a (rows, cols) block."""
+                 pixel_um: float, uncertainty_um: np.ndarray | None = None) -> np.ndarray:
+    """PLY records of the finite pixels of a (rows, cols) block: :data:`PLY_DTYPE`, or
+    :data:`PLY_UNCERTAINTY_DTYPE` with ``uncertainty_um`` (rows, cols) given."""
     rows, cols = np.nonzero(np.isfinite(height_um))
-    out = np.empty(rows.size, dtype=PLY_DTYPE)
+    out = np.empty(rows.size, dtype=PLY_DTYPE if uncertainty_um is None
+                   else PLY_UNCERTAINTY_DTYPE)
+    if uncertainty_um is not None:
+        out["uncertainty_um"] = uncertainty_um[rows, cols]
     mm = pixel_um / 1000.0
     out["x"] = (x0_px + cols) * mm
     out["y"] = (y0_px + rows) * mm
@@ -252,6 +284,7 @@ def write_ply(path: str | Path, mosaic: str | Path,
     x0, y0, x1, y1 = region_box(mosaic, region_px)
     ox, oy = attrs.origin_px
     height, texture = mosaic_array(group, "height"), mosaic_array(group, "texture")
+    unc = _uncertainty(group)
     bands = [(r, min(r + band_rows, y1)) for r in range(y0, y1, band_rows)]
     cs = slice(x0 - ox, x1 - ox)
     count = sum(int(np.isfinite(np.asarray(height[a - oy:b - oy, cs])).sum()) for a, b in bands)
@@ -262,11 +295,13 @@ def write_ply(path: str | Path, mosaic: str | Path,
     part = out.with_name(out.name + ".part")  # renamed when whole: no half-written PLY
     try:
         with open(part, "wb") as f:
-            f.write(_ply_header(count, comment))
+            f.write(_ply_header(count, comment, uncertainty=unc is not None))
             for a, b in bands:
                 h = np.asarray(height[a - oy:b - oy, cs])
                 t = np.asarray(texture[a - oy:b - oy, cs])
-                rec = ply_vertices(h, t, x0_px=x0, y0_px=a, pixel_um=attrs.pixel_um)
+                u = None if unc is None else np.asarray(unc[a - oy:b - oy, cs])
+                rec = ply_vertices(h, t, x0_px=x0, y0_px=a, pixel_um=attrs.pixel_um,
+                                   uncertainty_um=u)
                 no_tex += int((~np.isfinite(t[np.isfinite(h)])).sum())
                 written += rec.size
                 f.write(rec.tobytes())
@@ -280,8 +315,9 @@ def write_ply(path: str | Path, mosaic: str | Path,
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
-    """Read a binary little-endian PLY of :data:`PLY_DTYPE` vertices (as written here; the
-    first exports' :data:`PLY_GREY_DTYPE` too).
+    """Read a binary little-endian PLY of :data:`PLY_DTYPE` or
+    :data:`PLY_UNCERTAINTY_DTYPE` vertices (as written here; the first exports'
+    :data:`PLY_GREY_DTYPE` too).
 
     Returns the records and the header lines.
     """
@@ -296,6 +332,8 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
     props = [tuple(line.split()[1:]) for line in header if line.startswith("property")]
     if props == _PLY_PROPS:
         dtype = PLY_DTYPE
+    elif props == _PLY_UNC_PROPS:
+        dtype = PLY_UNCERTAINTY_DTYPE
     elif props == [("float", "x"), ("float", "y"), ("float", "z"), ("uchar", "grey")]:
         dtype = PLY_GREY_DTYPE
     else:
@@ -307,6 +345,14 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
 
 
 # ----------------------------------------------------------------------------- x3p
+
+X3P_VENDOR = "https://sffscan.invalid"
+"""The vendor part of sffscan's ``VendorSpecificID``: the project owns no domain, and
+``.invalid`` (RFC 2606) is one that no other vendor can own."""
+X3P_UNCERTAINTY_FILE = "height_uncertainty.npy"
+X3P_UNCERTAINTY_ID = f"{X3P_VENDOR}/{X3P_UNCERTAINTY_FILE}"
+"""``VendorSpecificID`` of the height uncertainty in an x3p file (an ``.npy`` file, float64
+metres, one sigma, the height matrix's shape)."""
 
 
 def _version() -> str:
@@ -322,7 +368,12 @@ def write_x3p(path: str | Path, mosaic: str | Path,
               region_px: tuple[int, int, int, int] | None = None) -> dict[str, int]:
     """Write a mosaic region as an ISO 25178-72 x3p surface (via ``x3pio``).
 
-    Returns ``rows``, ``cols`` and ``missing`` (NaN, "not measured", points).
+    The height's uncertainty, where the mosaic has one, as the vendor-specific file
+    :data:`X3P_UNCERTAINTY_ID` (see the module: the format has no per-point uncertainty
+    field; :func:`read_x3p_uncertainty` reads it back).
+
+    Returns ``rows``, ``cols``, ``missing`` (NaN, "not measured", points) and
+    ``uncertainty`` (1 when the file carries it, else 0).
     """
     import x3pio
     from x3pio import CoordinateSystem, Metadata, Placement, ProbingType
@@ -344,7 +395,28 @@ def write_x3p(path: str | Path, mosaic: str | Path,
                                "processing": region.attrs.get("processing", {})},
                               ensure_ascii=True, sort_keys=True)
     placement = Placement.translation(region.x0_px * px_m, region.y0_px * px_m, 0.0)
-    x3pio.write(path, z_m, x_scale=px_m, y_scale=px_m, metadata=meta, placement=placement,
-                coordinate_system=CoordinateSystem.VIEW)
+    surface = x3pio.Surface.from_array(z_m, x_scale=px_m, y_scale=px_m, metadata=meta,
+                                       placement=placement,
+                                       coordinate_system=CoordinateSystem.VIEW)
+    if region.uncertainty_um is not None:
+        buf = io.BytesIO()
+        np.save(buf, region.uncertainty_um.astype("<f8") * 1e-6, allow_pickle=False)
+        surface.extensions.add(X3P_VENDOR, X3P_UNCERTAINTY_FILE, buf.getvalue())
+    surface.save(path)
     return {"rows": int(z_m.shape[0]), "cols": int(z_m.shape[1]),
-            "missing": int((~np.isfinite(z_m)).sum())}
+            "missing": int((~np.isfinite(z_m)).sum()),
+            "uncertainty": int(region.uncertainty_um is not None)}
+
+
+def read_x3p_uncertainty(path: str | Path) -> np.ndarray | None:
+    """The height uncertainty (metres, one sigma, (rows, cols) float64, NaN: not known) of an
+    x3p file written by :func:`write_x3p`; None when the file carries none."""
+    import x3pio
+
+    ext = x3pio.read(path).extensions
+    if X3P_UNCERTAINTY_ID not in ext:
+        return None
+    data = ext[X3P_UNCERTAINTY_ID]
+    if data is None:
+        raise ValueError(f"{path}: {X3P_UNCERTAINTY_ID} names no file")
+    return np.asarray(np.load(io.BytesIO(data), allow_pickle=False), dtype=np.float64)
