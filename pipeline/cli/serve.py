@@ -128,6 +128,7 @@ def _start_agent(args: argparse.Namespace, service: Any, stop: threading.Event
     bridge = ServiceBridge(service)
     agent = MoonrakerAgent(args.moonraker, on_layer=bridge.layer,
                            on_finished=lambda outcome: bridge.end(outcome),
+                           recording_of=bridge.recording_of,
                            api_key=_read_secret(args.moonraker_api_key_file,
                                                 "SFFSCAN_MOONRAKER_API_KEY"))
 

@@ -1,6 +1,7 @@
 """Raw-stream recordings: the format (a Zarr v3 group) and a validating reader.
 
-Layout (format ``sffscan-recording``, version 4; schema ``schemas/recording_attrs.v1.json``):
+Layout (format ``sffscan-recording``, version 4, or 5 once the printer's motion queue is
+added; schema ``schemas/recording_attrs.v1.json``):
 
 - ``frames``: uint8 or uint16 (n, H, W), one frame per chunk; version 3 names the chunks of
   ``frames`` and ``headers`` with the separator ``.`` (``frames/c.i.0.0``, every chunk in the
@@ -18,6 +19,11 @@ Layout (format ``sffscan-recording``, version 4; schema ``schemas/recording_attr
 - ``stage_x_um``, ``stage_y_um``: float64 (n,), commanded stage position, µm; NaN = none
   (optional arrays: without them frames are placed by the speed model);
 - ``pass_index``: int32 (n,) (optional when the configuration has one pass);
+- ``trapq`` (version 5): float64 (m, 10), the printer's motion queue over the scan
+  (Klipper's ``motion_report/dump_trapq``, columns :data:`TRAPQ_COLUMNS`), with the
+  attribute ``motion_queue`` (:class:`MotionQueue`: the frames' clock and the stage
+  origin); added to a closed version-4 recording, it places the frames in a replay
+  (:mod:`~sffscan.pipeline.formats.recording_motion`);
 - group attributes (:class:`RecordingAttrs`): format, version, status, frame shape and dtype,
   the whole scan configuration and (version 4) ``recording_id``, a uuid4 drawn when the
   recording is created (:func:`read_recording_id`).
@@ -58,7 +64,8 @@ from sffscan.stages.messages import FrameHeader
 if TYPE_CHECKING:
     from sffscan.pipeline.formats.recording_reader import Recording, open_recording
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "PER_FRAME", "META_CHUNK", "GROW", "HEADER_COLUMNS",
+__all__ = ["FORMAT", "FORMAT_VERSION", "TRAPQ_COLUMNS", "FrameClock", "MotionQueue",
+           "PER_FRAME", "META_CHUNK", "GROW", "HEADER_COLUMNS",
            "BASE_COLUMNS", "RecordingAttrs", "RecordingError", "RecordingReport", "Recording",
            "open_recording", "header_row", "read_recording_id", "chunk_keys_from",
            "annotate_mosaic"]
@@ -88,14 +95,58 @@ BASE_COLUMNS = 6
 RECORDING_ID_PATTERN = r"^[0-9a-f]{32}$"
 
 
+#: columns of the ``trapq`` array (version 5): one row per segment of Klipper's
+#: trapezoidal motion queue (``motion_report/dump_trapq``: time, duration, start_velocity,
+#: acceleration, start_position (x, y, z), direction (x, y, z))
+TRAPQ_COLUMNS = ("print_time_s", "duration_s", "start_v_mm_s", "accel_mm_s2", "start_x_mm",
+                 "start_y_mm", "start_z_mm", "dir_x", "dir_y", "dir_z")
+
+
+class FrameClock(BaseModel):
+    """How a frame's time stamp maps to the printer's print time:
+    ``print_time_s = print_time_s_at + rate * (timestamp_ns - timestamp_ns_at) * 1e-9``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    timestamp_ns_at: int = Field(description="A frame time stamp of the anchor, ns")
+    print_time_s_at: float = Field(description="The printer's print time at that instant, s")
+    rate: float = Field(1.0, gt=0.5, lt=2.0, description="Print-time seconds per time-stamp "
+                        "second (clock rate ratio; 1 unless measured)")
+    how: str = Field("", description="Where the anchor comes from, e.g. 'trigger': the first "
+                     "frame exposed at the trigger pin's edge, the start of the raster's "
+                     "first move")
+
+
+class MotionQueue(BaseModel):
+    """The printer's motion queue stored with a recording (array ``trapq``, version 5)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    source: str = Field("klipper motion_report/dump_trapq", description="Where the rows "
+                        "come from")
+    name: str = Field("toolhead", description="The motion queue's name (Klipper's trapq)")
+    columns: tuple[str, ...] = Field(TRAPQ_COLUMNS, description="Columns of 'trapq'")
+    segments: int = Field(ge=1, description="Rows of the array 'trapq'")
+    start_s: float = Field(description="Print time the rows cover from, s")
+    end_s: float = Field(description="Print time the rows cover up to, s")
+    clock: FrameClock
+    stage_origin_mm: tuple[float, float] = Field(
+        description="Printer (x, y) at which the stage position is (0, 0), mm: "
+        "stage_x_um = axis_sign[0] * (x_mm - stage_origin_mm[0]) * 1000, likewise y")
+    axis_sign: tuple[Literal[-1, 1], Literal[-1, 1]] = Field(
+        (1, 1), description="Sign of the stage axes against the printer's x and y")
+
+
 class RecordingAttrs(BaseModel):
     """Attributes of a raw-stream recording Zarr group (format ``sffscan-recording``)."""
 
     model_config = ConfigDict(extra="forbid")
 
     format: Literal["sffscan-recording"] = "sffscan-recording"
-    format_version: Literal[1, 2, 3, 4] = Field(
-        4, description="4: as 3, with a recording_id and each frame's header copy holding "
+    format_version: Literal[1, 2, 3, 4, 5] = Field(
+        4, description="5: as 4, with the printer's motion queue over the scan (array "
+        "'trapq' and attribute 'motion_queue'; added after the scan, a replay places the "
+        "frames by it); 4: as 3, with a recording_id and each frame's header copy holding "
         "its array index and a digest of its pixels bound to the index and the id; "
         "3: as 2, with the chunks of 'frames' and 'headers' named 'c.i.0.0' "
         "(zarr's default chunk key encoding with the separator '.', every chunk in the "
@@ -123,6 +174,9 @@ class RecordingAttrs(BaseModel):
     fsync_s: float | None = Field(
         None, ge=0, description="The recorder made its data and metadata durable (fsync) at "
         "least this often, s: a power cut loses at most this much of the stream")
+    motion_queue: MotionQueue | None = Field(
+        None, description="The printer's motion queue over the scan (version 5): how the "
+        "rows of the array 'trapq' map to the frames' time stamps and stage positions")
 
 
 class RecordingError(ValueError):
@@ -289,7 +343,7 @@ def read_recording_id(path: str | Path) -> str | None:
 
 def annotate_mosaic(path: str | Path, rec: Recording) -> None:
     """Record in a mosaic's attributes which recording it was replayed from."""
-    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
+    from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 
     group = zarr.open_group(str(path), mode="r+")
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(),

@@ -22,6 +22,7 @@ from sffscan.pipeline.formats.recording import (
     GROW,
     HEADER_COLUMNS,
     PER_FRAME,
+    MotionQueue,
     RecordingAttrs,
     RecordingError,
     RecordingReport,
@@ -38,6 +39,7 @@ from sffscan.pipeline.formats.recording_checks import (
     stored_extent,
     timestamp_defects,
 )
+from sffscan.pipeline.formats.recording_motion import read_motion_queue, stage_positions_um
 from sffscan.pipeline.formats.zarr_chunks import read_many
 from sffscan.stages.messages import Frame, FrameHeader
 
@@ -135,6 +137,11 @@ class Recording:
     #: array indexes of the usable frames, in replay (frame_id) order
     order: np.ndarray
     meta: dict[str, np.ndarray]
+    #: the printer's motion queue (version 5, unless opened with ``motion=False``) and the
+    #: stage (x, y) µm it gives each entry (NaN: not a usable frame); it wins over the
+    #: positions in the headers
+    motion: MotionQueue | None = None
+    motion_xy_um: np.ndarray | None = None
 
     @property
     def recording_id(self) -> str | None:
@@ -175,9 +182,13 @@ class Recording:
                     "swapped with or copied over another)")
         return None
 
-    def header(self, index: int) -> FrameHeader:
+    def header(self, index: int, *, recorded: bool = False) -> FrameHeader:
+        """The header of the frame at array ``index``: its stage position from the motion
+        queue when there is one, unless ``recorded`` (the header as recorded)."""
         m = self.meta
         sx, sy = float(m["stage_x_um"][index]), float(m["stage_y_um"][index])
+        if self.motion_xy_um is not None and not recorded:
+            sx, sy = (float(v) for v in self.motion_xy_um[index])
         return FrameHeader(frame_id=int(m["frame_id"][index]),
                            timestamp_ns=int(m["timestamp_ns"][index]),
                            focus_index=int(m["focus_index"][index]),
@@ -251,7 +262,7 @@ class Recording:
         if headers is not None and headers.ndim == 2:
             bad: list[int] = []
             for index in self.order:
-                want = header_row(self.header(int(index)))
+                want = header_row(self.header(int(index), recorded=True))
                 try:
                     got = np.asarray(headers[int(index)], dtype=np.int64)
                 except Exception:  # noqa: BLE001 - undecodable or truncated chunk
@@ -268,15 +279,21 @@ class Recording:
         return self.report.corrupt[before:] + self.report.misplaced[before_misplaced:]
 
 
-def open_recording(path: str | Path) -> Recording:
+def open_recording(path: str | Path, *, motion: bool = True) -> Recording:
     """Open and validate a recording.
+
+    ``motion``: place the frames by the printer's motion queue when the recording has one
+    (version 5, :mod:`~sffscan.pipeline.formats.recording_motion`); False ignores it (the
+    headers' stage positions, a note says so).
 
     Raises
     ------
     RecordingError
         The path is not a recording, an attribute is invalid, the ``frames`` array or a
         required per-frame array is missing, the frames' shape or dtype disagrees with the
-        attributes or the configuration, or no frame is usable.
+        attributes or the configuration, or no frame is usable; the motion queue is
+        malformed or does not cover a usable frame's time (``MotionQueueError``, naming the
+        frame).
     """
     p = Path(path)
     where = str(p)
@@ -441,8 +458,12 @@ def open_recording(path: str | Path) -> Recording:
     report.time_backwards, report.time_jumps = timestamp_defects(sorted_ids, ts, o.fps)
     # a frame without a stage position is placed by the speed model from its time stamp:
     # with a wrong one it would land elsewhere (or stop the scan as moving backwards)
+    queue = read_motion_queue(group, attrs, where) if motion else None
+    if attrs.format_version >= 5 and not motion:
+        report.notes.append("the printer's motion queue is ignored (motion=False): frames "
+                            "are placed by their headers")
     wrong = set(report.time_backwards) | set(report.time_jumps)
-    drop = np.array([int(i) in wrong and np.isnan(meta["stage_x_um"][k])
+    drop = np.array([int(i) in wrong and (queue is not None or np.isnan(meta["stage_x_um"][k]))
                      for i, k in zip(sorted_ids, order, strict=True)], dtype=bool)
     if drop.any():
         report.time_left_out = [int(i) for i in sorted_ids[drop]]
@@ -454,4 +475,10 @@ def open_recording(path: str | Path) -> Recording:
         if order.size == 0:
             raise RecordingError(f"{where}: no usable frame (every time stamp is wrong)")
     report.duration_s = float(ts.max() - ts.min()) * 1e-9
-    return Recording(p, attrs, cfg, report, group, order, meta)
+    xy = None
+    if queue is not None:
+        xy = np.full((n, 2), np.nan)
+        xy[order] = stage_positions_um(queue[0], queue[1], ts, frame_ids=sorted_ids,
+                                       where=f"{where}/trapq")
+    return Recording(p, attrs, cfg, report, group, order, meta,
+                     None if queue is None else queue[1], xy)

@@ -25,8 +25,11 @@ import re
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+from sffscan.pipeline.formats.recording import RecordingError
+from sffscan.pipeline.printjob.links_trapq import TrapqStream, attach_trapq, bridge_url
 from sffscan.pipeline.printjob.service import (
     JobEnd,
     JobService,
@@ -113,6 +116,14 @@ class ServiceBridge:
                 reason = f"layer {rec.layer} verdict {rec.verdict}: {rec.reason or 'no reason'}"
         return action, reason, reply
 
+    def recording_of(self, reply: LayerReply) -> Path | None:
+        """The raw recording of a replied layer (beside its scan's output), if there is one."""
+        out = reply.record.output
+        if not out or reply.repeated:
+            return None
+        path = Path(self.service.store) / reply.job_id / Path(out).parent / "recording.zarr"
+        return path if path.is_dir() else None
+
     def end(self, outcome: str, *, reason: str = "") -> None:
         job_id, self.job_id = self.job_id, None
         if job_id is None:
@@ -138,16 +149,30 @@ class MoonrakerAgent:
         Moonraker API key (for a connection that is not a trusted client).
     timeout_s : float
         Longest wait for Moonraker's answer to identify / register, s.
+    recording_of : callable, optional
+        ``reply -> path or None``: the layer's raw recording (:meth:`ServiceBridge.
+        recording_of`). With it, the agent subscribes to Klipper's motion queue through
+        Moonraker's bridge websocket (``trapq_url``, default beside ``url``) and stores
+        the queue over each layer's scan with its recording
+        (:func:`~sffscan.pipeline.printjob.links_trapq.attach_trapq`); without the bridge
+        (no Klippy, an older Moonraker) the layers are scanned as before and a warning says
+        why.
     """
 
     def __init__(self, url: str, *, on_layer: Callable[[dict[str, Any]], tuple[str, str, Any]],
                  on_finished: Callable[[str], None] | None = None, api_key: str | None = None,
-                 timeout_s: float = 10.0) -> None:
+                 timeout_s: float = 10.0,
+                 recording_of: Callable[[LayerReply], Path | None] | None = None,
+                 trapq_url: str | None = None) -> None:
         self.url = url
         self.on_layer = on_layer
         self.on_finished = on_finished
         self.api_key = api_key
         self.timeout_s = timeout_s
+        self.recording_of = recording_of
+        self.trapq_url = trapq_url or bridge_url(url)
+        self.trapq: TrapqStream | None = None
+        self.trapq_notes: list[str] = []  # why a layer has no motion queue, per layer
         self._ids = itertools.count(1)
         self.sent: list[dict[str, Any]] = []  # what the agent asked of Moonraker, in order
 
@@ -180,7 +205,6 @@ class MoonrakerAgent:
     def run(self, stop: threading.Event) -> None:
         """Connect, identify, register, then serve calls until ``stop`` is set or the
         connection closes."""
-        from websockets.exceptions import ConnectionClosed
         from websockets.sync.client import connect
 
         with connect(self.url, open_timeout=self.timeout_s,
@@ -192,15 +216,58 @@ class MoonrakerAgent:
             self._call(ws, "server.connection.identify", ident)
             self._call(ws, "connection.register_remote_method", {"method_name": METHOD})
             log.info("moonraker agent registered %s at %s", METHOD, self.url)
-            while not stop.is_set():
-                try:
-                    raw = ws.recv(timeout=0.5)  # wakes to see ``stop``
-                except TimeoutError:
-                    continue
-                except ConnectionClosed:
-                    log.warning("moonraker closed the connection")
-                    return
+            if self.recording_of is not None:
+                self._subscribe_trapq()
+            try:
+                self._serve(ws, stop)
+            finally:
+                if self.trapq is not None:
+                    self.trapq.close()
+                    self.trapq = None
+
+    def _subscribe_trapq(self) -> None:
+        try:
+            self.trapq = TrapqStream(self.trapq_url, timeout_s=self.timeout_s).start()
+        except Exception as err:  # noqa: BLE001 - no bridge: positions from the headers
+            self.trapq = None
+            note = (f"no motion queue from {self.trapq_url} ({type(err).__name__}: {err}); "
+                    "frames keep the scanner's positions")
+            self.trapq_notes.append(note)
+            log.warning("%s", note)
+
+    def _serve(self, ws: Any, stop: threading.Event) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        while not stop.is_set():
+            try:
+                raw = ws.recv(timeout=0.5)  # wakes to see ``stop``
+            except TimeoutError:
+                continue
+            except ConnectionClosed:
+                log.warning("moonraker closed the connection")
+                return
+            try:
                 self._handle(ws, json.loads(raw))
+            except ConnectionClosed:  # closed while the agent answered
+                log.warning("moonraker closed the connection before the answer was sent")
+                return
+
+    def _store_trapq(self, reply: LayerReply, params: dict[str, Any]) -> None:
+        """The motion queue over the layer's scan, into its recording (after the printer
+        was answered: it never holds the print)."""
+        if self.trapq is None or self.recording_of is None:
+            return
+        path = self.recording_of(reply)
+        region = params.get("region")
+        if path is None or not region:
+            return
+        try:
+            attach_trapq(path, self.trapq, region_start_mm=(float(region[0]),
+                                                            float(region[1])))
+        except (RecordingError, OSError, ValueError) as err:
+            note = f"layer {reply.record.layer}: no motion queue stored: {err}"
+            self.trapq_notes.append(note)
+            log.warning("%s", note)
 
     def _handle(self, ws: Any, msg: dict[str, Any]) -> None:
         method = msg.get("method")
@@ -217,6 +284,7 @@ class MoonrakerAgent:
                 self._send(ws, "connection.send_event",
                            {"event": "sffscan_verdict", "data": reply.record.model_dump()},
                            want_id=False)
+                self._store_trapq(reply, params)
         elif method == "notify_history_changed":
             for item in msg.get("params") or []:
                 if isinstance(item, dict) and item.get("action") == "finished":
