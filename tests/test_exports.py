@@ -66,7 +66,7 @@ def _parse_ply(path: Path) -> tuple[list[str], np.ndarray]:
     rec = np.dtype(fields)
     assert len(body) == n * rec.itemsize
     arr = np.frombuffer(body, rec)
-    return lines, np.column_stack([arr[k] for k in rec.names]).astype(np.float64)
+    return lines, np.column_stack([arr[k] for k, _ in fields]).astype(np.float64)
 
 
 def test_ply_export(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path) -> None:
@@ -103,7 +103,7 @@ def test_exports_of_a_mosaic_without_an_uncertainty(
     write_ply(out, path)
     lines, v = _parse_ply(out)
     assert v.shape == (int(np.isfinite(h).sum()), 6) and lines[-1] == "property uchar blue"
-    assert read_ply(out)[0].dtype.names[-1] == "blue"
+    assert list(read_ply(out)[0].dtype.fields or {})[-1] == "blue"
     assert write_x3p(tmp_path / "old.x3p", path)["uncertainty"] == 0
     assert read_x3p_uncertainty(tmp_path / "old.x3p") is None
     assert read_region(path).uncertainty_um is None
