@@ -41,7 +41,8 @@ Each table's fields are listed by group (the parts the table is composed of in
 resume refuses a mosaic made with others); **how it runs** places and feeds the stages
 and names the output; **the simulator's own parameters** (`source.kind = "sim"`) describe
 the simulated world, lens and stage, which a real instrument does not have. The files keep
-every key in its table, as every configuration of format version 1 has it.
+every key in its table, as every configuration of format version 1 has it;
+`sffscan config` marks the groups within a table with comments.
 
 Columns: the TOML key, its type, its default ("(not set)": no value, the meaning says
 what is used then), the accepted range and the field's description from the model.
@@ -58,10 +59,12 @@ def _resolve(schema: dict[str, Any], prop: dict[str, Any]) -> dict[str, Any] | N
 
 
 def _parts(model: Any) -> list[Any]:
-    """The parts a table's model is composed of (classes that name their group), in the
-    order of the table's fields; empty for a table that is not made of parts."""
-    return [cls for cls in reversed(getattr(model, "__mro__", ()))
-            if cls.__dict__.get("group") is not None]
+    """The parts a table's model is composed of, in the order of its fields; empty for a
+    table not made of parts, or a plain value."""
+    from pydantic import BaseModel
+    from sffscan.pipeline.config_groups import parts_of
+
+    return parts_of(model) if isinstance(model, type) and issubclass(model, BaseModel) else []
 
 
 def _table(obj: dict[str, Any], names: Any) -> str:

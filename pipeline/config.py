@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationError
 from sffscan.pipeline.config_groups import (
+    GROUP_TITLES,
     ConfigModel,
     Execution,
     Method,
@@ -30,6 +31,7 @@ from sffscan.pipeline.config_groups import (
     SimWorld,
     SourceKind,
     Transport,
+    group_of,
 )
 from sffscan.pipeline.hardware.config import CameraConfig, DaqConfig
 
@@ -243,7 +245,13 @@ def config_to_toml(cfg: ScanConfig) -> str:
     out: list[str] = [f"version = {cfg.version}", ""]
     for name in ("source", "optics", "motion", "processing", "output", "camera", "daq"):
         out.append(f"[{name}]")
-        for key, value in getattr(cfg, name).model_dump().items():
+        table = getattr(cfg, name)
+        groups = group_of(type(table))
+        shown = None if len(set(groups.values())) > 1 else next(iter(groups.values()), None)
+        for key, value in table.model_dump().items():
+            if groups.get(key, shown) != shown:  # a comment where the group changes
+                shown = groups[key]
+                out.append(f"# -- {GROUP_TITLES[shown].lower()} --")
             if value is None:  # TOML has no null: an absent key takes the default (None)
                 out.append(f"# {key} = (not set)")
             elif isinstance(value, bool):

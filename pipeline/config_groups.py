@@ -51,6 +51,19 @@ class ConfigModel(BaseModel):
     """The group of settings a part holds; ``None`` for a table composed of parts."""
 
 
+def parts_of(table: type[BaseModel]) -> list[type[ConfigModel]]:
+    """The parts a table's model is composed of (the classes that name their group), in
+    the order of the table's fields; empty for a table not made of parts."""
+    return [cls for cls in reversed(table.__mro__)
+            if issubclass(cls, ConfigModel) and cls.__dict__.get("group") is not None]
+
+
+def group_of(table: type[BaseModel]) -> dict[str, Group]:
+    """The group of each field of a table made of parts, in the table's order."""
+    return {name: part.group for part in parts_of(table) if part.group is not None
+            for name in part.model_fields}
+
+
 # --- what is measured ---------------------------------------------------------------------
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 import typing
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from sffscan.pipeline.config import (
     max_speed_thesis_mm_s,
     shift_per_frame_px,
 )
-from sffscan.pipeline.config_groups import ConfigModel
+from sffscan.pipeline.config_groups import ConfigModel, parts_of
 from sffscan.pipeline.formats.schema_gen import check_schemas
 from sffscan.pipeline.plan import frame_count, pass_bounds_px, plan_frames, scan_extent_px
 
@@ -183,10 +184,8 @@ def test_choices_of_operator_and_depth_method_are_the_registries() -> None:
 
 
 def _parts(table: object) -> list[type[ConfigModel]]:
-    """The parts a table is composed of, in the order of its fields."""
     assert isinstance(table, type) and issubclass(table, ConfigModel)
-    return [cls for cls in reversed(table.__mro__)
-            if issubclass(cls, ConfigModel) and cls.__dict__.get("group") is not None]
+    return parts_of(table)
 
 
 def test_every_field_of_a_table_is_in_exactly_one_group() -> None:
@@ -208,3 +207,12 @@ def test_what_a_resume_may_change_is_how_it_runs() -> None:
     for table, name in RUN_ONLY:
         owner = next(p for p in _parts(tables[table]) if name in p.model_fields)
         assert owner.group == "execution", f"{table}.{name}"
+
+
+def test_a_written_file_marks_the_groups_and_loads_back() -> None:
+    text = config_to_toml(demo_config())
+    optics = text.split("[optics]\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    assert optics[0] == "# -- what is measured --"
+    assert optics[optics.index("# -- the simulator's own parameters --") + 1] == "psf_s0_px = 0.6"
+    assert "[output]\npath = " in text  # a table of one group: no comment
+    assert config_from_dict(tomllib.loads(text)) == demo_config()
