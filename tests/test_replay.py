@@ -12,7 +12,7 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
 from sffscan.pipeline.formats.recording import open_recording
-from sffscan.stages.mosaic import ARRAYS
+from sffscan.pipeline.mosaic.layout import ARRAYS
 
 from tests.scan_helpers import small_config
 from tests.test_recording import plain_recording
@@ -145,3 +145,32 @@ def test_info_on_a_mosaic_with_invalid_attributes_names_the_attribute(
     assert main(["info", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.zarr" in err and "attribute 'status'" in err
+
+
+def test_replay_places_the_frames_by_the_printers_motion_queue(live: tuple[Path, Path],
+                                                               tmp_path: Path) -> None:
+    """Format 5: the motion queue stored with the recording gives every frame's stage
+    position. A queue that reproduces the headers replays the live mosaic; one whose stage
+    origin is 4 px off moves the whole mosaic by 4 px (the queue wins)."""
+    import shutil
+
+    from sffscan.pipeline.formats.recording_motion import add_motion_queue, motion_queue_for
+
+    from tests.test_recording_motion import queue_of_headers
+
+    rec, mosaic = live
+    px = open_recording(rec).config.optics.pixel_um
+    want = _arrays(mosaic)
+    for dx_px in (0, 4):
+        copy = tmp_path / f"rec{dx_px}.zarr"
+        shutil.copytree(rec, copy)
+        seg, clock = queue_of_headers(copy)
+        add_motion_queue(copy, seg, motion_queue_for(
+            seg, clock=clock, stage_origin_mm=(-dx_px * px / 1000.0, 0.0)))
+        out = tmp_path / f"replay{dx_px}.zarr"
+        assert main(["replay", str(copy), "-o", str(out), "-q"]) == 0
+        got = _arrays(out)
+        h, w = got["height"], want["height"]
+        cols = np.flatnonzero(np.isfinite(w).any(axis=0))
+        a, b = cols[0] + 8, cols[-1] - 8  # away from the mosaic's ends
+        np.testing.assert_array_equal(h[:, a + dx_px:b + dx_px], w[:, a:b])
