@@ -169,6 +169,21 @@ def all_in_focus(stack: np.ndarray, volume: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- level <-> height
 
 
+def _focus_table(focus_heights_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The focus table as float64 and its steps, after the checks both mappings make."""
+    table = np.asarray(focus_heights_um, dtype=np.float64)
+    if table.ndim != 1 or table.size < 2:
+        raise ValueError(
+            f"focus_heights_um must be 1-D with at least 2 values, got shape {table.shape}"
+        )
+    if not np.isfinite(table).all():
+        raise ValueError("focus_heights_um must be finite")
+    step = np.diff(table)
+    if not ((step > 0).all() or (step < 0).all()):
+        raise ValueError("focus_heights_um must be strictly monotonic")
+    return table, step
+
+
 def levels_to_height(depth_levels: np.ndarray, *, focus_heights_um: np.ndarray) -> np.ndarray:
     """Map fractional focus levels to heights by piecewise-linear interpolation.
 
@@ -193,16 +208,7 @@ def levels_to_height(depth_levels: np.ndarray, *, focus_heights_um: np.ndarray) 
     ValueError
         If the table is not 1-D with at least 2 finite, strictly monotonic values.
     """
-    table = np.asarray(focus_heights_um, dtype=np.float64)
-    if table.ndim != 1 or table.size < 2:
-        raise ValueError(
-            f"focus_heights_um must be 1-D with at least 2 values, got shape {table.shape}"
-        )
-    if not np.isfinite(table).all():
-        raise ValueError("focus_heights_um must be finite")
-    step = np.diff(table)
-    if not ((step > 0).all() or (step < 0).all()):
-        raise ValueError("focus_heights_um must be strictly monotonic")
+    table, step = _focus_table(focus_heights_um)
     d = np.asarray(depth_levels, dtype=np.float64)
     finite = np.isfinite(d)
     i = np.clip(np.floor(np.where(finite, d, 0.0)), 0, table.size - 2).astype(np.intp)
@@ -225,14 +231,13 @@ def levels_from_heights(height_um: np.ndarray, *, focus_heights_um: np.ndarray
     -------
     ndarray of float64
         Levels, piecewise linear, extrapolated beyond both ends with the end segments.
+
+    Raises
+    ------
+    ValueError
+        As :func:`levels_to_height`.
     """
-    table = np.asarray(focus_heights_um, dtype=np.float64)
-    if table.ndim != 1 or table.size < 2:
-        raise ValueError(f"focus_heights_um must be 1-D with at least 2 values, got shape "
-                         f"{table.shape}")
-    step = np.diff(table)
-    if not ((step > 0).all() or (step < 0).all()):
-        raise ValueError("focus_heights_um must be strictly monotonic")
+    table, step = _focus_table(focus_heights_um)
     if step[0] < 0:
         table, step = table[::-1], -step[::-1]
         k = np.arange(table.size, dtype=np.float64)[::-1]

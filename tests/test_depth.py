@@ -18,6 +18,7 @@ from sffscan.stages.depth import (
     depth_from_harmonics,
     first_argmax,
     harmonic_table,
+    levels_from_heights,
     levels_to_height,
     median_filter_levels,
 )
@@ -288,6 +289,8 @@ def test_levels_to_height() -> None:
 def test_levels_to_height_rejects(table: list[float], match: str) -> None:
     with pytest.raises(ValueError, match=match):
         levels_to_height(np.zeros(3), focus_heights_um=np.array(table))
+    with pytest.raises(ValueError, match=match):  # the inverse checks the same table
+        levels_from_heights(np.zeros(3), focus_heights_um=np.array(table))
 
 
 def test_all_in_focus() -> None:
