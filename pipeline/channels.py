@@ -18,9 +18,10 @@ import threading
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from typing import Any
 
-from sffscan.pipeline.runtime import PipelineStopped, QueueStats, StageStats
+from sffscan.pipeline.runtime import PipelineStopped
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
 from sffscan.pipeline.spawn import WAIT_S
+from sffscan.pipeline.stats import QueueStats, StageStats
 from sffscan.pipeline.wire import decode, discard, encode
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 

@@ -59,14 +59,7 @@ from sffscan.pipeline.channels import (
 )
 from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
 from sffscan.pipeline.relays import AfterRelays, Relay, RelayRun, relay_of, relayed_sinks
-from sffscan.pipeline.runtime import (
-    Pipeline,
-    PipelineResult,
-    PipelineStopped,
-    StageFailed,
-    StageStats,
-    gc_frozen,
-)
+from sffscan.pipeline.runtime import Pipeline, PipelineStopped, StageFailed, gc_frozen
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,
@@ -74,6 +67,7 @@ from sffscan.pipeline.spawn import (
     join_or_kill,
     spawn_context,
 )
+from sffscan.pipeline.stats import PipelineResult, StageStats
 from sffscan.pipeline.worker import (
     INNER_CAPACITY,
     HostedSink,

@@ -3,7 +3,7 @@
 Each process runs its part of the chain with the thread runtime; a worker sends its own
 stages' and queues' figures in its report (:func:`~sffscan.pipeline.worker.worker_main`),
 the main process has the head's and the tail's. :func:`chain_queues` and
-:func:`process_result` give one :class:`~sffscan.pipeline.runtime.PipelineResult` in the
+:func:`process_result` give one :class:`~sffscan.pipeline.stats.PipelineResult` in the
 chain's order, with the names of the thread runtime: the channels between processes are
 the queues ``stage->next stage``, the channel stages (``recv:``, ``send:``) are left out,
 and a sink's figures come from where it ran (its own process, or the main process's
@@ -18,7 +18,7 @@ from typing import Any, Protocol
 
 from sffscan.pipeline.channels import ForwardSink, is_channel_stage, own_queues, own_stages
 from sffscan.pipeline.relays import RelayRun
-from sffscan.pipeline.runtime import PipelineResult, QueueStats, StageStats
+from sffscan.pipeline.stats import PipelineResult, QueueStats, StageStats
 from sffscan.pipeline.worker import INNER_CAPACITY, HostedSink, WorkerGroup
 from sffscan.stages.protocol import Sink, Stage
 

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, TextIO
 from tqdm import tqdm
 
 if TYPE_CHECKING:
-    from sffscan.pipeline.runtime import StageStats
+    from sffscan.pipeline.stats import StageStats
 
 __all__ = ["PLAIN_FORMAT", "SLOW_FORMAT", "ProgressDisplay", "ScanProgress", "is_terminal",
            "terminal_columns"]

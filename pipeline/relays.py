@@ -18,16 +18,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from sffscan.pipeline.channels import ForwardSink, RecvStage
-from sffscan.pipeline.runtime import (
-    Pipeline,
-    PipelineResult,
-    QueueStats,
-    StageStats,
-    offer_stats,
-    stats_snapshot,
-)
+from sffscan.pipeline.runtime import Pipeline, offer_stats
 from sffscan.pipeline.shm_ring import SlotPool
 from sffscan.pipeline.spawn import WAIT_S, call_factory
+from sffscan.pipeline.stats import PipelineResult, QueueStats, StageStats, stats_snapshot
 from sffscan.pipeline.wire import encode
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 

@@ -23,17 +23,21 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import copy
-import dataclasses
 import functools
 import gc
 import itertools
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
 from typing import Any
 
+from sffscan.pipeline.stats import (
+    PipelineResult,
+    QueueStats,
+    StageStats,
+    StatsSnapshot,
+    stats_snapshot,
+)
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage, Tapped
 from threadpoolctl import threadpool_limits
 
@@ -73,25 +77,6 @@ class StageFailed(RuntimeError):
         super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
         self.stage = stage
         self.cause = cause
-
-
-@dataclass
-class QueueStats:
-    name: str
-    capacity: int
-    policy: str
-    puts: int = 0
-    dropped: int = 0
-    max_fill: int = 0
-    fill_sum: int = 0
-
-    @property
-    def mean_fill(self) -> float:
-        return self.fill_sum / self.puts if self.puts else 0.0
-
-    def to_json(self) -> dict[str, Any]:
-        """The figures as JSON (``QueueStats(**d)`` rebuilds them: a worker's report)."""
-        return dataclasses.asdict(self)
 
 
 class BoundedQueue:
@@ -168,42 +153,6 @@ class BoundedQueue:
             return item
 
 
-@dataclass
-class StageStats:
-    name: str
-    unit: str = "frames"
-    items_in: int = 0
-    items_out: int = 0
-    frames: int = 0  # input items handled (frames for most stages; see ``unit``)
-    busy_s: float = 0.0  # wall time inside the stage's own code
-    cpu_s: float = 0.0  # CPU time of the stage's thread inside its own code
-
-    @property
-    def frames_per_s(self) -> float:
-        """Items handled per second of this stage's own busy time."""
-        return self.frames / self.busy_s if self.busy_s > 0 else 0.0
-
-    def to_json(self) -> dict[str, Any]:
-        """The figures as JSON (``StageStats(**d)`` rebuilds them: a worker's report)."""
-        return dataclasses.asdict(self)
-
-
-@dataclass(frozen=True, slots=True)
-class StatsSnapshot:
-    """The pipeline's statistics at ``elapsed_s``, sent to sinks with ``wants_stats``."""
-
-    elapsed_s: float
-    stages: tuple[StageStats, ...]
-    queues: tuple[QueueStats, ...]
-
-
-def stats_snapshot(elapsed_s: float, stages: Iterable[StageStats],
-                   queues: Iterable[QueueStats]) -> StatsSnapshot:
-    """A copy of the figures as they are now (the stages go on counting in theirs)."""
-    return StatsSnapshot(elapsed_s, tuple(copy.copy(s) for s in stages),
-                         tuple(copy.copy(q) for q in queues))
-
-
 def offer_stats(sink: Sink, q: BoundedQueue, snap: StatsSnapshot, *, last: bool) -> None:
     """Put ``snap`` into the queue ``q`` of ``sink`` if the sink wants the statistics and
     its queue may drop (a blocking sink's would hold the pipeline back for them).
@@ -216,22 +165,6 @@ def offer_stats(sink: Sink, q: BoundedQueue, snap: StatsSnapshot, *, last: bool)
 
 def _process_all(stage: Stage, item: Any) -> list[Any]:
     return list(stage.process(item))
-
-
-@dataclass
-class PipelineResult:
-    wall_s: float
-    stages: list[StageStats]
-    queues: list[QueueStats]
-    extras: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: names of the sinks (their stats and queues come last in ``stages`` and ``queues``)
-    sinks: tuple[str, ...] = ()
-
-    @property
-    def dropped(self) -> int:
-        """Items dropped between the main stages (a sink's own drops are not frames lost)."""
-        return sum(q.dropped for q in self.queues
-                   if q.name.rsplit("->", 1)[-1] not in self.sinks)
 
 
 class Pipeline:

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
@@ -54,7 +54,6 @@ from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.relays import RELAY_LOCAL_CAPACITY, Relay, relay_of, relayed_sinks
 from sffscan.pipeline.worker import HostedSink, WorkerGroup
-from sffscan.stages.mosaic import MosaicWriter
 from sffscan.stages.protocol import Sink, Stage
 
 log = logging.getLogger(__name__)
@@ -69,23 +68,18 @@ def _cfg(cfg: dict[str, Any]) -> ScanConfig:
     return ScanConfig.model_validate(cfg)
 
 
-def _built(cfg: ScanConfig) -> dict[str, Stage]:
-    """Every stage of the scan pipeline by name, built as the thread mode builds them."""
-    from sffscan.pipeline.wiring import build_stages
-
-    stages = build_stages(cfg, iter(()), cast(MosaicWriter, None))
-    return {s.name: s for s in stages}
-
-
 def registration_group(cfg: dict[str, Any]) -> list[Stage]:
     """Worker factory: the registration stage."""
-    return [_built(_cfg(cfg))["registration"]]
+    from sffscan.pipeline.wiring import measure_stages
+
+    return measure_stages(_cfg(cfg), only=("registration",))
 
 
 def focus_group(cfg: dict[str, Any]) -> list[Stage]:
     """Worker factory: the focus measure and depth stages."""
-    st = _built(_cfg(cfg))
-    return [st["focus_measure"], st["depth"]]
+    from sffscan.pipeline.wiring import measure_stages
+
+    return measure_stages(_cfg(cfg), only=("focus_measure", "depth"))
 
 
 def hosted_recorder(cfg: dict[str, Any], path: str, codec: str) -> Sink:

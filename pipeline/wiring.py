@@ -10,7 +10,7 @@ frame is ever dropped; the summary reports the drops counted anyway (0).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,8 @@ from sffscan.pipeline.metrology.evaluate import (
 from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
-from sffscan.pipeline.runtime import Pipeline, PipelineResult
+from sffscan.pipeline.runtime import Pipeline
+from sffscan.pipeline.stats import PipelineResult
 from sffscan.pipeline.scan_processes import process_pipeline, use_processes
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
@@ -56,10 +57,32 @@ def focus_heights_um(cfg: ScanConfig) -> list[float]:
     return cfg.optics.focus_heights_um()
 
 
-def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
+def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> list[Stage]:
+    """The stages from a placed frame to a depth block (registration when on, focus
+    measure, depth), or only those named in ``only``: built alike for a thread and for
+    the worker process that hosts them."""
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     directions = [pass_direction(cfg, i) for i in range(m.passes)]
+    build: dict[str, Callable[[], Stage]] = {
+        "registration": lambda: RegistrationStage(n_levels=o.n_levels,
+                                                  scale=p.registration_scale),
+        "focus_measure": lambda: FocusMeasureStage(
+            operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
+            max_value=o.max_value, margin=p.focus_reach_px, directions=directions),
+        "depth": lambda: DepthStage(
+            n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
+            focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
+            method=p.depth_method, median_size=p.median_size, spread_size=p.window,
+            block_columns=p.block_columns, directions=directions, slack_px=slack),
+    }
+    if not p.registration:
+        del build["registration"]
+    return [make() for name, make in build.items() if only is None or name in only]
+
+
+def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
+    o, m = cfg.optics, cfg.motion
     x0, y0, x1, y1 = (v * o.pixel_um for v in scan_extent_px(cfg))
     # the calibration's magnification per level and field curvature (issue 14)
     optics_pre, optics_post = optics_correction_stages(cfg, focus_heights_um(cfg))
@@ -70,18 +93,8 @@ def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter)
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
                         pass_start=lambda i: pass_start_px(cfg, i)),
     ]
-    if p.registration:
-        stages.append(RegistrationStage(n_levels=o.n_levels, scale=p.registration_scale))
     stages += [
-        FocusMeasureStage(operator=p.focus_operator, window=p.window, backend=p.backend,
-                          device=p.device, max_value=o.max_value, margin=p.focus_reach_px,
-                          directions=directions),
-        DepthStage(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-                   focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
-                   method=p.depth_method, median_size=p.median_size,
-                   spread_size=p.window, block_columns=p.block_columns,
-                   directions=directions,
-                   slack_px=slack),
+        *measure_stages(cfg),
         *optics_post,
         MosaicStage(writer),
     ]

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.progress import ProgressDisplay, ScanProgress
-from sffscan.pipeline.runtime import StageStats
+from sffscan.pipeline.stats import StageStats
 
 
 class _Terminal(io.StringIO):

@@ -47,7 +47,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
 from sffscan.pipeline.plan import scan_extent_px
-from sffscan.pipeline.runtime import StatsSnapshot
+from sffscan.pipeline.stats import StatsSnapshot
 from sffscan.pipeline.viz.preview import MosaicPreview, point_stride, shown, surface_points, to_u8
 from sffscan.pipeline.wiring import focus_heights_um
 from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
