@@ -47,16 +47,10 @@ from sffscan.pipeline.config import ScanConfig, demo_config
 from sffscan.pipeline.plan import plan_frames
 from sffscan.pipeline.sim_source import header_of, simulate_frames
 from sffscan.pipeline.wiring import run_scan
-from sffscan.stages.focus_measure import (
-    focus_measure_raw,
-    glvm,
-    glvm_conv2d_baseline,
-    glvm_cv,
-    tenv,
-    tenv_cv,
-    to_unit_float,
-)
+from sffscan.stages.focus_measure import focus_measure_raw, to_unit_float
+from sffscan.stages.focus_torch import glvm, glvm_conv2d_baseline, tenv
 from sffscan.stages.messages import Frame
+from sffscan.stages.operators.opencv import glvm_cv, tenv_cv
 
 ROOT = Path(__file__).resolve().parents[1]
 

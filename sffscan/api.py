@@ -205,7 +205,7 @@ def focus_measure(image: np.ndarray, *, operator: str = "glvm", window: int = 9,
         Grey image(s), 0..1.
     operator : str, keyword-only
         Focus measure operator: an acronym of Pertuz's toolbox, any case (``"LAPM"``,
-        ``"glvm"``, ``"TENV"``...), see ``sffscan.stages.focus_measure.FOCUS_OPERATORS``.
+        ``"glvm"``, ``"TENV"``...), see ``sffscan.stages.operators.FOCUS_OPERATORS``.
     window : int, keyword-only
         Odd window size k >= 3, px.
     backend : {"opencv", "torch"}, keyword-only

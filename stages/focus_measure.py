@@ -1,75 +1,43 @@
-"""Focus measure: the stage, the dispatch, and fast paths of GLVM and TENV (SFF_NOTES.md 2).
+"""Focus measure: the numpy front end of the focus operators, and the stage.
 
-Every operator of Pertuz's toolbox (:data:`FOCUS_OPERATORS`, case-insensitive) is
-implemented in torch in :mod:`sffscan.stages.operators.toolbox`; :func:`focus_measure`
-dispatches to it. GLVM and TENV, the two the scan uses most, also have an OpenCV CPU fast
-path here. Two implementations of the same definitions, which agree numerically:
-
-* a torch path (:func:`glvm`, :func:`tenv`) on ``(..., H, W)`` floating tensors, the same code
-  on CPU and CUDA; results are created on the input's device and dtype;
-* an OpenCV CPU fast path (:func:`glvm_cv`, :func:`tenv_cv`) on 2-D float32 arrays.
-
-:func:`focus_measure` dispatches between them for numpy images.
-
-Definitions (``box_k`` = mean over a k x k window with replicated borders, i.e. MATLAB
-``imfilter(I, fspecial('average', k), 'replicate')``; images scaled to 0..1):
-
-* GLVM, modified grey-level variance: ``mu = box_k(I)``, ``fm = box_k((I - mu)**2)``.
-* TENV, Tenengrad variance: ``Gx``, ``Gy`` = unnormalised 3 x 3 Sobel (MATLAB
-  ``fspecial('sobel')`` and its transpose, replicated borders), ``G = Gx**2 + Gy**2``,
-  ``fm = stdfilt(G, ones(k))**2``: the sample variance of G over k x k (1 / (k^2 - 1)),
-  with mirrored borders, as the toolbox computes it.
-
-All functions are pure: no state, no import-time side effects. :class:`FocusMeasureStage`
-is the thin pipeline stage around them. The torch path lives in
-:mod:`sffscan.stages.focus_torch` (its names stay importable from here) and is loaded at
-its first use: the scan's CPU path does not import torch.
+Every operator of Pertuz's toolbox is registered in
+:data:`sffscan.stages.operators.FOCUS_OPERATORS` (case-insensitive names) with one
+definition in torch (:mod:`sffscan.stages.operators.toolbox`); GLVM and TENV, the two the
+scan uses most, also have an OpenCV CPU front end with the same definition
+(:mod:`sffscan.stages.operators.opencv`). :func:`focus_measure` runs an operator on numpy
+images: OpenCV where the operator has it, else the torch definition on the CPU or a torch
+device (:mod:`sffscan.stages.focus_torch`, the torch front end, loaded at its first use:
+the scan's CPU path does not import torch). :func:`focus_measure_raw` is what the focus
+stage does for every frame; :class:`FocusMeasureStage` is the thin pipeline stage around
+it. All functions are pure: no state, no import-time side effects.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
-from sffscan.stages.depth import check_odd_size
 from sffscan.stages.focus_volume import new_columns
 from sffscan.stages.messages import FocusFrame, PlacedFrame
-from sffscan.stages.operators import OPERATORS, check_operator, operator_alignment
+from sffscan.stages.operators import (
+    FOCUS_OPERATORS,
+    check_operator,
+    check_window,
+    operator_alignment,
+)
+from sffscan.stages.operators.opencv import glvm_cv
 from sffscan.stages.protocol import Stage
 
-if TYPE_CHECKING:  # at run time through __getattr__ below (torch loads with first use)
-    from sffscan.stages.focus_torch import DeviceFocus, glvm, glvm_conv2d_baseline, tenv
+if TYPE_CHECKING:  # torch loads with the first use of the torch path
+    from sffscan.stages.focus_torch import DeviceFocus
 
 __all__ = [
-    "FOCUS_OPERATORS",
-    "DeviceFocus",
     "FocusMeasureStage",
     "focus_measure",
     "focus_measure_raw",
-    "glvm",
-    "glvm_conv2d_baseline",
-    "glvm_cv",
-    "tenv",
-    "tenv_cv",
     "to_unit_float",
 ]
-
-#: the torch path's names, kept importable from here; they live in
-#: :mod:`sffscan.stages.focus_torch`, loaded (with torch) at their first use
-_TORCH_NAMES = ("DeviceFocus", "glvm", "glvm_conv2d_baseline", "tenv")
-
-
-def __getattr__(name: str) -> Any:
-    if name in _TORCH_NAMES:
-        from sffscan.stages import focus_torch
-
-        return getattr(focus_torch, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-FOCUS_OPERATORS = OPERATORS
-"""Names accepted by :func:`focus_measure` as ``operator`` (any case)."""
 
 _BACKENDS = ("opencv", "torch")
 
@@ -115,126 +83,15 @@ def to_unit_float(image: np.ndarray, *, max_value: float) -> np.ndarray:
     return np.multiply(image, np.float32(1.0 / max_value), dtype=np.float32)
 
 
-def _check_window(window: int) -> int:
-    return check_odd_size(window, name="window", minimum=3)
-
-
-def _check_cv_image(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image)
-    if image.ndim != 2:
-        raise ValueError(f"image must be 2-D (H, W), got shape {image.shape}")
-    if not np.issubdtype(image.dtype, np.floating):
-        raise ValueError(
-            f"image must be floating (scaled to 0..1, see to_unit_float), got dtype {image.dtype}"
-        )
-    return np.ascontiguousarray(image, dtype=np.float32)
-
-
-def glvm_cv(image: np.ndarray, *, window: int = 9) -> np.ndarray:
-    """GLVM with OpenCV box filters (CPU fast path); same definition as :func:`glvm`.
-
-    Uses ``cv2.boxFilter`` and ``cv2.sqrBoxFilter`` (normalised, ``BORDER_REPLICATE``).
-
-    Parameters
-    ----------
-    image : (H, W) ndarray of float
-        Image scaled to 0..1 (converted to float32).
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-        Focus measure.
-    """
-    window = _check_window(window)
-    img = _check_cv_image(image)
-    ksize = (window, window)
-    mu = cv2.boxFilter(img, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REPLICATE)
-    return cv2.sqrBoxFilter(
-        img - mu, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REPLICATE
-    )
-
-
-def tenv_cv(image: np.ndarray, *, window: int = 9) -> np.ndarray:
-    """TENV with OpenCV (CPU fast path); same definition and normalisation as :func:`tenv`.
-
-    ``cv2.Sobel(ksize=3)`` (unnormalised, ``BORDER_REPLICATE``; its sign is the opposite of
-    MATLAB's, which squaring removes), then the sample variance of G from
-    ``cv2.sqrBoxFilter`` and ``cv2.boxFilter`` with ``BORDER_REFLECT`` (MATLAB's
-    'symmetric'), times n / (n - 1), clamped at 0.
-
-    Parameters
-    ----------
-    image : (H, W) ndarray of float
-        Image scaled to 0..1 (converted to float32).
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-        Focus measure.
-    """
-    window = _check_window(window)
-    img = _check_cv_image(image)
-    border = cv2.BORDER_REPLICATE
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, borderType=border)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, borderType=border)
-    g = gx * gx
-    g += gy * gy
-    ksize = (window, window)
-    mirror = cv2.BORDER_REFLECT
-    mean = cv2.boxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=mirror)
-    fm = cv2.sqrBoxFilter(g, cv2.CV_32F, ksize, normalize=True, borderType=mirror)
-    np.subtract(fm, mean * mean, out=fm)
-    n = window * window
-    np.multiply(fm, np.float32(n / (n - 1)), out=fm)
-    return np.maximum(fm, 0.0, out=fm)
-
-
-def glvm_cv_raw(image: np.ndarray, image01: np.ndarray, *, max_value: float,
-                window: int = 9) -> np.ndarray:
-    """GLVM of a raw integer image (CPU fast path); same definition as :func:`glvm_cv`.
-
-    The local mean is box filtered straight from the integer image (OpenCV reads uint8 /
-    uint16 at half the memory traffic of float32), the difference is taken against the
-    image scaled to 0..1, and the second box filter is a separable sum of the squares:
-    about 1.3x faster than :func:`glvm_cv` on the scaled image, equal to float32 round-off.
-
-    Parameters
-    ----------
-    image : (H, W) ndarray of uint8 or uint16
-        Raw image.
-    image01 : (H, W) ndarray of float32
-        The same image scaled to 0..1 (``image / max_value``).
-    max_value : float, keyword-only
-        Full scale of the raw values.
-    window : int, keyword-only
-        Odd window size k >= 3, pixels. Default 9.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-        Focus measure of ``image01``.
-    """
-    ksize = (window, window)
-    border = cv2.BORDER_REPLICATE
-    mu_raw = cv2.boxFilter(image, cv2.CV_32F, ksize, normalize=True, borderType=border)
-    d = cv2.scaleAdd(mu_raw, -1.0 / float(max_value), image01)
-    cv2.multiply(d, d, dst=d)
-    kernel = np.full(window, 1.0 / window, np.float32)
-    return cv2.sepFilter2D(d, cv2.CV_32F, kernel, kernel, borderType=border)
-
-
 def focus_measure_raw(
     image: np.ndarray, *, max_value: float, operator: str = "glvm", window: int = 9
 ) -> tuple[np.ndarray, np.ndarray]:
     """Scale a raw camera image to 0..1 and compute its focus measure (OpenCV, CPU).
 
     What the focus stage does for every frame: :func:`to_unit_float`, then
-    :func:`focus_measure` with the OpenCV backend, fused where that saves memory passes
-    (GLVM: :func:`glvm_cv_raw`). Equal to the two steps to float32 round-off.
+    :func:`focus_measure` with the OpenCV backend; GLVM takes its local mean from the raw
+    image (see :func:`sffscan.stages.operators.opencv.glvm_cv`), equal to the two steps to
+    float32 round-off.
 
     Parameters
     ----------
@@ -243,8 +100,8 @@ def focus_measure_raw(
     max_value : float, keyword-only
         Full-scale value (255, 1023, ...).
     operator : str, keyword-only
-        One of :data:`FOCUS_OPERATORS` (any case); GLVM and TENV run in OpenCV, the others
-        in torch on the CPU.
+        One of :data:`sffscan.stages.operators.FOCUS_OPERATORS` (any case); GLVM and TENV
+        run in OpenCV, the others in torch on the CPU.
     window : int, keyword-only
         Odd window size k >= 3, pixels. Default 9.
 
@@ -253,25 +110,24 @@ def focus_measure_raw(
     image01, focus : (H, W) ndarray of float32
         The scaled image and its focus measure.
     """
-    operator = check_operator(operator)
-    window = _check_window(window)
-    if operator == "glvm" and image.dtype in (np.uint8, np.uint16):
+    op = FOCUS_OPERATORS[check_operator(operator)]
+    window = check_window(window)
+    if op.name == "glvm" and image.dtype in (np.uint8, np.uint16):
         # one contiguous copy of the raw columns first: OpenCV's box filter reads a
         # strided view about 1.8x slower, and the scaling reads the copy from cache
         raw = np.ascontiguousarray(image)
         image01 = to_unit_float(raw, max_value=max_value)
-        return image01, glvm_cv_raw(raw, image01, max_value=max_value, window=window)
+        return image01, glvm_cv(image01, window=window, raw=raw, max_value=max_value)
     image01 = to_unit_float(image, max_value=max_value)
-    if operator in _CV_OPS:
-        return image01, _CV_OPS[operator](image01, window=window)
+    cpu = op.opencv_function()
+    if cpu is not None:
+        return image01, cpu(image01, window=window)
     from sffscan.stages.focus_torch import measure_on_device  # torch loads with first use
 
-    return image01, measure_on_device(image01, operator=operator, window=window, device="cpu")
+    return image01, measure_on_device(image01, operator=op.name, window=window, device="cpu")
 
 
 # ----------------------------------------------------------------------------- dispatch
-
-_CV_OPS = {"glvm": glvm_cv, "tenv": tenv_cv}
 
 
 def focus_measure(
@@ -290,7 +146,7 @@ def focus_measure(
         Image(s) already scaled to 0..1 (see :func:`to_unit_float`); computed in float32.
     operator : str, keyword-only
         Focus measure operator, the toolbox's acronym in any case (``"LAPM"``, ``"glvm"``),
-        see :data:`FOCUS_OPERATORS` and :mod:`sffscan.stages.operators.toolbox`.
+        see :data:`sffscan.stages.operators.FOCUS_OPERATORS`.
     window : int, keyword-only
         Odd window size k >= 3, pixels. Default 9.
     backend : {"opencv", "torch"}, keyword-only
@@ -312,10 +168,10 @@ def focus_measure(
         Unknown ``operator`` or ``backend``, bad ``window``, or an image that is not a 2-D or
         3-D floating array.
     """
-    operator = check_operator(operator)
+    op = FOCUS_OPERATORS[check_operator(operator)]
     if backend not in _BACKENDS:
         raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-    window = _check_window(window)
+    window = check_window(window)
     image = np.asarray(image)
     if image.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (B, H, W), got shape {image.shape}")
@@ -325,17 +181,17 @@ def focus_measure(
         )
     img = np.ascontiguousarray(image, dtype=np.float32)
 
-    if backend == "opencv" and operator in _CV_OPS:
-        op_cv = _CV_OPS[operator]
+    cpu = op.opencv_function() if backend == "opencv" else None
+    if cpu is not None:
         if img.ndim == 2:
-            return op_cv(img, window=window)
+            return cpu(img, window=window)  # type: ignore[no-any-return]
         out = np.empty_like(img)
         for i in range(img.shape[0]):
-            out[i] = op_cv(img[i], window=window)
+            out[i] = cpu(img[i], window=window)
         return out
     from sffscan.stages.focus_torch import measure_on_device  # torch loads with first use
 
-    return measure_on_device(img, operator=operator, window=window,
+    return measure_on_device(img, operator=op.name, window=window,
                              device="cpu" if backend == "opencv" else device)
 
 
@@ -374,7 +230,7 @@ class FocusMeasureStage(Stage):
                  device: str = "cpu", max_value: float = 255.0, margin: int,
                  directions: Sequence[int] = (1,)) -> None:
         self.operator = check_operator(operator)
-        self.window = _check_window(window)
+        self.window = check_window(window)
         self.backend = backend
         self.device = device
         self.max_value = max_value

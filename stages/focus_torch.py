@@ -10,12 +10,15 @@ accumulation of focus frames into per-pixel sums (:func:`accumulate_levels_torch
 Kept apart from :mod:`sffscan.stages.focus_measure` and :mod:`sffscan.stages.focus_volume`,
 whose CPU scan path is OpenCV and numpy, so that the scan's worker processes do not import
 torch (about 1 s and 300 MB of memory each, measured on the 2-core dev VM); those modules
-load this one at the first use of a torch path. Definitions: see
-:mod:`sffscan.stages.focus_measure`.
+load this one at the first use of a torch path. The operators' definitions are
+:mod:`sffscan.stages.operators.toolbox` (registered in
+:data:`sffscan.stages.operators.FOCUS_OPERATORS`); this module is their front end.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -32,11 +35,7 @@ except ModuleNotFoundError as err:  # torch is the optional extra [torch]
         "TENV run in torch; install it with: pip install 'sffscan[torch]'",
         name="torch") from err
 from sffscan.stages.depth import harmonic_table
-from sffscan.stages.focus_measure import _check_window
-from sffscan.stages.operators import check_operator
-from sffscan.stages.operators.filters import box as _box
-from sffscan.stages.operators.filters import sample_variance, sobel_energy
-from sffscan.stages.operators.toolbox import TOOLBOX
+from sffscan.stages.operators import FOCUS_OPERATORS, check_operator, check_window, toolbox
 
 __all__ = [
     "DeviceFocus",
@@ -61,11 +60,36 @@ def _check_tensor(image: torch.Tensor) -> torch.Tensor:
     return image.reshape(-1, image.shape[-2], image.shape[-1])
 
 
-# ----------------------------------------------------------------------------- torch path
+def _apply(definition: Callable[[torch.Tensor, int], torch.Tensor], image: torch.Tensor,
+           window: int) -> torch.Tensor:
+    """An operator's definition ``f(x, k)`` on a checked ``(..., H, W)`` tensor."""
+    window = check_window(window)
+    return definition(_check_tensor(image), window).reshape(image.shape)
+
+
+# ----------------------------------------------------------------------------- front ends
+
+
+def torch_operator(operator: str) -> Callable[..., torch.Tensor]:
+    """The torch front end of an operator: ``f(image, *, window=9)`` on ``(..., H, W)``
+    floating tensors, the result on the input's device and dtype (as kornia's operators).
+
+    Parameters
+    ----------
+    operator : str
+        One of :data:`sffscan.stages.operators.FOCUS_OPERATORS`, any case.
+    """
+    definition = FOCUS_OPERATORS[check_operator(operator)].torch_function()
+
+    def front_end(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
+        return _apply(definition, image, window)
+
+    return front_end
 
 
 def glvm(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """Modified grey-level variance (GLVM), local k x k version.
+    """Modified grey-level variance (GLVM), local k x k version: the front end of
+    :func:`sffscan.stages.operators.toolbox.glvm`.
 
     ``mu = box_k(I)``; ``fm = box_k((I - mu)**2)``, ``box_k`` the k x k mean with replicated
     borders (MATLAB ``imfilter(..., fspecial('average', k), 'replicate')``), computed as
@@ -83,15 +107,12 @@ def glvm(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
     (..., H, W) torch.Tensor
         Focus measure, same dtype and device as ``image``; units of intensity squared.
     """
-    window = _check_window(window)
-    x = _check_tensor(image)
-    mu = _box(x, window)
-    d = x - mu
-    return _box(d * d, window).reshape(image.shape)
+    return _apply(toolbox.glvm, image, window)
 
 
 def tenv(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """Tenengrad variance (TENV), the toolbox's local k x k version.
+    """Tenengrad variance (TENV), the toolbox's local k x k version: the front end of
+    :func:`sffscan.stages.operators.toolbox.tenv`.
 
     ``G = Gx**2 + Gy**2`` with the unnormalised 3 x 3 Sobel pair (MATLAB
     ``fspecial('sobel')`` and its transpose, replicated borders); ``fm = stdfilt(G,
@@ -113,16 +134,21 @@ def tenv(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
         Focus measure, same dtype and device as ``image``; units of intensity^4 (the Sobel
         gain of 4 per axis is not divided out).
     """
-    window = _check_window(window)
-    x = _check_tensor(image)
-    return sample_variance(sobel_energy(x), window).reshape(image.shape)
+    return _apply(toolbox.tenv, image, window)
+
+
+def _dense_mean(x: torch.Tensor, window: int) -> torch.Tensor:
+    """The k x k mean as the thesis computed it: replicate padding, then a dense
+    ``F.conv2d`` with a ``ones(k, k) / k**2`` kernel (k^2 multiply-adds per pixel)."""
+    r = window // 2
+    kernel = torch.full((1, 1, window, window), 1.0 / window**2, dtype=x.dtype,
+                        device=x.device)
+    return F.conv2d(F.pad(x.unsqueeze(1), (r, r, r, r), mode="replicate"), kernel)[:, 0]
 
 
 def glvm_conv2d_baseline(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-    """GLVM the way the thesis ran it: dense ``F.conv2d`` with a ``ones(k, k) / k**2`` kernel.
-
-    Same definition and borders as :func:`glvm` (replicate padding, then a valid
-    convolution), but k^2 multiply-adds per pixel per box filter. Benchmark baseline only.
+    """GLVM the way the thesis ran it: the definition of :func:`glvm` with each mean a dense
+    ``F.conv2d`` with a ``ones(k, k) / k**2`` kernel. Benchmark baseline only.
 
     Parameters
     ----------
@@ -136,36 +162,7 @@ def glvm_conv2d_baseline(image: torch.Tensor, *, window: int = 9) -> torch.Tenso
     (..., H, W) torch.Tensor
         Same as :func:`glvm`, same dtype and device as ``image``.
     """
-    window = _check_window(window)
-    x = _check_tensor(image).unsqueeze(1)  # (B, 1, H, W)
-    r = window // 2
-    kernel = torch.full(
-        (1, 1, window, window), 1.0 / window**2, dtype=image.dtype, device=image.device
-    )
-
-    def box(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.pad(t, (r, r, r, r), mode="replicate"), kernel)
-
-    d = x - box(x)
-    return box(d * d).reshape(image.shape)
-
-
-# ----------------------------------------------------------------------------- OpenCV path
-
-
-def torch_operator(operator: str) -> Any:
-    """The torch function of a (checked) operator: ``f(image, *, window)``."""
-    if operator == "glvm":
-        return glvm
-    if operator == "tenv":
-        return tenv
-    fn = TOOLBOX[operator]
-
-    def op(image: torch.Tensor, *, window: int = 9) -> torch.Tensor:
-        x = _check_tensor(image)
-        return fn(x, _check_window(window)).reshape(image.shape)
-
-    return op
+    return _apply(partial(toolbox.glvm, mean=_dense_mean), image, window)
 
 
 def measure_on_device(image01: np.ndarray, *, operator: str, window: int,
@@ -197,7 +194,7 @@ class DeviceFocus:
     device : str or torch.device
         Torch device.
     operator : str
-        One of :data:`sffscan.stages.focus_measure.FOCUS_OPERATORS`, any case.
+        One of :data:`sffscan.stages.operators.FOCUS_OPERATORS`, any case.
     window : int
         Odd window size k >= 3, px.
     max_value : float
@@ -208,7 +205,7 @@ class DeviceFocus:
                  max_value: float = 255.0) -> None:
         self.device = torch.device(device)
         self.op = torch_operator(check_operator(operator))
-        self.window = _check_window(window)
+        self.window = check_window(window)
         self.scale = 1.0 / float(max_value)
         self.cuda = self.device.type == "cuda"
         self._staging: list[torch.Tensor | None] = [None, None]

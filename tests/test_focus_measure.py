@@ -14,19 +14,14 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from sffscan.stages.focus_measure import (
-    focus_measure,
-    focus_measure_raw,
-    glvm,
-    glvm_conv2d_baseline,
-    glvm_cv,
-    tenv,
-    tenv_cv,
-    to_unit_float,
-)
+from sffscan.stages.focus_measure import focus_measure, focus_measure_raw, to_unit_float
+from sffscan.stages.focus_torch import glvm, glvm_conv2d_baseline, tenv, torch_operator
+from sffscan.stages.operators import FOCUS_OPERATORS
+from sffscan.stages.operators.opencv import glvm_cv, tenv_cv
 
 WINDOW = 9
-FAST_OPERATORS = ("glvm", "tenv")  # the two with OpenCV fast paths (all: test_focus_operators)
+# the operators with OpenCV front ends (every operator: test_focus_operators)
+FAST_OPERATORS = tuple(name for name, op in FOCUS_OPERATORS.items() if op.opencv)
 # Measured on pertuz-simu02 (worst image): torch float32 2.4e-7 (GLVM) / 4.6e-7 (TENV),
 # OpenCV float32 1.3e-7 / 3.5e-7, as max|a - b| / max|b| against the float64 reference.
 FLOAT32_REL_TOL = 1e-6
@@ -94,6 +89,37 @@ def references(pertuz_stack: np.ndarray) -> dict[str, np.ndarray]:
 
 TORCH_OPS = {"glvm": glvm, "tenv": tenv}
 CV_OPS = {"glvm": glvm_cv, "tenv": tenv_cv}
+
+
+def test_registry_front_ends() -> None:
+    """One registry: the OpenCV front ends are GLVM's and TENV's, the torch front ends
+    wrap the registered definitions, and the registry cannot be changed."""
+    assert FAST_OPERATORS == ("glvm", "tenv")
+    assert FOCUS_OPERATORS["glvm"].opencv_function() is glvm_cv
+    assert FOCUS_OPERATORS["tenv"].opencv_function() is tenv_cv
+    assert FOCUS_OPERATORS["lapm"].opencv_function() is None
+    assert repr(FOCUS_OPERATORS) == repr(tuple(FOCUS_OPERATORS))
+    with pytest.raises(TypeError):
+        FOCUS_OPERATORS["glvm"] = FOCUS_OPERATORS["tenv"]  # type: ignore[index]
+    x = torch.rand((2, 20, 24), generator=torch.Generator().manual_seed(2))
+    for name, front in (("glvm", glvm), ("tenv", tenv)):
+        assert torch.equal(front(x, window=5), FOCUS_OPERATORS[name].torch_function()(x, 5))
+        assert torch.equal(torch_operator(name)(x, window=5), front(x, window=5))
+
+
+def test_opencv_glvm_from_raw_equals_from_scaled() -> None:
+    """GLVM's one OpenCV front end: the local mean from the raw image (the scan's path)
+    equals the mean from the scaled image to float32 round-off; a raw image of another
+    shape is refused."""
+    rng = np.random.default_rng(4)
+    raw = rng.integers(0, 1024, (45, 70)).astype(np.uint16)
+    image01 = to_unit_float(raw, max_value=1023)
+    scaled = glvm_cv(image01, window=WINDOW)
+    from_raw = glvm_cv(image01, window=WINDOW, raw=raw, max_value=1023)
+    np.testing.assert_allclose(from_raw, scaled, rtol=0,
+                               atol=FLOAT32_REL_TOL * np.abs(scaled).max())
+    with pytest.raises(ValueError, match="raw must have the image's shape"):
+        glvm_cv(image01, raw=raw[:, 1:], max_value=1023)
 
 
 def worst_image_rel_error(a: np.ndarray, b: np.ndarray) -> float:
@@ -282,7 +308,8 @@ def test_scan_path_does_not_import_torch() -> None:
         "assert 'torch' not in sys.modules, 'torch imported by the CPU scan path'\n"
         "g = fm.focus_measure(img01, operator='lapm')  # a torch-only operator\n"
         "assert 'torch' in sys.modules and g.shape == img01.shape\n"
-        "assert fm.glvm.__module__ == 'sffscan.stages.focus_torch'\n"
+        "from sffscan.stages.focus_torch import glvm\n"
+        "assert glvm.__module__ == 'sffscan.stages.focus_torch'\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)

@@ -17,9 +17,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from sffscan.stages.focus_measure import FOCUS_OPERATORS, focus_measure
-from sffscan.stages.operators import check_operator, operator_reach
-from sffscan.stages.operators.toolbox import TOOLBOX
+from sffscan.stages.focus_measure import focus_measure
+from sffscan.stages.operators import FOCUS_OPERATORS, check_operator, operator_reach
 
 from sffscan import focus_measure as api_focus_measure
 from tests.fm_reference import REFERENCES as TOOLBOX_REFERENCES
@@ -43,19 +42,22 @@ def images(pertuz_dir: Path) -> np.ndarray:
 
 
 def test_every_operator_has_a_reference() -> None:
-    assert set(TOOLBOX) == set(FOCUS_OPERATORS) == set(REFERENCES)
+    assert set(FOCUS_OPERATORS) == set(REFERENCES)
     assert len(FOCUS_OPERATORS) == 34
+    for name, op in FOCUS_OPERATORS.items():
+        assert op.name == name and op.torch_function().__name__ == name
 
 
 @pytest.mark.parametrize("operator", FOCUS_OPERATORS)
 def test_operator_matches_reference(operator: str, images: np.ndarray, device: str) -> None:
     ref = np.stack([REFERENCES[operator](im, WINDOW) for im in images])
     assert np.isfinite(ref).all()
-    a64 = TOOLBOX[operator](torch.from_numpy(images).to(device), WINDOW).cpu().numpy()
+    definition = FOCUS_OPERATORS[operator].torch_function()
+    a64 = definition(torch.from_numpy(images).to(device), WINDOW).cpu().numpy()
     bad = np.abs(a64 - ref) > REL_TOL * np.abs(ref) + FLOOR * np.abs(ref).max()
     assert not bad.any(), f"{operator}: {bad.sum()} px off, worst {np.abs(a64 - ref).max():.3g}"
     x32 = torch.from_numpy(images.astype(np.float32)).to(device)
-    a32 = TOOLBOX[operator](x32, WINDOW)
+    a32 = definition(x32, WINDOW)
     assert a32.dtype == torch.float32 and a32.device.type == torch.device(device).type
     err = np.abs(a32.cpu().numpy() - ref).reshape(len(ref), -1).max(axis=1)
     assert (err <= REL_TOL * np.abs(ref).reshape(len(ref), -1).max(axis=1)).all()
@@ -65,8 +67,8 @@ def test_tenv_is_the_sample_variance(images: np.ndarray) -> None:
     """TENV = n / (n - 1) x the population variance in the interior (the 1.25 % at k = 9
     the project's old TENV lacked), and TENV_STD is its square root."""
     x = torch.from_numpy(images[:1])
-    tenv = TOOLBOX["tenv"](x, WINDOW).numpy()
-    std = TOOLBOX["tenv_std"](x, WINDOW).numpy()
+    tenv = FOCUS_OPERATORS["tenv"].torch_function()(x, WINDOW).numpy()
+    std = FOCUS_OPERATORS["tenv_std"].torch_function()(x, WINDOW).numpy()
     np.testing.assert_allclose(std**2, tenv, rtol=1e-12, atol=1e-14 * tenv.max())
     from tests.fm_reference import _sobel_g, nl_windows
 
@@ -113,7 +115,7 @@ def test_config_and_cli_offer_every_operator() -> None:
     from sffscan.pipeline.config import ProcessingConfig
 
     field = ProcessingConfig.model_fields["focus_operator"].annotation
-    assert tuple(typing.get_args(field)) == OPERATOR_CHOICES == FOCUS_OPERATORS
+    assert tuple(typing.get_args(field)) == OPERATOR_CHOICES == tuple(FOCUS_OPERATORS)
     cfg = ProcessingConfig(focus_operator="LAPM")  # type: ignore[arg-type]
     assert cfg.focus_operator == "lapm"
     assert cfg.focus_reach_px == operator_reach("lapm", cfg.window)

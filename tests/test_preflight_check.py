@@ -91,6 +91,6 @@ def test_torch_asked_for_without_torch_names_the_extra(
 
 def test_the_operators_without_torch_are_the_focus_measures_opencv_ones() -> None:
     from sffscan.pipeline.preflight import OPENCV_OPERATORS
-    from sffscan.stages import focus_measure
+    from sffscan.stages.operators import FOCUS_OPERATORS
 
-    assert set(OPENCV_OPERATORS) == set(focus_measure._CV_OPS)
+    assert set(OPENCV_OPERATORS) == {name for name, op in FOCUS_OPERATORS.items() if op.opencv}

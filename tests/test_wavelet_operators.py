@@ -20,10 +20,13 @@ import pytest
 import torch
 from sffscan.stages.focus_measure import FocusMeasureStage, focus_measure
 from sffscan.stages.messages import FrameHeader, PlacedFrame
-from sffscan.stages.operators import operator_alignment, operator_reach
-from sffscan.stages.operators.wavelets import LEVELS, WAVELET_OPERATORS
+from sffscan.stages.operators import FOCUS_OPERATORS, operator_alignment, operator_reach
+from sffscan.stages.operators.wavelets import LEVELS
 
 from tests import wavelet_reference as ref
+
+WAVELET_OPERATORS = {name: op.torch_function() for name, op in FOCUS_OPERATORS.items()
+                     if op.module == "wavelets"}
 
 MATLAB = Path(__file__).parent / "data" / "matlab_dwt_db6_sym.json"
 
@@ -81,11 +84,12 @@ def test_reference_reconstruction_is_perfect(shape: tuple[int, int]) -> None:
         assert np.abs(other - x).max() > 0.1
 
 
-@pytest.mark.parametrize("operator", sorted(WAVELET_OPERATORS))
+@pytest.mark.parametrize("operator", sorted(LEVELS))
 def test_crop_on_the_grid_equals_the_whole_image(operator: str, image: np.ndarray) -> None:
     """A crop starting on the operator's grid (2^level px) equals the whole image beyond
     ``operator_reach``; one starting 1 px off does not, even far from its border."""
     assert operator_alignment(operator) == 2 ** LEVELS[operator]
+    assert set(WAVELET_OPERATORS) == set(LEVELS)
     wide = np.concatenate([image, image[:, ::-1]], axis=1)  # 512 px: room for WAVR's reach
     full = focus_measure(wide.astype(np.float32), operator=operator, window=9)
     m = operator_reach(operator, 9)

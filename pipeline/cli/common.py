@@ -23,7 +23,7 @@ from sffscan.pipeline.config import (
     max_speed_sliding_mm_s,
     max_speed_thesis_mm_s,
 )
-from sffscan.stages.operators import OPERATORS
+from sffscan.stages.operators import FOCUS_OPERATORS
 
 if TYPE_CHECKING:
     from sffscan.pipeline.completeness import FrameAccount
@@ -40,7 +40,7 @@ EXIT_INCOMPLETE = 3
 EXIT_TERMINATED = 143
 
 #: focus measure operators (the names alone: importing them loads no torch)
-OPERATOR_CHOICES: tuple[str, ...] = OPERATORS
+OPERATOR_CHOICES: tuple[str, ...] = tuple(FOCUS_OPERATORS)
 #: depth methods, as the configuration model accepts them
 DEPTH_METHOD_CHOICES: tuple[str, ...] = get_args(
     ProcessingConfig.model_fields["depth_method"].annotation)

@@ -65,7 +65,7 @@ class StackSettings:
     ----------
     operator : str
         Focus measure operator, a toolbox acronym (any case), see
-        :data:`sffscan.stages.focus_measure.FOCUS_OPERATORS`.
+        :data:`sffscan.stages.operators.FOCUS_OPERATORS`.
     window : int
         Focus measure window k (odd, >= 3), px.
     method : str
@@ -91,7 +91,7 @@ class StackSettings:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        from sffscan.stages.focus_measure import FOCUS_OPERATORS  # torch loads with the first use
+        from sffscan.stages.operators import FOCUS_OPERATORS
 
         if self.operator.lower() not in FOCUS_OPERATORS:
             raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {self.operator!r}")

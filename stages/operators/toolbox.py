@@ -9,8 +9,11 @@ The few places where the toolbox's code cannot be followed literally are said at
 operator (GDER and SFIL: a kernel normalised by a sum that is zero).
 The wavelet operators (WAVS, WAVV, WAVR, through PyWavelets) are in :mod:`.wavelets`.
 
-Every function takes a ``(B, H, W)`` floating tensor and the window k and returns the
-focus measure as ``(B, H, W)``, same device and dtype; :data:`TOOLBOX` maps names to them.
+Every operator is a function named by its acronym that takes a ``(B, H, W)`` floating
+tensor and the window k and returns the focus measure as ``(B, H, W)``, same device and
+dtype: the one definition of each operator, registered in
+:data:`sffscan.stages.operators.FOCUS_OPERATORS` (GLVM and TENV also have OpenCV front
+ends with the same definitions, :mod:`.opencv`).
 """
 
 from __future__ import annotations
@@ -29,11 +32,13 @@ from sffscan.stages.operators.filters import (
     sobel_energy,
     windows,
 )
-from sffscan.stages.operators.wavelets import WAVELET_OPERATORS
 
-__all__ = ["TOOLBOX", "tchebichef_polynomials"]
-
-Operator = Callable[[torch.Tensor, int], torch.Tensor]
+__all__ = [
+    "acmo", "bren", "cheb", "cont", "curv", "dcte", "dctm", "dctr", "eigv", "gder", "gllv",
+    "glva", "glvm", "glvn", "grae", "gras", "grat", "helm", "hise", "hisr", "lapd", "lape",
+    "lapm", "lapv", "sfil", "sfrq", "tchebichef_polynomials", "teng", "tenv", "tenv_std",
+    "vola", "vols",
+]
 
 _LAPLACIAN = np.array([[1.0, 4.0, 1.0], [4.0, -20.0, 4.0], [1.0, 4.0, 1.0]]) / 6.0
 """``fspecial('laplacian')`` (alpha 0.2): ``4 / (alpha + 1) * [a/4 (1-a)/4 a/4; ...]``."""
@@ -244,10 +249,15 @@ def glvn(x: torch.Tensor, k: int) -> torch.Tensor:
     return sample_variance(x, k) / box(x, k)
 
 
-def glvm(x: torch.Tensor, k: int) -> torch.Tensor:
-    """GLVM, modified grey-level variance: ``MEANF((I - MEANF(I))^2)``."""
-    d = x - box(x, k)
-    return box(d * d, k)
+def glvm(x: torch.Tensor, k: int, *,
+         mean: Callable[[torch.Tensor, int], torch.Tensor] = box) -> torch.Tensor:
+    """GLVM, modified grey-level variance: ``MEANF((I - MEANF(I))^2)``.
+
+    ``mean`` computes MEANF (default :func:`.filters.box`, separable window sums); the
+    benchmarks pass the thesis' dense k x k convolution
+    (:func:`sffscan.stages.focus_torch.glvm_conv2d_baseline`)."""
+    d = x - mean(x, k)
+    return mean(d * d, k)
 
 
 def _gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -391,14 +401,3 @@ def vols(x: torch.Tensor, k: int) -> torch.Tensor:
     ``U = k * MEANF(I)``, ``MEANF(I .* I1 - U^2)``."""
     u = k * box(x, k)
     return box(x * _shift_up(x, 1) - u * u, k)
-
-
-TOOLBOX: dict[str, Operator] = {
-    "acmo": acmo, "bren": bren, "cheb": cheb, "cont": cont, "curv": curv, "dcte": dcte,
-    "dctm": dctm, "dctr": dctr, "eigv": eigv, "gder": gder, "gllv": gllv, "glva": glva,
-    "glvm": glvm, "glvn": glvn, "grae": grae, "gras": gras, "grat": grat, "helm": helm,
-    "hise": hise, "hisr": hisr, "lapd": lapd, "lape": lape, "lapm": lapm, "lapv": lapv,
-    "sfil": sfil, "sfrq": sfrq, "teng": teng, "tenv": tenv, "tenv_std": tenv_std,
-    "vola": vola, "vols": vols, **WAVELET_OPERATORS,
-}
-"""Operator name (lower case) -> ``f(x, k)`` on ``(B, H, W)`` tensors."""

@@ -31,7 +31,7 @@ The transforms run in float64 numpy on the CPU (PyWavelets has no GPU path), the
 filters in torch on the input's device; the result has the input's device and dtype.
 
 Decimation makes these operators depend on where the image starts: a crop starting at a
-column that is not a multiple of :func:`alignment` (2 for WAVS and WAVV, 8 for WAVR) gives
+column that is not a multiple of its alignment (2 for WAVS and WAVV, 8 for WAVR) gives
 other values everywhere, not only at its border.
 """
 
@@ -41,18 +41,12 @@ import numpy as np
 import torch
 from sffscan.stages.operators.filters import box, sample_variance
 
-__all__ = ["LEVELS", "WAVELET", "WAVELET_OPERATORS", "alignment", "wavelet_branches"]
+__all__ = ["LEVELS", "WAVELET", "wavelet_branches", "wavr", "wavs", "wavv"]
 
 WAVELET = "db6"
 MODE = "symmetric"  # MATLAB's dwtmode default 'sym'
 LEVELS = {"wavs": 1, "wavv": 1, "wavr": 3}
 """Decomposition level of each operator (``wavedec2(Image, L, 'db6')``)."""
-
-
-def alignment(operator: str) -> int:
-    """The column (and row) step at which a crop gives the whole image's values beyond
-    the border's reach: ``2 ** level``."""
-    return 2 ** LEVELS[operator]
 
 
 def _keep_central(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -137,7 +131,3 @@ def wavr(x: torch.Tensor, k: int) -> torch.Tensor:
     a = sum(ai.abs() for ai in approx)
     assert isinstance(a, torch.Tensor)
     return box(h * h + v * v + d * d, k) / box(a * a, k)
-
-
-WAVELET_OPERATORS = {"wavs": wavs, "wavv": wavv, "wavr": wavr}
-"""Operator name (lower case) -> ``f(x, k)`` on ``(B, H, W)`` tensors."""
