@@ -5,7 +5,8 @@ default ``~/.cache/sffscan/moonraker-src``, a checkout of github.com/Arksine/moo
 and makes (once) a venv for it next to it. Klipper itself needs a microcontroller, so the
 Klippy side of Moonraker's unix socket is a small stand-in that speaks Klippy's API
 protocol (JSON + ``\\x03``: info, list_endpoints, objects/*, register_remote_method,
-gcode/script) and calls the registered remote method as Klipper's
+gcode/script, and ``motion_report/dump_trapq`` on the connections Moonraker opens for its
+bridge websocket ``/klippysocket``) and calls the registered remote method as Klipper's
 ``action_call_remote_method`` does (``{"method": name, "params": {...}}``).
 """
 
@@ -26,6 +27,7 @@ from typing import Any
 
 import pytest
 from sffscan.pipeline.printjob.links_moonraker import MoonrakerAgent, ServiceBridge
+from sffscan.pipeline.printjob.links_trapq import TrapqStream, bridge_url
 from sffscan.pipeline.printjob.service import (
     Analysis,
     JobService,
@@ -70,21 +72,35 @@ class FakeKlippy:
         self.path = path
         self.requests: queue.Queue[dict[str, Any]] = queue.Queue()
         self.remote_methods: set[str] = set()
+        #: rows streamed to a ``motion_report/dump_trapq`` subscriber (Klipper's format)
+        self.trapq_rows: list[list[Any]] = [
+            [100.0, 2.0, 0.0, 0.0, [10.0, 10.0, 1.2], [0.0, 0.0, 0.0]],
+            [102.0, 1.0, 15.0, 0.0, [10.0, 10.0, 1.2], [1.0, 0.0, 0.0]]]
         self._conn: socket.socket | None = None
+        self._bridges: list[socket.socket] = []
         self._send_lock = threading.Lock()
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._listener.bind(str(path))
-        self._listener.listen(1)
+        self._listener.listen(4)
         self._listener.settimeout(60)
         self._thread = threading.Thread(target=self._serve, daemon=True)
         self._thread.start()
 
     def _serve(self) -> None:
-        try:
-            conn, _ = self._listener.accept()
-        except OSError:
-            return
-        self._conn = conn
+        """The first connection is Moonraker's own; later ones are its bridge websockets'
+        (one unix connection per ``/klippysocket`` client)."""
+        while True:
+            try:
+                conn, _ = self._listener.accept()
+            except OSError:
+                return
+            if self._conn is None:
+                self._conn = conn
+            else:
+                self._bridges.append(conn)
+            threading.Thread(target=self._read, args=(conn,), daemon=True).start()
+
+    def _read(self, conn: socket.socket) -> None:
         buf = b""
         while True:
             try:
@@ -96,7 +112,7 @@ class FakeKlippy:
             buf += data
             while b"\x03" in buf:
                 raw, buf = buf.split(b"\x03", 1)
-                self._answer(json.loads(raw))
+                self._answer(json.loads(raw), conn)
 
     def _result(self, method: str, params: dict[str, Any]) -> Any:
         if method == "info":
@@ -120,15 +136,24 @@ class FakeKlippy:
             self.remote_methods.add(params["remote_method"])
         return {}
 
-    def _answer(self, req: dict[str, Any]) -> None:
+    def _answer(self, req: dict[str, Any], conn: socket.socket) -> None:
         self.requests.put(req)
-        self.send({"id": req.get("id"),
-                   "result": self._result(req.get("method", ""), req.get("params") or {})})
+        params = req.get("params") or {}
+        if req.get("method") == "motion_report/dump_trapq":  # Klipper's API_Server.md
+            self.send({"id": req.get("id"), "result": {"header": [
+                "time", "duration", "start_velocity", "acceleration", "start_position",
+                "direction"]}}, conn)
+            self.send({**params.get("response_template", {}),
+                       "params": {"data": self.trapq_rows}}, conn)
+            return
+        self.send({"id": req.get("id"), "result": self._result(req.get("method", ""), params)},
+                  conn)
 
-    def send(self, msg: dict[str, Any]) -> None:
-        assert self._conn is not None
+    def send(self, msg: dict[str, Any], conn: socket.socket | None = None) -> None:
+        conn = conn or self._conn
+        assert conn is not None
         with self._send_lock:
-            self._conn.sendall(json.dumps(msg).encode() + b"\x03")
+            conn.sendall(json.dumps(msg).encode() + b"\x03")
 
     def wait_for(self, method: str, timeout_s: float, **match: Any) -> dict[str, Any]:
         deadline = time.monotonic() + timeout_s
@@ -146,7 +171,7 @@ class FakeKlippy:
                 return req
 
     def close(self) -> None:
-        for s in (self._conn, self._listener):
+        for s in (self._conn, self._listener, *self._bridges):
             if s is not None:
                 s.close()
         self._thread.join(5)
@@ -248,6 +273,16 @@ def test_agent_through_a_real_moonraker(real_moonraker: tuple[str, FakeKlippy, P
                               'shift of 0.8 mm"')
         assert scripts[4] == "SFFSCAN_DONE ACTION=NONE"
     assert "sffscan" in log.read_text(errors="replace")  # Moonraker logged the agent
+    # the motion queue through Moonraker's bridge websocket (its own unix connection)
+    stream = TrapqStream(bridge_url(url), timeout_s=20).start()
+    try:
+        req = klippy.wait_for("motion_report/dump_trapq", timeout_s=20, name="toolhead")
+        assert req["params"]["response_template"] == {"q": "sffscan_trapq"}
+        assert stream.wait_until(103.0, timeout_s=20)
+        assert stream.rows() == klippy.trapq_rows
+    finally:
+        stream.close()
+    assert "Bridge Socket Opened" in log.read_text(errors="replace")
 
 
 def test_serve_command_runs_the_agent(real_moonraker: tuple[str, FakeKlippy, Path],
@@ -270,6 +305,7 @@ def test_serve_command_runs_the_agent(real_moonraker: tuple[str, FakeKlippy, Pat
                              "--moonraker", url], cwd=root, stderr=subprocess.PIPE, text=True)
     try:
         klippy.wait_for("register_remote_method", timeout_s=90, remote_method="sffscan_layer")
+        klippy.wait_for("motion_report/dump_trapq", timeout_s=30, name="toolhead")
         klippy.send({"method": "sffscan_layer", "params": {"layer": 0, "z": 0.2,
                                                            "filename": "cube.gcode"}})
         req = klippy.wait_for("gcode/script", timeout_s=120)
