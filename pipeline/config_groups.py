@@ -11,10 +11,10 @@ reference lists every table's fields by group.
   others. The names of the focus operators and depth methods come from their registries
   (:data:`sffscan.stages.operators.FOCUS_OPERATORS`,
   :data:`sffscan.stages.depth.DEPTH_METHODS`).
-* **How it runs** (:class:`Transport`, :class:`Execution`, :class:`Output`): the
-  mosaic's values do not depend on the transport or on how the stages are placed (a resume
-  may change them: ``sffscan.pipeline.run.RUN_ONLY``); the backend and the block size may
-  change the last bits of a float, so a resume compares them.
+* **How it runs** (:class:`Transport`, :class:`Execution`, :class:`Output`): how frames
+  arrive, where and how the stages compute, where the mosaic is written. A resume may
+  differ in the transport, the placement of the stages and the queue sizes
+  (``sffscan.pipeline.run.RUN_ONLY``) and in the output table; it compares the rest.
 * **The simulator's own parameters** (:class:`SimWorld`, :class:`SimLens`,
   :class:`SimMotion`), for ``source.kind = "sim"``: the world it renders, the lens's blur,
   noise, breathing, field curvature and vignetting, the stage's wobble. A real instrument
