@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,6 +14,12 @@ from sffscan.pipeline.metrology.calibration_model import Calibration, ZResponse,
 from sffscan.pipeline.wiring import run_scan
 
 from tests.scan_helpers import RenderedScan, small_config
+
+
+def _array(group: zarr.Group, name: str) -> zarr.Array:
+    node = group[name]
+    assert isinstance(node, zarr.Array), name
+    return node
 
 
 def _calibration(path: Path) -> Path:
@@ -31,15 +38,15 @@ def test_scan_heights_follow_the_calibrated_z_response(tmp_path: Path) -> None:
     assert cfg.model_copy(update={"processing": frames.cfg.processing}) == frames.cfg
     calibrated = run_scan(cfg, frames=iter(frames), output=tmp_path / "calibrated.zarr",
                           progress=False)
-    h_nom = np.asarray(zarr.open_group(str(nominal.output), mode="r")["height"][:])
+    h_nom = np.asarray(_array(zarr.open_group(str(nominal.output), mode="r"), "height")[:])
     g = zarr.open_group(str(calibrated.output), mode="r")
-    h_cal = np.asarray(g["height"][:])
+    h_cal = np.asarray(_array(g, "height")[:])
     assert np.array_equal(np.isnan(h_nom), np.isnan(h_cal))
     valid = np.isfinite(h_nom)
     assert valid.sum() > 10_000
     # nominal: 200 µm per level from 0; calibrated: 190 µm per level from 100 µm
     np.testing.assert_allclose(h_cal[valid], 100.0 + 0.95 * h_nom[valid], atol=0.05)
-    attrs = dict(g.attrs)
+    attrs: dict[str, Any] = dict(g.attrs)
     assert attrs["processing"]["calibration"] == str(cal)
     assert attrs["focus_heights_um"][:2] == [100.0, 290.0]
 
