@@ -18,7 +18,7 @@ recording written on or replaced since is reprocessed): ``complete`` ones are sk
 ``incomplete`` ones (frames lost in the recording: a replay ends incomplete again) are kept
 with their status. A mosaic left ``writing`` or ``failed`` (a worker killed, a
 machine lost, a stage failing) is resumed as ``sffscan replay --resume`` does
-(:meth:`~sffscan.stages.mosaic.MosaicWriter.reopen`): the band writes already in it are
+(:meth:`~sffscan.pipeline.mosaic.writer.MosaicWriter.reopen`): the band writes already in it are
 kept, torn tiles are rebuilt, and it ends equal to an uninterrupted run; a mosaic made with
 another configuration or from another recording is not resumed but reported
 (``overwrite=True`` replaces it). The choice is made by the task when it starts, so a task
@@ -54,10 +54,10 @@ import zarr
 from sffscan.pipeline import locks
 from sffscan.pipeline.cover import plan_cover, planned_box_px
 from sffscan.pipeline.metrology.evaluate import store_accuracy, stored_accuracy
-from sffscan.pipeline.run import InputBusy, ResumeRefused
+from sffscan.pipeline.run import InputBusy, ResumeRefused, with_overrides
 
 if TYPE_CHECKING:
-    from sffscan.pipeline.config import ScanConfig
+    pass
 
 log = logging.getLogger(__name__)
 
@@ -162,21 +162,6 @@ def _mosaic_status(path: Path) -> dict[str, Any] | None:
     return attrs if attrs.get("format") == "sffscan-mosaic" else None
 
 
-def _config(cfg: ScanConfig, mosaic: str, processing: dict[str, Any], *,
-            overwrite: bool) -> ScanConfig:
-    """The recorded configuration with the output and the ``processing`` overrides; the
-    same for a fresh run and for a resume (which :meth:`MosaicWriter.reopen` checks)."""
-    from sffscan.pipeline.config import config_from_dict
-
-    data = cfg.model_dump()
-    data["output"].update(path=mosaic, overwrite=overwrite)
-    unknown = set(processing) - set(data["processing"])
-    if unknown:
-        raise ValueError(f"processing: unknown field(s) {sorted(unknown)}")
-    data["processing"].update(processing)
-    return config_from_dict(data, origin="sffscan batch")
-
-
 def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate: bool,
             overwrite: bool, row: BatchRow) -> None:
     """Replay ``recording`` into ``mosaic`` through the one run path
@@ -191,7 +176,9 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     before = _mosaic_status(Path(mosaic))
     status = before.get("status") if before is not None else None
     resume = not overwrite and status in RESUMABLE
-    cfg = _config(rec.config, mosaic, processing, overwrite=not resume)
+    # the same for a fresh run and a resume (which the writer's reopen checks)
+    cfg = with_overrides(rec.config, origin="sffscan batch", output=mosaic,
+                         overwrite=not resume, processing=processing)
     try:
         run = execute(Job(cfg, recording=rec, resume=resume))
     except ResumeRefused as exc:

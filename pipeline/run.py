@@ -137,6 +137,37 @@ def identity_mismatch(stored: dict[str, Any] | None, current: dict[str, Any], *,
 # --- outputs against inputs --------------------------------------------------------------
 
 
+def with_overrides(cfg: ScanConfig, *, origin: str, output: str | Path | None = None,
+                   overwrite: bool | None = None,
+                   **tables: dict[str, Any] | None) -> ScanConfig:
+    """``cfg`` with the given fields replaced, re-validated as a whole: the one place where
+    the command line, the Python API and ``sffscan batch`` change a configuration.
+
+    ``output`` and ``overwrite`` set ``output.path`` and ``output.overwrite`` (None: kept);
+    every other keyword names a table (``processing``, ``motion``, ``source``, ...) and
+    gives the fields to replace in it. A table or field the configuration does not have is
+    a :class:`ValueError` naming it; an invalid value is the model's :class:`ConfigError`
+    with ``origin`` (what asked for the change) in its message.
+    """
+    from sffscan.pipeline.config import config_from_dict
+
+    data = cfg.model_dump()
+    if output is not None:
+        data["output"]["path"] = str(output)
+    if overwrite is not None:
+        data["output"]["overwrite"] = bool(overwrite)
+    for table, fields in tables.items():
+        if not fields:
+            continue
+        if not isinstance(data.get(table), dict):
+            raise ValueError(f"{table}: not a table of the scan configuration")
+        unknown = set(fields) - set(data[table])
+        if unknown:
+            raise ValueError(f"{table}: unknown field(s) {sorted(unknown)}")
+        data[table].update(fields)
+    return config_from_dict(data, origin=origin)
+
+
 def _within(path: Path, other: Path) -> bool:
     """``path`` is ``other`` or lies inside it (both resolved)."""
     return path == other or other in path.parents
@@ -231,7 +262,7 @@ def _with_run_only(new: dict[str, Any], old: dict[str, Any]) -> dict[str, Any]:
 
 
 def _reopen(cfg: ScanConfig, identity: dict[str, Any] | None) -> Any:
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     path = Path(cfg.output.path)
     try:
@@ -270,7 +301,7 @@ def _mark_failed(writer: Any) -> None:
 
 def _annotate(path: Path, rec: Recording, identity: dict[str, Any]) -> None:
     """Record in the mosaic which recording it was replayed from (its report and identity)."""
-    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
+    from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 
     group = zarr.open_group(str(path), mode="r+", use_consolidated=False)
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(), "recording": {

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sffscan.pipeline.config import ScanConfig, config_from_dict
+from sffscan.pipeline.config import ScanConfig
 
 if TYPE_CHECKING:
     import xarray
@@ -22,21 +22,6 @@ if TYPE_CHECKING:
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
     from sffscan.stages.messages import Frame
     from sffscan.stages.protocol import Sink
-
-
-def _with(cfg: ScanConfig, *, output: str | Path | None, overwrite: bool | None,
-          processing: dict[str, Any] | None) -> ScanConfig:
-    data = cfg.model_dump()
-    if output is not None:
-        data["output"]["path"] = str(output)
-    if overwrite is not None:
-        data["output"]["overwrite"] = bool(overwrite)
-    if processing:
-        unknown = set(processing) - set(data["processing"])
-        if unknown:
-            raise ValueError(f"processing: unknown field(s) {sorted(unknown)}")
-        data["processing"].update(processing)
-    return config_from_dict(data, origin="sffscan API")
 
 
 def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
@@ -92,11 +77,12 @@ def scan(config: ScanConfig | str | Path, *, output: str | Path | None = None,
         completed (status ``failed``).
     """
     from sffscan.pipeline.config import load_config
-    from sffscan.pipeline.run import Job, execute
+    from sffscan.pipeline.run import Job, execute, with_overrides
     from sffscan.pipeline.wiring import evaluate_sim
 
     cfg = config if isinstance(config, ScanConfig) else load_config(config)
-    cfg = _with(cfg, output=output, overwrite=overwrite, processing=processing)
+    cfg = with_overrides(cfg, origin="sffscan API", output=output, overwrite=overwrite,
+                         processing=processing)
     if evaluate and (frames is not None or cfg.source.kind != "sim"):
         raise ValueError("evaluate=True needs the simulated source (source.kind = 'sim') "
                          "and frames=None")
@@ -140,12 +126,13 @@ def replay(recording: str | Path, *, output: str | Path | None = None,
         As in :func:`scan`.
     """
     from sffscan.pipeline.formats.recording import open_recording
-    from sffscan.pipeline.run import Job, execute
+    from sffscan.pipeline.run import Job, execute, with_overrides
     from sffscan.pipeline.wiring import evaluate_sim
 
     rec = open_recording(recording)
     # the recorded [output] overwrite is the recording's, never the caller's
-    cfg = _with(rec.config, output=output, overwrite=bool(overwrite), processing=processing)
+    cfg = with_overrides(rec.config, origin="sffscan API", output=output,
+                         overwrite=bool(overwrite), processing=processing)
     run = execute(Job(cfg, recording=rec, progress=progress))
     assert run is not None  # not check_only
     report = run.report
@@ -252,37 +239,6 @@ def open_mosaic(path: str | Path, *, level: int = 0) -> xarray.Dataset:
         The path is not a valid mosaic (the message names the file and the attribute), or
         it has no such level.
     """
-    import dask.array as da
-    import xarray as xr
-    import zarr
+    from sffscan.pipeline.mosaic.reader import open_dataset
 
-    from sffscan.pipeline.formats.ngff import level_path
-    from sffscan.stages.mosaic import ARRAYS, mosaic_array, read_mosaic_attrs
-
-    p = Path(path)
-    try:
-        group = zarr.open_group(str(p), mode="r", use_consolidated=False)
-    except (FileNotFoundError, ValueError, KeyError) as err:
-        raise ValueError(f"{p}: not a Zarr group ({err})") from None
-    attrs = read_mosaic_attrs(group, p)
-    levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
-    if not 0 <= level < levels:
-        raise ValueError(f"{p}: no pyramid level {level} (the mosaic has levels 0..{levels - 1})")
-    # the arrays this mosaic has (its NGFF pyramids; version 1: the ones present), so a
-    # mosaic written before an array was added still opens
-    names = ([m.name for m in attrs.ome.multiscales] if attrs.ome is not None else
-             [n for n in ARRAYS if isinstance(group.get(n), zarr.Array)])
-    variables = {}
-    for name in names:
-        arr = mosaic_array(group, level_path(name, level))
-        variables[name] = (("y", "x"), da.from_array(arr, chunks=arr.chunks),
-                           {"units": attrs.units.get(name, "")})
-    ny, nx = mosaic_array(group, level_path("height", level)).shape
-    f = 2 ** level
-    step = attrs.pixel_um * f
-    half = (f - 1) / 2 * attrs.pixel_um  # a level-k pixel is centred on its block
-    coords = {"y": ("y", attrs.origin_um[1] + half + step * np.arange(ny), {"units": "µm"}),
-              "x": ("x", attrs.origin_um[0] + half + step * np.arange(nx), {"units": "µm"})}
-    return xr.Dataset(variables, coords=coords,
-                      attrs={**attrs.model_dump(mode="json"), "level": level,
-                             "pixel_um_level": step})
+    return open_dataset(path, level=level)

@@ -306,3 +306,24 @@ def test_config_error_subclasses_are_bad_input() -> None:
 
     for cls in (locks.LockHeld, ResumeRefused, InputBusy, OutputExists):
         assert issubclass(cls, ConfigError)
+
+
+def test_overrides_have_one_home_and_name_what_they_refuse() -> None:
+    """The command line, the API and batch change a configuration through
+    :func:`with_overrides`: fields replaced and the whole re-validated; an unknown table or
+    field is refused by name, an invalid value with the caller's origin."""
+    from sffscan.pipeline.config import ConfigError, demo_config
+    from sffscan.pipeline.run import with_overrides
+
+    cfg = demo_config()
+    out = with_overrides(cfg, origin="test", output="/tmp/x.zarr", overwrite=True,
+                         processing={"depth_method": "spc"}, motion={"speed_mm_s": 5.0})
+    assert (out.output.path, out.output.overwrite) == ("/tmp/x.zarr", True)
+    assert (out.processing.depth_method, out.motion.speed_mm_s) == ("spc", 5.0)
+    assert with_overrides(cfg, origin="test") == cfg
+    with pytest.raises(ValueError, match=r"processing: unknown field\(s\) \['speed'\]"):
+        with_overrides(cfg, origin="test", processing={"speed": 1})
+    with pytest.raises(ValueError, match="optic: not a table"):
+        with_overrides(cfg, origin="test", optic={"n_levels": 3})
+    with pytest.raises(ConfigError, match="from the API"):
+        with_overrides(cfg, origin="from the API", processing={"window": 4})

@@ -19,7 +19,6 @@ from sffscan.pipeline.config import (
     ConfigError,
     ProcessingConfig,
     ScanConfig,
-    config_from_dict,
     max_speed_sliding_mm_s,
     max_speed_thesis_mm_s,
 )
@@ -106,33 +105,31 @@ def override(cfg: ScanConfig, args: argparse.Namespace, *,
 
     ``own_overwrite=False`` (a replay: the configuration is the recording's, not the
     user's): ``output.overwrite`` is ``--overwrite`` alone, never the recorded value."""
-    data = cfg.model_dump()
-    if getattr(args, "output", None):
-        data["output"]["path"] = str(args.output)
-    if getattr(args, "overwrite", False):
-        data["output"]["overwrite"] = True
-    elif not own_overwrite:
-        data["output"]["overwrite"] = False
+    from sffscan.pipeline.run import with_overrides
+
+    motion: dict[str, Any] = {}
+    processing: dict[str, Any] = {}
+    source: dict[str, Any] = {}
     if getattr(args, "speed", None) is not None:
-        data["motion"]["speed_mm_s"] = args.speed
+        motion["speed_mm_s"] = args.speed
     if getattr(args, "wobble", None) is not None:
-        data["motion"]["wobble_along_px"] = args.wobble
-        data["motion"]["wobble_across_px"] = args.wobble
+        motion.update(wobble_along_px=args.wobble, wobble_across_px=args.wobble)
     if getattr(args, "no_registration", False):
-        data["processing"]["registration"] = False
-    if getattr(args, "execution", None):
-        data["processing"]["execution"] = args.execution
-    if getattr(args, "method", None):
-        data["processing"]["depth_method"] = args.method
-    if getattr(args, "operator", None):
-        data["processing"]["focus_operator"] = args.operator
+        processing["registration"] = False
+    for option, key in (("execution", "execution"), ("method", "depth_method"),
+                        ("operator", "focus_operator")):
+        if getattr(args, option, None):
+            processing[key] = getattr(args, option)
     if getattr(args, "window", None) is not None:
-        data["processing"]["window"] = args.window
+        processing["window"] = args.window
     if getattr(args, "calibration", None):
-        data["processing"]["calibration"] = str(args.calibration)
+        processing["calibration"] = str(args.calibration)
     if getattr(args, "seed", None) is not None:
-        data["source"]["seed"] = args.seed
-    return config_from_dict(data, origin="command line")
+        source["seed"] = args.seed
+    overwrite = True if getattr(args, "overwrite", False) else (None if own_overwrite else False)
+    return with_overrides(cfg, origin="command line", output=getattr(args, "output", None) or None,
+                          overwrite=overwrite, motion=motion, processing=processing,
+                          source=source)
 
 
 def describe(cfg: ScanConfig) -> str:
