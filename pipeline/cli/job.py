@@ -45,6 +45,8 @@ def _print_verdict(layer: int, v: object, timings: dict[str, float], n: int) -> 
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.cli.common import viewer_mode
+    from sffscan.pipeline.config import ConfigError
     from sffscan.pipeline.printjob.demo import (
         demo_config,
         demo_defects,
@@ -53,6 +55,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     from sffscan.pipeline.printjob.gcode import read_gcode
     from sffscan.pipeline.printjob.jobstore import JobError
+    from sffscan.pipeline.printjob.live_view import open_job_view
 
     out = Path(args.output)
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
@@ -68,11 +71,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"layer scanned at 15 mm/s into {out}", file=sys.stderr)
     t0 = time.perf_counter()
     try:
+        mode = viewer_mode(args.viewer, args.rrd)
+        view = None if mode == ["off"] else (lambda store: open_job_view(store, mode))
         verdicts = run_simulated_print(
             out, defects=defects, layers=list(range(n)), seed=args.seed,
             config=demo_config(seed=args.seed), record=args.record,
-            on_layer=lambda k, v, t: _print_verdict(k, v, t, n))
-    except JobError as err:
+            on_layer=lambda k, v, t: _print_verdict(k, v, t, n), view=view)
+    except (JobError, ConfigError) as err:
         print(f"sffscan: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     counts = {s: sum(v.verdict == s for v in verdicts) for s in ("pass", "warn", "fail",
@@ -188,6 +193,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     d.add_argument("--record", action="store_true",
                    help="keep each layer's raw recording in the job (larger, slower)")
     d.add_argument("--overwrite", action="store_true", help="replace an existing job folder")
+    d.add_argument("--viewer", metavar="MODE", default=None,
+                   help="watch it live in Rerun: each layer's scan, deviation and verdict "
+                        "(spawn, serve, save with --rrd, auto, off; default off)")
+    d.add_argument("--rrd", metavar="PATH", help="Rerun recording (.rrd) of the live view")
     d.set_defaults(func=cmd_demo)
     s = jsub.add_parser("show", help="verdicts of a job folder")
     s.add_argument("job", help="job folder")

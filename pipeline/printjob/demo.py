@@ -13,10 +13,10 @@ defects :func:`demo_defects` injects.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig, config_from_dict
@@ -25,6 +25,9 @@ from sffscan.pipeline.printjob.expected import PrinterMapping
 from sffscan.pipeline.printjob.gcode import GcodeProgram
 from sffscan.pipeline.printjob.jobstore import JobStore
 from sffscan.pipeline.printjob.layer import LayerRunner
+
+if TYPE_CHECKING:
+    from sffscan.pipeline.printjob.live_view import JobLiveView
 
 __all__ = ["DEMO_MAPPING", "demo_config", "demo_defects", "demo_gcode", "demo_models",
            "run_simulated_print"]
@@ -129,7 +132,9 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
                         tolerances: Tolerances | None = None, layers: list[int] | None = None,
                         seed: int = 0, record: bool = False,
                         on_layer: Callable[[int, LayerVerdict, dict[str, float]], None]
-                        | None = None) -> list[LayerVerdict]:
+                        | None = None,
+                        view: Callable[[JobStore], JobLiveView] | None = None
+                        ) -> list[LayerVerdict]:
     """Print a G-code in the simulator layer by layer, scanning and judging every layer.
 
     Parameters
@@ -155,12 +160,14 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
     on_layer : callable, keyword-only
         Called ``on_layer(layer, verdict, timings)`` after each layer (timings: ``scan_s``,
         ``verdict_s`` after the scan, ``frames``).
+    view : callable, keyword-only
+        ``store -> JobLiveView``: the live view, shown each layer's scan as it runs and its
+        deviation and verdict as they come (:mod:`~.live_view`); closed at the end.
 
     Returns
     -------
     list of LayerVerdict
     """
-    import time
 
     from sffscan.stages.sim.print_world import PrintWorld
 
@@ -181,8 +188,24 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
                        seed=seed)
     runner = LayerRunner(store)
     done = set(store.done_layers())
+    live = view(store) if view is not None else None
+    try:
+        return _print_layers(store, runner, world, cfg, done, record, live, on_layer,
+                             layers if layers is not None else range(program.n_layers))
+    finally:
+        if live is not None:
+            live.close()
+
+
+def _print_layers(store: JobStore, runner: LayerRunner, world: Any, cfg: ScanConfig,
+                  done: set[int], record: bool, live: JobLiveView | None,
+                  on_layer: Callable[[int, LayerVerdict, dict[str, float]], None] | None,
+                  layers: Iterable[int]) -> list[LayerVerdict]:
+    import time
+
+    program = store.program
     out: list[LayerVerdict] = []
-    for k in layers if layers is not None else range(program.n_layers):
+    for k in layers:
         if k in done:
             out.append(store.read_verdict(k))
             continue
@@ -190,11 +213,14 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
         runner.prepare(k)  # a service does this while the layer is scanned
         w = world.at_layer(k)
         t0 = time.perf_counter()
+        sinks = () if live is None else (live.scan_sink(cfg, k),)
         try:
-            report = runner.scan(k, config=cfg, world=w, record=record)
+            report = runner.scan(k, config=cfg, world=w, record=record, sinks=sinks)
         except Exception as err:  # a failed scan is recorded as unknown, the job goes on
             v = runner.fail(k, f"the scan failed: {err}")
             out.append(v)
+            if live is not None:
+                live.layer_done(k)
             if on_layer:
                 on_layer(k, v, {"scan_s": time.perf_counter() - t0})
             continue
@@ -202,6 +228,8 @@ def run_simulated_print(job: str | Path, *, gcode: str | Path | None = None,
         v = runner.analyse(k)
         t2 = time.perf_counter()
         out.append(v)
+        if live is not None:
+            live.layer_done(k)
         if on_layer:
             on_layer(k, v, {"scan_s": t1 - t0, "verdict_s": t2 - t1,
                             "frames": float(report.frames)})

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from sffscan.pipeline.config import ScanConfig
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.messages import Frame
+    from sffscan.stages.protocol import Sink
 
 __all__ = ["LayerRunner", "open_job", "roi_grid"]
 
@@ -119,7 +120,8 @@ class LayerRunner:
 
     def scan(self, layer: int, *, config: ScanConfig | None = None,
              frames: Iterable[Frame] | None = None, world: Any | None = None,
-             record: bool = True, evaluate: bool = False) -> ScanReport:
+             record: bool = True, evaluate: bool = False,
+             sinks: Sequence[Sink] = ()) -> ScanReport:
         """Scan the layer into the store (mosaic, and the raw recording when ``record``).
 
         Parameters
@@ -138,6 +140,9 @@ class LayerRunner:
             Record the raw frames to the layer's ``recording.zarr``.
         evaluate : bool, keyword-only
             Score the mosaic against ``world``'s truth (``report.accuracy``).
+        sinks : sequence of Sink, keyword-only
+            Side branches of the scan (a live view:
+            :meth:`~.live_view.JobLiveView.scan_sink`).
         """
         from sffscan.pipeline.config import ScanConfig
 
@@ -152,7 +157,8 @@ class LayerRunner:
 
             frames = simulate_frames(cfg, world=world)
         report = scan(cfg, output=self.store.mosaic_path(layer), overwrite=True, frames=frames,
-                      record=self.store.recording_path(layer) if record else None)
+                      record=self.store.recording_path(layer) if record else None,
+                      sinks=sinks)
         if evaluate and world is not None:
             from sffscan.pipeline.wiring import evaluate_sim
 

@@ -27,7 +27,8 @@ from sffscan.pipeline.printjob.report import deviation_colours, layer_deviation
 if TYPE_CHECKING:
     import rerun as rr
 
-__all__ = ["TIMELINE", "log_job", "save_job_rrd", "verdict_markdown"]
+__all__ = ["TIMELINE", "log_job", "log_layer", "log_manifest", "save_job_rrd",
+           "verdict_markdown"]
 
 TIMELINE = "layer"
 _VERDICT_RGB = {"pass": (26, 152, 80), "warn": (224, 138, 0), "fail": (215, 48, 39),
@@ -49,6 +50,61 @@ def verdict_markdown(v: LayerVerdict, n_layers: int) -> str:
         lines.append(f"| {o.name} | {o.verdict} | {p95} | {o.area_out_mm2:.2f} | "
                      f"{o.missing_mm2:.2f} | {o.excess_mm2:.2f} | {where} |")
     return "\n".join(lines)
+
+
+def _limit(store: JobStore, limit_um: float | None) -> tuple[float, float]:
+    tol = store.manifest.tolerances.tolerance_um
+    return tol, 5.0 * tol if limit_um is None else float(limit_um)
+
+
+def log_manifest(store: JobStore, rec: rr.RecordingStream, *,
+                 limit_um: float | None = None) -> None:
+    """``job/manifest`` (static Markdown): the job, its G-code, objects and tolerance."""
+    import rerun as rr
+
+    man = store.manifest
+    tol, lim = _limit(store, limit_um)
+    rec.log("job/manifest", rr.TextDocument(
+        f"# Print job {man.job_id}\n\nprinter {man.printer or 'not named'}; G-code "
+        f"`{man.gcode_sha256}`; {len(man.layer_z_mm)} layers; objects "
+        f"{', '.join(man.objects)}; tolerance ±{tol:g} µm; colours saturate at ±{lim:g} µm",
+        media_type=rr.MediaType.MARKDOWN), static=True)
+
+
+def log_layer(store: JobStore, layer: int, rec: rr.RecordingStream, *,
+              limit_um: float | None = None) -> None:
+    """Log one done layer at time ``layer`` (the calling thread's clock): its verdict, its
+    deviation map (RGB and µm) and the objects' outlines; a layer without a deviation map
+    (failed scan) clears the image."""
+    import rerun as rr
+
+    tol, lim = _limit(store, limit_um)
+    v = store.read_verdict(layer)
+    rec.set_time(TIMELINE, sequence=layer)
+    rec.log("job/verdict", rr.TextDocument(verdict_markdown(v, len(store.manifest.layer_z_mm)),
+                                           media_type=rr.MediaType.MARKDOWN))
+    got = layer_deviation(store, layer)
+    if got is None:
+        rec.log("job/deviation", rr.Clear(recursive=True))
+        rec.log("job/deviation_um", rr.Clear(recursive=False))
+        return
+    dev, outlines = got
+    rec.log("job/deviation", rr.Image(deviation_colours(dev, tolerance_um=tol, limit_um=lim)))
+    rec.log("job/deviation_um", rr.DepthImage(np.nan_to_num(dev, nan=0.0), meter=1.0))
+    per = {o.name: o.verdict for o in v.objects}
+    names = list(outlines)
+    strips = [np.vstack([outlines[m], outlines[m][:1]]) + 0.5 for m in names]
+    rec.log("job/deviation/outlines", rr.LineStrips2D(
+        strips, labels=[f"{Path(m).stem}: {per.get(m, '?')}" for m in names],
+        colors=[_VERDICT_RGB.get(per.get(m, "unknown"), (0, 0, 0)) for m in names],
+        radii=rr.Radius.ui_points(1.5)))
+
+
+def open_job(job_path: str | Path) -> JobStore:
+    try:
+        return JobStore.open(job_path)
+    except OSError as err:
+        raise JobError(f"{job_path}: not a readable job folder ({err})") from None
 
 
 def log_job(job_path: str | Path, rec: rr.RecordingStream, *,
@@ -74,43 +130,11 @@ def log_job(job_path: str | Path, rec: rr.RecordingStream, *,
     JobError
         Not a job folder (the path is named).
     """
-    import rerun as rr
-
-    try:
-        store = JobStore.open(job_path)
-    except OSError as err:
-        raise JobError(f"{job_path}: not a readable job folder ({err})") from None
-    man = store.manifest
-    tol = man.tolerances.tolerance_um
-    lim = 5.0 * tol if limit_um is None else float(limit_um)
-    n = len(man.layer_z_mm)
-    rec.log("job/manifest", rr.TextDocument(
-        f"# Print job {man.job_id}\n\nprinter {man.printer or 'not named'}; G-code "
-        f"`{man.gcode_sha256}`; {n} layers; objects {', '.join(man.objects)}; tolerance "
-        f"±{tol:g} µm; colours saturate at ±{lim:g} µm",
-        media_type=rr.MediaType.MARKDOWN), static=True)
+    store = open_job(job_path)
+    log_manifest(store, rec, limit_um=limit_um)
     done = store.done_layers()
     for k in done:
-        v = store.read_verdict(k)
-        rec.set_time(TIMELINE, sequence=k)
-        rec.log("job/verdict", rr.TextDocument(verdict_markdown(v, n),
-                                               media_type=rr.MediaType.MARKDOWN))
-        got = layer_deviation(store, k)
-        if got is None:
-            rec.log("job/deviation", rr.Clear(recursive=True))
-            rec.log("job/deviation_um", rr.Clear(recursive=False))
-            continue
-        dev, outlines = got
-        rec.log("job/deviation", rr.Image(deviation_colours(dev, tolerance_um=tol,
-                                                             limit_um=lim)))
-        rec.log("job/deviation_um", rr.DepthImage(np.nan_to_num(dev, nan=0.0), meter=1.0))
-        per = {o.name: o.verdict for o in v.objects}
-        names = list(outlines)
-        strips = [np.vstack([outlines[m], outlines[m][:1]]) + 0.5 for m in names]
-        rec.log("job/deviation/outlines", rr.LineStrips2D(
-            strips, labels=[f"{Path(m).stem}: {per.get(m, '?')}" for m in names],
-            colors=[_VERDICT_RGB.get(per.get(m, "unknown"), (0, 0, 0)) for m in names],
-            radii=rr.Radius.ui_points(1.5)))
+        log_layer(store, k, rec, limit_um=limit_um)
     return done
 
 

@@ -48,7 +48,14 @@ import rerun.blueprint as rrb
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
 from sffscan.pipeline.plan import scan_extent_px
 from sffscan.pipeline.stats import StatsSnapshot
-from sffscan.pipeline.viz.preview import MosaicPreview, point_stride, shown, surface_points, to_u8
+from sffscan.pipeline.viz.preview import (
+    MosaicPreview,
+    logged_items,
+    point_stride,
+    shown,
+    surface_points,
+    to_u8,
+)
 from sffscan.pipeline.wiring import focus_heights_um
 from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
@@ -125,8 +132,7 @@ class VizSink(Sink):
         o = cfg.optics
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
         #: what the view uses, selected where the stages run (process mode)
-        self.relay_keep = ("sffscan.pipeline.viz.preview:logged_items",
-                           {"frame_step": self.frame_step})
+        self.relay_keep = (logged_items, {"frame_step": self.frame_step})
         x0, y0, x1, y1 = scan_extent_px(cfg)
         self.factor = max(1, -(-max(x1 - x0, y1 - y0) // self.opt.mosaic_max_px))
         self.preview = MosaicPreview(origin_px=(x0, y0), shape=(y1 - y0, x1 - x0),
@@ -362,9 +368,11 @@ def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
     raise ConfigError(f"--viewer {' '.join(mode)}: expected one of {MODES}")
 
 
-def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
+def open_recording(mode: list[str], *, layout: rrb.Blueprint | None = None
+                   ) -> tuple[rr.RecordingStream, str | None]:
     """A new recording stream connected as the ``--viewer`` words ``mode`` ask, and the web
-    viewer's address when it serves one (logged, INFO)."""
+    viewer's address when it serves one (logged, INFO). ``layout``: the view's blueprint
+    (default :func:`blueprint`, a single scan's)."""
     kind, path = parse_mode(mode)
     if kind == "auto":
         kind = "spawn" if native_viewer_possible() else "serve"
@@ -373,7 +381,7 @@ def open_recording(mode: list[str]) -> tuple[rr.RecordingStream, str | None]:
                           "DISPLAY nor WAYLAND_DISPLAY is set); use '--viewer serve' or "
                           "'--viewer save PATH'")
     rec = rr.RecordingStream("sffscan")
-    bp = blueprint()
+    bp = layout if layout is not None else blueprint()
     words = f"--viewer {mode[0]}" + (f" --rrd {path}" if path is not None else "")
     try:  # Rerun reports an unusable file, port or viewer as RuntimeError
         if kind == "save":
