@@ -1,5 +1,5 @@
 """``sffscan calibrate z | lateral | curvature | noise`` on image files, as a user would run
-them: the simulated targets of tests/test_calibration.py written to PNG files, the commands
+them: the simulated targets of tests/test_calibration_fit.py written to PNG files, the commands
 run in order into one calibration file, the known answers within the same tolerances."""
 
 from __future__ import annotations
