@@ -85,3 +85,39 @@ def test_job_demo_refuses_a_viewer_it_cannot_open(tmp_path: Path,
     assert main(["job", "demo", "-o", str(tmp_path / "j2"), "--layers", "1",
                  "--rrd", str(tmp_path / "no" / "x.rrd")]) == 2
     assert f"folder {tmp_path / 'no'} does not exist" in capsys.readouterr().err
+
+
+def test_the_service_shows_each_jobs_layers_live(tmp_path: Path) -> None:
+    """``sffscan serve --viewer``'s path: the job store handler's scan goes through the live
+    view, and the verdict is logged when the background analysis writes it."""
+    import rerun as rr
+    from sffscan.pipeline.printjob.links_store import JobStoreHandler
+    from sffscan.pipeline.printjob.live_view import JobLiveView, job_blueprint
+    from sffscan.pipeline.printjob.service import JobEnd, JobService, JobStart, LayerEvent
+
+    gdir = tmp_path / "gcodes"
+    gdir.mkdir()
+    (gdir / "tiny.gcode").write_text(tiny_gcode(3))
+    rrd = tmp_path / "serve.rrd"
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(rrd), default_blueprint=job_blueprint())
+    views: list[JobLiveView] = []
+
+    def view(store: JobStore) -> JobLiveView:
+        views.append(JobLiveView(store, rec, own_stream=False))
+        return views[-1]
+
+    handler = JobStoreHandler(_tiny_config(), gcode_dir=gdir, record=False, view=view,
+                              mapping=PrinterMapping(offset_um=(0.0, 0.0)))
+    with JobService(tmp_path / "store", handler) as svc:  # not strict: analysis behind
+        svc.start_job(JobStart(job_id="j", gcode_name="tiny.gcode"))
+        assert svc.layer("j", LayerEvent(layer=0, z_mm=0.2)).record.verdict == "pending"
+        svc.end_job("j", JobEnd())  # waits for the verdict
+        assert svc.record("j", 0).verdict == "pass"
+    assert len(views) == 1 and views[0].layers_logged == [0]
+    rec.flush()
+    rec.disconnect()
+    rows = _rrd_rows(rrd)
+    assert {r["layer"] for r in rows["/scan/camera/image"]} == {0}
+    assert [r["layer"] for r in rows["/job/verdict"]] == [0]
+    assert "**PASS**" in rows["/job/verdict"][0]["TextDocument:text"][0]

@@ -56,6 +56,10 @@ def register(sub: Any) -> None:
                         "(ws://127.0.0.1:7125/websocket)")
     p.add_argument("--moonraker-api-key-file", help="Moonraker API key, for a connection "
                                                     "Moonraker does not trust")
+    p.add_argument("--viewer", metavar="MODE", default=None,
+                   help="watch the jobs live in Rerun (spawn, serve, save with --rrd, auto, "
+                        "off; default off)")
+    p.add_argument("--rrd", metavar="PATH", help="Rerun recording (.rrd) of the live view")
     p.set_defaults(func=cmd_serve)
 
 
@@ -66,7 +70,8 @@ def _read_secret(path: str | None, env: str) -> str | None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.config import load_config
+    from sffscan.pipeline.cli.common import viewer_mode
+    from sffscan.pipeline.config import ConfigError, load_config
     from sffscan.pipeline.printjob import demo
     from sffscan.pipeline.printjob.expected import PrinterMapping
     from sffscan.pipeline.printjob.links_http import ServiceServer
@@ -84,7 +89,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
             print(f"sffscan serve: --mapping {args.mapping}: {err}", file=sys.stderr)
             return EXIT_BAD_INPUT
     token = _read_secret(args.token_file, "SFFSCAN_TOKEN")
-    handler = JobStoreHandler(cfg, gcode_dir=args.gcode_dir, mapping=mapping)
+    view = None
+    try:
+        mode = viewer_mode(args.viewer, args.rrd)
+        if mode != ["off"]:  # rerun is imported only for a view
+            from sffscan.pipeline.printjob.live_view import shared_job_views
+
+            view = shared_job_views(mode)
+    except ConfigError as err:
+        print(f"sffscan serve: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    handler = JobStoreHandler(cfg, gcode_dir=args.gcode_dir, mapping=mapping, view=view)
     try:
         service = JobService(args.store, handler, strict=args.strict,
                              scan_timeout_s=args.scan_timeout_s,

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.printjob.deviation import Tolerances
@@ -32,16 +33,21 @@ from sffscan.pipeline.printjob.links_models import (
     ScanResult,
 )
 
+if TYPE_CHECKING:
+    from sffscan.pipeline.printjob.live_view import JobLiveView
+
 log = logging.getLogger(__name__)
 
 STORE_DIR = "job"  # the job store inside the service's job folder
 
 
 class _Job:
-    def __init__(self, runner: LayerRunner | None, why: str, world: Any = None) -> None:
+    def __init__(self, runner: LayerRunner | None, why: str, world: Any = None,
+                 live: JobLiveView | None = None) -> None:
         self.runner = runner
         self.why = why  # why there is no runner
         self.world = world
+        self.live = live  # the job's live view, if one is asked for
 
 
 class JobStoreHandler:
@@ -58,11 +64,17 @@ class JobStoreHandler:
     tolerances : Tolerances, keyword-only
     record : bool, keyword-only
         Keep each layer's raw recording in the job store.
+    view : callable, keyword-only
+        ``store -> JobLiveView`` (:func:`~.live_view.shared_job_views`): each job's layers
+        shown live, the scan while it runs, the deviation and verdict when written. A view
+        that fails is logged and dropped; the job goes on.
     """
 
     def __init__(self, config: ScanConfig, *, gcode_dir: str | Path | None = None,
                  mapping: PrinterMapping | None = None, tolerances: Tolerances | None = None,
-                 record: bool = True) -> None:
+                 record: bool = True,
+                 view: Callable[[JobStore], JobLiveView] | None = None) -> None:
+        self.view = view
         self.config = config
         self.gcode_dir = None if gcode_dir is None else Path(gcode_dir)
         self.mapping = mapping or PrinterMapping()
@@ -102,7 +114,13 @@ class JobStoreHandler:
             program, mapping = store.program, store.manifest.mapping
             world = PrintWorld(program, mapping, self.config.optics.pixel_um,
                                _world_extent(program, mapping))
-        return _Job(LayerRunner(store), "", world)
+        live = None
+        if self.view is not None:
+            try:
+                live = self.view(store)
+            except Exception as err:  # noqa: BLE001 - the view never stops the job
+                log.warning("job %s: no live view: %s", job.job_id, err)
+        return _Job(LayerRunner(store), "", world, live)
 
     def scan(self, job: JobStart, event: LayerEvent, folder: Path) -> ScanResult:
         j = self._job(job, folder)
@@ -114,11 +132,13 @@ class JobStoreHandler:
             return ScanResult(output=out, info={"frames": report.frames})
         j.runner.begin(event.layer, event.z_mm)
         world = None if j.world is None else j.world.at_layer(event.layer)
+        sinks = () if j.live is None else (j.live.scan_sink(self.config, event.layer),)
         try:
             report = j.runner.scan(event.layer, config=self.config, world=world,
-                                   record=self.record)
+                                   record=self.record, sinks=sinks)
         except Exception as err:  # the job store records the layer unknown too
             j.runner.fail(event.layer, f"the scan failed: {type(err).__name__}: {err}")
+            _show(j, event.layer)
             raise
         return ScanResult(output=j.runner.store.mosaic_path(event.layer),
                           info={"frames": report.frames})
@@ -129,6 +149,7 @@ class JobStoreHandler:
         if j.runner is None:
             return Analysis(verdict="unknown", reason=j.why)
         v = j.runner.analyse(event.layer)
+        _show(j, event.layer)
         reason = v.reason
         if not reason:
             bad = [o for o in v.objects if o.verdict != "pass"]
@@ -137,3 +158,14 @@ class JobStoreHandler:
                 f"{o.missing_mm2:.2f} mm², excess {o.excess_mm2:.2f} mm²)" for o in bad)
         return Analysis(verdict=v.verdict, reason=reason,
                         objects={o.name: o.verdict for o in v.objects})
+
+
+def _show(j: _Job, layer: int) -> None:
+    """The layer's verdict into the job's live view (a failing view is logged, dropped)."""
+    if j.live is None:
+        return
+    try:
+        j.live.layer_done(layer)
+    except Exception as err:  # noqa: BLE001 - the view never stops the job
+        log.warning("live view: layer %d not shown (%s); the view is dropped", layer, err)
+        j.live = None

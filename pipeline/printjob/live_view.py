@@ -20,6 +20,7 @@ opens one; the scan's own :func:`~sffscan.pipeline.viz.sink.open_recording` conn
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import rerun as rr
@@ -29,7 +30,8 @@ from sffscan.pipeline.printjob.jobstore import JobStore
 from sffscan.pipeline.printjob.viewer import TIMELINE, log_layer, log_manifest
 from sffscan.pipeline.viz.sink import VizOptions, VizSink, open_recording
 
-__all__ = ["JobLiveView", "LayerScanSink", "job_blueprint", "open_job_view"]
+__all__ = ["JobLiveView", "LayerScanSink", "job_blueprint", "open_job_view",
+           "shared_job_views"]
 
 
 def job_blueprint() -> rrb.Blueprint:
@@ -92,11 +94,16 @@ class JobLiveView:
         How much of each scan to show.
     limit_um : float, keyword-only, optional
         |deviation| where the colour map saturates, µm; default 5 x the job's tolerance.
+    own_stream : bool, keyword-only
+        :meth:`close` disconnects ``rec`` (False: the stream is shared with later jobs, as
+        in ``sffscan serve --viewer``; close only flushes).
     """
 
     def __init__(self, store: JobStore, rec: rr.RecordingStream, *,
-                 options: VizOptions | None = None, limit_um: float | None = None) -> None:
+                 options: VizOptions | None = None, limit_um: float | None = None,
+                 own_stream: bool = True) -> None:
         self.store, self.rec = store, rec
+        self.own_stream = own_stream
         self.options = options
         self.limit_um = limit_um
         self.layers_logged: list[int] = []
@@ -119,7 +126,8 @@ class JobLiveView:
 
     def close(self) -> None:
         self.rec.flush()
-        self.rec.disconnect()
+        if self.own_stream:
+            self.rec.disconnect()
 
 
 def open_job_view(store: JobStore, mode: list[str], *,
@@ -130,3 +138,15 @@ def open_job_view(store: JobStore, mode: list[str], *,
     mode, file or port). A served view's address is logged."""
     rec, _ = open_recording(mode, layout=job_blueprint())
     return JobLiveView(store, rec, options=options)
+
+
+def shared_job_views(mode: list[str], *, options: VizOptions | None = None
+                     ) -> Callable[[JobStore], JobLiveView]:
+    """``store -> JobLiveView`` for a service: one viewer (opened now, as ``mode`` asks)
+    that every job of the service logs into, one after the other."""
+    rec, _ = open_recording(mode, layout=job_blueprint())
+
+    def view(store: JobStore) -> JobLiveView:
+        return JobLiveView(store, rec, options=options, own_stream=False)
+
+    return view
