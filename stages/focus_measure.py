@@ -84,7 +84,8 @@ def to_unit_float(image: np.ndarray, *, max_value: float) -> np.ndarray:
 
 
 def focus_measure_raw(
-    image: np.ndarray, *, max_value: float, operator: str = "glvm", window: int = 9
+    image: np.ndarray, *, max_value: float, operator: str = "glvm", window: int = 9,
+    rows: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Scale a raw camera image to 0..1 and compute its focus measure (OpenCV, CPU).
 
@@ -104,14 +105,33 @@ def focus_measure_raw(
         run in OpenCV, the others in torch on the CPU.
     window : int, keyword-only
         Odd window size k >= 3, pixels. Default 9.
+    rows : (int, int), optional, keyword-only
+        Only the band of rows ``r0 <= y < r1``: measured on the band widened by the
+        operator's reach (:func:`sffscan.stages.operators.operator_reach`, its start on
+        the operator's grid), so that it equals the whole image's rows; bit-identical for
+        GLVM and TENV (their OpenCV arithmetic does not depend on where the band starts),
+        to float32 round-off for the others. What a worker that owns a band of rows, or a
+        strip-blocked loop that keeps the band in cache, measures.
 
     Returns
     -------
-    image01, focus : (H, W) ndarray of float32
+    image01, focus : (H, W) ndarray of float32 (``(r1 - r0, W)`` with ``rows``)
         The scaled image and its focus measure.
     """
     op = FOCUS_OPERATORS[check_operator(operator)]
     window = check_window(window)
+    if rows is not None:
+        r0, r1 = rows
+        height = image.shape[0]
+        if not 0 <= r0 < r1 <= height:
+            raise ValueError(f"rows must satisfy 0 <= r0 < r1 <= {height} (the image's "
+                             f"height), got {rows}")
+        reach = op.reach(window)
+        a0, a1 = max(r0 - reach, 0), min(r1 + reach, height)
+        a0 -= a0 % op.alignment
+        image01, fm = focus_measure_raw(image[a0:a1], max_value=max_value,
+                                        operator=op.name, window=window)
+        return image01[r0 - a0:r1 - a0], fm[r0 - a0:r1 - a0]
     if op.name == "glvm" and image.dtype in (np.uint8, np.uint16):
         # one contiguous copy of the raw columns first: OpenCV's box filter reads a
         # strided view about 1.8x slower, and the scaling reads the copy from cache

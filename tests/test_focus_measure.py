@@ -314,3 +314,31 @@ def test_scan_path_does_not_import_torch() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)
     assert done.returncode == 0, done.stderr
+
+
+@pytest.mark.parametrize("operator", FAST_OPERATORS)
+@pytest.mark.parametrize(("dtype", "full"), [(np.uint8, 255), (np.uint16, 1023)])
+def test_bands_of_rows_equal_the_whole_frame(operator: str, dtype: type, full: int) -> None:
+    """A band of rows measured on its own (widened by the operator's reach) is
+    bit-identical to those rows of the whole frame, for every split: what band workers
+    and a strip-blocked loop rely on."""
+    rng = np.random.default_rng(6)
+    frame = cv2.GaussianBlur(rng.random((83, 64), dtype=np.float32) * full, (0, 0), 1.2)
+    frame = frame.round().astype(dtype)
+    whole01, whole = focus_measure_raw(frame, max_value=full, operator=operator)
+    for step in (1, 7, 40):
+        bands = [focus_measure_raw(frame, max_value=full, operator=operator,
+                                   rows=(r0, min(r0 + step, 83))) for r0 in range(0, 83, step)]
+        np.testing.assert_array_equal(np.concatenate([b[0] for b in bands]), whole01)
+        np.testing.assert_array_equal(np.concatenate([b[1] for b in bands]), whole)
+    for bad in ((0, 0), (-1, 5), (10, 84)):
+        with pytest.raises(ValueError, match="rows must satisfy"):
+            focus_measure_raw(frame, max_value=full, operator=operator, rows=bad)
+
+
+def test_band_of_a_torch_operator() -> None:
+    rng = np.random.default_rng(8)
+    frame = rng.integers(0, 256, (50, 40)).astype(np.uint8)
+    whole = focus_measure_raw(frame, max_value=255, operator="lapm")[1]
+    band = focus_measure_raw(frame, max_value=255, operator="lapm", rows=(20, 31))[1]
+    np.testing.assert_allclose(band, whole[20:31], rtol=1e-6, atol=1e-7 * whole.max())
