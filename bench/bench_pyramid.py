@@ -4,7 +4,7 @@ The frames of a recording are read into memory once (so neither the disk nor the
 decoding is the limit, which would hide the pyramid's cost) and run through the whole
 pipeline (``run_scan``: speed shift, registration, focus measure, focus volume, depth,
 mosaic) alternately with the pyramid (the default levels, kept current through the writer's
-write-back cache of upper-level chunks, :class:`sffscan.stages.mosaic_pyramid.PyramidCache`)
+write-back cache of upper-level chunks, :class:`sffscan.pipeline.mosaic.pyramid.PyramidCache`)
 and without it (``levels=1``: level 0 only, the mosaic of format version 1 plus NGFF
 metadata). Runs are interleaved
 (ABBA...), so a change of the machine's load hits both variants alike; the 1-minute load
@@ -40,9 +40,9 @@ import zarr
 from sffscan.pipeline import wiring
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.messages import Frame
-from sffscan.stages.mosaic import MosaicWriter
 
 
 def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool

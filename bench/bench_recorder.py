@@ -37,9 +37,10 @@ import numpy as np
 import zarr
 from sffscan.pipeline.config import demo_config
 from sffscan.pipeline.formats.recording_writer import RecordingWriter, frame_codecs
+from sffscan.pipeline.mosaic.layout import mosaic_codecs
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame
-from sffscan.stages.mosaic import MosaicWriter, mosaic_codecs
 
 CAMERA_MB_S = 1280 * 1024 * 2 * 150 / 1e6
 

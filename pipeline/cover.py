@@ -40,7 +40,7 @@ def plan_cover(mosaic: str | Path, *, band_rows: int = 512) -> float | None:
     pixels: always 1). None if the mosaic has no readable scan configuration."""
     from pydantic import ValidationError
     from sffscan.pipeline.config import ScanConfig
-    from sffscan.stages.mosaic import mosaic_array
+    from sffscan.pipeline.mosaic.layout import mosaic_array
 
     group = zarr.open_group(str(mosaic), mode="r", use_consolidated=False)
     attrs = group.attrs.asdict()

@@ -193,7 +193,7 @@ def _writable_folder(path: Path, what: str) -> None:
 
 def check_output(cfg: ScanConfig, *, resume: bool = False) -> None:
     """``output.path`` can be written (and replaced only if allowed and a mosaic)."""
-    from sffscan.stages.mosaic import is_replaceable
+    from sffscan.pipeline.mosaic.writer import is_replaceable
 
     out = Path(cfg.output.path)
     if resume:

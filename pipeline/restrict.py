@@ -50,7 +50,8 @@ def prior_from_mosaic(path: str, *, uncertainty_um: float,
     mosaic's pixel scale (world pixels are only comparable at the same scale).
     """
     import zarr
-    from sffscan.stages.mosaic import mosaic_array, read_mosaic_attrs
+    from sffscan.pipeline.mosaic.layout import mosaic_array
+    from sffscan.pipeline.mosaic.reader import read_mosaic_attrs
 
     try:
         group = zarr.open_group(str(path), mode="r")

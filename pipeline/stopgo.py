@@ -31,8 +31,9 @@ from typing import Protocol
 
 import numpy as np
 from sffscan.pipeline.metrology.optics_correction import StackCorrection, applied
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.fields.stationary import FieldResult, StackSettings, reconstruct_field
-from sffscan.stages.mosaic import MIN_WEIGHT, MosaicWriter
+from sffscan.stages.mosaic import MIN_WEIGHT
 from sffscan.stages.sim.camera import Optics, render_stack
 from sffscan.stages.sim.world import PlateWorld
 
@@ -257,7 +258,7 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
     overlap_px : int, keyword-only
         Width of the blending ramp, px (normally the grid's overlap).
     chunk_px, overwrite : keyword-only
-        As for :class:`sffscan.stages.mosaic.MosaicWriter`.
+        As for :class:`sffscan.pipeline.mosaic.writer.MosaicWriter`.
     progress : callable(done, total, elapsed_s), keyword-only
         Called after each field.
     correction : StackCorrection, keyword-only

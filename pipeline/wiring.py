@@ -27,17 +27,18 @@ from sffscan.pipeline.metrology.evaluate import (
     mosaic_accuracy,
     store_accuracy,
 )
+from sffscan.pipeline.mosaic.stage import MosaicStage
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline
-from sffscan.pipeline.stats import PipelineResult
 from sffscan.pipeline.scan_processes import process_pipeline, use_processes
+from sffscan.pipeline.stats import PipelineResult
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.frame_source import SourceStage
 from sffscan.stages.messages import Frame
-from sffscan.stages.mosaic import MosaicStage, MosaicWriter
 from sffscan.stages.protocol import Sink, Stage
 from sffscan.stages.registration import RegistrationStage
 from sffscan.stages.speed_shift import SpeedShiftStage

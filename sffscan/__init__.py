@@ -39,9 +39,9 @@ if _typing.TYPE_CHECKING:
         load_config,
     )
     from sffscan.pipeline.formats.exports import MosaicRegion, read_region, write_ply, write_x3p
-    from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
     from sffscan.pipeline.formats.recording import RecordingError
     from sffscan.pipeline.metrology.areal import ArealParameters, areal_parameters
+    from sffscan.pipeline.mosaic.attrs import MosaicAttrs
     from sffscan.pipeline.runtime import StageFailed
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
@@ -66,7 +66,7 @@ _LAZY = {
                      "load_config"), "sffscan.pipeline.config"),
     **dict.fromkeys(("DepthBlock", "DepthBlockHeader", "FocusFrame", "Frame", "FrameHeader",
                      "PlacedFrame"), "sffscan.stages.messages"),
-    "MosaicAttrs": "sffscan.pipeline.formats.mosaic_attrs",
+    "MosaicAttrs": "sffscan.pipeline.mosaic.attrs",
     **dict.fromkeys(("ArealParameters", "areal_parameters"), "sffscan.pipeline.metrology.areal"),
     **dict.fromkeys(("BatchError", "BatchRow", "find_recordings", "run_batch"),
                     "sffscan.pipeline.batch"),

@@ -34,7 +34,7 @@ def quiet_main(argv: list[str], rendered: tuple[ScanConfig, Path] | None = None)
 def torn_replay(argv: list[str], kill_at: int) -> None:
     """``sffscan ARGV`` (a replay) that dies by SIGKILL in the middle of mosaic write number
     ``kill_at``: after two of the four arrays of its band are written."""
-    from sffscan.stages import mosaic
+    from sffscan.pipeline.mosaic import writer as mosaic
 
     orig = mosaic.MosaicWriter._blend
 

@@ -17,7 +17,7 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
     - ``where="pyramid"``: during write ``kill_at``, after level 0 and half of the pyramid
       chunks that write writes back."""
     import numpy as np
-    from sffscan.stages import mosaic
+    from sffscan.pipeline.mosaic import writer as mosaic
 
     from sffscan.api import replay
 

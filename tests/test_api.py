@@ -138,7 +138,7 @@ def test_load_config_names_file_and_field(tmp_path: Path) -> None:
 
 
 def test_open_mosaic_coordinates_in_um_and_lazy(tmp_path: Path) -> None:
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     shape, origin, px = (6, 9), (-20, 7), 8.5
     h = np.arange(54, dtype=np.float32).reshape(shape)

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from sffscan.pipeline import locks
 from sffscan.pipeline.cli.common import override
 from sffscan.pipeline.config import ConfigError, config_from_dict
+from sffscan.pipeline.mosaic.writer import config_differences
 from sffscan.pipeline.run import (
     RUN_ONLY,
     _with_run_only,
@@ -21,7 +22,6 @@ from sffscan.pipeline.run import (
     check_file_output,
     identity_mismatch,
 )
-from sffscan.stages.mosaic import config_differences
 
 from tests.scan_helpers import small_config
 

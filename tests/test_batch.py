@@ -118,7 +118,7 @@ def test_cover_is_valid_pixels_over_the_planned_area_and_batch_runs_without_torc
     from sffscan.pipeline.batch import plan_targets, process_recording
     from sffscan.pipeline.config import ScanConfig
     from sffscan.pipeline.cover import plan_cover, planned_box_px
-    from sffscan.stages.mosaic import mosaic_array
+    from sffscan.pipeline.mosaic.layout import mosaic_array
 
     monkeypatch.setitem(sys.modules, "torch", None)  # import torch raises ImportError
     rec, mos = layers / "layer_000.zarr", tmp_path / "layer_000.mosaic.zarr"

@@ -18,12 +18,12 @@ import pytest
 import zarr
 from sffscan.pipeline.batch import process_recording, store_accuracy, stored_accuracy
 from sffscan.pipeline.cli.main import main
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
-from sffscan.pipeline.formats.ngff import level_path
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.metrology.evaluate import Accuracy
+from sffscan.pipeline.mosaic.attrs import MosaicAttrs
+from sffscan.pipeline.mosaic.layout import ARRAYS
+from sffscan.pipeline.mosaic.ngff import level_path
 from sffscan.pipeline.sim_source import simulate_frames
-from sffscan.stages.mosaic import ARRAYS
 
 from sffscan.api import replay
 from tests.pyramid_children import torn_replay

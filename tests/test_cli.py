@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import _joined_values, build_parser, main
 from sffscan.pipeline.config import config_to_toml
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.sim_source import simulate_frames
-from sffscan.stages.mosaic import MosaicWriter
 
 import sffscan
 from tests.scan_helpers import small_config

@@ -17,7 +17,7 @@ from sffscan.pipeline.metrology.compare import (
     overlap_by_origin,
     read_height_map,
 )
-from sffscan.stages.mosaic import MosaicWriter
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 
 
 def _surface(shape: tuple[int, int] = (80, 90), seed: int = 0) -> np.ndarray:

@@ -26,9 +26,10 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ScanConfig, config_to_toml
 from sffscan.pipeline.formats.recording import RecordingError, open_recording
+from sffscan.pipeline.mosaic.layout import ARRAYS
+from sffscan.pipeline.mosaic.reader import TILE_COMPLETE, TILE_INCOMPLETE, tile_states
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame
-from sffscan.stages.mosaic import ARRAYS, TILE_COMPLETE, TILE_INCOMPLETE, tile_states
 
 from tests.crash_children import quiet_main, torn_replay
 from tests.scan_helpers import rendered_scanner, save_frames, small_config

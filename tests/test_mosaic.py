@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
+from sffscan.pipeline.mosaic.attrs import MosaicAttrs
+from sffscan.pipeline.mosaic.stage import MosaicStage
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import MosaicStage, MosaicWriter, blend
+from sffscan.stages.mosaic import blend
 
 
 def _block(x0: int, y0: int, height: np.ndarray, conf: float, pass_index: int) -> DepthBlock:

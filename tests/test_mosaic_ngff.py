@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from sffscan.pipeline.formats.ngff import level_path
-from sffscan.stages.mosaic import ARRAYS
+from sffscan.pipeline.mosaic.layout import ARRAYS
+from sffscan.pipeline.mosaic.ngff import level_path
 
 from sffscan import open_mosaic
 from tests.scan_helpers import scan, small_config
@@ -112,7 +112,7 @@ def test_open_mosaic_is_lazy_with_micrometre_coordinates(mosaic: Path) -> None:
 
 def test_lazy_open_of_a_large_mosaic_reads_nothing(tmp_path: Path) -> None:
     """10^9 pixels open lazily: only metadata is read (nothing is written either)."""
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     path = tmp_path / "big.zarr"
     w = MosaicWriter(path, origin_px=(0, 0), shape=(31_623, 31_623), pixel_um=8.5)
@@ -175,7 +175,7 @@ def test_xarray_open_zarr_gives_micrometre_coordinates_at_every_level(mosaic: Pa
 def test_a_resume_drops_consolidated_metadata_and_the_close_renews_it(tmp_path: Path) -> None:
     """Readers see the arrays grow during a resume (no stale consolidated shapes); the
     coordinate arrays grow with them; the final status consolidates the new shapes."""
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     path = tmp_path / "r.zarr"
     w = MosaicWriter(path, origin_px=(10, 20), shape=(16, 16), pixel_um=2.0, chunk_px=8,
@@ -203,7 +203,7 @@ def test_a_resume_drops_consolidated_metadata_and_the_close_renews_it(tmp_path: 
 def test_version_2_mosaics_still_read_and_resume(tmp_path: Path) -> None:
     """A version-2 mosaic (no coordinate arrays, not consolidated) reads and resumes as it
     is: no coordinate arrays are added, nothing is consolidated."""
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     path = tmp_path / "v2.zarr"
     w = MosaicWriter(path, origin_px=(0, 0), shape=(16, 16), pixel_um=2.0, chunk_px=8,
@@ -230,7 +230,7 @@ def test_open_mosaic_reads_the_arrays_the_mosaic_has(mosaic: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """A mosaic written before an array was added to the format (here: a fifth array such
     as an uncertainty) still opens, with the arrays it has."""
-    import sffscan.stages.mosaic as mosaic_module
+    import sffscan.pipeline.mosaic.reader as mosaic_module
 
     monkeypatch.setattr(mosaic_module, "ARRAYS", (*ARRAYS, "uncertainty"))
     ds = open_mosaic(mosaic, level=1)
@@ -241,8 +241,8 @@ def test_consolidation_is_quiet_beside_the_writers_reserve(tmp_path: Path) -> No
     """The writer's disk-full reserve (a plain file in the folder) is not a Zarr node:
     consolidating beside it warns nothing (warnings are errors in the tests)."""
     from sffscan.pipeline.formats.durable import RESERVE_NAME
-    from sffscan.pipeline.formats.ngff import consolidate
-    from sffscan.stages.mosaic import MosaicWriter
+    from sffscan.pipeline.mosaic.ngff import consolidate
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
 
     path = tmp_path / "q.zarr"
     MosaicWriter(path, origin_px=(0, 0), shape=(16, 16), pixel_um=2.0, chunk_px=8, levels=2)

@@ -12,14 +12,17 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.formats.ngff import REDUCTION, level_path
 from sffscan.pipeline.formats.recording import open_recording
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
+from sffscan.pipeline.mosaic.layout import ARRAYS
+from sffscan.pipeline.mosaic.ngff import level_path
+from sffscan.pipeline.mosaic.reader import tile_states
+from sffscan.pipeline.mosaic.stage import MosaicStage
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import ARRAYS, MosaicStage, MosaicWriter, tile_states
-from sffscan.stages.mosaic_pyramid import default_levels, downsample
+from sffscan.stages.mosaic import REDUCTION, default_levels, downsample
 
 from sffscan.api import replay
 from tests.pyramid_children import torn_replay

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
+from sffscan.pipeline.mosaic.layout import mosaic_array
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.stopgo import (
     SimFieldCamera,
     feather_weights,
@@ -17,7 +19,6 @@ from sffscan.pipeline.stopgo import (
     stitch_field,
 )
 from sffscan.stages.fields.stationary import FieldResult
-from sffscan.stages.mosaic import MosaicWriter, mosaic_array
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.world import sinusoid_world
 

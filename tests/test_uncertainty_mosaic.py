@@ -8,8 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from sffscan.pipeline.mosaic.layout import UNITS
+from sffscan.pipeline.mosaic.stage import MosaicStage
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import UNITS, MosaicStage, MosaicWriter, blend
+from sffscan.stages.mosaic import blend
 
 
 def _block(x0: int, height: float, conf: float, unc: float | None, *, pass_index: int = 0,
@@ -85,8 +88,9 @@ def test_a_mosaic_written_before_the_uncertainty_array_still_resumes(tmp_path: P
     """A mosaic of an earlier version has no ``uncertainty`` array: reopening it for a resume
     looked the array up and failed ("mosaic has no array 'uncertainty'"). It resumes with the
     arrays it has, and no uncertainty array appears half-filled."""
-    from sffscan.stages.mosaic import present_arrays, tile_states
-    from sffscan.stages.mosaic_pyramid import level_path
+    from sffscan.pipeline.mosaic.layout import present_arrays
+    from sffscan.pipeline.mosaic.ngff import level_path
+    from sffscan.pipeline.mosaic.reader import tile_states
 
     path = tmp_path / "m.zarr"
     writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5, chunk_px=16)

@@ -24,6 +24,8 @@ import zarr
 from rerun.chunk import RrdReader
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError
+from sffscan.pipeline.mosaic.stage import MosaicStage
+from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.viz.preview import (
     MosaicPreview,
@@ -34,7 +36,6 @@ from sffscan.pipeline.viz.preview import (
 from sffscan.pipeline.viz.sink import VizOptions, VizSink, parse_mode, viz_sink_for
 from sffscan.pipeline.wiring import ScanReport, run_scan
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import MosaicStage, MosaicWriter
 
 from tests.scan_helpers import small_config
 

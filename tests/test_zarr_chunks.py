@@ -15,7 +15,7 @@ from sffscan.pipeline.formats.zarr_chunks import (
     read_many,
     write_many,
 )
-from sffscan.stages.mosaic import mosaic_codecs
+from sffscan.pipeline.mosaic.layout import mosaic_codecs
 from zarr.codecs import Crc32cCodec, GzipCodec
 
 #: name -> (shape, chunks, dtype, fill): the mosaic's tiles (chunks cut by the array's end),

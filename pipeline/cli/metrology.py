@@ -156,9 +156,9 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from sffscan.pipeline.metrology.optics_correction import applied
+    from sffscan.pipeline.mosaic.writer import MosaicWriter
     from sffscan.pipeline.stopgo import feather_weights, stitch_field
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
-    from sffscan.stages.mosaic import MosaicWriter
 
     try:
         settings = _settings(args)

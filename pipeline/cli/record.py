@@ -54,8 +54,8 @@ def _complete_from(path: str | Path, recording: str | Path) -> bool:
     """Whether ``path`` is an sffscan mosaic made from ``recording`` whose status is
     'complete' (another recording's is refused by the resume, naming it)."""
     import zarr
+    from sffscan.pipeline.mosaic.layout import mosaic_array, present_arrays
     from sffscan.pipeline.run import identity_mismatch, recording_identity, stored_identity
-    from sffscan.stages.mosaic import mosaic_array, present_arrays
 
     try:
         group = zarr.open_group(str(path), mode="r", use_consolidated=False)
@@ -127,7 +127,7 @@ def _height_range(path: Path, levels: list[dict[str, Any]]) -> dict[str, Any] | 
     the values are the pyramid's block means), and the finite pixels counted there."""
     import numpy as np
     import zarr
-    from sffscan.stages.mosaic import mosaic_array
+    from sffscan.pipeline.mosaic.layout import mosaic_array
 
     fits = [lv for lv in levels if lv["shape"][0] * lv["shape"][1] <= RANGE_MAX_PX]
     if not fits:
@@ -152,7 +152,7 @@ def mosaic_info(path: Path) -> dict[str, Any]:
     ``ValueError`` / ``KeyError`` for an unreadable mosaic."""
     import zarr
     from sffscan.pipeline import locks
-    from sffscan.stages.mosaic import pyramid_levels, tile_states
+    from sffscan.pipeline.mosaic.reader import pyramid_levels, tile_states
 
     _, info = tile_states(path)
     levels = pyramid_levels(path)

@@ -15,11 +15,11 @@ from typing import Any
 
 from pydantic import BaseModel
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.formats.recording import RecordingAttrs
 from sffscan.pipeline.formats.transport import TransportMessage
 from sffscan.pipeline.metrology.calibration_model import Calibration
 from sffscan.pipeline.metrology.compare import CompareReport
+from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 from sffscan.stages.messages import DepthBlockHeader, FrameHeader
 
 SCHEMAS: dict[str, type[BaseModel]] = {

@@ -12,7 +12,7 @@ What: an N-dimensional array in a local store (a folder), with the regular chunk
 default chunk key encoding with either separator (``c/i/j/…`` or ``c.i.j.…``, the keys made
 by the array's own encoding), C order, a numeric data type and the codecs ``bytes`` (little
 endian) followed by at most one ``blosc`` or ``zstd`` compressor and at
-most one ``crc32c`` after it (what :func:`sffscan.stages.mosaic.mosaic_codecs` and the
+most one ``crc32c`` after it (what :func:`sffscan.pipeline.mosaic.layout.mosaic_codecs` and the
 recorder's :func:`sffscan.pipeline.formats.recording_writer.frame_codecs` make). Which
 arrays qualify is
 read from zarr's public API only (the array's metadata document, as the Zarr v3

@@ -28,8 +28,8 @@ from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAttrs
 from sffscan.pipeline.metrology.evaluate import accuracy
+from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 
 __all__ = [
     "ALIGN_MODES",

@@ -16,8 +16,8 @@ from typing import Any, Protocol
 import numpy as np
 import zarr
 from pydantic import ValidationError
-from sffscan.pipeline.formats.mosaic_attrs import MosaicAccuracy, MosaicAttrs
-from sffscan.stages.mosaic import mosaic_array
+from sffscan.pipeline.mosaic.attrs import MosaicAccuracy, MosaicAttrs
+from sffscan.pipeline.mosaic.layout import mosaic_array
 
 
 class HeightWorld(Protocol):

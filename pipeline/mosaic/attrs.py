@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from sffscan.pipeline.formats.ngff import NgffOme
+from sffscan.pipeline.mosaic.ngff import NgffOme
 
 
 class MosaicAccuracy(BaseModel):

@@ -1,24 +1,12 @@
-"""The mosaic's resolution pyramid: levels 1 .. L-1, each halving the previous one.
-
-Level k of an array is a function of level 0 only: element (i, j) of level k reduces the
-2^k x 2^k block of level-0 elements (i 2^k .. i 2^k + 2^k - 1, j 2^k .. ) that exist
-(blocks at the far edges are cut by the array's end):
-
-- ``height``, ``texture``: NaN-aware mean (mean of the finite values; NaN if none);
-- ``confidence``: mean (unmeasured pixels count with their fill value 0, so it also says
-  how much of the block was measured);
-- ``weight``: sum (the total blending weight behind the block).
-
-:func:`downsample` computes every level of a region from level 0 by summing sums (float64)
-and counts 2 x 2 at a time, so level k is exactly the 2^k x 2^k reduction, not a mean of
-means; each element's value depends on its own block only (the same bits whichever region
-it is computed in).
+"""The mosaic's resolution pyramid in the group: levels 1 .. L-1, each halving the previous
+one, as ``pyramid/<k>/<name>`` arrays with 1-D µm coordinate arrays at every level; the
+reduction itself is :func:`sffscan.stages.mosaic.downsample`.
 
 Streaming (:class:`PyramidCache`): a band write of the mosaic writer
-(:class:`sffscan.stages.mosaic.MosaicWriter`) reads its level-0 region widened to whole
-2^(L-1) blocks once (the blend needs it anyway), blends into it and hands it to the cache,
-which computes the levels of the region and puts them into the upper-level chunks it holds
-in memory. A chunk goes back to the store (``write-back``)
+(:class:`sffscan.pipeline.mosaic.writer.MosaicWriter`) reads its level-0 region widened to
+whole 2^(L-1) blocks once (the blend needs it anyway), blends into it and hands it to the
+cache, which computes the levels of the region and puts them into the upper-level chunks it
+holds in memory. A chunk goes back to the store (``write-back``)
 
 - when a write no longer touches it (the motion has left its columns: a level-k chunk
   spans 2^k chunk-wide bands, so it is encoded once per pass instead of 2^k times),
@@ -47,7 +35,6 @@ in tiles of :data:`TILE_PX` for bounded memory).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,122 +42,14 @@ from typing import Any
 
 import numpy as np
 import zarr
-from sffscan.pipeline.formats.ngff import COORDS, REDUCTION, level_coords, level_path
 from sffscan.pipeline.formats.zarr_chunks import read_many, write_many
+from sffscan.pipeline.mosaic.ngff import COORDS, level_coords, level_path
+from sffscan.stages.mosaic import Slices, aligned, downsample, level_shape
 
-#: fewest levels a mosaic gets (level 0 included)
-MIN_LEVELS = 4
-#: the top level's longest side, px, at most (when more than MIN_LEVELS are needed)
-TOP_PX = 1024
-#: most levels (a 2^9 = 512 px block per top-level pixel)
-MAX_LEVELS = 10
 #: longest time, s, an upper-level chunk keeps unwritten changes while writes still touch it
 LAG_S = 5.0
 #: edge, level-0 px, of the tiles in which a region is recomputed (bounds the memory)
 TILE_PX = 1024
-
-Slices = tuple[slice, slice]
-
-
-def default_levels(shape: tuple[int, int]) -> int:
-    """Levels for a mosaic of ``shape``: enough that the top level's longest side is at most
-    :data:`TOP_PX`, at least :data:`MIN_LEVELS`, at most :data:`MAX_LEVELS`.
-
-    A 10^9-pixel mosaic (31623 px square) gets 6, the demo (1908 x 7304) 4.
-    """
-    longest = max(1, *shape)
-    need = 1 + math.ceil(math.log2(longest / TOP_PX)) if longest > TOP_PX else 1
-    return int(min(MAX_LEVELS, max(MIN_LEVELS, need)))
-
-
-def level_shape(shape: tuple[int, int], level: int) -> tuple[int, int]:
-    """Shape of level ``level`` of a level-0 array of ``shape``."""
-    f = 2 ** level
-    return -(-shape[0] // f), -(-shape[1] // f)
-
-
-def _quarters(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    return a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2]
-
-
-def _halve(a: np.ndarray, dtype: Any = None) -> np.ndarray:
-    """2 x 2 block sums ((a + b) + c) + d, in ``dtype`` (default: a's); strided slices are
-    ~5x faster than a 4-D sum, and the in-place adds spare two temporaries."""
-    p, q, r, s = _quarters(a)
-    out = np.add(p, q, dtype=dtype or a.dtype)
-    out += r
-    out += s
-    return out
-
-
-def downsample(values: dict[str, np.ndarray], levels: int) -> list[dict[str, np.ndarray]]:
-    """Levels 1 .. levels-1 of a level-0 region.
-
-    Parameters
-    ----------
-    values : dict of ndarray, float32, (rows, cols)
-        The mosaic arrays (``height``, ``texture``, ``confidence``, ``weight``, and any
-        other) of a level-0 region whose first row and column are multiples of
-        2^(levels-1) in the array, and whose end is either such a multiple or the array's
-        end. Each is reduced as :data:`~sffscan.pipeline.formats.ngff.REDUCTION` says
-        (``nanmean`` for a name it does not list).
-    levels : int
-        Number of levels, level 0 included.
-
-    Returns
-    -------
-    list of dict of ndarray, float32
-        Element k-1 is level k: each array (ceil(rows / 2^k), ceil(cols / 2^k)).
-    """
-    rows, cols = next(iter(values.values())).shape
-    f = 2 ** (levels - 1)
-    pr, pc = -(-rows // f) * f, -(-cols // f) * f
-
-    def padded(a: np.ndarray) -> np.ndarray:  # zeros beyond the region (the array's end)
-        if (pr, pc) == a.shape:
-            return a
-        out = np.zeros((pr, pc), a.dtype)
-        out[:rows, :cols] = a
-        return out
-
-    # level 1 straight from float32 (NaN set to 0) into float64 sums; counts of the finite
-    # values in float32 (exact: at most 4^9 per element)
-    how = {name: REDUCTION.get(name, "nanmean") for name in values}
-    sums: dict[str, np.ndarray] = {}
-    counts: dict[str, np.ndarray] = {}
-    for name, v in values.items():
-        if how[name] == "nanmean":
-            valid = np.isfinite(v)
-            sums[name] = _halve(padded(np.where(valid, v, np.float32(0))), np.float64)
-            counts[name] = _halve(padded(valid).view(np.uint8), np.float32)
-        else:
-            sums[name] = _halve(padded(v), np.float64)
-    # elements of the array (not padding) under each block: rows x columns present
-    rp = np.zeros(pr, np.float64)
-    cp = np.zeros(pc, np.float64)
-    rp[:rows], cp[:cols] = 1.0, 1.0
-
-    out = []
-    for k in range(1, levels):
-        if k > 1:
-            sums = {n: _halve(a) for n, a in sums.items()}
-            counts = {n: _halve(a) for n, a in counts.items()}
-        rp, cp = rp[0::2] + rp[1::2], cp[0::2] + cp[1::2]
-        r, c = level_shape((rows, cols), k)
-        level: dict[str, np.ndarray] = {}
-        with np.errstate(invalid="ignore", divide="ignore"):
-            for name in values:
-                if how[name] == "sum":
-                    level[name] = sums[name][:r, :c].astype(np.float32)
-                    continue
-                # nanmean: a block without finite values is 0 / 0 = NaN; mean: over the
-                # elements present
-                den = counts[name][:r, :c] if how[name] == "nanmean" else np.outer(rp[:r],
-                                                                                     cp[:c])
-                level[name] = np.empty((r, c), np.float32)
-                np.divide(sums[name][:r, :c], den, out=level[name], casting="same_kind")
-        out.append(level)
-    return out
 
 
 def pyramid_arrays(group: zarr.Group, names: tuple[str, ...], levels: int
@@ -217,7 +96,7 @@ CoordArrays = list[tuple[zarr.Array, zarr.Array]]
 def create_coords(group: zarr.Group, *, shape: tuple[int, int], levels: int, pixel_um: float,
                   origin_um: tuple[float, float]) -> CoordArrays:
     """Create and write the 1-D coordinate arrays ``y``, ``x`` of levels 0 .. levels-1
-    (float64, µm, element centres: :func:`~sffscan.pipeline.formats.ngff.level_coords`;
+    (float64, µm, element centres: :func:`~sffscan.pipeline.mosaic.ngff.level_coords`;
     ``origin_um``: world (x, y) µm of level-0 element [0, 0]). Element k is level k's
     (y, x) pair."""
     out: CoordArrays = []
@@ -254,17 +133,6 @@ def write_coords(coords: CoordArrays, shape: tuple[int, int], *, pixel_um: float
             if arr.shape != (n,) or force:
                 arr.resize((n,))
                 arr[:] = level_coords(n, level=k, pixel_um=pixel_um, origin_um=o)
-
-
-def aligned(sel: Slices, shape: tuple[int, int], levels: int) -> Slices:
-    """The level-0 region of whole 2^(levels-1) blocks (cut at the array's end) around
-    ``sel``."""
-    f = 2 ** (levels - 1)
-    rs, cs = sel
-    r0, c0 = (rs.start // f) * f, (cs.start // f) * f
-    r1 = min(shape[0], -(-rs.stop // f) * f)
-    c1 = min(shape[1], -(-cs.stop // f) * f)
-    return slice(r0, r1), slice(c0, c1)
 
 
 def update_pyramid(level0: dict[str, zarr.Array], arrays: list[dict[str, zarr.Array]],

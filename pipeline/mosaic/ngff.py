@@ -4,7 +4,7 @@ A mosaic group is an NGFF 0.5 image (Zarr v3): its ``ome`` attribute holds one
 ``multiscales`` entry per mosaic array, ``height`` first (the one viewers and the
 ``ome-zarr`` reader show). Each entry lists the arrays of that variable from full
 resolution down: ``<name>`` (level 0, the mosaic itself) then ``pyramid/<k>/<name>`` for
-k = 1 .. levels - 1, level k halving level k - 1 (see :mod:`sffscan.stages.mosaic_pyramid`).
+k = 1 .. levels - 1, level k halving level k - 1 (see :func:`sffscan.stages.mosaic.downsample`).
 
 Coordinates (axes ``y``, ``x`` in micrometre): element ``i`` of level ``k`` has its centre
 at ``i * scale_k + translation_k`` with ``scale_k = 2**k * pixel_um`` and
@@ -29,6 +29,7 @@ from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from sffscan.stages.mosaic import REDUCTION
 
 __all__ = ["COORDS", "NGFF_VERSION", "NgffAxis", "NgffDataset", "NgffMultiscale", "NgffOme",
            "consolidate", "level_coords", "level_path", "mosaic_ngff"]
@@ -83,9 +84,6 @@ class NgffOme(BaseModel):
     multiscales: list[NgffMultiscale] = Field(min_length=1)
 
 
-#: reduction of each array from one level to the next
-REDUCTION = {"height": "nanmean", "texture": "nanmean", "confidence": "mean", "weight": "sum",
-             "uncertainty": "nanmean"}
 #: the 1-D coordinate arrays of every level (format version 3): (y, x) element centres, µm
 COORDS = ("y", "x")
 
