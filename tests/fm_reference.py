@@ -11,16 +11,20 @@ counted per grey level, eigenvalues come from ``np.linalg.eigvalsh``. Images (H,
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 import scipy.fft
+
+PadMode = Literal["constant", "edge", "symmetric"]
+"""The numpy padding modes of MATLAB's borders (zeros, 'replicate', 'symmetric')."""
 
 
 def _origin(size: int) -> int:
     return (size + 1) // 2 - 1  # MATLAB: floor((size + 1) / 2), 1-based
 
 
-def imfilter(img: np.ndarray, h: np.ndarray, *, mode: str = "edge", conv: bool = False
+def imfilter(img: np.ndarray, h: np.ndarray, *, mode: PadMode = "edge", conv: bool = False
              ) -> np.ndarray:
     h = np.asarray(h, dtype=np.float64)
     if conv:
@@ -41,7 +45,7 @@ def meanf(img: np.ndarray, k: int) -> np.ndarray:
     return imfilter(img, np.full((k, k), 1.0 / (k * k)))
 
 
-def nl_windows(img: np.ndarray, size: int, mode: str = "constant") -> np.ndarray:
+def nl_windows(img: np.ndarray, size: int, mode: PadMode = "constant") -> np.ndarray:
     """(H, W, size, size) windows as nlfilter sees them (zero padded by default)."""
     o = _origin(size)
     p = np.pad(img, ((o, size - 1 - o), (o, size - 1 - o)), mode=mode)
@@ -85,7 +89,7 @@ def _u8(img: np.ndarray) -> np.ndarray:
     return np.floor(np.clip(img, 0, 1) * 255 + 0.5)
 
 
-def _level_counts(q: np.ndarray, k: int, mode: str) -> np.ndarray:
+def _level_counts(q: np.ndarray, k: int, mode: PadMode) -> np.ndarray:
     """(256, H, W): how many pixels of each grey level each k x k window holds."""
     o = _origin(k)
     qp = np.pad(q, ((o, k - 1 - o), (o, k - 1 - o)), mode=mode)

@@ -21,7 +21,7 @@ FLOAT32_REL_TOL = 1e-6
 def test_device_focus_from_raw_frames(operator: str, dtype: type, full: int,
                                       device: str) -> None:
     rng = np.random.default_rng(5)
-    batch = rng.integers(0, full + 1, (3, 40, 70)).astype(dtype)
+    batch: np.ndarray = rng.integers(0, full + 1, (3, 40, 70)).astype(dtype)
     df = DeviceFocus(device=device, operator=operator, window=9, max_value=full)
     for _ in range(3):  # staging buffers are reused turn by turn
         image01, fm = df.measure(batch)

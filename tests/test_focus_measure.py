@@ -280,7 +280,7 @@ def test_to_unit_float_rejects() -> None:
 @pytest.mark.parametrize(("dtype", "full"), [(np.uint8, 255), (np.uint16, 1023)])
 def test_raw_fast_path_equals_scale_then_measure(operator: str, dtype: type, full: int) -> None:
     rng = np.random.default_rng(3)
-    frame = rng.integers(0, full + 1, (61, 90)).astype(dtype)
+    frame: np.ndarray = rng.integers(0, full + 1, (61, 90)).astype(dtype)
     view = frame[:, 7:80]  # a strided column range, as the focus stage passes it
     image01, fm = focus_measure_raw(view, max_value=full, operator=operator, window=9)
     want01 = to_unit_float(view, max_value=full)
