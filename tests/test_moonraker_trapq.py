@@ -218,10 +218,13 @@ def test_agent_stores_the_queue_with_each_layers_recording(
         runner = threading.Thread(target=agent.run, args=(stop,), daemon=True)
         runner.start()
         moonraker.next("connection.register_remote_method")
-        bridge.batches.put(rows)  # the printer's queue streams while the layer is scanned
+        bridge.batches.put([[1.0, 2.0, 0.0, 0.0, [0, 0, 0], [0, 0, 0]]])  # before: cleared
         moonraker.outgoing.put({"jsonrpc": "2.0", "method": "sffscan_layer", "params": {
             "layer": 0, "z": 0.2, "filename": "part.gcode",
             "region": [*REGION, 60.0, 50.0], "speed": 15.0}})
+        # the macro's moves come after its call: the queue streams them while it scans
+        timer = threading.Timer(0.5, lambda: bridge.batches.put(rows))
+        timer.start()
         assert moonraker.next("printer.gcode.script")["params"]["script"] == \
             "SFFSCAN_DONE ACTION=NONE"
         moonraker.next("connection.send_event")
@@ -229,16 +232,21 @@ def test_agent_stores_the_queue_with_each_layers_recording(
         moonraker.outgoing.put({"jsonrpc": "2.0", "method": "sffscan_layer", "params": {
             "layer": 1, "z": 0.4, "filename": "part.gcode",
             "region": [0.0, 0.0, 60.0, 50.0], "speed": 15.0}})
+        timer.join()
+        timer = threading.Timer(0.5, lambda: bridge.batches.put(rows))
+        timer.start()
         moonraker.next("connection.send_event")
         moonraker.outgoing.put(None)
         runner.join(15)
         stop.set()
+        timer.join()
         assert not runner.is_alive()
         job = store / str(link.job_id) / "job"
     bridge.close()
     r0 = open_recording(job / "layer_00000" / "recording.zarr")
     assert r0.attrs.format_version == 5 and r0.motion is not None
     assert r0.motion.clock.print_time_s_at == 500.0
+    assert r0.motion.start_s >= 497.0  # the row streamed before the call was cleared
     assert open_recording(job / "layer_00001" / "recording.zarr").attrs.format_version == 4
     assert any("layer 1: no motion queue stored" in n and "raster's start" in n
                for n in agent.trapq_notes)

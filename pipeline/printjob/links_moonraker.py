@@ -275,6 +275,8 @@ class MoonrakerAgent:
             params = msg.get("params") or {}
             if isinstance(params, list):  # positional form: [{...}]
                 params = params[0] if params else {}
+            if self.trapq is not None:
+                self.trapq.clear()  # the layer's raster comes after its call
             action, reason, reply = self.on_layer(params)
             script = f"SFFSCAN_DONE ACTION={action.upper()}"
             if reason:

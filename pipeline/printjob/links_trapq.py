@@ -15,8 +15,8 @@ Protocol (Klipper ``docs/API_Server.md``)::
 The frames' time stamps are tied to print time at the trigger: the macro waits for the
 moves (``M400``) and sets the trigger pin, which Klipper schedules at the start of the
 raster's first move, and the camera's first frame is exposed at that edge. So the first
-frame's time stamp is the print time at which the last move from a standstill at the
-region's start begins (:func:`~sffscan.pipeline.formats.recording_motion.trigger_print_time`),
+frame's time stamp is the print time at which the first move from a standstill at the
+region's start begins, among the rows streamed since the layer's call (:func:`~sffscan.pipeline.formats.recording_motion.trigger_print_time`),
 and the stage origin is the printer position that puts the first frame where its header
 says (the scan configuration's start).
 """
@@ -28,6 +28,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
@@ -45,8 +46,9 @@ log = logging.getLogger(__name__)
 
 METHOD = "motion_report/dump_trapq"
 HEADER = ["time", "duration", "start_velocity", "acceleration", "start_position", "direction"]
-#: rows kept (the oldest go first): at about 3 rows per move, hours of scanning moves
-MAX_ROWS = 200_000
+#: rows kept (the oldest go first; the agent clears them at each layer call): about 3 rows
+#: per move, a layer's moves and its raster
+MAX_ROWS = 50_000
 
 
 def bridge_url(agent_url: str) -> str:
@@ -150,18 +152,30 @@ class TrapqStream:
         with self._cond:
             return list(self._rows)
 
-    def wait_until(self, print_time_s: float, *, timeout_s: float) -> bool:
-        """Wait until the rows reach ``print_time_s`` (a segment ends at or after it)."""
+    def clear(self) -> None:
+        """Forget the rows received so far (the agent does at each layer call: the layer's
+        raster comes after it)."""
+        with self._cond:
+            self._rows.clear()
+
+    def wait_for(self, predicate: Callable[[list[list[Any]]], bool], *,
+                 timeout_s: float) -> bool:
+        """Wait (woken by each batch, up to ``timeout_s``) until ``predicate(rows)``; False
+        when it never holds, or the stream stopped."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while True:
-                if any(float(r[0]) + float(r[1]) >= print_time_s for r in
-                       list(self._rows)[-64:]):
+                if predicate(list(self._rows)):
                     return True
                 left = deadline - time.monotonic()
                 if left <= 0 or self._thread is None or not self._thread.is_alive():
                     return False
                 self._cond.wait(left)
+
+    def wait_until(self, print_time_s: float, *, timeout_s: float) -> bool:
+        """Wait until the rows reach ``print_time_s`` (a segment ends at or after it)."""
+        return self.wait_for(lambda rows: any(float(r[0]) + float(r[1]) >= print_time_s
+                                              for r in rows[-64:]), timeout_s=timeout_s)
 
     def close(self) -> None:
         self._stop.set()
@@ -174,10 +188,11 @@ def attach_trapq(recording: str | Path, stream: TrapqStream, *,
                  margin_s: float = 1.0, axis_sign: tuple[int, int] = (1, 1)) -> MotionQueue:
     """Store the motion queue over a layer's scan with its recording.
 
-    The raster's start is the last move from a standstill at ``region_start_mm`` in the
-    rows received (:func:`trigger_print_time`); the first frame's time stamp is that print
-    time; the rows are waited for (up to ``timeout_s``) until they cover the last frame,
-    and those within ``margin_s`` of the frames are stored.
+    The raster's start is the first move from a standstill at ``region_start_mm`` in the
+    rows received (:func:`trigger_print_time`; the agent clears the rows at the layer call,
+    so it is this layer's); the first frame's time stamp is that print time; the rows are
+    waited for (up to ``timeout_s`` in all) until they hold that start and cover the last
+    frame, and those within ``margin_s`` of the frames are stored.
 
     Raises
     ------
@@ -191,16 +206,29 @@ def attach_trapq(recording: str | Path, stream: TrapqStream, *,
     ts = rec.meta["timestamp_ns"][rec.order]
     first = int(rec.order[0])
     span_s = float(ts.max() - ts.min()) * 1e-9
-    rows = stream.rows()
-    if not rows:
-        raise MotionQueueError(f"{recording}: no row of the motion queue received "
-                               f"({stream.error or 'nothing streamed yet'})")
-    seg = segments_from_dump(rows, where=f"{stream.url} {METHOD}")
-    t0 = trigger_print_time(seg, region_start_mm)
-    if not stream.wait_until(t0 + span_s, timeout_s=timeout_s):
+    where = f"{stream.url} {METHOD}"
+
+    def started(rows: list[list[Any]]) -> bool:
+        try:
+            trigger_print_time(segments_from_dump(rows, where=where), region_start_mm)
+        except MotionQueueError:
+            return False
+        return True
+
+    t_wait = time.monotonic()
+    if not stream.wait_for(started, timeout_s=timeout_s):
+        rows = stream.rows()
+        if not rows:
+            raise MotionQueueError(f"{recording}: no row of the motion queue received "
+                                   f"within {timeout_s:g} s "
+                                   f"({stream.error or 'nothing streamed'})")
+        trigger_print_time(segments_from_dump(rows, where=where), region_start_mm)  # raises
+    t0 = trigger_print_time(segments_from_dump(stream.rows(), where=where), region_start_mm)
+    left = max(0.0, timeout_s - (time.monotonic() - t_wait))
+    if not stream.wait_until(t0 + span_s, timeout_s=left):
         raise MotionQueueError(f"{recording}: the motion queue did not reach the last frame "
                                f"(print time {t0 + span_s:.3f} s) within {timeout_s:g} s")
-    seg = segments_from_dump(stream.rows(), where=f"{stream.url} {METHOD}")
+    seg = segments_from_dump(stream.rows(), where=where)
     keep = (seg[:, 0] + seg[:, 1] >= t0 - margin_s) & (seg[:, 0] <= t0 + span_s + margin_s)
     seg = seg[keep]
     h = rec.header(first)
