@@ -16,9 +16,10 @@ The frames' time stamps are tied to print time at the trigger: the macro waits f
 moves (``M400``) and sets the trigger pin, which Klipper schedules at the start of the
 raster's first move, and the camera's first frame is exposed at that edge. So the first
 frame's time stamp is the print time at which the first move from a standstill at the
-region's start begins, among the rows streamed since the layer's call (:func:`~sffscan.pipeline.formats.recording_motion.trigger_print_time`),
-and the stage origin is the printer position that puts the first frame where its header
-says (the scan configuration's start).
+region's start begins, among the rows streamed since the layer's call
+(:func:`~sffscan.pipeline.formats.recording_motion.trigger_print_time`), and the stage
+origin is the printer position that puts the first frame where its header says (the scan
+configuration's start).
 """
 
 from __future__ import annotations
