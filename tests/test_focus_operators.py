@@ -119,3 +119,18 @@ def test_config_and_cli_offer_every_operator() -> None:
     cfg = ProcessingConfig(focus_operator="LAPM")  # type: ignore[arg-type]
     assert cfg.focus_operator == "lapm"
     assert cfg.focus_reach_px == operator_reach("lapm", cfg.window)
+
+
+def test_registry_loads_neither_torch_nor_opencv() -> None:
+    """The configuration's choices come from the registry: importing it stays light."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from sffscan.stages.operators import FOCUS_OPERATORS, operator_reach\n"
+            "assert len(tuple(FOCUS_OPERATORS)) == 34 and operator_reach('glvm', 9) == 8\n"
+            "loaded = {'torch', 'cv2', 'numpy'} & set(sys.modules)\n"
+            "assert not loaded, loaded\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr

@@ -10,8 +10,8 @@ front end with the same definition (:mod:`.opencv`). The thin front ends that ch
 inputs and move arrays are :func:`sffscan.stages.focus_measure.focus_measure` (numpy) and
 :mod:`sffscan.stages.focus_torch` (torch tensors, devices).
 
-This package root is torch-free and OpenCV-free: the configuration derives its list of
-choices from :data:`FOCUS_OPERATORS` without loading either. Names are case-insensitive
+Importing this package root loads neither torch nor OpenCV (nor numpy): the configuration
+derives its list of choices from :data:`FOCUS_OPERATORS` without them. Names are case-insensitive
 (``"LAPM"``, ``"lapm"``, see :func:`check_operator`). ``"tenv_std"`` is the thesis' form
 of TENV (the local standard deviation of the Sobel energy instead of its variance).
 
