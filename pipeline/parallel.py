@@ -1,4 +1,5 @@
-"""Process execution: groups of stages in worker processes, frames in shared memory.
+"""The process placement: groups of a pipeline's stages in worker processes, frames in
+shared memory (``Pipeline(stages, placement=ProcessPlacement(...))``).
 
     main process                 worker "registration"        worker "focus"             main
     source -> speed_shift -> ch1 -> registration -> ch2 -> focus_measure -> depth -> ch3 -> mosaic
@@ -10,8 +11,8 @@ Each worker runs its group of stages with the thread runtime (:class:`Pipeline`)
 :class:`~sffscan.pipeline.channels.SendStage`; the main process runs the head (the source)
 and the tail (the mosaic writer, which owns the output) the same way. Workers are started
 with the ``spawn`` context (no fork of a process with torch or OpenCV threads) and build
-their stages themselves from a factory named ``"module:function"`` and JSON arguments (the
-scan configuration): no stage and no pixel is pickled.
+their stages themselves by a module-level factory function (which travels by its name) and
+JSON arguments (the scan configuration): no stage and no pixel is pickled.
 
 Correctness rules kept from the thread runtime:
 
@@ -31,10 +32,10 @@ Correctness rules kept from the thread runtime:
 Sinks of the main process (the live viewer) may tap stages of the workers: each process
 that runs some of a sink's taps forwards their outputs (placed frames by reference into the
 frame ring, no copy; other arrays into a slot) through one channel to the main process,
-where the sink runs behind its own queue and policy, as in the thread runtime (a
-:class:`~sffscan.pipeline.worker.Relay`; see :meth:`ProcessPipeline.run`). The main
-process sends the sink the pipeline's statistics too (``wants_stats``), the last ones
-after every worker has reported, then the end of stream.
+where the sink runs behind its own queue and policy, as in the thread runtime (a relay,
+:mod:`sffscan.pipeline.relays`). The main process sends the sink the pipeline's statistics
+too (``wants_stats``), the last ones after every worker has reported, then the end of
+stream.
 
 Memory is bounded by the pools: ``sum(slots * slot_bytes)``, fixed at start (see
 :func:`sffscan.pipeline.scan_processes.ring_plan` for the scan pipeline's formula).
@@ -127,8 +128,38 @@ def _reports(workers: list[_Worker]) -> list[dict[str, Any]]:
 
 
 @dataclass
+class ProcessPlacement:
+    """The process placement of a :class:`~sffscan.pipeline.runtime.Pipeline`'s stages
+    (its ``placement``): each of ``groups`` names consecutive stages run in one worker
+    process, which builds its own (so the pipeline's objects for them are not run); the
+    stages before the first group (the source among them) and after the last run in the
+    main process, with the sinks that are not ``hosted`` in their own process; ``pools``:
+    the shared memory (:class:`ProcessPipeline`)."""
+
+    groups: list[WorkerGroup]
+    pools: list[tuple[str, int, int, tuple[str, ...]]]
+    hosted: list[HostedSink] = field(default_factory=list)
+
+    def run(self, pipeline: Pipeline) -> PipelineResult:
+        names = [s.name for s in pipeline.stages]
+        placed = [n for g in self.groups for n in g.stages]
+        first = names.index(placed[0]) if placed and placed[0] in names else -1
+        if first < 1 or names[first:first + len(placed)] != placed:
+            raise ValueError(f"the worker groups' stages {placed} are not consecutive stages "
+                             f"after the source in {names}")
+        hosted = {k.name for k in self.hosted}
+        return ProcessPipeline(
+            head=pipeline.stages[:first], groups=self.groups,
+            tail=pipeline.stages[first + len(placed):], pools=self.pools,
+            capacity=pipeline.capacity, hosted=self.hosted,
+            sinks=[k for k in pipeline.sinks if k.name not in hosted],
+            on_progress=pipeline.on_progress, progress_s=pipeline.progress_s).run()
+
+
+@dataclass
 class ProcessPipeline:
-    """head (main) -> groups (one worker process each) -> tail (main), plus sinks.
+    """head (main) -> groups (one worker process each) -> tail (main), plus sinks: what
+    runs a :class:`ProcessPlacement`.
 
     Parameters
     ----------
@@ -148,7 +179,7 @@ class ProcessPipeline:
         Local sinks (threads of the main process). One that taps only head stages, or
         only tail stages, is fed like in the thread runtime; any other is relayed: the
         processes that run its taps forward their outputs through one channel (module
-        docstring; :func:`~sffscan.pipeline.worker.relay_of`).
+        docstring; :func:`~sffscan.pipeline.relays.relay_of`).
     hosted : list of HostedSink
         Sinks in their own process tapping head stages.
     """
@@ -184,7 +215,7 @@ class ProcessPipeline:
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
                         "capacity": self.capacity}
-                mine = [(r.to_json(), q) for r, q in zip(relays, relay_qs, strict=True)
+                mine = [(r, q) for r, q in zip(relays, relay_qs, strict=True)
                         if set(r.taps) & set(g.stages)]
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
                                 args=(spec, "stages", pj, syncs, chans[i], chans[i + 1],

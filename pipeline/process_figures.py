@@ -23,7 +23,7 @@ from sffscan.pipeline.worker import INNER_CAPACITY, HostedSink, WorkerGroup
 from sffscan.stages.protocol import Sink, Stage
 
 
-class ProcessPipeline(Protocol):
+class ProcessLayout(Protocol):
     """The layout of a run in processes
     (:class:`sffscan.pipeline.parallel.ProcessPipeline`)."""
 
@@ -35,12 +35,12 @@ class ProcessPipeline(Protocol):
     hosted: list[HostedSink]
 
 
-def sink_names(pipe: ProcessPipeline) -> tuple[str, ...]:
+def sink_names(pipe: ProcessLayout) -> tuple[str, ...]:
     """Every sink of ``pipe``: those of the main process, then the hosted ones."""
     return tuple(k.name for k in pipe.sinks) + tuple(k.name for k in pipe.hosted)
 
 
-def chain_queues(pipe: ProcessPipeline, head_q: list[QueueStats], tail_q: list[QueueStats],
+def chain_queues(pipe: ProcessLayout, head_q: list[QueueStats], tail_q: list[QueueStats],
                  send: QueueStats, reports: list[dict[str, Any]]) -> list[QueueStats]:
     """The queues of the main chain, in order, named as in the thread runtime: the
     head's, each channel (``stage->next stage``) and worker's, the tail's (a worker
@@ -63,7 +63,7 @@ def chain_queues(pipe: ProcessPipeline, head_q: list[QueueStats], tail_q: list[Q
     return queues + own_queues(tail_q, sinks)
 
 
-def live_stages(pipe: ProcessPipeline, head: list[StageStats], tail: list[StageStats],
+def live_stages(pipe: ProcessLayout, head: list[StageStats], tail: list[StageStats],
                 reports: list[dict[str, Any]]) -> list[StageStats]:
     """The main chain's stages, in order: the head's (without its channel), the workers'
     from their reports (none from a worker not in yet), the tail's (without its own)."""
@@ -72,7 +72,7 @@ def live_stages(pipe: ProcessPipeline, head: list[StageStats], tail: list[StageS
     return [*head[:-1], *remote, *tail[1:]]
 
 
-def process_result(pipe: ProcessPipeline, outcome: dict[str, Any], send: QueueStats,
+def process_result(pipe: ProcessLayout, outcome: dict[str, Any], send: QueueStats,
                    forwards: list[ForwardSink], labels: list[str],
                    reports: list[dict[str, Any]], relay_runs: list[RelayRun],
                    t_start: float) -> PipelineResult:

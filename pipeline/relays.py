@@ -20,7 +20,7 @@ from typing import Any
 from sffscan.pipeline.channels import ForwardSink, RecvStage
 from sffscan.pipeline.runtime import Pipeline, offer_stats
 from sffscan.pipeline.shm_ring import SlotPool
-from sffscan.pipeline.spawn import WAIT_S, call_factory
+from sffscan.pipeline.spawn import WAIT_S
 from sffscan.pipeline.stats import PipelineResult, QueueStats, StageStats, stats_snapshot
 from sffscan.pipeline.wire import encode
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
@@ -38,24 +38,16 @@ class Relay:
     channel to the main process, where the sink runs behind a queue of ``capacity`` items
     with its own ``policy``.
 
-    ``keep`` is ``("module:function", kwargs)`` of a factory returning a predicate on
-    :class:`~sffscan.stages.protocol.Tapped` items, or None (all of them).
+    ``keep`` is ``(factory, kwargs)``: a module-level function (a worker imports it by
+    name) returning a predicate on :class:`~sffscan.stages.protocol.Tapped` items, built
+    in each process that forwards; or None (all of them).
     """
 
     name: str
     taps: tuple[str, ...]
     capacity: int
     policy: FullPolicy
-    keep: tuple[str, dict[str, Any]] | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "taps": list(self.taps), "capacity": self.capacity,
-                "policy": self.policy.value, "keep": list(self.keep) if self.keep else None}
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Relay:
-        keep = (d["keep"][0], d["keep"][1]) if d["keep"] else None
-        return cls(d["name"], tuple(d["taps"]), d["capacity"], FullPolicy(d["policy"]), keep)
+    keep: tuple[Callable[..., Callable[[Any], bool]], dict[str, Any]] | None = None
 
 
 def relay_of(sink: Any) -> Relay:
@@ -76,7 +68,7 @@ def relay_forwarder(relay: Relay, taps: tuple[str, ...], q: Any, *,
                     pools: Sequence[SlotPool], stop: threading.Event) -> ForwardSink:
     """The sink, in one process, that forwards ``taps`` (this process's part of the
     relay's) to the relay's channel ``q``."""
-    keep = call_factory(*relay.keep) if relay.keep is not None else None
+    keep = relay.keep[0](**relay.keep[1]) if relay.keep is not None else None
     return ForwardSink(relay.name, taps, q, capacity=RELAY_LOCAL_CAPACITY,
                        policy=relay.policy, pools=pools, stop=stop, keep=keep)
 

@@ -29,7 +29,7 @@ import itertools
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 from sffscan.pipeline.stats import (
     PipelineResult,
@@ -167,6 +167,15 @@ def _process_all(stage: Stage, item: Any) -> list[Any]:
     return list(stage.process(item))
 
 
+class Placement(Protocol):
+    """Where the stages of a :class:`Pipeline` run, when not each in a thread of this
+    process (:class:`sffscan.pipeline.parallel.ProcessPlacement`)."""
+
+    def run(self, pipeline: Pipeline) -> PipelineResult:
+        """Run ``pipeline``'s stages and sinks so placed; as :meth:`Pipeline.run`."""
+        ...
+
+
 class Pipeline:
     """A linear chain of stages: ``stages[0]`` is the source, each feeds the next.
 
@@ -182,6 +191,10 @@ class Pipeline:
         statistics, for progress display.
     sinks : list of Sink, optional
         Side branches fed from the outputs of the stages they tap, each by its own queue.
+    placement : Placement, optional
+        Where the stages run: None, each in a thread of this process; a
+        :class:`~sffscan.pipeline.parallel.ProcessPlacement`, groups of them in worker
+        processes (the same chain, sinks, statistics, end of stream and failures).
     """
 
     def __init__(
@@ -194,6 +207,7 @@ class Pipeline:
         progress_s: float = 1.0,
         sinks: list[Sink] | None = None,
         stop: threading.Event | None = None,
+        placement: Placement | None = None,
     ) -> None:
         if not stages:
             raise ValueError("a pipeline needs at least a source stage")
@@ -207,6 +221,8 @@ class Pipeline:
             if unknown:
                 raise ValueError(f"sink '{k.name}' taps unknown stages {sorted(unknown)}")
         self.stages = stages
+        self.capacity = capacity
+        self.placement = placement
         self.prepared = False  # Stage.prepare done (see prepare)
         self.stop = stop if stop is not None else threading.Event()
         self.cancelled = False
@@ -327,6 +343,8 @@ class Pipeline:
         collector's passes meanwhile (:func:`gc_frozen`); a caller that runs several
         pipelines at once freezes once around them all and passes False.
         """
+        if self.placement is not None:
+            return self.placement.run(self)
         with threadpool_limits(limits=1, user_api="blas"), \
                 gc_frozen() if freeze_gc else contextlib.nullcontext():
             return self._run()

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.parallel import ProcessPipeline
+from sffscan.pipeline.parallel import ProcessPlacement
 from sffscan.pipeline.plan import frame_count
 from sffscan.pipeline.relays import RELAY_LOCAL_CAPACITY, Relay, relay_of, relayed_sinks
 from sffscan.pipeline.worker import HostedSink, WorkerGroup
@@ -97,7 +97,7 @@ def _hostable(sink: Sink) -> HostedSink | None:
     if isinstance(sink, RecorderSink) and sink.writer.group is None:
         w = sink.writer
         return HostedSink(sink.name, tuple(sink.taps), min(sink.capacity, HOSTED_SINK_CAPACITY),
-                          sink.policy, "sffscan.pipeline.scan_processes:hosted_recorder",
+                          sink.policy, hosted_recorder,
                           {"path": str(w.path), "codec": w.codec})
     return None
 
@@ -148,28 +148,25 @@ def use_processes(cfg: ScanConfig, sinks: list[Sink]) -> bool:
     return True
 
 
-def process_pipeline(cfg: ScanConfig, stages: list[Stage], *, sinks: list[Sink],
-                     on_progress: Any = None) -> ProcessPipeline:
-    """The scan's stages (:func:`sffscan.pipeline.wiring.build_stages`) in processes.
-
-    ``stages`` is the thread mode's chain: its stages up to the speed shift and after the
-    depth stage (the mosaic) run here; the workers build their own registration, focus
-    measure and depth from ``cfg``. The recorder runs in its own process; other sinks (the
+def process_placement(cfg: ScanConfig, stages: list[Stage], *,
+                      sinks: list[Sink]) -> ProcessPlacement:
+    """Where the scan's stages (:func:`sffscan.pipeline.wiring.build_stages`) run in
+    processes: the registration in a worker, the focus measure and depth in another
+    (built there from ``cfg``); the stages up to the speed shift (the optics corrections of
+    the frames included) and after the depth stage (the corrections of the blocks, the
+    mosaic) in the main process. The recorder runs in its own process; other sinks (the
     live viewer) run in the main process, fed by the processes that run their taps
-    (relayed, :class:`~sffscan.pipeline.worker.Relay`).
+    (relayed, :class:`~sffscan.pipeline.relays.Relay`).
     """
     names = [s.name for s in stages]
-    # the head runs up to the speed shift (optics corrections of the frames included), the
-    # tail from after the depth stage (corrections of the blocks, the mosaic)
-    head = stages[:names.index("speed_shift") + 1]
-    tail = stages[names.index("depth") + 1:]
+    head = names[:names.index("speed_shift") + 1]
+    tail = names[names.index("depth") + 1:]
     cj = cfg.model_dump(mode="json")
     groups = []
     if "registration" in names:
-        groups.append(WorkerGroup("registration", "sffscan.pipeline.scan_processes:"
-                                  "registration_group", {"cfg": cj}, ("registration",)))
-    groups.append(WorkerGroup("focus", "sffscan.pipeline.scan_processes:focus_group",
-                              {"cfg": cj}, ("focus_measure", "depth")))
+        groups.append(WorkerGroup("registration", registration_group, {"cfg": cj},
+                                  ("registration",)))
+    groups.append(WorkerGroup("focus", focus_group, {"cfg": cj}, ("focus_measure", "depth")))
     hosted: list[HostedSink] = []
     local: list[Sink] = []
     for k in sinks:
@@ -179,9 +176,5 @@ def process_pipeline(cfg: ScanConfig, stages: list[Stage], *, sinks: list[Sink],
                                      {**h.kwargs, "cfg": cj}))
         else:
             local.append(k)
-    relays = [relay_of(k) for k in relayed_sinks(local, [s.name for s in head],
-                                                  [s.name for s in tail])]
-    return ProcessPipeline(
-        head=head, groups=groups, tail=tail, pools=ring_plan(cfg, hosted, relays),
-        capacity=cfg.processing.queue_capacity, sinks=local, hosted=hosted,
-        on_progress=on_progress)
+    relays = [relay_of(k) for k in relayed_sinks(local, head, tail)]
+    return ProcessPlacement(groups, ring_plan(cfg, hosted, relays), hosted)

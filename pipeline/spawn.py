@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import faulthandler
-import importlib
 import logging
 import multiprocessing as mp
 import os
@@ -40,13 +39,6 @@ _PR_SET_PDEATHSIG = 1
 def spawn_context() -> Any:
     """The ``multiprocessing`` context every helper process is started with."""
     return mp.get_context("spawn")
-
-
-def call_factory(factory: str, kwargs: dict[str, Any]) -> Any:
-    """``module.function(**kwargs)`` for ``factory = "module:function"`` (how a helper
-    builds what it runs: no stage is pickled)."""
-    module, _, func = factory.partition(":")
-    return getattr(importlib.import_module(module), func)(**kwargs)
 
 
 class StopPipes:

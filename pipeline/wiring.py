@@ -29,11 +29,10 @@ from sffscan.pipeline.metrology.evaluate import (
 )
 from sffscan.pipeline.mosaic.stage import MosaicStage
 from sffscan.pipeline.mosaic.writer import MosaicWriter
-from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline
-from sffscan.pipeline.scan_processes import process_pipeline, use_processes
+from sffscan.pipeline.scan_processes import process_placement, use_processes
 from sffscan.pipeline.stats import PipelineResult
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
@@ -149,12 +148,10 @@ def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | N
         writer.account = account.status
     stages = build_stages(cfg, frames, writer)
     prog = Progress(frame_count(cfg)) if progress else None
-    pipe: Pipeline | ProcessPipeline
-    if use_processes(cfg, list(sinks or [])):
-        pipe = process_pipeline(cfg, stages, sinks=list(sinks or []), on_progress=prog)
-    else:
-        pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
-                        sinks=sinks)
+    placement = (process_placement(cfg, stages, sinks=list(sinks or []))
+                 if use_processes(cfg, list(sinks or [])) else None)
+    pipe = Pipeline(stages, capacity=cfg.processing.queue_capacity, on_progress=prog,
+                    sinks=sinks, placement=placement)
     try:
         result = pipe.run()
     finally:

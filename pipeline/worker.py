@@ -1,8 +1,9 @@
 """Worker processes of the process runtime: what they run and how they report.
 
 A worker (:func:`worker_main`, started with the ``spawn`` context) builds its stages itself
-from a factory named ``"module:function"`` and JSON arguments (:class:`WorkerGroup`, or a
-:class:`HostedSink`), so no stage and no pixel is pickled; it runs them with the thread
+by a module-level factory function and JSON arguments (:class:`WorkerGroup`, or a
+:class:`HostedSink`; the function travels by its qualified name), so no stage and no pixel
+is pickled; it runs them with the thread
 runtime between a :class:`~sffscan.pipeline.channels.RecvStage` and a
 :class:`~sffscan.pipeline.channels.SendStage`, and reports ``ready``, then ``done`` (with
 its statistics), ``error`` (stage, exception type, message, traceback) or ``cancelled``
@@ -19,6 +20,7 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,8 +28,8 @@ from sffscan.pipeline.channels import RecvStage, SendStage, is_channel_stage, ow
 from sffscan.pipeline.relays import Relay, relay_forwarder, relay_report
 from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.pipeline.shm_ring import PoolSpec, SlotPool
-from sffscan.pipeline.spawn import call_factory, helper_start, watch_stop
-from sffscan.stages.protocol import FullPolicy, Stage
+from sffscan.pipeline.spawn import helper_start, watch_stop
+from sffscan.stages.protocol import FullPolicy, Sink, Stage
 
 #: capacity of the queues between the stages inside one process (the channels between
 #: processes have the pipeline's ``capacity``)
@@ -42,26 +44,27 @@ TRIM_THRESHOLD_BYTES = 256 * 2**20
 class WorkerGroup:
     """Stages run together in one worker process, built there by ``factory(**kwargs)``.
 
-    ``factory`` is ``"module:function"`` returning a list of stages (or, for a hosted
-    sink, one :class:`Sink`); ``kwargs`` must be JSON-able. ``stages`` names what the
+    ``factory`` is a module-level function (a spawned process imports it by name)
+    returning the list of stages; ``kwargs`` must be JSON-able. ``stages`` names what the
     factory builds, in order (for the statistics).
     """
 
     label: str
-    factory: str
+    factory: Callable[..., list[Stage]]
     kwargs: dict[str, Any]
     stages: tuple[str, ...]
 
 
 @dataclass(frozen=True)
 class HostedSink:
-    """A sink run in its own process, fed through a shared-memory channel."""
+    """A sink run in its own process, fed through a shared-memory channel, built there by
+    ``factory(**kwargs)`` (as a :class:`WorkerGroup`'s stages)."""
 
     name: str
     taps: tuple[str, ...]
     capacity: int
     policy: FullPolicy
-    factory: str
+    factory: Callable[..., Sink]
     kwargs: dict[str, Any]
 
 
@@ -119,12 +122,12 @@ def keep_freed_memory() -> bool:
 def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any]],
                 syncs: list[tuple[Any, Any]], in_q: Any, out_q: Any, results: Any,
                 control: Any, parent: int, producers: int = 1,
-                relays: list[tuple[dict[str, Any], Any]] | None = None) -> None:
+                relays: list[tuple[Relay, Any]] | None = None) -> None:
     """Entry point of a worker process (``spawn``): build, report ready, run, report.
 
     ``control`` is the read end of a pipe from the main process: a message there stops the
     worker's chain (another part failed); end of file means the main process is gone.
-    ``relays``: (relay as JSON, its channel) for each sink of the main process that taps
+    ``relays``: (relay, its channel) for each sink of the main process that taps
     some of this worker's stages; their forwarders' statistics come back in the report.
     """
     helper_start(parent)
@@ -144,7 +147,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         pipe.cancel()
 
     try:
-        built = call_factory(group["factory"], group["kwargs"])
+        built = group["factory"](**group["kwargs"])
         stages: list[Stage] = [built] if kind == "sink" else list(built)
         recv = RecvStage(label, in_q, pools=pools, stop=stop, producers=producers)
         chain: list[Stage] = [recv, *stages]
@@ -152,8 +155,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
             chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
                                    stop=stop, count_of=recv))
         forwards = []
-        for rj, rq in relays or ():
-            relay = Relay.from_json(rj)
+        for relay, rq in relays or ():
             mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
             forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
         pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop, sinks=list(forwards))

@@ -37,7 +37,7 @@ from sffscan.stages.messages import (
 )
 from sffscan.stages.protocol import END_OF_STREAM, Stage, Tapped
 
-from tests.parallel_helpers import Collect, FrameNumbers, shm_names
+from tests.parallel_helpers import Collect, FrameNumbers, explode_group, pass_group, shm_names
 from tests.scan_helpers import small_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -166,8 +166,8 @@ def test_a_failing_stage_in_a_worker_stops_every_process_with_its_name() -> None
     collect = Collect()
     pipe = ProcessPipeline(
         head=[FrameNumbers(200)],
-        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",)),
-                WorkerGroup("b", "tests.parallel_helpers:explode_group", {"at": 37},
+        groups=[WorkerGroup("a", pass_group, {}, ("explode",)),
+                WorkerGroup("b", explode_group, {"at": 37},
                             ("explode",))],
         tail=[collect], pools=[("frames", 24, 16 * 24 * 2, ("frame",))], capacity=4)
     with pytest.raises(StageFailed) as info:
@@ -185,7 +185,7 @@ def test_frames_cross_processes_unchanged_and_in_order() -> None:
     collect = Collect()
     result = ProcessPipeline(
         head=[FrameNumbers(300)],
-        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",))],
+        groups=[WorkerGroup("a", pass_group, {}, ("explode",))],
         tail=[collect], pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
     assert collect.ids == list(range(300))
     assert collect.sums == [i * 16 * 24 for i in range(300)]  # 6 slots reused 50 times
@@ -193,6 +193,20 @@ def test_frames_cross_processes_unchanged_and_in_order() -> None:
     assert [s.name for s in result.stages] == ["numbers", "explode", "collect"]
     assert result.extras["processes"]["workers"] == 1
     assert shm_names(os.getpid()) == []
+
+
+def test_a_process_placement_takes_consecutive_stages_after_the_source() -> None:
+    """The placement names the stages each worker builds and runs; they must be a run of
+    the pipeline's chain after its source (else nothing starts)."""
+    from sffscan.pipeline.parallel import ProcessPlacement
+
+    pools = [("frames", 6, 16 * 24 * 2, ("frame",))]
+    for placed in (("numbers",), ("collect", "explode"), ("unknown",)):
+        pipe = Pipeline([FrameNumbers(3), Collect()], placement=ProcessPlacement(
+            [WorkerGroup("a", pass_group, {}, placed)], pools))
+        with pytest.raises(ValueError, match="not consecutive stages after the source"):
+            pipe.run()
+    assert not mp.active_children()
 
 
 def test_channel_stages_refuse_drop_oldest() -> None:
@@ -225,7 +239,7 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
     q = CTX.Queue(4)
     try:
         relay = Relay("viewer", ("registration", "focus_measure"), 4, FullPolicy.DROP_OLDEST,
-                      ("sffscan.pipeline.viz.preview:logged_items", {"frame_step": 15}))
+                      (logged_items, {"frame_step": 15}))
         fwd = relay_forwarder(relay, relay.taps, q, pools=[p], stop=threading.Event())
         assert fwd.policy is FullPolicy.DROP_NEWEST
         held = p.acquire(lambda: False)  # every slot held
@@ -269,7 +283,7 @@ def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
     collect = Collect()
     ProcessPipeline(
         head=[FrameNumbers(40)],
-        groups=[WorkerGroup("a", "tests.parallel_helpers:pass_group", {}, ("explode",))],
+        groups=[WorkerGroup("a", pass_group, {}, ("explode",))],
         tail=[collect], pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
     assert collect.ids == list(range(40))
     assert gc.get_freeze_count() == 0

@@ -29,7 +29,7 @@ from sffscan.pipeline.viz.sink import VizOptions, VizSink, viz_sink_for
 from sffscan.pipeline.wiring import format_summary, run_scan
 from sffscan.pipeline.worker import WorkerGroup
 
-from tests.parallel_helpers import shm_names
+from tests.parallel_helpers import failing_focus_group, shm_names
 from tests.scan_helpers import RenderedScan, small_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,13 +85,13 @@ def test_a_failing_worker_stage_fails_the_scan_exit_1_mosaic_readable(
     from sffscan.pipeline import scan_processes, wiring
 
     def with_failing_depth(cfg, stages, **kw):  # type: ignore[no-untyped-def]
-        pipe = scan_processes.process_pipeline(cfg, stages, **kw)
-        pipe.groups[-1] = WorkerGroup("focus", "tests.parallel_helpers:failing_focus_group",
-                                      {"cfg": cfg.model_dump(mode="json"), "at": 90},
-                                      ("focus_measure", "depth"))
-        return pipe
+        placement = scan_processes.process_placement(cfg, stages, **kw)
+        placement.groups[-1] = WorkerGroup("focus", failing_focus_group,
+                                           {"cfg": cfg.model_dump(mode="json"), "at": 90},
+                                           ("focus_measure", "depth"))
+        return placement
 
-    monkeypatch.setattr(wiring, "process_pipeline", with_failing_depth)
+    monkeypatch.setattr(wiring, "process_placement", with_failing_depth)
     cfg = small_config(motion={"x_end_mm": 8.0}, processing={"execution": "processes"},
                        output={"path": str(tmp_path / "m.zarr")})
     assert cfg.model_copy(update={"processing": scan_2_8.cfg.processing,
