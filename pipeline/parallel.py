@@ -77,7 +77,7 @@ from sffscan.pipeline.worker import (
     worker_main,
 )
 from sffscan.stages.messages import Frame
-from sffscan.stages.protocol import Sink, Stage
+from sffscan.stages.protocol import FullPolicy, Sink, Stage
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +147,9 @@ class ProcessPlacement:
         if first < 1 or names[first:first + len(placed)] != placed:
             raise ValueError(f"the worker groups' stages {placed} are not consecutive stages "
                              f"after the source in {names}")
+        dropping = [q.name for q in pipeline.queues if q.policy is not FullPolicy.BLOCK]
+        if dropping:
+            raise ValueError(f"the process placement runs blocking queues only, not {dropping}")
         hosted = {k.name for k in self.hosted}
         return ProcessPipeline(
             head=pipeline.stages[:first], groups=self.groups,

@@ -199,6 +199,9 @@ def test_a_process_placement_takes_consecutive_stages_after_the_source() -> None
     """The placement names the stages each worker builds and runs; they must be a run of
     the pipeline's chain after its source (else nothing starts)."""
     from sffscan.pipeline.parallel import ProcessPlacement
+    from sffscan.stages.protocol import FullPolicy
+
+    from tests.parallel_helpers import Explode
 
     pools = [("frames", 6, 16 * 24 * 2, ("frame",))]
     for placed in (("numbers",), ("collect", "explode"), ("unknown",)):
@@ -206,6 +209,11 @@ def test_a_process_placement_takes_consecutive_stages_after_the_source() -> None
             [WorkerGroup("a", pass_group, {}, placed)], pools))
         with pytest.raises(ValueError, match="not consecutive stages after the source"):
             pipe.run()
+    pipe = Pipeline([FrameNumbers(3), Explode(-1), Collect()],
+                    policies={"explode": FullPolicy.DROP_OLDEST}, placement=ProcessPlacement(
+                        [WorkerGroup("a", pass_group, {}, ("explode",))], pools))
+    with pytest.raises(ValueError, match="blocking queues only"):
+        pipe.run()
     assert not mp.active_children()
 
 
