@@ -53,7 +53,9 @@ def test_operator_matches_reference(operator: str, images: np.ndarray, device: s
     ref = np.stack([REFERENCES[operator](im, WINDOW) for im in images])
     assert np.isfinite(ref).all()
     definition = FOCUS_OPERATORS[operator].torch_function()
-    a64 = definition(torch.from_numpy(images).to(device), WINDOW).cpu().numpy()
+    t64 = definition(torch.from_numpy(images).to(device), WINDOW)
+    assert t64.dtype == torch.float64 and t64.device.type == torch.device(device).type
+    a64 = t64.cpu().numpy()
     bad = np.abs(a64 - ref) > REL_TOL * np.abs(ref) + FLOOR * np.abs(ref).max()
     assert not bad.any(), f"{operator}: {bad.sum()} px off, worst {np.abs(a64 - ref).max():.3g}"
     x32 = torch.from_numpy(images.astype(np.float32)).to(device)
