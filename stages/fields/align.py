@@ -13,9 +13,10 @@ pixel by pixel, as the focus-stack program does. Here:
 2. the chained affine transform is reduced to the model asked for: ``"scale"`` (one
    magnification about the frame centre plus a shift, the breathing of a lens),
    ``"similarity"`` (plus a rotation) or ``"affine"``;
-3. each frame is warped onto the middle frame's grid with a Lanczos kernel
-   (:func:`align_stack`), so a band-limited image keeps its sharpness whatever the sub-pixel
-   phase; pixels that any frame does not cover are reported (``valid``), never filled.
+3. each frame is warped onto the middle frame's grid (:func:`align_stack`): a scale and
+   shift by a windowed sinc whose flat passband keeps every frame's finest texture
+   (:mod:`sffscan.stages.fields.resample`: why), a rotation or shear by OpenCV's Lanczos;
+   pixels that any frame does not cover are reported (``valid``), never filled.
 
 :func:`misalignment` is the cheap check a stack gets when alignment is off: the first and
 last frames against the middle one.
@@ -30,6 +31,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from sffscan.stages.fields.resample import TAPS, is_separable, scale_warp
 
 __all__ = [
     "Alignment",
@@ -126,10 +128,7 @@ def pair_transform(template: np.ndarray, image: np.ndarray, *, init: np.ndarray 
     correlation : float
         ECC's correlation coefficient at full resolution.
 
-    Raises
-    ------
-    ValueError
-        When ECC does not converge (featureless or unrelated images).
+    Raises ValueError when ECC does not converge (featureless or unrelated images).
     """
     t, im = _to_float(template), _to_float(image)
     if t.shape != im.shape:
@@ -202,10 +201,7 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
     -------
     Alignment
 
-    Raises
-    ------
-    ValueError
-        If the stack is not (N, H, W) or a frame cannot be aligned (the message names it).
+    Raises ValueError if the stack is not (N, H, W) or a frame cannot be aligned (named).
     """
     st = np.asarray(stack)
     if st.ndim != 3 or st.shape[0] < 1:
@@ -353,12 +349,16 @@ def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np
 
 
 def warp_frame(image: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (Lanczos).
+    """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (a windowed
+    sinc for a scale and shift, :func:`~sffscan.stages.fields.resample.scale_warp`; else
+    Lanczos).
 
     Returns an array of ``image``'s shape and dtype, clipped to the frame's own range (the
     kernel's ringing must not push a 10-bit frame past its full scale); pixels mapping
     outside the frame replicate its border (:func:`align_stack` reports them as not valid).
     """
+    if is_separable(matrix):
+        return scale_warp(image, matrix)
     img = np.asarray(image)
     h, w = img.shape
     out = cv2.warpAffine(img, np.asarray(matrix, dtype=np.float64), (w, h),
@@ -384,8 +384,7 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     Parameters
     ----------
     stack : (N, H, W) array of uint8, uint16 or float
-    model, reference
-        As in :func:`estimate_alignment`.
+    model, reference : as in :func:`estimate_alignment`.
     alignment : Alignment, optional
         Transforms already estimated (e.g. from a calibration); default estimated here.
 
@@ -393,8 +392,9 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     -------
     aligned : (N, H, W) array, ``stack``'s dtype
     valid : (H, W) bool
-        Pixels that every frame covers (3 px inside its border, the interpolation's
-        reach); the others hold replicated borders and must not be measured.
+        Pixels that every frame covers (inside its border by the interpolation's reach:
+        :data:`~sffscan.stages.fields.resample.TAPS` px, 3 px for Lanczos); the others hold
+        replicated borders and must not be measured.
     alignment : Alignment
     """
     st = np.asarray(stack)
@@ -407,7 +407,8 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     valid = np.ones(st.shape[1:], dtype=bool)
     for k in range(st.shape[0]):
         out[k] = warp_frame(st[k], al.matrices[k])
-        valid &= _coverage(al.matrices[k], st.shape[1:], 3.0)
+        reach = float(TAPS) if is_separable(al.matrices[k]) else 3.0
+        valid &= _coverage(al.matrices[k], st.shape[1:], reach)
     return out, valid, al
 
 
@@ -415,8 +416,7 @@ def misalignment(stack: np.ndarray) -> tuple[float, float]:
     """How misaligned a stack looks: the largest relative scale change (fraction) and shift
     (px) of its first and last frames against the middle one, at most 512 px wide.
 
-    Returns (0, 0) for stacks of fewer than 3 frames; a pair ECC cannot align counts as
-    (nan, nan).
+    (0, 0) for stacks of fewer than 3 frames; (nan, nan) when ECC cannot align a pair.
     """
     st = np.asarray(stack)
     n = st.shape[0]

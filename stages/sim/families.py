@@ -31,6 +31,12 @@ BANK_RADII_PX = np.array([0.0, 0.35, 0.7, 1.0, 1.4, 2.0, 2.8, 3.8, 5.0, 6.5, 8.5
 STEP_UM = 10.0
 """Height between focus levels, µm (every family; errors are reported in levels)."""
 
+OVERSAMPLE = 4
+"""Stacks with breathing (and their breathing-free twins) render the world on a grid this
+many times finer and integrate it over each sensor pixel (an area average), so that the
+magnified views are resampled where the texture is smooth, not by an interpolation at the
+sensor's own resolution (which would attenuate each frame's finest texture differently)."""
+
 
 @dataclass(frozen=True)
 class Family:
@@ -142,9 +148,10 @@ def _disc(radius: float) -> np.ndarray:
     return k / k.sum()
 
 
-def _bank(tex: np.ndarray, psf: str) -> np.ndarray:
+def _bank(tex: np.ndarray, psf: str, q: int = 1) -> np.ndarray:
+    """The texture blurred by each radius of :data:`BANK_RADII_PX` (times ``q``, px)."""
     out = np.empty((len(BANK_RADII_PX), *tex.shape), np.float32)
-    for i, r in enumerate(BANK_RADII_PX):
+    for i, r in enumerate(BANK_RADII_PX * q):
         if r == 0:
             out[i] = tex
         elif psf == "gauss":
@@ -205,8 +212,28 @@ def _sensor(img: np.ndarray, fam: Family, rng: np.random.Generator, bits: int) -
     return (np.clip(np.round(img * full), 0, full) / full).astype(np.float32)
 
 
+def _view(world: np.ndarray, pad: int, size_px: int, mag: float, q: int = 1) -> np.ndarray:
+    """The ``size_px`` square a frame of magnification ``mag`` sees of the padded world
+    (rendered ``q`` times finer): fine px (u, v) shows the world at ``centre + (u - c, v - c)
+    / mag`` (Lanczos on the fine grid; the plain crop for ``mag == 1``), then each sensor
+    pixel the mean of its q x q fine pixels."""
+    s, p = size_px * q, pad * q
+    if mag == 1.0:
+        v = world[p:p + s, p:p + s]
+    else:
+        a = 1.0 / mag
+        c = (s - 1) / 2.0
+        mat = np.array([[a, 0.0, p + c * (1.0 - a)], [0.0, a, p + c * (1.0 - a)]])
+        v = cv2.warpAffine(world.astype(np.float32), mat, (s, s),
+                           flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP)
+    if q > 1:
+        v = cv2.resize(v, (size_px, size_px), interpolation=cv2.INTER_AREA)
+    return np.asarray(v, dtype=np.float64)
+
+
 def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
-                 n_levels: int | None = None) -> SimStack:
+                 n_levels: int | None = None, breathing: float = 0.0,
+                 pad_for_breathing: float | None = None) -> SimStack:
     """Render one stack of a family.
 
     Parameters
@@ -219,6 +246,18 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
         Image width and height, px. Default 64.
     n_levels : int, optional, keyword-only
         Number of focus levels; drawn from 20..100 when not given.
+    breathing : float, keyword-only
+        Focus breathing, magnification change per level (0.012: 1.2 %/level): the image at
+        level k shows the world magnified ``(1 + breathing)^(k - N // 2)`` about the image
+        centre (a non-telecentric lens), before the sensor. The draws (and so the noise
+        realisation) are those of the same seed and ``pad_for_breathing`` without
+        breathing. Such stacks are rendered :data:`OVERSAMPLE` times finer and integrated
+        over each pixel (slower; the draws differ from those of a stack without either
+        argument). Default 0.
+    pad_for_breathing : float, optional, keyword-only
+        The breathing the rendered world's margin is sized for (default ``breathing``): give
+        the breathing stack's value with ``breathing=0`` for its breathing-free twin (the
+        same world, texture and noise; the two differ by the breathing only).
 
     Returns
     -------
@@ -230,26 +269,36 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
     n = int(n_levels if n_levels is not None else rng.integers(20, 101))
     if n < 3:
         raise ValueError(f"n_levels must be >= 3, got {n}")
-    pad = 16
+    for name, v in (("breathing", breathing), ("pad_for_breathing", pad_for_breathing)):
+        if v is not None and not -0.5 < v < 0.5:
+            raise ValueError(f"{name} must be in -0.5 .. 0.5 per level, got {v}")
+    mags = (1.0 + breathing) ** (np.arange(n) - n // 2)
+    widest = (1.0 + (breathing if pad_for_breathing is None else pad_for_breathing)) ** (
+        np.array([0, n - 1]) - n // 2)
+    # the world a frame sees beyond the image (magnification < 1) and the blur's reach
+    pad = 16 + int(np.ceil(0.5 * size_px * max(0.0, 1.0 / float(widest.min()) - 1.0)))
     shape = (size_px + 2 * pad, size_px + 2 * pad)
+    q = 1 if breathing == 0.0 and pad_for_breathing is None else OVERSAMPLE
+    fine = (shape[0] * q, shape[1] * q)
     grain = float(rng.uniform(*fam.texture_px))
     contrast = float(rng.uniform(*fam.contrast))
     b = float(rng.uniform(*fam.blur_per_level_px))
     bits = int(rng.choice(fam.bits))
-    bank = _bank(_texture(rng, shape, grain, contrast), fam.psf)
+    bank = _bank(_texture(rng, fine, grain * q, contrast), fam.psf, q)
     z = _surface(fam, rng, shape, n)
-    flat_bank = bank.reshape(len(BANK_RADII_PX), -1)
+    zf = z if q == 1 else cv2.resize(z, fine[::-1], interpolation=cv2.INTER_LINEAR)
+    radii = BANK_RADII_PX * q
+    flat_bank = bank.reshape(len(radii), -1)
     idx = np.arange(flat_bank.shape[1])
     images = np.empty((n, size_px, size_px), np.float32)
     for k in range(n):
-        r = np.clip(_blur_radius(fam, z, float(k), b, n), 0.0, BANK_RADII_PX[-1]).reshape(-1)
-        i = np.clip(np.searchsorted(BANK_RADII_PX, r, side="right") - 1, 0,
-                    len(BANK_RADII_PX) - 2)
-        t = (r - BANK_RADII_PX[i]) / (BANK_RADII_PX[i + 1] - BANK_RADII_PX[i])
-        img = (1 - t) * flat_bank[i, idx] + t * flat_bank[i + 1, idx]
-        images[k] = _sensor(img.reshape(shape)[pad:-pad, pad:-pad], fam, rng, bits)
+        r = np.clip(q * _blur_radius(fam, zf, float(k), b, n), 0.0, radii[-1]).reshape(-1)
+        i = np.clip(np.searchsorted(radii, r, side="right") - 1, 0, len(radii) - 2)
+        t = (r - radii[i]) / (radii[i + 1] - radii[i])
+        img = ((1 - t) * flat_bank[i, idx] + t * flat_bank[i + 1, idx]).reshape(fine)
+        images[k] = _sensor(_view(img, pad, size_px, float(mags[k]), q), fam, rng, bits)
     truth = (z[pad:-pad, pad:-pad] * STEP_UM).astype(np.float32)
     info = {"n_levels": float(n), "grain_px": grain, "contrast": contrast,
-            "blur_per_level_px": b, "bits": float(bits)}
+            "blur_per_level_px": b, "bits": float(bits), "breathing": float(breathing)}
     return SimStack(images, np.arange(n) * STEP_UM, truth, fam.name, seed, info)
 
