@@ -1,7 +1,8 @@
 """Registration accuracy against the simulator's known frame positions, old against new.
 
     python bench/bench_registration_accuracy.py --against /tmp/old     # old tree too
-    python bench/bench_registration_accuracy.py --geometry full --seeds 0 1
+    python bench/bench_registration_accuracy.py --geometry full --seeds 0 1 2 \
+        --against /tmp/old --out bench/results/registration_accuracy.md
 
 The simulated scan (:func:`sffscan.pipeline.sim_source.simulate_frames`) places every frame
 at its commanded position plus a periodic wobble of ±``--wobble`` px along and across the
@@ -9,7 +10,9 @@ motion (:func:`sffscan.pipeline.sim_source.wobble_px`): the truth. Each frame is
 the speed-shift stage and refined by a registration stage; its position error is
 ``predicted + correction - truth``, less the pass's mean (the absolute offset is a free
 constant of the solve). Reported: RMS error x / y, px, per configuration (tree x pair lags),
-all configurations on the same rendered frames in one run.
+all configurations on the same rendered frames in one run, with the speed prediction alone
+as a reference, the pairs measured and refused, and each configuration's CPU time per
+frame (registration only, interleaved: each seed runs every configuration in turn).
 
 Geometries: ``test`` is the scan of ``tests/test_scan_bars.py`` (640 x 256 px of 17 µm,
 registration at half resolution); ``full`` the demo optics (1280 x 1024 px of 8.5 µm,
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -51,12 +55,15 @@ def geometry_config(geometry: str, *, seed: int, wobble: float) -> ScanConfig:
 
 
 def position_errors(cfg: ScanConfig, placed: list[Any], truth: np.ndarray,
-                    stage: Any) -> np.ndarray:
+                    stage: Any) -> tuple[np.ndarray, float]:
+    """Position errors (n, 2), px, less their mean; and the CPU seconds the stage took."""
+    t0 = time.process_time()
     out = [y for q in placed for y in stage.process(q)] + list(stage.finish())
+    cpu = time.process_time() - t0
     got = np.array([(o.predicted_px[0] + o.correction_px[0],
                      o.predicted_px[1] + o.correction_px[1]) for o in out])
     err = got - truth
-    return err - err.mean(axis=0)
+    return err - err.mean(axis=0), cpu
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--against", type=Path, help="another source tree (its stages/ folder)")
     ap.add_argument("--lags", nargs="+", default=["1,2,3,4", "1,2,3", "1,2", "1"],
                     help="short-lag sets to try (the period pair N is always added)")
+    ap.add_argument("--out", type=Path, help="also write the table (Markdown) here")
     args = ap.parse_args(argv)
     trees: dict[str, ModuleType] = {"new": registration}
     if args.against is not None:
@@ -74,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
                                    args.against / "stages" / "registration.py")
     lag_sets = [tuple(int(v) for v in s.split(",")) for s in args.lags]
     errors: dict[tuple[str, tuple[int, ...]], list[np.ndarray]] = {}
+    cpu: dict[tuple[str, tuple[int, ...]], float] = {}
+    pairs: dict[tuple[str, tuple[int, ...]], list[int]] = {}
+    frames_total = 0
     for seed in args.seeds:
         cfg = geometry_config(args.geometry, seed=seed, wobble=args.wobble)
         o, p = cfg.optics, cfg.processing
@@ -83,22 +94,41 @@ def main(argv: list[str] | None = None) -> int:
         truth = np.array([(pf.x_px + wobble_px(cfg, pf.travel_px)[0],
                            pf.y_px + wobble_px(cfg, pf.travel_px)[1])
                           for pf in plan_frames(cfg)])
-        for tree, mod in trees.items():
-            for lags in lag_sets:
+        pred = np.array([q.predicted_px for q in placed]) - truth
+        errors.setdefault(("speed prediction", ()), []).append(pred - pred.mean(axis=0))
+        frames_total += len(placed)
+        for lags in lag_sets:
+            for tree, mod in trees.items():
                 stage = mod.RegistrationStage(n_levels=o.n_levels, scale=p.registration_scale,
                                               lags=lags)
-                errors.setdefault((tree, lags), []).append(
-                    position_errors(cfg, placed, truth, stage))
+                err, sec = position_errors(cfg, placed, truth, stage)
+                errors.setdefault((tree, lags), []).append(err)
+                cpu[tree, lags] = cpu.get((tree, lags), 0.0) + sec
+                st = stage.extra_stats()
+                got = pairs.setdefault((tree, lags), [0, 0])
+                got[0] += int(st["pairs_measured"])
+                got[1] += int(st["pairs_rejected"])
         print(f"seed {seed}: {len(placed)} frames", file=sys.stderr)
-    print(f"geometry {args.geometry}, wobble ±{args.wobble:g} px, seeds {args.seeds}: "
-          "position error against the simulator's truth, RMS px (pass mean removed)")
-    print("| tree | pairs per frame (lags) | RMS x | RMS y |")
-    print("|---|---|---:|---:|")
+    lines = [f"geometry {args.geometry}, wobble ±{args.wobble:g} px, seeds {args.seeds}, "
+             f"{frames_total} frames: position error against the simulator's truth, RMS px "
+             "(pass mean removed)", "",
+             "| tree | pairs per frame (lags) | RMS x | RMS y | pairs measured / refused "
+             "| CPU ms per frame |", "|---|---|---:|---:|---:|---:|"]
     for (tree, lags), errs in errors.items():
         e = np.concatenate(errs)
         rms = np.sqrt(np.mean(e * e, axis=0))
-        print(f"| {tree} | {len(lags) + 1} ({', '.join(map(str, lags))}, N) | {rms[0]:.3f} | "
-              f"{rms[1]:.3f} |")
+        if not lags:
+            lines.append(f"| {tree} | - | {rms[0]:.3f} | {rms[1]:.3f} | - | - |")
+            continue
+        n_ok, n_no = pairs[tree, lags]
+        lines.append(f"| {tree} | {len(lags) + 1} ({', '.join(map(str, lags))}, N) | "
+                     f"{rms[0]:.3f} | {rms[1]:.3f} | {n_ok} / {n_no} | "
+                     f"{1e3 * cpu[tree, lags] / frames_total:.2f} |")
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text, encoding="utf-8")
     return 0
 
 

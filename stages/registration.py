@@ -30,13 +30,18 @@ reduced by exact integer sums.
 from __future__ import annotations
 
 import collections
-import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from sffscan.stages.messages import PlacedFrame
+from sffscan.stages.phase_correlation import (
+    correlate_spectra,
+    null_peak_threshold,
+    phase_correlate,
+    windowed_spectrum,
+)
 from sffscan.stages.protocol import Stage
 
 
@@ -100,143 +105,6 @@ def _dft_size_at_most(n: int) -> int:
     return n
 
 
-def _peak_offset(minus: float, centre: float, plus: float) -> float:
-    """Sub-pixel offset of a peak from three samples: Gaussian fit, else parabola."""
-    if minus > 0 and centre > 0 and plus > 0:
-        lm, l0, lp = np.log(minus), np.log(centre), np.log(plus)
-        curv = lm - 2 * l0 + lp
-        if curv < 0:
-            return float(0.5 * (lm - lp) / curv)
-    curv = minus - 2 * centre + plus
-    return 0.5 * (minus - plus) / curv if curv < 0 else 0.0
-
-
-@functools.lru_cache(maxsize=16)
-def _hann(h: int, w: int) -> np.ndarray:
-    """Hann window (h, w), float32."""
-    return cv2.createHanningWindow((w, h), cv2.CV_32F)
-
-
-@functools.lru_cache(maxsize=16)
-def _pc_weight(h: int, w: int, peak_sigma: float) -> np.ndarray:
-    """Gaussian spectral weight (h, w // 2 + 1), float32."""
-    fy = np.fft.fftfreq(h)[:, None]
-    fx = np.fft.rfftfreq(w)[None, :]
-    return np.exp(-2.0 * np.pi**2 * peak_sigma**2 * (fx * fx + fy * fy)).astype(np.float32)
-
-
-def phase_correlate(a: np.ndarray, b: np.ndarray, *, peak_sigma: float = 1.5
-                    ) -> tuple[float, float, float]:
-    """Translation of image b relative to image a by phase correlation.
-
-    Both images are multiplied by a Hann window. The normalised cross-power spectrum is
-    weighted by a Gaussian, so that the correlation peak is a Gaussian of ``peak_sigma``
-    px whatever the images' blur (frames at different focus levels have no common
-    high-frequency content; there the phase is noise, and an unweighted peak is ragged).
-    The peak is then located with a three-point Gaussian fit. Measured on simulated frames
-    up to 7 focus levels apart with sensor noise: 0.1 px RMS error, against 0.3 px for the
-    unweighted peak with Foroosh's estimator. (cv2.phaseCorrelate is not used: with OpenCV
-    5.0 it reports shifts off by half a pixel whenever its DFT size is odd.)
-
-    Parameters
-    ----------
-    a, b : ndarray, float32, (h, w)
-    peak_sigma : float
-        Width of the correlation peak, px.
-
-    Returns
-    -------
-    (sx, sy, peak)
-        b(p) ~= a(p - s), px; ``peak`` is the correlation peak height (about 1 for identical
-        images, near 0 for unrelated ones).
-    """
-    h, w = a.shape
-    return correlate_spectra(windowed_spectrum(a), windowed_spectrum(b), (h, w),
-                             peak_sigma=peak_sigma)
-
-
-def windowed_spectrum(image: np.ndarray) -> np.ndarray:
-    """Spectrum of the Hann-windowed image (what :func:`phase_correlate` correlates).
-
-    OpenCV's real-input DFT, in its packed CCS layout (the ``h x (w // 2 + 1)`` complex
-    half-spectrum of ``rfft2`` packed into ``h x w`` reals): about twice as fast as
-    ``scipy.fft.rfft2`` on the 256 x 256 crops of the registration, and correlated without
-    unpacking (:func:`correlate_spectra`).
-
-    Parameters
-    ----------
-    image : ndarray, float32, (h, w)
-        May be a strided view (a crop): the window's product is the contiguous copy.
-
-    Returns
-    -------
-    ndarray, float32, (h, w)
-        CCS-packed spectrum (``cv2.dft`` of a real image without flags).
-    """
-    h, w = image.shape
-    return cv2.dft(image * _hann(h, w))
-
-
-@functools.lru_cache(maxsize=16)
-def _ccs_weight(h: int, w: int, peak_sigma: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """:func:`_pc_weight` in the CCS layout: the weight of the interior complex columns
-    ``(h, (w - 1) // 2)``; of the real-packed edge columns (the first, and the last for
-    even ``w``) by frequency along the rows, ``(edges, h // 2 + 1)``; the edge columns'
-    indices; and the mean of the whole half-spectrum's weight."""
-    full = _pc_weight(h, w, peak_sigma)
-    freq = [0, w // 2] if w % 2 == 0 else [0]
-    edges = np.ascontiguousarray(full[:h // 2 + 1, freq].T)
-    cols = np.array([0, w - 1] if w % 2 == 0 else [0])
-    return (np.ascontiguousarray(full[:, 1:1 + (w - 1) // 2]), edges, cols,
-            float(full.mean()))
-
-
-def _normalise(z: np.ndarray, weight: np.ndarray) -> None:
-    """In place: ``z * weight / (|z| + 1e-12)`` (complex or real values)."""
-    mag = np.abs(z)
-    mag += np.float32(1e-12)
-    np.divide(weight, mag, out=mag)
-    z *= mag
-
-
-def correlate_spectra(fa: np.ndarray, fb: np.ndarray, shape: tuple[int, int], *,
-                      peak_sigma: float = 1.5) -> tuple[float, float, float]:
-    """:func:`phase_correlate` from the two images' :func:`windowed_spectrum`.
-
-    A frame's spectrum can so be computed once and correlated with several others.
-    ``shape`` is the images' (h, w); returns (sx, sy, peak) as :func:`phase_correlate`.
-    The cross-power spectrum stays CCS-packed: its interior columns are (re, im) pairs,
-    normalised through a complex view; the first column (and the last, for even ``w``)
-    packs a real column's spectrum along the rows: real at row 0 (and at row h - 1 for
-    even ``h``), (re, im) pairs between.
-    """
-    h, w = shape
-    weight, we, cols, mean = _ccs_weight(h, w, peak_sigma)
-    cross = cv2.mulSpectrums(fb, fa, 0, conjB=True)
-    last = w - 1 if w % 2 == 0 else w  # the interior columns are [1, last)
-    _normalise(cross[:, 1:last].view(np.complex64), weight)
-    top = h - 1 if h % 2 == 0 else h  # along an edge column, the pairs are rows [1, top)
-    edge = np.ascontiguousarray(cross[:, cols].T)  # (edges, h)
-    _normalise(edge[:, 1:top].view(np.complex64), we[:, 1:1 + (top - 1) // 2])
-    real = [0, h - 1] if h % 2 == 0 else [0]  # the real values: frequencies 0 (and h / 2)
-    vals = edge[:, real]
-    _normalise(vals, we[:, [0, h // 2]] if h % 2 == 0 else we[:, :1])
-    edge[:, real] = vals
-    cross[:, cols] = edge.T
-    corr = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
-    py, px = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    c0 = float(corr[py, px])
-    sx = px + _peak_offset(float(corr[py, (px - 1) % w]), c0, float(corr[py, (px + 1) % w]))
-    sy = py + _peak_offset(float(corr[(py - 1) % h, px]), c0, float(corr[(py + 1) % h, px]))
-    if sx > w / 2:
-        sx -= w
-    if sy > h / 2:
-        sy -= h
-    # the Gaussian weighting lowers the peak; scale it back to ~1 for identical images
-    return sx, sy, c0 / mean
-
-
 def measure_shift(
     a: np.ndarray,
     b: np.ndarray,
@@ -245,6 +113,7 @@ def measure_shift(
     scale: int,
     max_crop: int = 256,
     min_overlap: int = 24,
+    false_alarm: float | None = None,
 ) -> tuple[float, float, float] | None:
     """Measure the position of frame b relative to frame a by phase correlation.
 
@@ -260,12 +129,15 @@ def measure_shift(
         Largest crop edge used for the correlation, reduced px (centre of the overlap).
     min_overlap : int
         Smallest overlap (reduced px) worth measuring; smaller returns None.
+    false_alarm : float or None
+        If given, a peak that unrelated crops of this shape reach with this probability
+        (:func:`null_peak_threshold`) returns None: no measurement.
 
     Returns
     -------
     (dx, dy, response) or None
         Measured relative position of b, full-resolution px, and the correlation peak
-        response (0..1); None if the overlap is too small.
+        response (0..1); None if the overlap is too small or the peak is not significant.
     """
     h, w = a.shape
     ix = int(round(predicted_px[0] / scale))
@@ -282,6 +154,8 @@ def measure_shift(
     crop_a = a[y0:y0 + ch, x0:x0 + cw]
     crop_b = b[y0 - iy:y0 - iy + ch, x0 - ix:x0 - ix + cw]
     sx, sy, peak = phase_correlate(crop_a, crop_b)
+    if false_alarm is not None and peak < null_peak_threshold(ch, cw, false_alarm=false_alarm):
+        return None
     # crop_b(p) = crop_a(p + r) for a true residual r, so the measured shift is -r.
     return (ix - sx) * scale, (iy - sy) * scale, peak
 
@@ -337,6 +211,7 @@ class _Entry:
     index: int
     placed: PlacedFrame
     reduced: np.ndarray
+    run_start: int  # first frame of the run of neighbouring focus levels this one ends
 
 
 class RegistrationStage(Stage):
@@ -345,12 +220,12 @@ class RegistrationStage(Stage):
     name = "registration"
 
     def __init__(self, *, n_levels: int, scale: int = 4, lags: tuple[int, ...] = (1, 2, 3, 4),
-                 min_peak: float = 0.02, shared_spectra: bool = True) -> None:
+                 false_alarm: float = 1e-3, shared_spectra: bool = True) -> None:
         self.n_levels = n_levels
         self.shared_spectra = shared_spectra
         self.scale = scale
         self.lags = tuple(lag for lag in lags if lag < n_levels) + (n_levels,)
-        self.min_peak = min_peak
+        self.false_alarm = false_alarm  # per pair: unrelated crops measured (none kept)
         self.window = 2 * n_levels + 8
         self._reset()
         self.pairs_measured = 0
@@ -389,9 +264,12 @@ class RegistrationStage(Stage):
             sx, sy, peak = correlate_spectra(fa, fixed["b"], (ch, cw))
             got = ((ix - sx) * self.scale, (iy - sy) * self.scale, peak)
             self.pairs_shared += 1
+            if peak < null_peak_threshold(ch, cw, false_alarm=self.false_alarm):
+                got = None
         else:
-            got = measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale)
-        if got is None or got[2] < self.min_peak:
+            got = measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
+                                false_alarm=self.false_alarm)
+        if got is None:
             self.pairs_rejected += 1
             return
         self.pairs_measured += 1
@@ -428,14 +306,22 @@ class RegistrationStage(Stage):
             yield from self.finish()
             self._reset()
         self._pass = item.header.pass_index
-        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale))
+        run = self._count
+        if self._recent and abs(self._recent[-1].placed.header.focus_index
+                                - item.header.focus_index) <= 1:
+            run = self._recent[-1].run_start
+        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale), run)
         self._count += 1
         fixed: dict[str, np.ndarray] = {}  # the new frame's spectrum, shared by its pairs
         for lag in self.lags:
             if len(self._recent) >= lag:
                 old = self._recent[-lag]
-                if lag < self.n_levels or (
-                        old.placed.header.focus_index == item.header.focus_index):
+                # a short lag pairs neighbouring focus levels, within one run of the
+                # staircase (across its wrap, the two ends share no in-focus detail:
+                # measured, such pairs matched other structure, 170-230 px off); the
+                # period pairs the same level
+                if (old.index >= run if lag < self.n_levels
+                        else old.placed.header.focus_index == item.header.focus_index):
                     self._measure(old, entry, fixed)
         self._recent.append(entry)
         self._pending.append(entry)

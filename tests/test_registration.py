@@ -8,14 +8,16 @@ import cv2
 import numpy as np
 import pytest
 from sffscan.stages.messages import FrameHeader, PlacedFrame
+from sffscan.stages.phase_correlation import (
+    correlate_spectra,
+    phase_correlate,
+    windowed_spectrum,
+)
 from sffscan.stages.registration import (
     RegistrationStage,
-    correlate_spectra,
     downsample,
     measure_shift,
-    phase_correlate,
     solve_wobble,
-    windowed_spectrum,
 )
 
 
@@ -45,7 +47,7 @@ def test_phase_correlate_subpixel_and_blur() -> None:
     errors = []
     for _ in range(20):
         t = rng.uniform(-4, 4, 2)
-        m = np.float32([[1, 0, t[0]], [0, 1, t[1]]])
+        m = np.array([[1, 0, t[0]], [0, 1, t[1]]], dtype=np.float32)
         moved = cv2.warpAffine(world, m, (600, 600), flags=cv2.INTER_CUBIC)
         moved = cv2.GaussianBlur(moved, (0, 0), rng.uniform(0.5, 2.0))  # another focus level
         sx, sy, peak = phase_correlate(world[200:456, 200:456], moved[200:456, 200:456])
@@ -81,7 +83,7 @@ def test_solve_wobble_recovers_zero_mean_wobble() -> None:
 
 def _frames_with_wobble(n: int, *, step: float, amp: float) -> list[tuple[PlacedFrame, float]]:
     world = _texture(400, 3000, seed=3)
-    out = []
+    out: list[tuple[PlacedFrame, float]] = []
     for k in range(n):
         pred_x = 50 + k * step
         wob = amp * math.sin(2 * math.pi * k / 13)
@@ -100,10 +102,16 @@ def test_stage_removes_wobble() -> None:
     assert [o.header.frame_id for o in out] == list(range(80))  # all, in order
     truth = np.array([t for _, t in frames], float)
     before = np.array([pf.offset_px[0] for pf, _ in frames], float) - truth
-    after = np.array([o.offset_px[0] for o in out], float) - truth
-    after -= np.median(after)  # the absolute offset is a free constant
     assert np.sqrt((before ** 2).mean()) > 1.8
-    assert np.sqrt((after ** 2).mean()) < 0.6
+    # the estimated position (predicted + correction), less the free constant: 0.26 px RMS
+    # before the crops' mean was removed (issue 28), 0.05 px after
+    est = np.array([o.predicted_px[0] + o.correction_px[0] for o in out]) - truth
+    est -= est.mean()
+    assert np.sqrt((est ** 2).mean()) < 0.15
+    # the integer offsets: within a pixel of the truth (less the constant); their RMS says
+    # more of where the constant falls between two integers than of the registration
+    after = np.array([o.offset_px[0] for o in out], float) - truth
+    assert np.ptp(after) <= 2 and np.abs(after - np.median(after)).max() <= 1
     assert stage.extra_stats()["pairs_measured"] > 140
 
 
@@ -124,13 +132,15 @@ def test_stage_removes_wobble_with_and_without_shared_spectra(shared: bool) -> N
     stage = RegistrationStage(n_levels=8, shared_spectra=shared)
     out = [o for pf in frames for o in stage.process(pf)] + list(stage.finish())
     before = np.array([pf.offset_px[0] for pf in frames], float) - truth
-    after = np.array([o.offset_px[0] for o in out], float) - truth
-    after -= np.median(after)
     assert np.sqrt((before ** 2).mean()) > 1.8
-    assert np.sqrt((after ** 2).mean()) < 0.6
+    est = np.array([o.predicted_px[0] + o.correction_px[0] for o in out]) - truth
+    est -= est.mean()  # the absolute offset is a free constant
+    assert np.sqrt((est ** 2).mean()) < 0.15
+    after = np.array([o.offset_px[0] for o in out], float) - truth
+    assert np.ptp(after) <= 2 and np.abs(after - np.median(after)).max() <= 1
     stats = stage.extra_stats()
-    assert stats["pairs_measured"] > 250
-    assert (stats["pairs_shared_spectrum"] > 200) == shared
+    assert stats["pairs_measured"] > 200  # of 212: 160 short lags within the staircases
+    assert (stats["pairs_shared_spectrum"] > 150) == shared
 
 
 def test_correlate_spectra_is_phase_correlate() -> None:
@@ -146,7 +156,7 @@ def test_correlate_spectra_is_phase_correlate() -> None:
 def test_integer_downsample_equals_area_resize(dtype: type) -> None:
     rng = np.random.default_rng(2)
     top = np.iinfo(dtype).max
-    img = rng.integers(0, top + 1, (64, 96)).astype(dtype)
+    img: np.ndarray = rng.integers(0, top + 1, (64, 96)).astype(dtype)
     want = cv2.resize(img.astype(np.float32), (24, 16), interpolation=cv2.INTER_AREA)
     got = downsample(img, factor=4)
     assert got.dtype == np.float32
@@ -171,3 +181,18 @@ def test_power_of_two_downsample_is_the_exact_area_mean(top: int) -> None:
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(got[0, 0], np.float32(top))
+
+
+@pytest.mark.parametrize("contrast", [0.1, 0.05])
+def test_phase_correlate_recovers_the_whole_shift_of_a_low_contrast_crop(contrast: float
+                                                                         ) -> None:
+    """A defocused frame: a small texture on a large mean. Windowed without removing the
+    mean, the window's own correlation peaks at zero lag and pulls the shift toward 0 (the
+    old code recovered 0.86-0.97 of it at contrast 0.1, 0.06-0.14 at 0.05)."""
+    img = np.random.default_rng(0).random((300, 300)).astype(np.float32)
+    world = 0.5 + contrast * (cv2.GaussianBlur(img, (0, 0), 2.0) - 0.5)
+    for t in ((2.0, -1.5), (-2.5, 1.0), (1.2, 2.7)):
+        m = np.array([[1, 0, t[0]], [0, 1, t[1]]], dtype=np.float32)
+        moved = cv2.warpAffine(world, m, (300, 300), flags=cv2.INTER_CUBIC)
+        sx, sy, _ = phase_correlate(world[64:192, 64:192], moved[64:192, 64:192])
+        assert sx == pytest.approx(t[0], abs=0.06) and sy == pytest.approx(t[1], abs=0.06)
