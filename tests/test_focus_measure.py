@@ -55,7 +55,11 @@ def ref_glvm(x: np.ndarray, k: int = WINDOW) -> np.ndarray:
 
 def ref_tenv(x: np.ndarray, k: int = WINDOW) -> np.ndarray:
     """The toolbox's TENV: ``stdfilt(G, ones(k)).^2``, two-pass sample variance of each
-    mirrored ('symmetric') k x k window of the Sobel energy G."""
+    mirrored ('symmetric') k x k window of the Sobel energy G. Image by image: the
+    windows of a whole stack at once are a 1.3 GB copy (4x the CPU, same values)."""
+    if x.ndim > 2:
+        flat = x.reshape(-1, *x.shape[-2:])
+        return np.stack([ref_tenv(im, k) for im in flat]).reshape(x.shape)
     sobel = np.array([[1.0, 2.0, 1.0], [0.0, 0.0, 0.0], [-1.0, -2.0, -1.0]])  # fspecial
     h, w = x.shape[-2:]
     p = np.pad(x, [(0, 0)] * (x.ndim - 2) + [(1, 1), (1, 1)], mode="edge")
