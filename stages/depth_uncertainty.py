@@ -157,13 +157,15 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, *, window: int = 9
     w = np.ascontiguousarray(width_levels, dtype=np.float32)
     k = 2 * int(window) + 1
     mean = cv2.blur(w, (k, k), borderType=cv2.BORDER_REPLICATE)
-    ex = cv2.multiply(w, w)
-    cv2.subtract(ex, cv2.multiply(mean, mean), dst=ex)
-    cv2.max(ex, 0.0, dst=ex)
-    cv2.sqrt(ex, dst=ex)
-    f = cv2.addWeighted(np.asarray(share, np.float32), -2.0, ex, 0.0, 1.0)  # 1 - 2 share
-    cv2.max(f, 0.0, dst=f)
-    return np.asarray(cv2.multiply(ex, f), dtype=np.float32)
+    ex = np.asarray(cv2.subtract(cv2.multiply(w, w), cv2.multiply(mean, mean)), np.float32)
+    np.maximum(ex, np.float32(0.0), out=ex)
+    np.sqrt(ex, out=ex)
+    # 1 - 2 share, at least 0
+    f = np.asarray(cv2.addWeighted(np.asarray(share, np.float32), -2.0, ex, 0.0, 1.0),
+                   np.float32)
+    np.maximum(f, np.float32(0.0), out=f)
+    ex *= f
+    return ex
 
 
 def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
