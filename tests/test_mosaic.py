@@ -11,7 +11,7 @@ from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 from sffscan.pipeline.mosaic.stage import MosaicStage
 from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader
-from sffscan.stages.mosaic import blend
+from sffscan.stages.mosaic import MIN_WEIGHT, BandGatherer, blend
 
 
 def _block(x0: int, y0: int, height: np.ndarray, conf: float, pass_index: int) -> DepthBlock:
@@ -105,3 +105,26 @@ def test_failing_write_still_sets_the_status(tmp_path: Path) -> None:
     g = zarr.open_group(str(path), mode="r")
     assert g.attrs["status"] == "failed"
     assert np.asarray(g["height"])[3, 3] == pytest.approx(7.0)  # written before: kept
+
+
+def test_band_gatherer_sums_blocks_into_bands_the_motion_leaves() -> None:
+    """The mosaic's band gathering is pure computation (no writer): weighted sums per
+    chunk-wide band, a band handed over once a block lands beyond it."""
+    gather = BandGatherer(chunk_px=16, origin_x_px=-4)
+    h = np.full((4, 8), 10.0)
+    h[0, 0] = np.nan  # invalid: weight 0
+    assert gather.add(_block(-4, 2, h, 0.5, 0)) == []  # band 0: world x -4 .. 11
+    assert gather.add(_block(8, 2, np.full((4, 8), 20.0), 0.0, 0)) == []  # bands 0 and 1
+    assert gather.add(_block(20, 2, np.full((4, 8), 30.0), 0.25, 0)) == [0]  # left band 0
+    band = gather.take(0)
+    assert band is not None and (band.x0, band.y0) == (-4, 2)
+    sums = band.sums()
+    assert sums["weight"][0, 0] == 0.0 and sums["weight"][1, 0] == pytest.approx(0.5)
+    assert sums["height"][1, 0] == pytest.approx(10.0 * 0.5)
+    assert sums["weight"][1, 12] == pytest.approx(MIN_WEIGHT)  # confidence 0: the floor
+    assert sums["height"][1, 12] == pytest.approx(20.0 * MIN_WEIGHT)
+    assert np.isnan(sums["uncertainty"][1, 0])  # the blocks carried no uncertainty
+    assert gather.open_bands() == [1]
+    empty = BandGatherer(chunk_px=16, origin_x_px=0)
+    empty.add(_block(0, 0, np.full((4, 8), np.nan), 0.5, 0))
+    assert empty.take(0) is None  # nothing valid landed: nothing to write
