@@ -52,6 +52,17 @@ training seeds of the other families for each held-out one, and on all families'
 seeds for the shipped constants and the third-party set. The bar: 90 .. 98 % of the
 held-out pixels with abs(error) <= 2 sigma on every held-out family.
 
+Exports (`sffscan export`, `sffscan.pipeline.formats.exports`): PLY carries the uncertainty
+as the vertex property `float uncertainty_um` (µm, NaN where not known). ISO 25178-72 (x3p)
+has no per-point uncertainty field (its data matrix holds heights; extra layers would read as
+heights); it allows vendor-specific files registered by a VendorSpecificID, which other
+readers ignore: the uncertainty is the file `https://sffscan.invalid/height_uncertainty.npy`
+(float64, metres, the height matrix's shape), read back by `read_x3p_uncertainty`.
+
+Alignment under focus breathing (1.2 %/frame) on stacks of these families (with a
+breathing-free twin of the same world and noise): `bench/bench_align_families.py`, results
+in `bench/align_families_results.md`.
+
 The issue's bar is: the default <= 1.05 x the best single method on every held-out family
 and on pertuz-simu02. No method reaches it (see the last row): the default stays the method
 with the smallest worst ratio over the held-out sets, printed below the table.
