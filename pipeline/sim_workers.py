@@ -6,37 +6,39 @@ generator draws in frame order. Each frame draws a fixed number of values from i
 ``H x W`` noise indices, 16 bits each: ``H * W / 4`` steps of PCG64), so frame ``i``'s
 generator is the scan's generator advanced by ``i`` times that: :func:`parallel_sim_frames`
 checks this on frame 0 at start (else it renders in this process, as before), then ``K``
-workers render frames ``k, k + K, ...`` into their slots of a shared-memory pool and the
-frames are yielded in order, copied out of the slot (so a stage may hold them as long as
-it likes). The renderer itself (:func:`sffscan.stages.sim.camera.render_frame`) is not
+workers render frames ``k, k + K, ...`` and the frames are yielded in order, copied out of
+their shared-memory slot (so a stage may hold them as long as it likes). The workers are
+the process runtime's (:func:`~sffscan.pipeline.worker.worker_main`, like the recorder's
+and the stage groups'): a :class:`RenderSource` chain sending into a channel, the same
+start, stop order, failure report and death with the main process. The renderer itself (:func:`sffscan.stages.sim.camera.render_frame`) is not
 changed.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 import queue
-import threading
+import time
 import weakref
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.shm_ring import PoolSpec, PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.shm_ring import SlotPool, new_spec
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,
     WAIT_S,
     StopPipes,
-    helper_start,
     join_or_kill,
     spawn_context,
-    watch_stop,
 )
-from sffscan.stages.messages import Frame, FrameHeader
+from sffscan.pipeline.wire import decode
+from sffscan.pipeline.worker import rebuild_exception, worker_main
+from sffscan.stages.messages import Frame
+from sffscan.stages.protocol import END_OF_STREAM, Stage
 
 log = logging.getLogger(__name__)
 
@@ -89,54 +91,36 @@ def _render_one(cfg: ScanConfig, i: int, rng: np.random.Generator, *, world: Any
     return Frame(header_of(cfg, pf), image)
 
 
-def render_worker(cfg_json: dict[str, Any], k: int, workers: int, steps: int,
-                  spec: dict[str, Any], sync: tuple[Any, Any], out: Any, control: Any,
-                  parent: int) -> None:
-    """Worker process: renders frames k, k + workers, ... into the pool, in order."""
-    helper_start(parent)
-    from sffscan.pipeline.plan import plan_frames
-    from sffscan.pipeline.sim_source import make_world
+class RenderSource(Stage):
+    """Source of a render worker: frames ``k, k + workers, ...`` of the scan, each rendered
+    with the scan's noise generator advanced to it (``steps`` per frame)."""
 
-    cfg = ScanConfig.model_validate(cfg_json)
-    pool = SlotPool(PoolSpec.from_json(spec), sync, create=False)
-    stop, done = threading.Event(), threading.Event()
-    watch_stop(control, parent, stop.set, done)
-    world = make_world(cfg)
-    plan = list(plan_frames(cfg))
-    rng = np.random.default_rng(cfg.source.seed + 1)
-    _pcg(rng).advance(k * steps)
-    try:
-        for i in range(k, len(plan), workers):
-            frame = _render_one(cfg, i, rng, world=world, plan=plan)
-            _pcg(rng).advance((workers - 1) * steps)
-            slot = pool.acquire(stop.is_set)
-            view = pool.array(slot, offset=0, shape=frame.image.shape,
-                              dtype=frame.image.dtype.str)
-            np.copyto(view, frame.image)
-            pool.incref(slot)  # the message's count; ``view`` releases ours
-            msg = json.dumps({"i": i, "slot": slot, "h": frame.header.model_dump(mode="json"),
-                              "dtype": frame.image.dtype.str,
-                              "shape": list(frame.image.shape)})
-            del view
-            while True:
-                if stop.is_set():
-                    return
-                try:
-                    out.put(msg, timeout=WAIT_S)
-                    break
-                except queue.Full:
-                    continue
-        out.put(json.dumps({"end": True}))
-    except PoolStopped:
-        return
-    except BaseException as exc:  # noqa: BLE001 - the consumer reports it
-        with contextlib.suppress(Exception):
-            out.put(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), timeout=5)
-    finally:
-        done.set()
-        if stop.is_set():
-            out.cancel_join_thread()  # nobody reads what is left
-        pool.close()
+    name = "render"
+
+    def __init__(self, cfg: ScanConfig, k: int, workers: int, steps: int) -> None:
+        self.cfg, self.k, self.workers, self.steps = cfg, k, workers, steps
+        self.world: Any = None
+        self.plan: list[Any] = []
+
+    def prepare(self) -> None:
+        from sffscan.pipeline.plan import plan_frames
+        from sffscan.pipeline.sim_source import make_world
+
+        self.world = make_world(self.cfg)
+        self.plan = list(plan_frames(self.cfg))
+
+    def produce(self) -> Iterator[Frame]:
+        rng = np.random.default_rng(self.cfg.source.seed + 1)
+        _pcg(rng).advance(self.k * self.steps)
+        for i in range(self.k, len(self.plan), self.workers):
+            frame = _render_one(self.cfg, i, rng, world=self.world, plan=self.plan)
+            _pcg(rng).advance((self.workers - 1) * self.steps)
+            yield frame
+
+
+def render_group(cfg: dict[str, Any], k: int, workers: int, steps: int) -> list[Stage]:
+    """Worker factory: the render worker ``k`` of ``workers``."""
+    return [RenderSource(ScanConfig.model_validate(cfg), k, workers, steps)]
 
 
 def render_workers(cfg: ScanConfig) -> int:
@@ -161,18 +145,21 @@ class _Renderers:
         ctx = spawn_context()
         o = cfg.optics
         frame_bytes = o.height_px * o.width_px * np.dtype(o.dtype).itemsize
-        spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes)
+        spec = new_spec("render", slots=workers * (AHEAD + 2), slot_bytes=frame_bytes,
+                         kinds=("frame",))
         sync = (ctx.Lock(), ctx.Semaphore(spec.slots))
         self.workers = workers
         self.pool = SlotPool(spec, sync, create=True)
         self.outs = [ctx.Queue(AHEAD) for _ in range(workers)]
+        self.results = ctx.Queue()
         self.stops = StopPipes()
-        self.procs = [ctx.Process(target=render_worker, name=f"sffscan-render-{k}",
-                                  daemon=True,
-                                  args=(cfg.model_dump(mode="json"), k, workers, steps,
-                                        spec.to_json(), sync, self.outs[k],
-                                        self.stops.pipe(ctx), os.getpid()))
-                      for k in range(workers)]
+        cj = cfg.model_dump(mode="json")
+        self.procs = [ctx.Process(
+            target=worker_main, name=f"sffscan-render-{k}", daemon=True,
+            args=({"label": f"render-{k}", "factory": render_group, "capacity": AHEAD,
+                   "kwargs": {"cfg": cj, "k": k, "workers": workers, "steps": steps}},
+                  "stages", [spec.to_json()], [sync], None, self.outs[k], self.results,
+                  self.stops.pipe(ctx), os.getpid())) for k in range(workers)]
         self.stopped = False
         try:
             for p in self.procs:
@@ -195,23 +182,45 @@ class _Renderers:
             i = 0
             while ended < self.workers:
                 k = i % self.workers
-                msg = _get(self.outs[k], self.procs[k], first=i < self.workers)
-                if "error" in msg:
-                    raise RuntimeError(f"simulated scanner, render worker {k}: "
-                                       f"{msg['error']}")
+                item = self._get(k)
                 i += 1
-                if "end" in msg:
+                if i == self.workers:
+                    self.pool.unlink()  # every worker has attached: it sent through it
+                if item is END_OF_STREAM:
                     ended += 1
                     continue
-                if i == self.workers:
-                    self.pool.unlink()  # every worker has attached: it rendered into it
-                view = self.pool.array(msg["slot"], offset=0, shape=tuple(msg["shape"]),
-                                       dtype=msg["dtype"])
-                image = view.copy()
-                del view
-                yield Frame(FrameHeader.model_validate(msg["h"]), image)
+                # a copy: a stage may hold its frames as long as it likes, the slot is free
+                frame = Frame(item.header, item.image.copy())
+                del item
+                yield frame
         finally:
             self.stop()
+
+    def _get(self, k: int) -> Any:
+        """Worker ``k``'s next item; a failure there raises, naming it."""
+        t0 = time.monotonic()
+        while True:
+            try:
+                return decode(self.outs[k].get(timeout=WAIT_S), [self.pool])[0]
+            except queue.Empty:
+                pass
+            while True:
+                try:
+                    msg = json.loads(self.results.get_nowait())
+                except queue.Empty:
+                    break
+                if msg["kind"] == "error":
+                    exc = rebuild_exception(msg)
+                    worker = msg["label"].rsplit("-", 1)[-1]
+                    raise RuntimeError(f"simulated scanner, render worker {worker}: "
+                                       f"{msg['type']}: {msg['message']}") from exc
+            proc = self.procs[k]
+            if not proc.is_alive():
+                raise RuntimeError(f"simulated scanner: render worker {k} exited with code "
+                                   f"{proc.exitcode}")
+            if time.monotonic() - t0 > START_TIMEOUT_S:
+                raise RuntimeError(f"simulated scanner: render worker {k} sent nothing for "
+                                   f"{START_TIMEOUT_S:g} s")
 
 
 class ParallelSimFrames:
@@ -257,18 +266,3 @@ def parallel_sim_frames(cfg: ScanConfig, *, workers: int) -> Iterator[Frame]:
         yield from it
     finally:
         it.close()
-
-
-def _get(q: Any, proc: Any, *, first: bool) -> dict[str, Any]:
-    waited = 0.0
-    while True:
-        try:
-            return dict(json.loads(q.get(timeout=WAIT_S)))
-        except queue.Empty:
-            waited += WAIT_S
-            if not proc.is_alive():
-                raise RuntimeError(f"simulated scanner: render worker exited with code "
-                                   f"{proc.exitcode}") from None
-            if not first and waited > START_TIMEOUT_S:
-                raise RuntimeError("simulated scanner: a render worker stopped answering "
-                                   f"for {START_TIMEOUT_S:g} s") from None

@@ -125,67 +125,77 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
                 relays: list[tuple[Relay, Any]] | None = None) -> None:
     """Entry point of a worker process (``spawn``): build, report ready, run, report.
 
-    ``control`` is the read end of a pipe from the main process: a message there stops the
-    worker's chain (another part failed); end of file means the main process is gone.
-    ``relays``: (relay, its channel) for each sink of the main process that taps
-    some of this worker's stages; their forwarders' statistics come back in the report.
+    ``in_q`` None: the group's first stage is a source (the simulator's render workers);
+    else the chain starts with the items of that channel. ``control`` is the read end of a
+    pipe from the main process: a message there stops the worker (another part failed, or
+    the consumer closed); end of file means the main process is gone. ``relays``: (relay,
+    its channel) for each sink of the main process that taps some of this worker's
+    stages; their forwarders' statistics come back in the report.
     """
     helper_start(parent)
     keep_freed_memory()
     label = group["label"]
     pools = [SlotPool(PoolSpec.from_json(s), sync, create=False)
              for s, sync in zip(pool_specs, syncs, strict=True)]
-    stop = threading.Event()
-    done = threading.Event()
-    aborted = threading.Event()
+    stop, done, aborted = threading.Event(), threading.Event(), threading.Event()
+    pipe: Pipeline | None = None
 
     def report(msg: dict[str, Any]) -> None:
         results.put(json.dumps({"label": label, **msg}))
 
     def on_stop() -> None:
         aborted.set()
-        pipe.cancel()
+        stop.set()
+        if pipe is not None:
+            pipe.cancel()
 
-    try:
-        built = group["factory"](**group["kwargs"])
-        stages: list[Stage] = [built] if kind == "sink" else list(built)
-        recv = RecvStage(label, in_q, pools=pools, stop=stop, producers=producers)
-        chain: list[Stage] = [recv, *stages]
-        if out_q is not None:
-            chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
-                                   stop=stop, count_of=recv))
-        forwards = []
-        for relay, rq in relays or ():
-            mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
-            forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
-        pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop, sinks=list(forwards))
-        pipe.prepare()  # before "ready": the main process's clock starts there
-    except StageFailed as err:
-        report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
-        return
-    except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
-        report({"kind": "error", "stage": label, **_exc_info(exc)})
-        return
-    report({"kind": "ready"})
-    cpu0 = time.process_time()
     watch_stop(control, parent, on_stop, done)
     try:
-        result = pipe.run()
-    except StageFailed as err:
-        aborted.set()
-        report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
-    except PipelineCancelled:
-        report({"kind": "cancelled"})
-    else:
-        send = chain[-1]
-        fw = {f.name for f in forwards}
-        report({"kind": "done", "cpu_s": time.process_time() - cpu0,
-                "channel": send.stats.to_json() if isinstance(send, SendStage) else None,
-                "stages": [st.to_json() for st in own_stages(result.stages, fw)],
-                "queues": [q.to_json() for q in own_queues(result.queues, fw)],
-                "extras": {k: v for k, v in result.extras.items()
-                           if not is_channel_stage(k) and k not in fw},
-                "relays": {f.name: relay_report(f, result) for f in forwards}})
+        try:
+            built = group["factory"](**group["kwargs"])
+            stages: list[Stage] = [built] if kind == "sink" else list(built)
+            recv = None if in_q is None else RecvStage(label, in_q, pools=pools, stop=stop,
+                                                       producers=producers)
+            chain: list[Stage] = [*([recv] if recv is not None else []), *stages]
+            if out_q is not None:
+                chain.append(SendStage(label, out_q, capacity=group["capacity"], pools=pools,
+                                       stop=stop, count_of=recv))
+            forwards = []
+            for relay, rq in relays or ():
+                mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
+                forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
+            built_pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop,
+                                  sinks=list(forwards))
+            built_pipe.prepare()  # before "ready": the main process's clock starts there
+        except StageFailed as err:
+            report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
+            return
+        except BaseException as exc:  # noqa: BLE001 - reported as the group's failure
+            report({"kind": "error", "stage": label, **_exc_info(exc)})
+            return
+        pipe = built_pipe
+        if aborted.is_set():  # stopped while it was being built
+            report({"kind": "cancelled"})
+            return
+        report({"kind": "ready"})
+        cpu0 = time.process_time()
+        try:
+            result = pipe.run()
+        except StageFailed as err:
+            aborted.set()
+            report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
+        except PipelineCancelled:
+            report({"kind": "cancelled"})
+        else:
+            send = chain[-1]
+            fw = {f.name for f in forwards}
+            report({"kind": "done", "cpu_s": time.process_time() - cpu0,
+                    "channel": send.stats.to_json() if isinstance(send, SendStage) else None,
+                    "stages": [st.to_json() for st in own_stages(result.stages, fw)],
+                    "queues": [q.to_json() for q in own_queues(result.queues, fw)],
+                    "extras": {k: v for k, v in result.extras.items()
+                               if not is_channel_stage(k) and k not in fw},
+                    "relays": {f.name: relay_report(f, result) for f in forwards}})
     finally:
         done.set()
         if aborted.is_set():  # nobody will read what is left
