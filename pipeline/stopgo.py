@@ -4,7 +4,8 @@ The stages move the part to each field of a grid, stop, and the camera takes a w
 stack there. Each field is reconstructed on its own (:func:`.stationary.reconstruct_field`)
 and placed in world pixels by its stage position; neighbouring fields overlap by
 ``overlap_px`` and are blended into the same Zarr mosaic format as the continuous scan
-(:class:`stages.mosaic.MosaicWriter`), so every tool that reads a scan mosaic reads this one.
+(:class:`sffscan.pipeline.mosaic.writer.MosaicWriter`), so every tool that reads a scan mosaic
+reads this one.
 
 Placement: the stage position is the world position of the field's first pixel (column 0,
 row 0), µm, as in the frame headers of a scan; it is rounded to the nearest world pixel
