@@ -10,8 +10,8 @@ workers render frames ``k, k + K, ...`` and the frames are yielded in order, cop
 their shared-memory slot (so a stage may hold them as long as it likes). The workers are
 the process runtime's (:func:`~sffscan.pipeline.worker.worker_main`, like the recorder's
 and the stage groups'): a :class:`RenderSource` chain sending into a channel, the same
-start, stop order, failure report and death with the main process. The renderer itself (:func:`sffscan.stages.sim.camera.render_frame`) is not
-changed.
+start, stop order, failure report and death with the main process. The renderer itself
+(:func:`sffscan.stages.sim.camera.render_frame`) is not changed.
 """
 
 from __future__ import annotations

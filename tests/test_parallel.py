@@ -203,7 +203,8 @@ def test_a_process_placement_takes_consecutive_stages_after_the_source() -> None
 
     from tests.parallel_helpers import Explode
 
-    pools = [("frames", 6, 16 * 24 * 2, ("frame",))]
+    pools: list[tuple[str, int, int, tuple[str, ...]]] = [
+        ("frames", 6, 16 * 24 * 2, ("frame",))]
     for placed in (("numbers",), ("collect", "explode"), ("unknown",)):
         pipe = Pipeline([FrameNumbers(3), Collect()], placement=ProcessPlacement(
             [WorkerGroup("a", pass_group, {}, placed)], pools))
