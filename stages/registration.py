@@ -38,7 +38,7 @@ import numpy as np
 from sffscan.stages.messages import PlacedFrame
 from sffscan.stages.phase_correlation import (
     correlate_spectra,
-    null_peak_threshold,
+    is_significant,
     phase_correlate,
     windowed_spectrum,
 )
@@ -130,8 +130,9 @@ def measure_shift(
     min_overlap : int
         Smallest overlap (reduced px) worth measuring; smaller returns None.
     false_alarm : float or None
-        If given, a peak that unrelated crops of this shape reach with this probability
-        (:func:`null_peak_threshold`) returns None: no measurement.
+        If given, a correlation that is not significant at this rate
+        (:func:`sffscan.stages.phase_correlation.is_significant`: a peak unrelated crops
+        could reach, or one no higher than its runner-up by more than noise) returns None.
 
     Returns
     -------
@@ -153,8 +154,8 @@ def measure_shift(
     y0 += (y1 - y0 - ch) // 2
     crop_a = a[y0:y0 + ch, x0:x0 + cw]
     crop_b = b[y0 - iy:y0 - iy + ch, x0 - ix:x0 - ix + cw]
-    sx, sy, peak = phase_correlate(crop_a, crop_b)
-    if false_alarm is not None and peak < null_peak_threshold(ch, cw, false_alarm=false_alarm):
+    sx, sy, peak, _ = c = phase_correlate(crop_a, crop_b)
+    if false_alarm is not None and not is_significant(c, (ch, cw), false_alarm=false_alarm):
         return None
     # crop_b(p) = crop_a(p + r) for a true residual r, so the measured shift is -r.
     return (ix - sx) * scale, (iy - sy) * scale, peak
@@ -211,7 +212,6 @@ class _Entry:
     index: int
     placed: PlacedFrame
     reduced: np.ndarray
-    run_start: int  # first frame of the run of neighbouring focus levels this one ends
 
 
 class RegistrationStage(Stage):
@@ -261,10 +261,10 @@ class RegistrationStage(Stage):
                 fixed["b"] = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
             ax, ay = bx + ix, by + iy
             fa = windowed_spectrum(old.reduced[ay:ay + ch, ax:ax + cw])
-            sx, sy, peak = correlate_spectra(fa, fixed["b"], (ch, cw))
-            got = ((ix - sx) * self.scale, (iy - sy) * self.scale, peak)
+            c = correlate_spectra(fa, fixed["b"], (ch, cw))
+            got = ((ix - c.sx) * self.scale, (iy - c.sy) * self.scale, c.peak)
             self.pairs_shared += 1
-            if peak < null_peak_threshold(ch, cw, false_alarm=self.false_alarm):
+            if not is_significant(c, (ch, cw), false_alarm=self.false_alarm):
                 got = None
         else:
             got = measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
@@ -306,22 +306,14 @@ class RegistrationStage(Stage):
             yield from self.finish()
             self._reset()
         self._pass = item.header.pass_index
-        run = self._count
-        if self._recent and abs(self._recent[-1].placed.header.focus_index
-                                - item.header.focus_index) <= 1:
-            run = self._recent[-1].run_start
-        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale), run)
+        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale))
         self._count += 1
         fixed: dict[str, np.ndarray] = {}  # the new frame's spectrum, shared by its pairs
         for lag in self.lags:
             if len(self._recent) >= lag:
                 old = self._recent[-lag]
-                # a short lag pairs neighbouring focus levels, within one run of the
-                # staircase (across its wrap, the two ends share no in-focus detail:
-                # measured, such pairs matched other structure, 170-230 px off); the
-                # period pairs the same level
-                if (old.index >= run if lag < self.n_levels
-                        else old.placed.header.focus_index == item.header.focus_index):
+                if lag < self.n_levels or (
+                        old.placed.header.focus_index == item.header.focus_index):
                     self._measure(old, entry, fixed)
         self._recent.append(entry)
         self._pending.append(entry)

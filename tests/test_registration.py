@@ -50,7 +50,7 @@ def test_phase_correlate_subpixel_and_blur() -> None:
         m = np.array([[1, 0, t[0]], [0, 1, t[1]]], dtype=np.float32)
         moved = cv2.warpAffine(world, m, (600, 600), flags=cv2.INTER_CUBIC)
         moved = cv2.GaussianBlur(moved, (0, 0), rng.uniform(0.5, 2.0))  # another focus level
-        sx, sy, peak = phase_correlate(world[200:456, 200:456], moved[200:456, 200:456])
+        sx, sy, peak, _ = phase_correlate(world[200:456, 200:456], moved[200:456, 200:456])
         errors.append((sx - t[0], sy - t[1]))
         assert 0.0 < peak <= 1.05
     assert np.sqrt(np.mean(np.square(errors))) < 0.15
@@ -139,8 +139,8 @@ def test_stage_removes_wobble_with_and_without_shared_spectra(shared: bool) -> N
     after = np.array([o.offset_px[0] for o in out], float) - truth
     assert np.ptp(after) <= 2 and np.abs(after - np.median(after)).max() <= 1
     stats = stage.extra_stats()
-    assert stats["pairs_measured"] > 200  # of 212: 160 short lags within the staircases
-    assert (stats["pairs_shared_spectrum"] > 150) == shared
+    assert stats["pairs_measured"] > 250
+    assert (stats["pairs_shared_spectrum"] > 200) == shared
 
 
 def test_correlate_spectra_is_phase_correlate() -> None:
@@ -194,5 +194,5 @@ def test_phase_correlate_recovers_the_whole_shift_of_a_low_contrast_crop(contras
     for t in ((2.0, -1.5), (-2.5, 1.0), (1.2, 2.7)):
         m = np.array([[1, 0, t[0]], [0, 1, t[1]]], dtype=np.float32)
         moved = cv2.warpAffine(world, m, (300, 300), flags=cv2.INTER_CUBIC)
-        sx, sy, _ = phase_correlate(world[64:192, 64:192], moved[64:192, 64:192])
+        sx, sy, _, _ = phase_correlate(world[64:192, 64:192], moved[64:192, 64:192])
         assert sx == pytest.approx(t[0], abs=0.06) and sy == pytest.approx(t[1], abs=0.06)
