@@ -35,8 +35,8 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
-import cv2
 import numpy as np
+from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
@@ -129,10 +129,17 @@ class FocusVolume:
         Compute each block's height uncertainty (a running minimum of every curve, and
         :func:`sffscan.stages.depth_uncertainty.height_uncertainty_um` per block); False
         (the benchmark's reference) leaves ``uncertainty_um`` None.
+    defer_writes : int
+        Frames' writes (column runs) held before they are applied (at the latest before
+        each block reduction): applied together, strip by strip, the state stays in cache
+        (:mod:`sffscan.stages.accumulate`; bit-identical for any value, 1 applies each
+        frame at once). :meth:`add` keeps views of ``focus`` and ``image01`` until then:
+        the caller must not change them.
     """
 
-    #: bytes of focus values added per strip of rows (kept in cache across the passes)
-    strip_bytes = 1 << 19
+    #: bytes of per-pixel state per strip of rows kept in cache while the deferred writes
+    #: are applied (:func:`sffscan.stages.accumulate.apply_writes`)
+    cache_bytes = 1 << 19
 
     def __init__(
         self,
@@ -150,6 +157,7 @@ class FocusVolume:
         col_slack: int = 8,
         reuse: FocusVolume | None = None,
         uncertainty: bool = True,
+        defer_writes: int = 32,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
@@ -195,7 +203,9 @@ class FocusVolume:
             if reuse is not None and reuse.fv is not None and reuse.fv.shape == (self.n, *plane):
                 # the last pass's ring (its stale values are never read: see _release);
                 # a new one would be allocated, touched and freed once per pass (325 MiB
-                # at 1280 x 1024, N = 50: 0.68 s of CPU on the 2-core VM, measured)
+                # at 1280 x 1024, N = 50: 0.68 s of CPU on the 2-core VM, measured); its
+                # deferred writes first, so that none lands in the ring later
+                reuse._apply_pending()
                 self.fv = reuse.fv
             else:
                 self.fv = np.empty((self.n, *plane), np.float32)
@@ -208,6 +218,13 @@ class FocusVolume:
         # the running minimum of every curve (its floor, for the curve's width)
         self.low = np.full(plane if self.track_low else (0, 0), np.inf, np.float32)
         self.tex = np.zeros((self.rows, self.ring), np.float32)
+        if defer_writes < 1:
+            raise ValueError(f"defer_writes must be >= 1, got {defer_writes}")
+        self.defer_writes = defer_writes
+        self._pending: list[Write] = []
+        self._state = AccumulatorState(
+            self.best, self.argmax, self.tex, self.sums, self.coef,
+            self.low if self.track_low else None, self.fv, self._level_buf)
         self.y0: int | None = None  # world row of accumulator row 0
         self.next_u: int | None = None  # first internal column not yet reduced
         self.first_u = 0  # first internal column ever stored
@@ -303,55 +320,23 @@ class FocusVolume:
         fc = slice(v0 - u_frame, v1 - u_frame)
         fr = slice(fr0, fr0 + (r1 - r0))
         fm = focus[fr, fc]
+        if fm.strides[1] != 4:
+            fm = np.ascontiguousarray(fm, dtype=np.float32)
         self.filled[level, cs] = True
         self.count[cs] += 1
         self.row_lo[level, cs] = r0
         self.row_hi[level, cs] = r1
-        self._accumulate(level, fm, image01[fr, fc], r0, r1, cs)
+        self._pending.append(Write(level, fm, image01[fr, fc], r0, r1, cs))
+        if len(self._pending) >= self.defer_writes:
+            self._apply_pending()
         self.end_u = max(self.end_u, v1)
 
-    def _accumulate(self, level: int, fm: np.ndarray, img: np.ndarray, r0: int, r1: int,
-                    cs: slice) -> None:
-        """Add level ``level``'s values ``fm`` to the sums (streaming methods) and the running
-        maximum, argmax and texture of a region.
-
-        OpenCV arithmetic in place on the (strided) views (about 4x faster than numpy's), in
-        strips of rows (about 512 KiB of ``fm``) still in cache for their next pass (about
-        2x faster than whole regions, which are memory bound). Ties keep the lowest level, as
-        :func:`~sffscan.stages.depth_levels.first_argmax` does: a later frame of a lower
-        level (the staircase wrapped while the column was in view) wins a tie.
-        """
-        if fm.strides[1] != 4:
-            fm = np.ascontiguousarray(fm, dtype=np.float32)
-        strip = max(16, self.strip_bytes // (4 * max(1, fm.shape[1])))
-        coef = [float(c) for c in self.coef[:len(self.sums), level]]
-        lv = self._level_buf[:min(strip, r1 - r0), :fm.shape[1]]
-        lv.fill(level)
-        for a in range(0, r1 - r0, strip):
-            b = min(a + strip, r1 - r0)
-            rows = slice(r0 + a, r0 + b)
-            f = fm[a:b]
-            if self.fv is not None:  # the N-level ring, while the strip is in cache
-                self.fv[level, rows, cs] = f
-            for plane, c in zip(self.sums, coef, strict=True):
-                view = plane[rows, cs]
-                if c == 1.0:
-                    cv2.add(view, f, dst=view)
-                elif c != 0.0:
-                    cv2.scaleAdd(f, c, view, dst=view)
-            best = self.best[rows, cs]
-            amax = self.argmax[rows, cs]
-            sharper = cv2.compare(f, best, cv2.CMP_GT)
-            tie = cv2.compare(f, best, cv2.CMP_EQ)
-            if cv2.countNonZero(tie):
-                lower = np.where(amax > level, 255, 0).astype(np.uint8)  # rare: ties only
-                cv2.bitwise_or(sharper, cv2.bitwise_and(tie, lower), dst=sharper)
-            cv2.max(f, best, dst=best)
-            if self.track_low:
-                low = self.low[rows, cs]
-                cv2.min(f, low, dst=low)
-            cv2.copyTo(lv[:b - a], sharper, amax)
-            cv2.copyTo(img[a:b], sharper, self.tex[rows, cs])
+    def _apply_pending(self) -> None:
+        """Apply the writes deferred since the last reduction
+        (:func:`sffscan.stages.accumulate.apply_writes`)."""
+        if self._pending:
+            apply_writes(self._state, self._pending, cache_bytes=self.cache_bytes)
+            self._pending.clear()
 
     def _gather(self, arr: np.ndarray, u0: int, u1: int) -> np.ndarray:
         """``arr[..., columns u0..u1)`` from the ring: a view unless it wraps."""
@@ -377,6 +362,7 @@ class FocusVolume:
 
     def finish(self) -> list[BlockResult]:
         """Reduce every remaining column (end of pass or stream)."""
+        self._apply_pending()
         return [self.reduce(*r) for r in self.flush()]
 
     def flush(self) -> list[tuple[int, int]]:
@@ -405,6 +391,7 @@ class FocusVolume:
             scatter measured within the block, replicated at its edges).
         """
         assert self.y0 is not None
+        self._apply_pending()
         a0 = max(u0 - self.halo, self.first_u)
         a1 = min(u1 + self.halo, self.end_u)
         inner = slice(u0 - a0, u1 - a0)  # the halo serves the filters only
@@ -479,6 +466,7 @@ class FocusVolume:
         """
         if below <= self.first_u:
             return
+        self._apply_pending()
         for v0, v1, s0 in self._pieces(self.first_u, below):
             cs = slice(s0, s0 + (v1 - v0))
             self.filled[:, cs] = False

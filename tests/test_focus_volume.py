@@ -11,7 +11,7 @@ N, H, W = 12, 48, 96
 HEIGHTS = [100.0 * k for k in range(N)]
 
 
-def _true_depth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _true_depth(x: np.ndarray | np.float64, y: np.ndarray | np.float64) -> np.ndarray:
     """Depth in levels of world pixel (x, y): a smooth ramp with a bump, 2..9 levels."""
     return 2.0 + 7.0 * (0.5 + 0.5 * np.sin(x / 37.0)) * (0.8 + 0.2 * np.cos(y / 11.0))
 
@@ -28,6 +28,7 @@ def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "g
     vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
                       direction=direction, method=method, median_size=3, block_columns=16,
                       reuse=reuse)
+    assert vol.fv is not None
     ring_bytes = vol.fv.nbytes
     blocks = []
     for k in range(n_frames):
@@ -42,7 +43,8 @@ def _scan(direction: int, *, step: int = 5, n_frames: int = 80, method: str = "g
 def test_a_pass_on_the_last_pass_ring_gives_the_same_blocks() -> None:
     """The next pass takes over the last one's N-level ring, stale values and all."""
     first = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
-                        method="adaptive", median_size=3, block_columns=16)
+                        method="adaptive", median_size=3, block_columns=16,
+                        defer_writes=1)  # every write in the ring at once
     for k in range(60):  # a pass in the other direction, elsewhere: the ring is dirty
         fm, img = _frame(900 - 7 * k, 34, (3 * k) % N)
         first.add(fm * 3.0, img, x=900 - 7 * k, y=34, level=(3 * k) % N)
@@ -165,8 +167,8 @@ def test_streaming_sums_equal_depth_from_focus_on_the_stored_curves(method: str,
                       method=method, median_size=3, block_columns=16, row_slack=0,
                       spread_size=3)
     assert (vol.fv is None) == (method not in ("wcentroid", "adaptive"))
-    if strips:  # rows added in strips of 16 (3 per frame), as large frames are
-        vol.strip_bytes = 1024
+    if strips:  # rows added in strips of 8, as large frames are
+        vol.cache_bytes = 1024
     positions = [7 * k for k in range(40)]
     levels = [(k + 5) % N for k in range(40)]  # the first column starts mid-staircase
     blocks = []
@@ -223,24 +225,78 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
         blocks += vol.add(fm, img, x=x, y=0, level=level)
     blocks += vol.finish()
     for b in blocks:
+        assert b.uncertainty_um is not None
         assert b.uncertainty_um.shape == b.height_um.shape
         np.testing.assert_array_equal(np.isnan(b.uncertainty_um), np.isnan(b.height_um))
         assert (b.uncertainty_um[np.isfinite(b.uncertainty_um)] > 0).all()
     xs = np.concatenate([np.arange(b.x0, b.x0 + b.height_um.shape[1]) for b in blocks])
-    got = np.concatenate([b.uncertainty_um for b in blocks], axis=1)
+    got = np.concatenate([b.uncertainty_um for b in blocks if b.uncertainty_um is not None],
+                         axis=1)
     got_h = np.concatenate([b.height_um for b in blocks], axis=1)
     ref = _reference_volume(positions, levels, _frame, xs, H, 3)
     complete = ~np.isnan(ref).any(axis=(0, 1))
     ref = np.nan_to_num(ref[:, 3:-3])
     depth = (got_h[3:-3] / 100.0).astype(np.float32)  # the streamed depth, levels
     want = height_uncertainty_um(np.where(complete, depth, 0.0), focus_sums(ref),
-                                 ref.min(axis=0), n_levels=N, focus_heights_um=HEIGHTS,
+                                 ref.min(axis=0), n_levels=N,
+                                 focus_heights_um=np.asarray(HEIGHTS),
                                  window=3)
     edge = np.concatenate([np.arange(b.height_um.shape[1]) for b in blocks])
     core = complete & (edge >= 3) & (edge < 13)  # 2 px (median) + 1 px (window) in
     core &= np.roll(complete, 3) & np.roll(complete, -3)
     assert core.sum() > 50
     np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4)
+
+
+def _wobbly_scan(method: str, direction: int, **kwargs) -> list:  # noqa: ANN003
+    """Blocks of a scan whose frames wobble across the motion, with exact ties of the
+    maximum (quantised values), partial column ranges and a dropped frame."""
+    vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                      direction=direction, method=method, median_size=3, block_columns=16,
+                      row_slack=3, spread_size=3, **kwargs)
+    blocks = []
+    for k in range(70):
+        if k == 25:
+            continue
+        x, y = 100 + direction * 4 * k, 10 + (k * 7) % 5 - 2
+        fm, img = _frame(x, y, k % N)
+        fm = (np.round(fm * 4) / 4).astype(np.float32)
+        c0 = 3 + (k % 3) * 10  # the columns the focus stage measured
+        blocks += vol.add(fm[:, c0:], img[:, c0:], x=x, y=y, level=k % N, col0=c0)
+    return blocks + vol.finish()
+
+
+@pytest.mark.parametrize("method", ["spc", "centroid", "adaptive", "gauss3"])
+@pytest.mark.parametrize("direction", [1, -1])
+def test_deferred_writes_in_strips_are_bit_identical_to_frame_by_frame(method: str,
+                                                                      direction: int) -> None:
+    """Writes held for many frames and applied in strips of 8 rows (the state in cache)
+    give every block bit for bit as each frame applied at once, whole (issue 28)."""
+    now = _wobbly_scan(method, direction, defer_writes=1)
+    FocusVolume.cache_bytes, saved = 1 << 40, FocusVolume.cache_bytes  # one strip a frame
+    try:
+        whole = _wobbly_scan(method, direction, defer_writes=1)
+    finally:
+        FocusVolume.cache_bytes = saved
+    FocusVolume.cache_bytes = 64  # strips of 8 rows
+    try:
+        deferred = _wobbly_scan(method, direction, defer_writes=1000)
+    finally:
+        FocusVolume.cache_bytes = saved
+    assert sum(b.complete for b in whole) > 100
+    for other in (now, deferred):
+        assert len(other) == len(whole)
+        for a, b in zip(whole, other, strict=True):
+            assert (a.x0, a.y0, a.complete) == (b.x0, b.y0, b.complete)
+            for u, v in zip(a[2:5] + (a.uncertainty_um,), b[2:5] + (b.uncertainty_um,),
+                            strict=True):
+                assert u.dtype == v.dtype and u.tobytes() == v.tobytes()
+
+
+def test_refuses_no_deferred_writes() -> None:
+    with pytest.raises(ValueError, match="defer_writes must be >= 1, got 0"):
+        FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                    defer_writes=0)
 
 
 @pytest.mark.parametrize("method", ["window_pc", "gauss_window_fit", "wavr"])

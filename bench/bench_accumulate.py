@@ -1,0 +1,218 @@
+"""CPU per frame of the depth stage's accumulation and block reduction, old against new
+(issue 28).
+
+    python bench/bench_accumulate.py                       # this tree only
+    python bench/bench_accumulate.py --against /tmp/old    # and an older checkout, interleaved
+
+The default configuration (1280 x 1024, N = 50, k = 9, GLVM, the default depth method
+unless ``--method``), over the distinct simulated frames of ``bench_pipeline.py``'s frame
+bank (read into memory first), registered once; then in every round, for each tree, each
+frame's focus measure (this tree's :class:`~sffscan.stages.focus_measure.FocusMeasureStage`,
+fresh output arrays per frame as in the scan) and the depth stage
+(:class:`~sffscan.stages.depth_stage.DepthStage` of that tree). With ``--against`` the
+other tree's depth modules (``stages/depth*.py``, ``focus_volume.py`` and, where it has one,
+``accumulate.py``) are loaded under their own names while its stage is built, so each tree
+runs its own code; trees alternate pass by pass (old first in even rounds), so the
+machine's load hits both alike.
+
+Reported per tree (process CPU time, OpenCV's threads included, BLAS one thread; median of
+``--rounds``), over the steady-state frames only (from frame ``N + 10`` on: before, no
+column is complete and every frame is measured whole): the focus measure's CPU per frame,
+the depth stage's, and the depth stage's split into the accumulation (everything but the
+block reductions; deferred writes applied before a reduction count here) and the block
+reduction. Every round checks that the trees' blocks (those of the end of the pass too)
+are bit-identical. Not a test: nothing here asserts; it writes
+``bench/results/accumulate_results.json`` and ``.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any, cast
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from against import load_module  # noqa: E402
+from bench_pipeline import bench_config, frame_bank, load_bank, machine, replay_frames  # noqa: E402
+from sffscan.pipeline.plan import pass_start_px  # noqa: E402
+from sffscan.pipeline.wiring import measure_stages  # noqa: E402
+from sffscan.stages import depth_stage  # noqa: E402
+from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
+from sffscan.stages.speed_shift import SpeedShiftStage  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the depth modules, in an order in which each one's imports come before it
+MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_candidates", "depth",
+           "depth_uncertainty", "accumulate", "focus_volume", "depth_stage")
+
+
+def load_tree(root: Path) -> ModuleType:
+    """The ``depth_stage`` module of another tree, with that tree's depth modules: each is
+    loaded under its package name (so their imports of one another resolve to the same
+    tree), then this tree's modules are put back."""
+    names = [f"sffscan.stages.{m}" for m in MODULES]
+    saved = {n: sys.modules.get(n) for n in names}
+    loaded: dict[str, ModuleType] = {}
+    try:
+        for n, m in zip(names, MODULES, strict=True):
+            path = root / "stages" / f"{m}.py"
+            if path.exists():
+                loaded[m] = load_module(n, path)
+    finally:
+        for n, mod in saved.items():
+            if mod is None:
+                sys.modules.pop(n, None)
+            else:
+                sys.modules[n] = mod
+    return loaded["depth_stage"]
+
+
+class Timer:
+    """CPU seconds spent in wrapped methods (outermost calls only)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.depth = 0
+
+    def wrap(self, cls: type, name: str) -> None:
+        if name not in vars(cls) or getattr(vars(cls)[name], "_timed", False):
+            return
+        fn: Callable[..., Any] = vars(cls)[name]
+        timer = self
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            c0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                timer.seconds[name] = timer.seconds.get(name, 0.0) + time.process_time() - c0
+
+        timed._timed = True  # type: ignore[attr-defined]
+        setattr(cls, name, timed)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--method", help="depth method (default: the configuration's)")
+    ap.add_argument("--against", type=Path, help="another source tree (its stages/ folder)")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "accumulate_results")
+    args = ap.parse_args(argv)
+    cfg = bench_config()
+    # the configuration's default method (bench_config's is SPC), unless told
+    cfg.processing.depth_method = args.method or type(
+        cfg.processing).model_fields["depth_method"].default
+    images = load_bank(cfg, frame_bank(args.cache, args.frames), args.frames)
+    built = {s.name: s for s in measure_stages(cfg)}
+    fm_stage = cast(FocusMeasureStage, built["focus_measure"])
+    shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,
+                            pass_start=lambda i: pass_start_px(cfg, i))
+    placed = [y for f in replay_frames(cfg, images) for y in shift.process(f)]
+    reg = built.get("registration")
+    if reg is not None:
+        placed = [y for q in placed for y in reg.process(q)] + list(reg.finish())
+    del images
+    depth = cast(depth_stage.DepthStage, built["depth"])
+    kwargs = dict(depth.kwargs, directions=depth.directions)
+    kwargs["slack_px"] = kwargs.pop("row_slack")
+    del kwargs["col_slack"]
+    n_levels = cfg.optics.n_levels
+    steady = n_levels + 10
+    trees: dict[str, ModuleType] = {"this tree": depth_stage}
+    if args.against is not None:
+        trees[str(args.against)] = load_tree(args.against)
+    timers = {k: Timer() for k in trees}
+    for k, mod in trees.items():
+        fv_cls = mod.FocusVolume  # type: ignore[attr-defined]
+        for name in ("reduce", "_apply_pending"):
+            timers[k].wrap(fv_cls, name)
+
+    def run(key: str) -> tuple[dict[str, float], list[Any]]:
+        mod = trees[key]
+        stage = mod.DepthStage(**kwargs)  # type: ignore[attr-defined]
+        stage.prepare()
+        fm_stage._pass = None
+        fm_stage._prev_x = {}
+        t = timers[key]
+        t.seconds = {}
+        cpu_fm = cpu_depth = 0.0
+        blocks: list[Any] = []
+        for i, q in enumerate(placed):
+            if i == steady:
+                t.seconds = {}
+            c0 = time.process_time()
+            ff = list(fm_stage.process(q))
+            c1 = time.process_time()
+            for f in ff:
+                blocks += stage.process(f)
+            c2 = time.process_time()
+            if i >= steady:
+                cpu_fm += c1 - c0
+                cpu_depth += c2 - c1
+        reduce_s = t.seconds.get("reduce", 0.0) - t.seconds.get("_apply_pending", 0.0)
+        blocks += stage.finish()
+        n = len(placed) - steady
+        ms = {"focus measure": 1e3 * cpu_fm / n, "depth": 1e3 * cpu_depth / n,
+              "accumulation": 1e3 * (cpu_depth - reduce_s) / n,
+              "reduction": 1e3 * reduce_s / n}
+        return ms, blocks
+
+    times: dict[str, dict[str, list[float]]] = {k: {} for k in trees}
+    identical: list[bool] = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for r in range(args.rounds):
+            order = list(trees) if r % 2 == 0 else list(trees)[::-1]
+            outs = {}
+            for k in order:
+                ms, blocks = run(k)
+                outs[k] = blocks
+                for name, v in ms.items():
+                    times[k].setdefault(name, []).append(v)
+            if args.against is not None:
+                a, b = outs.values()
+                identical.append(len(a) == len(b) and all(
+                    x.header == y.header and all(
+                        (u is None and v is None) or (u is not None and v is not None
+                                                      and u.dtype == v.dtype
+                                                      and u.tobytes() == v.tobytes())
+                        for u, v in ((x.height_um, y.height_um), (x.texture, y.texture),
+                                     (x.confidence, y.confidence),
+                                     (x.uncertainty_um, y.uncertainty_um)))
+                    for x, y in zip(a, b, strict=True)))
+    method = kwargs["method"]
+    head = (f"machine: {machine()}; depth method {method}, {len(placed)} frames "
+            f"(steady state: the last {len(placed) - steady}), {args.rounds} rounds; "
+            "CPU ms per frame, median (min-max)")
+    cols = list(next(iter(times.values())))
+    lines = [head, "", "| tree | " + " | ".join(cols) + " |",
+             "|---|" + "---:|" * len(cols)]
+    for k, t in times.items():
+        cells = [f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})"
+                 for v in t.values()]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    if identical:
+        lines += ["", f"blocks bit-identical to the other tree in {sum(identical)} of "
+                  f"{len(identical)} rounds"]
+    text = "\n".join(lines)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(text + "\n")
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {"machine": machine(), "method": method, "frames": len(placed), "steady_from": steady,
+         "rounds": args.rounds, "cpu_ms_per_frame": times, "identical_rounds": identical},
+        indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
