@@ -155,3 +155,30 @@ def test_breathing_family_stack_aligns_like_the_stack_without_breathing() -> Non
           f"aligned {got / base:.3f}x")
     assert unaligned > 1.2 * base
     assert got <= 1.10 * base
+
+
+def test_a_featureless_frame_takes_the_mean_breathing_step(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """ECC cannot align a frame without texture (a far-defocused end of a stack: seen on a
+    ``steps`` family stack, bench/align_families_results.md). For the ``"scale"`` model
+    that step takes the other steps' mean (a lens breathes smoothly) with a warning,
+    instead of failing the whole stack; other models still refuse, naming the frame."""
+    rng = np.random.default_rng(3)
+    n, size, b = 8, 96, 0.01
+    tex = np.asarray(cv2.GaussianBlur(rng.random((size, size)).astype(np.float32), (0, 0),
+                                      1.5), np.float32)
+    c = (size - 1) / 2.0
+    frames = []
+    for k in range(n):
+        s = (1.0 + b) ** (n // 2 - k)  # frame k shows the world magnified (1 + b)^(k - ref)
+        frames.append(scale_warp(tex, np.array([[s, 0.0, c - s * c], [0.0, s, c - s * c]])))
+    stack = np.stack(frames)
+    stack[-1] = 0.5  # featureless
+    with caplog.at_level("WARNING"):
+        _, _, al = align_stack(stack)
+    assert "frame 7: ECC did not converge against frame 6" in caplog.text
+    assert np.isnan(al.correlation[-1]) and np.isfinite(al.correlation[:-1]).all()
+    want = (1.0 + b) ** (np.arange(n) - n // 2)
+    np.testing.assert_allclose(al.scale, want, rtol=2e-3)  # the last one extrapolated
+    with pytest.raises(ValueError, match="frame 7: cannot align to frame 6"):
+        align_stack(stack, model="similarity")

@@ -70,8 +70,8 @@ class Alignment:
     reference : int
         Index of the reference (middle) frame.
     correlation : (N,) float64
-        ECC correlation coefficient of each frame with its neighbour toward the reference
-        after alignment (1 for the reference).
+        ECC correlation of each frame with its neighbour toward the reference after
+        alignment (1 for the reference, NaN where ECC failed and the step was the mean).
     model : str
         ``"scale"``, ``"similarity"`` or ``"affine"``.
     """
@@ -197,11 +197,9 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
     reference : int, optional
         Reference frame; default the middle one, ``N // 2``.
 
-    Returns
-    -------
-    Alignment
-
-    Raises ValueError if the stack is not (N, H, W) or a frame cannot be aligned (named).
+    Returns an :class:`Alignment`.
+    Raises ValueError if the stack is not (N, H, W) or a frame cannot be aligned (named;
+    for ``"scale"`` and N >= 6 its step takes the others' mean instead, with a warning).
     """
     st = np.asarray(stack)
     if st.ndim != 3 or st.shape[0] < 1:
@@ -224,23 +222,24 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
             try:
                 a, rho[k] = pair_transform(st[j], st[k], init=step_init)
             except ValueError as err:
-                raise ValueError(f"frame {k}: cannot align to frame {j}: {err}") from None
+                if model != "scale" or n < 6:
+                    raise ValueError(f"frame {k}: cannot align to frame {j}: {err}") from None
+                # a lens breathes smoothly: the step takes the others' mean (_smooth_steps)
+                log.warning(f"frame {k}: ECC did not converge against frame {j} ({err}); "
+                            "its scale step is the other steps' mean")
+                a, rho[k] = (np.eye(2, 3) if step_init is None else step_init), math.nan
             step_init = a
             full[k] = _h(a) @ full[j]  # reference px -> frame j px -> frame k px
             if model == "scale":
                 i = max(j, k)  # the step from frame i - 1 to frame i
                 step, var = _scale_step(st[j], st[k], a)
+                var = np.full(3, np.inf) if math.isnan(rho[k]) else var
                 steps[i], variances[i] = (step if direction > 0 else _invert_step(step)), var
             k += direction
     if model == "scale" and n >= 6:
         full = _chain_steps(_smooth_steps(steps[1:], variances[1:]), ref, st.shape[1:])
-    mats, scales, shifts, rots = [], [], [], []
-    for k in range(n):
-        m, s, sh, r = _reduce(full[k][:2], st.shape[1:], model)
-        mats.append(m)
-        scales.append(s)
-        shifts.append(sh)
-        rots.append(r)
+    mats, scales, shifts, rots = zip(*(_reduce(f[:2], st.shape[1:], model) for f in full),
+                                     strict=True)
     return Alignment(matrices=np.array(mats), scale=np.array(scales), shift_px=np.array(shifts),
                      rotation_deg=np.array(rots), reference=ref, correlation=rho, model=model)
 
@@ -350,8 +349,7 @@ def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np
 
 def warp_frame(image: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (a windowed
-    sinc for a scale and shift, :func:`~sffscan.stages.fields.resample.scale_warp`; else
-    Lanczos).
+    sinc for a scale and shift, :mod:`~sffscan.stages.fields.resample`; else Lanczos).
 
     Returns an array of ``image``'s shape and dtype, clipped to the frame's own range (the
     kernel's ringing must not push a 10-bit frame past its full scale); pixels mapping
