@@ -38,13 +38,14 @@ t_start = time.time()
 kind, layers, folder = sys.argv[1], int(sys.argv[2]), Path(sys.argv[3])
 from sffscan.pipeline.printjob import demo
 out = []
-if kind == "service":
+if kind.startswith("service"):
     from sffscan.pipeline.printjob.links_store import JobStoreHandler
     from sffscan.pipeline.printjob.service import JobEnd, JobService, JobStart, LayerEvent
     from sffscan.pipeline.printjob.gcode import read_gcode
     zs = read_gcode(demo.demo_gcode()).layer_z_mm
     handler = JobStoreHandler(demo.demo_config(), gcode_dir=demo.demo_gcode().parent,
-                              mapping=demo.DEMO_MAPPING, record=False)
+                              mapping=demo.DEMO_MAPPING, record=False,
+                              prepare_ahead=kind != "service-noprep")
     ends = {}
     with JobService(folder, handler, scan_timeout_s=600, verdict_timeout_s=600) as svc:
         svc.start_job(JobStart(job_id="bench", gcode_name=demo.demo_gcode().name))
@@ -88,11 +89,15 @@ def run(kind: str, layers: int) -> dict[str, Any]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--layers", type=int, default=3)
+    ap.add_argument("--paths", default="service,demo",
+                    help="comma-separated: service, service-noprep (no expected map made "
+                         "during the scan), demo")
     ap.add_argument("--out", default=str(Path(__file__).with_name("verdict_latency_results")))
     args = ap.parse_args()
-    results = {kind: run(kind, args.layers) for kind in ("service", "demo")}
+    results = {kind: run(kind, args.layers) for kind in args.paths.split(",")}
     lines = ["# Verdict latency (issue 25): scan end -> verdict written", "",
-             f"`python bench/bench_verdict_latency.py --layers {args.layers}`, "
+             f"`python bench/bench_verdict_latency.py --layers {args.layers} --paths "
+             f"{args.paths}`, "
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
              f"{platform.machine()} with {os.cpu_count()} CPUs (the shared 2-core VM: other "
              "jobs ran meanwhile), Python " + platform.python_version() + ". Each row set "

@@ -101,3 +101,38 @@ def test_serve_refuses_beyond_loopback_without_a_token(tmp_path: Path) -> None:
                        env={k: v for k, v in os.environ.items() if k != "SFFSCAN_TOKEN"})
     assert r.returncode == 2
     assert "beyond loopback) without a bearer token" in r.stderr
+
+
+def test_the_expected_map_is_made_while_the_layer_is_scanned(tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch
+                                                             ) -> None:
+    """The handler rasterises a layer's expected map in its own thread during the scan, so
+    the analysis after the scan starts from it (issue 25's verdict latency)."""
+    import threading
+
+    from sffscan.pipeline.printjob.expected import PrinterMapping
+    from sffscan.pipeline.printjob.layer import LayerRunner
+
+    from tests.test_printjob_jobstore import _tiny_config, tiny_gcode
+
+    calls: list[tuple[int, str, bool]] = []
+    original = LayerRunner.prepare
+
+    def prepare(self: LayerRunner, layer: int) -> bool:
+        done = original(self, layer)
+        calls.append((layer, threading.current_thread().name, done))
+        return done
+
+    monkeypatch.setattr(LayerRunner, "prepare", prepare)
+    gdir = tmp_path / "gcodes"
+    gdir.mkdir()
+    (gdir / "tiny.gcode").write_text(tiny_gcode(3))
+    handler = JobStoreHandler(_tiny_config(), gcode_dir=gdir, record=False,
+                              mapping=PrinterMapping(offset_um=(0.0, 0.0)))
+    with JobService(tmp_path / "store", handler, strict=True) as svc:
+        svc.start_job(JobStart(job_id="j", gcode_name="tiny.gcode"))
+        for k in (0, 1):
+            assert svc.layer("j", LayerEvent(layer=k, z_mm=0.2 * (k + 1))).record.verdict \
+                == "pass"
+    # layer 0 has no earlier mosaic to take the grid from; layer 1's map is made ahead
+    assert calls == [(0, "sffscan-expected-0", False), (1, "sffscan-expected-1", True)]

@@ -48,6 +48,8 @@ class _Job:
         self.why = why  # why there is no runner
         self.world = world
         self.live = live  # the job's live view, if one is asked for
+        self.lock = threading.Lock()  # the runner's expected-map cache: one user at a time
+        self.prep: dict[int, threading.Thread] = {}  # layer -> its expected map being made
 
 
 class JobStoreHandler:
@@ -68,13 +70,18 @@ class JobStoreHandler:
         ``store -> JobLiveView`` (:func:`~.live_view.shared_job_views`): each job's layers
         shown live, the scan while it runs, the deviation and verdict when written. A view
         that fails is logged and dropped; the job goes on.
+    prepare_ahead : bool, keyword-only
+        Rasterise each layer's expected map in a thread while the layer is scanned (the
+        analysis then starts from it); False: the analysis makes it.
     """
 
     def __init__(self, config: ScanConfig, *, gcode_dir: str | Path | None = None,
                  mapping: PrinterMapping | None = None, tolerances: Tolerances | None = None,
                  record: bool = True,
-                 view: Callable[[JobStore], JobLiveView] | None = None) -> None:
+                 view: Callable[[JobStore], JobLiveView] | None = None,
+                 prepare_ahead: bool = True) -> None:
         self.view = view
+        self.prepare_ahead = prepare_ahead
         self.config = config
         self.gcode_dir = None if gcode_dir is None else Path(gcode_dir)
         self.mapping = mapping or PrinterMapping()
@@ -131,6 +138,12 @@ class JobStoreHandler:
             report = scan(self.config, output=out, overwrite=True)
             return ScanResult(output=out, info={"frames": report.frames})
         j.runner.begin(event.layer, event.z_mm)
+        # the layer's expected map, made while it is scanned (not on the printer's hold)
+        if self.prepare_ahead:
+            prep = threading.Thread(target=_prepare, args=(j, event.layer), daemon=True,
+                                    name=f"sffscan-expected-{event.layer}")
+            j.prep[event.layer] = prep
+            prep.start()
         world = None if j.world is None else j.world.at_layer(event.layer)
         sinks = () if j.live is None else (j.live.scan_sink(self.config, event.layer),)
         try:
@@ -148,7 +161,11 @@ class JobStoreHandler:
         j = self._job(job, folder)
         if j.runner is None:
             return Analysis(verdict="unknown", reason=j.why)
-        v = j.runner.analyse(event.layer)
+        prep = j.prep.pop(event.layer, None)
+        if prep is not None:
+            prep.join(timeout=120.0)
+        with j.lock:
+            v = j.runner.analyse(event.layer)
         _show(j, event.layer)
         reason = v.reason
         if not reason:
@@ -169,3 +186,14 @@ def _show(j: _Job, layer: int) -> None:
     except Exception as err:  # noqa: BLE001 - the view never stops the job
         log.warning("live view: layer %d not shown (%s); the view is dropped", layer, err)
         j.live = None
+
+
+def _prepare(j: _Job, layer: int) -> None:
+    """Rasterise the layer's expected map ahead (:meth:`LayerRunner.prepare`); a failure
+    only costs the analysis the time to make it."""
+    assert j.runner is not None
+    with j.lock:
+        try:
+            j.runner.prepare(layer)
+        except Exception as err:  # noqa: BLE001 - the analysis makes it again, or says why
+            log.warning("layer %d: expected map not made ahead: %s", layer, err)
