@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -148,6 +149,7 @@ def test_stored_queue_places_the_frames_and_survives_a_round_trip(recorded: Path
     for g, w in zip(got, want, strict=True):
         assert (g.frame_id, g.timestamp_ns, g.focus_index) == (w.frame_id, w.timestamp_ns,
                                                                 w.focus_index)
+        assert w.stage_x_um is not None
         assert g.stage_x_um == pytest.approx(w.stage_x_um - 100.0, abs=0.01)
         assert g.stage_y_um == pytest.approx(w.stage_y_um, abs=0.01)
     # the headers as recorded stay readable, and motion=False ignores the queue, saying so
@@ -174,7 +176,7 @@ def test_a_queue_that_does_not_cover_the_frames_is_refused(recorded: Path,
     # a stored queue whose clock was changed after: the reader refuses, naming the frame
     add_motion_queue(rec, seg, motion_queue_for(seg, clock=clock, stage_origin_mm=(0, 0)))
     g = zarr.open_group(str(rec), mode="r+")
-    attrs = g.attrs.asdict()
+    attrs: dict[str, Any] = dict(g.attrs.asdict())
     attrs["motion_queue"]["clock"]["print_time_s_at"] -= 0.02
     g.update_attributes(attrs)
     with pytest.raises(RecordingError, match=r"frame_id 0 .*not covered"):
@@ -188,6 +190,17 @@ def test_a_version_5_recording_without_its_queue_is_refused(recorded: Path,
     shutil.copytree(recorded, rec)
     seg, clock = queue_of_headers(rec)
     add_motion_queue(rec, seg, motion_queue_for(seg, clock=clock, stage_origin_mm=(0, 0)))
+    g = zarr.open_group(str(rec), mode="r+")
+    attrs: dict[str, Any] = dict(g.attrs.asdict())
+    g.update_attributes({**attrs, "motion_queue": {**attrs["motion_queue"],
+                                                   "columns": ["t", "x"]}})
+    with pytest.raises(MotionQueueError, match=r"motion_queue.columns is \['t', 'x'\]"):
+        open_recording(rec)
+    g.update_attributes({**attrs, "motion_queue": {**attrs["motion_queue"], "segments": 99}})
+    with pytest.raises(MotionQueueError, match="99"):
+        open_recording(rec)
+    g.update_attributes(attrs)
+    assert open_recording(rec).motion is not None
     shutil.rmtree(rec / "trapq")
     with pytest.raises(MotionQueueError, match="without the array 'trapq'"):
         open_recording(rec)

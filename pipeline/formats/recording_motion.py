@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from numpy.typing import ArrayLike
 from sffscan.pipeline.formats.recording import (
     TRAPQ_COLUMNS,
     FrameClock,
@@ -115,7 +116,7 @@ def check_segments(seg: np.ndarray, *, where: str = "trapq") -> None:
                                f"{seg[i + 1, 0]:.6f} s)")
 
 
-def trapq_positions(segments: np.ndarray, print_time_s: np.ndarray, *,
+def trapq_positions(segments: np.ndarray, print_time_s: ArrayLike, *,
                     where: str = "trapq") -> np.ndarray:
     """Toolhead position at print times, exactly (constant acceleration per segment).
 
@@ -277,6 +278,10 @@ def read_motion_queue(group: zarr.Group, attrs: RecordingAttrs,
     if seg is None:
         raise MotionQueueError(f"{where}: format version 5 without the array 'trapq'")
     check_segments(seg, where=f"{where}/trapq")
+    if tuple(attrs.motion_queue.columns) != TRAPQ_COLUMNS:
+        raise MotionQueueError(f"{where}: attribute motion_queue.columns is "
+                               f"{list(attrs.motion_queue.columns)}, this reader knows "
+                               f"{list(TRAPQ_COLUMNS)}")
     if seg.shape[0] != attrs.motion_queue.segments:
         raise MotionQueueError(f"{where}/trapq: {seg.shape[0]} rows, the attribute "
                                f"motion_queue.segments says {attrs.motion_queue.segments}")
