@@ -124,6 +124,16 @@ def test_the_expected_map_is_made_while_the_layer_is_scanned(tmp_path: Path,
         return done
 
     monkeypatch.setattr(LayerRunner, "prepare", prepare)
+    from sffscan.pipeline.printjob import layer as layer_module
+
+    rasterised: list[int] = []
+    raster = layer_module.rasterise_expected
+
+    def counted(*args: object, **kwargs: object) -> object:
+        rasterised.append(int(kwargs["upto_layer"]))  # type: ignore[call-overload]
+        return raster(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(layer_module, "rasterise_expected", counted)
     gdir = tmp_path / "gcodes"
     gdir.mkdir()
     (gdir / "tiny.gcode").write_text(tiny_gcode(3))
@@ -134,5 +144,7 @@ def test_the_expected_map_is_made_while_the_layer_is_scanned(tmp_path: Path,
         for k in (0, 1):
             assert svc.layer("j", LayerEvent(layer=k, z_mm=0.2 * (k + 1))).record.verdict \
                 == "pass"
-    # layer 0 has no earlier mosaic to take the grid from; layer 1's map is made ahead
-    assert calls == [(0, "sffscan-expected-0", False), (1, "sffscan-expected-1", True)]
+    # each layer's map is made ahead (layer 0 on the grid its configuration gives the
+    # mosaic), and the analysis uses it: one rasterisation per layer, none after the scan
+    assert calls == [(0, "sffscan-expected-0", True), (1, "sffscan-expected-1", True)]
+    assert rasterised == [0, 1]

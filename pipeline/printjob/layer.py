@@ -44,10 +44,23 @@ if TYPE_CHECKING:
     from sffscan.stages.messages import Frame
     from sffscan.stages.protocol import Sink
 
-__all__ = ["LayerRunner", "open_job", "roi_grid"]
+__all__ = ["LayerRunner", "mosaic_grid", "open_job", "roi_grid"]
 
 log = logging.getLogger(__name__)
 ROI_MARGIN_UM = 2000.0
+
+
+def mosaic_grid(cfg: ScanConfig) -> Grid:
+    """The grid of the mosaic a scan with ``cfg`` writes, as :meth:`Grid.of_dataset` reads
+    it from :func:`sffscan.open_mosaic` (the same float operations: the pixel is the
+    difference of the first two coordinates)."""
+    from sffscan.pipeline.plan import scan_extent_px
+
+    x0, y0, x1, y1 = scan_extent_px(cfg)
+    p = cfg.optics.pixel_um
+    x = x0 * p + 0.0 + p * np.arange(2)
+    return Grid((float(x[0]), float(y0 * p + 0.0)),
+                float(x[1] - x[0]) if x1 - x0 > 1 else p, (y1 - y0, x1 - x0))
 
 
 def roi_grid(store: JobStore, mosaic_grid: Grid) -> tuple[Grid, slice, slice]:
@@ -97,11 +110,13 @@ class LayerRunner:
 
             import sffscan.api  # noqa: F401
 
-    def prepare(self, layer: int) -> bool:
+    def prepare(self, layer: int, *, config: ScanConfig | None = None) -> bool:
         """Rasterise the expected map of ``layer`` ahead (call it at the layer event, while
         the layer is scanned): the G-code says what it should be before it is measured.
         Uses the compared grid of the last done layer's mosaic (same configuration, same
-        grid); returns False when there is none yet (the first layer)."""
+        grid); before the first one, the grid the scan's configuration (``config``,
+        default the manifest's) gives its mosaic (:func:`mosaic_grid`). Returns False when
+        neither is known."""
         from sffscan.api import open_mosaic
 
         for k in reversed(self.store.done_layers()):
@@ -112,7 +127,16 @@ class LayerRunner:
             grid, _, _ = roi_grid(self.store, Grid.of_dataset(ds))
             self.expected(layer, grid)
             return True
-        return False
+        from sffscan.pipeline.config import ScanConfig
+
+        try:
+            cfg = config if config is not None else ScanConfig.model_validate(
+                self.store.manifest.config)
+            grid, _, _ = roi_grid(self.store, mosaic_grid(cfg))
+        except (ValueError, JobError):  # no configuration, or it scans elsewhere
+            return False
+        self.expected(layer, grid)
+        return True
 
     def begin(self, layer: int, z_mm: float | None = None) -> Path:
         """Check the layer event and prepare the layer's folder (:meth:`JobStore.begin_layer`)."""
