@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -77,7 +78,9 @@ def test_aligned_stack_measures_like_ideal_optics(simulated: dict) -> None:
     def rmse(stack: np.ndarray) -> float:
         r = reconstruct_field(stack, focus_heights_um=zs, max_value=1023)
         h = np.where(mask, r.height_um, np.nan)
-        return compare_height_maps(h, truth, max_depth_um=float(zs[-1])).rmse_um
+        got = compare_height_maps(h, truth, max_depth_um=float(zs[-1])).rmse_um
+        assert got is not None
+        return float(got)
 
     ideal = rmse(simulated["ideal"])
     breathing = rmse(simulated["real"])
@@ -118,10 +121,13 @@ def test_stack_cli_align_writes_alignment_and_masks(tmp_path: Path,
     err = capsys.readouterr().err
     assert "frame   6: scale 1.0" in err and "%/frame" in err
     g = zarr.open_group(str(out), mode="r")
-    al = g.attrs["processing"]["alignment"]
+    attrs: Any = g.attrs.asdict()
+    al = attrs["processing"]["alignment"]
     assert al["model"] == "scale" and len(al["scale"]) == 7
     assert al["scale"][6] == pytest.approx(1.045, abs=5e-3)
-    h = np.asarray(g["height"][...])
+    height = g["height"]
+    assert isinstance(height, zarr.Array)
+    h = np.asarray(height[:])
     assert np.isnan(h[:, :3]).all() and np.isfinite(h[120, 160])
 
 
@@ -132,6 +138,7 @@ def test_pcb_stack_breathing_is_monotonic_about_one_and_a_half_percent() -> None
     frames = []
     for f in files:
         img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        assert img is not None, f
         frames.append(cv2.resize(img, (1024, 768), interpolation=cv2.INTER_AREA))
     al = estimate_alignment(np.stack(frames))
     step = al.scale[1:] / al.scale[:-1] - 1.0

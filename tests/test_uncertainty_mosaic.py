@@ -4,6 +4,7 @@ contributions' sigmas), NaN where a contribution had none (never 0)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -96,7 +97,8 @@ def test_a_mosaic_written_before_the_uncertainty_array_still_resumes(tmp_path: P
     writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5, chunk_px=16)
     list(MosaicStage(writer).process(_block(0, 10.0, 0.5, 2.0)))  # then the writer stops
     g = zarr.open_group(str(path), mode="r+")
-    levels = len(g.attrs["ome"]["multiscales"][0]["datasets"])
+    attrs: Any = g.attrs.asdict()
+    levels = len(attrs["ome"]["multiscales"][0]["datasets"])
     del g["uncertainty"]
     for k in range(1, levels):
         del g[level_path("uncertainty", k)]
