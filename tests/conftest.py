@@ -6,11 +6,15 @@ run ``pytest --device cuda`` on a machine with a GPU to test the CUDA path too.
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+#: where tests/scan_helpers.py keeps the session's rendered scans (set by ``frame_cache``)
+FRAME_CACHE_ENV = "SFFSCAN_TEST_FRAME_CACHE"
 
 PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "pertuz-simu02"
 
@@ -53,6 +57,22 @@ def pertuz_dir() -> Path:
         pytest.fail(f"pertuz-simu02 dataset not found at {PERTUZ_DIR} "
                     "(expected ../shared beside the checkout)")
     return PERTUZ_DIR
+
+
+@pytest.fixture(scope="session", autouse=True)
+def frame_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The folder of the session's simulated scans, each rendered once (FRAME_CACHE_ENV,
+    tests/scan_helpers.FrameCache), in this session's temporary folder: with pytest-xdist,
+    the folder above the workers' own, which all the session's workers share."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if "PYTEST_XDIST_WORKER" in os.environ else base) / "frame-cache"
+    old = os.environ.get(FRAME_CACHE_ENV)
+    os.environ[FRAME_CACHE_ENV] = str(root)
+    yield root
+    if old is None:
+        del os.environ[FRAME_CACHE_ENV]
+    else:
+        os.environ[FRAME_CACHE_ENV] = old
 
 
 @pytest.fixture

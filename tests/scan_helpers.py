@@ -8,6 +8,10 @@ quarter; so a scan of a 20 mm strip takes about 250 frames and a few seconds on 
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import os
+import shutil
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -16,6 +20,7 @@ import numpy as np
 import zarr
 from sffscan.pipeline.config import ScanConfig, config_from_dict
 from sffscan.pipeline.metrology.evaluate import Accuracy, accuracy
+from sffscan.pipeline.plan import plan_frames
 from sffscan.pipeline.sim_source import make_optics, make_world, simulate_frames
 from sffscan.pipeline.wiring import ScanReport, run_scan
 from sffscan.stages.depth import depth_from_focus, levels_to_height
@@ -39,8 +44,10 @@ def small_config(**sections: dict[str, Any]) -> ScanConfig:
     return config_from_dict(data, origin="test")
 
 
-def scan(cfg: ScanConfig, out: Path) -> ScanReport:
-    return run_scan(cfg, frames=simulate_frames(cfg), output=out, progress=False)
+def scan(cfg: ScanConfig, out: Path, **options: Any) -> ScanReport:
+    """``run_scan`` of ``cfg``'s simulated scan (:func:`session_frames`) to ``out``;
+    ``options``: more of ``run_scan``'s (``sinks``)."""
+    return run_scan(cfg, frames=session_frames(cfg), output=out, progress=False, **options)
 
 
 def replay(frames: Sequence[Frame]) -> Iterator[Frame]:
@@ -50,20 +57,99 @@ def replay(frames: Sequence[Frame]) -> Iterator[Frame]:
         yield Frame(f.header, np.array(f.image))  # a plain ndarray, also of a memmap
 
 
+class FrameCache:
+    """Simulated scans, each rendered once per test session, shared by pytest-xdist's workers.
+
+    ``frames(cfg)`` is all of ``simulate_frames(cfg)``: the first worker to ask renders the
+    scan and saves it under ``root`` (:func:`save_frames`, under a file lock: a worker asking
+    for a scan another is rendering waits for it instead of rendering it too); every later
+    request, in any worker, reads it back memory-mapped. Scans are keyed by all that
+    ``simulate_frames`` reads: the world (``source``), the ``optics``, the ``motion`` and the
+    scan plan itself (every frame's position, focus level, pass, timestamp); so configurations
+    that differ only in processing or output (registration on or off, a calibration, the
+    mosaic's path) share one rendering. ``root`` belongs to one test session (conftest's
+    ``frame_cache``): nothing rendered by an older version of the code is ever read.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+
+    @staticmethod
+    def key(cfg: ScanConfig) -> str:
+        h = hashlib.sha256()
+        for part in (cfg.source, cfg.optics, cfg.motion):
+            h.update(part.model_dump_json().encode())
+        h.update(repr(list(plan_frames(cfg))).encode())
+        return h.hexdigest()[:24]
+
+    def folder(self, cfg: ScanConfig) -> Path:
+        """The folder of ``cfg``'s frames (:func:`save_frames`), rendered if no one has yet."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        key = self.key(cfg)
+        done = self.root / key
+        with open(self.root / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the holder ends, even killed
+            if not done.is_dir():
+                part = self.root / f"{key}.{os.getpid()}.part"
+                shutil.rmtree(part, ignore_errors=True)
+                save_frames(list(simulate_frames(cfg)), part)
+                part.rename(done)
+        return done
+
+    def frames(self, cfg: ScanConfig) -> list[Frame]:
+        """All of ``simulate_frames(cfg)``, images memory-mapped read-only: feed them to a
+        run through :func:`replay` (fresh, writable copies)."""
+        return load_frames(self.folder(cfg))
+
+
+#: the environment variable naming the session's cache folder (tests/conftest.py sets it)
+FRAME_CACHE_ENV = "SFFSCAN_TEST_FRAME_CACHE"
+
+
+def session_cache() -> FrameCache | None:
+    """The test session's :class:`FrameCache` (conftest's ``frame_cache`` names its folder
+    in ``$SFFSCAN_TEST_FRAME_CACHE``); ``None`` outside a test session."""
+    root = os.environ.get(FRAME_CACHE_ENV)
+    return FrameCache(Path(root)) if root else None
+
+
+def session_frames(cfg: ScanConfig) -> Iterator[Frame]:
+    """``simulate_frames(cfg)``: from the session's :class:`FrameCache` where there is one
+    (fresh copies of frames rendered once), else rendered now."""
+    cache = session_cache()
+    return replay(cache.frames(cfg)) if cache is not None else simulate_frames(cfg)
+
+
+def session_scanner(cfg: ScanConfig, *, world: Any = None) -> Iterator[Frame]:
+    """A stand-in for ``sffscan.pipeline.sim_source.simulate_frames`` that reads the session's
+    cache (:func:`session_frames`): set it on that module and the command line's simulated
+    source (``pipeline.sources.open_feed``) feeds the frames of a scan rendered once for the
+    session. ``world`` is ignored: the pipeline passes ``make_world(cfg)``, the world the
+    cache's rendering uses too."""
+    return session_frames(cfg)
+
+
 class RenderedScan:
     """``simulate_frames(cfg)``, each frame rendered once, however many times it is read.
 
-    Iterating yields the scan's frames from the first (as :func:`replay` does: fresh copies),
-    rendering only those no earlier iteration reached; tests that feed the same scan to
-    several runs (bad-input variants, with and without positions) render it once.
+    Iterating yields the scan's frames from the first (as :func:`replay` does: fresh copies).
+    With the session's :class:`FrameCache` (the test runs), the frames are those of the cache,
+    rendered once for the whole session; without one, they are rendered lazily, only those no
+    earlier iteration reached. Tests that feed the same scan to several runs (bad-input
+    variants, with and without positions) render it once.
     """
 
     def __init__(self, cfg: ScanConfig) -> None:
         self.cfg = cfg
+        cache = session_cache()
+        self._cached = cache.frames(cfg) if cache is not None else None
         self._source = simulate_frames(cfg)
         self._frames: list[Frame] = []
 
     def __iter__(self) -> Iterator[Frame]:
+        if self._cached is not None:
+            yield from replay(self._cached)
+            return
         i = 0
         while True:
             if i == len(self._frames):

@@ -6,6 +6,7 @@ the continuous scan, ``stack`` and ``stopgo``. Each test prints its ratios (``-s
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,8 +14,7 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import REALISTIC_OPTICS, ScanConfig
 from sffscan.pipeline.formats.recording_writer import recorder_sink
-from sffscan.pipeline.sim_source import make_optics, simulate_frames
-from sffscan.pipeline.wiring import run_scan
+from sffscan.pipeline.sim_source import make_optics
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
 
@@ -34,8 +34,8 @@ def calibrate(folder: Path, optics: Optics) -> Path:
     return out
 
 
-def scan_rmse(cfg: ScanConfig, out: Path) -> float:
-    report = scan(cfg, out)
+def scan_rmse(cfg: ScanConfig, out: Path, **options: Any) -> float:
+    report = scan(cfg, out, **options)
     assert report.result.dropped == 0
     region = strip_region(cfg)
     est = mosaic_height(out, region)
@@ -46,7 +46,9 @@ def test_continuous_scan(tmp_path: Path) -> None:
     real = small_config(optics=dict(REALISTIC_OPTICS))
     cal = calibrate(tmp_path, make_optics(real))
     ideal = scan_rmse(small_config(), tmp_path / "ideal.zarr")
-    raw = scan_rmse(real, tmp_path / "real.zarr")
+    # the raw stream recorded without calibration (replayed with it below)
+    rec = tmp_path / "rec.zarr"
+    raw = scan_rmse(real, tmp_path / "real.zarr", sinks=[recorder_sink(real, str(rec))])
     cal_cfg = small_config(optics=dict(REALISTIC_OPTICS), processing={"calibration": str(cal)})
     corrected = scan_rmse(cal_cfg, tmp_path / "cal.zarr")
     print(f"\ncontinuous scan RMSE: ideal optics {ideal:.1f} µm; realistic optics without "
@@ -54,13 +56,10 @@ def test_continuous_scan(tmp_path: Path) -> None:
           f"({corrected / ideal:.3f}x)")
     assert corrected <= 1.10 * ideal
     assert raw >= 1.3 * ideal  # the simulated effects are strong enough to matter
-    attrs = zarr.open_group(str(tmp_path / "cal.zarr"), mode="r").attrs["processing"]
+    attrs: Any = zarr.open_group(str(tmp_path / "cal.zarr"), mode="r").attrs["processing"]
     assert set(attrs["calibration_applied"]) == {"z_response", "magnification_per_level",
                                                   "field_curvature", "vignetting"}
     # the raw stream recorded without calibration, replayed with it: the same heights
-    rec = tmp_path / "rec.zarr"
-    run_scan(real, frames=simulate_frames(real), output=tmp_path / "r2.zarr", progress=False,
-             sinks=[recorder_sink(real, rec)])
     replay(rec, output=tmp_path / "replay.zarr", processing={"calibration": str(cal)})
     region = strip_region(real)
     a = mosaic_height(tmp_path / "replay.zarr", region)

@@ -19,6 +19,7 @@ from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.messages import Frame
 
+from tests import scan_helpers
 from tests.scan_helpers import RenderedScan, small_config
 
 
@@ -74,7 +75,16 @@ def test_bad_frame_stops_with_its_id_and_keeps_what_was_written(
     assert np.isfinite(np.asarray(g["height"])).sum() > 1000  # the completed part is kept
 
 
-def test_cli_scan_from_toml_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+@pytest.fixture
+def session_scanner(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The command line's simulated scans read from the session's rendered scans."""
+    from sffscan.pipeline import sim_source
+
+    monkeypatch.setattr(sim_source, "simulate_frames", scan_helpers.session_scanner)
+
+
+def test_cli_scan_from_toml_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                       session_scanner: None) -> None:
     cfg = small_config(motion={"x_end_mm": 8.0})
     toml = tmp_path / "scan.toml"
     toml.write_text(config_to_toml(cfg))
@@ -126,8 +136,8 @@ def test_interrupt_leaves_a_readable_mosaic(tmp_path: Path, sigint_handled: None
     np.asarray(g["height"])  # readable
 
 
-def test_overwrite_refuses_what_is_not_a_mosaic(tmp_path: Path,
-                                                capsys: pytest.CaptureFixture) -> None:
+def test_overwrite_refuses_what_is_not_a_mosaic(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                session_scanner: None) -> None:
     cfg = small_config(motion={"x_end_mm": 6.0})
     toml = tmp_path / "scan.toml"
     toml.write_text(config_to_toml(cfg))
