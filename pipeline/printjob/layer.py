@@ -104,11 +104,15 @@ class LayerRunner:
         self._grid: Grid | None = None
         self._mapping: PrinterMapping | None = None
         if warm:  # the service pays the imports at start, not after a layer's scan
+            import dask.array  # noqa: F401 - open_mosaic's arrays
             import scipy.ndimage  # noqa: F401
             import xarray  # noqa: F401
             import zarr  # noqa: F401
+            from dask.base import get_scheduler
 
             import sffscan.api  # noqa: F401
+
+            get_scheduler()  # dask's first compute looks for a distributed client (1 s)
 
     def prepare(self, layer: int, *, config: ScanConfig | None = None) -> bool:
         """Rasterise the expected map of ``layer`` ahead (call it at the layer event, while
