@@ -139,8 +139,8 @@ def test_stage_removes_wobble_with_and_without_shared_spectra(shared: bool) -> N
     after = np.array([o.offset_px[0] for o in out], float) - truth
     assert np.ptp(after) <= 2 and np.abs(after - np.median(after)).max() <= 1
     stats = stage.extra_stats()
-    assert stats["pairs_measured"] > 250
-    assert (stats["pairs_shared_spectrum"] > 200) == shared
+    assert stats["pairs_measured"] > 160  # of 169: lags 1, 2 (117) and the period (52)
+    assert (stats["pairs_shared_spectrum"] > 100) == shared
 
 
 def test_correlate_spectra_is_phase_correlate() -> None:

@@ -100,7 +100,8 @@ def test_featureless_frames_stay_at_the_prediction() -> None:
     for side in (slice(0, 30), slice(45, 80)):
         err = est[side] - est[side].mean()
         assert np.sqrt((err ** 2).mean()) < 0.3
-    assert stage.extra_stats()["pairs_rejected"] >= 60
+    # every pair that touches the stretch (lags 1, 2 and 8): 16 + 17 + 23 = 56
+    assert stage.extra_stats()["pairs_rejected"] >= 50
 
 
 def test_a_periodic_scene_is_not_measured() -> None:
