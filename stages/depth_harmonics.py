@@ -25,6 +25,7 @@ from sffscan.stages.depth_levels import check_odd_size, median_filter_levels
 __all__ = [
     "STREAMING_METHODS",
     "STRIP_PIXELS",
+    "blas_view",
     "confidence_from_sums",
     "curve_moments",
     "depth_from_harmonics",
@@ -32,6 +33,7 @@ __all__ = [
     "focus_confidence",
     "focus_sums",
     "harmonic_table",
+    "strip_sums",
     "volume_strips",
 ]
 
@@ -107,13 +109,56 @@ def focus_confidence(volume: np.ndarray) -> np.ndarray:
 
 def focus_sums(volume: np.ndarray) -> np.ndarray:
     """``(3, H, W)`` float32: H_0, Re H_1 and Im H_1 of every curve (the sums of
-    :func:`focus_confidence`, from the same float32 product over strips)."""
+    :func:`focus_confidence`: float32 products over strips of rows, :func:`strip_sums`)."""
     n, height, width = volume.shape
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
-    sums = np.empty((3, height * width), np.float32)
-    for p0, p1, strip in volume_strips(volume):
-        np.matmul(table, strip, out=sums[:, p0:p1])
-    return sums.reshape(3, height, width)
+    sums = np.empty((3, height, width), np.float32)
+    vol = blas_view(volume)
+    rows = max(1, STRIP_PIXELS // max(1, width))
+    for r0 in range(0, height, rows):
+        strip_sums(table, vol[:, r0:r0 + rows], out=sums[:, r0:r0 + rows])
+    return sums
+
+
+def blas_view(volume: np.ndarray) -> np.ndarray:
+    """``volume`` itself if float32 with positive strides, columns adjacent (a block of a
+    ring buffer), else a C-ordered float32 copy."""
+    if volume.dtype != np.float32 or volume.strides[-1] != 4 or any(
+            st <= 0 or st % 4 for st in volume.strides):
+        return np.ascontiguousarray(volume, dtype=np.float32)
+    return volume
+
+
+def strip_sums(table: np.ndarray, block: np.ndarray, *, out: np.ndarray) -> None:
+    """``out[:, i, j] = table @ block[:, i, j]``: the curve sums of a strip of rows.
+
+    Float32 BLAS products. Where the width is a multiple of 16 (the scan's blocks) the strip
+    is read in place (a block of a ring: no copy), one product of the ``(S, N)`` table with
+    the ``(N, W)`` levels per row; else the strip is copied into one ``(N, rows W)`` matrix
+    first, as :func:`volume_strips` does. OpenBLAS (this machine's numpy, AMD EPYC) sums
+    each pixel over its levels in the same order in both cases when the width is a
+    multiple of 16 (N = 3..200, 1386 shapes, one thread or two, checked), not always
+    otherwise (the columns its kernels leave to the end of a product), hence the rule:
+    the sums are those of the copied strips either way (another BLAS could round the
+    two differently).
+    :func:`focus_sums` and :func:`sffscan.stages.depth_peak.adaptive_block` both take their
+    sums from here, over the same strips, so they agree bit for bit on any machine.
+
+    Parameters
+    ----------
+    table : (S, N) ndarray of float32
+        Weights (rows of :func:`harmonic_table`).
+    block : (N, r, W) ndarray of float32
+        Levels of the strip; positive strides, columns adjacent (:func:`blas_view`).
+    out : (S, r, W) ndarray of float32, keyword-only
+        Receives the sums.
+    """
+    n, rows, width = block.shape
+    if width % 16 == 0:
+        np.matmul(table, block.transpose(1, 0, 2), out=out.transpose(1, 0, 2))
+    else:
+        flat = np.ascontiguousarray(block).reshape(n, rows * width)
+        out[...] = np.matmul(table, flat).reshape(out.shape)
 
 
 def volume_strips(volume: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:

@@ -26,7 +26,13 @@ scan). The confidence equals :func:`~sffscan.stages.depth_harmonics.focus_confid
 from __future__ import annotations
 
 import numpy as np
-from sffscan.stages.depth_harmonics import confidence_from_sums, harmonic_table, volume_strips
+from sffscan.stages.depth_harmonics import (
+    STRIP_PIXELS,
+    blas_view,
+    confidence_from_sums,
+    harmonic_table,
+    strip_sums,
+)
 
 __all__ = [
     "ADAPTIVE_HALF_WINDOW",
@@ -150,15 +156,14 @@ def _parabola_offset(ym: np.ndarray, y0: np.ndarray, yp: np.ndarray, ok: np.ndar
                    np.float32(0.0))
     return np.clip(off, -0.5, 0.5)
 
-def _gather(strip: np.ndarray, local: np.ndarray, k: np.ndarray, half_window: int,
-            n: int, out: np.ndarray) -> None:
-    """Levels ``k - h .. k + h`` (clipped to the range) of the strip's pixels ``local``:
-    ``out[j]`` gets level ``k + j - h``; ``strip`` is ``(N, P)`` C-ordered."""
-    offsets = np.arange(-half_window, half_window + 1, dtype=np.intp)[:, None]
-    idx = np.clip(k[None, :] + offsets, 0, n - 1)
-    idx *= strip.shape[1]
-    idx += local[None, :]
-    np.take(strip.reshape(-1), idx, out=out)
+def _gather(flat: np.ndarray, at: np.ndarray, st0: int, half_window: int,
+            out: np.ndarray) -> None:
+    """Levels ``c - h .. c + h`` of pixels whose level ``c`` lies at ``flat[at]`` (levels
+    ``st0`` elements apart): ``out[j]`` gets level ``c + j - h``. Where that level is
+    beyond 0..N-1 the value is some other of ``flat``'s (the index clipped), which
+    :func:`_outside` then overwrites."""
+    offsets = np.arange(-half_window * st0, (half_window + 1) * st0, st0, dtype=np.intp)
+    np.take(flat, at[None, :] + offsets[:, None], out=out, mode="clip")
 
 
 def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: float
@@ -221,22 +226,32 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     wide = np.empty((2 * h + 1, c.size - n_peak), np.float32)  # c - h .. c + h, the others
 
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
-    sums = np.empty((3, height * width), np.float32)
+    sums = np.empty((3, height, width), np.float32)
+    vol = blas_view(vol)
+    flat, st0, st1, st2 = _flat_view(vol)
+    at = _pixel_offsets(vol.shape[1:], st1, st2)
+    at += c * st0  # each pixel's level c
+    low = None if min_out is None else min_out.reshape(height, width)
+    rows = max(1, STRIP_PIXELS // max(1, width))
     done_peak = done_wide = 0
-    low = None if min_out is None else min_out.reshape(-1)
-    for p0, p1, strip in volume_strips(vol):
-        np.matmul(table, strip, out=sums[:, p0:p1])
+    for r0 in range(0, height, rows):
+        # a strip of rows read in place (no copy), its sums as focus_sums takes them
+        r1 = min(r0 + rows, height)
+        block = vol[:, r0:r1]
+        strip_sums(table, block, out=sums[:, r0:r1])
         if low is not None:
-            np.min(strip, axis=0, out=low[p0:p1])
+            np.min(block, axis=0, out=low[r0:r1])
+        p0, p1 = r0 * width, r1 * width  # the levels about each peak, while in cache
         sel = peak[p0:p1]
         local = np.flatnonzero(sel)
-        k = c[p0:p1]
         if local.size:
-            _gather(strip, local, k[local], 2, n, top[:, done_peak:done_peak + local.size])
+            local += p0
+            _gather(flat, at[local], st0, 2, top[:, done_peak:done_peak + local.size])
             done_peak += local.size
         if local.size < p1 - p0:
             others = np.flatnonzero(~sel)
-            _gather(strip, others, k[others], h, n, wide[:, done_wide:done_wide + others.size])
+            others += p0
+            _gather(flat, at[others], st0, h, wide[:, done_wide:done_wide + others.size])
             done_wide += others.size
 
     depth = np.empty(c.shape, np.float32)
@@ -248,9 +263,9 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         cw = c[~peak]
         masks = _outside(cw, h, n, wide, np.inf)
         depth[~peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
-    h0, re, im = sums.reshape(3, height, width)
+    h0, re, im = sums
     if sums_out is not None:
-        sums_out[...] = sums.reshape(3, height, width)
+        sums_out[...] = sums
     return depth.reshape(height, width), confidence_from_sums(h0, re, im)
 
 

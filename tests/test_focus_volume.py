@@ -306,3 +306,29 @@ def test_refuses_a_method_the_scan_does_not_run(method: str) -> None:
     with pytest.raises(ValueError, match=f"method must be one of .*got '{method}'"):
         FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
                     method=method)
+
+
+@pytest.mark.parametrize("n", [12, 50, 100])
+@pytest.mark.parametrize("width", [16, 128, 7, 130])
+def test_curve_sums_read_in_place_equal_the_copied_strips(n: int, width: int) -> None:
+    """The reduction's curve sums (confidence, the curve's width) from a block of the ring
+    read in place equal, bit for bit, the float32 products over strips copied out of it
+    (volume_strips), which the sums were before (issue 28); adaptive_block takes the same."""
+    from sffscan.stages.depth_harmonics import focus_sums, harmonic_table, volume_strips
+    from sffscan.stages.depth_peak import adaptive_block
+
+    rng = np.random.default_rng(n + width)
+    ring = rng.gamma(2.0, size=(n, 300, 150)).astype(np.float32)
+    vol = ring[:, 5:293, 9:9 + width]  # 288 rows: strips of whole rows and a shorter last
+    table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
+    want = np.empty((3, vol.shape[1] * width), np.float32)
+    for p0, p1, strip in volume_strips(vol):
+        np.matmul(table, strip, out=want[:, p0:p1])
+    want = want.reshape(3, *vol.shape[1:])
+    assert focus_sums(vol).tobytes() == want.tobytes()
+    sums = np.empty_like(want)
+    low = np.empty(vol.shape[1:], np.float32)
+    centre = rng.integers(0, n, vol.shape[1:])
+    adaptive_block(vol, centre, rng.integers(0, 5, vol.shape[1:]), sums_out=sums, min_out=low)
+    assert sums.tobytes() == want.tobytes()
+    np.testing.assert_array_equal(low, vol.min(axis=0))
