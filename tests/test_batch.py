@@ -15,9 +15,8 @@ import zarr
 from sffscan.pipeline.batch import BatchError, find_recordings, mosaic_path
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
-from sffscan.pipeline.sim_source import simulate_frames
 
-from tests.scan_helpers import small_config
+from tests.scan_helpers import session_frames, small_config
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +27,7 @@ def layers(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 5.0},
                        processing={"registration": False})
     writer = RecordingWriter(d / "layer_000.zarr", cfg)
-    for frame in simulate_frames(cfg):
+    for frame in session_frames(cfg):  # rendered once for the session (test_batch*)
         writer.write(frame)
     writer.close()
     for i in (1, 2, 3):
@@ -74,8 +73,9 @@ def test_batch_reports_the_bad_recording_completes_the_others_and_resumes(
     stamp = {i: (Path(rows[f"layer_{i:03d}.zarr"]["mosaic"]) / "zarr.json").stat().st_mtime_ns
              for i in range(3)}
 
-    # the rerun skips the complete mosaics and tries the bad one again
-    code = main(["batch", str(layers / "layer_*.zarr"), "-o", str(out), "--workers", "2"])
+    # the rerun skips the complete mosaics and tries the bad one again (one recording to
+    # run: one worker process)
+    code = main(["batch", str(layers / "layer_*.zarr"), "-o", str(out), "--workers", "1"])
     printed = capsys.readouterr()
     assert code == 1
     rows = _csv(out / "batch.csv")

@@ -23,11 +23,10 @@ from sffscan.pipeline.metrology.evaluate import Accuracy
 from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 from sffscan.pipeline.mosaic.layout import ARRAYS
 from sffscan.pipeline.mosaic.ngff import level_path
-from sffscan.pipeline.sim_source import simulate_frames
 
 from sffscan.api import replay
 from tests.pyramid_children import torn_replay
-from tests.scan_helpers import small_config
+from tests.scan_helpers import session_frames, small_config
 
 
 def _attrs(path: Path) -> dict[str, Any]:
@@ -56,7 +55,7 @@ def job(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | int]:
                        processing={"registration": False})
     rec, ref, torn = d / "layer.zarr", d / "ref.zarr", d / "torn.zarr"
     writer = RecordingWriter(rec, cfg)
-    for frame in simulate_frames(cfg):
+    for frame in session_frames(cfg):  # rendered once for the session (test_batch*)
         writer.write(frame)
     writer.close()
     replay(rec, output=ref)
