@@ -133,17 +133,29 @@ def _gaussian_top(vals: list[np.ndarray], c: np.ndarray, n: int) -> np.ndarray:
     """The 3-point Gaussian at the largest of the levels ``c - 1 .. c + 1`` (the first of
     ties), from the levels ``c - 2 .. c + 2`` (beyond the range: -1, never the largest and
     never positive). Offset within ±0.5; none at the ends of the range, on a flat top or
-    on values <= 0. Float32 levels."""
+    on values <= 0. Float32 levels. (Few temporaries: each value takes the same float32
+    operations as written plainly.)"""
     ymm, ym, y0, yp, ypp = vals
-    below = (ym >= y0) & (ym >= yp)  # the largest is c - 1
-    above = ~below & (yp > y0)  # ... c + 1
-    a = np.where(below, ymm, np.where(above, y0, ym))
-    b = np.where(below, ym, np.where(above, yp, y0))
-    d = np.where(below, y0, np.where(above, ypp, yp))
-    top = c - below + above
-    ok = (a > 0) & (b > 0) & (d > 0) & (top > 0) & (top < n - 1)
-    la, lb, ld = (np.log(np.where(ok, v, np.float32(1.0))) for v in (a, b, d))
-    return (top + _parabola_offset(la, lb, ld, ok)).astype(np.float32)
+    below = ym >= y0  # the largest is c - 1
+    below &= ym >= yp
+    above = yp > y0  # ... c + 1
+    above &= ~below
+    a, b, d = np.where(above, y0, ym), np.where(above, yp, y0), np.where(above, ypp, yp)
+    np.copyto(a, ymm, where=below)
+    np.copyto(b, ym, where=below)
+    np.copyto(d, y0, where=below)
+    top = c - below
+    top += above
+    ok = a > 0
+    ok &= b > 0
+    ok &= d > 0
+    ok &= top > 0
+    ok &= top < n - 1
+    bad = ~ok
+    for v in (a, b, d):  # the logarithms of the values used (1 where not ok)
+        np.copyto(v, np.float32(1.0), where=bad)
+        np.log(v, out=v)
+    return (top + _parabola_offset(a, b, d, ok)).astype(np.float32)
 
 
 def _parabola_offset(ym: np.ndarray, y0: np.ndarray, yp: np.ndarray, ok: np.ndarray

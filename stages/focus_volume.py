@@ -438,8 +438,9 @@ class FocusVolume:
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
         valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
-        height = levels_to_height(depth, focus_heights_um=self.heights).astype(np.float32)
-        height[~valid] = np.nan
+        invalid = ~valid
+        height = levels_to_height(depth, focus_heights_um=self.heights)  # float32, new
+        np.copyto(height, np.float32(np.nan), where=invalid)
         unc: np.ndarray | None = None
         if self.uncertainty:
             # invalid pixels (curves that lack levels) take the block's mean depth, so
@@ -448,9 +449,10 @@ class FocusVolume:
             unc = height_uncertainty_um(np.where(valid, depth, fill), sums, low,
                                         n_levels=self.n, focus_heights_um=self.heights,
                                         window=self.spread_size)
-            unc[~valid] = np.nan
-        conf = np.where(valid, conf, 0.0).astype(np.float32)
-        tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32)
+            np.copyto(unc, np.nan, where=invalid)
+        conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
+        tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
+                                                                               copy=False)
         self._release(u0 - self.halo)
         if self.direction == -1:
             height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
