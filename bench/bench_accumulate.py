@@ -104,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--method", help="depth method (default: the configuration's)")
+    ap.add_argument("--cache-bytes", type=int,
+                    help="this tree's FocusVolume.cache_bytes (state kept in cache per strip)")
     ap.add_argument("--against", type=Path, help="another source tree (its stages/ folder)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "accumulate_results")
@@ -129,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     n_levels = cfg.optics.n_levels
     steady = n_levels + 10
     trees: dict[str, ModuleType] = {"this tree": depth_stage}
+    if args.cache_bytes:
+        depth_stage.FocusVolume.cache_bytes = args.cache_bytes
     if args.against is not None:
         trees[str(args.against)] = load_tree(args.against)
     timers = {k: Timer() for k in trees}
@@ -190,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
                                      (x.uncertainty_um, y.uncertainty_um)))
                     for x, y in zip(a, b, strict=True)))
     method = kwargs["method"]
-    head = (f"machine: {machine()}; depth method {method}, {len(placed)} frames "
+    command = "python bench/bench_accumulate.py " + " ".join(sys.argv[1:] if argv is None
+                                                             else argv)
+    head = (f"`{command}`\n\nmachine: {machine()}; depth method {method}, {len(placed)} frames "
             f"(steady state: the last {len(placed) - steady}), {args.rounds} rounds; "
             "CPU ms per frame, median (min-max)")
     cols = list(next(iter(times.values())))
@@ -208,8 +214,9 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(text + "\n")
     args.out.with_suffix(".json").write_text(json.dumps(
-        {"machine": machine(), "method": method, "frames": len(placed), "steady_from": steady,
-         "rounds": args.rounds, "cpu_ms_per_frame": times, "identical_rounds": identical},
+        {"command": command, "machine": machine(), "method": method, "frames": len(placed),
+         "steady_from": steady, "rounds": args.rounds, "cpu_ms_per_frame": times,
+         "identical_rounds": identical},
         indent=1) + "\n")
     return 0
 
