@@ -84,23 +84,26 @@ def test_lost_frames_leave_invalid_columns_never_filled(live: tuple[Path, Path],
                                                         capsys: pytest.CaptureFixture) -> None:
     rec, mosaic = live
     r = open_recording(rec)
-    frames = [f for f in r.frames() if not 50 <= f.header.frame_id < 58]
+    # 20 frames lost: more than a column's frames in view beyond the N it needs (66-70 for
+    # this geometry), so the columns in view meanwhile surely miss levels (8 lost frames
+    # touched only a few edge columns, or none, as registration moved them by a pixel)
+    frames = [f for f in r.frames() if not 50 <= f.header.frame_id < 70]
     gappy = tmp_path / "gappy.zarr"
     plain_recording(gappy, r.config, frames)
     out = tmp_path / "gappy-replay.zarr"
-    # 8 of the planned frames never arrive: the mosaic is 'incomplete', exit 3 (issue 13)
+    # 20 of the planned frames never arrive: the mosaic is 'incomplete', exit 3 (issue 13)
     assert main(["replay", str(gappy), "-o", str(out), "-q"]) == 3
     text = capsys.readouterr()
     assert _attrs(out)["status"] == "incomplete"
-    assert (_attrs(out)["frames_expected"], _attrs(out)["frames_received"]) == (116, 108)
-    assert "gaps        1 (8 frames lost): 50..57" in text.err
-    assert "frame_id_gaps 1, frames_lost 8" in text.out
+    assert (_attrs(out)["frames_expected"], _attrs(out)["frames_received"]) == (116, 96)
+    assert "gaps        1 (20 frames lost): 50..69" in text.err
+    assert "frame_id_gaps 1, frames_lost 20" in text.out
     got, want = _arrays(out), _arrays(mosaic)
     lost = np.isnan(got["height"]) & np.isfinite(want["height"])
     assert lost.sum() > 500  # columns that missed levels are invalid ...
     assert (got["confidence"][np.isnan(got["height"])] == 0).all()  # ... and not filled
     rec_attr = _attrs(out)["recording"]
-    assert rec_attr["frames_lost"] == 8 and rec_attr["gaps"] == [[50, 8]]
+    assert rec_attr["frames_lost"] == 20 and rec_attr["gaps"] == [[50, 20]]
     assert main(["replay", str(gappy), "-o", str(tmp_path / "strict.zarr"), "-q",
                  "--strict"]) == 2
 
