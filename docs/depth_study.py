@@ -45,7 +45,10 @@ scored with the candidate tuned on all families.
 The height uncertainty (`sffscan.stages.depth_uncertainty`, one sigma, levels):
 `sigma^2 = (a scatter)^2 + (excess / 2)^2 + c^2`, the scatter the depth's RMS about its 5 x 5
 median over the focus window, the excess how much wider the pixel's focus curve is than the
-mean over 2k + 1 px about it (a window that sees two heights), discounted where the curve's
+mean over 2k + 1 px about it (a window that sees two heights), at most half the range of the
+depth's 5 x 5 median over that square (a mix of heights D apart widens a curve by at most
+D / 2, and both heights show beside it: without the cap a textured continuous surface's
+random width scatter counted as mixes), discounted where the curve's
 floor holds much of its mass (noise); the 1/2 is the geometry of a two-height mix, `a` and
 `c` are fitted (0.94 quantile of abs(error) / 2 sigma, families weighted equally) on the
 training seeds of the other families for each held-out one, and on all families' training

@@ -38,6 +38,7 @@ from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
 from sffscan.stages.depth_uncertainty import (
     MIX_SCALE,
     curve_width,
+    depth_range,
     depth_scatter,
     floor_share,
     width_excess,
@@ -134,7 +135,7 @@ def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
     scatter = depth_scatter(depth, window=window)
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
-    excess = width_excess(width, share, window=window)
+    excess = width_excess(width, share, depth_range(depth, window=window), window=window)
     return _Scores(sse, int(mask.sum()), (depth - truth_levels)[mask], scatter[mask],
                    excess[mask])
 

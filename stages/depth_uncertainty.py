@@ -10,15 +10,22 @@ Three terms, added in quadrature (levels; times the local focus step for µm):
   how much larger the error is than this scatter (the errors of neighbouring pixels are
   correlated: they share most of the focus window).
 * ``excess``: how much wider the pixel's focus curve is than the curves about it
-  (:func:`width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``, levels). A focus window that
-  sees two heights (an edge, a step) has a curve with two modes; their variance adds to
-  the curve's, and the estimate may lie anywhere between the two: a mix of two heights
-  ``D`` apart widens the curve by ``D / 2`` in quadrature, and puts the estimate up to
-  ``D / 2`` from the height of the pixel's own side, so ``excess / 2`` is one sigma (the
-  factor 1/2 is this geometry, not a fitted constant). Where most of a curve's mass is its
-  floor (``floor share`` ``N min / H_0``, :func:`floor_share`, noisy curves of a weak
-  texture) the width says more about the noise than about the heights seen: the term is
-  scaled by ``max(0, 1 - 2 floor share)``.
+  (:func:`width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``, levels), at most half the range
+  of the depth map about it. A focus window that sees two heights (an edge, a step) has a
+  curve with two modes; their variance adds to the curve's, and the estimate may lie
+  anywhere between the two: a mix of two heights ``D`` apart widens the curve by at most
+  ``D / 2`` in quadrature (``D sqrt(p (1 - p))`` for shares ``p``, ``1 - p``), and puts the
+  estimate up to ``D / 2`` from the height of the pixel's own side, so ``excess / 2`` is one
+  sigma (the factor 1/2 is this geometry, not a fitted constant). The two heights are
+  measured beside the mix, within ``2k + 1`` px: ``D`` is at most the range (max - min) of
+  the depth's 5 x 5 median over that square, so the excess is capped at half that range.
+  Without the cap a textured continuous surface, whose curves' widths scatter from pixel to
+  pixel (about half wider than their neighbours' mean), got 0.5 .. 1 level of sigma from
+  that scatter alone (a demo print: a third of a flat part's pixels above a 0.5 level
+  tolerance, its error 0.03 level RMS); the cap leaves a mix its full term. Where most of a
+  curve's mass is its floor (``floor share`` ``N min / H_0``, :func:`floor_share`, noisy
+  curves of a weak texture) the width says more about the noise than about the heights
+  seen: the term is scaled by ``max(0, 1 - 2 floor share)``.
 * ``c``: a floor, levels (the estimator's sub-level bias on a perfectly smooth surface).
 
 ``a`` and ``c`` are fitted on the *training* seeds of the synthetic families
@@ -26,8 +33,9 @@ Three terms, added in quadrature (levels; times the local focus step for µm):
 ``|error| / (2 sigma)`` equal to 1 (:func:`sffscan.stages.depth_study.fit_uncertainty`);
 ``sffscan study --families`` fits them without each family in turn and reports the
 coverage (share of |error| <= 2 sigma) on the held-out family (docs/depth-study.md): in
-0.90 .. 0.98 on 9 of the 10 families (0.906 .. 0.979), above on flat-fine-8bit (0.991: its
-errors are mostly below the floor's 2c); 0.889 on the third-party pertuz-simu02.
+0.90 .. 0.98 on 9 of the 10 families (0.906 .. 0.978), above on flat-fine-8bit (0.990: its
+errors are mostly below the floor's 2c); 0.878 on the third-party pertuz-simu02 (0.889
+without the excess's cap).
 Nothing here is fitted on the repository's data sets.
 """
 
@@ -38,16 +46,16 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["FLOOR_LEVELS", "MIX_SCALE", "SCATTER_SCALE", "curve_width", "depth_scatter",
-           "depth_uncertainty", "floor_share", "height_uncertainty_um", "uncertainty_um",
-           "width_excess", "width_from_sums"]
+__all__ = ["FLOOR_LEVELS", "MIX_SCALE", "SCATTER_SCALE", "curve_width", "depth_range",
+           "depth_scatter", "depth_uncertainty", "floor_share", "height_uncertainty_um",
+           "uncertainty_um", "width_excess", "width_from_sums"]
 
-SCATTER_SCALE = 4.140
+SCATTER_SCALE = 4.138
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
 :func:`sffscan.stages.depth_study.fit_uncertainty` (``sffscan study --families``, the row
 "fit on every family's training seeds"; docs/depth-study.md)."""
 
-FLOOR_LEVELS = 0.0599
+FLOOR_LEVELS = 0.0602
 """``c``, levels: fitted with :data:`SCATTER_SCALE`."""
 
 MIX_SCALE = 0.5
@@ -105,9 +113,42 @@ def depth_scatter(depth_levels: np.ndarray, *, window: int = 9) -> np.ndarray:
     (H, W) ndarray of float32
     """
     d = np.ascontiguousarray(depth_levels, dtype=np.float32)
-    r = d - cv2.medianBlur(d, 5)
+    return _scatter(d, cv2.medianBlur(d, 5), window)
+
+
+def _scatter(d: np.ndarray, median: np.ndarray, window: int) -> np.ndarray:
+    r = d - median
     mean = cv2.blur(r * r, (window, window), borderType=cv2.BORDER_REPLICATE)
     return np.sqrt(np.maximum(mean, 0.0)).astype(np.float32)
+
+
+def depth_range(depth_levels: np.ndarray, *, window: int = 9) -> np.ndarray:
+    """Range (max - min) of the depth's 5 x 5 median over ``2 window + 1`` px square, levels.
+
+    The heights a focus window of ``window`` px about a pixel can see, as measured beside
+    it (replicated borders; the median drops isolated stray maxima).
+
+    Parameters
+    ----------
+    depth_levels : (H, W) ndarray of float
+        Depth map, fractional levels, finite.
+    window : int, keyword-only
+        The focus measure's window, px. Default 9.
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+    """
+    d = np.ascontiguousarray(depth_levels, dtype=np.float32)
+    return _range(cv2.medianBlur(d, 5), window)
+
+
+def _range(median: np.ndarray, window: int) -> np.ndarray:
+    k = 2 * int(window) + 1
+    kernel = np.ones((k, k), np.uint8)
+    hi = cv2.dilate(median, kernel, borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(median, kernel, borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(cv2.subtract(hi, lo), np.float32)
 
 
 def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarray:
@@ -134,12 +175,13 @@ def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarra
     return np.clip(out, 0.0, 1.0)
 
 
-def width_excess(width_levels: np.ndarray, share: np.ndarray, *, window: int = 9
-                 ) -> np.ndarray:
-    """How much wider each curve is than the curves about it, levels, noise-discounted.
+def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels: np.ndarray,
+                 *, window: int = 9) -> np.ndarray:
+    """How much wider each curve is than the curves about it, levels, noise-discounted,
+    at most half the depth's range about it.
 
-    ``sqrt(max(w^2 - m^2, 0)) * max(0, 1 - 2 share)``, ``m`` the mean width over
-    ``2 window + 1`` px square (replicated borders).
+    ``min(sqrt(max(w^2 - m^2, 0)), R / 2) * max(0, 1 - 2 share)``, ``m`` the mean width
+    over ``2 window + 1`` px square (replicated borders), ``R`` the depth's range there.
 
     Parameters
     ----------
@@ -147,6 +189,9 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, *, window: int = 9
         Each curve's width, levels (:func:`curve_width`, :func:`width_from_sums`).
     share : (H, W) ndarray of float
         Each curve's floor share (:func:`floor_share`).
+    depth_range_levels : (H, W) ndarray of float
+        The depth's range about each pixel, levels (:func:`depth_range`): a mix of two
+        heights ``D`` apart widens a curve by at most ``D / 2``.
     window : int, keyword-only
         The focus measure's window, px.
 
@@ -160,6 +205,7 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, *, window: int = 9
     ex = np.asarray(cv2.subtract(cv2.multiply(w, w), cv2.multiply(mean, mean)), np.float32)
     np.maximum(ex, np.float32(0.0), out=ex)
     np.sqrt(ex, out=ex)
+    np.minimum(ex, np.float32(0.5) * np.asarray(depth_range_levels, np.float32), out=ex)
     # 1 - 2 share, at least 0
     f = np.asarray(cv2.addWeighted(np.asarray(share, np.float32), -2.0, ex, 0.0, 1.0),
                    np.float32)
@@ -184,7 +230,7 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
         Floor share of each curve (:func:`floor_share`).
     window : int, keyword-only
         Focus measure window, px (the scatter's averaging window; the excess width's
-        reference is twice as wide).
+        reference and the depth's range are over ``2 window + 1`` px).
     scatter_scale, floor_levels : float, keyword-only
         The constants ``a`` and ``c`` (defaults: fitted on the training families).
 
@@ -193,9 +239,10 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
     (H, W) ndarray of float32
         ``sqrt((a scatter)^2 + (excess / 2)^2 + c^2)``, levels.
     """
-    s = depth_scatter(depth_levels, window=window)
-    x = width_excess(width_levels, share, window=window)
-    return _combine(s, x, scatter_scale, floor_levels)
+    d = np.ascontiguousarray(depth_levels, dtype=np.float32)
+    med = cv2.medianBlur(d, 5)
+    x = width_excess(width_levels, share, _range(med, window), window=window)
+    return _combine(_scatter(d, med, window), x, scatter_scale, floor_levels)
 
 
 def _combine(scatter: np.ndarray, excess: np.ndarray, a: float, c: float) -> np.ndarray:
@@ -261,8 +308,9 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     w = np.log(ratio)
     w *= np.float32(-(n_levels / math.pi) ** 2 / 2.0)  # width^2, levels^2
     np.sqrt(w, out=w)
-    x = width_excess(w, floor_share(h0, low, n_levels), window=window)
-    sigma = _combine(depth_scatter(d, window=window), x, SCATTER_SCALE, FLOOR_LEVELS)
+    med = cv2.medianBlur(d, 5)
+    x = width_excess(w, floor_share(h0, low, n_levels), _range(med, window), window=window)
+    sigma = _combine(_scatter(d, med, window), x, SCATTER_SCALE, FLOOR_LEVELS)
     table = np.asarray(focus_heights_um, dtype=np.float64)
     step = np.abs(np.diff(table)).astype(np.float32)
     if np.all(step == step[0]):

@@ -171,6 +171,7 @@ def test_protocol_reports_the_uncertainty_coverage() -> None:
 def test_depth_uncertainty_known_answers() -> None:
     from sffscan.stages.depth_uncertainty import (
         MIX_SCALE,
+        depth_range,
         depth_scatter,
         depth_uncertainty,
         floor_share,
@@ -188,19 +189,31 @@ def test_depth_uncertainty_known_answers() -> None:
     clean = np.zeros(smooth.shape)  # curves on a zero floor
     sig = depth_uncertainty(noisy, width, clean, scatter_scale=2.0, floor_levels=0.1)
     np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + 0.1**2), rtol=1e-5)
+    # the depth's range over 19 x 19 px: a step of 6 levels within 9 px, 0 beyond; an
+    # isolated stray maximum does not count (the 5 x 5 median)
+    step = np.where(np.arange(40) < 20, 0.0, 6.0)[None, :] * np.ones((40, 1))
+    step[5, 5] = 30.0
+    r = depth_range(step, window=9)
+    assert r[20, 11] == pytest.approx(6.0) and r[20, 28] == pytest.approx(6.0)
+    assert r[20, 10] == 0.0 and r[20, 29] == 0.0 and r[5, 5] == 0.0
     # a curve twice as wide as those about it (a window that sees two heights)
     wide = width.copy()
     wide[20, 20] = 8.0
-    x = width_excess(wide, clean, window=9)
+    far = np.full(smooth.shape, 100.0)  # heights far apart about it: no cap
+    x = width_excess(wide, clean, far, window=9)
     mean = (8.0 + 360 * 4.0) / 361  # the mean width over 19 x 19 px
     assert x[20, 20] == pytest.approx(math.sqrt(64.0 - mean**2), rel=1e-4)
     assert x[0, 0] == 0.0 and x[20, 21] == 0.0  # narrower than the mean: no excess
+    # capped at half the depth's range (a mix of heights D apart widens by <= D / 2)
+    cap = width_excess(wide, clean, np.full(smooth.shape, 2.0), window=9)
+    assert cap[20, 20] == pytest.approx(1.0) and cap.max() == pytest.approx(1.0)
+    # the depth map beside it: a plane rising 0.1 level per px (range 3.6 levels)
     sig = depth_uncertainty(smooth, wide, clean, scatter_scale=2.0, floor_levels=0.0)
-    assert sig[20, 20] == pytest.approx(MIX_SCALE * x[20, 20], rel=1e-4)
+    assert sig[20, 20] == pytest.approx(MIX_SCALE * min(x[20, 20], 1.8), rel=1e-4)
     # half the mass in the floor: the width tells the noise, no excess counted
-    assert width_excess(wide, np.full(smooth.shape, 0.5), window=9).max() == 0.0
-    np.testing.assert_allclose(width_excess(wide, np.full(smooth.shape, 0.25), window=9),
-                               x * 0.5, rtol=1e-6)
+    assert width_excess(wide, np.full(smooth.shape, 0.5), far, window=9).max() == 0.0
+    np.testing.assert_allclose(
+        width_excess(wide, np.full(smooth.shape, 0.25), far, window=9), x * 0.5, rtol=1e-6)
     np.testing.assert_allclose(floor_share(np.array([10.0, 0.0, 4.0]),
                                            np.array([0.5, 0.0, 0.0]), 10), [0.5, 1.0, 0.0])
     um = uncertainty_um(np.ones((1, 3)), np.array([[0.2, 1.5, 9.0]]),
