@@ -21,6 +21,11 @@ about a peak that is known only once the column and its neighbours are complete:
 the ring stores every level of every pixel (N planes: bounded by the ring, the columns in
 view, never the whole stack), and the running argmax is kept as frames arrive.
 
+The frames' writes into this state are held until the next block reduction (at most
+``defer_writes`` of them) and then applied together, strip of rows by strip of rows, while
+each strip's state stays in cache (:mod:`sffscan.stages.accumulate`): the same operations
+on every pixel in the same order, so the blocks are those of writing each frame at once.
+
 Every block also carries the height's uncertainty (µm, one sigma,
 :mod:`sffscan.stages.depth_uncertainty`): from the block's depth (its scatter about its
 local median) and each curve's width (its sums and its minimum: from the stored levels at
