@@ -14,7 +14,7 @@ all configurations on the same rendered frames in one run, with the speed predic
 as a reference, the pairs measured and refused, and each configuration's CPU time per
 frame (registration only, interleaved: each seed runs every configuration in turn).
 
-Geometries: ``test`` is the scan of ``tests/test_scan_bars.py`` (640 x 256 px of 17 µm,
+Geometries: ``test`` is the scan of ``tests/pipeline/test_scan_bars.py`` (640 x 256 px of 17 µm,
 registration at half resolution); ``full`` the demo optics (1280 x 1024 px of 8.5 µm,
 registration at a quarter), a 12 mm strip. Seeds change the plate's texture and heights.
 Not a test: nothing here asserts.

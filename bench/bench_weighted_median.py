@@ -8,7 +8,7 @@ seconds per configuration, and the reconstruction's for scale. Writes
     python bench/bench_weighted_median.py --rows 256 --rounds 2
 
 Not a test: nothing here asserts (the equality of the two forms is tested in
-tests/test_stack_images.py).
+tests/stages/fields/test_stack_images.py).
 """
 
 from __future__ import annotations

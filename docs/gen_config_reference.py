@@ -30,7 +30,7 @@ Every error names the field (`optics.pixel_um`, ...) and ends the command with e
 Impossible configurations are refused: a speed above the sliding-window limit, N < 3, a
 non-positive pixel size, an even window, an empty strip, an exposure longer than half a
 lens step. Every numeric field has a physical range (below); fuzzing every numeric field
-with {-1, 0, NaN, "x", 1e308, 2^63-1} (`tests/test_config_fuzz.py`) gives either a run or
+with {-1, 0, NaN, "x", 1e308, 2^63-1} (`tests/pipeline/test_config_fuzz.py`) gives either a run or
 exit 2 naming the field, never a traceback. Before anything is created or deleted a scan
 also checks the torch device, the output and `--record` paths, the memory the pipeline
 needs, the simulated world and the transport keys; `sffscan scan --config FILE --check`

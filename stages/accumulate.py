@@ -15,7 +15,7 @@ frame's part of a strip in turn, so that the strip's state stays in cache across
 frames. Each pixel still sees the same operations in the same order (the frames in the
 order they arrived, each with the OpenCV calls of one frame), so the state, and every
 block reduced from it, is bit-identical to the frame-by-frame update (tested in
-``tests/test_focus_volume.py``; measured with ``bench/bench_accumulate.py``).
+``tests/stages/test_focus_volume.py``; measured with ``bench/bench_accumulate.py``).
 """
 
 from __future__ import annotations

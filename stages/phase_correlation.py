@@ -130,7 +130,7 @@ def null_peak_threshold(h: int, w: int, *, peak_sigma: float = 1.5,
     and Geometry*, 2007), summed over the surface with the local variance. The threshold
     depends only on the crop shape, ``peak_sigma`` and the chosen rate, not on any scene;
     measured on pure-noise crops the bound is conservative (at the 1 % point of the noise
-    peaks it predicts 0.16-0.48 instead of 0.01; tests/test_registration_gate.py).
+    peaks it predicts 0.16-0.48 instead of 0.01; tests/stages/test_registration_gate.py).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Child processes of tests/test_crash.py: the command line, run in a fork-server child so
+"""Child processes of tests/pipeline/test_crash.py: the command line, run in a fork-server child so
 that it can be killed (kept free of pytest so that the children start fast)."""
 
 from __future__ import annotations

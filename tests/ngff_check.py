@@ -2,7 +2,8 @@
 
 Run in its own environment (``tests/ngff-requirements.txt``: the ``ome-zarr`` reader and
 the ``ome-zarr-models`` package pin versions of pydantic that the project does not use), by
-``tests/test_mosaic_ngff.py``: ``python tests/ngff_check.py MOSAIC`` prints one JSON object.
+``tests/pipeline/mosaic/test_mosaic_ngff.py``: ``python tests/ngff_check.py MOSAIC`` prints one
+JSON object.
 """
 
 from __future__ import annotations

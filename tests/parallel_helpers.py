@@ -1,4 +1,5 @@
-"""Stages and child processes for tests/test_parallel.py and tests/test_parallel_scan.py
+"""Stages and child processes for tests/pipeline/test_parallel.py and
+tests/pipeline/test_parallel_scan.py
 (kept free of pytest, so that worker processes and child scans start fast)."""
 
 from __future__ import annotations

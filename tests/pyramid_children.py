@@ -1,4 +1,5 @@
-"""Child processes of tests/test_mosaic_pyramid.py: a replay through the Python API that
+"""Child processes of tests/pipeline/mosaic/test_mosaic_pyramid.py: a replay through the Python
+API that
 dies by SIGKILL around mosaic write number ``kill_at`` (kept free of pytest so that the
 fork-server children start fast)."""
 

@@ -187,7 +187,7 @@ def rendered_scanner(cfg: ScanConfig, frames: Sequence[Frame]
     configuration as before: set it on the scanner module and the command line's simulated
     source (``pipeline.sources.open_feed``) feeds the same frames without rendering them.
     Rendering is not what the crash tests test, and it was about half of their scans' CPU
-    (the 115-frame scan of tests/test_crash.py: 2.4-3.0 s CPU rendered, 1.1 s replayed,
+    (the 115-frame scan of tests/pipeline/test_crash.py: 2.4-3.0 s CPU rendered, 1.1 s replayed,
     interleaved runs on the shared 2-core VM)."""
     from sffscan.pipeline import sim_source as scanner
 

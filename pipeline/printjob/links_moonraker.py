@@ -226,12 +226,18 @@ class MoonrakerAgent:
                     self.trapq = None
 
     def _subscribe_trapq(self) -> None:
+        # the stream reconnects on its own (Klippy restarting, Moonraker's 503 while Klippy
+        # is not connected); a layer called before it is up keeps the scanner's positions
+        stream = TrapqStream(self.trapq_url, timeout_s=self.timeout_s, retry_s=2.0)
         try:
-            self.trapq = TrapqStream(self.trapq_url, timeout_s=self.timeout_s).start()
+            self.trapq = stream.start()
         except Exception as err:  # noqa: BLE001 - no bridge: positions from the headers
-            self.trapq = None
-            note = (f"no motion queue from {self.trapq_url} ({type(err).__name__}: {err}); "
-                    "frames keep the scanner's positions")
+            alive = stream.error is None or "still trying" in str(err)
+            self.trapq = stream if alive else None
+            if not alive:
+                stream.close()
+            note = (f"no motion queue from {self.trapq_url} yet ({type(err).__name__}: "
+                    f"{err}); frames keep the scanner's positions until it answers")
             self.trapq_notes.append(note)
             log.warning("%s", note)
 

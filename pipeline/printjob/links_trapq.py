@@ -74,11 +74,16 @@ class TrapqStream:
         Longest wait for the connection and the subscription's answer, s.
     max_rows : int, keyword-only
         Rows kept, the oldest dropped first.
+    retry_s : float or None, keyword-only
+        When the connection cannot be opened or is lost (Moonraker answers 503 while Klippy
+        is not connected, a firmware restart, a dropped socket), try again after this many
+        seconds until :meth:`close`; None: give up (:attr:`error` says why). A refusal
+        by Klipper itself (an error or an unknown header) is never retried.
     """
 
     def __init__(self, url: str, *, name: str = "toolhead", timeout_s: float = 10.0,
-                 max_rows: int = MAX_ROWS) -> None:
-        self.url, self.name, self.timeout_s = url, name, timeout_s
+                 max_rows: int = MAX_ROWS, retry_s: float | None = None) -> None:
+        self.url, self.name, self.timeout_s, self.retry_s = url, name, timeout_s, retry_s
         self._rows: deque[list[Any]] = deque(maxlen=max_rows)
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -93,9 +98,12 @@ class TrapqStream:
         self._thread = threading.Thread(target=self._run, name="sffscan-trapq", daemon=True)
         self._thread.start()
         if not self._ready.wait(self.timeout_s + 1.0):
-            self.close()
+            why = f" (last: {self.error})" if self.error else ""
+            if self.retry_s is None:
+                self.close()
             raise MotionQueueError(f"{self.url}: no answer to {METHOD} within "
-                                   f"{self.timeout_s:g} s")
+                                   f"{self.timeout_s:g} s{why}"
+                                   + ("; still trying" if self.retry_s is not None else ""))
         if self.error is not None:
             self.close()
             raise MotionQueueError(self.error)
@@ -128,23 +136,35 @@ class TrapqStream:
                 self._cond.notify_all()
 
     def _run(self) -> None:
-        from websockets.exceptions import ConnectionClosed
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
         from websockets.sync.client import connect
 
-        try:
-            with connect(self.url, open_timeout=self.timeout_s, close_timeout=2.0) as ws:
-                self._subscribe(ws)
-                self._ready.set()
-                while not self._stop.is_set():
-                    try:
-                        raw = ws.recv(timeout=0.5)  # wakes to see ``_stop``
-                    except TimeoutError:
-                        continue
-                    self._take(json.loads(raw))
-        except (ConnectionClosed, OSError, ValueError, TimeoutError) as err:
-            self.error = f"{self.url}: {type(err).__name__}: {err}"
-            if self._ready.is_set():
-                log.warning("motion queue stream stopped: %s", self.error)
+        while not self._stop.is_set():
+            try:
+                with connect(self.url, open_timeout=self.timeout_s, close_timeout=2.0) as ws:
+                    self._subscribe(ws)
+                    self.error = None
+                    self._ready.set()
+                    while not self._stop.is_set():
+                        try:
+                            raw = ws.recv(timeout=0.5)  # wakes to see ``_stop``
+                        except TimeoutError:
+                            continue
+                        self._take(json.loads(raw))
+            except MotionQueueError as err:  # Klipper refused: asking again changes nothing
+                self.error = str(err)
+                break
+            except (ConnectionClosed, InvalidHandshake, OSError, ValueError,
+                    TimeoutError) as err:
+                lost = self._ready.is_set() and self.error is None
+                self.error = f"{self.url}: {type(err).__name__}: {err}"
+                if lost:
+                    log.warning("motion queue stream stopped: %s%s", self.error,
+                                "" if self.retry_s is None else "; reconnecting")
+                if self.retry_s is None:
+                    break
+            if self._stop.wait(self.retry_s or 0.0):
+                break
         self._ready.set()
         with self._cond:
             self._cond.notify_all()

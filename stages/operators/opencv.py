@@ -3,7 +3,7 @@ OpenCV's separable filters, on 2-D float32 arrays (no torch).
 
 The scan's CPU path measures every frame here (about 15x faster than the torch
 definition on the CPU); the torch definition is the reference, and the two agree to float32
-round-off (``tests/test_focus_measure.py``: 1e-6 of the map's largest value against a
+round-off (``tests/stages/test_focus_measure.py``: 1e-6 of the map's largest value against a
 float64 reference). Definitions (``box_k`` = mean over k x k with replicated borders,
 MATLAB ``imfilter(I, fspecial('average', k), 'replicate')``; images scaled to 0..1):
 

@@ -15,7 +15,8 @@ MATLAB's conventions, which PyWavelets follows here: the default extension mode 
 convolves in full and keeps the central part of the size of the level above (``wkeep2``
 ``'c'``: ``floor`` of the surplus dropped at the start, ``ceil`` at the end).
 PyWavelets' ``idwt2`` returns that full convolution less ``len(filter) - 2`` samples at
-each end; :func:`_keep_central` drops the rest as MATLAB does. ``tests/test_wavelet_operators.py``
+each end; :func:`_keep_central` drops the rest as MATLAB does.
+``tests/stages/test_wavelet_operators.py``
 checks the decomposition against MATLAB's own output and the whole operators against an
 independent numpy reference written from MATLAB's algorithm.
 
