@@ -111,7 +111,7 @@ def end_to_end(recording: str, rounds: int, execution: str,
     """Replay a recording (frames read into memory first) through the whole pipeline with
     each method, interleaved: frames/s, the depth stage's and the whole process's CPU ms per
     frame (the steadier figure on a shared machine)."""
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.wiring import run_scan
 
     rec = open_recording(recording)
@@ -147,7 +147,7 @@ def end_to_end(recording: str, rounds: int, execution: str,
 
 def accuracy_table(recording: str, methods: list[str]) -> dict[str, dict[str, float]]:
     """RMSE (µm) of every method over the recording and over the ±3 px wobble scan."""
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.metrology.evaluate import mosaic_accuracy
     from sffscan.pipeline.sim_source import make_world
     from sffscan.pipeline.wiring import run_scan

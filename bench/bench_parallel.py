@@ -92,7 +92,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     cpus = sorted(os.sched_getaffinity(0))[:case["cores"]]
     os.sched_setaffinity(0, cpus)
     from bench_pipeline import load_bank, replay_frames
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.formats.recording_writer import recorder_sink
     from sffscan.pipeline.wiring import run_scan
 

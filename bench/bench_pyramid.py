@@ -39,7 +39,7 @@ from typing import Any
 import zarr
 from sffscan.pipeline import wiring
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.messages import Frame

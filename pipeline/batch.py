@@ -167,7 +167,7 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     """Replay ``recording`` into ``mosaic`` through the one run path
     (:func:`sffscan.pipeline.run.execute`), resuming it if it was interrupted (and not
     ``overwrite``); fills ``row``. Raises what the replay raises."""
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.run import Job, check_input_free, execute
     from sffscan.pipeline.wiring import evaluate_sim
 

@@ -43,7 +43,7 @@ from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ConfigError, ScanConfig
 
 if TYPE_CHECKING:
-    from sffscan.pipeline.formats.recording import Recording
+    from sffscan.pipeline.formats.recording_reader import Recording
     from sffscan.pipeline.wiring import ScanReport
     from sffscan.stages.messages import Frame
     from sffscan.stages.protocol import Sink

@@ -125,7 +125,7 @@ def replay(recording: str | Path, *, output: str | Path | None = None,
     StageFailed
         As in :func:`scan`.
     """
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.run import Job, execute, with_overrides
     from sffscan.pipeline.wiring import evaluate_sim
 

@@ -33,7 +33,7 @@ from sffscan.pipeline.cli.common import (
 )
 
 if TYPE_CHECKING:
-    from sffscan.pipeline.formats.recording import Recording
+    from sffscan.pipeline.formats.recording_reader import Recording
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,8 @@ def _complete_from(path: str | Path, recording: str | Path) -> bool:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.formats.recording import RecordingError, open_recording
+    from sffscan.pipeline.formats.recording import RecordingError
+    from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.run import Job
 
     try:
@@ -294,7 +295,8 @@ def _recording_info(rec: Recording) -> dict[str, Any]:
 
 def cmd_info(args: argparse.Namespace) -> int:
     import zarr
-    from sffscan.pipeline.formats.recording import RecordingError, open_recording
+    from sffscan.pipeline.formats.recording import RecordingError
+    from sffscan.pipeline.formats.recording_reader import open_recording
 
     path = Path(args.path)
     try:

@@ -39,8 +39,8 @@ header copies) still replay.
 
 Entry ``i`` of every per-frame array describes ``frames[i]``. Arrays may be longer than what
 was written (the recorder grows them in steps): entries whose ``frame_id`` is -1 are not
-frames. The reader (:func:`open_recording`) validates all of it and reports every defect
-with counts and frame ids: frame-id gaps, duplicated and out-of-order frames, corrupt or
+frames. The reader (:func:`sffscan.pipeline.formats.recording_reader.open_recording`)
+validates all of it and reports every defect with counts and frame ids: frame-id gaps, duplicated and out-of-order frames, corrupt or
 truncated chunks, missing chunks or metadata, a shape or dtype that disagrees with the
 attributes, frames misplaced (version 4), time stamps that go back or jump implausibly,
 array lengths the chunk files present do not support
@@ -62,12 +62,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from sffscan.stages.messages import FrameHeader
 
 if TYPE_CHECKING:
-    from sffscan.pipeline.formats.recording_reader import Recording, open_recording
+    from sffscan.pipeline.formats.recording_reader import Recording
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "TRAPQ_COLUMNS", "FrameClock", "MotionQueue",
            "PER_FRAME", "META_CHUNK", "GROW", "HEADER_COLUMNS",
-           "BASE_COLUMNS", "RecordingAttrs", "RecordingError", "RecordingReport", "Recording",
-           "open_recording", "header_row", "read_recording_id", "chunk_keys_from",
+           "BASE_COLUMNS", "RecordingAttrs", "RecordingError", "RecordingReport",
+           "header_row", "read_recording_id", "chunk_keys_from",
            "annotate_mosaic"]
 
 FORMAT = "sffscan-recording"
@@ -349,13 +349,3 @@ def annotate_mosaic(path: str | Path, rec: Recording) -> None:
     attrs = MosaicAttrs.model_validate({**group.attrs.asdict(),
                                         "recording": rec.report.as_dict()})
     group.update_attributes(attrs.model_dump(mode="json"))
-
-
-def __getattr__(name: str) -> Any:
-    """:class:`Recording` and :func:`open_recording`, from
-    :mod:`sffscan.pipeline.formats.recording_reader` (which imports this module)."""
-    if name in ("Recording", "open_recording"):
-        from sffscan.pipeline.formats import recording_reader
-
-        return getattr(recording_reader, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -25,7 +25,8 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ScanConfig, config_to_toml
-from sffscan.pipeline.formats.recording import RecordingError, open_recording
+from sffscan.pipeline.formats.recording import RecordingError
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.mosaic.layout import ARRAYS
 from sffscan.pipeline.mosaic.reader import TILE_COMPLETE, TILE_INCOMPLETE, tile_states
 from sffscan.pipeline.sim_source import simulate_frames

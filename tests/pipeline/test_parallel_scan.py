@@ -72,7 +72,7 @@ def test_process_mode_mosaic_is_bit_identical_to_thread_mode(tmp_path: Path) -> 
         assert np.array_equal(a, out["processes"][k], equal_nan=True), k
     assert np.isfinite(out["processes"]["height"]).sum() > 1000
     # the recorder, in its own process, stored every frame bit for bit
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
 
     got = list(open_recording(tmp_path / "processes.rec.zarr").frames())
     assert [f.header for f in got] == [f.header for f in frames]

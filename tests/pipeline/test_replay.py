@@ -11,7 +11,7 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.mosaic.layout import ARRAYS
 
 from tests.pipeline.formats.test_recording import plain_recording

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import zarr
 from sffscan.pipeline.config import ScanConfig
-from sffscan.pipeline.formats.recording import RecordingAttrs, RecordingError, open_recording
+from sffscan.pipeline.formats.recording import RecordingAttrs, RecordingError
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.formats.schema_gen import SCHEMAS
 from sffscan.stages.messages import Frame, FrameHeader

@@ -21,10 +21,10 @@ from sffscan.pipeline.formats.recording import (
     HEADER_COLUMNS,
     RecordingAttrs,
     header_row,
-    open_recording,
     read_recording_id,
 )
 from sffscan.pipeline.formats.recording_checks import Pacer, plausible_step_s
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.stages.messages import Frame, FrameHeader

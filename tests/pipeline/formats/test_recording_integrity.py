@@ -13,7 +13,8 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.recording import PER_FRAME, RecordingError, open_recording
+from sffscan.pipeline.formats.recording import PER_FRAME, RecordingError
+from sffscan.pipeline.formats.recording_reader import open_recording
 
 from tests.scan_helpers import small_config
 

@@ -13,7 +13,7 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.recording import FrameClock, RecordingError, open_recording
+from sffscan.pipeline.formats.recording import FrameClock, RecordingError
 from sffscan.pipeline.formats.recording_motion import (
     MotionQueueError,
     add_motion_queue,
@@ -22,6 +22,7 @@ from sffscan.pipeline.formats.recording_motion import (
     trapq_positions,
     trigger_print_time,
 )
+from sffscan.pipeline.formats.recording_reader import open_recording
 
 from tests.scan_helpers import small_config
 

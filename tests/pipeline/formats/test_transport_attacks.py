@@ -442,7 +442,7 @@ def test_a_scan_fed_ids_jumping_to_2_62_is_incomplete_and_records_no_gap(
     attrs = zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs.asdict()
     assert attrs["status"] == "incomplete" and attrs["frames_received"] == 8
     assert attrs["frames_expected"] == frame_count(cfg)
-    from sffscan.pipeline.formats.recording import open_recording
+    from sffscan.pipeline.formats.recording_reader import open_recording
 
     r = open_recording(tmp_path / "rec.zarr")
     assert r.report.frames == 8 and r.report.gaps == [] and r.report.last_id == 7

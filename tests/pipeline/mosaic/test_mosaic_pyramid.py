@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.formats.recording import open_recording
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
 from sffscan.pipeline.mosaic.layout import ARRAYS
 from sffscan.pipeline.mosaic.ngff import level_path

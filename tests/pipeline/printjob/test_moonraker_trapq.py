@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.recording import open_recording
 from sffscan.pipeline.formats.recording_motion import MotionQueueError
+from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.printjob.links_moonraker import MoonrakerAgent, ServiceBridge
 from sffscan.pipeline.printjob.links_trapq import (
     HEADER,
