@@ -40,7 +40,8 @@ header copies) still replay.
 Entry ``i`` of every per-frame array describes ``frames[i]``. Arrays may be longer than what
 was written (the recorder grows them in steps): entries whose ``frame_id`` is -1 are not
 frames. The reader (:func:`sffscan.pipeline.formats.recording_reader.open_recording`)
-validates all of it and reports every defect with counts and frame ids: frame-id gaps, duplicated and out-of-order frames, corrupt or
+validates all of it and reports every defect with counts and frame ids: frame-id gaps,
+duplicated and out-of-order frames, corrupt or
 truncated chunks, missing chunks or metadata, a shape or dtype that disagrees with the
 attributes, frames misplaced (version 4), time stamps that go back or jump implausibly,
 array lengths the chunk files present do not support
