@@ -21,10 +21,11 @@ about a peak that is known only once the column and its neighbours are complete:
 the ring stores every level of every pixel (N planes: bounded by the ring, the columns in
 view, never the whole stack), and the running argmax is kept as frames arrive.
 
-The frames' writes into this state are held until the next block reduction (at most
-``defer_writes`` of them) and then applied together, strip of rows by strip of rows, while
-each strip's state stays in cache (:mod:`sffscan.stages.accumulate`): the same operations
-on every pixel in the same order, so the blocks are those of writing each frame at once.
+The frames' writes into this state may be held until the next block reduction (at most
+``defer_writes`` of them; 1, applied at once, by default) and then applied together, strip
+of rows by strip of rows, while each strip's state stays in cache
+(:mod:`sffscan.stages.accumulate`): the same operations on every pixel in the same order,
+so the blocks are those of writing each frame at once.
 
 Every block also carries the height's uncertainty (µm, one sigma,
 :mod:`sffscan.stages.depth_uncertainty`): from the block's depth (its scatter about its
@@ -138,8 +139,12 @@ class FocusVolume:
         Frames' writes (column runs) held before they are applied (at the latest before
         each block reduction): applied together, strip by strip, the state stays in cache
         (:mod:`sffscan.stages.accumulate`; bit-identical for any value, 1 applies each
-        frame at once). :meth:`add` keeps views of ``focus`` and ``image01`` until then:
-        the caller must not change them.
+        frame at once, the default). :meth:`add` keeps views of ``focus`` and ``image01``
+        until then: the caller must not change them. Deferring costs less CPU in the
+        accumulation alone (bench/results/accumulate_results.md) but was slower end to
+        end: the default scan on 2 cores, 300 frames, 3 interleaved runs each, 32
+        deferred writes against 1: 105.7 against 113.5 frames/s in processes, 94.0 against
+        97.6 in threads (the held frames leave the cache before they are applied).
     """
 
     #: bytes of per-pixel state per strip of rows kept in cache while the deferred writes
@@ -162,7 +167,7 @@ class FocusVolume:
         col_slack: int = 8,
         reuse: FocusVolume | None = None,
         uncertainty: bool = True,
-        defer_writes: int = 32,
+        defer_writes: int = 1,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
