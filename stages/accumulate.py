@@ -111,7 +111,17 @@ def apply_writes(state: AccumulatorState, writes: Sequence[Write], *,
     span = max(w.cs.stop for w in writes) - min(w.cs.start for w in writes)
     per_px = (state.best.itemsize + state.argmax.itemsize + state.tex.itemsize
               + 4 * len(state.sums) + (4 if state.low is not None else 0))
-    strip = max(8, min(state.level_buf.shape[0], cache_bytes // (per_px * max(1, span))))
+    if len(writes) == 1:
+        # One frame: nothing stays in cache across frames, so the strip only needs to hold
+        # the frame's focus values (``cache_bytes`` of them) for its ~10 passes, as the
+        # frame-by-frame update did before deferral. Strips sized for the whole state
+        # (~29 B/px) were ~60 per frame, each ~10 OpenCV calls holding the GIL between
+        # them: in the thread placement the accumulation's GIL time doubled (py-spy --gil,
+        # default scan, 2 cores) and the scan lost 8 % of its frames/s.
+        strip = max(16, cache_bytes // (4 * max(1, span)))
+    else:
+        strip = max(8, min(state.level_buf.shape[0],
+                           cache_bytes // (per_px * max(1, span))))
     for a in range(lo, hi, strip):
         b = min(a + strip, hi)
         for w in writes:
