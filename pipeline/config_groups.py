@@ -25,7 +25,8 @@ reference lists every table's fields by group.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, ClassVar, Literal
+import os
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sffscan.stages.depth import DEPTH_METHODS
@@ -224,6 +225,20 @@ class Execution(ConfigModel):
         "processes with frames in shared memory (uses several cores), 'threads' = one "
         "process (debugging, tiny scans), 'auto' = processes for scans of at least 2e8 "
         "pixels on a machine with 2 or more cores")
+    workers: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = Field(
+        1, description="Band workers of the focus measure and of the depth stage: each "
+        "frame's rows split among that many threads of each stage, results bit-identical "
+        "for any number; 'auto' = the cores available less 2 (the registration and the "
+        "main process), at least 1, at most 8. 1 by default: on the 2-core VM more cost "
+        "CPU and gained no time (bench/results/bands.md)")
+
+    def band_workers(self) -> int:
+        """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""
+        if isinstance(self.workers, int):
+            return self.workers
+        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                 else os.cpu_count() or 1)
+        return max(1, min(8, cores - 2))
 
 
 class Output(ConfigModel):

@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 #: configuration fields that say how a scan was run, not what it measures: a resume may
 #: differ in them (the mosaics of threads and processes are bit for bit the same)
 RUN_ONLY: tuple[tuple[str, str], ...] = (
-    ("processing", "execution"), ("processing", "queue_capacity"),
+    ("processing", "execution"), ("processing", "queue_capacity"), ("processing", "workers"),
     ("source", "idle_timeout_s"), ("source", "max_bad_messages"), ("source", "keys_dir"),
     ("source", "address"))
 

@@ -69,12 +69,14 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
                                                   scale=p.registration_scale),
         "focus_measure": lambda: FocusMeasureStage(
             operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
-            max_value=o.max_value, margin=p.focus_reach_px, directions=directions),
+            max_value=o.max_value, margin=p.focus_reach_px, directions=directions,
+            workers=p.band_workers()),
         "depth": lambda: DepthStage(
             n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
             focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
             method=p.depth_method, median_size=p.median_size, spread_size=p.window,
-            block_columns=p.block_columns, directions=directions, slack_px=slack),
+            block_columns=p.block_columns, directions=directions, slack_px=slack,
+            workers=p.band_workers()),
     }
     if not p.registration:
         del build["registration"]

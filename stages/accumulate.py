@@ -50,7 +50,7 @@ class AccumulatorState(NamedTuple):
     coef: np.ndarray  # float (S or more, N): the sums' weights
     low: np.ndarray | None  # float32 (rows, ring): running minimum, or None
     fv: np.ndarray | None  # float32 (N, rows, ring): every level, or None
-    level_buf: np.ndarray  # (>= rows of a strip, >= columns of a write), argmax's dtype
+    level_buf: np.ndarray  # (rows, >= columns of a write), argmax's dtype: scratch, by row
 
 
 def _update(state: AccumulatorState, w: Write, a: int, b: int) -> None:
@@ -79,14 +79,14 @@ def _update(state: AccumulatorState, w: Write, a: int, b: int) -> None:
     if state.low is not None:
         low = state.low[rows, cs]
         cv2.min(f, low, dst=low)
-    lv = state.level_buf[:b - a, :f.shape[1]]
+    lv = state.level_buf[a:b, :f.shape[1]]  # rows of its own: bands never share them
     lv.fill(level)
     cv2.copyTo(lv, sharper, amax)
     cv2.copyTo(w.image01[a - w.r0:b - w.r0], sharper, state.tex[rows, cs])
 
 
 def apply_writes(state: AccumulatorState, writes: Sequence[Write], *,
-                 cache_bytes: int) -> None:
+                 cache_bytes: int, rows: tuple[int, int] | None = None) -> None:
     """Apply ``writes`` in order, strip of rows by strip of rows.
 
     Parameters
@@ -97,6 +97,10 @@ def apply_writes(state: AccumulatorState, writes: Sequence[Write], *,
         The frames' writes, in the order they arrived.
     cache_bytes : int
         Bytes of state (over the columns the writes span) held in cache per strip.
+    rows : (int, int), optional
+        Only the state's rows [r0, r1) (a band worker's,
+        :class:`sffscan.stages.bands.BandWorkers`); bands of the same writes may be
+        applied at the same time, in any order.
 
     Notes
     -----
@@ -108,6 +112,8 @@ def apply_writes(state: AccumulatorState, writes: Sequence[Write], *,
         return
     lo = min(w.r0 for w in writes)
     hi = max(w.r1 for w in writes)
+    if rows is not None:
+        lo, hi = max(lo, rows[0]), min(hi, rows[1])
     span = max(w.cs.stop for w in writes) - min(w.cs.start for w in writes)
     per_px = (state.best.itemsize + state.argmax.itemsize + state.tex.itemsize
               + 4 * len(state.sums) + (4 if state.low is not None else 0))
@@ -120,8 +126,7 @@ def apply_writes(state: AccumulatorState, writes: Sequence[Write], *,
         # default scan, 2 cores) and the scan lost 8 % of its frames/s.
         strip = max(16, cache_bytes // (4 * max(1, span)))
     else:
-        strip = max(8, min(state.level_buf.shape[0],
-                           cache_bytes // (per_px * max(1, span))))
+        strip = max(8, cache_bytes // (per_px * max(1, span)))
     for a in range(lo, hi, strip):
         b = min(a + strip, hi)
         for w in writes:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 
+from sffscan.stages.bands import BandWorkers
 from sffscan.stages.depth_harmonics import STREAMING_METHODS
 from sffscan.stages.focus_volume import BlockResult, FocusVolume
 from sffscan.stages.messages import DepthBlock, DepthBlockHeader, FocusFrame, FrameError
@@ -18,7 +19,13 @@ __all__ = ["DepthStage"]
 
 
 class DepthStage(Stage):
-    """Accumulates focus frames per pass and emits completed blocks of depth."""
+    """Accumulates focus frames per pass and emits completed blocks of depth.
+
+    ``workers`` > 1 splits each frame's accumulation and each block's reduction by rows
+    among that many band workers (:mod:`sffscan.stages.bands`); the blocks are
+    bit-identical for every number. The other parameters are
+    :class:`~sffscan.stages.focus_volume.FocusVolume`'s.
+    """
 
     name = "depth"
 
@@ -26,13 +33,17 @@ class DepthStage(Stage):
                  focus_heights_um: Sequence[float], margin: int, method: str = "spc",
                  median_size: int = 11, block_columns: int = 64,
                  directions: Sequence[int] = (1,), slack_px: int = 8,
-                 spread_size: int = 9) -> None:
+                 spread_size: int = 9, workers: int = 1) -> None:
         self.kwargs = dict(n_levels=n_levels, frame_shape=frame_shape,
                            focus_heights_um=focus_heights_um, margin=margin, method=method,
                            median_size=median_size, spread_size=spread_size,
                            block_columns=block_columns,
                            row_slack=slack_px, col_slack=slack_px)
         self.directions = list(directions)
+        # band workers (sffscan.stages.bands): made at the first frame, in the thread or
+        # process that runs the stage
+        self.workers = workers
+        self._bands: BandWorkers | None = None
         self.volume: FocusVolume | None = None
         self.spare: FocusVolume | None = None  # the last pass's, whose ring the next reuses
         self.pass_index: int | None = None
@@ -66,8 +77,11 @@ class DepthStage(Stage):
         if self.volume is None or hdr.pass_index != self.pass_index:
             yield from self.finish()
             self.pass_index = hdr.pass_index
+            if self._bands is None and self.workers > 1:
+                self._bands = BandWorkers(self.workers, name="depth-band")
             self.volume = FocusVolume(direction=self._direction(hdr.pass_index),
-                                      reuse=self.spare, **self.kwargs)  # type: ignore[arg-type]
+                                      reuse=self.spare, workers=self._bands,
+                                      **self.kwargs)  # type: ignore[arg-type]
             self.spare = None
         x, y = item.placed.offset_px
         try:
@@ -81,6 +95,11 @@ class DepthStage(Stage):
         if self.volume is not None:
             yield from self._blocks(self.volume.finish())
             self.spare, self.volume = self.volume, None
+
+    def close(self, *, failed: bool) -> None:
+        if self._bands is not None:
+            self._bands.close()
+            self._bands = None
 
     def extra_stats(self) -> dict[str, int]:
         return {"complete_columns": self.complete_columns,

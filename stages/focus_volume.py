@@ -38,22 +38,18 @@ always complete in increasing order.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
-from typing import NamedTuple
+from collections.abc import Callable, Iterator, Sequence
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
-from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
-from sffscan.stages.depth_harmonics import (
-    STREAMING_METHODS,
-    confidence_from_sums,
-    depth_from_harmonics,
-    focus_sums,
-    harmonic_table,
-)
-from sffscan.stages.depth_levels import level_spread, levels_to_height, median_filter_levels
-from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
-from sffscan.stages.depth_uncertainty import height_uncertainty_um
+from sffscan.stages.bands import BandWorkers, row_bands
+from sffscan.stages.block_depth import block_uncertainty, depth_rows
+from sffscan.stages.depth import DEPTH_METHODS
+from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
+from sffscan.stages.depth_levels import levels_to_height
+
+T = TypeVar("T")
 
 
 def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,
@@ -139,12 +135,13 @@ class FocusVolume:
         Frames' writes (column runs) held before they are applied (at the latest before
         each block reduction): applied together, strip by strip, the state stays in cache
         (:mod:`sffscan.stages.accumulate`; bit-identical for any value, 1 applies each
-        frame at once, the default). :meth:`add` keeps views of ``focus`` and ``image01``
-        until then: the caller must not change them. Deferring costs less CPU in the
-        accumulation alone (bench/results/accumulate_results.md) but was slower end to
-        end: the default scan on 2 cores, 300 frames, 3 interleaved runs each, 32
-        deferred writes against 1: 105.7 against 113.5 frames/s in processes, 94.0 against
-        97.6 in threads (the held frames leave the cache before they are applied).
+        frame at once, the default: 32 was slower end to end, commit 2d4ebc8).
+        :meth:`add` keeps views of ``focus`` and ``image01`` until then: the caller must
+        not change them.
+    workers : BandWorkers, optional
+        Band workers (:mod:`sffscan.stages.bands`): the accumulation and the reduction
+        split by rows among their threads, each band read with the filters' reach; blocks
+        bit-identical for any number. None: all in the caller's thread.
     """
 
     #: bytes of per-pixel state per strip of rows kept in cache while the deferred writes
@@ -168,6 +165,7 @@ class FocusVolume:
         reuse: FocusVolume | None = None,
         uncertainty: bool = True,
         defer_writes: int = 1,
+        workers: BandWorkers | None = None,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
@@ -199,7 +197,7 @@ class FocusVolume:
         self.fv: np.ndarray | None = None
         # the running argmax of every curve (all methods: the N-level methods reuse it)
         self.argmax = np.zeros(plane, np.uint8 if self.n <= 256 else np.uint16)
-        self._level_buf = np.empty((self.h, self.w), self.argmax.dtype)
+        self._level_buf = np.empty((self.rows, self.w), self.argmax.dtype)
         if self.streaming:
             # sums of harmonic_table(N) rows 0 (H_0), 2 (Re H_1), 3 (Im H_1), and 1 (sum k y)
             # for the centroid only; float32 (50 terms: ~1e-6 relative)
@@ -231,6 +229,8 @@ class FocusVolume:
         if defer_writes < 1:
             raise ValueError(f"defer_writes must be >= 1, got {defer_writes}")
         self.defer_writes = defer_writes
+        self.workers = workers
+        self._bands = row_bands(0, self.rows, workers.k if workers is not None else 1)
         self._pending: list[Write] = []
         self._state = AccumulatorState(
             self.best, self.argmax, self.tex, self.sums, self.coef,
@@ -345,7 +345,13 @@ class FocusVolume:
         """Apply the writes deferred since the last reduction
         (:func:`sffscan.stages.accumulate.apply_writes`)."""
         if self._pending:
-            apply_writes(self._state, self._pending, cache_bytes=self.cache_bytes)
+            if self.workers is not None and len(self._bands) > 1:
+                pending = self._pending
+                self.workers.run(lambda a, b: apply_writes(
+                    self._state, pending, cache_bytes=self.cache_bytes, rows=(a, b)),
+                    self._bands)
+            else:
+                apply_writes(self._state, self._pending, cache_bytes=self.cache_bytes)
             self._pending.clear()
 
     def _gather(self, arr: np.ndarray, u0: int, u1: int) -> np.ndarray:
@@ -408,41 +414,27 @@ class FocusVolume:
         width = u1 - u0
         sums = np.empty((3, self.rows, width), np.float32)  # H_0, Re H_1, Im H_1
         low = np.empty((self.rows, width), np.float32)  # each curve's minimum
+        argmax = self._gather(self.argmax, a0, a1)
         if self.fv is None:
-            planes = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
-            full = np.zeros((4, *planes.shape[1:]), np.float32)
-            full[0], full[2], full[3] = planes[0], planes[1], planes[2]
-            if planes.shape[0] == 4:  # only the centroid uses sum k y
-                full[1] = planes[3]
-            depth, conf = depth_from_harmonics(
-                full, self._gather(self.argmax, a0, a1), n_levels=self.n,
-                method=self.method, median_size=self.median_size)
-            depth, conf = depth[:, inner], conf[:, inner]
-            sums[:] = full[[0, 2, 3]][:, :, inner]
-            if self.uncertainty:
-                low[:] = self._gather(self.low, u0, u1)
-        elif self.method in ("wcentroid", "adaptive"):  # the levels about the filtered argmax
-            centre = median_filter_levels(self._gather(self.argmax, a0, a1),
-                                          self.median_size, self.n)
-            levels = self._gather(self.fv, u0, u1)
-            if self.method == "adaptive":  # depth and confidence in one pass over the levels
-                spread = level_spread(centre, self.spread_size, self.n)
-                depth, conf = adaptive_block(levels, centre[:, inner], spread[:, inner],
-                                             sums_out=sums,
-                                             min_out=low if self.uncertainty else None)
-            else:
-                depth = windowed_centroid(levels, centre[:, inner])
-                sums[:] = focus_sums(levels)
-                conf = confidence_from_sums(*sums)
-                low[:] = levels.min(axis=0)
+            src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
+            low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
         else:
-            vol = self._gather(self.fv, a0, a1)
-            depth, conf = depth_from_focus(vol, method=self.method,
-                                           median_size=self.median_size,
-                                           argmax=self._gather(self.argmax, a0, a1))
-            depth, conf = depth[:, inner], conf[:, inner]
-            sums[:] = focus_sums(vol[:, :, inner])
-            low[:] = vol[:, :, inner].min(axis=0)
+            wide = self.method not in ("wcentroid", "adaptive")  # the halo's levels too
+            src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
+            low_src = None
+
+        def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+            # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)
+            ra0, ra1 = max(r0 - self.halo, 0), min(r1 + self.halo, self.rows)
+            return depth_rows(src, argmax[ra0:ra1], low_src, (r0, r1),
+                              slice(r0 - ra0, r1 - ra0), inner, sums[:, r0:r1], low[r0:r1],
+                              method=self.method, n_levels=self.n,
+                              median_size=self.median_size, spread_size=self.spread_size,
+                              streaming=self.fv is None, keep_low=self.uncertainty)
+
+        parts = self._by_bands(band)
+        depth = parts[0][0] if len(parts) == 1 else np.concatenate([d for d, _ in parts])
+        conf = parts[0][1] if len(parts) == 1 else np.concatenate([c for _, c in parts])
         complete = self._gather(self.count, u0, u1) == self.n
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
@@ -456,9 +448,11 @@ class FocusVolume:
             # invalid pixels (curves that lack levels) take the block's mean depth, so
             # that their values do not count as scatter of their valid neighbours
             fill = float(depth[valid].mean()) if valid.any() else 0.0
-            unc = height_uncertainty_um(np.where(valid, depth, fill), sums, low,
-                                        n_levels=self.n, focus_heights_um=self.heights,
-                                        window=self.spread_size)
+            filled = np.where(valid, depth, fill)
+            us = self._by_bands(lambda r0, r1: block_uncertainty(
+                filled, sums, low, (r0, r1), n_levels=self.n, focus_heights_um=self.heights,
+                window=self.spread_size))
+            unc = us[0] if len(us) == 1 else np.concatenate(us)
             np.copyto(unc, np.nan, where=invalid)
         conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
         tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
@@ -469,6 +463,12 @@ class FocusVolume:
             unc = None if unc is None else unc[:, ::-1]
         x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
+
+    def _by_bands(self, fn: Callable[[int, int], T]) -> list[T]:
+        """``fn`` on each band of rows (one band, all rows, without band workers)."""
+        if self.workers is None or len(self._bands) < 2:
+            return [fn(0, self.rows)]
+        return self.workers.run(fn, self._bands)
 
     def _release(self, below: int) -> None:
         """Free ring slots of columns below ``below`` (they will not be read again).

@@ -1,0 +1,174 @@
+"""Band workers (issue 28): CPU and wall time per frame of the focus measure and the depth
+stage with K = 1, 2, 4 band workers, interleaved in one run, blocks compared bit for bit.
+
+    python bench/bench_bands.py                  # 150 frames, 5 rounds, K = 1 2 4
+    python bench/bench_bands.py --workers 1 2 4 8
+
+The default configuration (1280 x 1024, N = 50, k = 9, GLVM, the default depth method),
+over the distinct simulated frames of ``bench_pipeline.py``'s frame bank (read into memory
+first), shifted and registered once; then in every round, for each K in turn (the order
+reversed every other round), each frame's focus measure
+(:class:`~sffscan.stages.focus_measure.FocusMeasureStage` with ``workers=K``) and depth
+stage (:class:`~sffscan.stages.depth_stage.DepthStage` with ``workers=K``), as the focus
+and depth worker runs them. Over the steady-state frames (from frame ``N + 10`` on):
+CPU ms per frame (the process's CPU time, every thread's: the bands', OpenCV's; BLAS one
+thread) and wall ms per frame (the two stages' throughput on this machine's cores); median
+of ``--rounds``. Every round checks that each K's blocks are bit-identical to K = 1's.
+Not a test: nothing here asserts; it writes ``bench/results/bands.json`` and ``.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, cast
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_pipeline import bench_config, frame_bank, load_bank, machine, replay_frames  # noqa: E402
+from sffscan.pipeline.plan import pass_start_px  # noqa: E402
+from sffscan.pipeline.wiring import measure_stages  # noqa: E402
+from sffscan.stages.depth_stage import DepthStage  # noqa: E402
+from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
+from sffscan.stages.speed_shift import SpeedShiftStage  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def same(a: list[Any], b: list[Any]) -> bool:
+    """Blocks equal bit for bit (headers and every array)."""
+    def eq(u: Any, v: Any) -> bool:
+        return (u is None and v is None) or (u is not None and v is not None
+                                             and u.dtype == v.dtype and u.shape == v.shape
+                                             and u.tobytes() == v.tobytes())
+    return len(a) == len(b) and all(
+        x.header == y.header and eq(x.height_um, y.height_um) and eq(x.texture, y.texture)
+        and eq(x.confidence, y.confidence) and eq(x.uncertainty_um, y.uncertainty_um)
+        for x, y in zip(a, b, strict=True))
+
+
+def handoff_us(n: int = 2000) -> tuple[float, float]:
+    """Wall and CPU µs of handing a no-op to a pool thread and waiting for it: what each
+    band costs a call beyond its work (and about what each hand-over of the GIL between
+    two busy threads costs)."""
+    with ThreadPoolExecutor(1) as ex:
+        ex.submit(int).result()
+        c, w = time.process_time(), time.perf_counter()
+        for _ in range(n):
+            ex.submit(int).result()
+        return 1e6 * (time.perf_counter() - w) / n, 1e6 * (time.process_time() - c) / n
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=150, help="frames per run")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds (median)")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4],
+                    help="band workers K to compare (the first is the reference)")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench",
+                    help="where the rendered frames are kept")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bands",
+                    help="results, without suffix (.md and .json are written)")
+    args = ap.parse_args(argv)
+    cfg = bench_config()
+    cfg.processing.depth_method = type(cfg.processing).model_fields["depth_method"].default
+    images = load_bank(cfg, frame_bank(args.cache, args.frames), args.frames)
+    built = {s.name: s for s in measure_stages(cfg)}
+    fm_ref = cast(FocusMeasureStage, built["focus_measure"])
+    shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,
+                            pass_start=lambda i: pass_start_px(cfg, i))
+    placed = [y for f in replay_frames(cfg, images) for y in shift.process(f)]
+    reg = built.get("registration")
+    if reg is not None:
+        placed = [y for q in placed for y in reg.process(q)] + list(reg.finish())
+    del images
+    depth_ref = cast(DepthStage, built["depth"])
+    steady = cfg.optics.n_levels + 10
+
+    def run(k: int) -> tuple[float, float, list[Any]]:
+        fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
+                               max_value=fm_ref.max_value, margin=fm_ref.margin,
+                               directions=fm_ref.directions, workers=k)
+        kw = dict(depth_ref.kwargs)
+        kw["slack_px"] = kw.pop("row_slack")
+        del kw["col_slack"]
+        depth = DepthStage(directions=depth_ref.directions, workers=k, **kw)  # type: ignore[arg-type]
+        depth.prepare()
+        blocks: list[Any] = []
+        try:
+            for i, q in enumerate(placed):
+                if i == steady:
+                    c0, w0 = time.process_time(), time.perf_counter()
+                for f in fm.process(q):
+                    blocks += depth.process(f)
+            c1, w1 = time.process_time(), time.perf_counter()
+            blocks += depth.finish()
+        finally:
+            fm.close(failed=False)
+            depth.close(failed=False)
+        n = len(placed) - steady
+        return 1e3 * (c1 - c0) / n, 1e3 * (w1 - w0) / n, blocks
+
+    cpu: dict[int, list[float]] = {k: [] for k in args.workers}
+    wall: dict[int, list[float]] = {k: [] for k in args.workers}
+    identical: dict[int, list[bool]] = {k: [] for k in args.workers[1:]}
+    load0 = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    with threadpool_limits(limits=1, user_api="blas"):
+        for r in range(args.rounds):
+            order = args.workers if r % 2 == 0 else args.workers[::-1]
+            outs = {}
+            for k in order:
+                c, w, outs[k] = run(k)
+                cpu[k].append(c)
+                wall[k].append(w)
+                print(f"round {r + 1}: K = {k}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
+                      file=sys.stderr, flush=True)
+            for k in args.workers[1:]:
+                identical[k].append(same(outs[args.workers[0]], outs[k]))
+    load1 = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    hand_wall, hand_cpu = handoff_us()
+    command = "python bench/bench_bands.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    ref = args.workers[0]
+    c_ref = statistics.median(cpu[ref])
+    w_ref = statistics.median(wall[ref])
+    ks = ", ".join(map(str, args.workers))
+    lines = [f"# Band workers: focus measure + depth stage, K = {ks}",
+             "", f"`{command}`", "",
+             f"Machine: {machine()}; cores available {len(os.sched_getaffinity(0))}; load "
+             f"before / after {load0} / {load1}. Depth method "
+             f"{depth_ref.kwargs['method']}, {len(placed)} frames (steady state: the last "
+             f"{len(placed) - steady}), {args.rounds} rounds interleaved; median (min-max).",
+             "", f"A no-op handed to a pool thread and waited for: {hand_wall:.0f} µs wall, "
+             f"{hand_cpu:.0f} µs CPU (per band and call; each hand-over of the GIL between "
+             "two busy threads costs about as much).",
+             "", "| K | CPU ms/frame | CPU / K=" + str(ref) + " | wall ms/frame | frames/s "
+             "(these two stages) | speed-up | blocks bit-identical to K=" + str(ref) + " |",
+             "|---:|---:|---:|---:|---:|---:|---|"]
+    for k in args.workers:
+        c, w = statistics.median(cpu[k]), statistics.median(wall[k])
+        ident = ("reference" if k == ref else
+                 f"{sum(identical[k])} of {len(identical[k])} rounds")
+        lines.append(f"| {k} | {c:.2f} ({min(cpu[k]):.2f}-{max(cpu[k]):.2f}) | "
+                     f"{c / c_ref:.3f} | {w:.2f} ({min(wall[k]):.2f}-{max(wall[k]):.2f}) | "
+                     f"{1e3 / w:.0f} | {w_ref / w:.2f} | {ident} |")
+    text = "\n".join(lines)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(text + "\n")
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {"command": command, "machine": machine(), "frames": len(placed),
+         "steady_from": steady, "rounds": args.rounds, "cpu_ms_per_frame": cpu,
+         "wall_ms_per_frame": wall, "identical": identical,
+         "handoff_us": {"wall": hand_wall, "cpu": hand_cpu}}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,109 @@
+"""Band workers: a frame's rows split among K threads of one stage.
+
+The focus measure, the accumulation and the reduction to depth are local in the rows of a
+frame: a pixel's result depends on the rows within a fixed reach of it (the focus window,
+the median and spread filters). :func:`row_bands` cuts the rows into K bands,
+:class:`BandWorkers` runs one function per band, each band in its own thread, the caller's
+thread taking the first. Each band reads its rows widened by the reach and keeps its own
+rows, so the result is bit-identical for every K (tested in
+``tests/stages/test_bands.py``).
+
+Threads, not processes: the work inside a band is OpenCV and numpy on arrays of a few
+hundred rows, which release the GIL, and the bands share the frame and the focus volume's
+state without copies. What still holds the GIL (the calls' Python overhead) limits the
+gain; ``bench/bench_bands.py`` measures it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+__all__ = ["BandWorkers", "row_bands"]
+
+T = TypeVar("T")
+
+
+def row_bands(start: int, stop: int, k: int) -> list[tuple[int, int]]:
+    """Rows [start, stop) cut into at most ``k`` contiguous bands of near-equal height.
+
+    Parameters
+    ----------
+    start, stop : int
+        The rows, ``start <= stop``.
+    k : int
+        Number of bands, >= 1 (fewer when there are fewer rows).
+
+    Returns
+    -------
+    list of (int, int)
+        ``(r0, r1)`` per band, in order, covering [start, stop) without overlap; empty
+        when there are no rows.
+    """
+    if k < 1:
+        raise ValueError(f"k (band workers) must be >= 1, got {k}")
+    n = stop - start
+    if n <= 0:
+        return []
+    k = min(k, n)
+    edges = [start + (n * i) // k for i in range(k + 1)]
+    return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+class BandWorkers:
+    """Runs a function on each band of rows, the bands in parallel threads.
+
+    Parameters
+    ----------
+    k : int
+        Band workers, >= 1. With 1 every call runs in the caller's thread.
+    timeout_s : float
+        The longest a band may take; past it :meth:`run` raises ``TimeoutError`` naming
+        the band (the pool is then unusable: the stage fails, as any stage error does).
+
+    Notes
+    -----
+    The pool has ``k - 1`` threads, the caller runs the first band. A call waits for all
+    its bands; at most ``k - 1`` tasks are queued at any time (one call at a time per
+    pool). :meth:`close` joins the threads.
+    """
+
+    def __init__(self, k: int, *, timeout_s: float = 120.0, name: str = "band") -> None:
+        if k < 1:
+            raise ValueError(f"k (band workers) must be >= 1, got {k}")
+        self.k = k
+        self.timeout_s = timeout_s
+        self._pool = (ThreadPoolExecutor(max_workers=k - 1, thread_name_prefix=name)
+                      if k > 1 else None)
+
+    def run(self, fn: Callable[[int, int], T], bands: list[tuple[int, int]]) -> list[T]:
+        """``[fn(r0, r1) for (r0, r1) in bands]``, the bands after the first in the pool."""
+        if self._pool is None or len(bands) < 2:
+            return [fn(a, b) for a, b in bands]
+        futures = [self._pool.submit(fn, a, b) for a, b in bands[1:]]
+        try:
+            first = fn(*bands[0])
+        finally:
+            # every band finishes (or times out) before the caller goes on: they write
+            # into arrays the caller owns
+            rest = []
+            for (a, b), f in zip(bands[1:], futures, strict=True):
+                try:
+                    rest.append(f.result(timeout=self.timeout_s))
+                except TimeoutError as err:
+                    raise TimeoutError(f"band worker for rows {a}..{b} took more than "
+                                       f"{self.timeout_s:g} s") from err
+        return [first, *rest]
+
+    def close(self) -> None:
+        """Join the pool's threads (idempotent)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> BandWorkers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

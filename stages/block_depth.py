@@ -1,0 +1,107 @@
+"""A block of the focus volume reduced to depth, a band of rows at a time.
+
+:meth:`sffscan.stages.focus_volume.FocusVolume.reduce` gathers a block's state (the
+curves' sums or levels, the running argmax and minimum) and hands each band of rows to
+:func:`depth_rows`, then the uncertainty to :func:`block_uncertainty`. Each reads its rows
+widened by the filters' reach and returns its own rows only, so the block is bit-identical
+whatever the bands (:mod:`sffscan.stages.bands`; tested in ``tests/stages/test_bands.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
+from sffscan.stages.depth_levels import level_spread, median_filter_levels
+from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
+from sffscan.stages.depth_uncertainty import height_uncertainty_um
+
+__all__ = ["block_uncertainty", "depth_rows"]
+
+
+def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
+               rows: tuple[int, int], own: slice, inner: slice, sums: np.ndarray,
+               low: np.ndarray, *, method: str, n_levels: int, median_size: int,
+               spread_size: int, streaming: bool, keep_low: bool
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (levels) and confidence of rows [r0, r1) of a block.
+
+    Parameters
+    ----------
+    src : ndarray of float32
+        Every row of the block: for the accumulating methods (``streaming``) the sums
+        (S, rows, halo + block + halo columns); for wcentroid and adaptive the levels of
+        the block's columns (N, rows, block); for the other methods the levels of the
+        block and its halo (N, rows, halo + block + halo).
+    argmax : ndarray of int, (R, halo + block + halo)
+        The running argmax of rows [r0, r1) widened by the filters' reach (R rows).
+    low_src : ndarray of float32 or None
+        The accumulating methods' running minimum of every row, (rows, block), or None.
+    rows : (int, int)
+        The band [r0, r1), block rows.
+    own : slice
+        Rows [r0, r1) within ``argmax``'s R rows.
+    inner : slice
+        The block's columns within the halo.
+    sums, low : ndarray of float32, (3, r1 - r0, block) and (r1 - r0, block)
+        Outputs (the band's rows of the block's arrays): the curves' H_0, Re H_1, Im H_1
+        and minimum (``low`` written where ``keep_low`` or the method reads the levels).
+    method : str, keyword-only
+        The depth method.
+    n_levels, median_size, spread_size : int, keyword-only
+        N, the SPC median's size and adaptive's spread window, px.
+    streaming, keep_low : bool, keyword-only
+        Whether ``src`` holds sums; whether the minimum is wanted.
+
+    Returns
+    -------
+    depth, confidence : ndarray of float32, (r1 - r0, block)
+    """
+    r0, r1 = rows
+    wide = slice(r0 - own.start, r1 + (argmax.shape[0] - own.stop))  # argmax's rows
+    if streaming:
+        planes = src[:, wide]
+        full = np.zeros((4, *planes.shape[1:]), np.float32)
+        full[0], full[2], full[3] = planes[0], planes[1], planes[2]
+        if planes.shape[0] == 4:  # only the centroid uses sum k y
+            full[1] = planes[3]
+        depth, conf = depth_from_harmonics(full, argmax, n_levels=n_levels, method=method,
+                                           median_size=median_size)
+        sums[:] = full[[0, 2, 3]][:, own, inner]
+        if keep_low and low_src is not None:
+            low[:] = low_src[r0:r1]
+        return depth[own, inner], conf[own, inner]
+    if method in ("wcentroid", "adaptive"):  # the levels about the filtered argmax
+        centre = median_filter_levels(argmax, median_size, n_levels)
+        levels = src[:, r0:r1]
+        if method == "adaptive":  # depth and confidence in one pass over the levels
+            spread = level_spread(centre, spread_size, n_levels)
+            return adaptive_block(levels, centre[own, inner], spread[own, inner],
+                                  sums_out=sums, min_out=low if keep_low else None)
+        depth = windowed_centroid(levels, centre[own, inner])
+        sums[:] = focus_sums(levels)
+        low[:] = levels.min(axis=0)
+        return depth, confidence_from_sums(*sums)
+    vol = src[:, wide]
+    depth, conf = depth_from_focus(vol, method=method, median_size=median_size, argmax=argmax)
+    sums[:] = focus_sums(vol[:, own, inner])
+    low[:] = vol[:, own, inner].min(axis=0)
+    return depth[own, inner], conf[own, inner]
+
+
+def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
+                      rows: tuple[int, int], *, n_levels: int, focus_heights_um: np.ndarray,
+                      window: int) -> np.ndarray:
+    """:func:`~sffscan.stages.depth_uncertainty.height_uncertainty_um` of rows [r0, r1)
+    of a block, from the rows within its filters' reach (a 5 x 5 median, then ranges and
+    means over ``2 window + 1`` px: 2 + ``window`` rows; one more is read).
+
+    ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
+    every row of the block; returns float32 (r1 - r0, block), µm.
+    """
+    r0, r1 = rows
+    reach = 3 + window
+    a0, a1 = max(r0 - reach, 0), min(r1 + reach, depth.shape[0])
+    u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], n_levels=n_levels,
+                              focus_heights_um=focus_heights_um, window=window)
+    return u[r0 - a0:r1 - a0]
