@@ -8,7 +8,8 @@ package-dir), which griffe cannot follow from the name ``sffscan.pipeline.config
 site searches the repository root (``paths: [.]`` in mkdocs.yml).
 
 The line ``<!-- bench-result-tables -->`` becomes the list of ``bench/*.py`` scripts (the
-first paragraph of each docstring) and every ``bench/*.md`` table as its script last wrote
+first paragraph of each docstring) and every ``bench/*.md`` and ``bench/results/*.md``
+table as its script last wrote
 it, headings moved two levels down: the figures are never copied by hand.
 
 Pages other work adds (:data:`OPTIONAL_PAGES`) join their nav section when they exist.
@@ -98,8 +99,8 @@ def bench_tables() -> str:
         first = " ".join(doc.split("\n\n")[0].split()).replace("|", "\\|")
         out.append(f"| `python bench/{script.name}` | {first} |")
     out.append("")
-    for table in sorted(bench.glob("*.md")):
-        out.append(f"## `bench/{table.name}`\n")
+    for table in sorted(bench.glob("*.md")) + sorted(bench.glob("results/*.md")):
+        out.append(f"## `bench/{table.relative_to(bench).as_posix()}`\n")
         out.append(_demote(table.read_text(encoding="utf-8"), 2) + "\n")
     return "\n".join(out)
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from sffscan.pipeline.mosaic.ngff import level_path
 
 from sffscan import open_mosaic
 from tests.scan_helpers import scan, small_config
+from tests.venvs import make_venv
 
 ROOT = Path(__file__).resolve().parents[3]
 NGFF_VENV = ROOT / ".venv-ngff"
@@ -30,18 +30,14 @@ REQUIREMENTS = ROOT / "tests" / "ngff-requirements.txt"
 
 @pytest.fixture(scope="session")
 def ngff_python() -> Path:
-    """Python of the NGFF tools' own environment, created on first use (about a minute)."""
+    """Python of the NGFF tools' own environment, created on first use (seconds, uv)."""
     python = NGFF_VENV / "bin" / "python"
     probe = [str(python), "-c", "import ome_zarr, ome_zarr_models"]
     if python.exists() and subprocess.run(probe, capture_output=True).returncode == 0:
         return python
-    steps = [[sys.executable, "-m", "venv", "--clear", str(NGFF_VENV)],
-             [str(python), "-m", "pip", "install", "-q", "-r", str(REQUIREMENTS)]]
-    for step in steps:
-        done = subprocess.run(step, capture_output=True, text=True, timeout=600)
-        if done.returncode != 0:
-            pytest.fail(f"cannot build the NGFF tools' environment ({' '.join(step)}): "
-                        f"{done.stderr[-2000:]}")
+    done = make_venv(NGFF_VENV, "-r", str(REQUIREMENTS), timeout=600)
+    if done.returncode != 0:
+        pytest.fail(f"cannot build the NGFF tools' environment: {done.stderr[-2000:]}")
     return python
 
 

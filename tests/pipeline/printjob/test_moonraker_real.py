@@ -36,6 +36,8 @@ from sffscan.pipeline.printjob.service import (
     ScanResult,
 )
 
+from tests.venvs import make_venv
+
 pytestmark = pytest.mark.slow
 
 CACHE = Path(os.environ.get("SFFSCAN_CACHE", Path.home() / ".cache" / "sffscan"))
@@ -50,10 +52,7 @@ def _moonraker_python() -> Path:
     python = VENV / "bin" / "python"
     if python.exists():
         return python
-    subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True, timeout=300)
-    pip = subprocess.run(["nice", "-n", "10", str(VENV / "bin" / "pip"), "install", "-q",
-                          str(SRC)], capture_output=True, text=True, timeout=1800,
-                         env={**os.environ, "PDM_BUILD_SCM_VERSION": "0.0.0"})
+    pip = make_venv(VENV, str(SRC), env={**os.environ, "PDM_BUILD_SCM_VERSION": "0.0.0"})
     if pip.returncode != 0:
         shutil.rmtree(VENV, ignore_errors=True)
         try:

@@ -1,7 +1,7 @@
 """The OctoPrint plug-in against a real OctoPrint server (from PyPI) and its Virtual Printer.
 
-The test makes (once, then reuses) a venv with OctoPrint under ``$SFFSCAN_CACHE`` (default
-``~/.cache/sffscan/octoprint-venv``), installs the plug-in from ``printer_links/`` into it
+The test makes (once, then reuses; with uv, tests/venvs.py) a venv with OctoPrint under
+``$SFFSCAN_CACHE`` (default ``~/.cache/sffscan/octoprint-venv``), installs the plug-in from ``printer_links/`` into it
 (a copy, so that no build files land in the checkout), starts ``octoprint serve`` on a
 free loopback port with a temporary basedir, connects to ``VIRTUAL`` and prints 10-layer
 G-code files with ``@SFFSCAN`` lines against a job service with a light handler.
@@ -17,7 +17,6 @@ import secrets
 import shutil
 import socket
 import subprocess
-import sys
 import threading
 import time
 import urllib.request
@@ -36,6 +35,8 @@ from sffscan.pipeline.printjob.service import (
     LayerEvent,
     ScanResult,
 )
+
+from tests.venvs import make_venv, venv_install
 
 pytestmark = pytest.mark.slow
 
@@ -57,15 +58,12 @@ def _pypi_reachable() -> bool:
 
 
 def _octoprint_venv() -> Path:
-    """The cached venv; made (minutes, once) when it lacks the marker of a finished install."""
+    """The cached venv; made (seconds, uv) when it lacks the marker of a finished install."""
     done = VENV / "sffscan-installed.txt"
     if done.is_file() and (VENV / "bin" / "octoprint").exists():
         return VENV
     CACHE.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(VENV, ignore_errors=True)
-    subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True, timeout=300)
-    pip = subprocess.run(["nice", "-n", "10", str(VENV / "bin" / "pip"), "install", "-q",
-                          OCTOPRINT_SPEC], capture_output=True, text=True, timeout=1800)
+    pip = make_venv(VENV, OCTOPRINT_SPEC)
     if pip.returncode != 0:
         shutil.rmtree(VENV, ignore_errors=True)
         if not _pypi_reachable():
@@ -244,9 +242,8 @@ def octoprint_setup(tmp_path: Path) -> Iterator[tuple[OctoPrint, CountingHandler
     src = tmp_path / "plugin-src"
     shutil.copytree(PLUGIN_SRC, src, ignore=shutil.ignore_patterns("build", "*.egg-info",
                                                                      "__pycache__"))
-    subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "--no-deps",
-                    "--force-reinstall", str(src)], check=True, capture_output=True,
-                   timeout=300)
+    done = venv_install(venv, "--no-deps", "--reinstall", str(src), timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
     handler = CountingHandler()
     service = _EndingService(tmp_path / "store", handler, scan_timeout_s=30,
                              verdict_timeout_s=30)
