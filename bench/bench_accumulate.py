@@ -40,12 +40,9 @@ from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
-from bench_pipeline import bench_config, frame_bank, load_bank, machine, replay_frames  # noqa: E402
-from sffscan.pipeline.plan import pass_start_px  # noqa: E402
-from sffscan.pipeline.wiring import measure_stages  # noqa: E402
+from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
 from sffscan.stages import depth_stage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
-from sffscan.stages.speed_shift import SpeedShiftStage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,14 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg.processing.depth_method = args.method or type(
         cfg.processing).model_fields["depth_method"].default
     images = load_bank(cfg, frame_bank(args.cache, args.frames), args.frames)
-    built = {s.name: s for s in measure_stages(cfg)}
+    placed, built = placed_frames(cfg, images)
     fm_stage = cast(FocusMeasureStage, built["focus_measure"])
-    shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,
-                            pass_start=lambda i: pass_start_px(cfg, i))
-    placed = [y for f in replay_frames(cfg, images) for y in shift.process(f)]
-    reg = built.get("registration")
-    if reg is not None:
-        placed = [y for q in placed for y in reg.process(q)] + list(reg.finish())
     del images
     depth = cast(depth_stage.DepthStage, built["depth"])
     kwargs = dict(depth.kwargs, directions=depth.directions)

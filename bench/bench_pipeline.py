@@ -44,13 +44,15 @@ from typing import Any
 import numpy as np
 import torch
 from sffscan.pipeline.config import ScanConfig, demo_config
-from sffscan.pipeline.plan import plan_frames
+from sffscan.pipeline.plan import pass_start_px, plan_frames
 from sffscan.pipeline.sim_source import header_of, simulate_frames
-from sffscan.pipeline.wiring import run_scan
+from sffscan.pipeline.wiring import measure_stages, run_scan
 from sffscan.stages.focus_measure import focus_measure_raw, to_unit_float
 from sffscan.stages.focus_torch import glvm, glvm_conv2d_baseline, tenv
-from sffscan.stages.messages import Frame
+from sffscan.stages.messages import Frame, PlacedFrame
 from sffscan.stages.operators.opencv import glvm_cv, tenv_cv
+from sffscan.stages.protocol import Stage
+from sffscan.stages.speed_shift import SpeedShiftStage
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,6 +136,22 @@ def replay_frames(cfg: ScanConfig, images: list[np.ndarray]) -> Iterator[Frame]:
     """The plan's first ``len(images)`` frames with these images (from memory)."""
     for image, pf in zip(images, plan_frames(cfg), strict=False):
         yield Frame(header_of(cfg, pf), image)
+
+
+def placed_frames(cfg: ScanConfig, images: list[np.ndarray], *, register: bool = True
+                  ) -> tuple[list[PlacedFrame], dict[str, Stage]]:
+    """The frames placed by the speed shift and, with ``register`` where the
+    configuration registers, by its registration stage (all of it, its end included);
+    and the configuration's measuring stages (:func:`sffscan.pipeline.wiring.measure_stages`)
+    by name, for the benchmark to run or copy."""
+    built = {s.name: s for s in measure_stages(cfg)}
+    shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,
+                            pass_start=lambda i: pass_start_px(cfg, i))
+    placed = [y for f in replay_frames(cfg, images) for y in shift.process(f)]
+    reg = built.get("registration") if register else None
+    if reg is not None:
+        placed = [y for q in placed for y in reg.process(q)] + list(reg.finish())
+    return placed, built
 
 
 def run_case(case: dict[str, Any]) -> dict[str, Any]:

@@ -30,12 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
-from bench_pipeline import bench_config, frame_bank, load_bank, machine, replay_frames  # noqa: E402
-from sffscan.pipeline.plan import pass_start_px  # noqa: E402
-from sffscan.pipeline.wiring import measure_stages  # noqa: E402
+from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
 from sffscan.stages import focus_measure, registration  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
-from sffscan.stages.speed_shift import SpeedShiftStage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 
@@ -48,11 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     cfg = bench_config()
     images = load_bank(cfg, frame_bank(args.cache, args.frames), args.frames)
-    built = {s.name: s for s in measure_stages(cfg)}
+    placed, built = placed_frames(cfg, images, register=False)
     fm_stage = cast(FocusMeasureStage, built["focus_measure"])
-    shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,
-                            pass_start=lambda i: pass_start_px(cfg, i))
-    placed = [y for f in replay_frames(cfg, images) for y in shift.process(f)]
     o, p = cfg.optics, cfg.processing
     trees: dict[str, tuple[ModuleType, ModuleType]] = {"this tree": (registration, focus_measure)}
     if args.against is not None:
