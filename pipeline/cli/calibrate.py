@@ -215,6 +215,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     from sffscan.pipeline.cli.calibrate_images import register_subcommands
 
     register_subcommands(cs)
+    from sffscan.pipeline.cli.job import add_printer_fit
+
+    add_printer_fit(cs, "printer")
 
     p = sub.add_parser("twostep", help="simulated two-step measurement: coarse prior vs full")
     p.add_argument("--field-px", type=int, default=128, help="field size, px (default 128)")

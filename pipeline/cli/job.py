@@ -177,6 +177,25 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
                          processing={"depth_method": args.method} if args.method else None)
 
 
+def add_printer_fit(subparsers: argparse._SubParsersAction, name: str) -> None:  # type: ignore[type-arg]
+    """The printer-mapping fit as sub-command ``name`` (``job calibrate``, ``calibrate
+    printer``: one command, two places a user looks for it)."""
+    c = subparsers.add_parser(
+        name, help="fit the printer -> mosaic mapping from a done layer's mosaic (--apply "
+        "stores it in the manifest)",
+        description="Fit the printer -> mosaic translation (phase correlation of the layer's "
+        "mosaic with its expected map from the G-code, started from the manifest's mapping; "
+        "the rotation is kept). Prints the offset and its change, µm. Exit 2 for a missing "
+        "layer, a layer without a mosaic or a fit that fails. Also 'sffscan job calibrate' "
+        "and 'sffscan calibrate printer'.")
+    c.add_argument("job", help="job folder")
+    c.add_argument("--layer", type=int, default=None,
+                   help="layer to fit on, 0-based (default the first done layer)")
+    c.add_argument("--apply", action="store_true",
+                   help="store the fitted mapping in the job's manifest (later layers use it)")
+    c.set_defaults(func=cmd_calibrate)
+
+
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("job", help="print jobs: every layer scanned and compared with the "
                        "G-code (demo, show, report, calibrate, reprocess)",
@@ -207,19 +226,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     r.add_argument("-o", "--output", default=None,
                    help="HTML file to write (default JOB/report.html)")
     r.set_defaults(func=cmd_report)
-    c = jsub.add_parser("calibrate", help="fit the printer -> mosaic mapping from a done "
-                        "layer's mosaic (--apply stores it in the manifest)",
-                        description="Fit the printer -> mosaic translation (phase correlation "
-                        "of the layer's mosaic with its expected map from the G-code, started "
-                        "from the manifest's mapping; the rotation is kept). Prints the offset "
-                        "and its change, µm. Exit 2 for a missing layer, a layer without a "
-                        "mosaic or a fit that fails.")
-    c.add_argument("job", help="job folder")
-    c.add_argument("--layer", type=int, default=None,
-                   help="layer to fit on, 0-based (default the first done layer)")
-    c.add_argument("--apply", action="store_true",
-                   help="store the fitted mapping in the job's manifest (later layers use it)")
-    c.set_defaults(func=cmd_calibrate)
+    add_printer_fit(jsub, "calibrate")
     rp = jsub.add_parser("reprocess", help="replay each done layer's raw recording into a "
                          "fresh mosaic, recompute its deviation and verdict",
                          description="Reprocess a job's layers from their recordings "

@@ -127,3 +127,16 @@ def test_batch_reprocesses_a_job_folder_in_place(job, capsys, tmp_path) -> None:
     assert "is a job folder" in capsys.readouterr().err
     assert main(["batch", str(tmp_path / "none*.zarr")]) == 2  # recordings still need -o
     assert "-o/--output is required" in capsys.readouterr().err
+
+
+def test_calibrate_printer_is_the_same_command(job, capsys) -> None:
+    """``sffscan calibrate printer`` (where the calibrations are) runs ``job calibrate``."""
+    JobStore.open(job).update_manifest(mapping=PrinterMapping(offset_um=(300.0, -200.0)))
+    assert main(["calibrate", "printer", str(job), "--layer", "1"]) == 0
+    via_calibrate = capsys.readouterr().out
+    assert main(["job", "calibrate", str(job), "--layer", "1"]) == 0
+    assert capsys.readouterr().out == via_calibrate
+    assert "change from the manifest's mapping" in via_calibrate
+    assert JobStore.open(job).manifest.mapping.offset_um == (300.0, -200.0)  # no --apply
+    assert main(["calibrate", "printer", str(job), "--layer", "2"]) == 2
+    assert f"{job}: layer 2 is not done" in capsys.readouterr().err
