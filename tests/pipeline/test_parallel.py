@@ -280,6 +280,41 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
 
 
 
+_FAULTS = """
+import resource, sys
+import numpy as np
+from sffscan.pipeline.worker import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+def frame():  # a stage's temporaries: three 2.5 MiB arrays alive at once, then freed
+    a = np.ones((1024, 640), np.float32)
+    b = a * 2
+    c = a + b
+    return float(c[0, 0])
+for _ in range(3):  # warm up
+    frame()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    frame()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_kept_freed_memory_is_reused_without_page_faults() -> None:
+    """What keep_freed_memory is for: a frame's temporaries (three 2.5 MiB arrays alive at
+    once, as in the focus measure) fault their pages in again every frame by default (glibc
+    trims the freed heap top; 37 760 faults for 20 frames, measured), and are reused once
+    the setting took (0)."""
+    faults = {}
+    for mode in ("default", "keep"):
+        done = subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True,
+                              text=True, timeout=120, check=True)
+        faults[mode] = int(done.stdout.split()[-1])
+    assert faults["default"] >= 20 * 1000, faults
+    assert faults["keep"] <= 200, faults
+
+
 def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
     """A worker's glibc settings take (on Linux), in a fresh process so this one keeps its
     own; the main process's objects are back in the collector after a process run."""

@@ -1,10 +1,11 @@
 """The OctoPrint plug-in against a real OctoPrint server (from PyPI) and its Virtual Printer.
 
 The test makes (once, then reuses; with uv, tests/venvs.py) a venv with OctoPrint under
-``$SFFSCAN_CACHE`` (default ``~/.cache/sffscan/octoprint-venv``), installs the plug-in from ``printer_links/`` into it
-(a copy, so that no build files land in the checkout), starts ``octoprint serve`` on a
-free loopback port with a temporary basedir, connects to ``VIRTUAL`` and prints 10-layer
-G-code files with ``@SFFSCAN`` lines against a job service with a light handler.
+``$SFFSCAN_CACHE`` (default ``~/.cache/sffscan/octoprint-venv``), installs the plug-in
+from ``printer_links/`` into it (a copy, so that no build files land in the checkout),
+starts ``octoprint serve`` on a free loopback port with a temporary basedir, connects to
+``VIRTUAL`` and prints 10-layer G-code files with ``@SFFSCAN`` lines against a job
+service with a light handler.
 It is skipped only when that venv cannot be created because PyPI cannot be reached.
 """
 
