@@ -29,7 +29,12 @@ from pathlib import Path
 from typing import Any
 
 from sffscan.pipeline.formats.recording import RecordingError
-from sffscan.pipeline.printjob.links_trapq import TrapqStream, attach_trapq, bridge_url
+from sffscan.pipeline.printjob.links_trapq import (
+    TrapqStream,
+    attach_trapq,
+    await_reply,
+    bridge_url,
+)
 from sffscan.pipeline.printjob.service import (
     JobEnd,
     JobService,
@@ -189,18 +194,14 @@ class MoonrakerAgent:
     def _call(self, ws: Any, method: str, params: dict[str, Any]) -> Any:
         """Send a request and wait for its answer (notifications before it are handled)."""
         rid = self._send(ws, method, params)
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise AgentError(f"{method}: no answer from {self.url} within "
-                                 f"{self.timeout_s:g} s")
-            msg = json.loads(ws.recv(timeout=left))
-            if msg.get("id") == rid:
-                if "error" in msg:
-                    raise AgentError(f"{method}: {msg['error'].get('message', msg['error'])}")
-                return msg.get("result")
-            self._handle(ws, msg)
+        assert rid is not None
+        msg = await_reply(ws, rid, timeout_s=self.timeout_s,
+                          on_other=lambda m: self._handle(ws, m),
+                          no_answer=lambda: AgentError(f"{method}: no answer from {self.url} "
+                                                       f"within {self.timeout_s:g} s"))
+        if "error" in msg:
+            raise AgentError(f"{method}: {msg['error'].get('message', msg['error'])}")
+        return msg.get("result")
 
     def run(self, stop: threading.Event) -> None:
         """Connect, identify, register, then serve calls until ``stop`` is set or the

@@ -60,6 +60,24 @@ def bridge_url(agent_url: str) -> str:
     return urlunsplit((parts.scheme, parts.netloc, path, "", ""))
 
 
+def await_reply(ws: Any, rid: int, *, timeout_s: float,
+                on_other: Callable[[dict[str, Any]], None],
+                no_answer: Callable[[], Exception]) -> dict[str, Any]:
+    """The JSON-RPC message answering request ``rid`` on the websocket ``ws``; each message
+    received before it (notifications, other answers) goes to ``on_other``. Raises
+    ``no_answer()`` when nothing answers within ``timeout_s``. The Moonraker agent's calls
+    and the motion-queue subscription both wait so."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise no_answer()
+        msg = json.loads(ws.recv(timeout=left))
+        if msg.get("id") == rid:
+            return dict(msg)
+        on_other(msg)
+
+
 class TrapqStream:
     """A subscription to ``motion_report/dump_trapq`` kept open in a thread.
 
@@ -112,21 +130,14 @@ class TrapqStream:
     def _subscribe(self, ws: Any) -> None:
         ws.send(json.dumps({"id": 1, "method": METHOD, "params": {
             "name": self.name, "response_template": {"q": "sffscan_trapq"}}}))
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise MotionQueueError(f"{self.url}: no answer to {METHOD} within "
-                                       f"{self.timeout_s:g} s")
-            msg = json.loads(ws.recv(timeout=left))
-            if msg.get("id") != 1:
-                self._take(msg)
-                continue
-            if "error" in msg or list((msg.get("result") or {}).get("header", [])) != HEADER:
-                raise MotionQueueError(f"{self.url}: {METHOD} {self.name!r} answered "
-                                       f"{msg.get('error') or msg.get('result')!r}, expected "
-                                       f"the header {HEADER}")
-            return
+        msg = await_reply(ws, 1, timeout_s=self.timeout_s, on_other=self._take,
+                          no_answer=lambda: MotionQueueError(
+                              f"{self.url}: no answer to {METHOD} within "
+                              f"{self.timeout_s:g} s"))
+        if "error" in msg or list((msg.get("result") or {}).get("header", [])) != HEADER:
+            raise MotionQueueError(f"{self.url}: {METHOD} {self.name!r} answered "
+                                   f"{msg.get('error') or msg.get('result')!r}, expected "
+                                   f"the header {HEADER}")
 
     def _take(self, msg: dict[str, Any]) -> None:
         data = (msg.get("params") or {}).get("data")
@@ -267,4 +278,4 @@ def attach_trapq(recording: str | Path, stream: TrapqStream, *,
     return motion
 
 
-__all__ = ["TrapqStream", "attach_trapq", "bridge_url", "METHOD", "HEADER"]
+__all__ = ["TrapqStream", "attach_trapq", "await_reply", "bridge_url", "METHOD", "HEADER"]
