@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shutil
 import statistics
 import sys
@@ -38,7 +37,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np
+from bench_pipeline import machine  # noqa: E402
 from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,8 +197,7 @@ def run(layers: int, workdir: Path) -> dict:
     fit_err = float(np.hypot(fit.offset_um[0] - DEMO_MAPPING.offset_um[0],
                              fit.offset_um[1] - DEMO_MAPPING.offset_um[1]))
     return {
-        "meta": {"machine": f"{platform.node()} shared 2-core VM (8 helpers), "
-                 f"python {platform.python_version()}", "layers": layers,
+        "meta": {"machine": machine(), "layers": layers,
                  "config": "25 µm/px, 384 x 384 px, 30 levels x 200 µm, 150 frames/s, "
                  "15 mm/s, 3 passes, x 0.5-22.5 mm", "wall_s": wall,
                  "tolerances": tol.model_dump()},
