@@ -99,13 +99,19 @@ def test_the_trigger_is_the_first_move_from_the_raster_start_after_a_standstill(
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("motion")
-    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 4.0},
+    return recorded_scan(tmp_path_factory.mktemp("motion"), x_end_mm=4.0)
+
+
+def recorded_scan(folder: Path, *, x_end_mm: float) -> Path:
+    """``sffscan scan --record`` of the small test scan from x = 2 mm to ``x_end_mm``
+    (registration off), in ``folder``; returns the recording."""
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": x_end_mm},
                        processing={"registration": False})
-    (d / "scan.toml").write_text(config_to_toml(cfg))
-    rec = d / "rec.zarr"
-    assert main(["scan", "--config", str(d / "scan.toml"), "-o", str(d / "live.zarr"),
-                 "--record", str(rec), "-q", "--no-evaluate"]) == 0
+    (folder / "scan.toml").write_text(config_to_toml(cfg))
+    rec = folder / "rec.zarr"
+    assert main(["scan", "--config", str(folder / "scan.toml"), "-o",
+                 str(folder / "live.zarr"), "--record", str(rec), "-q",
+                 "--no-evaluate"]) == 0
     return rec
 
 

@@ -16,8 +16,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from sffscan.pipeline.cli.main import main
-from sffscan.pipeline.config import config_to_toml
 from sffscan.pipeline.formats.recording_motion import MotionQueueError
 from sffscan.pipeline.formats.recording_reader import open_recording
 from sffscan.pipeline.printjob.links_moonraker import MoonrakerAgent, ServiceBridge
@@ -36,8 +34,8 @@ from sffscan.pipeline.printjob.service import (
 )
 from websockets.sync.server import ServerConnection, serve
 
+from tests.pipeline.formats.test_recording_motion import recorded_scan
 from tests.pipeline.printjob.test_moonraker_agent import FakeMoonraker
-from tests.scan_helpers import small_config
 
 REGION = (30.0, 40.0)  # printer mm of the raster's start
 
@@ -88,14 +86,7 @@ class FakeBridge:
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    d = tmp_path_factory.mktemp("trapq")
-    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 3.0},
-                       processing={"registration": False})
-    (d / "scan.toml").write_text(config_to_toml(cfg))
-    rec = d / "rec.zarr"
-    assert main(["scan", "--config", str(d / "scan.toml"), "-o", str(d / "live.zarr"),
-                 "--record", str(rec), "-q", "--no-evaluate"]) == 0
-    return rec
+    return recorded_scan(tmp_path_factory.mktemp("trapq"), x_end_mm=3.0)
 
 
 def raster_rows(rec: Path, *, t0_s: float = 500.0) -> list[list[Any]]:

@@ -17,7 +17,7 @@ from sffscan.pipeline.printjob.jobstore import JobStore
 from tests.pipeline.printjob.test_printjob_jobstore import _tiny_config, tiny_gcode
 
 
-def _rrd_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
+def rrd_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
     """Temporal rows per entity of an .rrd (rerun's public RrdReader)."""
     import pyarrow as pa
     from rerun.chunk import RrdReader
@@ -60,7 +60,7 @@ def test_each_layer_scan_and_verdict_are_logged_as_they_come(tmp_path: Path) -> 
                                    layers=[0, 1], on_layer=on_layer, view=view)
     assert [v.verdict for v in verdicts] == ["pass", "pass"]
     assert seen == [(0, [0]), (1, [0, 1])]
-    rows = _rrd_rows(rrd)
+    rows = rrd_rows(rrd)
     # the scans: camera frames and mosaic tiles of both layers, each on its layer
     cams = rows["/scan/camera/image"]
     assert {r["layer"] for r in cams} == {0, 1} and all(r["frame"] is not None for r in cams)
@@ -117,7 +117,7 @@ def test_the_service_shows_each_jobs_layers_live(tmp_path: Path) -> None:
     assert len(views) == 1 and views[0].layers_logged == [0]
     rec.flush()
     rec.disconnect()
-    rows = _rrd_rows(rrd)
+    rows = rrd_rows(rrd)
     assert {r["layer"] for r in rows["/scan/camera/image"]} == {0}
     assert [r["layer"] for r in rows["/job/verdict"]] == [0]
     assert "**PASS**" in rows["/job/verdict"][0]["TextDocument:text"][0]

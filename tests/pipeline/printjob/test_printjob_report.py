@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import base64
 import re
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +23,7 @@ from sffscan.pipeline.printjob.report import (
 )
 
 from tests.pipeline.printjob.test_printjob_jobstore import tiny_gcode
+from tests.pipeline.printjob.test_printjob_live_view import rrd_rows
 
 GRID = Grid((0.0, 0.0), 100.0, (40, 80))  # 8 x 4 mm, the tiny G-code's two squares
 
@@ -142,22 +142,11 @@ def test_the_tolerance_band_is_neutral_and_the_sides_diverge() -> None:
 
 
 def _rrd_rows(path: Path) -> dict[str, list[dict[str, Any]]]:
-    """Temporal rows per entity of an .rrd (rerun's public RrdReader), by layer."""
-    import pyarrow as pa
-    from rerun.chunk import RrdReader
-
-    rows: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    for chunk in RrdReader(path).stream():
-        if chunk.is_static:
-            continue
-        batch = chunk.to_record_batch()
-        cols = {n: (c.cast(pa.int64()) if pa.types.is_timestamp(c.type) else c).to_pylist()
-                for n, c in zip(batch.schema.names, batch.columns, strict=True)}
-        rows[chunk.entity_path].extend(dict(zip(cols, v, strict=True))
-                                       for v in zip(*cols.values(), strict=True))
+    """Temporal rows per entity of an .rrd (test_printjob_live_view's reader), by layer."""
+    rows = rrd_rows(path)
     for r in rows.values():
         r.sort(key=lambda x: x["layer"])
-    return dict(rows)
+    return rows
 
 
 def test_the_rerun_layer_timeline_has_each_layer_map_and_verdict(job: Path,
