@@ -31,16 +31,26 @@ from tests.scan_helpers import small_config
 
 def block_reduce(a: np.ndarray, f: int, how: str) -> np.ndarray:
     """Reference: reduce f x f blocks of ``a`` (edge blocks cut by the array's end) with
-    numpy's own nanmean / mean / sum, one block at a time."""
+    numpy's own nanmean / mean / sum over each block's own elements: the array is padded to
+    whole blocks and each block's f x f values reduced together (the padding is NaN, left
+    out by nanmean, and counted out of mean and sum)."""
     rows, cols = a.shape
-    out = np.empty((-(-rows // f), -(-cols // f)), np.float64)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of an all-NaN block: NaN
-        for i in range(out.shape[0]):
-            for j in range(out.shape[1]):
-                b = a[i * f:(i + 1) * f, j * f:(j + 1) * f].astype(np.float64)
-                out[i, j] = {"nanmean": np.nanmean, "mean": np.mean, "sum": np.sum}[how](b)
-    return out
+    out_r, out_c = -(-rows // f), -(-cols // f)
+    pad = np.full((out_r * f, out_c * f), np.nan)
+    pad[:rows, :cols] = a
+    blocks = pad.reshape(out_r, f, out_c, f).transpose(0, 2, 1, 3).reshape(out_r, out_c, -1)
+    inside = np.zeros(pad.shape, bool)
+    inside[:rows, :cols] = True
+    inside = inside.reshape(out_r, f, out_c, f).transpose(0, 2, 1, 3).reshape(out_r, out_c, -1)
+    if how == "nanmean":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN block: NaN
+            return np.nanmean(blocks, axis=2)
+    total = np.sum(np.where(inside, blocks, 0.0), axis=2)  # a NaN inside stays NaN
+    if how == "sum":
+        return total
+    assert how == "mean", how
+    return total / np.count_nonzero(inside, axis=2)
 
 
 def how(name: str) -> str:
