@@ -168,8 +168,6 @@ class Recording:
         if int(row[0]) < 0:  # no copy (lost): nothing to check against
             return None
         enc = headers.metadata.encode_chunk_key  # type: ignore[union-attr]
-        frames = self.group["frames"]
-        key = frames.metadata.encode_chunk_key((index, 0, 0))  # type: ignore[union-attr]
         if int(row[BASE_COLUMNS]) != index or int(row[0]) != fid:
             return (f"frame index {index} (frame_id {fid}): its header copy "
                     f"{self.path}/headers/{enc((index, 0))} holds index "
@@ -177,6 +175,10 @@ class Recording:
                     "swapped or copied)")
         want = frame_digest(image, index=index, recording_id=self.recording_id)
         if int(row[BASE_COLUMNS + 1]) != want:
+            # the frames array opened only to name the chunk (opening it for every frame
+            # took half of the frame reader's CPU in a profile of the test suite)
+            frames = self.group["frames"]
+            key = frames.metadata.encode_chunk_key((index, 0, 0))  # type: ignore[union-attr]
             return (f"frame index {index} (frame_id {fid}): {self.path}/frames/{key} holds "
                     "pixels that are not this frame's (digest mismatch: a frame chunk "
                     "swapped with or copied over another)")
