@@ -43,6 +43,7 @@ import asyncio
 import csv
 import glob
 import logging
+import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -163,11 +164,12 @@ def _mosaic_status(path: Path) -> dict[str, Any] | None:
 
 
 def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate: bool,
-            overwrite: bool, row: BatchRow) -> None:
+            overwrite: bool, row: BatchRow, threads: int) -> None:
     """Replay ``recording`` into ``mosaic`` through the one run path
     (:func:`sffscan.pipeline.run.execute`), resuming it if it was interrupted (and not
     ``overwrite``); fills ``row``. Raises what the replay raises."""
     from sffscan.pipeline.formats.recording_reader import open_recording
+    from sffscan.pipeline.preflight import needs_torch
     from sffscan.pipeline.run import Job, check_input_free, execute
     from sffscan.pipeline.wiring import evaluate_sim
 
@@ -180,7 +182,8 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
     cfg = with_overrides(rec.config, origin="sffscan batch", output=mosaic,
                          overwrite=not resume, processing=processing)
     try:
-        run = execute(Job(cfg, recording=rec, resume=resume))
+        with _torch_threads(threads, needed=needs_torch(cfg)):
+            run = execute(Job(cfg, recording=rec, resume=resume))
     except ResumeRefused as exc:
         raise ResumeRefused(f"{exc}; the mosaic (status {status}) is kept: --overwrite "
                             "replaces it") from None
@@ -234,9 +237,9 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
         # not start processes, so the stages run as threads (the same mosaic, bit for bit)
         processing = {**processing, "execution": "threads"}
     try:
-        with _torch_threads(threads), threadpool_limits(limits=threads):
+        with threadpool_limits(limits=threads):
             _replay(recording, mosaic, processing=processing, evaluate=evaluate,
-                    overwrite=overwrite, row=row)
+                    overwrite=overwrite, row=row, threads=threads)
     except Exception as exc:  # noqa: BLE001 - reported in the row; the batch goes on
         row.status = "failed"
         if isinstance(exc, InputBusy):  # not a failure: a rerun does it once it is complete
@@ -249,13 +252,15 @@ def process_recording(recording: str, mosaic: str, *, processing: dict[str, Any]
 
 
 @contextmanager
-def _torch_threads(threads: int) -> Iterator[None]:
+def _torch_threads(threads: int, *, needed: bool) -> Iterator[None]:
     """torch's intra-op threads limited to ``threads`` for the block (restored after: a
-    worker of a shared cluster runs other tasks); nothing when torch is not installed (it
-    is the optional extra ``sffscan[torch]``) or not imported yet."""
+    worker of a shared cluster runs other tasks) when the scan ``needed`` torch or torch is
+    loaded already; nothing when torch is not installed (it is the optional extra
+    ``sffscan[torch]``). Importing torch only to limit it cost a fresh Dask worker ~1.5 s
+    of CPU for scans that never use it."""
     import importlib.util
 
-    if importlib.util.find_spec("torch") is None:
+    if not (needed or "torch" in sys.modules) or importlib.util.find_spec("torch") is None:
         yield
         return
     import torch

@@ -102,12 +102,18 @@ def _installed(module: str) -> bool:
         return False
 
 
-def check_torch(cfg: ScanConfig) -> None:
-    """torch is installed when the configuration needs it: ``processing.backend = "torch"``
-    or a focus operator other than GLVM and TENV (torch is the optional extra
-    ``sffscan[torch]``)."""
+def needs_torch(cfg: ScanConfig) -> bool:
+    """The scan's focus measure runs in torch: ``processing.backend = "torch"`` or a focus
+    operator other than GLVM and TENV."""
     p = cfg.processing
-    if _installed("torch"):
+    return p.backend == "torch" or p.focus_operator not in OPENCV_OPERATORS
+
+
+def check_torch(cfg: ScanConfig) -> None:
+    """torch is installed when the configuration needs it (:func:`needs_torch`; torch is the
+    optional extra ``sffscan[torch]``)."""
+    p = cfg.processing
+    if not needs_torch(cfg) or _installed("torch"):
         return
     if p.backend == "torch":
         raise ConfigError(f"processing.backend = 'torch' needs torch, which is not installed: "

@@ -138,3 +138,26 @@ def test_cover_is_valid_pixels_over_the_planned_area_and_batch_runs_without_torc
     assert plan_cover(mos) == pytest.approx(1 - lost / (y1 - y0))
     rows, todo = plan_targets([(rec, mos)])  # the rerun's row of the kept mosaic says so
     assert todo == [] and rows[0].coverage == pytest.approx(0.8, abs=0.01)
+
+
+def test_a_task_loads_torch_only_for_a_scan_that_uses_it() -> None:
+    """A batch task limits torch's threads when its scan measures focus in torch; a scan
+    that does not (GLVM, TENV on OpenCV) leaves torch unloaded (it is not imported just to be
+    limited), unless it was loaded already."""
+    import subprocess
+
+    from sffscan.pipeline.preflight import needs_torch
+
+    assert not needs_torch(small_config())
+    assert needs_torch(small_config(processing={"backend": "torch"}))
+    assert needs_torch(small_config(processing={"focus_operator": "lape"}))
+    code = ("import sys\n"
+            "from sffscan.pipeline.batch import _torch_threads\n"
+            "with _torch_threads(1, needed=False):\n"
+            "    print('torch' in sys.modules)\n"
+            "with _torch_threads(1, needed=True):\n"
+            "    import torch\n"
+            "    print(torch.get_num_threads())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120).stdout.split()
+    assert out == ["False", "1"]
