@@ -34,8 +34,11 @@ from typing import NamedTuple
 import numpy as np
 from sffscan.stages.depth_candidates import (
     GAUSS_FIT_HALF_WINDOW,
+    SHAPE_SELECT_LIMITS,
     WINDOW_PC_FACTOR,
     gauss_window_fit,
+    shape_select,
+    shape_statistics,
     window_pc,
 )
 from sffscan.stages.depth_harmonics import (
@@ -68,6 +71,7 @@ from sffscan.stages.depth_peak import (
     three_point_offset,
     windowed_centroid,
 )
+from sffscan.stages.depth_uncertainty import curve_width
 
 __all__ = [
     "ADAPTIVE_HALF_WINDOW",
@@ -163,6 +167,13 @@ def _window_pc(c: FocusCurves) -> np.ndarray:
     return window_pc(c.volume, c.centre(), factor=WINDOW_PC_FACTOR)
 
 
+def _shape_select(c: FocusCurves) -> np.ndarray:
+    stats = shape_statistics(c.volume, c.centre(), curve_width(c.volume))
+    max_skew, max_ratio = SHAPE_SELECT_LIMITS
+    return shape_select(_from_sums(c, method="spc"), _adaptive(c), stats, max_skew=max_skew,
+                        max_ratio=max_ratio)
+
+
 ESTIMATORS: dict[str, Estimator] = {
     "argmax": Estimator(partial(_from_sums, method="argmax")),
     "gauss3": Estimator(partial(_three_point, log=True)),
@@ -174,6 +185,7 @@ ESTIMATORS: dict[str, Estimator] = {
     "adaptive": Estimator(_adaptive),
     "gauss_window_fit": Estimator(_gauss_window_fit, candidate=True),
     "window_pc": Estimator(_window_pc, candidate=True),
+    "shape_select": Estimator(_shape_select, candidate=True),
 }
 """Every depth method by name: the one list the others (and a configuration's choices)
 derive from. Documented in :func:`depth_from_focus`."""
@@ -245,13 +257,14 @@ def depth_from_focus(
             ``phi = -angle(H_1) N / (2 pi)``. No modulo after undoing the shift: the result
             lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
             filtered argmax (the same result as rolling each curve, the test's reference).
-        ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
+        ``"gauss_window_fit"``, ``"window_pc"``, ``"shape_select"`` (:data:`CANDIDATE_METHODS`)
             The candidates of the leave-one-family-out study
             (:mod:`sffscan.stages.depth_candidates`), at the settings the study tuned on
             the training seeds of all its families: a weighted Gaussian fit over the
-            2h + 1 = 7 levels about ``a_med`` (``adaptive`` where the fit fails), and phase
-            correlation over a window of 3 x the curve's width about ``a_med``. Not methods
-            of scan, replay or stack.
+            2h + 1 = 7 levels about ``a_med`` (``adaptive`` where the fit fails), phase
+            correlation over a window of 3 x the curve's width about ``a_med``, and one
+            choice for the whole volume of ``"spc"`` (its curves even and clean) or
+            ``"adaptive"``. Not methods of scan, replay or stack.
     median_size : int, keyword-only
         Odd median-filter size for ``"spc"``, ``"wcentroid"`` and ``"adaptive"`` (1 = no
         filtering).

@@ -14,6 +14,16 @@ median-filtered argmax (``centre``, as for SPC and ``adaptive``):
   per pixel from the curve's measured width (its run of levels above half its height,
   median over 11 x 11 px) times a factor: the whole curve's PC (SPC) for wide curves, a
   short one for narrow curves on a noisy floor.
+
+And one that chooses between two methods by what the whole stack's curves look like:
+
+* :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
+  :func:`curve_skew` near 0: blur even in z) and clean (the curves' width from their first
+  harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their
+  run above half height gives: a noisy floor widens the first, not the second), else
+  ``adaptive``. SPC reads the whole curve, so it holds where wide or ringing curves
+  (pillbox PSFs, coarse textures) move the 3-point peak; but it is biased by a lopsided
+  curve (a thin lens' blur, even in 1/z) and by a noisy floor under a narrow peak.
 """
 
 from __future__ import annotations
@@ -21,7 +31,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["GAUSS_FIT_HALF_WINDOW", "WINDOW_PC_FACTOR", "gauss_window_fit", "half_height_run",
+__all__ = ["GAUSS_FIT_HALF_WINDOW", "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "curve_skew",
+           "gauss_window_fit", "half_height_run", "shape_select", "shape_statistics",
            "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
@@ -31,6 +42,10 @@ seeds of all its families (docs/depth-study.md, the pertuz-simu02 row's ``tuned`
 WINDOW_PC_FACTOR = 3.0
 """Factor on the curve's width of ``"window_pc"`` by name, tuned as
 :data:`GAUSS_FIT_HALF_WINDOW`."""
+
+SHAPE_SELECT_LIMITS = (0.08, 6.0)
+"""(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
+tuned as :data:`GAUSS_FIT_HALF_WINDOW` (the same in every leave-one-family-out fold)."""
 
 
 def _window(volume: np.ndarray, centre: np.ndarray, h: int
@@ -130,3 +145,56 @@ def window_pc(volume: np.ndarray, centre: np.ndarray, *, factor: float) -> np.nd
     re = np.sum(v * np.cos(theta), axis=0)
     im = np.sum(v * np.sin(theta), axis=0)
     return (c + np.arctan2(im, re) * period / (2.0 * np.pi)).astype(np.float32)
+
+
+def curve_skew(volume: np.ndarray, centre: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Skewness of each focus curve: the third standardised moment of its values above its
+    minimum over the levels within ``max(3, ceil(2.5 width))`` of ``centre``.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus volume.
+    centre : (H, W) ndarray of int
+        Median-filtered argmax, levels.
+    width : (H, W) ndarray of float
+        Curve width, levels (:func:`sffscan.stages.depth_uncertainty.curve_width`).
+
+    Returns
+    -------
+    (H, W) ndarray of float64
+        About 0 for an even curve; positive when the curve's tail runs to higher levels.
+    """
+    vol = np.asarray(volume, np.float64)
+    n = vol.shape[0]
+    v = vol - vol.min(axis=0)
+    reach = np.clip(np.ceil(2.5 * np.maximum(width, 1.0)), 3, n)
+    d = np.arange(n, dtype=np.float64)[:, None, None] - np.asarray(centre, np.float64)[None]
+    w = np.where(np.abs(d) <= reach[None], v, 0.0)
+    m0 = w.sum(axis=0) + 1e-300
+    mu = (w * d).sum(axis=0) / m0
+    var = (w * (d - mu) ** 2).sum(axis=0) / m0
+    return (w * (d - mu) ** 3).sum(axis=0) / m0 / np.maximum(var, 1e-12) ** 1.5
+
+
+def shape_statistics(volume: np.ndarray, centre: np.ndarray, width: np.ndarray,
+                     mask: np.ndarray | None = None) -> tuple[float, float]:
+    """The two numbers :func:`shape_select` decides by, over the ``mask`` pixels (all when
+    None): ``abs(median skewness)`` (:func:`curve_skew`) and the median ratio of the
+    harmonic width to the sigma of the run above half height (:func:`half_height_run` /
+    2.355, a Gaussian's FWHM / sigma)."""
+    sel = np.ones(np.shape(centre), bool) if mask is None else np.asarray(mask, bool)
+    skew = curve_skew(volume, centre, width)
+    run = half_height_run(volume, centre).astype(np.float64)
+    ratio = np.asarray(width, np.float64) / (run / 2.355)
+    return abs(float(np.median(skew[sel]))), float(np.median(ratio[sel]))
+
+
+def shape_select(spc: np.ndarray, adaptive: np.ndarray, statistics: tuple[float, float], *,
+                 max_skew: float, max_ratio: float) -> np.ndarray:
+    """SPC's depth map where the stack's curves are even and clean (``statistics`` from
+    :func:`shape_statistics` below ``max_skew`` and ``max_ratio``), else ``adaptive``'s;
+    float32 levels. One choice for the whole stack (in a scan it would be per block)."""
+    skew, ratio = statistics
+    use_spc = skew < max_skew and ratio < max_ratio
+    return np.asarray(spc if use_spc else adaptive, np.float32)

@@ -34,7 +34,12 @@ from sffscan.stages.depth import (
     focus_sums,
     median_filter_levels,
 )
-from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
+from sffscan.stages.depth_candidates import (
+    gauss_window_fit,
+    shape_select,
+    shape_statistics,
+    window_pc,
+)
 from sffscan.stages.depth_uncertainty import (
     MIX_SCALE,
     curve_width,
@@ -46,10 +51,10 @@ from sffscan.stages.depth_uncertainty import (
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
 
-__all__ = ["CANDIDATES", "COVERAGE_TARGET", "THRESHOLDS", "HeldOutTable", "curve_width",
-           "fit_uncertainty", "format_coverage", "format_table", "leave_one_family_out",
-           "scatter_select", "score_volume", "uncertainty_coverage", "uncertainty_sample",
-           "width_switch"]
+__all__ = ["CANDIDATES", "COVERAGE_TARGET", "SHAPE_GRID", "THRESHOLDS", "HeldOutTable",
+           "curve_width", "fit_uncertainty", "format_coverage", "format_setting", "format_table",
+           "leave_one_family_out", "scatter_select", "score_volume", "uncertainty_coverage",
+           "uncertainty_sample", "width_switch"]
 
 THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0, math.inf)
 """``width-switch`` thresholds (levels) the protocol tunes over (inf: never SPC)."""
@@ -57,11 +62,38 @@ THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0, math.inf)
 SCATTER_WINDOWS = (5.0, 9.0, 15.0, 21.0)
 """``scatter-select`` windows (px) the protocol tunes over."""
 
-CANDIDATES: dict[str, tuple[float, ...]] = {"width-switch": THRESHOLDS,
-                                            "scatter-select": SCATTER_WINDOWS,
-                                            "gauss-fit": (3.0, 5.0, 7.0),
-                                            "window-pc": (3.0, 4.0, 5.0)}
+SHAPE_GRID = tuple((s, r) for s in (0.03, 0.05, 0.08, 0.12, 0.2)
+                   for r in (1.5, 2.0, 3.0, 4.0, 6.0, 9.0, math.inf))
+"""``shape-select`` settings the protocol tunes over: (largest |median skewness|, largest
+median width ratio) for which a stack takes SPC (:func:`sffscan.stages.depth_candidates.
+shape_select`)."""
+
+GAUSS_FIT_HALF_WINDOWS = (3.0, 5.0, 7.0)
+"""``gauss-fit`` half windows (levels) the protocol tunes over."""
+
+WINDOW_PC_FACTORS = (3.0, 4.0, 5.0)
+"""``window-pc`` factors on the curve's width the protocol tunes over."""
+
+Setting = float | tuple[float, float]
+
+CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
+                                              "scatter-select": SCATTER_WINDOWS,
+                                              "gauss-fit": GAUSS_FIT_HALF_WINDOWS,
+                                              "window-pc": WINDOW_PC_FACTORS,
+                                              "shape-select": SHAPE_GRID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
+
+
+def format_setting(value: Setting) -> str:
+    """A candidate's setting as the table and the score keys write it (``0.08/6`` for a
+    pair)."""
+    if isinstance(value, tuple):
+        return "/".join(f"{v:g}" for v in value)
+    return f"{value:g}"
+
+
+def _key(candidate: str, value: Setting) -> str:
+    return f"{candidate}@{format_setting(value)}"
 
 COVERAGE_TARGET = 0.94
 """Share of pixels with |error| <= 2 sigma the uncertainty's constants aim at: the quantile
@@ -116,12 +148,17 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = scatter_select(depth["spc"], depth["adaptive"], window=int(k))
         sse[f"scatter-select@{k:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
     centre = median_filter_levels(a, median_size, volume.shape[0])
-    for h in CANDIDATES["gauss-fit"]:
+    for h in GAUSS_FIT_HALF_WINDOWS:
         d = gauss_window_fit(volume, centre, depth["adaptive"], half_window=int(h))
         sse[f"gauss-fit@{h:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
-    for g in CANDIDATES["window-pc"]:
+    for g in WINDOW_PC_FACTORS:
         d = window_pc(volume, centre, factor=g)
         sse[f"window-pc@{g:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+    stats = shape_statistics(volume, centre, width, mask)
+    for pair in SHAPE_GRID:
+        d = shape_select(depth["spc"], depth["adaptive"], stats, max_skew=pair[0],
+                         max_ratio=pair[1])
+        sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
     default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
         volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
         argmax=a)[0]
@@ -219,7 +256,7 @@ class HeldOutTable:
     """
 
     rmse: dict[str, dict[str, float]]
-    tuned: dict[str, dict[str, float]]
+    tuned: dict[str, dict[str, Setting]]
     third_party: dict[str, dict[str, float]]
     chosen: str
     worst_ratio: dict[str, float]
@@ -274,7 +311,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     scores = {(f, s): _stack_scores(family_stack(f, s, size_px=size_px), operator=operator,
                                     window=window, methods=methods)
               for f in names for s in range(2 * seeds)}
-    def tune(train: list[str]) -> dict[str, float]:
+    def tune(train: list[str]) -> dict[str, Setting]:
         """Each candidate's setting: the least sum over the training families of
         log(RMSE / the family's best fixed method's RMSE)."""
         out = {}
@@ -285,13 +322,13 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
                 for f in train:
                     group = [scores[f, s] for s in range(seeds)]
                     best = min(_rmse(group, m) for m in methods)
-                    c += math.log(max(_rmse(group, f"{cand}@{v:g}"), 1e-12) / max(best, 1e-12))
+                    c += math.log(max(_rmse(group, _key(cand, v)), 1e-12) / max(best, 1e-12))
                 cost.append(c)
             out[cand] = settings[int(np.argmin(cost))]
         return out
 
     rmse: dict[str, dict[str, float]] = {}
-    tuned: dict[str, dict[str, float]] = {}
+    tuned: dict[str, dict[str, Setting]] = {}
     coverage: dict[str, float] = {}
     fits: dict[str, tuple[float, float]] = {}
 
@@ -303,7 +340,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         tuned[f] = t
         held = [scores[f, s] for s in range(seeds, 2 * seeds)]
         row = {m: _rmse(held, m) for m in methods}
-        row.update({c: _rmse(held, f"{c}@{v:g}") for c, v in t.items()})
+        row.update({c: _rmse(held, _key(c, v)) for c, v in t.items()})
         rmse[f] = row
         fits[f] = fit_uncertainty(train_groups([g for g in names if g != f]))
         coverage[f] = uncertainty_coverage(held, *fits[f])
@@ -315,7 +352,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         for name, (vol, truth, mask) in third_party.items():
             sc = score_volume(vol, truth, mask, methods=methods, spread_size=window)
             row = {m: _rmse([sc], m) for m in methods}
-            row.update({c: _rmse([sc], f"{c}@{v:g}") for c, v in t_all.items()})
+            row.update({c: _rmse([sc], _key(c, v)) for c, v in t_all.items()})
             extra[name] = row
             coverage[name] = uncertainty_coverage([sc], *fits["all"])
     all_methods = (*methods, *CANDIDATES)
@@ -334,7 +371,7 @@ def format_table(table: HeldOutTable) -> str:
     lines = ["| held out | " + " | ".join(methods) + " | tuned |",
              "|---|" + "---:|" * (len(methods) + 1)]
     def settings(key: str) -> str:
-        return ", ".join(f"{v:g}" for v in table.tuned.get(key, {}).values())
+        return ", ".join(format_setting(v) for v in table.tuned.get(key, {}).values())
 
     rows = [(f, r, settings(f)) for f, r in table.rmse.items()]
     rows += [(f"{n} (third party)", r, settings("all")) for n, r in

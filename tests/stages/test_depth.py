@@ -138,10 +138,17 @@ def test_every_method_is_selectable_by_name() -> None:
     import typing
 
     from sffscan.pipeline.config import ProcessingConfig
-    from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
+    from sffscan.stages.depth_candidates import (
+        SHAPE_SELECT_LIMITS,
+        gauss_window_fit,
+        shape_select,
+        shape_statistics,
+        window_pc,
+    )
+    from sffscan.stages.depth_uncertainty import curve_width
 
     assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
-    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc")
+    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc", "shape_select")
     choices = typing.get_args(ProcessingConfig.model_fields["depth_method"].annotation)
     assert choices == DEPTH_METHODS
     rng = np.random.default_rng(11)
@@ -149,8 +156,13 @@ def test_every_method_is_selectable_by_name() -> None:
     vol += 0.02 * rng.random(vol.shape, dtype=np.float32)
     centre = median_filter_levels(first_argmax(vol), 11, 30)
     adaptive, _ = depth_from_focus(vol, method="adaptive")
+    spc, _ = depth_from_focus(vol, method="spc")
+    stats = shape_statistics(vol, centre, curve_width(vol))
+    assert SHAPE_SELECT_LIMITS == (0.08, 6.0)
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
-                "window_pc": window_pc(vol, centre, factor=3.0)}
+                "window_pc": window_pc(vol, centre, factor=3.0),
+                "shape_select": shape_select(spc, adaptive, stats, max_skew=0.08,
+                                             max_ratio=6.0)}
     for method in CANDIDATE_METHODS:
         depth, confidence = depth_from_focus(vol, method=method)
         np.testing.assert_array_equal(depth, expected[method])
@@ -161,12 +173,48 @@ def test_every_method_is_selectable_by_name() -> None:
 @pytest.mark.parametrize(("n", "sigma"), [(30, 2.0), (50, 3.0)])
 def test_candidates_recover_gaussian_peak(method: str, n: int, sigma: float) -> None:
     # as test_recovers_gaussian_peak; measured worst cases: gauss_window_fit 2.0e-6
-    # (a Gaussian fit), window_pc 1.7e-5 levels
+    # (a Gaussian fit), window_pc 1.7e-5 levels, shape_select (even, clean curves: SPC)
     margin = 4.0 * sigma
     cols = np.linspace(margin, n - 1 - margin, 97) + 0.123
     peaks = np.broadcast_to(cols, (13, cols.size)) + np.linspace(0, 0.05, 13)[:, None]
-    depth, _ = depth_from_focus(gaussian_volume(peaks, n, sigma), method=method)
-    assert depth.dtype == np.float32 and np.abs(depth - peaks).max() <= 1e-4
+    vol = gaussian_volume(peaks, n, sigma)
+    depth, _ = depth_from_focus(vol, method=method)
+    if method == "shape_select":  # even, clean curves: SPC's depth, within SPC's tolerance
+        np.testing.assert_array_equal(depth, depth_from_focus(vol, method="spc")[0])
+    tol = PEAK_TOL["spc"] if method == "shape_select" else 1e-4
+    assert depth.dtype == np.float32 and np.abs(depth - peaks).max() <= tol
+
+
+def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_ones() -> None:
+    """``shape_select``'s two numbers on curves of known shape: an even Gaussian has
+    skewness 0 (to the truncation of its window, centred on a whole level while the peaks
+    lie up to half a level off: measured 0.038) and a harmonic width equal to the sigma its
+    half-height run gives (ratio 1, to the run's whole-level rounding); a curve whose upper
+    flank is twice as wide as its lower one skews positive (measured 0.18 at least, beyond
+    the 0.08 that ``shape_select`` allows); a narrow peak on a noisy floor widens the
+    harmonic width, not the run above half height."""
+    from sffscan.stages.depth_candidates import curve_skew, shape_select, shape_statistics
+    from sffscan.stages.depth_uncertainty import curve_width
+
+    n, sigma = 60, 3.0
+    k = np.arange(n, dtype=np.float64)[:, None, None]
+    peaks = np.full((8, 8), 30.0) + np.linspace(0, 0.5, 64).reshape(8, 8)
+    even = np.exp(-0.5 * ((k - peaks) / sigma) ** 2).astype(np.float32)
+    lop = np.exp(-0.5 * ((k - peaks) / np.where(k > peaks, 2 * sigma, sigma)) ** 2)
+    lop = lop.astype(np.float32)
+    centre = np.full((8, 8), 30, np.intp)
+    assert np.abs(curve_skew(even, centre, curve_width(even))).max() < 0.05
+    assert curve_skew(lop, centre, curve_width(lop)).min() > 0.15
+    skew, ratio = shape_statistics(even, centre, curve_width(even))
+    assert skew < 0.05 and 0.8 < ratio < 1.25
+    rng = np.random.default_rng(3)
+    narrow = np.exp(-0.5 * ((k - peaks) / 1.0) ** 2) + 0.3 * rng.random((n, 8, 8))
+    narrow = narrow.astype(np.float32)
+    assert shape_statistics(narrow, centre, curve_width(narrow))[1] > 6.0
+    a, b = np.zeros((8, 8), np.float32), np.ones((8, 8), np.float32)
+    assert np.array_equal(shape_select(a, b, (0.05, 2.0), max_skew=0.08, max_ratio=6.0), a)
+    assert np.array_equal(shape_select(a, b, (0.10, 2.0), max_skew=0.08, max_ratio=6.0), b)
+    assert np.array_equal(shape_select(a, b, (0.05, 7.0), max_skew=0.08, max_ratio=6.0), b)
 
 
 # ----------------------------------------------------------------------------- SPC identity
