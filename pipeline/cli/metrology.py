@@ -36,6 +36,7 @@ from sffscan.pipeline.cli.stack_steps import (
     read_images,
     reconstruct_with_progress,
 )
+from sffscan.stages.depth import CANDIDATE_METHODS
 
 UNIT_TO_UM = {"um": 1.0, "mm": 1000.0, "m": 1e6}
 
@@ -61,8 +62,10 @@ def _settings_options(p: argparse.ArgumentParser) -> None:
                         + ", ".join(OPERATOR_CHOICES))
     p.add_argument("--window", type=int, default=d.window,
                    help=f"focus measure window k, odd, px (default {d.window})")
-    p.add_argument("--method", default=d.method, choices=DEPTH_METHOD_CHOICES,
-                   help=f"depth method (default {d.method})")
+    p.add_argument("--method", default=d.method,
+                   choices=(*DEPTH_METHOD_CHOICES, *CANDIDATE_METHODS),
+                   help=f"depth method (default {d.method}); also the study's candidates "
+                        f"{', '.join(CANDIDATE_METHODS)} (docs/depth-study.md)")
     p.add_argument("--median-size", type=int, default=d.median_size,
                    help=f"SPC median filter size, odd, px (default {d.median_size})")
     p.add_argument("--filter-size", type=int, default=d.filter_size,

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.stages.depth import (
+    CANDIDATE_METHODS,
     DEFAULT_METHOD,
     DEPTH_METHODS,
     all_in_focus,
@@ -69,7 +70,9 @@ class StackSettings:
     window : int
         Focus measure window k (odd, >= 3), px.
     method : str
-        Depth method, one of :data:`sffscan.stages.depth.DEPTH_METHODS`; ``"adaptive"``
+        Depth method, one of :data:`sffscan.stages.depth.DEPTH_METHODS` or of the study's
+        candidates :data:`sffscan.stages.depth.CANDIDATE_METHODS` (a stack is one volume:
+        ``"shape_select"`` chooses SPC or ``"adaptive"`` once for the field); ``"adaptive"``
         measures the spread of the filtered peaks over the focus window ``window``.
     median_size : int
         Median filter size of SPC, wcentroid and adaptive (odd), px.
@@ -95,8 +98,9 @@ class StackSettings:
 
         if self.operator.lower() not in FOCUS_OPERATORS:
             raise ValueError(f"operator must be one of {FOCUS_OPERATORS}, got {self.operator!r}")
-        if self.method not in DEPTH_METHODS:
-            raise ValueError(f"method must be one of {DEPTH_METHODS}, got {self.method!r}")
+        if self.method not in (*DEPTH_METHODS, *CANDIDATE_METHODS):
+            raise ValueError(f"method must be one of {(*DEPTH_METHODS, *CANDIDATE_METHODS)}, "
+                             f"got {self.method!r}")
         check_odd_size(self.window, name="window", minimum=3)
         check_odd_size(self.median_size, name="median_size", minimum=1)
         check_odd_size(self.filter_size, name="filter_size", minimum=1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +95,30 @@ def test_reconstruct_reuses_the_pipeline_functions(sim_stack: tuple[np.ndarray, 
     np.testing.assert_array_equal(r.confidence, conf)
     np.testing.assert_array_equal(r.height_um, levels_to_height(levels, focus_heights_um=ZS))
     assert r.texture.dtype == np.float32 and 0 <= r.texture.min() and r.texture.max() <= 1
+
+
+def test_stack_takes_the_study_s_candidates(sim_stack: tuple[np.ndarray, np.ndarray],
+                                           tmp_path: Path) -> None:
+    """``shape_select`` chooses once for the field: on this clean stack of even curves
+    (Gaussian blur even in z, light noise) SPC's levels; the command takes the candidates
+    by name too."""
+    from sffscan.stages.depth import CANDIDATE_METHODS
+
+    stack, _ = sim_stack
+    r = {m: reconstruct_field(stack, focus_heights_um=ZS, max_value=1023,
+                              settings=StackSettings(method=m, filter_size=1))
+         for m in ("spc", "adaptive", *CANDIDATE_METHODS)}
+    np.testing.assert_array_equal(r["shape_select"].levels, r["spc"].levels)
+    assert not np.array_equal(r["spc"].levels, r["adaptive"].levels)
+    arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=stack.shape, dtype="uint16")
+    arr[...] = stack
+    arr.attrs["focus_heights_um"] = ZS.tolist()
+    out = tmp_path / "f.zarr"
+    assert main(["stack", "--zarr", str(tmp_path / "s.zarr"), "--pixel-um", "17",
+                 "--bit-depth", "10", "--method", "shape_select", "-o", str(out)]) == 0
+    g: Any = zarr.open_group(str(out), mode="r")
+    assert g.attrs["status"] == "complete"
+    assert "shape_select" in json.dumps(g.attrs["processing"])
 
 
 def test_reconstruct_accuracy_on_sim_stack(sim_stack: tuple[np.ndarray, np.ndarray]) -> None:
