@@ -11,12 +11,42 @@ from __future__ import annotations
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth_candidates import SHAPE_SELECT_LIMITS, shape_statistics
 from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
-from sffscan.stages.depth_uncertainty import height_uncertainty_um
+from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
-__all__ = ["block_uncertainty", "depth_rows"]
+__all__ = ["SHAPE_SAMPLE_STEP", "block_method", "block_uncertainty", "depth_rows"]
+
+SHAPE_SAMPLE_STEP = 4
+"""``"shape_select"`` judges a block's curves on every 4th row and column (medians: a
+sixteenth of the pixels decides as well as all of them, at a sixteenth of the cost)."""
+
+
+def block_method(levels: np.ndarray, argmax: np.ndarray, inner: slice, *, n_levels: int,
+                 median_size: int) -> str:
+    """The method ``"shape_select"`` takes for a block: ``"spc"`` where its curves are even
+    and clean, else ``"adaptive"`` (:func:`sffscan.stages.depth_candidates.shape_select`'s
+    rule at its tuned limits), judged on every :data:`SHAPE_SAMPLE_STEP`-th row and column.
+
+    Parameters
+    ----------
+    levels : (N, rows, block) ndarray of float32
+        The block's curves.
+    argmax : (rows, halo + block + halo) ndarray of int
+        Their running argmax with the columns' halo (the median filter's reach).
+    inner : slice
+        The block's columns within the halo.
+    n_levels, median_size : int, keyword-only
+        N and the median filter's size, px.
+    """
+    step = SHAPE_SAMPLE_STEP
+    centre = median_filter_levels(argmax, median_size, n_levels)[::step, inner][:, ::step]
+    vol = np.ascontiguousarray(levels[:, ::step, ::step])
+    skew, ratio = shape_statistics(vol, centre, curve_width(vol))
+    max_skew, max_ratio = SHAPE_SELECT_LIMITS
+    return "spc" if skew < max_skew and ratio < max_ratio else "adaptive"
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,

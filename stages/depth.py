@@ -183,9 +183,9 @@ ESTIMATORS: dict[str, Estimator] = {
     "spc": Estimator(partial(_from_sums, method="spc")),
     "wcentroid": Estimator(_wcentroid),
     "adaptive": Estimator(_adaptive),
+    "shape_select": Estimator(_shape_select),
     "gauss_window_fit": Estimator(_gauss_window_fit, candidate=True),
     "window_pc": Estimator(_window_pc, candidate=True),
-    "shape_select": Estimator(_shape_select, candidate=True),
 }
 """Every depth method by name: the one list the others (and a configuration's choices)
 derive from. Documented in :func:`depth_from_focus`."""
@@ -257,14 +257,19 @@ def depth_from_focus(
             ``phi = -angle(H_1) N / (2 pi)``. No modulo after undoing the shift: the result
             lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
             filtered argmax (the same result as rolling each curve, the test's reference).
-        ``"gauss_window_fit"``, ``"window_pc"``, ``"shape_select"`` (:data:`CANDIDATE_METHODS`)
+        ``"shape_select"``
+            One choice for the whole volume: ``"spc"`` where its focus curves are even and
+            clean (:func:`sffscan.stages.depth_candidates.shape_select` at
+            :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS`, tuned by the
+            leave-one-family-out study), else ``"adaptive"``. The streaming depth stage
+            makes the choice per block of columns.
+        ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
             The candidates of the leave-one-family-out study
             (:mod:`sffscan.stages.depth_candidates`), at the settings the study tuned on
             the training seeds of all its families: a weighted Gaussian fit over the
-            2h + 1 = 7 levels about ``a_med`` (``adaptive`` where the fit fails), phase
-            correlation over a window of 3 x the curve's width about ``a_med``, and one
-            choice for the whole volume of ``"spc"`` (its curves even and clean) or
-            ``"adaptive"``. Not methods of scan, replay or stack.
+            2h + 1 = 7 levels about ``a_med`` (``adaptive`` where the fit fails), and phase
+            correlation over a window of 3 x the curve's width about ``a_med``. Not methods
+            of scan, replay or stack.
     median_size : int, keyword-only
         Odd median-filter size for ``"spc"``, ``"wcentroid"`` and ``"adaptive"`` (1 = no
         filtering).

@@ -15,11 +15,10 @@ What a column keeps depends on the depth method. argmax, centroid, PC and SPC ne
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
 *accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
-OpenCV arithmetic, no N-level volume: 6 planes instead of N). The 3-point fits (gauss3,
-quadratic3), the windowed centroid (wcentroid) and the default (adaptive) need the levels
-about a peak that is known only once the column and its neighbours are complete: for them
-the ring stores every level of every pixel (N planes: bounded by the ring, the columns in
-view, never the whole stack), and the running argmax is kept as frames arrive.
+OpenCV arithmetic, no N-level volume: 6 planes instead of N). The 3-point fits, wcentroid,
+adaptive and shape_select (SPC or adaptive, chosen per block) need the levels about a peak
+known only once the column and its neighbours are complete: for them the ring stores every
+level (N planes, for the columns of the ring only) and the running argmax.
 
 The frames' writes into this state may be held until the next block reduction (at most
 ``defer_writes`` of them; 1, applied at once, by default) and then applied together, strip
@@ -44,7 +43,7 @@ from typing import NamedTuple, TypeVar
 import numpy as np
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
-from sffscan.stages.block_depth import block_uncertainty, depth_rows
+from sffscan.stages.block_depth import block_method, block_uncertainty, depth_rows
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
@@ -186,7 +185,8 @@ class FocusVolume:
         self.spread_size = spread_size
         # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
         # that a block's filtered peaks and spreads equal those of the whole volume
-        self.halo = median_size // 2 + 1 + (spread_size // 2 if method == "adaptive" else 0)
+        peak = method in ("adaptive", "shape_select")
+        self.halo = median_size // 2 + 1 + (spread_size // 2 if peak else 0)
         self.block = block_columns
         self.row_slack = row_slack
         self.col_slack = col_slack
@@ -415,20 +415,23 @@ class FocusVolume:
         sums = np.empty((3, self.rows, width), np.float32)  # H_0, Re H_1, Im H_1
         low = np.empty((self.rows, width), np.float32)  # each curve's minimum
         argmax = self._gather(self.argmax, a0, a1)
+        method, low_src = self.method, None
         if self.fv is None:
             src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
-        else:
-            wide = self.method not in ("wcentroid", "adaptive")  # the halo's levels too
+        else:  # wcentroid and adaptive read the block's levels, the others the halo's too
+            if method == "shape_select":  # one choice for the block, whatever its bands
+                method = block_method(self._gather(self.fv, u0, u1), argmax, inner,
+                                      n_levels=self.n, median_size=self.median_size)
+            wide = method not in ("wcentroid", "adaptive")
             src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
-            low_src = None
 
         def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)
             ra0, ra1 = max(r0 - self.halo, 0), min(r1 + self.halo, self.rows)
             return depth_rows(src, argmax[ra0:ra1], low_src, (r0, r1),
                               slice(r0 - ra0, r1 - ra0), inner, sums[:, r0:r1], low[r0:r1],
-                              method=self.method, n_levels=self.n,
+                              method=method, n_levels=self.n,
                               median_size=self.median_size, spread_size=self.spread_size,
                               streaming=self.fv is None, keep_low=self.uncertainty)
 

@@ -55,7 +55,8 @@ def test_a_failing_band_fails_the_call_with_its_cause() -> None:
         pool.run(work, [(0, 4), (4, 8)])
 
 
-@pytest.mark.parametrize("method", ["spc", "centroid", "adaptive", "gauss3", "wcentroid"])
+@pytest.mark.parametrize("method", ["spc", "centroid", "adaptive", "gauss3", "wcentroid",
+                                    "shape_select"])
 @pytest.mark.parametrize("k", [2, 3, 4, 9])
 def test_focus_volume_blocks_are_bit_identical_for_any_number_of_bands(method: str,
                                                                        k: int) -> None:

@@ -44,6 +44,8 @@ PEAK_TOL = {
     # the Gaussian 3-point fit where the filtered peaks span <= 2 levels over 9 x 9 px
     # (exact: 1.2e-6); where this ramp spans 3 (sigma 3), the 11-level centroid: 0.0068
     "adaptive": 0.01,
+    # even, clean curves: SPC's depth (test_candidates_recover_gaussian_peak asserts it)
+    "shape_select": 1e-3,
 }
 
 
@@ -148,7 +150,8 @@ def test_every_method_is_selectable_by_name() -> None:
     from sffscan.stages.depth_uncertainty import curve_width
 
     assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
-    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc", "shape_select")
+    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc")
+    assert DEPTH_METHODS[-2:] == ("adaptive", "shape_select")
     choices = typing.get_args(ProcessingConfig.model_fields["depth_method"].annotation)
     assert choices == DEPTH_METHODS
     rng = np.random.default_rng(11)
@@ -163,13 +166,13 @@ def test_every_method_is_selectable_by_name() -> None:
                 "window_pc": window_pc(vol, centre, factor=3.0),
                 "shape_select": shape_select(spc, adaptive, stats, max_skew=0.08,
                                              max_ratio=6.0)}
-    for method in CANDIDATE_METHODS:
+    for method in (*CANDIDATE_METHODS, "shape_select"):
         depth, confidence = depth_from_focus(vol, method=method)
         np.testing.assert_array_equal(depth, expected[method])
         np.testing.assert_array_equal(confidence, depth_from_focus(vol, method="spc")[1])
 
 
-@pytest.mark.parametrize("method", CANDIDATE_METHODS)
+@pytest.mark.parametrize("method", (*CANDIDATE_METHODS, "shape_select"))
 @pytest.mark.parametrize(("n", "sigma"), [(30, 2.0), (50, 3.0)])
 def test_candidates_recover_gaussian_peak(method: str, n: int, sigma: float) -> None:
     # as test_recovers_gaussian_peak; measured worst cases: gauss_window_fit 2.0e-6
@@ -373,7 +376,8 @@ def test_validation_errors() -> None:
         depth_from_focus(bad, method="argmax")
     with pytest.raises(ValueError, match="NaN at level 3"):
         spc_by_roll(np.where(np.arange(6)[:, None, None] == 3, np.nan, vol))
-    with pytest.raises(ValueError, match=r"method must be one of \('argmax', .*'adaptive'\)"):
+    with pytest.raises(ValueError,
+                       match=r"method must be one of \('argmax', .*'adaptive', 'shape_select'\)"):
         depth_from_focus(vol, method="wavr")
     for size in (0, 10, -1, 3.0):
         with pytest.raises(ValueError, match="median_size"):

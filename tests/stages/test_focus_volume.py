@@ -332,3 +332,46 @@ def test_curve_sums_read_in_place_equal_the_copied_strips(n: int, width: int) ->
     adaptive_block(vol, centre, rng.integers(0, 5, vol.shape[1:]), sums_out=sums, min_out=low)
     assert sums.tobytes() == want.tobytes()
     np.testing.assert_array_equal(low, vol.min(axis=0))
+
+
+@pytest.mark.parametrize("lopsided", [False, True])
+def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> None:
+    """``shape_select`` chooses per block from the block's curves: each block is SPC's
+    (the streaming SPC's, to float32 round-off: the levels are summed in another order) or
+    ``adaptive``'s, bit for bit. Even, clean curves (peaks at levels 8 .. 15 of 24) take SPC,
+    curves whose upper flank is twice as wide take adaptive."""
+    from sffscan.stages.block_depth import block_method
+
+    n = 24
+
+    def frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
+        yy, xx = np.mgrid[y0:y0 + H, x0:x0 + W].astype(float)
+        d = 6.0 + _true_depth(xx, yy)
+        s = np.where(lopsided & (level > d), 3.0, 1.5)
+        fm = np.exp(-((level - d) ** 2) / (2 * s**2)).astype(np.float32)
+        return fm, np.full(fm.shape, 0.5, np.float32)
+
+    def scan(method: str) -> list[np.ndarray]:
+        vol = FocusVolume(n_levels=n, frame_shape=(H, W), margin=3, method=method,
+                          focus_heights_um=[100.0 * k for k in range(n)], median_size=3,
+                          block_columns=16, spread_size=3)
+        blocks = []
+        for k in range(100):
+            fm, img = frame(3 * k, 0, k % n)
+            blocks += vol.add(fm, img, x=3 * k, y=0, level=k % n)
+        return [b.height_um for b in blocks + vol.finish()]
+
+    chosen, spc, adaptive = scan("shape_select"), scan("spc"), scan("adaptive")
+    measured = [i for i, a in enumerate(chosen) if np.isfinite(a).any()]
+    assert len(chosen) == len(spc) == len(adaptive) and len(measured) > 8
+    took_spc = 0
+    for i in measured:
+        if np.array_equal(chosen[i], adaptive[i], equal_nan=True):
+            continue
+        np.testing.assert_allclose(chosen[i], spc[i], atol=1e-2, equal_nan=True)  # µm
+        took_spc += 1
+    assert took_spc == (0 if lopsided else len(measured)), (took_spc, len(measured))
+    fm = np.stack([frame(0, 0, k)[0] for k in range(n)])
+    argmax = np.argmax(fm, axis=0).astype(np.uint8)
+    assert block_method(fm[:, :, 4:20], argmax[:, 2:22], slice(2, 18), n_levels=n,
+                        median_size=3) == ("adaptive" if lopsided else "spc")

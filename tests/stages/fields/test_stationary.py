@@ -97,17 +97,17 @@ def test_reconstruct_reuses_the_pipeline_functions(sim_stack: tuple[np.ndarray, 
     assert r.texture.dtype == np.float32 and 0 <= r.texture.min() and r.texture.max() <= 1
 
 
-def test_stack_takes_the_study_s_candidates(sim_stack: tuple[np.ndarray, np.ndarray],
-                                           tmp_path: Path) -> None:
+def test_stack_takes_shape_select_and_the_study_s_candidates(
+        sim_stack: tuple[np.ndarray, np.ndarray], tmp_path: Path) -> None:
     """``shape_select`` chooses once for the field: on this clean stack of even curves
-    (Gaussian blur even in z, light noise) SPC's levels; the command takes the candidates
-    by name too."""
+    (Gaussian blur even in z, light noise) SPC's levels; the command takes it, and the
+    study's candidates, by name."""
     from sffscan.stages.depth import CANDIDATE_METHODS
 
     stack, _ = sim_stack
     r = {m: reconstruct_field(stack, focus_heights_um=ZS, max_value=1023,
                               settings=StackSettings(method=m, filter_size=1))
-         for m in ("spc", "adaptive", *CANDIDATE_METHODS)}
+         for m in ("spc", "adaptive", "shape_select", *CANDIDATE_METHODS)}
     np.testing.assert_array_equal(r["shape_select"].levels, r["spc"].levels)
     assert not np.array_equal(r["spc"].levels, r["adaptive"].levels)
     arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=stack.shape, dtype="uint16")
