@@ -19,32 +19,27 @@ from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
 __all__ = ["SHAPE_SAMPLE_STEP", "block_method", "block_uncertainty", "depth_rows"]
 
-SHAPE_SAMPLE_STEP = 4
-"""``"shape_select"`` judges a block's curves on every 4th row and column (medians: a
-sixteenth of the pixels decides as well as all of them, at a sixteenth of the cost)."""
+SHAPE_SAMPLE_STEP = (16, 8)
+"""``"shape_select"`` judges a block's curves on every 16th row and 8th column: a 1040-row
+block of 64 columns gives 520 curves, enough to place two medians; judging every curve
+would cost the block more than its reduction (bench/results: bench_depth_default.py)."""
 
 
-def block_method(levels: np.ndarray, argmax: np.ndarray, inner: slice, *, n_levels: int,
-                 median_size: int) -> str:
+def block_method(levels: np.ndarray, argmax: np.ndarray) -> str:
     """The method ``"shape_select"`` takes for a block: ``"spc"`` where its curves are even
     and clean, else ``"adaptive"`` (:func:`sffscan.stages.depth_candidates.shape_select`'s
-    rule at its tuned limits), judged on every :data:`SHAPE_SAMPLE_STEP`-th row and column.
+    rule at its tuned limits), judged on the curves of :data:`SHAPE_SAMPLE_STEP`.
 
     Parameters
     ----------
     levels : (N, rows, block) ndarray of float32
         The block's curves.
-    argmax : (rows, halo + block + halo) ndarray of int
-        Their running argmax with the columns' halo (the median filter's reach).
-    inner : slice
-        The block's columns within the halo.
-    n_levels, median_size : int, keyword-only
-        N and the median filter's size, px.
+    argmax : (rows, block) ndarray of int
+        Their argmax.
     """
-    step = SHAPE_SAMPLE_STEP
-    centre = median_filter_levels(argmax, median_size, n_levels)[::step, inner][:, ::step]
-    vol = np.ascontiguousarray(levels[:, ::step, ::step])
-    skew, ratio = shape_statistics(vol, centre, curve_width(vol))
+    rs, cs = SHAPE_SAMPLE_STEP
+    vol = np.ascontiguousarray(levels[:, ::rs, ::cs])
+    skew, ratio = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     return "spc" if skew < max_skew and ratio < max_ratio else "adaptive"
 

@@ -168,7 +168,8 @@ def _window_pc(c: FocusCurves) -> np.ndarray:
 
 
 def _shape_select(c: FocusCurves) -> np.ndarray:
-    stats = shape_statistics(c.volume, c.centre(), curve_width(c.volume))
+    assert c.argmax is not None
+    stats = shape_statistics(c.volume, c.argmax, curve_width(c.volume))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     return shape_select(_from_sums(c, method="spc"), _adaptive(c), stats, max_skew=max_skew,
                         max_ratio=max_ratio)

@@ -154,7 +154,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     for g in WINDOW_PC_FACTORS:
         d = window_pc(volume, centre, factor=g)
         sse[f"window-pc@{g:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
-    stats = shape_statistics(volume, centre, width, mask)
+    stats = shape_statistics(volume, a, width, mask)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive"], stats, max_skew=pair[0],
                          max_ratio=pair[1])

@@ -421,8 +421,7 @@ class FocusVolume:
             low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
         else:  # wcentroid and adaptive read the block's levels, the others the halo's too
             if method == "shape_select":  # one choice for the block, whatever its bands
-                method = block_method(self._gather(self.fv, u0, u1), argmax, inner,
-                                      n_levels=self.n, median_size=self.median_size)
+                method = block_method(self._gather(self.fv, u0, u1), argmax[:, inner])
             wide = method not in ("wcentroid", "adaptive")
             src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
 
