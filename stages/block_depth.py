@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_candidates import SHAPE_SELECT_LIMITS, shape_statistics
+from sffscan.stages.depth_candidates import shape_statistics, takes_spc
 from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
@@ -39,9 +39,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray) -> str:
     """
     rs, cs = SHAPE_SAMPLE_STEP
     vol = np.ascontiguousarray(levels[:, ::rs, ::cs])
-    skew, ratio = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol))
-    max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    return "spc" if skew < max_skew and ratio < max_ratio else "adaptive"
+    stats = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol))
+    return "spc" if takes_spc(stats) else "adaptive"
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,

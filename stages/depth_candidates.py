@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 __all__ = ["GAUSS_FIT_HALF_WINDOW", "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "curve_skew",
-           "gauss_window_fit", "half_height_run", "shape_select", "shape_statistics",
+           "gauss_window_fit", "half_height_run", "shape_select", "shape_statistics", "takes_spc",
            "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
@@ -197,11 +197,18 @@ def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
     return abs(float(np.median(skew[sel]))), float(np.median(ratio[sel]))
 
 
+def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT_LIMITS[0],
+              max_ratio: float = SHAPE_SELECT_LIMITS[1]) -> bool:
+    """Whether curves with these :func:`shape_statistics` are even and clean enough for SPC:
+    both below their limits (default :data:`SHAPE_SELECT_LIMITS`)."""
+    skew, ratio = statistics
+    return skew < max_skew and ratio < max_ratio
+
+
 def shape_select(spc: np.ndarray, adaptive: np.ndarray, statistics: tuple[float, float], *,
                  max_skew: float, max_ratio: float) -> np.ndarray:
-    """SPC's depth map where the stack's curves are even and clean (``statistics`` from
-    :func:`shape_statistics` below ``max_skew`` and ``max_ratio``), else ``adaptive``'s;
-    float32 levels. One choice for the whole stack (in a scan it would be per block)."""
-    skew, ratio = statistics
-    use_spc = skew < max_skew and ratio < max_ratio
+    """SPC's depth map where the stack's curves are even and clean (:func:`takes_spc`), else
+    ``adaptive``'s; float32 levels. One choice for the whole stack (the streaming depth
+    stage chooses per block: :func:`sffscan.stages.block_depth.block_method`)."""
+    use_spc = takes_spc(statistics, max_skew=max_skew, max_ratio=max_ratio)
     return np.asarray(spc if use_spc else adaptive, np.float32)
