@@ -160,7 +160,7 @@ def test_every_method_is_selectable_by_name() -> None:
     centre = median_filter_levels(first_argmax(vol), 11, 30)
     adaptive, _ = depth_from_focus(vol, method="adaptive")
     spc, _ = depth_from_focus(vol, method="spc")
-    stats = shape_statistics(vol, centre, curve_width(vol))
+    stats = shape_statistics(vol, first_argmax(vol), curve_width(vol))
     assert SHAPE_SELECT_LIMITS == (0.08, 6.0)
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
                 "window_pc": window_pc(vol, centre, factor=3.0),
