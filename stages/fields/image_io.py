@@ -70,6 +70,38 @@ def natural_order(paths: Sequence[str | Path]) -> tuple[list[Path], str | None]:
     return ordered, None
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_RAW_EXIF = b"Raw profile type exif\x00"
+
+
+def _png_exif(path: Path) -> bytes | None:
+    """The data of a PNG file's eXIf chunk (b"" when it has none), read by walking the
+    chunks' headers; None when the file is not a well-formed PNG (Pillow then reads it).
+
+    Pillow's ``getexif`` decodes a PNG's whole image to find an eXIf chunk that may follow
+    the image data: that doubled the cost of reading a PNG stack (a 640 x 512 16-bit frame:
+    4.7 ms for the tag, 4.9 ms for the pixels with OpenCV).
+    """
+    with open(path, "rb") as f:
+        if f.read(8) != _PNG_SIGNATURE:
+            return None
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                return None  # no IEND: truncated
+            length, kind = int.from_bytes(head[:4], "big"), head[4:]
+            if kind == b"eXIf":
+                data = f.read(length)
+                return data if len(data) == length else None
+            if kind == b"IEND":
+                return b""
+            if kind in (b"tEXt", b"zTXt", b"iTXt"):  # ImageMagick's EXIF: Pillow reads it
+                if f.read(min(length, len(_RAW_EXIF))) == _RAW_EXIF:
+                    return None
+                f.seek(-min(length, len(_RAW_EXIF)), 1)
+            f.seek(length + 4, 1)  # the data and its CRC
+
+
 def read_orientation(path: str | Path) -> int:
     """The orientation tag (1..8) of an image file; 1 (as stored) when it has none."""
     p = Path(path)
@@ -80,6 +112,13 @@ def read_orientation(path: str | Path) -> int:
         with tifffile.TiffFile(p) as tif:
             tag = tif.pages[0].tags.get(ORIENTATION_TAG)  # type: ignore[union-attr]
             value = 1 if tag is None else tag.value
+    elif (exif := _png_exif(p)) is not None:  # a PNG: its chunks read, not its pixels
+        if exif:
+            from PIL import Image
+
+            tags = Image.Exif()
+            tags.load(b"Exif\x00\x00" + exif)  # as Pillow's PNG reader passes it
+            value = tags.get(ORIENTATION_TAG, 1)
     else:
         from PIL import Image, UnidentifiedImageError
 

@@ -297,3 +297,38 @@ def test_the_stack_command_reconstructs_as_reconstruct_field(pertuz_dir: Path) -
         if f.name != "settings":
             x, y = getattr(a, f.name), getattr(b, f.name)
             assert (x is None and y is None) or np.array_equal(x, y, equal_nan=True), f.name
+
+
+def test_png_orientation_read_from_its_chunks_wherever_the_exif_lies(tmp_path: Path) -> None:
+    """The PNG's eXIf chunk is found by walking the chunks (the pixels are not decoded for
+    it), after the image data too; a PNG without one is as stored; ImageMagick's EXIF in a
+    text chunk, and a file that is not a PNG, are left to Pillow, as before."""
+    import zlib
+
+    from sffscan.stages.fields.image_io import _png_exif
+
+    stored = np.arange(35, dtype=np.uint8).reshape(5, 7)
+    plain = tmp_path / "plain.png"
+    Image.fromarray(stored).save(plain)
+    assert _png_exif(plain) == b"" and read_orientation(plain) == 1
+    exif = Image.Exif()
+    exif[274] = 6
+    data = exif.tobytes()[6:] if exif.tobytes().startswith(b"Exif") else exif.tobytes()
+    chunk = (len(data).to_bytes(4, "big") + b"eXIf" + data
+             + zlib.crc32(b"eXIf" + data).to_bytes(4, "big"))
+    raw = plain.read_bytes()
+    late = tmp_path / "late.png"  # the eXIf chunk after IDAT, just before IEND
+    late.write_bytes(raw[:-12] + chunk + raw[-12:])
+    assert _png_exif(late) == data
+    with Image.open(late) as im:
+        assert im.getexif().get(274) == 6  # Pillow agrees (it decodes the image for it)
+    assert read_orientation(late) == 6
+    assert read_image(late).shape == (7, 5)
+    text = b"Raw profile type exif\x00\nexif\n  4\n00000000\n"
+    magick = tmp_path / "magick.png"
+    magick.write_bytes(raw[:33] + len(text).to_bytes(4, "big") + b"tEXt" + text
+                       + zlib.crc32(b"tEXt" + text).to_bytes(4, "big") + raw[33:])
+    assert _png_exif(magick) is None
+    notpng = tmp_path / "x.png"
+    notpng.write_bytes(b"not an image")
+    assert _png_exif(notpng) is None and read_orientation(notpng) == 1
