@@ -25,7 +25,8 @@ block of 64 columns gives 520 curves, enough to place two medians; judging every
 would cost the block more than its reduction (bench/results: bench_depth_default.py)."""
 
 
-def block_method(levels: np.ndarray, argmax: np.ndarray) -> str:
+def block_method(levels: np.ndarray, argmax: np.ndarray,
+                 complete: np.ndarray | None = None) -> str:
     """The method ``"shape_select"`` takes for a block: ``"spc"`` where its curves are even
     and clean, else ``"adaptive"`` (:func:`sffscan.stages.depth_candidates.shape_select`'s
     rule at its tuned limits), judged on the curves of :data:`SHAPE_SAMPLE_STEP`.
@@ -36,10 +37,19 @@ def block_method(levels: np.ndarray, argmax: np.ndarray) -> str:
         The block's curves.
     argmax : (rows, block) ndarray of int
         Their argmax.
+    complete : (block,) ndarray of bool, optional
+        The columns seen at every level; the others are left out, and so are the curves
+        without data (flat: the rows beyond the frames, kept for wobble). A block with no
+        such curve takes ``"adaptive"``.
     """
     rs, cs = SHAPE_SAMPLE_STEP
     vol = np.ascontiguousarray(levels[:, ::rs, ::cs])
-    stats = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol))
+    seen = vol.max(axis=0) > vol.min(axis=0)
+    if complete is not None:
+        seen &= np.asarray(complete, bool)[::cs][None, :]
+    if not seen.any():
+        return "adaptive"
+    stats = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol), seen)
     return "spc" if takes_spc(stats) else "adaptive"
 
 

@@ -15,10 +15,9 @@ What a column keeps depends on the depth method. argmax, centroid, PC and SPC ne
 the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
 *accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
-OpenCV arithmetic, no N-level volume: 6 planes instead of N). The 3-point fits, wcentroid,
-adaptive and shape_select (SPC or adaptive, chosen per block) need the levels about a peak
-known only once the column and its neighbours are complete: for them the ring stores every
-level (N planes, for the columns of the ring only) and the running argmax.
+OpenCV arithmetic, no N-level volume: 6 planes instead of N). The others (3-point fits,
+wcentroid, adaptive, shape_select) read the levels about a peak known once the column and its
+neighbours are complete: the ring stores every level of its columns, and the running argmax.
 
 The frames' writes into this state may be held until the next block reduction (at most
 ``defer_writes`` of them; 1, applied at once, by default) and then applied together, strip
@@ -421,7 +420,8 @@ class FocusVolume:
             low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
         else:  # wcentroid and adaptive read the block's levels, the others the halo's too
             if method == "shape_select":  # one choice for the block, whatever its bands
-                method = block_method(self._gather(self.fv, u0, u1), argmax[:, inner])
+                method = block_method(self._gather(self.fv, u0, u1), argmax[:, inner],
+                                      self._gather(self.count, u0, u1) == self.n)
             wide = method not in ("wcentroid", "adaptive")
             src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
 

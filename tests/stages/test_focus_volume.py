@@ -374,3 +374,20 @@ def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> No
     fm = np.stack([frame(0, 0, k)[0] for k in range(n)])
     argmax = np.argmax(fm, axis=0).astype(np.uint8)
     assert block_method(fm[:, :, 4:20], argmax[:, 4:20]) == ("adaptive" if lopsided else "spc")
+
+
+def test_shape_select_judges_only_the_curves_with_data() -> None:
+    """A block's rows beyond the frames (flat: no data) and its columns not seen at every
+    level do not count in its choice; with none left it takes adaptive."""
+    from sffscan.stages.block_depth import block_method
+
+    n = 24
+    k = np.arange(n, dtype=np.float64)[:, None, None]
+    d = 10.0 + np.linspace(0.0, 1.0, 64 * 16).reshape(64, 16)
+    fm = np.maximum(1.0 - np.abs(k - d) / 3.0, 0.0).astype(np.float32)  # even triangles
+    fm[:, 24:] = 0.0  # the wobble's slack rows, never written: counted, they would tip it
+    argmax = np.argmax(fm, axis=0)
+    assert block_method(fm, argmax) == "spc"
+    assert block_method(fm, argmax, np.ones(16, bool)) == "spc"
+    assert block_method(fm, argmax, np.zeros(16, bool)) == "adaptive"
+    assert block_method(np.zeros_like(fm), argmax) == "adaptive"
