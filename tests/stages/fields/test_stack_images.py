@@ -332,3 +332,5 @@ def test_png_orientation_read_from_its_chunks_wherever_the_exif_lies(tmp_path: P
     notpng = tmp_path / "x.png"
     notpng.write_bytes(b"not an image")
     assert _png_exif(notpng) is None and read_orientation(notpng) == 1
+    assert _png_exif(tmp_path / "gone.png") is None  # Pillow's path, as before: as stored
+    assert read_orientation(tmp_path / "gone.png") == 1
