@@ -143,17 +143,17 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     width = curve_width(volume)
     for t in THRESHOLDS:
         d = width_switch(depth["spc"], depth["adaptive"], width, threshold=t)
-        sse[f"width-switch@{t:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+        sse[_key("width-switch", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for k in SCATTER_WINDOWS:
         d = scatter_select(depth["spc"], depth["adaptive"], window=int(k))
-        sse[f"scatter-select@{k:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+        sse[_key("scatter-select", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     centre = median_filter_levels(a, median_size, volume.shape[0])
     for h in GAUSS_FIT_HALF_WINDOWS:
         d = gauss_window_fit(volume, centre, depth["adaptive"], half_window=int(h))
-        sse[f"gauss-fit@{h:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+        sse[_key("gauss-fit", h)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for g in WINDOW_PC_FACTORS:
         d = window_pc(volume, centre, factor=g)
-        sse[f"window-pc@{g:g}"] = float(np.sum((d - truth_levels)[mask] ** 2))
+        sse[_key("window-pc", g)] = float(np.sum((d - truth_levels)[mask] ** 2))
     stats = shape_statistics(volume, a, width, mask)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive"], stats, max_skew=pair[0],
