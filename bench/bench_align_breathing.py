@@ -17,7 +17,8 @@ the ideal stack. Heights: :func:`sffscan.stages.fields.stationary.reconstruct_fi
 the default settings; all stacks scored over the same pixels (every aligned frame covers
 them, less the focus window's reach).
 
-Variants: ``unaligned``; ``aligned`` (:func:`sffscan.stages.fields.align.align_stack`);
+Variants: ``unaligned``; ``aligned`` (:func:`sffscan.stages.fields.align.align_stack`, the
+noise floor taken off as ``stack --align`` does: :mod:`sffscan.stages.fields.aperture`);
 ``true warp`` (the same warp with the true transforms, when ``--true`` is given: isolates
 the estimate from the resampling). Not a test: nothing here asserts.
 """
@@ -37,6 +38,7 @@ import cv2
 import numpy as np
 from sffscan.pipeline.metrology.compare import compare_height_maps
 from sffscan.stages.fields.align import Alignment, align_stack, mask_uncovered
+from sffscan.stages.fields.aperture import stack_noise_floor
 from sffscan.stages.fields.stationary import reconstruct_field
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -159,6 +161,7 @@ def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:
     aligned, valid, al = align_stack(st.real)
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))
     stacks = {"ideal": st.ideal, "unaligned": st.real, "aligned": aligned}
+    floors = {"aligned": stack_noise_floor(st.real, al, max_value=1023)[0]}
     out = {}
     if old is not None:
         aligned_old, _, al_old = old.align_stack(st.real)
@@ -167,8 +170,10 @@ def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:
         out["old scale error %"] = float(100 * np.max(np.abs(al_old.scale / st.mags - 1.0)))
     if use_true:
         stacks["true warp"] = align_stack(st.real, alignment=true_alignment(st))[0]
+        floors["true warp"] = stack_noise_floor(st.real, true_alignment(st), max_value=1023)[0]
     for name, s in stacks.items():
-        r = reconstruct_field(s, focus_heights_um=st.zs, max_value=1023)
+        r = reconstruct_field(s, focus_heights_um=st.zs, max_value=1023,
+                              noise_floor=floors.get(name))
         h = np.where(mask, r.height_um, np.nan)
         out[name] = compare_height_maps(h, st.truth, max_depth_um=float(st.zs[-1])).rmse_um
     out["scale error %"] = float(100 * np.max(np.abs(al.scale / st.mags - 1.0)))

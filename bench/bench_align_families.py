@@ -7,11 +7,14 @@ texture and noise; rendered 4x finer and integrated per pixel).
     python bench/bench_align_families.py --families slopes --seeds 0 1 --size 96
 
 Columns: ``unaligned``; ``Lanczos`` (the estimated transforms, each frame warped by OpenCV's
-8-tap Lanczos, the warp before 103b380); ``aligned`` (:func:`sffscan.stages.fields.align.
-align_stack`: the windowed sinc); ``true warp`` (the true transforms, the same warp: the
-estimate's share); the largest error of the estimated scale, %. Depth: GLVM 9, ``adaptive``,
-levels, over the pixels every aligned frame covers less the focus window's reach. Writes
-bench/align_families_results.md. Not a test: nothing here asserts.
+8-tap Lanczos, the warp before 103b380); ``no aperture`` (the windowed sinc alone, the warp
+before the pixel aperture was equalised); ``aperture, no floor`` (:func:`sffscan.stages.
+fields.align.align_stack` without the noise floor's correction); ``aligned`` (what ``stack
+--align`` does: the windowed sinc, the aperture equalised, the noise floor taken off the
+focus volume, :mod:`sffscan.stages.fields.aperture`); ``true warp`` (the true transforms,
+the same warp: the estimate's share); the largest error of the estimated scale, %.
+Depth: GLVM 9, ``adaptive``, levels, over the pixels every aligned frame covers less the
+focus window's reach. Writes bench/align_families_results.md. Not a test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import cv2
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.fields.align import Alignment, align_stack, mask_uncovered
+from sffscan.stages.fields.aperture import stack_noise_floor
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import family_stack
 
@@ -57,18 +61,28 @@ def score(family: str, seed: int, *, n: int, size: int, breathing: float) -> dic
                         pad_for_breathing=breathing)
     truth = real.truth_um / 10.0
     aligned, valid, al = align_stack(real.images)
+    floor = stack_noise_floor(real.images, al, max_value=1.0)[0]
     mags = (1.0 + breathing) ** (np.arange(n) - n // 2)
-    true = align_stack(real.images, alignment=_true(mags, real.images.shape[1:]))[0]
+    true_al = _true(mags, real.images.shape[1:])
+    true = align_stack(real.images, alignment=true_al)[0]
+    true_floor = stack_noise_floor(real.images, true_al, max_value=1.0)[0]
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))
 
-    def rmse(stack: np.ndarray) -> float:
-        d = depth_from_focus(focus_measure(stack, window=9), method="adaptive")[0]
+    def rmse(stack: np.ndarray, floor: np.ndarray | None = None) -> float:
+        fm = focus_measure(stack, window=9)
+        if floor is not None:
+            fm = np.maximum(fm - floor[:, None, None].astype(np.float32), np.float32(0.0))
+        d = depth_from_focus(fm, method="adaptive")[0]
         return float(np.sqrt(np.mean((d - truth)[mask] ** 2)))
 
     base = rmse(twin.images)
     return {"ideal": base, "unaligned": rmse(real.images) / base,
-            "Lanczos": rmse(_lanczos(real.images, al)) / base, "aligned": rmse(aligned) / base,
-            "true warp": rmse(true) / base,
+            "Lanczos": rmse(_lanczos(real.images, al)) / base,
+            "no aperture": rmse(align_stack(real.images, alignment=al, aperture=False)[0])
+            / base,
+            "aperture, no floor": rmse(aligned) / base,
+            "aligned": rmse(aligned, floor) / base,
+            "true warp": rmse(true, true_floor) / base,
             "scale error %": float(100 * np.abs(al.scale / mags - 1.0).max())}
 
 
@@ -84,11 +98,12 @@ def main(argv: list[str] | None = None) -> int:
     head = (f"{args.frames} levels of {args.size} x {args.size} px, "
             f"{100 * args.breathing:g} %/frame breathing; RMSE (levels) of the no-breathing "
             "twin, the others over it")
-    cols = ["ideal", "unaligned", "Lanczos", "aligned", "true warp", "scale error %"]
+    cols = ["ideal", "unaligned", "Lanczos", "no aperture", "aperture, no floor", "aligned",
+            "true warp", "scale error %"]
     lines = [head, "", "| family | seed | " + " | ".join(cols) + " |",
              "|---|---:|" + "---:|" * len(cols)]
     print("\n".join(lines), flush=True)
-    worst = {"Lanczos": 0.0, "aligned": 0.0}
+    worst = {"Lanczos": 0.0, "no aperture": 0.0, "aperture, no floor": 0.0, "aligned": 0.0}
     for fam in args.families:
         for seed in args.seeds:
             try:
@@ -101,8 +116,10 @@ def main(argv: list[str] | None = None) -> int:
                     f"{r[c]:.3f}" for c in cols[1:]) + " |")
             lines.append(line)
             print(line, flush=True)
-    tail = (f"\nworst aligned/twin: {worst['aligned']:.3f} (Lanczos warp: "
-            f"{worst['Lanczos']:.3f}); {time.perf_counter() - t0:.0f} s")
+    tail = (f"\nworst aligned/twin: {worst['aligned']:.3f} (without the aperture: "
+            f"{worst['no aperture']:.3f}; the aperture without the noise floor: "
+            f"{worst['aperture, no floor']:.3f}; Lanczos warp: {worst['Lanczos']:.3f}); "
+            f"{time.perf_counter() - t0:.0f} s")
     lines.append(tail)
     print(tail)
     cmd = "python bench/bench_align_families.py " + " ".join(sys.argv[1:] if argv is None

@@ -162,6 +162,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from sffscan.pipeline.mosaic.writer import MosaicWriter
     from sffscan.pipeline.stopgo import feather_weights, stitch_field
     from sffscan.stages.fields.align import describe_alignment, mask_uncovered, prepare_stack
+    from sffscan.stages.fields.aperture import stack_noise_floor
 
     try:
         settings = _settings(args)
@@ -171,10 +172,18 @@ def cmd_stack(args: argparse.Namespace) -> int:
             table = correction.focus_heights_um(table)
             stack = correction.frames(stack, max_value=None if args.bit_depth is None
                                       else float(2**args.bit_depth - 1))
+        max_value = None if args.bit_depth is None else float(2**args.bit_depth - 1)
+        taken = stack
         stack, covered, alignment = prepare_stack(stack, align=args.align)
+        floor = None
         if alignment is not None:
             print(describe_alignment(alignment), file=sys.stderr)
-        max_value = None if args.bit_depth is None else float(2**args.bit_depth - 1)
+            floor, sigma = stack_noise_floor(taken, alignment, operator=settings.operator,
+                                             window=settings.window, max_value=max_value)
+            log.info(f"stack: sensor noise {100 * sigma:.2f} % of full scale; the aligned "
+                     f"frames' noise floor corrected by {floor.min():+.3g} .. "
+                     f"{floor.max():+.3g} (focus measure units)")
+        del taken
         if not args.pixel_um > 0:
             raise ValueError(f"--pixel-um must be > 0, got {args.pixel_um}")
         log.info(f"stack: {stack.shape[0]} images of {stack.shape[2]}x{stack.shape[1]} px "
@@ -182,7 +191,7 @@ def cmd_stack(args: argparse.Namespace) -> int:
                  f"k={settings.window}, {settings.method}, weighted median "
                  f"{settings.filter_size}x{settings.filter_size}")
         t0 = time.perf_counter()
-        result = reconstruct_with_progress(stack, table, settings, max_value)
+        result = reconstruct_with_progress(stack, table, settings, max_value, floor)
         if correction is not None:
             result = correction.field(result)
         if covered is not None:  # pixels some aligned frame does not cover: not measured

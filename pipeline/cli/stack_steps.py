@@ -53,7 +53,8 @@ def read_images(paths: list[str], *, grey: bool) -> np.ndarray:
 
 
 def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: StackSettings,
-                              max_value: float | None) -> FieldResult:
+                              max_value: float | None,
+                              noise_floor: np.ndarray | None = None) -> FieldResult:
     """:func:`~sffscan.stages.fields.stationary.reconstruct_field` with what it does said on
     stderr: the reconstruction (its time), then the weighted median with a progress display
     of its rows (on large photographs it is the longer part)."""
@@ -65,7 +66,8 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
     t0 = time.perf_counter()
     log.info("stack: reconstruction (focus measure, depth, all-in-focus image) ...")
     raw = reconstruct_field(stack, focus_heights_um=table, max_value=max_value,
-                            settings=replace(settings, filter_size=1, min_confidence=0.0))
+                            settings=replace(settings, filter_size=1, min_confidence=0.0),
+                            noise_floor=noise_floor)
     log.info("stack: reconstruction done in %.1f s", time.perf_counter() - t0)
     if settings.filter_size == 1:
         height = raw.height_um

@@ -31,7 +31,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from sffscan.stages.fields.resample import TAPS, is_separable, scale_warp
+from sffscan.stages.fields.resample import TAPS, is_separable, warp_frame
 
 __all__ = [
     "Alignment",
@@ -347,25 +347,6 @@ def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np
     return full
 
 
-def warp_frame(image: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])`` (a windowed
-    sinc for a scale and shift, :mod:`~sffscan.stages.fields.resample`; else Lanczos).
-
-    Returns an array of ``image``'s shape and dtype, clipped to the frame's own range (the
-    kernel's ringing must not push a 10-bit frame past its full scale); pixels mapping
-    outside the frame replicate its border (:func:`align_stack` reports them as not valid).
-    """
-    if is_separable(matrix):
-        return scale_warp(image, matrix)
-    img = np.asarray(image)
-    h, w = img.shape
-    out = cv2.warpAffine(img, np.asarray(matrix, dtype=np.float64), (w, h),
-                         flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_REPLICATE)
-    lo, hi = (np.asarray(v, dtype=img.dtype) for v in cv2.minMaxLoc(img)[:2])
-    return np.clip(out, lo, hi, out=out)
-
-
 def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.ndarray:
     h, w = shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -375,7 +356,7 @@ def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.nd
 
 
 def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | None = None,
-                alignment: Alignment | None = None
+                alignment: Alignment | None = None, aperture: bool = True
                 ) -> tuple[np.ndarray, np.ndarray, Alignment]:
     """Warp every frame of a focus stack onto the reference frame's grid.
 
@@ -385,6 +366,9 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     model, reference : as in :func:`estimate_alignment`.
     alignment : Alignment, optional
         Transforms already estimated (e.g. from a calibration); default estimated here.
+    aperture : bool
+        Give every frame the reference pixel's aperture (:func:`warp_frame`): without it a
+        focus measure favours the magnified frames (measured: bench/align_families_results.md).
 
     Returns
     -------
@@ -404,7 +388,7 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     out = np.empty_like(st)
     valid = np.ones(st.shape[1:], dtype=bool)
     for k in range(st.shape[0]):
-        out[k] = warp_frame(st[k], al.matrices[k])
+        out[k] = warp_frame(st[k], al.matrices[k], aperture=aperture)
         reach = float(TAPS) if is_separable(al.matrices[k]) else 3.0
         valid &= _coverage(al.matrices[k], st.shape[1:], reach)
     return out, valid, al

@@ -18,10 +18,14 @@ A scale-and-shift map is separable (``x' = s_x x + t_x``, ``y' = s_y y + t_y``):
 
 from __future__ import annotations
 
+import math
+
+import cv2
 import numpy as np
 import scipy.sparse
+from sffscan.stages.fields.aperture import equalise_aperture
 
-__all__ = ["TAPS", "is_separable", "resample_matrix", "scale_warp"]
+__all__ = ["TAPS", "is_separable", "resample_matrix", "scale_warp", "warp_frame"]
 
 TAPS = 8
 """Lobes of the Lanczos (windowed sinc) kernel on each side: 16 weights per output pixel
@@ -55,7 +59,8 @@ def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: 
     return scipy.sparse.csr_matrix((w.ravel(), (rows, cols)), shape=(n_out, n_in))
 
 
-def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS) -> np.ndarray:
+def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
+               aperture: bool = False) -> np.ndarray:
     """``out(x, y) = image(matrix [x, y, 1])`` for a map without rotation or shear.
 
     Parameters
@@ -65,6 +70,9 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS) -> np
         Output px -> image px; ``matrix[0, 1] == matrix[1, 0] == 0``.
     taps : int, keyword-only
         Kernel lobes per side.
+    aperture : bool, keyword-only
+        Also give the result the reference pixel's aperture
+        (:func:`~sffscan.stages.fields.aperture.equalise_aperture`).
 
     Returns
     -------
@@ -84,8 +92,37 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS) -> np
     rx = resample_matrix(w, w, m[0, 0], m[0, 2], taps=taps)
     ry = resample_matrix(h, h, m[1, 1], m[1, 2], taps=taps)
     out = np.asarray(ry @ (rx @ img.astype(np.float64).T).T)
+    if aperture:
+        out = equalise_aperture(out, float(m[0, 0]), float(m[1, 1]), taps=taps)
     lo, hi = float(img.min()), float(img.max())
     np.clip(out, lo, hi, out=out)
+    if np.issubdtype(img.dtype, np.integer):
+        np.rint(out, out=out)
+    return out.astype(img.dtype)
+
+
+def warp_frame(image: np.ndarray, matrix: np.ndarray, *, aperture: bool = True) -> np.ndarray:
+    """Frame resampled onto the reference grid: ``out(x) = image(matrix [x, 1])``.
+
+    :func:`scale_warp` for a scale and shift, else OpenCV's Lanczos; with ``aperture``, given
+    the reference pixel's aperture (:mod:`~sffscan.stages.fields.aperture`; for a rotation
+    or shear, with the magnification ``sqrt |det|``). Returns an array of ``image``'s shape
+    and dtype, clipped to the frame's own range (the kernel's ringing must not push a 10-bit
+    frame past its full scale); pixels mapping outside the frame replicate its border
+    (:func:`~sffscan.stages.fields.align.align_stack` reports them as not valid).
+    """
+    if is_separable(matrix):
+        return scale_warp(image, matrix, aperture=aperture)
+    img = np.asarray(image)
+    h, w = img.shape
+    m = np.asarray(matrix, dtype=np.float64)
+    out = cv2.warpAffine(img.astype(np.float64), m, (w, h),
+                         flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE)
+    if aperture:
+        s = math.sqrt(abs(float(np.linalg.det(m[:, :2]))))
+        out = equalise_aperture(out, s, s)
+    np.clip(out, float(img.min()), float(img.max()), out=out)
     if np.issubdtype(img.dtype, np.integer):
         np.rint(out, out=out)
     return out.astype(img.dtype)

@@ -299,7 +299,8 @@ def stack_to_unit(stack: np.ndarray, *, max_value: float | None = None) -> np.nd
 
 def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | np.ndarray,
                       settings: StackSettings | None = None,
-                      max_value: float | None = None) -> FieldResult:
+                      max_value: float | None = None,
+                      noise_floor: np.ndarray | None = None) -> FieldResult:
     """Height, all-in-focus image and confidence of one field from its focus stack.
 
     Parameters
@@ -313,6 +314,10 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     max_value : float, keyword-only
         Full scale of the images (1023 for 10-bit data in uint16); default from the dtype
         (:func:`default_max_value`).
+    noise_floor : (N,) array_like of float, keyword-only
+        Taken off each level's focus measure (floored at 0): what an aligned stack's
+        aperture equalisation added to its noise
+        (:func:`~sffscan.stages.fields.aperture.stack_noise_floor`); default none.
 
     Returns
     -------
@@ -338,6 +343,12 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     images = stack_to_unit(stack, max_value=max_value)
     volume = focus_measure(images, operator=settings.operator, window=settings.window,
                            backend=settings.backend, device=settings.device)
+    if noise_floor is not None:
+        floor = np.asarray(noise_floor, dtype=np.float32).reshape(-1)
+        if floor.size != volume.shape[0] or not np.isfinite(floor).all():
+            raise ValueError(f"noise_floor must hold {volume.shape[0]} finite values, one per "
+                             f"image, got {floor.size}")
+        volume = np.maximum(volume - floor[:, None, None], np.float32(0.0))
     levels, confidence = depth_from_focus(volume, method=settings.method,
                                           median_size=settings.median_size,
                                           spread_size=settings.window)
