@@ -149,12 +149,7 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
 
 
 def true_alignment(st: Stack) -> Alignment:
-    n, h, w = st.real.shape
-    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    mats = np.array([np.hstack([np.eye(2) * m, (c - m * c)[:, None]]) for m in st.mags])
-    return Alignment(matrices=mats, scale=st.mags.copy(), shift_px=np.zeros((n, 2)),
-                     rotation_deg=np.zeros(n), reference=n // 2, correlation=np.ones(n),
-                     model="scale")
+    return Alignment.breathing(st.mags, st.real.shape[1:])
 
 
 def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:

@@ -37,16 +37,6 @@ DEFAULT_FAMILIES = ["even-gauss", "even-noisy", "lens-gauss", "pillbox", "lens-p
                     "slopes", "clean-coarse", "steps"]
 
 
-def _true(mags: np.ndarray, shape: tuple[int, int]) -> Alignment:
-    h, w = shape
-    n = mags.size
-    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    mats = np.array([np.hstack([np.eye(2) * m, (c - m * c)[:, None]]) for m in mags])
-    return Alignment(matrices=mats, scale=mags.copy(), shift_px=np.zeros((n, 2)),
-                     rotation_deg=np.zeros(n), reference=n // 2, correlation=np.ones(n),
-                     model="scale")
-
-
 def _lanczos(stack: np.ndarray, al: Alignment) -> np.ndarray:
     h, w = stack.shape[1:]
     out = [cv2.warpAffine(f, m, (w, h), flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP,
@@ -63,7 +53,7 @@ def score(family: str, seed: int, *, n: int, size: int, breathing: float) -> dic
     aligned, valid, al = align_stack(real.images)
     floor = stack_noise_floor(real.images, al, max_value=1.0)[0]
     mags = (1.0 + breathing) ** (np.arange(n) - n // 2)
-    true_al = _true(mags, real.images.shape[1:])
+    true_al = Alignment.breathing(mags, real.images.shape[1:])
     true = align_stack(real.images, alignment=true_al)[0]
     true_floor = stack_noise_floor(real.images, true_al, max_value=1.0)[0]
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))

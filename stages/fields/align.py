@@ -92,6 +92,18 @@ class Alignment:
                 "rotation_deg": [round(float(v), 4) for v in self.rotation_deg],
                 "correlation": [round(float(v), 5) for v in self.correlation]}
 
+    @classmethod
+    def breathing(cls, scale: np.ndarray, shape: tuple[int, int]) -> Alignment:
+        """Known magnifications about the frame centre (a lens' breathing, no shift), e.g.
+        from a calibration or a simulator's truth; ``scale``: (N,), ``shape``: (H, W)."""
+        s = np.asarray(scale, dtype=np.float64).reshape(-1)
+        n = s.size
+        c = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
+        mats = np.array([np.hstack([np.eye(2) * m, (c - m * c)[:, None]]) for m in s])
+        return cls(matrices=mats, scale=s.copy(), shift_px=np.zeros((n, 2)),
+                   rotation_deg=np.zeros(n), reference=n // 2, correlation=np.ones(n),
+                   model="scale")
+
 
 def _to_float(img: np.ndarray) -> np.ndarray:
     a = np.asarray(img)

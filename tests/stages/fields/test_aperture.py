@@ -19,15 +19,6 @@ from sffscan.stages.fields.stationary import reconstruct_field
 from sffscan.stages.focus_measure import focus_measure
 
 
-def _scales(mags: np.ndarray, size: int) -> Alignment:
-    n = mags.size
-    c = np.array([(size - 1) / 2.0, (size - 1) / 2.0])
-    mats = np.array([np.hstack([np.eye(2) * m, (c - m * c)[:, None]]) for m in mags])
-    return Alignment(matrices=mats, scale=mags.copy(), shift_px=np.zeros((n, 2)),
-                     rotation_deg=np.zeros(n), reference=n // 2, correlation=np.ones(n),
-                     model="scale")
-
-
 def test_aperture_kernel_is_the_ratio_of_two_pixel_boxes() -> None:
     """Known answer: a pixel of width a has the response sinc(a f); the kernel turns a frame
     pixel of 1 / s reference px into the reference's 1 px: sinc(f) / sinc(f / s)."""
@@ -104,7 +95,10 @@ def test_the_noise_floor_is_the_warps_again_once_the_offsets_are_taken_off() -> 
     alignment has zero offsets."""
     n, size, sigma = 25, 200, 0.03
     mags = 1.012 ** (np.arange(n) - n // 2)
-    al = _scales(mags, size)
+    al = Alignment.breathing(mags, (size, size))
+    c = (size - 1) / 2.0  # a breathing about the centre: the centre stays, the corners scale
+    np.testing.assert_allclose(al.matrices @ [c, c, 1.0], np.full((n, 2), c))
+    np.testing.assert_allclose(al.matrices @ [0.0, 0.0, 1.0], np.outer(c - mags * c, [1, 1]))
     rng = np.random.default_rng(7)
     draws = [rng.normal(0.5, sigma, (size, size)) for _ in range(n)]
 
@@ -126,7 +120,7 @@ def test_the_noise_floor_is_the_warps_again_once_the_offsets_are_taken_off() -> 
     np.testing.assert_allclose(fixed, without, rtol=0.03)
     others = np.delete(without, n // 2)
     np.testing.assert_allclose(others, np.median(others), rtol=0.03)
-    same = _scales(np.ones(4), size)
+    same = Alignment.breathing(np.ones(4), (size, size))
     np.testing.assert_array_equal(noise_floor_offsets(same, sigma=sigma), np.zeros(4))
     np.testing.assert_array_equal(noise_floor_offsets(al, sigma=0.0), np.zeros(n))
 
