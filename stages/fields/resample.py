@@ -1,5 +1,5 @@
 """Band-limited resampling of a frame by a scale and shift (no rotation): a separable
-windowed sinc.
+windowed sinc; :func:`warp_frame`, any affine map onto the reference grid.
 
 Why not :func:`cv2.warpAffine` with ``INTER_LANCZOS4`` for focus breathing: an 8-tap kernel
 attenuates a frame's finest texture by an amount that depends on the sub-pixel phase of
