@@ -29,17 +29,20 @@ import numpy as np
 if TYPE_CHECKING:
     from sffscan.stages.fields.align import Alignment
 
-__all__ = ["aperture_kernel", "equalise_aperture", "noise_floor_offsets", "noise_sigma",
-           "stack_noise_floor"]
+__all__ = ["APERTURE_TAPS", "aperture_kernel", "equalise_aperture", "noise_floor_offsets",
+           "noise_sigma", "stack_noise_floor"]
 
 # Immerkaer's noise kernel (difference of two Laplacians): zero response to any plane,
 # sum of squares 36.
 _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
+APERTURE_TAPS = 8
+"""Half-length of :func:`aperture_kernel` (``2 APERTURE_TAPS + 1`` weights): its response is
+within 0.2 % of the box ratio up to 0.45 cycles/px for scales 0.887 and 1.127 (+-12 %)."""
 NOISE_PATCH_PX = 256
 """Side of the white-noise patch :func:`noise_floor_offsets` warps (its mean is what counts)."""
 
 
-def aperture_kernel(scale: float, *, taps: int = 8) -> np.ndarray:
+def aperture_kernel(scale: float, *, taps: int = APERTURE_TAPS) -> np.ndarray:
     """1-D filter that gives a resampled frame the reference pixel's aperture.
 
     A sensor pixel integrates the light over its area (a box, 100 % fill factor). A frame
@@ -68,7 +71,7 @@ def aperture_kernel(scale: float, *, taps: int = 8) -> np.ndarray:
 
 
 def equalise_aperture(image: np.ndarray, scale_x: float, scale_y: float, *,
-                      taps: int = 8) -> np.ndarray:
+                      taps: int = APERTURE_TAPS) -> np.ndarray:
     """A frame already resampled onto the reference grid, given the reference pixel's
     aperture (:func:`aperture_kernel` along each axis; borders replicated).
 

@@ -93,7 +93,7 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
     ry = resample_matrix(h, h, m[1, 1], m[1, 2], taps=taps)
     out = np.asarray(ry @ (rx @ img.astype(np.float64).T).T)
     if aperture:
-        out = equalise_aperture(out, float(m[0, 0]), float(m[1, 1]), taps=taps)
+        out = equalise_aperture(out, float(m[0, 0]), float(m[1, 1]))
     lo, hi = float(img.min()), float(img.max())
     np.clip(out, lo, hi, out=out)
     if np.issubdtype(img.dtype, np.integer):

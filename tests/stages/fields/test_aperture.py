@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from sffscan.stages.fields.align import Alignment
 from sffscan.stages.fields.aperture import (
+    APERTURE_TAPS,
     aperture_kernel,
     equalise_aperture,
     noise_floor_offsets,
@@ -22,11 +23,11 @@ from sffscan.stages.focus_measure import focus_measure
 def test_aperture_kernel_is_the_ratio_of_two_pixel_boxes() -> None:
     """Known answer: a pixel of width a has the response sinc(a f); the kernel turns a frame
     pixel of 1 / s reference px into the reference's 1 px: sinc(f) / sinc(f / s)."""
-    n = np.arange(-TAPS, TAPS + 1)
+    n = np.arange(-APERTURE_TAPS, APERTURE_TAPS + 1)
     f = np.linspace(0.0, 0.4, 41)
     for s in (0.887, 0.95, 1.05, 1.127):
         k = aperture_kernel(s)
-        assert k.size == 2 * TAPS + 1 and math.isclose(float(k.sum()), 1.0)
+        assert k.size == 2 * APERTURE_TAPS + 1 and math.isclose(float(k.sum()), 1.0)
         got = (k[None, :] * np.cos(2 * np.pi * f[:, None] * n[None, :])).sum(axis=1)
         np.testing.assert_allclose(got, np.sinc(f) / np.sinc(f / s), rtol=2e-3)
     np.testing.assert_array_equal(aperture_kernel(1.0), [1.0])
