@@ -250,7 +250,8 @@ def source_tree() -> dict[str, Any]:
     def git(*cmd: str) -> str:
         try:
             return subprocess.run(["git", *cmd], cwd=root, capture_output=True, text=True,
-                                  timeout=30, check=True).stdout.strip()
+                                  timeout=30, check=True).stdout.rstrip()  # porcelain's
+            # lines start with a space for a file changed in the work tree only
         except (OSError, subprocess.SubprocessError):
             return "(git unavailable)"
 
