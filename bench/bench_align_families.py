@@ -13,8 +13,9 @@ fields.align.align_stack` without the noise floor's correction); ``aligned`` (wh
 --align`` does: the windowed sinc, the aperture equalised, the noise floor taken off the
 focus volume, :mod:`sffscan.stages.fields.aperture`); ``true warp`` (the true transforms,
 the same warp: the estimate's share); the largest error of the estimated scale, %.
-Depth: GLVM 9, ``adaptive``, levels, over the pixels every aligned frame covers less the
-focus window's reach. Writes bench/align_families_results.md. Not a test: nothing here asserts.
+Depth: GLVM 9, the default method (``--method``), levels, over the pixels every aligned
+frame covers less the focus window's reach. Writes bench/align_families_results.md. Not a
+test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus
 from sffscan.stages.fields.align import Alignment, align_stack, mask_uncovered
 from sffscan.stages.fields.aperture import stack_noise_floor
 from sffscan.stages.focus_measure import focus_measure
@@ -45,7 +46,8 @@ def _lanczos(stack: np.ndarray, al: Alignment) -> np.ndarray:
     return np.clip(np.stack(out), 0.0, 1.0)
 
 
-def score(family: str, seed: int, *, n: int, size: int, breathing: float) -> dict[str, float]:
+def score(family: str, seed: int, *, n: int, size: int, breathing: float,
+          method: str = DEFAULT_METHOD) -> dict[str, float]:
     real = family_stack(family, seed, size_px=size, n_levels=n, breathing=breathing)
     twin = family_stack(family, seed, size_px=size, n_levels=n, breathing=0.0,
                         pad_for_breathing=breathing)
@@ -62,7 +64,7 @@ def score(family: str, seed: int, *, n: int, size: int, breathing: float) -> dic
         fm = focus_measure(stack, window=9)
         if floor is not None:
             fm = np.maximum(fm - floor[:, None, None].astype(np.float32), np.float32(0.0))
-        d = depth_from_focus(fm, method="adaptive")[0]
+        d = depth_from_focus(fm, method=method)[0]
         return float(np.sqrt(np.mean((d - truth)[mask] ** 2)))
 
     base = rmse(twin.images)
@@ -83,11 +85,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=21)
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--breathing", type=float, default=0.012)
+    ap.add_argument("--method", choices=DEPTH_METHODS, default=DEFAULT_METHOD,
+                    help=f"depth method (default {DEFAULT_METHOD})")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     head = (f"{args.frames} levels of {args.size} x {args.size} px, "
-            f"{100 * args.breathing:g} %/frame breathing; RMSE (levels) of the no-breathing "
-            "twin, the others over it")
+            f"{100 * args.breathing:g} %/frame breathing, depth method {args.method}; RMSE "
+            "(levels) of the no-breathing twin, the others over it")
     cols = ["ideal", "unaligned", "Lanczos", "no aperture", "aperture, no floor", "aligned",
             "true warp", "scale error %"]
     lines = [head, "", "| family | seed | " + " | ".join(cols) + " |",
@@ -97,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     for fam in args.families:
         for seed in args.seeds:
             try:
-                r = score(fam, seed, n=args.frames, size=args.size, breathing=args.breathing)
+                r = score(fam, seed, n=args.frames, size=args.size, breathing=args.breathing,
+                          method=args.method)
             except ValueError as err:  # ECC gave up on a featureless pair: say so, go on
                 line = f"| {fam} | {seed} | alignment failed: {err} |"
             else:

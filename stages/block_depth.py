@@ -11,25 +11,34 @@ from __future__ import annotations
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_candidates import shape_statistics, takes_spc
+from sffscan.stages.depth_candidates import (
+    SHAPE_SAMPLE_STEP,
+    block_takes_centroid,
+    sampled_curves,
+    shape_statistics,
+    takes_spc,
+)
 from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
-__all__ = ["SHAPE_SAMPLE_STEP", "block_method", "block_uncertainty", "depth_rows"]
+__all__ = ["BLOCK_CHOICES", "SHAPE_SAMPLE_STEP", "block_method", "block_uncertainty",
+           "depth_rows"]
 
-SHAPE_SAMPLE_STEP = (16, 8)
-"""``"shape_select"`` judges a block's curves on every 16th row and 8th column: a 1040-row
-block of 64 columns gives 520 curves, enough to place two medians; judging every curve
-would cost the block more than its reduction (bench/results: bench_depth_default.py)."""
+BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
+"""The methods that choose once for each block of columns (:func:`block_method`)."""
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
-                 complete: np.ndarray | None = None) -> str:
-    """The method ``"shape_select"`` takes for a block: ``"spc"`` where its curves are even
-    and clean, else ``"adaptive"`` (:func:`sffscan.stages.depth_candidates.shape_select`'s
-    rule at its tuned limits), judged on the curves of :data:`SHAPE_SAMPLE_STEP`.
+                 complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
+    """The method a block takes, judged on the curves of :data:`SHAPE_SAMPLE_STEP`
+    (:func:`sffscan.stages.depth_candidates.sampled_curves`).
+
+    ``"shape_select"``: ``"spc"`` where its curves are even and clean, else ``"adaptive"``
+    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits).
+    ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
+    (:func:`sffscan.stages.depth_candidates.block_takes_centroid`), else ``"adaptive"``.
 
     Parameters
     ----------
@@ -41,15 +50,17 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         The columns seen at every level; the others are left out, and so are the curves
         without data (flat: the rows beyond the frames, kept for wobble). A block with no
         such curve takes ``"adaptive"``.
+    method : {"shape_select", "adaptive_centroid"}, keyword-only
     """
-    rs, cs = SHAPE_SAMPLE_STEP
-    vol = np.ascontiguousarray(levels[:, ::rs, ::cs])
-    seen = vol.max(axis=0) > vol.min(axis=0)
-    if complete is not None:
-        seen &= np.asarray(complete, bool)[::cs][None, :]
-    if not seen.any():
+    if method == "adaptive_centroid":
+        return method if block_takes_centroid(levels, argmax, complete) else "adaptive"
+    if method != "shape_select":
+        raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
+    sample = sampled_curves(levels, argmax, complete)
+    if sample is None:
         return "adaptive"
-    stats = shape_statistics(vol, argmax[::rs, ::cs], curve_width(vol), seen)
+    vol, am, seen = sample
+    stats = shape_statistics(vol, am, curve_width(vol), seen)
     return "spc" if takes_spc(stats) else "adaptive"
 
 
@@ -105,12 +116,13 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         if keep_low and low_src is not None:
             low[:] = low_src[r0:r1]
         return depth[own, inner], conf[own, inner]
-    if method in ("wcentroid", "adaptive"):  # the levels about the filtered argmax
-        centre = median_filter_levels(argmax, median_size, n_levels)
+    if method in ("wcentroid", "adaptive", "adaptive_centroid"):  # the levels about the
+        centre = median_filter_levels(argmax, median_size, n_levels)  # filtered argmax
         levels = src[:, r0:r1]
-        if method == "adaptive":  # depth and confidence in one pass over the levels
+        if method != "wcentroid":  # depth and confidence in one pass over the levels
             spread = level_spread(centre, spread_size, n_levels)
-            return adaptive_block(levels, centre[own, inner], spread[own, inner],
+            peak = "centroid" if method == "adaptive_centroid" else "gauss3"
+            return adaptive_block(levels, centre[own, inner], spread[own, inner], peak=peak,
                                   sums_out=sums, min_out=low if keep_low else None)
         depth = windowed_centroid(levels, centre[own, inner])
         sums[:] = focus_sums(levels)

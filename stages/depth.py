@@ -36,9 +36,11 @@ from sffscan.stages.depth_candidates import (
     GAUSS_FIT_HALF_WINDOW,
     SHAPE_SELECT_LIMITS,
     WINDOW_PC_FACTOR,
+    centroid_pull,
     gauss_window_fit,
     shape_select,
     shape_statistics,
+    takes_centroid,
     window_pc,
 )
 from sffscan.stages.depth_harmonics import (
@@ -158,6 +160,14 @@ def _adaptive(c: FocusCurves) -> np.ndarray:
                          level_spread(centre, c.spread_size, c.volume.shape[0]))
 
 
+def _adaptive_centroid(c: FocusCurves) -> np.ndarray:
+    assert c.argmax is not None
+    centre = c.centre()
+    peak = "centroid" if takes_centroid(centroid_pull(c.volume, c.argmax)) else "gauss3"
+    return adaptive_peak(c.volume, centre,
+                         level_spread(centre, c.spread_size, c.volume.shape[0]), peak=peak)
+
+
 def _gauss_window_fit(c: FocusCurves) -> np.ndarray:
     return gauss_window_fit(c.volume, c.centre(), _adaptive(c),
                             half_window=GAUSS_FIT_HALF_WINDOW)
@@ -184,6 +194,7 @@ ESTIMATORS: dict[str, Estimator] = {
     "spc": Estimator(partial(_from_sums, method="spc")),
     "wcentroid": Estimator(_wcentroid),
     "adaptive": Estimator(_adaptive),
+    "adaptive_centroid": Estimator(_adaptive_centroid),
     "shape_select": Estimator(_shape_select),
     "gauss_window_fit": Estimator(_gauss_window_fit, candidate=True),
     "window_pc": Estimator(_window_pc, candidate=True),
@@ -197,9 +208,10 @@ DEPTH_METHODS = tuple(name for name, e in ESTIMATORS.items() if not e.candidate)
 CANDIDATE_METHODS = tuple(name for name, e in ESTIMATORS.items() if e.candidate)
 """The study's candidates, selectable by name in :func:`depth_from_focus` only."""
 
-DEFAULT_METHOD = "adaptive"
+DEFAULT_METHOD = "adaptive_centroid"
 """The default depth method of scan, replay and stack (see
-:func:`~sffscan.stages.depth_peak.adaptive_peak`)."""
+:func:`~sffscan.stages.depth_peak.adaptive_peak` and ``"adaptive_centroid"`` in
+:func:`depth_from_focus`; ``"adaptive"`` before 2026-12-02)."""
 
 
 # ----------------------------------------------------------------------------- public API
@@ -232,13 +244,23 @@ def depth_from_focus(
             ``sum(k y_k) / sum(y_k)`` (argmax where the sum is <= 0).
         ``"pc"``
             Phase correlation: ``(-angle(H_1) N / (2 pi)) mod N``, in [0, N).
-        ``"adaptive"`` (the default of scan, replay and stack)
+        ``"adaptive"``
             The argmax, median filtered as for SPC (``a_med``); where ``a_med`` spans at
             most :data:`ADAPTIVE_MAX_SPREAD` levels over the ``spread_size`` x
             ``spread_size`` focus window about the pixel, the curve's maximum next to
             ``a_med`` refined by a 3-point Gaussian; elsewhere the windowed centroid of
             the 2h + 1 = 11 levels about ``a_med``
             (:func:`~sffscan.stages.depth_peak.adaptive_peak`).
+        ``"adaptive_centroid"`` (the default of scan, replay and stack)
+            ``"adaptive"``, but the centroid of the 5 levels about ``a_med`` instead of
+            the 3-point Gaussian where ``a_med`` spans at most
+            :data:`ADAPTIVE_MAX_SPREAD` levels, if the volume's curves are even enough
+            that a centroid is not pulled from their maxima (the median difference of the
+            two about each curve's argmax within
+            :data:`~sffscan.stages.depth_candidates.CENTROID_PULL_LIMIT`:
+            :func:`~sffscan.stages.depth_candidates.centroid_pull`). Five levels, not
+            three: less noise. On lopsided curves (a thin lens' blur) it is
+            ``"adaptive"``. The streaming depth stage judges each block of columns.
         ``"wcentroid"``
             Windowed centroid about the filtered peak: the argmax, median filtered over
             ``median_size`` x ``median_size`` pixels as for SPC (``a_med``), is the centre of

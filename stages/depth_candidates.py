@@ -1,6 +1,7 @@
 """Depth estimators tried as candidates by the leave-one-family-out study
-(:mod:`sffscan.stages.depth_study`); none is a method of scan, replay or stack, both are
-selectable by name in :func:`sffscan.stages.depth.depth_from_focus`
+(:mod:`sffscan.stages.depth_study`), and the statistics by which two of them choose. The
+first two are not methods of scan, replay or stack; they are selectable by name in
+:func:`sffscan.stages.depth.depth_from_focus`
 (:data:`sffscan.stages.depth.CANDIDATE_METHODS`, at the settings below).
 
 Both fit a model over more than the 3 points of ``gauss3``, in a window about the
@@ -24,16 +25,25 @@ And one that chooses between two methods by what the whole stack's curves look l
   ``adaptive``. SPC reads the whole curve, so it holds where wide or ringing curves
   (pillbox PSFs, coarse textures) move the 3-point peak; but it is biased by a lopsided
   curve (a thin lens' blur, even in 1/z) and by a noisy floor under a narrow peak.
+
+And the statistic of the default, ``adaptive_centroid``:
+
+* :func:`centroid_pull`: how far the 5-level centroid about each curve's argmax lies from
+  its 3-point Gaussian, the median over the curves; :func:`takes_centroid` below
+  :data:`CENTROID_PULL_LIMIT` (:func:`block_takes_centroid` for a block of a scan, judged
+  on its :func:`sampled_curves`).
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
-__all__ = ["GAUSS_FIT_HALF_WINDOW", "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "curve_skew",
-           "gauss_window_fit", "half_height_run", "shape_select", "shape_statistics", "takes_spc",
-           "window_pc"]
+__all__ = ["CENTROID_PULL_LIMIT", "GAUSS_FIT_HALF_WINDOW", "SHAPE_SAMPLE_STEP",
+           "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "block_takes_centroid", "centroid_pull",
+           "curve_skew", "gauss_window_fit", "half_height_run", "sampled_curves",
+           "shape_select", "shape_statistics", "takes_centroid", "takes_spc", "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
 """Half window h of ``"gauss_window_fit"`` by name: the study's setting tuned on the training
@@ -43,9 +53,96 @@ WINDOW_PC_FACTOR = 3.0
 """Factor on the curve's width of ``"window_pc"`` by name, tuned as
 :data:`GAUSS_FIT_HALF_WINDOW`."""
 
+CENTROID_PULL_LIMIT = 0.03
+"""Largest :func:`centroid_pull` (levels) for which ``"adaptive_centroid"`` takes the
+5-level centroid, tuned as :data:`GAUSS_FIT_HALF_WINDOW` (docs/depth-study.md)."""
+
 SHAPE_SELECT_LIMITS = (0.08, 6.0)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
 tuned as :data:`GAUSS_FIT_HALF_WINDOW` (the same in every leave-one-family-out fold)."""
+
+
+SHAPE_SAMPLE_STEP = (16, 8)
+"""The curves' shape is judged on every 16th row and 8th column (:func:`sampled_curves`):
+a 1040-row block of 64 columns gives 520 curves, enough to place two medians; judging every
+curve would cost a scan's block more than its reduction (bench/results:
+bench_depth_default.py)."""
+
+
+def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
+                   complete: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The curves of :data:`SHAPE_SAMPLE_STEP` a shape is judged on: (N, r, c) float32
+    levels, their argmax and the mask of those with data, or None where none has.
+
+    Parameters
+    ----------
+    levels : (N, rows, columns) ndarray of float
+        The curves (a block of a scan, or a whole stack).
+    argmax : (rows, columns) ndarray of int
+        Their argmax.
+    complete : (columns,) ndarray of bool, optional
+        The columns seen at every level; the others are left out, and so are the curves
+        without data (flat: the rows beyond the frames, kept for wobble).
+    """
+    rs, cs = SHAPE_SAMPLE_STEP
+    vol = np.ascontiguousarray(levels[:, ::rs, ::cs], dtype=np.float32)
+    seen = vol.max(axis=0) > vol.min(axis=0)
+    if complete is not None:
+        seen &= np.asarray(complete, bool)[::cs][None, :]
+    if not seen.any():
+        return None
+    return vol, np.asarray(argmax)[::rs, ::cs], seen
+
+
+def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
+                  ) -> float:
+    """How far a centroid is pulled from the curves' maximum: the median over the ``mask``
+    curves (all when None) of the baseline-free centroid of the 5 levels about each curve's
+    argmax minus its 3-point Gaussian (levels; curves whose argmax lies within 2 levels of
+    an end of the range left out; 0.0 where none is left).
+
+    About 0 on even curves, whatever their noise (the median of many curves); positive where
+    the curves' tails run to higher levels (a thin lens' blur, even in 1/z): measured 0.14
+    on pertuz-simu02, 0.22 on Gaussians whose upper flank is twice as wide.
+
+    Parameters
+    ----------
+    levels : (N, H, W) ndarray of float
+        The curves.
+    argmax : (H, W) ndarray of int
+        Their argmax.
+    mask : (H, W) ndarray of bool, optional
+        The curves judged.
+    """
+    n = levels.shape[0]
+    am = np.asarray(argmax).astype(np.intp)
+    ok = (am >= 2) & (am <= n - 3)
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    if not ok.any():
+        return 0.0
+    vol = np.ascontiguousarray(levels, dtype=np.float32)
+    diff = (windowed_centroid(vol, am, half_window=2)
+            - (am + three_point_offset(vol, am, log=True)))
+    return float(np.median(diff[ok]))
+
+
+def takes_centroid(pull: float, *, limit: float = CENTROID_PULL_LIMIT) -> bool:
+    """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this
+    :func:`centroid_pull`: ``abs(pull) < limit`` (default :data:`CENTROID_PULL_LIMIT`)."""
+    return abs(pull) < limit
+
+
+def block_takes_centroid(levels: np.ndarray, argmax: np.ndarray,
+                         complete: np.ndarray | None = None) -> bool:
+    """:func:`takes_centroid` judged on a block's :func:`sampled_curves` (False where no
+    curve has data)."""
+    sample = sampled_curves(levels, argmax, complete)
+    if sample is None:
+        return False
+    vol, am, seen = sample
+    return takes_centroid(centroid_pull(vol, am, seen))
 
 
 def _window(volume: np.ndarray, centre: np.ndarray, h: int

@@ -4,8 +4,12 @@
   parabola through the argmax and its two neighbours, on log values for the Gaussian;
 * the windowed centroid of ``wcentroid`` (:func:`windowed_centroid`): the baseline-free
   centroid of the 2h + 1 levels about the median-filtered argmax;
-* the default, ``adaptive`` (:func:`adaptive_peak`): the curve's maximum (a 3-point
-  Gaussian) where the focus window sees one height, else the windowed centroid.
+* ``adaptive`` (:func:`adaptive_peak`): the curve's maximum (a 3-point Gaussian) where the
+  focus window sees one height, else the windowed centroid; the default,
+  ``adaptive_centroid``, takes the centroid of the 5 levels about the filtered peak instead
+  of the 3-point Gaussian (``peak="centroid"``) where the stack's or block's curves do not
+  pull a centroid from their maxima
+  (:func:`sffscan.stages.depth_candidates.centroid_pull`).
 
 The streaming depth stage (:mod:`sffscan.stages.focus_volume`) keeps the N focus levels of
 the columns in view in a ring of ``(N, rows, ring)`` float32 planes and reduces a block of
@@ -37,6 +41,7 @@ from sffscan.stages.depth_harmonics import (
 __all__ = [
     "ADAPTIVE_HALF_WINDOW",
     "ADAPTIVE_MAX_SPREAD",
+    "PEAK_ESTIMATORS",
     "WCENTROID_HALF_WINDOW",
     "adaptive_block",
     "adaptive_peak",
@@ -53,6 +58,11 @@ ADAPTIVE_HALF_WINDOW = 5
 ADAPTIVE_MAX_SPREAD = 2
 """Largest spread of filtered peaks (levels) in the focus window for which ``"adaptive"``
 takes the curve's maximum (Gaussian 3-point fit) instead of its windowed centroid."""
+
+PEAK_ESTIMATORS = ("gauss3", "centroid")
+"""What :func:`adaptive_block` takes where the focus window sees one height: the curve's
+maximum (3-point Gaussian) or the baseline-free centroid of the 5 levels about the filtered
+peak."""
 
 
 # ----------------------------------------------------------------------------- internals
@@ -191,7 +201,7 @@ def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: fl
 
 def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                    half_window: int = ADAPTIVE_HALF_WINDOW,
-                   max_spread: int = ADAPTIVE_MAX_SPREAD,
+                   max_spread: int = ADAPTIVE_MAX_SPREAD, peak: str = "gauss3",
                    sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
@@ -214,6 +224,14 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         Centroid half width h >= 2.
     max_spread : int, keyword-only
         Largest spread for which the curve's maximum is taken.
+    peak : {"gauss3", "centroid"}, keyword-only
+        The estimator where the spread is at most ``max_spread``: the 3-point Gaussian at
+        the largest of the levels next to ``centre`` (``adaptive``), or the baseline-free
+        centroid of the 5 levels ``centre - 2 .. centre + 2`` (``adaptive_centroid`` on
+        even curves: two more levels than the 3-point fit, so less noise; but pulled into
+        the tail of a lopsided curve, and on a clean Gaussian of sigma 2-3 levels up to
+        0.08 levels towards ``centre`` by the window's minimum, where the 3-point Gaussian
+        is exact: tests/stages/test_depth.py).
     sums_out : (3, H, W) ndarray of float32, optional, keyword-only
         Receives H_0, Re H_1 and Im H_1 of every curve (the confidence's sums; the curve's
         width, :func:`sffscan.stages.depth_uncertainty.width_from_sums`, needs them).
@@ -229,10 +247,13 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     """
     if half_window < 2:
         raise ValueError(f"half_window must be >= 2, got {half_window}")
+    if peak not in PEAK_ESTIMATORS:
+        raise ValueError(f"peak must be one of {PEAK_ESTIMATORS}, got {peak!r}")
+    peak_centroid = peak == "centroid"
     n, height, width = vol.shape
     c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
-    peak = np.asarray(spread).reshape(-1) <= max_spread
-    n_peak = int(np.count_nonzero(peak))
+    at_peak = np.asarray(spread).reshape(-1) <= max_spread
+    n_peak = int(np.count_nonzero(at_peak))
     h = half_window
     top = np.empty((5, n_peak), np.float32)  # levels c - 2 .. c + 2 of the peak pixels
     wide = np.empty((2 * h + 1, c.size - n_peak), np.float32)  # c - h .. c + h, the others
@@ -254,7 +275,7 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         if low is not None:
             np.min(block, axis=0, out=low[r0:r1])
         p0, p1 = r0 * width, r1 * width  # the levels about each peak, while in cache
-        sel = peak[p0:p1]
+        sel = at_peak[p0:p1]
         local = np.flatnonzero(sel)
         if local.size:
             local += p0
@@ -268,13 +289,17 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
 
     depth = np.empty(c.shape, np.float32)
     if n_peak:
-        cp = c[peak]
-        _outside(cp, 2, n, top, -1.0)
-        depth[peak] = _gaussian_top(list(top), cp, n)
+        cp = c[at_peak]
+        if peak_centroid:
+            masks = _outside(cp, 2, n, top, np.inf)
+            depth[at_peak] = (cp + _centroid_offset(list(top), masks)).astype(np.float32)
+        else:
+            _outside(cp, 2, n, top, -1.0)
+            depth[at_peak] = _gaussian_top(list(top), cp, n)
     if n_peak < c.size:
-        cw = c[~peak]
+        cw = c[~at_peak]
         masks = _outside(cw, h, n, wide, np.inf)
-        depth[~peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
+        depth[~at_peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
     h0, re, im = sums
     if sums_out is not None:
         sums_out[...] = sums
@@ -337,7 +362,7 @@ def windowed_centroid(vol: np.ndarray, centre: np.ndarray, *,
 
 def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                   half_window: int = ADAPTIVE_HALF_WINDOW,
-                  max_spread: int = ADAPTIVE_MAX_SPREAD) -> np.ndarray:
+                  max_spread: int = ADAPTIVE_MAX_SPREAD, peak: str = "gauss3") -> np.ndarray:
     """The curve's maximum where the focus window sees one height, else its windowed centroid.
 
     ``spread`` is the number of levels that the median-filtered peaks ``centre`` span over
@@ -369,6 +394,10 @@ def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         Centroid half width h >= 2. Default :data:`ADAPTIVE_HALF_WINDOW`.
     max_spread : int, keyword-only
         Default :data:`ADAPTIVE_MAX_SPREAD`.
+    peak : {"gauss3", "centroid"}, keyword-only
+        Where the spread is at most ``max_spread``: the curve's maximum as above
+        (``"gauss3"``, the default) or the centroid of the 5 levels about ``centre``
+        (:func:`adaptive_block`).
 
     Returns
     -------
@@ -377,4 +406,4 @@ def adaptive_peak(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     """
     # one implementation: the streaming reduction's, whose confidence is left unused here
     return adaptive_block(vol, centre, spread, half_window=half_window,
-                          max_spread=max_spread)[0]
+                          max_spread=max_spread, peak=peak)[0]

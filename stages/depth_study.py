@@ -29,12 +29,15 @@ from scipy.optimize import minimize
 from sffscan.stages.depth import (
     DEFAULT_METHOD,
     DEPTH_METHODS,
+    adaptive_peak,
     depth_from_focus,
     first_argmax,
     focus_sums,
+    level_spread,
     median_filter_levels,
 )
 from sffscan.stages.depth_candidates import (
+    centroid_pull,
     gauss_window_fit,
     shape_select,
     shape_statistics,
@@ -74,13 +77,19 @@ GAUSS_FIT_HALF_WINDOWS = (3.0, 5.0, 7.0)
 WINDOW_PC_FACTORS = (3.0, 4.0, 5.0)
 """``window-pc`` factors on the curve's width the protocol tunes over."""
 
+PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
+"""``centroid-pull`` limits (levels) the protocol tunes over: the largest
+:func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
+centroid at ``adaptive``'s peak pixels (inf: always)."""
+
 Setting = float | tuple[float, float]
 
 CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "scatter-select": SCATTER_WINDOWS,
                                               "gauss-fit": GAUSS_FIT_HALF_WINDOWS,
                                               "window-pc": WINDOW_PC_FACTORS,
-                                              "shape-select": SHAPE_GRID}
+                                              "shape-select": SHAPE_GRID,
+                                              "centroid-pull": PULL_LIMITS}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
 
 
@@ -159,6 +168,12 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = shape_select(depth["spc"], depth["adaptive"], stats, max_skew=pair[0],
                          max_ratio=pair[1])
         sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
+    spread = level_spread(centre, spread_size, volume.shape[0])
+    peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")
+    for t in PULL_LIMITS:
+        d = peak_centroid if abs(pull) < t else depth["adaptive"]
+        sse[_key("centroid-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
         volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
         argmax=a)[0]

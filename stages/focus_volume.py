@@ -16,7 +16,7 @@ the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
 *accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
 OpenCV arithmetic, no N-level volume: 6 planes instead of N). The others (3-point fits,
-wcentroid, adaptive, shape_select) read the levels about a peak known once the column and its
+wcentroid, adaptive and its variants) read the levels about a peak known once the column and its
 neighbours are complete: the ring stores every level of its columns, and the running argmax.
 
 The frames' writes into this state may be held until the next block reduction (at most
@@ -42,7 +42,7 @@ from typing import NamedTuple, TypeVar
 import numpy as np
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
-from sffscan.stages.block_depth import block_method, block_uncertainty, depth_rows
+from sffscan.stages.block_depth import BLOCK_CHOICES, block_method, block_uncertainty, depth_rows
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
@@ -184,7 +184,7 @@ class FocusVolume:
         self.spread_size = spread_size
         # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
         # that a block's filtered peaks and spreads equal those of the whole volume
-        peak = method in ("adaptive", "shape_select")
+        peak = method in ("adaptive", *BLOCK_CHOICES)
         self.halo = median_size // 2 + 1 + (spread_size // 2 if peak else 0)
         self.block = block_columns
         self.row_slack = row_slack
@@ -419,10 +419,10 @@ class FocusVolume:
             src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
         else:  # wcentroid and adaptive read the block's levels, the others the halo's too
-            if method == "shape_select":  # one choice for the block, whatever its bands
+            if method in BLOCK_CHOICES:  # one choice for the block, whatever its bands
                 method = block_method(self._gather(self.fv, u0, u1), argmax[:, inner],
-                                      self._gather(self.count, u0, u1) == self.n)
-            wide = method not in ("wcentroid", "adaptive")
+                                      self._gather(self.count, u0, u1) == self.n, method=method)
+            wide = method not in ("wcentroid", "adaptive", "adaptive_centroid")
             src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
 
         def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:

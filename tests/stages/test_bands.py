@@ -56,7 +56,7 @@ def test_a_failing_band_fails_the_call_with_its_cause() -> None:
 
 
 @pytest.mark.parametrize("method", ["spc", "centroid", "adaptive", "gauss3", "wcentroid",
-                                    "shape_select"])
+                                    "shape_select", "adaptive_centroid"])
 @pytest.mark.parametrize("k", [2, 3, 4, 9])
 def test_focus_volume_blocks_are_bit_identical_for_any_number_of_bands(method: str,
                                                                        k: int) -> None:

@@ -100,8 +100,8 @@ def _check(table: dict[str, float], label: str) -> float:
     return ratio
 
 
-def test_default_is_adaptive_everywhere() -> None:
-    assert DEFAULT_METHOD == "adaptive" and DEFAULT_METHOD in DEPTH_METHODS
+def test_default_is_adaptive_centroid_everywhere() -> None:
+    assert DEFAULT_METHOD == "adaptive_centroid" and DEFAULT_METHOD in DEPTH_METHODS
     assert StackSettings().method == DEFAULT_METHOD
     from sffscan.pipeline.config import ProcessingConfig
 
@@ -205,3 +205,31 @@ def test_windowed_centroid_known_answers() -> None:
     assert d0[0, 0] == pytest.approx(0.5 / 1.5)
     flat = np.ones((n, 1, 1), np.float32)
     assert windowed_centroid(flat, np.array([[11]]))[0, 0] == 11.0
+
+
+@pytest.mark.parametrize("noise", [0.05, 0.1])
+def test_adaptive_centroid_takes_noise_off_even_curves_only(noise: float) -> None:
+    """Even Gaussian curves (sigma 1.5 levels) on a floor with additive noise, over a gentle
+    surface (most pixels are peak pixels): the default's 5-level centroid has less error
+    than adaptive's 3-point Gaussian (measured 0.081 against 0.129 levels at noise 0.05,
+    0.148 against 0.253 at 0.1); the same curves with an upper flank twice as wide (a
+    centroid pulled 0.2 levels into it) give adaptive's depth exactly."""
+    from sffscan.stages.depth_candidates import centroid_pull
+
+    rng = np.random.default_rng(0)
+    n = 40
+    yy, xx = np.mgrid[0:64, 0:64]
+    peaks = 15 + 3 * np.sin(xx / 20.0) + 0.02 * yy
+    d = np.arange(n).reshape(n, 1, 1) - peaks
+    core = (slice(8, -8), slice(8, -8))
+    for lopsided in (False, True):
+        s = np.where(lopsided & (d > 0), 3.0, 1.5)
+        vol = (np.exp(-d**2 / (2 * s**2)) + 0.2
+               + noise * rng.standard_normal((n, 64, 64))).astype(np.float32)
+        got = {m: depth_from_focus(vol, method=m)[0] for m in ("adaptive", DEFAULT_METHOD)}
+        if lopsided:
+            assert centroid_pull(vol, np.argmax(vol, axis=0)) > 0.15
+            np.testing.assert_array_equal(got[DEFAULT_METHOD], got["adaptive"])
+        else:
+            err = {m: float(np.sqrt(np.mean((g - peaks)[core] ** 2))) for m, g in got.items()}
+            assert err[DEFAULT_METHOD] < 0.7 * err["adaptive"], err

@@ -245,7 +245,11 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     core = complete & (edge >= 3) & (edge < 13)  # 2 px (median) + 1 px (window) in
     core &= np.roll(complete, 3) & np.roll(complete, -3)
     assert core.sum() > 50
-    np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4)
+    # SPC's sums are accumulated frame by frame in float32, in another order than
+    # focus_sums': the curve widths differ by round-off, up to 2.9e-4 of the uncertainty
+    # (measured; the floor term c = 0.0301 levels no longer hides it)
+    rtol = 1e-3 if method == "spc" else 1e-4
+    np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=rtol)
 
 
 def _wobbly_scan(method: str, direction: int, **kwargs) -> list:  # noqa: ANN003
@@ -334,6 +338,33 @@ def test_curve_sums_read_in_place_equal_the_copied_strips(n: int, width: int) ->
     np.testing.assert_array_equal(low, vol.min(axis=0))
 
 
+SHAPED_N = 24
+
+
+def _shaped_frame(x0: int, y0: int, level: int, lopsided: bool
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian focus curves about a depth of levels 8 .. 15 of 24; ``lopsided``: the upper
+    flank twice as wide."""
+    yy, xx = np.mgrid[y0:y0 + H, x0:x0 + W].astype(float)
+    d = 6.0 + _true_depth(xx, yy)
+    s = np.where(lopsided & (level > d), 3.0, 1.5)
+    fm = np.exp(-((level - d) ** 2) / (2 * s**2)).astype(np.float32)
+    return fm, np.full(fm.shape, 0.5, np.float32)
+
+
+def _shaped_scan(method: str, lopsided: bool) -> list[np.ndarray]:
+    """The heights of every block of a scan of :func:`_shaped_frame` curves."""
+    n = SHAPED_N
+    vol = FocusVolume(n_levels=n, frame_shape=(H, W), margin=3, method=method,
+                      focus_heights_um=[100.0 * k for k in range(n)], median_size=3,
+                      block_columns=16, spread_size=3)
+    blocks = []
+    for k in range(100):
+        fm, img = _shaped_frame(3 * k, 0, k % n, lopsided)
+        blocks += vol.add(fm, img, x=3 * k, y=0, level=k % n)
+    return [b.height_um for b in blocks + vol.finish()]
+
+
 @pytest.mark.parametrize("lopsided", [False, True])
 def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> None:
     """``shape_select`` chooses per block from the block's curves: each block is SPC's
@@ -342,26 +373,8 @@ def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> No
     curves whose upper flank is twice as wide take adaptive."""
     from sffscan.stages.block_depth import block_method
 
-    n = 24
-
-    def frame(x0: int, y0: int, level: int) -> tuple[np.ndarray, np.ndarray]:
-        yy, xx = np.mgrid[y0:y0 + H, x0:x0 + W].astype(float)
-        d = 6.0 + _true_depth(xx, yy)
-        s = np.where(lopsided & (level > d), 3.0, 1.5)
-        fm = np.exp(-((level - d) ** 2) / (2 * s**2)).astype(np.float32)
-        return fm, np.full(fm.shape, 0.5, np.float32)
-
-    def scan(method: str) -> list[np.ndarray]:
-        vol = FocusVolume(n_levels=n, frame_shape=(H, W), margin=3, method=method,
-                          focus_heights_um=[100.0 * k for k in range(n)], median_size=3,
-                          block_columns=16, spread_size=3)
-        blocks = []
-        for k in range(100):
-            fm, img = frame(3 * k, 0, k % n)
-            blocks += vol.add(fm, img, x=3 * k, y=0, level=k % n)
-        return [b.height_um for b in blocks + vol.finish()]
-
-    chosen, spc, adaptive = scan("shape_select"), scan("spc"), scan("adaptive")
+    chosen = _shaped_scan("shape_select", lopsided)
+    spc, adaptive = _shaped_scan("spc", lopsided), _shaped_scan("adaptive", lopsided)
     measured = [i for i, a in enumerate(chosen) if np.isfinite(a).any()]
     assert len(chosen) == len(spc) == len(adaptive) and len(measured) > 8
     took_spc = 0
@@ -371,9 +384,41 @@ def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> No
         np.testing.assert_allclose(chosen[i], spc[i], atol=1e-2, equal_nan=True)  # µm
         took_spc += 1
     assert took_spc == (0 if lopsided else len(measured)), (took_spc, len(measured))
-    fm = np.stack([frame(0, 0, k)[0] for k in range(n)])
+    fm = np.stack([_shaped_frame(0, 0, k, lopsided)[0] for k in range(SHAPED_N)])
     argmax = np.argmax(fm, axis=0).astype(np.uint8)
     assert block_method(fm[:, :, 4:20], argmax[:, 4:20]) == ("adaptive" if lopsided else "spc")
+
+
+@pytest.mark.parametrize("lopsided", [False, True])
+def test_adaptive_centroid_takes_the_centroid_on_even_blocks_only(lopsided: bool) -> None:
+    """``adaptive_centroid`` judges each block's curves: lopsided ones give ``adaptive``'s
+    blocks bit for bit; even ones the 5-level centroid where the filtered peaks span <= 2
+    levels (another depth than adaptive's 3-point Gaussian there, within 0.08 levels of the
+    truth on these clean curves, as the offline method: tests/stages/test_depth.py)."""
+    from sffscan.stages.block_depth import block_method
+    from sffscan.stages.depth_candidates import centroid_pull
+
+    chosen = _shaped_scan("adaptive_centroid", lopsided)
+    adaptive = _shaped_scan("adaptive", lopsided)
+    measured = [i for i, a in enumerate(chosen) if np.isfinite(a).any()]
+    assert len(chosen) == len(adaptive) and len(measured) > 8
+    same = sum(np.array_equal(chosen[i], adaptive[i], equal_nan=True) for i in measured)
+    if lopsided:  # pulled by 0.2 levels: every block
+        assert same == len(measured), (same, len(measured))
+    else:  # these blocks of 48 rows judge 3-6 curves, whose median pull scatters by
+        # +-0.05 levels about 0 (a scan's block judges 520): most blocks, not all (14 of 16)
+        assert same <= len(measured) // 5, (same, len(measured))
+    for i in measured:  # the same pixels measured
+        np.testing.assert_array_equal(np.isnan(chosen[i]), np.isnan(adaptive[i]))
+        assert np.nanmax(np.abs(chosen[i] - adaptive[i])) <= 100.0 * 0.6  # µm: within a level
+    # a block of 480 rows (60 curves judged): the choice, and the pull of all its curves
+    fm = np.stack([np.concatenate([_shaped_frame(0, y0, k, lopsided)[0][:, 4:20]
+                                   for y0 in range(0, 10 * H, H)]) for k in range(SHAPED_N)])
+    argmax = np.argmax(fm, axis=0).astype(np.uint8)
+    assert (block_method(fm, argmax, method="adaptive_centroid")
+            == ("adaptive" if lopsided else "adaptive_centroid"))
+    pull = centroid_pull(fm, argmax)
+    assert (pull > 0.15) if lopsided else (abs(pull) < 0.01), pull
 
 
 def test_shape_select_judges_only_the_curves_with_data() -> None:
