@@ -82,14 +82,23 @@ PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 :func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always)."""
 
-Setting = float | tuple[float, float]
+WIDE_GRID = tuple((t, ms, h) for t in (0.03, 0.05, 0.1) for ms in (2.0, 4.0)
+                  for h in (5.0, 8.0, 12.0, 15.0))
+"""``wide-centroid`` settings the protocol tunes over: (largest centroid pull, levels; largest
+span of the filtered peaks for the peak estimator, levels; the centroid's half window h)
+with which a stack whose curves pull a centroid less than the limit takes ``adaptive``'s
+rule with the 5-level centroid at its peak pixels, the span limit and a centroid of
+2h + 1 levels elsewhere; the other stacks ``adaptive`` (span 2, h = 5, 3-point Gaussian)."""
+
+Setting = float | tuple[float, ...]
 
 CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "scatter-select": SCATTER_WINDOWS,
                                               "gauss-fit": GAUSS_FIT_HALF_WINDOWS,
                                               "window-pc": WINDOW_PC_FACTORS,
                                               "shape-select": SHAPE_GRID,
-                                              "centroid-pull": PULL_LIMITS}
+                                              "centroid-pull": PULL_LIMITS,
+                                              "wide-centroid": WIDE_GRID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
 
 
@@ -174,6 +183,13 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     for t in PULL_LIMITS:
         d = peak_centroid if abs(pull) < t else depth["adaptive"]
         sse[_key("centroid-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    wide: dict[tuple[float, float], np.ndarray] = {}
+    for t, ms, h in WIDE_GRID:
+        if abs(pull) < t and (ms, h) not in wide:
+            wide[ms, h] = adaptive_peak(volume, centre, spread, max_spread=int(ms),
+                                        half_window=int(h), peak="centroid")
+        d = wide[ms, h] if abs(pull) < t else depth["adaptive"]
+        sse[_key("wide-centroid", (t, ms, h))] = float(np.sum((d - truth_levels)[mask] ** 2))
     default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
         volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
         argmax=a)[0]
