@@ -146,8 +146,9 @@ class Method(ConfigModel):
         "peaks span <= 2 levels over the focus window, else the centroid of 11 levels; "
         "adaptive_centroid (the default): the same with the centroid of 5 levels instead "
         "of the 3-point Gaussian where a block's curves do not pull a centroid from their "
-        "maxima; shape_select: spc or adaptive for each block of columns, spc where its "
-        "focus curves are even and clean; docs/depth-method.md, docs/depth-study.md)"
+        "maxima; shape_select: spc or adaptive_centroid for each block of columns, spc "
+        "where its focus curves are even and clean; docs/depth-method.md, "
+        "docs/depth-study.md)"
     )
     median_size: int = Field(11, ge=3, le=255, description="SPC median filter size (odd), px")
     registration: bool = Field(True, description="Refine speed offsets by phase correlation")

@@ -14,8 +14,10 @@ from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_candidates import (
     SHAPE_SAMPLE_STEP,
     block_takes_centroid,
+    centroid_pull,
     sampled_curves,
     shape_statistics,
+    takes_centroid,
     takes_spc,
 )
 from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
@@ -35,8 +37,9 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     """The method a block takes, judged on the curves of :data:`SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_candidates.sampled_curves`).
 
-    ``"shape_select"``: ``"spc"`` where its curves are even and clean, else ``"adaptive"``
-    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits).
+    ``"shape_select"``: ``"spc"`` where its curves are even and clean
+    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits), else
+    what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
     (:func:`sffscan.stages.depth_candidates.block_takes_centroid`), else ``"adaptive"``.
 
@@ -61,7 +64,9 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         return "adaptive"
     vol, am, seen = sample
     stats = shape_statistics(vol, am, curve_width(vol), seen)
-    return "spc" if takes_spc(stats) else "adaptive"
+    if takes_spc(stats):
+        return "spc"
+    return "adaptive_centroid" if takes_centroid(centroid_pull(vol, am, seen)) else "adaptive"
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,

@@ -181,7 +181,8 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     assert c.argmax is not None
     stats = shape_statistics(c.volume, c.argmax, curve_width(c.volume))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    return shape_select(_from_sums(c, method="spc"), _adaptive(c), stats, max_skew=max_skew,
+    return shape_select(_from_sums(c, method="spc"), _adaptive_centroid(c), stats,
+                        max_skew=max_skew,
                         max_ratio=max_ratio)
 
 
@@ -284,7 +285,8 @@ def depth_from_focus(
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
             clean (:func:`sffscan.stages.depth_candidates.shape_select` at
             :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS`, tuned by the
-            leave-one-family-out study), else ``"adaptive"``. The streaming depth stage
+            leave-one-family-out study), else the default ``"adaptive_centroid"``
+            (``"adaptive"`` until 2026-12-02). The streaming depth stage
             makes the choice per block of columns.
         ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
             The candidates of the leave-one-family-out study

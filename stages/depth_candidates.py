@@ -21,10 +21,11 @@ And one that chooses between two methods by what the whole stack's curves look l
 * :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
   :func:`curve_skew` near 0: blur even in z) and clean (the curves' width from their first
   harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their
-  run above half height gives: a noisy floor widens the first, not the second), else
-  ``adaptive``. SPC reads the whole curve, so it holds where wide or ringing curves
-  (pillbox PSFs, coarse textures) move the 3-point peak; but it is biased by a lopsided
-  curve (a thin lens' blur, even in 1/z) and by a noisy floor under a narrow peak.
+  run above half height gives: a noisy floor widens the first, not the second), else the
+  default ``adaptive_centroid`` (``adaptive`` until 2026-12-02). SPC reads the whole
+  curve, so it holds where wide or ringing curves (pillbox PSFs, coarse textures) move the
+  3-point peak; but it is biased by a lopsided curve (a thin lens' blur, even in 1/z) and by
+  a noisy floor under a narrow peak.
 
 And the statistic of the default, ``adaptive_centroid``:
 
@@ -302,10 +303,11 @@ def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT
     return skew < max_skew and ratio < max_ratio
 
 
-def shape_select(spc: np.ndarray, adaptive: np.ndarray, statistics: tuple[float, float], *,
+def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, float], *,
                  max_skew: float, max_ratio: float) -> np.ndarray:
     """SPC's depth map where the stack's curves are even and clean (:func:`takes_spc`), else
-    ``adaptive``'s; float32 levels. One choice for the whole stack (the streaming depth
-    stage chooses per block: :func:`sffscan.stages.block_depth.block_method`)."""
+    ``other`` (the default method's, ``adaptive_centroid``; ``adaptive`` until 2026-12-02);
+    float32 levels. One choice for the whole stack (the streaming depth stage chooses per
+    block: :func:`sffscan.stages.block_depth.block_method`)."""
     use_spc = takes_spc(statistics, max_skew=max_skew, max_ratio=max_ratio)
-    return np.asarray(spc if use_spc else adaptive, np.float32)
+    return np.asarray(spc if use_spc else other, np.float32)

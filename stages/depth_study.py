@@ -153,7 +153,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse: dict[str, float] = {}
     depth: dict[str, np.ndarray] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    for m in dict.fromkeys((*methods, "spc", "adaptive")):
+    for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid")):
         depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
                                     spread_size=spread_size, argmax=a)[0]
         if m in methods:
@@ -174,7 +174,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         sse[_key("window-pc", g)] = float(np.sum((d - truth_levels)[mask] ** 2))
     stats = shape_statistics(volume, a, width, mask)
     for pair in SHAPE_GRID:
-        d = shape_select(depth["spc"], depth["adaptive"], stats, max_skew=pair[0],
+        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1])
         sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
     pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges

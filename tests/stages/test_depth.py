@@ -168,8 +168,9 @@ def test_every_method_is_selectable_by_name() -> None:
     assert SHAPE_SELECT_LIMITS == (0.08, 6.0)
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
                 "window_pc": window_pc(vol, centre, factor=3.0),
-                "shape_select": shape_select(spc, adaptive, stats, max_skew=0.08,
-                                             max_ratio=6.0)}
+                "shape_select": shape_select(
+                    spc, depth_from_focus(vol, method="adaptive_centroid")[0], stats,
+                    max_skew=0.08, max_ratio=6.0)}
     for method in (*CANDIDATE_METHODS, "shape_select"):
         depth, confidence = depth_from_focus(vol, method=method)
         np.testing.assert_array_equal(depth, expected[method])
