@@ -44,9 +44,10 @@ from typing import Any
 import numpy as np
 import torch
 from sffscan.pipeline.config import ScanConfig, demo_config
+from sffscan.pipeline.measuring import measure_stages
 from sffscan.pipeline.plan import pass_start_px, plan_frames
 from sffscan.pipeline.sim_source import header_of, simulate_frames
-from sffscan.pipeline.wiring import measure_stages, run_scan
+from sffscan.pipeline.wiring import run_scan
 from sffscan.stages.focus_measure import focus_measure_raw, to_unit_float
 from sffscan.stages.focus_torch import glvm, glvm_conv2d_baseline, tenv
 from sffscan.stages.messages import Frame, PlacedFrame
@@ -142,7 +143,7 @@ def placed_frames(cfg: ScanConfig, images: list[np.ndarray], *, register: bool =
                   ) -> tuple[list[PlacedFrame], dict[str, Stage]]:
     """The frames placed by the speed shift and, with ``register`` where the
     configuration registers, by its registration stage (all of it, its end included);
-    and the configuration's measuring stages (:func:`sffscan.pipeline.wiring.measure_stages`)
+    and the configuration's measuring stages (:func:`sffscan.pipeline.measuring.measure_stages`)
     by name, for the benchmark to run or copy."""
     built = {s.name: s for s in measure_stages(cfg)}
     shift = SpeedShiftStage(pixel_um=cfg.optics.pixel_um, speed_mm_s=cfg.motion.speed_mm_s,

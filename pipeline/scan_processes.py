@@ -70,14 +70,14 @@ def _cfg(cfg: dict[str, Any]) -> ScanConfig:
 
 def registration_group(cfg: dict[str, Any]) -> list[Stage]:
     """Worker factory: the registration stage."""
-    from sffscan.pipeline.wiring import measure_stages
+    from sffscan.pipeline.measuring import measure_stages
 
     return measure_stages(_cfg(cfg), only=("registration",))
 
 
 def focus_group(cfg: dict[str, Any]) -> list[Stage]:
     """Worker factory: the focus measure and depth stages."""
-    from sffscan.pipeline.wiring import measure_stages
+    from sffscan.pipeline.measuring import measure_stages
 
     return measure_stages(_cfg(cfg), only=("focus_measure", "depth"))
 

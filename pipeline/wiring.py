@@ -10,13 +10,14 @@ frame is ever dropped; the summary reports the drops counted anyway (0).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from sffscan.pipeline.completeness import FrameAccount
 from sffscan.pipeline.config import ScanConfig
+from sffscan.pipeline.measuring import focus_heights_um, measure_stages
 from sffscan.pipeline.metrology.correction_stages import (
     corrections_applied,
     optics_correction_stages,
@@ -29,58 +30,15 @@ from sffscan.pipeline.metrology.evaluate import (
 )
 from sffscan.pipeline.mosaic.stage import MosaicStage
 from sffscan.pipeline.mosaic.writer import MosaicWriter
-from sffscan.pipeline.plan import frame_count, pass_direction, pass_start_px, scan_extent_px
+from sffscan.pipeline.plan import frame_count, pass_start_px, scan_extent_px
 from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline
 from sffscan.pipeline.scan_processes import process_placement, use_processes
 from sffscan.pipeline.stats import PipelineResult
-from sffscan.stages.depth_stage import DepthStage
-from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.frame_source import SourceStage
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import Sink, Stage
-from sffscan.stages.registration import RegistrationStage
 from sffscan.stages.speed_shift import SpeedShiftStage
-
-
-def focus_heights_um(cfg: ScanConfig) -> list[float]:
-    """Height in focus at each level, µm: from the calibration file's z response when
-    ``processing.calibration`` is set, else the nominal optics table."""
-    if cfg.processing.calibration:
-        from sffscan.pipeline.metrology.calibration_model import (
-            calibrated_focus_heights,
-            load_calibration,
-        )
-
-        cal = load_calibration(cfg.processing.calibration)
-        return [float(v) for v in calibrated_focus_heights(cal, cfg.optics.n_levels)]
-    return cfg.optics.focus_heights_um()
-
-
-def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> list[Stage]:
-    """The stages from a placed frame to a depth block (registration when on, focus
-    measure, depth), or only those named in ``only``: built alike for a thread and for
-    the worker process that hosts them."""
-    o, p, m = cfg.optics, cfg.processing, cfg.motion
-    slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
-    directions = [pass_direction(cfg, i) for i in range(m.passes)]
-    build: dict[str, Callable[[], Stage]] = {
-        "registration": lambda: RegistrationStage(n_levels=o.n_levels,
-                                                  scale=p.registration_scale),
-        "focus_measure": lambda: FocusMeasureStage(
-            operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
-            max_value=o.max_value, margin=p.focus_reach_px, directions=directions,
-            workers=p.band_workers()),
-        "depth": lambda: DepthStage(
-            n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-            focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
-            method=p.depth_method, median_size=p.median_size, spread_size=p.window,
-            block_columns=p.block_columns, directions=directions, slack_px=slack,
-            workers=p.band_workers()),
-    }
-    if not p.registration:
-        del build["registration"]
-    return [make() for name, make in build.items() if only is None or name in only]
 
 
 def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:

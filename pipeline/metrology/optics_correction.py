@@ -20,7 +20,7 @@ real objective; this module undoes them where a measurement is made:
   by it first (:func:`flat_field`); in a continuous scan a world point crosses the frame, so
   uneven light would tilt its focus curve toward the bright centre.
 * **z response**: the focus table (already applied by the depth stage,
-  :func:`sffscan.pipeline.wiring.focus_heights_um`).
+  :func:`sffscan.pipeline.measuring.focus_heights_um`).
 
 All functions are pure; the pipeline stages are in
 :mod:`sffscan.pipeline.metrology.correction_stages`.

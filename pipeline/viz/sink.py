@@ -46,6 +46,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_to_toml
+from sffscan.pipeline.measuring import focus_heights_um
 from sffscan.pipeline.plan import scan_extent_px
 from sffscan.pipeline.stats import StatsSnapshot
 from sffscan.pipeline.viz.preview import (
@@ -56,7 +57,6 @@ from sffscan.pipeline.viz.preview import (
     surface_points,
     to_u8,
 )
-from sffscan.pipeline.wiring import focus_heights_um
 from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 

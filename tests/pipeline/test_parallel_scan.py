@@ -280,3 +280,19 @@ def test_kill_9_of_the_main_process_leaves_no_worker_and_no_shared_memory(
         time.sleep(0.1)
     assert not any(alive(w) for w in workers), "a worker outlived the main process by 5 s"
     assert shm_names(proc.pid) == []
+
+
+def test_measuring_workers_import_neither_zarr_nor_the_mosaic() -> None:
+    """The worker factories of the process placement build their stages from
+    sffscan.pipeline.measuring, which imports neither Zarr nor the mosaic writer (0.2-0.3 s
+    of CPU at each worker's start; the main process writes the mosaic)."""
+    code = ("import sys; import sffscan.pipeline.scan_processes as s; "
+            "from sffscan.pipeline.config import ScanConfig; "
+            "cfg = ScanConfig().model_dump(mode='json'); "
+            "names = [x.name for x in s.registration_group(cfg) + s.focus_group(cfg)]; "
+            "print(names, sorted(m for m in sys.modules "
+            "if m == 'zarr' or m.startswith('sffscan.pipeline.mosaic')))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=False)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "['registration', 'focus_measure', 'depth'] []", run.stdout

@@ -397,12 +397,12 @@ def test_calibrated_focus_table_is_shown(tmp_path: Path) -> None:
     """With a calibration, the view's focus table and colour range are the calibrated
     heights the depth stage uses, not the nominal optics table."""
     import rerun as rr
+    from sffscan.pipeline.measuring import focus_heights_um
     from sffscan.pipeline.metrology.calibration_model import (
         Calibration,
         ZResponse,
         save_calibration,
     )
-    from sffscan.pipeline.wiring import focus_heights_um
 
     z = ZResponse(um_per_level=150.0, intercept_um=2000.0, pearson_r=1.0,
                   heights_um=[2000.0, 9350.0], peak_levels=[0.0, 49.0], residuals_um=[0.0, 0.0])

@@ -52,7 +52,7 @@ def test_scan_heights_follow_the_calibrated_z_response(tmp_path: Path) -> None:
 
 
 def test_missing_or_bad_calibration_file_is_refused_naming_it(tmp_path: Path) -> None:
-    from sffscan.pipeline.wiring import focus_heights_um
+    from sffscan.pipeline.measuring import focus_heights_um
 
     with pytest.raises(ConfigError, match="nope.json"):
         focus_heights_um(small_config(processing={"calibration": str(tmp_path / "nope.json")}))
