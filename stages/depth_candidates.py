@@ -37,6 +37,8 @@ And the statistic of the default, ``adaptive_centroid``:
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
@@ -101,7 +103,8 @@ def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     """How far a centroid is pulled from the curves' maximum: the median over the ``mask``
     curves (all when None) of the baseline-free centroid of the 5 levels about each curve's
     argmax minus its 3-point Gaussian (levels; curves whose argmax lies within 2 levels of
-    an end of the range left out; 0.0 where none is left).
+    an end of the range left out; NaN where none is left, which :func:`takes_centroid`
+    refuses).
 
     About 0 on even curves, whatever their noise (the median of many curves); positive where
     the curves' tails run to higher levels (a thin lens' blur, even in 1/z): measured 0.14
@@ -122,7 +125,7 @@ def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     if mask is not None:
         ok &= np.asarray(mask, bool)
     if not ok.any():
-        return 0.0
+        return math.nan
     vol = np.ascontiguousarray(levels, dtype=np.float32)
     diff = (windowed_centroid(vol, am, half_window=2)
             - (am + three_point_offset(vol, am, log=True)))
@@ -131,8 +134,9 @@ def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
 
 def takes_centroid(pull: float, *, limit: float = CENTROID_PULL_LIMIT) -> bool:
     """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this
-    :func:`centroid_pull`: ``abs(pull) < limit`` (default :data:`CENTROID_PULL_LIMIT`)."""
-    return abs(pull) < limit
+    :func:`centroid_pull`: ``abs(pull) < limit`` (default :data:`CENTROID_PULL_LIMIT`);
+    not for NaN (no curve judged)."""
+    return bool(abs(pull) < limit)
 
 
 def block_takes_centroid(levels: np.ndarray, argmax: np.ndarray,

@@ -233,3 +233,17 @@ def test_adaptive_centroid_takes_noise_off_even_curves_only(noise: float) -> Non
         else:
             err = {m: float(np.sqrt(np.mean((g - peaks)[core] ** 2))) for m, g in got.items()}
             assert err[DEFAULT_METHOD] < 0.7 * err["adaptive"], err
+
+
+def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
+    """Curves that cannot be judged (every argmax within 2 levels of an end of the range:
+    here N = 4) give no pull (NaN), and the default keeps the 3-point Gaussian: adaptive's
+    depth bit for bit."""
+    from sffscan.stages.depth_candidates import centroid_pull, takes_centroid
+
+    rng = np.random.default_rng(3)
+    vol = rng.random((4, 20, 30), dtype=np.float32) + 0.1
+    pull = centroid_pull(vol, np.argmax(vol, axis=0))
+    assert np.isnan(pull) and not takes_centroid(pull)
+    np.testing.assert_array_equal(depth_from_focus(vol, method="adaptive_centroid")[0],
+                                  depth_from_focus(vol, method="adaptive")[0])
