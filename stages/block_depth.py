@@ -12,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_candidates import (
-    SHAPE_SAMPLE_STEP,
     block_takes_centroid,
     centroid_pull,
     sampled_curves,
@@ -25,8 +24,7 @@ from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
-__all__ = ["BLOCK_CHOICES", "SHAPE_SAMPLE_STEP", "block_method", "block_uncertainty",
-           "depth_rows"]
+__all__ = ["BLOCK_CHOICES", "block_method", "block_uncertainty", "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
@@ -34,7 +32,8 @@ BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
                  complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
-    """The method a block takes, judged on the curves of :data:`SHAPE_SAMPLE_STEP`
+    """The method a block takes, judged on the curves of
+    :data:`sffscan.stages.depth_candidates.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_candidates.sampled_curves`).
 
     ``"shape_select"``: ``"spc"`` where its curves are even and clean
