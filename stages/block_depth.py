@@ -24,10 +24,15 @@ from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
-__all__ = ["BLOCK_CHOICES", "block_method", "block_uncertainty", "depth_rows"]
+__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "block_method", "block_uncertainty",
+           "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
+
+OWN_LEVEL_METHODS = ("wcentroid", "adaptive", "adaptive_centroid")
+"""The methods that read only the block's own columns' levels (about the filtered argmax);
+the other ring methods read the halo's columns too."""
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
@@ -120,8 +125,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         if keep_low and low_src is not None:
             low[:] = low_src[r0:r1]
         return depth[own, inner], conf[own, inner]
-    if method in ("wcentroid", "adaptive", "adaptive_centroid"):  # the levels about the
-        centre = median_filter_levels(argmax, median_size, n_levels)  # filtered argmax
+    if method in OWN_LEVEL_METHODS:  # the levels about the filtered argmax
+        centre = median_filter_levels(argmax, median_size, n_levels)
         levels = src[:, r0:r1]
         if method != "wcentroid":  # depth and confidence in one pass over the levels
             spread = level_spread(centre, spread_size, n_levels)

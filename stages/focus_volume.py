@@ -11,13 +11,13 @@ are reduced to depth in blocks, in the order the motion completes them, once the
 halo for the SPC median filter are complete, or can no longer be completed because they
 left the view (those are returned invalid: NaN height, zero confidence, never filled in).
 
-What a column keeps depends on the depth method. argmax, centroid, PC and SPC need only
-the curve's sums (H_0, sum k y, Re and Im of the first harmonic,
+What a column keeps depends on the depth method. argmax, centroid, PC and SPC need only the
+curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
 *accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
 OpenCV arithmetic, no N-level volume: 6 planes instead of N). The others (3-point fits,
-wcentroid, adaptive and its variants) read the levels about a peak known once the column and its
-neighbours are complete: the ring stores every level of its columns, and the running argmax.
+wcentroid, the adaptive ones) read the levels about a peak known once a column and its
+neighbours are complete: the ring stores all their levels, and the running argmax.
 
 The frames' writes into this state may be held until the next block reduction (at most
 ``defer_writes`` of them; 1, applied at once, by default) and then applied together, strip
@@ -40,9 +40,9 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple, TypeVar
 
 import numpy as np
+from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
-from sffscan.stages.block_depth import BLOCK_CHOICES, block_method, block_uncertainty, depth_rows
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
@@ -184,7 +184,7 @@ class FocusVolume:
         self.spread_size = spread_size
         # the median's reach (+1), and for "adaptive" the spread window's beyond it, so
         # that a block's filtered peaks and spreads equal those of the whole volume
-        peak = method in ("adaptive", *BLOCK_CHOICES)
+        peak = method in ("adaptive", *blocks.BLOCK_CHOICES)
         self.halo = median_size // 2 + 1 + (spread_size // 2 if peak else 0)
         self.block = block_columns
         self.row_slack = row_slack
@@ -415,20 +415,22 @@ class FocusVolume:
         low = np.empty((self.rows, width), np.float32)  # each curve's minimum
         argmax = self._gather(self.argmax, a0, a1)
         method, low_src = self.method, None
+        complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
         if self.fv is None:
             src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
             low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
-        else:  # wcentroid and adaptive read the block's levels, the others the halo's too
-            if method in BLOCK_CHOICES:  # one choice for the block, whatever its bands
-                method = block_method(self._gather(self.fv, u0, u1), argmax[:, inner],
-                                      self._gather(self.count, u0, u1) == self.n, method=method)
-            wide = method not in ("wcentroid", "adaptive", "adaptive_centroid")
-            src = self._gather(self.fv, a0, a1) if wide else self._gather(self.fv, u0, u1)
+        else:  # the block's own levels (one copy where the ring wraps), or the halo's too
+            own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
+            src = self._gather(self.fv, u0 if own else a0, u1 if own else a1)
+            if method in blocks.BLOCK_CHOICES:  # one choice for the block, whatever its bands
+                method = blocks.block_method(src, argmax[:, inner], complete, method=method)
+                if method not in blocks.OWN_LEVEL_METHODS:  # SPC reads the halo's columns too
+                    src = self._gather(self.fv, a0, a1)
 
         def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)
             ra0, ra1 = max(r0 - self.halo, 0), min(r1 + self.halo, self.rows)
-            return depth_rows(src, argmax[ra0:ra1], low_src, (r0, r1),
+            return blocks.depth_rows(src, argmax[ra0:ra1], low_src, (r0, r1),
                               slice(r0 - ra0, r1 - ra0), inner, sums[:, r0:r1], low[r0:r1],
                               method=method, n_levels=self.n,
                               median_size=self.median_size, spread_size=self.spread_size,
@@ -437,7 +439,6 @@ class FocusVolume:
         parts = self._by_bands(band)
         depth = parts[0][0] if len(parts) == 1 else np.concatenate([d for d, _ in parts])
         conf = parts[0][1] if len(parts) == 1 else np.concatenate([c for _, c in parts])
-        complete = self._gather(self.count, u0, u1) == self.n
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
@@ -451,7 +452,7 @@ class FocusVolume:
             # that their values do not count as scatter of their valid neighbours
             fill = float(depth[valid].mean()) if valid.any() else 0.0
             filled = np.where(valid, depth, fill)
-            us = self._by_bands(lambda r0, r1: block_uncertainty(
+            us = self._by_bands(lambda r0, r1: blocks.block_uncertainty(
                 filled, sums, low, (r0, r1), n_levels=self.n, focus_heights_um=self.heights,
                 window=self.spread_size))
             unc = us[0] if len(us) == 1 else np.concatenate(us)
