@@ -80,15 +80,20 @@ def test_viky_200_frames_through_the_whole_pipeline(tmp_path: Path) -> None:
 def test_viky_lost_frames_are_counted_and_marked(tmp_path: Path) -> None:
     """A consumer that stalls for 0.3 s (60 frames at 200 fps, 8 buffers) loses frames:
     the gap shows in frame_id, the source counts it and the focus volume invalidates the
-    columns that missed levels."""
+    columns that missed levels. The camera also counts planned frames lost after the last
+    one it delivered (the first frame_id past the plan shows them), which the source
+    stage, seeing no frame after them, cannot: on a loaded machine the camera's
+    count was one gap more than the source's (fresh-clone run, 2-core VM)."""
     cfg = viky_config(num_buffers=8)
     st = CameraStats()
+    ids: list[int] = []
 
     def stalling(frames: Iterator[Frame]) -> Iterator[Frame]:
         try:
             for frame in frames:
                 if frame.header.frame_id == 60:
                     time.sleep(0.3)
+                ids.append(frame.header.frame_id)
                 yield frame
         finally:
             getattr(frames, "close")()  # noqa: B009 - a generator's close
@@ -97,8 +102,9 @@ def test_viky_lost_frames_are_counted_and_marked(tmp_path: Path) -> None:
                       output=tmp_path / "m.zarr", progress=False)
     extras = report.result.extras
     assert st.gaps >= 1 and st.lost >= 10
-    assert extras["source"]["frame_id_gaps"] == st.gaps
-    assert extras["source"]["frames_lost"] == st.lost
+    tail = frame_count(cfg) - 1 - ids[-1]  # planned frames lost after the last one
+    assert extras["source"]["frame_id_gaps"] == st.gaps - (tail > 0)
+    assert extras["source"]["frames_lost"] == st.lost - tail
     assert extras["depth"]["incomplete_columns"] > 0
     assert zarr.open_group(str(tmp_path / "m.zarr"), mode="r").attrs["status"] == "complete"
 
