@@ -182,8 +182,7 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     stats = shape_statistics(c.volume, c.argmax, curve_width(c.volume))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     return shape_select(_from_sums(c, method="spc"), _adaptive_centroid(c), stats,
-                        max_skew=max_skew,
-                        max_ratio=max_ratio)
+                        max_skew=max_skew, max_ratio=max_ratio)
 
 
 ESTIMATORS: dict[str, Estimator] = {
