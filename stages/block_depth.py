@@ -12,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_candidates import (
-    block_takes_centroid,
     centroid_pull,
     sampled_curves,
     shape_statistics,
@@ -45,7 +44,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits), else
     what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
-    (:func:`sffscan.stages.depth_candidates.block_takes_centroid`), else ``"adaptive"``.
+    (:func:`sffscan.stages.depth_candidates.centroid_pull` within its limit), else
+    ``"adaptive"``.
 
     Parameters
     ----------
@@ -59,16 +59,14 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         such curve takes ``"adaptive"``.
     method : {"shape_select", "adaptive_centroid"}, keyword-only
     """
-    if method == "adaptive_centroid":
-        return method if block_takes_centroid(levels, argmax, complete) else "adaptive"
-    if method != "shape_select":
+    if method not in BLOCK_CHOICES:
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
     sample = sampled_curves(levels, argmax, complete)
     if sample is None:
         return "adaptive"
     vol, am, seen = sample
-    stats = shape_statistics(vol, am, curve_width(vol), seen)
-    if takes_spc(stats):
+    if method == "shape_select" and takes_spc(shape_statistics(vol, am, curve_width(vol),
+                                                               seen)):
         return "spc"
     return "adaptive_centroid" if takes_centroid(centroid_pull(vol, am, seen)) else "adaptive"
 

@@ -31,8 +31,8 @@ And the statistic of the default, ``adaptive_centroid``:
 
 * :func:`centroid_pull`: how far the 5-level centroid about each curve's argmax lies from
   its 3-point Gaussian, the median over the curves; :func:`takes_centroid` below
-  :data:`CENTROID_PULL_LIMIT` (:func:`block_takes_centroid` for a block of a scan, judged
-  on its :func:`sampled_curves`).
+  :data:`CENTROID_PULL_LIMIT` (a scan's block judged on its :func:`sampled_curves`:
+  :func:`sffscan.stages.block_depth.block_method`).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ import numpy as np
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
 __all__ = ["CENTROID_PULL_LIMIT", "GAUSS_FIT_HALF_WINDOW", "SHAPE_SAMPLE_STEP",
-           "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "block_takes_centroid", "centroid_pull",
+           "SHAPE_SELECT_LIMITS", "WINDOW_PC_FACTOR", "centroid_pull",
            "curve_skew", "gauss_window_fit", "half_height_run", "sampled_curves",
            "shape_select", "shape_statistics", "takes_centroid", "takes_spc", "window_pc"]
 
@@ -137,17 +137,6 @@ def takes_centroid(pull: float, *, limit: float = CENTROID_PULL_LIMIT) -> bool:
     :func:`centroid_pull`: ``abs(pull) < limit`` (default :data:`CENTROID_PULL_LIMIT`);
     not for NaN (no curve judged)."""
     return bool(abs(pull) < limit)
-
-
-def block_takes_centroid(levels: np.ndarray, argmax: np.ndarray,
-                         complete: np.ndarray | None = None) -> bool:
-    """:func:`takes_centroid` judged on a block's :func:`sampled_curves` (False where no
-    curve has data)."""
-    sample = sampled_curves(levels, argmax, complete)
-    if sample is None:
-        return False
-    vol, am, seen = sample
-    return takes_centroid(centroid_pull(vol, am, seen))
 
 
 def _window(volume: np.ndarray, centre: np.ndarray, h: int
