@@ -406,8 +406,8 @@ def _run(job: Job, identity: dict[str, Any] | None) -> Run:
             if writer is None:
                 writer = open_writer(cfg)
                 if identity is not None:  # before any frame: an interrupted mosaic says it too
-                    writer.group.update_attributes({"recording": {"path": identity["path"],
-                                                                  "identity": identity}})
+                    writer.update_attributes({"recording": {"path": identity["path"],
+                                                            "identity": identity}})
             out.report = run_scan(cfg, frames=frames, progress=job.progress, sinks=sinks,
                                   writer=writer, account=account)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM, maybe before the pipeline's own handling

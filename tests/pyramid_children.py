@@ -42,12 +42,12 @@ def torn_replay(recording: str, output: str, kill_at: int, where: str) -> None:
             os.kill(os.getpid(), signal.SIGKILL)
         blend(self, x0, y0, new)
 
-    def torn_write_many(items: list[Any]) -> None:
+    def torn_write_many(items: list[Any], **kw: Any) -> None:
         if where == "pyramid" and state.get("write") == kill_at:
             level0 = len(mosaic.ARRAYS)  # the first items: level 0, then the write-back
-            write_many(items[:level0 + (len(items) - level0) // 2])
+            write_many(items[:level0 + (len(items) - level0) // 2], **kw)
             os.kill(os.getpid(), signal.SIGKILL)
-        write_many(items)
+        write_many(items, **kw)
 
     mosaic.LAG_S = float("inf")  # what the writer holds back does not depend on the clock
     mosaic.MosaicWriter._blend = torn_blend  # type: ignore[method-assign]

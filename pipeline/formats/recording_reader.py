@@ -40,7 +40,7 @@ from sffscan.pipeline.formats.recording_checks import (
     timestamp_defects,
 )
 from sffscan.pipeline.formats.recording_motion import read_motion_queue, stage_positions_um
-from sffscan.pipeline.formats.zarr_chunks import read_many
+from sffscan.pipeline.formats.zarr_chunks import Plans, read_many
 from sffscan.stages.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
@@ -158,11 +158,11 @@ class Recording:
         return arr
 
     def _check_place(self, headers: zarr.Array, index: int, image: np.ndarray,
-                     fid: int) -> str | None:
+                     fid: int, *, plans: Plans | None = None) -> str | None:
         """Why the frame at ``index`` is not where it belongs (None if it is, or if its
         header copy is unreadable: a lost copy loses no frame, the CRC still holds)."""
         try:
-            row = read_many([(headers, index)])[0]
+            row = read_many([(headers, index)], plans=plans)[0]
         except Exception:  # noqa: BLE001 - an unreadable copy: reported by verify()
             return None
         if int(row[0]) < 0:  # no copy (lost): nothing to check against
@@ -214,11 +214,12 @@ class Recording:
         shape = self.attrs.frame_shape
         headers = self._headers()
         pacer = Pacer(self.config.optics.fps, clock=clock, sleep=sleep) if realtime else None
+        plans = Plans()  # the two arrays' chunk plans, worked out once for the stream
         for index in self.order[start:]:
             header = self.header(int(index))
             try:
                 # chunk by chunk without zarr's event loop (zarr_chunks: the same values)
-                image = read_many([(arr, int(index))])[0]
+                image = read_many([(arr, int(index))], plans=plans)[0]
                 if image.shape != shape:
                     raise ValueError(f"shape {image.shape}")
             except Exception:  # noqa: BLE001 - undecodable or truncated chunk
@@ -227,7 +228,8 @@ class Recording:
                     self.report.frames -= 1  # not usable after all
                 continue
             if headers is not None:
-                why = self._check_place(headers, int(index), image, header.frame_id)
+                why = self._check_place(headers, int(index), image, header.frame_id,
+                                        plans=plans)
                 if why is not None:
                     if header.frame_id not in self.report.misplaced:
                         self.report.misplaced.append(header.frame_id)

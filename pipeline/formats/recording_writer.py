@@ -62,7 +62,7 @@ from sffscan.pipeline.formats.recording import (
     header_row,
 )
 from sffscan.pipeline.formats.recording_checks import frame_digest
-from sffscan.pipeline.formats.zarr_chunks import write_many
+from sffscan.pipeline.formats.zarr_chunks import Plans, write_many
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
@@ -164,6 +164,7 @@ class RecordingWriter:
         self.sync = SyncTracker(self.path, interval_s=fsync_s)
         self.group: zarr.Group | None = None
         self.capacity = 0
+        self.plans = Plans()  # the arrays' chunk plans, worked out once
         self.count = 0  # frames whose chunk is written
         self.committed = 0  # frames whose metadata is written too
         self.bytes = 0
@@ -211,7 +212,7 @@ class RecordingWriter:
             for arr, sel, value in items:
                 arr[sel] = value
         else:
-            write_many(items)
+            write_many(items, plans=self.plans)
 
     def _grow(self, n: int) -> None:
         if n <= self.capacity:

@@ -48,7 +48,7 @@ import numpy as np
 import zarr
 from zarr.storage import LocalStore
 
-__all__ = ["ChunkChecksumError", "read_many", "write_many", "direct_plan"]
+__all__ = ["ChunkChecksumError", "Plans", "read_many", "write_many", "direct_plan"]
 
 Selection = Any  # a slice, an int, or a tuple of them
 
@@ -138,6 +138,29 @@ def direct_plan(arr: zarr.Array) -> _Plan | None:
         return None
     return _Plan(Path(store.root) / path, chunks, dtype, arr.fill_value, codec, crc,
                  write_empty, _key_encoding(separator))
+
+
+class Plans:
+    """The :func:`direct_plan` of each array an owner reads or writes again and again (a
+    mosaic writer's arrays, a recording's), worked out once per array.
+
+    Why: :func:`direct_plan` reads the array's whole metadata document through zarr, about
+    0.2 ms of CPU; the mosaic writer asked for it for every array of every read and write
+    (``bench/bench_mosaic.py``). A plan does not depend on the array's shape, so an array
+    resized in place keeps its plan; an array object not seen before gets a new one. The
+    cache holds its arrays (so their ids stay theirs) for as long as its owner lives.
+    """
+
+    def __init__(self) -> None:
+        self._plans: dict[int, tuple[zarr.Array, _Plan | None]] = {}
+
+    def of(self, arr: zarr.Array) -> _Plan | None:
+        """``direct_plan(arr)``, from the cache where ``arr`` was seen before."""
+        hit = self._plans.get(id(arr))
+        if hit is None or hit[0] is not arr:
+            hit = (arr, direct_plan(arr))
+            self._plans[id(arr)] = hit
+        return hit[1]
 
 
 def _key_encoding(separator: str) -> Callable[[tuple[int, ...]], str]:
@@ -270,14 +293,16 @@ def _overlaps(plan: _Plan, shape: tuple[int, ...], reg: _Region) -> Iterator[
                tuple(x[2] for x in combo), all(x[3] for x in combo))
 
 
-def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]:
+def read_many(items: Sequence[tuple[zarr.Array, Selection]], *,
+              plans: Plans | None = None) -> list[np.ndarray]:
     """Several array regions, each a new array: directly where :func:`direct_plan` allows,
     the others through zarr (``array[selection]``). A stored chunk whose checksum does
-    not match raises :class:`ChunkChecksumError`."""
+    not match raises :class:`ChunkChecksumError`. ``plans``: the caller's cache of the
+    arrays' plans (:class:`Plans`; worked out afresh without one)."""
     out: list[np.ndarray | None] = []
     rest: list[tuple[int, zarr.Array, Selection]] = []
     for n, (arr, sel) in enumerate(items):
-        plan = direct_plan(arr)
+        plan = direct_plan(arr) if plans is None else plans.of(arr)
         if plan is None:
             out.append(None)
             rest.append((n, arr, sel))
@@ -293,14 +318,15 @@ def read_many(items: Sequence[tuple[zarr.Array, Selection]]) -> list[np.ndarray]
     return [v for v in out if v is not None]
 
 
-def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]]) -> None:
+def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]], *,
+               plans: Plans | None = None) -> None:
     """Write several array regions (a chunk partly under a region is read, patched and
     written whole; a chunk under it whole is not read): directly where :func:`direct_plan`
     allows, the others through zarr (``array[selection] = value``). ``value`` has the region's
-    shape, without the axes indexed by integers."""
+    shape, without the axes indexed by integers. ``plans`` as for :func:`read_many`."""
     rest = []
     for arr, sel, value in items:
-        plan = direct_plan(arr)
+        plan = direct_plan(arr) if plans is None else plans.of(arr)
         if plan is None:
             rest.append((arr, sel, value))
             continue

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 import zarr
-from sffscan.pipeline.formats.zarr_chunks import read_many, write_many
+from sffscan.pipeline.formats.zarr_chunks import Plans, read_many, write_many
 from sffscan.pipeline.mosaic.ngff import COORDS, level_coords, level_path
 from sffscan.stages.mosaic import Slices, aligned, downsample, level_shape
 
@@ -202,11 +202,15 @@ class PyramidCache:
         (no read needed); False for a reopened mosaic.
     clock : callable
         Monotonic time, s.
+    plans : Plans, optional
+        The owner's cache of the arrays' chunk plans (its own when not given).
     """
 
     def __init__(self, arrays: list[dict[str, zarr.Array]], *, lag_s: float = LAG_S,
-                 empty: bool = False, clock: Callable[[], float] = time.monotonic) -> None:
+                 empty: bool = False, clock: Callable[[], float] = time.monotonic,
+                 plans: Plans | None = None) -> None:
         self.arrays = arrays
+        self.plans = Plans() if plans is None else plans
         self.levels = len(arrays) + 1
         self.lag_s = lag_s
         self.clock = clock
@@ -283,7 +287,7 @@ class PyramidCache:
         partial = [key for key in due if not self._whole(key)]
         reads = [(arr, self._sel(key)) for key in partial
                  for arr in self.arrays[key[0] - 1].values()]
-        stored = iter(read_many(reads))
+        stored = iter(read_many(reads, plans=self.plans))
         for key in partial:
             chunk = self.cached[key]
             keep = ~chunk.covered  # type: ignore[operator]

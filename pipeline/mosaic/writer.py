@@ -16,7 +16,10 @@ result is bit for bit the uninterrupted mosaic.
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
+import os
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,7 +27,7 @@ from typing import Any
 import numpy as np
 import zarr
 from sffscan.pipeline.formats.durable import free_reserve, make_reserve
-from sffscan.pipeline.formats.zarr_chunks import read_many, write_many
+from sffscan.pipeline.formats.zarr_chunks import Plans, read_many, write_many
 from sffscan.pipeline.mosaic.attrs import MosaicAttrs
 from sffscan.pipeline.mosaic.layout import (
     ARRAYS,
@@ -168,7 +171,9 @@ class MosaicWriter:
         self.coords: CoordArrays | None = create_coords(
             self.group, shape=shape, levels=levels, pixel_um=pixel_um, origin_um=self.origin_um)
         lag = LAG_S if pyramid_lag_s is None else pyramid_lag_s
-        self.cache = PyramidCache(self.pyramid, lag_s=lag, empty=True) if self.pyramid else None
+        self.plans = Plans()  # the chunk plans of the arrays, worked out once
+        self.cache = (PyramidCache(self.pyramid, lag_s=lag, empty=True, plans=self.plans)
+                      if self.pyramid else None)
         attrs = dict(attrs or {})
         header = MosaicAttrs(
             status="writing",
@@ -187,6 +192,7 @@ class MosaicWriter:
         if attrs:
             raise ValueError(f"unknown mosaic attributes: {sorted(attrs)}")
         self.group.update_attributes(header.model_dump(mode="json"))
+        self._doc = self._read_doc()
         # room for the final status even on a full disk (freed by set_status; issue 13)
         make_reserve(self.path)
         self.blocks_written = 0
@@ -231,8 +237,11 @@ class MosaicWriter:
         self.done = attrs.writes_done
         levels = len(attrs.ome.multiscales[0].datasets) if attrs.ome is not None else 1
         self.pyramid = pyramid_arrays(group, self.arrays, levels)
-        self.cache = PyramidCache(self.pyramid, lag_s=LAG_S) if self.pyramid else None
+        self.plans = Plans()
+        self.cache = (PyramidCache(self.pyramid, lag_s=LAG_S, plans=self.plans)
+                      if self.pyramid else None)
         group.update_attributes({})  # drops consolidated metadata, if any
+        self._doc = self._read_doc()
         self.pixel_um, self.origin_um = attrs.pixel_um, attrs.origin_um
         self.coords = coord_arrays(group, levels)  # None before format version 3
         rebuild = [tuple(b) for b in attrs.rebuild]
@@ -255,10 +264,48 @@ class MosaicWriter:
         make_reserve(self.path)  # room for the final status even on a full disk
         return self
 
+    def _read_doc(self) -> dict[str, Any]:
+        doc = json.loads((self.path / "zarr.json").read_bytes())
+        if not isinstance(doc, dict) or not isinstance(doc.get("attributes"), dict):
+            raise ValueError(f"{self.path / 'zarr.json'}: not a Zarr v3 group's metadata")
+        return doc
+
+    @property
+    def attributes(self) -> dict[str, Any]:
+        """The group's attributes as last written (a copy)."""
+        return json.loads(json.dumps(self._doc["attributes"], allow_nan=True))
+
+    def update_attributes(self, changes: dict[str, Any]) -> None:
+        """Merge ``changes`` into the group's attributes, in one atomic write of its
+        ``zarr.json``.
+
+        The group's metadata document (read once when the writer opened the group) with the
+        changes, written as zarr writes it (``json.dumps`` with zarr's ``json_indent``, NaN
+        allowed, to a temporary file renamed over the document) but not through zarr:
+        ``zarr.Group.update_attributes`` cost about 2 ms of CPU per call for this ~24 kB
+        document (its event loop and metadata model), the journal makes two per band
+        write, against ~0.1 ms here (``bench/bench_mosaic.py``). Consolidated metadata,
+        if any, is dropped (stale once anything changes; :meth:`set_status` consolidates
+        again). Every attribute write of the writer, and of its users, goes through here,
+        so the document in memory is the one on disk.
+        """
+        doc = self._doc
+        doc["attributes"].update(json.loads(json.dumps(changes, allow_nan=True)))
+        doc.pop("consolidated_metadata", None)
+        data = json.dumps(doc, indent=zarr.config.get("json_indent"), allow_nan=True).encode()
+        path = self.path / "zarr.json"
+        tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
     def _journal(self, **changes: Any) -> None:
         """Update attributes in one atomic write of the group's metadata, with the box of
         the pyramid's unwritten chunks (``pyramid_stale``)."""
-        self.group.update_attributes({**changes, "pyramid_stale": self._stale()})
+        self.update_attributes({**changes, "pyramid_stale": self._stale()})
 
     def _stale(self) -> list[int] | None:
         """World px box (x0, y0, width, height) under the pyramid's unwritten chunks."""
@@ -313,8 +360,8 @@ class MosaicWriter:
         # blended, the pyramid's
         shape = (int(arrays["height"].shape[0]), int(arrays["height"].shape[1]))
         region = aligned(sel, shape, len(self.pyramid) + 1) if self.pyramid else sel
-        buf = dict(zip(self.arrays, read_many([(arrays[n], region) for n in self.arrays]),
-                       strict=True))
+        buf = dict(zip(self.arrays, read_many([(arrays[n], region) for n in self.arrays],
+                                              plans=self.plans), strict=True))
         a, b = r0 - region[0].start, c0 - region[1].start
         sub = (slice(a, a + rows), slice(b, b + cols))
         old = {name: v[sub] for name, v in buf.items()}
@@ -328,12 +375,12 @@ class MosaicWriter:
             # the chunks due go with level 0, in one round trip; a crash in it is covered by
             # the journal (the torn box, and the unwritten chunks' box of the last entry)
             writes += self.cache.write_back()
-        write_many(writes)
+        write_many(writes, plans=self.plans)
 
     def flush_pyramid(self) -> None:
         """Write every chunk the pyramid's cache holds (then the pyramid is current)."""
         if self.cache is not None:
-            write_many(self.cache.write_back(everything=True))
+            write_many(self.cache.write_back(everything=True), plans=self.plans)
 
     def write_region(self, x0: int, y0: int, new: dict[str, np.ndarray]) -> None:
         """Blend weighted sums ``new`` (see :func:`blend`) at world pixel (x0, y0).
@@ -384,10 +431,10 @@ class MosaicWriter:
             log.warning("%s: pyramid levels over world px box %s not written (%s); "
                         "'replay --resume' recomputes them", self.path, stale, err)
             status = "failed" if status == "complete" else status
-        attrs = MosaicAttrs.model_validate({**self.group.attrs.asdict(), "status": status,
+        attrs = MosaicAttrs.model_validate({**self.attributes, "status": status,
                                             "pyramid_stale": stale, **extra})
         free_reserve(self.path)  # the final status is written even when the disk is full
-        self.group.update_attributes(attrs.model_dump(mode="json"))
+        self.update_attributes(attrs.model_dump(mode="json"))
         if self.coords is not None:  # format version 3: one read opens it (xarray, NGFF)
             try:
                 consolidate(self.path)

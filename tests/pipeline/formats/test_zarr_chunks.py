@@ -11,6 +11,7 @@ import zarr
 from sffscan.pipeline.formats.recording_writer import frame_codecs
 from sffscan.pipeline.formats.zarr_chunks import (
     ChunkChecksumError,
+    Plans,
     direct_plan,
     read_many,
     write_many,
@@ -224,3 +225,26 @@ def test_direct_chunks_need_none_of_zarr_s_internal_classes(tmp_path: Path,
     np.testing.assert_array_equal(got, by_zarr[:])
     root = tmp_path / "m.zarr"
     assert _files(direct, root) == _files(by_zarr, root)
+
+
+def test_a_plans_cache_works_out_each_array_once_and_keeps_it_through_a_resize(
+        tmp_path: Path) -> None:
+    """Plans.of: one plan per array object (resized in place, it keeps it and writes past
+    its old end as zarr does); another object gets its own; reads and writes through the
+    cache give what zarr gives."""
+    by_zarr, direct = _pair(tmp_path, "tiles", mosaic_codecs("blosc-lz4"))
+    plans = Plans()
+    first = plans.of(direct)
+    assert first is not None and plans.of(direct) is first
+    for arr in (by_zarr, direct):
+        arr.resize((340, 530))
+    assert plans.of(direct) is first
+    value = np.arange(40 * 530, dtype=np.float32).reshape(40, 530)
+    by_zarr[300:340] = value
+    write_many([(direct, (slice(300, 340), slice(0, 530)), value)], plans=plans)
+    np.testing.assert_array_equal(read_many([(direct, (slice(280, 340),))], plans=plans)[0],
+                                  np.asarray(by_zarr[280:340]))
+    again = zarr.open_array(str(tmp_path / "m.zarr" / "direct"), mode="r+")
+    other = plans.of(again)
+    assert other is not None and other is not first
+    assert (other.folder, other.chunks, other.dtype) == (first.folder, first.chunks, first.dtype)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -128,3 +130,31 @@ def test_band_gatherer_sums_blocks_into_bands_the_motion_leaves() -> None:
     empty = BandGatherer(chunk_px=16, origin_x_px=0)
     empty.add(_block(0, 0, np.full((4, 8), np.nan), 0.5, 0))
     assert empty.take(0) is None  # nothing valid landed: nothing to write
+
+
+def test_journal_is_written_directly_and_zarr_reads_it(tmp_path: Path) -> None:
+    """The writer's attribute writes bypass zarr (MosaicWriter.update_attributes): zarr, and
+    a reader opening the group afresh, see each one at once; the document is zarr's own
+    (indentation, every key it wrote), and a consolidated copy is dropped, not left stale."""
+    path = tmp_path / "m.zarr"
+    writer = MosaicWriter(path, origin_px=(0, 0), shape=(16, 64), pixel_um=8.5, chunk_px=16)
+    before = (path / "zarr.json").read_text()
+    writer.write_region(0, 0, {"height": np.full((16, 16), 5.0), "texture": np.full((16, 16), 0.5),
+                               "weight": np.ones((16, 16)), "confidence": np.ones((16, 16))})
+    after = zarr.open_group(str(path), mode="r", use_consolidated=False).attrs.asdict()
+    assert after["writes_done"] == 1 and after["writing"] is None
+    assert after["status"] == "writing" and writer.attributes == after
+    text = (path / "zarr.json").read_text()
+    assert text.splitlines()[1].startswith("  ") == before.splitlines()[1].startswith("  ")
+    writer.update_attributes({"recording": {"path": "r.zarr", "frames": [1, 2]}})
+    rec: Any = zarr.open_group(str(path), mode="r").attrs["recording"]
+    assert rec["frames"] == [1, 2]
+    writer.set_status("complete")
+    g = zarr.open_group(str(path), mode="r")  # consolidated by set_status
+    rec = g.attrs["recording"]
+    assert g.attrs["status"] == "complete" and rec["path"] == "r.zarr"
+    assert "consolidated_metadata" in json.loads((path / "zarr.json").read_text())
+    writer.update_attributes({"resumed": 1})  # a later write drops the stale copy
+    doc = json.loads((path / "zarr.json").read_text())
+    assert "consolidated_metadata" not in doc and doc["attributes"]["resumed"] == 1
+    assert not list(path.glob("*.partial"))
