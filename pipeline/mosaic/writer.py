@@ -280,19 +280,20 @@ class MosaicWriter:
         ``zarr.json``.
 
         The group's metadata document (read once when the writer opened the group) with the
-        changes, written as zarr writes it (``json.dumps`` with zarr's ``json_indent``, NaN
-        allowed, to a temporary file renamed over the document) but not through zarr:
-        ``zarr.Group.update_attributes`` cost about 2 ms of CPU per call for this ~24 kB
-        document (its event loop and metadata model), the journal makes two per band
-        write, against ~0.1 ms here (``bench/bench_mosaic.py``). Consolidated metadata,
-        if any, is dropped (stale once anything changes; :meth:`set_status` consolidates
-        again). Every attribute write of the writer, and of its users, goes through here,
-        so the document in memory is the one on disk.
+        changes, written to a temporary file renamed over the document, as zarr's local
+        store writes it, but not through zarr: ``zarr.Group.update_attributes`` cost about
+        2 ms of CPU per call for this ~24 kB document (its event loop, its metadata model
+        and an indented dump by the pure-Python JSON encoder), and the journal makes two
+        per band write; here ~0.1 ms (the same document, compact: readers parse it alike;
+        ``bench/bench_mosaic.py``). NaN is written as zarr writes it (``NaN``).
+        Consolidated metadata, if any, is dropped (stale once anything changes;
+        :meth:`set_status` consolidates again). Every attribute write of the writer, and
+        of its users, goes through here, so the document in memory is the one on disk.
         """
         doc = self._doc
         doc["attributes"].update(json.loads(json.dumps(changes, allow_nan=True)))
         doc.pop("consolidated_metadata", None)
-        data = json.dumps(doc, indent=zarr.config.get("json_indent"), allow_nan=True).encode()
+        data = json.dumps(doc, allow_nan=True).encode()
         path = self.path / "zarr.json"
         tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")
         try:
