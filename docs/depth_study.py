@@ -40,8 +40,12 @@ filtered peak, weights the squared height above the curve's minimum; h), `window
 (phase correlation over a window of a factor x the curve's measured width; the factor) and
 `shape-select` (one choice per stack: SPC when the stack's focus curves are even, the
 absolute median skewness below s, and clean, the median ratio of the first harmonic's width
-to the width of the run above half height below r, else `adaptive_centroid`; s/r) and
-`centroid-pull` (one choice per stack: at `adaptive`'s peak pixels the centroid of the 5
+to the width of the run above half height below r, else `adaptive_centroid`; s/r; where
+it takes SPC, `adaptive_centroid` still stands at the pixels whose SPC depth lies within
+1.5 of their curve's widths of an end of the range, where SPC's phase is pulled by the
+cut curve), `spc-reach` (that rule at its shipped limits with another reach, in widths;
+settings that tie on the training seeds go to the largest) and `centroid-pull` (one choice
+per stack: at `adaptive`'s peak pixels the centroid of the 5
 levels about the filtered peak instead of the 3-point Gaussian where the median over the
 curves of the difference of the two about each curve's argmax is below a limit, levels;
 the rule of `adaptive_centroid`, whose column uses the shipped limit) and `wide-centroid`

@@ -15,16 +15,17 @@ from sffscan.stages.depth_candidates import (
     centroid_pull,
     sampled_curves,
     shape_statistics,
+    spc_in_range,
     takes_centroid,
     takes_spc,
 )
 from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
-from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
+from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
-__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "block_method", "block_uncertainty",
-           "depth_rows"]
+__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_method",
+           "block_uncertainty", "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
@@ -33,6 +34,12 @@ OWN_LEVEL_METHODS = ("wcentroid", "adaptive", "adaptive_centroid")
 """The methods that read only the block's own columns' levels (about the filtered argmax);
 the other ring methods read the halo's columns too."""
 
+SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
+"""What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at
+its pixels outside the range SPC holds in
+(:func:`sffscan.stages.depth_candidates.spc_in_range`) what ``"adaptive_centroid"`` takes
+(``adaptive``'s peak refined by the 5-level centroid or by the 3-point Gaussian)."""
+
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
                  complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
@@ -40,9 +47,10 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     :data:`sffscan.stages.depth_candidates.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_candidates.sampled_curves`).
 
-    ``"shape_select"``: ``"spc"`` where its curves are even and clean
-    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits), else
-    what ``"adaptive_centroid"`` takes.
+    ``"shape_select"``: SPC where its curves are even and clean
+    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits), named
+    by :data:`SPC_BLOCKS` with what ``"adaptive_centroid"`` takes where SPC is out of range;
+    else what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
     (:func:`sffscan.stages.depth_candidates.centroid_pull` within its limit), else
     ``"adaptive"``.
@@ -65,10 +73,11 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     if sample is None:
         return "adaptive"
     vol, am, seen = sample
+    centroid = takes_centroid(centroid_pull(vol, am, seen))
     if method == "shape_select" and takes_spc(shape_statistics(vol, am, curve_width(vol),
                                                                seen)):
-        return "spc"
-    return "adaptive_centroid" if takes_centroid(centroid_pull(vol, am, seen)) else "adaptive"
+        return "spc+centroid" if centroid else "spc+gauss3"
+    return "adaptive_centroid" if centroid else "adaptive"
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
@@ -136,7 +145,20 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         low[:] = levels.min(axis=0)
         return depth, confidence_from_sums(*sums)
     vol = src[:, wide]
-    depth, conf = depth_from_focus(vol, method=method, median_size=median_size, argmax=argmax)
+    spc_block = method in SPC_BLOCKS
+    depth, conf = depth_from_focus(vol, method="spc" if spc_block else method,
+                                   median_size=median_size, argmax=argmax)
+    if spc_block:  # what adaptive_centroid takes where SPC is out of its range
+        centre = median_filter_levels(argmax, median_size, n_levels)
+        spread = level_spread(centre, spread_size, n_levels)
+        other, other_conf = adaptive_block(
+            src[:, r0:r1, inner], centre[own, inner],
+            spread[own, inner], peak=SPC_BLOCKS[method], sums_out=sums, min_out=low)
+        spc = depth[own, inner]
+        width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, n_levels)
+        keep = spc_in_range(spc, width, n_levels)
+        return (np.where(keep, spc, other).astype(np.float32, copy=False),
+                np.where(keep, conf[own, inner], other_conf).astype(np.float32, copy=False))
     sums[:] = focus_sums(vol[:, own, inner])
     low[:] = vol[:, own, inner].min(axis=0)
     return depth[own, inner], conf[own, inner]

@@ -40,6 +40,7 @@ from sffscan.stages.depth_candidates import (
     gauss_window_fit,
     shape_select,
     shape_statistics,
+    spc_in_range,
     takes_centroid,
     window_pc,
 )
@@ -179,10 +180,13 @@ def _window_pc(c: FocusCurves) -> np.ndarray:
 
 def _shape_select(c: FocusCurves) -> np.ndarray:
     assert c.argmax is not None
-    stats = shape_statistics(c.volume, c.argmax, curve_width(c.volume))
+    width = curve_width(c.volume)
+    stats = shape_statistics(c.volume, c.argmax, width)
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    return shape_select(_from_sums(c, method="spc"), _adaptive_centroid(c), stats,
-                        max_skew=max_skew, max_ratio=max_ratio)
+    spc = _from_sums(c, method="spc")
+    return shape_select(spc, _adaptive_centroid(c), stats, max_skew=max_skew,
+                        max_ratio=max_ratio,
+                        in_range=spc_in_range(spc, width, c.volume.shape[0]))
 
 
 ESTIMATORS: dict[str, Estimator] = {

@@ -37,10 +37,12 @@ from sffscan.stages.depth import (
     median_filter_levels,
 )
 from sffscan.stages.depth_candidates import (
+    SHAPE_SELECT_LIMITS,
     centroid_pull,
     gauss_window_fit,
     shape_select,
     shape_statistics,
+    spc_in_range,
     window_pc,
 )
 from sffscan.stages.depth_uncertainty import (
@@ -82,6 +84,14 @@ PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 :func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always)."""
 
+SPC_REACHES = (3.0, 2.0, 1.5, 1.0, 0.0)
+"""``spc-reach`` settings the protocol tunes over: how many of its widths SPC's depth must lie
+from the range's ends for ``shape_select`` (at its shipped limits) to keep SPC at a pixel
+(:func:`sffscan.stages.depth_candidates.spc_in_range`; 0: everywhere). Largest first:
+where settings tie on the training seeds (a stack that takes SPC with no pixel near an end
+cannot tell them apart) the tuning takes the first, the widest guard the tie allows, since
+a curve cut by the range's end biases SPC whatever the data say about the others."""
+
 WIDE_GRID = tuple((t, ms, h) for t in (0.03, 0.05, 0.1) for ms in (2.0, 4.0)
                   for h in (5.0, 8.0, 12.0, 15.0))
 """``wide-centroid`` settings the protocol tunes over: (largest centroid pull, levels; largest
@@ -97,6 +107,7 @@ CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "gauss-fit": GAUSS_FIT_HALF_WINDOWS,
                                               "window-pc": WINDOW_PC_FACTORS,
                                               "shape-select": SHAPE_GRID,
+                                              "spc-reach": SPC_REACHES,
                                               "centroid-pull": PULL_LIMITS,
                                               "wide-centroid": WIDE_GRID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
@@ -173,10 +184,17 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = window_pc(volume, centre, factor=g)
         sse[_key("window-pc", g)] = float(np.sum((d - truth_levels)[mask] ** 2))
     stats = shape_statistics(volume, a, width, mask)
+    n = volume.shape[0]
+    in_range = spc_in_range(depth["spc"], width, n)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
-                         max_ratio=pair[1])
+                         max_ratio=pair[1], in_range=in_range)
         sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    for k in SPC_REACHES:
+        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats,
+                         max_skew=SHAPE_SELECT_LIMITS[0], max_ratio=SHAPE_SELECT_LIMITS[1],
+                         in_range=spc_in_range(depth["spc"], width, n, reach=k))
+        sse[_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, volume.shape[0])
     peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")

@@ -146,9 +146,11 @@ def test_every_method_is_selectable_by_name() -> None:
     from sffscan.pipeline.config import ProcessingConfig
     from sffscan.stages.depth_candidates import (
         SHAPE_SELECT_LIMITS,
+        SPC_END_REACH,
         gauss_window_fit,
         shape_select,
         shape_statistics,
+        spc_in_range,
         window_pc,
     )
     from sffscan.stages.depth_uncertainty import curve_width
@@ -165,12 +167,14 @@ def test_every_method_is_selectable_by_name() -> None:
     adaptive, _ = depth_from_focus(vol, method="adaptive")
     spc, _ = depth_from_focus(vol, method="spc")
     stats = shape_statistics(vol, first_argmax(vol), curve_width(vol))
-    assert SHAPE_SELECT_LIMITS == (0.08, 6.0)
+    assert SHAPE_SELECT_LIMITS == (0.08, 6.0) and SPC_END_REACH == 1.5
+    in_range = spc_in_range(spc, curve_width(vol), 30, reach=1.5)
+    assert 0 < in_range.mean() < 1  # peaks at levels 4 .. 26 of 30: some near the ends
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
                 "window_pc": window_pc(vol, centre, factor=3.0),
                 "shape_select": shape_select(
                     spc, depth_from_focus(vol, method="adaptive_centroid")[0], stats,
-                    max_skew=0.08, max_ratio=6.0)}
+                    max_skew=0.08, max_ratio=6.0, in_range=in_range)}
     for method in (*CANDIDATE_METHODS, "shape_select"):
         depth, confidence = depth_from_focus(vol, method=method)
         np.testing.assert_array_equal(depth, expected[method])
@@ -223,6 +227,61 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
     assert np.array_equal(shape_select(a, b, (0.05, 2.0), max_skew=0.08, max_ratio=6.0), a)
     assert np.array_equal(shape_select(a, b, (0.10, 2.0), max_skew=0.08, max_ratio=6.0), b)
     assert np.array_equal(shape_select(a, b, (0.05, 7.0), max_skew=0.08, max_ratio=6.0), b)
+
+
+def test_spc_is_kept_only_a_reach_of_widths_from_the_range_s_ends() -> None:
+    """spc_in_range: margin = reach x width from 0 and from N - 1 (inclusive), NaN out;
+    shape_select takes ``other`` outside it, and only where it takes SPC at all."""
+    from sffscan.stages.depth_candidates import shape_select, spc_in_range
+
+    d = np.array([2.9, 3.0, 15.0, 26.0, 26.1, np.nan], np.float32)
+    w = np.array([2.0, 2.0, 9.0, 2.0, 2.0, 2.0], np.float32)
+    keep = spc_in_range(d, w, 30, reach=1.5)
+    assert keep.tolist() == [False, True, True, True, False, False]
+    assert spc_in_range(d, w, 30, reach=0.0).tolist() == [True] * 5 + [False]
+    other = np.full(6, -1.0, np.float32)
+    out = shape_select(d, other, (0.0, 1.0), max_skew=0.08, max_ratio=6.0, in_range=keep)
+    np.testing.assert_array_equal(out, np.where(keep, d, other))
+    assert np.array_equal(shape_select(d, other, (0.5, 1.0), max_skew=0.08, max_ratio=6.0,
+                                       in_range=keep), other)
+
+
+@pytest.mark.parametrize("peak", ["centroid", "gauss3"])
+def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None:
+    """block_depth.depth_rows of an SPC block (SPC_BLOCKS): SPC's depth where it is in range,
+    what adaptive_centroid's rule gives (its peak estimator named by the label) elsewhere, on
+    the same curves; the curves' sums and minimum as the ring methods give them."""
+    from sffscan.stages.block_depth import SPC_BLOCKS, depth_rows
+    from sffscan.stages.depth_candidates import spc_in_range
+    from sffscan.stages.depth_harmonics import focus_sums
+    from sffscan.stages.depth_uncertainty import width_from_sums
+
+    rng = np.random.default_rng(5)
+    n, rows, halo, block = 30, 40, 8, 24
+    peaks = np.linspace(0.5, 12.0, rows)[:, None] + np.zeros((1, block + 2 * halo))
+    vol = gaussian_volume(peaks + rng.uniform(0, 0.3, peaks.shape), n, 2.0)
+    vol += 0.01 * rng.random(vol.shape, dtype=np.float32)
+    argmax = first_argmax(vol)
+    inner = slice(halo, halo + block)
+    label = next(k for k, v in SPC_BLOCKS.items() if v == peak)
+    out = np.empty((3, rows, block), np.float32), np.empty((rows, block), np.float32)
+    depth, _ = depth_rows(vol, argmax, None, (0, rows), slice(0, rows), inner, *out,
+                          method=label, n_levels=n, median_size=11, spread_size=9,
+                          streaming=False, keep_low=True)
+    spc = depth_from_focus(vol, method="spc", argmax=argmax)[0][:, inner]
+    other = depth_from_focus(vol, method="adaptive", argmax=argmax)[0][:, inner]
+    if peak == "centroid":
+        out2 = np.empty((3, rows, block), np.float32), np.empty((rows, block), np.float32)
+        other, _ = depth_rows(vol[:, :, inner], argmax, None, (0, rows), slice(0, rows),
+                              inner, *out2, method="adaptive_centroid", n_levels=n,
+                              median_size=11, spread_size=9, streaming=False, keep_low=True)
+    sums, low = out
+    np.testing.assert_array_equal(sums, focus_sums(vol[:, :, inner]))
+    np.testing.assert_array_equal(low, vol[:, :, inner].min(axis=0))
+    keep = spc_in_range(spc, width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, n), n)
+    assert 0.2 < keep.mean() < 0.9  # peaks from 0.5 to 12 levels: both kinds of pixel
+    np.testing.assert_allclose(depth[keep], spc[keep], atol=1e-5)
+    np.testing.assert_array_equal(depth[~keep], other[~keep])
 
 
 # ----------------------------------------------------------------------------- SPC identity
