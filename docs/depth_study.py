@@ -84,18 +84,19 @@ and on pertuz-simu02. No method reaches it (see the last row). The line below th
 names the method with the smallest worst ratio over the held-out sets. `shape_select` (the
 column `shape_select` at its shipped limits, `shape-select` the same rule tuned without the
 row's family; the best fixed method of a row is taken over every column left of
-`width-switch`, `shape_select` included) is a method of scan, replay and stack, but not the
-default: made the default, it made the repository's own scans worse where a block mixing
-flat base and relief took SPC (docs/depth-method.md). The default is `adaptive_centroid`
-(since 2026-12-02; `adaptive` before): held out it is nowhere worse than `adaptive`
-(flat-fine-8bit 0.098 against 0.106 levels, the others equal), its limit is the one the
-protocol tunes on every family's training seeds (`centroid-pull`, the pertuz row's setting),
-and on the noisy continuous scan of the issue it meets the bar `adaptive` missed
-(bench/results/noisy_scan_results.md). The uncertainty's constants below are fitted to its
+`width-switch`, `shape_select` included) is the default of scan, replay and stack since
+2026-12-02: held out at most 1.00x the best single method on nine families and on
+pertuz-simu02, 1.13x on slopes (where it takes `adaptive_centroid`). It was not the default
+before because the repository's plate scan got worse with it; the reason was SPC's pull at
+pixels near an end of the range, which the reach guard (`spc-reach`) removes, and a noisy
+lopsided stack could pass its skewness limit, which the pull limit (`spc-pull`) stops
+(docs/depth-method.md). Its fallback `adaptive_centroid` (the default earlier that day)
+uses the limit the protocol tunes on every family's training seeds (`centroid-pull`, the
+pertuz row's setting). The uncertainty's constants below are fitted to the default's
 errors. `wide-centroid` (wide centroid windows where the curves are even) is at worst 1.51x
 held out (slopes: tuned without that family the span limit is 2, too low for its slope
-blends), better than the default's 1.92x in the worst case but worse on the thin-lens
-families (1.12x, 1.27x, against 1.00x): a candidate, not a method.
+blends), worse than the default on the thin-lens families (1.12x, 1.27x, against 1.00x): a
+candidate, not a method.
 
 """
 

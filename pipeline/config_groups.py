@@ -141,13 +141,14 @@ class Method(ConfigModel):
         "(focusmeasure.m), any case")
     window: int = Field(9, ge=3, le=255, description="Focus measure window k (odd), px")
     depth_method: DepthMethodName = Field(
-        "adaptive_centroid", description="Focus curve -> depth method (adaptive: about the "
+        "shape_select", description="Focus curve -> depth method (adaptive: about the "
         "median-filtered peak, the curve's maximum (3-point Gaussian) where the filtered "
         "peaks span <= 2 levels over the focus window, else the centroid of 11 levels; "
-        "adaptive_centroid (the default): the same with the centroid of 5 levels instead "
+        "adaptive_centroid: the same with the centroid of 5 levels instead "
         "of the 3-point Gaussian where a block's curves do not pull a centroid from their "
-        "maxima; shape_select: spc or adaptive_centroid for each block of columns, spc "
-        "where its focus curves are even and clean; docs/depth-method.md, "
+        "maxima; shape_select (the default): spc or adaptive_centroid for each block of "
+        "columns, spc where its focus curves are even and clean, except at the pixels "
+        "within 1.5 curve widths of an end of the range; docs/depth-method.md, "
         "docs/depth-study.md)"
     )
     median_size: int = Field(11, ge=3, le=255, description="SPC median filter size (odd), px")

@@ -48,7 +48,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     (:func:`sffscan.stages.depth_candidates.sampled_curves`).
 
     ``"shape_select"``: SPC where its curves are even and clean
-    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits), named
+    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits, the
+    centroid pull's included), named
     by :data:`SPC_BLOCKS` with what ``"adaptive_centroid"`` takes where SPC is out of range;
     else what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
@@ -73,9 +74,10 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     if sample is None:
         return "adaptive"
     vol, am, seen = sample
-    centroid = takes_centroid(centroid_pull(vol, am, seen))
+    pull = centroid_pull(vol, am, seen)
+    centroid = takes_centroid(pull)
     if method == "shape_select" and takes_spc(shape_statistics(vol, am, curve_width(vol),
-                                                               seen)):
+                                                               seen), pull=pull):
         return "spc+centroid" if centroid else "spc+gauss3"
     return "adaptive_centroid" if centroid else "adaptive"
 

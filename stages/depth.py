@@ -161,10 +161,11 @@ def _adaptive(c: FocusCurves) -> np.ndarray:
                          level_spread(centre, c.spread_size, c.volume.shape[0]))
 
 
-def _adaptive_centroid(c: FocusCurves) -> np.ndarray:
+def _adaptive_centroid(c: FocusCurves, pull: float | None = None) -> np.ndarray:
     assert c.argmax is not None
     centre = c.centre()
-    peak = "centroid" if takes_centroid(centroid_pull(c.volume, c.argmax)) else "gauss3"
+    pull = centroid_pull(c.volume, c.argmax) if pull is None else pull
+    peak = "centroid" if takes_centroid(pull) else "gauss3"
     return adaptive_peak(c.volume, centre,
                          level_spread(centre, c.spread_size, c.volume.shape[0]), peak=peak)
 
@@ -184,9 +185,10 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     stats = shape_statistics(c.volume, c.argmax, width)
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     spc = _from_sums(c, method="spc")
-    return shape_select(spc, _adaptive_centroid(c), stats, max_skew=max_skew,
+    pull = centroid_pull(c.volume, c.argmax)
+    return shape_select(spc, _adaptive_centroid(c, pull), stats, max_skew=max_skew,
                         max_ratio=max_ratio,
-                        in_range=spc_in_range(spc, width, c.volume.shape[0]))
+                        in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull)
 
 
 ESTIMATORS: dict[str, Estimator] = {
@@ -212,10 +214,10 @@ DEPTH_METHODS = tuple(name for name, e in ESTIMATORS.items() if not e.candidate)
 CANDIDATE_METHODS = tuple(name for name, e in ESTIMATORS.items() if e.candidate)
 """The study's candidates, selectable by name in :func:`depth_from_focus` only."""
 
-DEFAULT_METHOD = "adaptive_centroid"
-"""The default depth method of scan, replay and stack (see
-:func:`~sffscan.stages.depth_peak.adaptive_peak` and ``"adaptive_centroid"`` in
-:func:`depth_from_focus`; ``"adaptive"`` before 2026-12-02)."""
+DEFAULT_METHOD = "shape_select"
+"""The default depth method of scan, replay and stack (see ``"shape_select"`` in
+:func:`depth_from_focus`; ``"adaptive_centroid"``, and ``"adaptive"`` before it, earlier
+on 2026-12-02 and before)."""
 
 
 # ----------------------------------------------------------------------------- public API
@@ -255,7 +257,7 @@ def depth_from_focus(
             ``a_med`` refined by a 3-point Gaussian; elsewhere the windowed centroid of
             the 2h + 1 = 11 levels about ``a_med``
             (:func:`~sffscan.stages.depth_peak.adaptive_peak`).
-        ``"adaptive_centroid"`` (the default of scan, replay and stack)
+        ``"adaptive_centroid"`` (``"shape_select"``'s fallback)
             ``"adaptive"``, but the centroid of the 5 levels about ``a_med`` instead of
             the 3-point Gaussian where ``a_med`` spans at most
             :data:`ADAPTIVE_MAX_SPREAD` levels, if the volume's curves are even enough
@@ -284,13 +286,16 @@ def depth_from_focus(
             ``phi = -angle(H_1) N / (2 pi)``. No modulo after undoing the shift: the result
             lies in ``[a_med - round(N/2), a_med - round(N/2) + N)``, unwrapped around the
             filtered argmax (the same result as rolling each curve, the test's reference).
-        ``"shape_select"``
+        ``"shape_select"`` (the default of scan, replay and stack)
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
             clean (:func:`sffscan.stages.depth_candidates.shape_select` at
-            :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS`, tuned by the
-            leave-one-family-out study), else the default ``"adaptive_centroid"``
-            (``"adaptive"`` until 2026-12-02). The streaming depth stage
-            makes the choice per block of columns.
+            :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS` and a centroid
+            pull under :data:`~sffscan.stages.depth_candidates.SPC_PULL_LIMIT`, tuned by the
+            leave-one-family-out study), except at the pixels whose SPC depth lies within
+            :data:`~sffscan.stages.depth_candidates.SPC_END_REACH` curve widths of an end
+            of the range (:func:`~sffscan.stages.depth_candidates.spc_in_range`); else, and
+            there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per
+            block of columns.
         ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
             The candidates of the leave-one-family-out study
             (:mod:`sffscan.stages.depth_candidates`), at the settings the study tuned on

@@ -84,6 +84,12 @@ PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 :func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always)."""
 
+SPC_PULLS = (0.03, 0.05, 0.1, 0.2, math.inf)
+"""``spc-pull`` settings the protocol tunes over: the largest centroid pull (levels) of a
+stack ``shape_select`` (at its shipped limits and reach) gives to SPC (inf: no limit).
+Smallest first: where settings tie on the training seeds the tuning takes the first, the
+strictest the tie allows."""
+
 SPC_REACHES = (3.0, 2.0, 1.5, 1.0, 0.0)
 """``spc-reach`` settings the protocol tunes over: how many of its widths SPC's depth must lie
 from the range's ends for ``shape_select`` (at its shipped limits) to keep SPC at a pixel
@@ -108,6 +114,7 @@ CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "window-pc": WINDOW_PC_FACTORS,
                                               "shape-select": SHAPE_GRID,
                                               "spc-reach": SPC_REACHES,
+                                              "spc-pull": SPC_PULLS,
                                               "centroid-pull": PULL_LIMITS,
                                               "wide-centroid": WIDE_GRID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
@@ -186,16 +193,20 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     stats = shape_statistics(volume, a, width, mask)
     n = volume.shape[0]
     in_range = spc_in_range(depth["spc"], width, n)
+    pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
-                         max_ratio=pair[1], in_range=in_range)
+                         max_ratio=pair[1], in_range=in_range, pull=pull)
         sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    limits = {"max_skew": SHAPE_SELECT_LIMITS[0], "max_ratio": SHAPE_SELECT_LIMITS[1]}
     for k in SPC_REACHES:
-        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats,
-                         max_skew=SHAPE_SELECT_LIMITS[0], max_ratio=SHAPE_SELECT_LIMITS[1],
-                         in_range=spc_in_range(depth["spc"], width, n, reach=k))
+        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, **limits,
+                         in_range=spc_in_range(depth["spc"], width, n, reach=k), pull=pull)
         sse[_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
+    for t in SPC_PULLS:
+        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, **limits,
+                         in_range=in_range, pull=pull, max_pull=t)
+        sse[_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     spread = level_spread(centre, spread_size, volume.shape[0])
     peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")
     for t in PULL_LIMITS:

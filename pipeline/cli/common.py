@@ -51,7 +51,7 @@ def processing_choices(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-registration", action="store_true",
                    help="place frames by speed only")
     p.add_argument("--method", choices=DEPTH_METHOD_CHOICES,
-                   help="depth method (default adaptive_centroid)")
+                   help="depth method (default shape_select)")
     p.add_argument("--operator", type=str.lower, choices=OPERATOR_CHOICES, metavar="OPERATOR",
                    help="focus measure operator, a toolbox acronym in any case (default glvm): "
                         + ", ".join(OPERATOR_CHOICES))

@@ -59,7 +59,7 @@ class StackSettings:
     """How a focus stack is reduced to a height map.
 
     The defaults: GLVM, k = 9, the scan's default depth method
-    (:data:`sffscan.stages.depth.DEFAULT_METHOD`, ``"adaptive_centroid"``),
+    (:data:`sffscan.stages.depth.DEFAULT_METHOD`, ``"shape_select"``),
     confidence-weighted median of 15 x 15 px.
 
     Parameters

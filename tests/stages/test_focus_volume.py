@@ -245,11 +245,13 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     core = complete & (edge >= 3) & (edge < 13)  # 2 px (median) + 1 px (window) in
     core &= np.roll(complete, 3) & np.roll(complete, -3)
     assert core.sum() > 50
-    # SPC's sums are accumulated frame by frame in float32, in another order than
-    # focus_sums': the curve widths differ by round-off, up to 2.9e-4 of the uncertainty
-    # (measured; the floor term c = 0.0301 levels no longer hides it)
-    rtol = 1e-3 if method == "spc" else 1e-4
-    np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=rtol)
+    # the sums are accumulated frame by frame in float32 (SPC), or summed in another order
+    # than focus_sums': the curve widths differ by round-off, which the excess width
+    # (sqrt(w^2 - mean^2), ill-conditioned where a curve is as wide as its neighbours)
+    # magnifies; the floor term (c = 0.0001 levels since shape_select is the default: 0.01
+    # um here) no longer hides it. Measured: up to 0.017 um (SPC), 7e-5 um (the others)
+    atol = 0.02 if method == "spc" else 2e-4
+    np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4, atol=atol)
 
 
 def _wobbly_scan(method: str, direction: int, **kwargs) -> list:  # noqa: ANN003
@@ -431,8 +433,10 @@ def test_shape_select_judges_only_the_curves_with_data() -> None:
 
     n = 24
     k = np.arange(n, dtype=np.float64)[:, None, None]
-    d = 10.0 + np.linspace(0.0, 1.0, 64 * 16).reshape(64, 16)
-    fm = np.maximum(1.0 - np.abs(k - d) / 3.0, 0.0).astype(np.float32)  # even triangles
+    # even triangles peaking on levels (a centroid about the argmax is not pulled from
+    # the 3-point fit there: the pull that shape_select also asks SPC's curves for is 0)
+    d = 10.0 + np.floor(np.linspace(0.0, 2.99, 64 * 16)).reshape(64, 16)
+    fm = np.maximum(1.0 - np.abs(k - d) / 3.0, 0.0).astype(np.float32)
     fm[:, 24:] = 0.0  # the wobble's slack rows, never written: counted, they would tip it
     argmax = np.argmax(fm, axis=0)
     assert block_method(fm, argmax) in SPC_BLOCKS
