@@ -1,17 +1,17 @@
-"""The default depth method (``adaptive``) against every other method, on the stacks of
-the issue's bars that fit in a test: chapter 3 of the thesis (clean and with noise of
+"""The default depth method (``shape_select``) against every other method, on the stacks
+of the issue's bars that fit in a test: chapter 3 of the thesis (clean and with noise of
 variance 0.005, TENV 5 x 5) and pertuz-simu02 (GLVM 9, every ROI pixel), raw and through
 ``stack``'s post-filter (the confidence-weighted median of 15 x 15 px).
 
 Bars: its RMSE <= 1.05 x the best of the issue's methods (argmax, gauss3, quadratic3,
 centroid, PC, SPC) on each; >= 10 % below SPC (the previous default of scan) on two; with
 ``stack``'s post-filter on pertuz no worse than gauss3 (the previous default of stack).
-Against wcentroid (the previous default of scan, still selectable) it is asserted within
-10 %: it loses 7.8 % to it with noise (a peak fit is noisier than a centroid), and wins on
-pertuz by 8 % raw and 44 % filtered. Measured (2-core VM), RMSE: chapter 3 clean 0.703
-levels (best: centroid 0.671, 1.048 x), with noise 0.799 (SPC 1.427: 0.56 x; wcentroid
-0.741), pertuz 13.9 mm raw (gauss3 36.7 mm: 0.38 x; wcentroid 15.2), 4.43 mm filtered
-(gauss3 4.48 mm; wcentroid 7.92).
+Against wcentroid (a previous default of scan, still selectable) it is asserted within
+10 %. Measured (2-core VM, 2026-12-02), RMSE: chapter 3 clean 0.673 levels (it takes SPC;
+best: centroid 0.671, 1.003 x; adaptive 0.703), with noise 0.746 (adaptive_centroid's;
+SPC 1.427: 0.52 x; wcentroid 0.741), pertuz 13.9 mm raw (adaptive_centroid's, which is
+adaptive's there; gauss3 36.7 mm: 0.38 x; wcentroid 15.2), 4.43 mm filtered (gauss3
+4.48 mm; wcentroid 7.92).
 """
 
 from __future__ import annotations
