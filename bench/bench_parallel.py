@@ -5,9 +5,11 @@ median reported)::
 
     python bench/bench_parallel.py            # about 4-5 min on the 2-core dev VM
 
-1280 x 1024 uint16 frames (10-bit), N = 50, k = 9, GLVM, SPC, registration on, Zarr
-mosaic. Each end-to-end run is a fresh process, pinned with ``os.sched_setaffinity`` to
-1 or 2 (or more, ``--cores``) CPUs before anything starts; worker processes inherit it.
+1280 x 1024 uint16 frames (10-bit), N = 50, k = 9, GLVM, registration on, Zarr mosaic,
+the depth method ``--method`` names (SPC unless told: the method of the runs before
+2026-12-02; issue 28's bars name the default, ``--method default``). Each end-to-end run
+is a fresh process, pinned with ``os.sched_setaffinity`` to 1 or 2 (or more, ``--cores``)
+CPUs before anything starts; worker processes inherit it.
 Cases:
 
 - frames from memory (distinct simulated frames, read into memory first), threads and
@@ -60,7 +62,7 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
 
     base = bench_config()
     data = base.model_dump()
-    data["processing"].update(execution=case["mode"], depth_method="spc",
+    data["processing"].update(execution=case["mode"], depth_method=case.get("method", "spc"),
                               focus_operator="glvm", window=9, registration=True)
     return ScanConfig.model_validate(data)
 
@@ -176,7 +178,8 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
              "(other work on the machine lowers every figure)", "",
              f"Command: `{meta['command']}` ({meta['frames']} frames per run, "
              f"{meta['rounds']} rounds interleaved, median; whole run {meta['run_s']:.0f} s)."
-             " 1280 x 1024 uint16, N = 50, k = 9, GLVM, SPC, registration on.", "",
+             f" 1280 x 1024 uint16, N = 50, k = 9, GLVM, {meta['method']}, registration on.",
+             "",
              "| case | frames/s (median) | runs | vs baseline | with start-up | start-up s |"
              " CPU ms/frame (all processes) | recorded and equal |",
              "|---|---:|---|---:|---:|---:|---:|---|"]
@@ -216,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "parallel_results.md")
     ap.add_argument("--quick", action="store_true",
                     help="from memory only, processes and threads on the largest core count")
+    ap.add_argument("--method", default="spc",
+                    help="depth method of the runs (default spc; 'default': the "
+                         "configuration's default)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
@@ -230,7 +236,13 @@ def main(argv: list[str] | None = None) -> int:
     bank = frame_bank(args.cache, args.frames)
     cores = [c for c in (int(v) for v in args.cores.split(",")) if c <= len(
         os.sched_getaffinity(0))]
-    common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache)}
+    method = args.method
+    if method == "default":
+        from sffscan.pipeline.config_groups import Method
+
+        method = str(Method.model_fields["depth_method"].default)
+    common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache),
+              "method": method}
     if args.scaling:
         return scaling(common, min(cores), max(cores), args.scaling)
     cases = [{**common, "source": "memory", "mode": m, "record": False, "cores": c}
@@ -258,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
             "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
             "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
             "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,
+            "method": method,
             "run_s": time.perf_counter() - t_run}
     write_report(args.out, meta, rows)
     print(args.out.read_text(encoding="utf-8"))
