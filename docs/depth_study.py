@@ -44,7 +44,11 @@ to the width of the run above half height below r, else `adaptive_centroid`; s/r
 it takes SPC, `adaptive_centroid` still stands at the pixels whose SPC depth lies within
 1.5 of their curve's widths of an end of the range, where SPC's phase is pulled by the
 cut curve), `spc-reach` (that rule at its shipped limits with another reach, in widths;
-settings that tie on the training seeds go to the largest) and `centroid-pull` (one choice
+settings that tie on the training seeds go to the largest), `spc-pull` (the largest
+centroid pull of a stack that takes SPC; ties go to the smallest), `planar-peak` (for a
+stack that does not take SPC, the 3-point Gaussian at the filtered peak instead of the
+11-level centroid where the filtered peaks spread over the window but lie within a limit,
+levels RMS, of a plane: a slope, not an edge; 0: never) and `centroid-pull` (one choice
 per stack: at `adaptive`'s peak pixels the centroid of the 5
 levels about the filtered peak instead of the 3-point Gaussian where the median over the
 curves of the difference of the two about each curve's argmax is below a limit, levels;
@@ -96,7 +100,10 @@ pertuz row's setting). The uncertainty's constants below are fitted to the defau
 errors. `wide-centroid` (wide centroid windows where the curves are even) is at worst 1.51x
 held out (slopes: tuned without that family the span limit is 2, too low for its slope
 blends), worse than the default on the thin-lens families (1.12x, 1.27x, against 1.00x): a
-candidate, not a method.
+candidate, not a method. `planar-peak` takes slopes to 0.99x when its limit is tuned with
+that family (0.5 levels) but costs lens-pillbox-noisy 1.04x, and tuned without slopes (the
+only family whose blends are planar) it does nothing: held out it cannot show that it
+generalises, so it is a candidate, not a method.
 
 """
 

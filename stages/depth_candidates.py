@@ -50,7 +50,7 @@ __all__ = ["CENTROID_PULL_LIMIT", "GAUSS_FIT_HALF_WINDOW", "SHAPE_SAMPLE_STEP",
            "centroid_pull",
            "curve_skew", "gauss_window_fit", "half_height_run", "sampled_curves",
            "shape_select", "shape_statistics", "spc_in_range", "takes_centroid", "takes_spc",
-           "window_pc"]
+           "plane_residual", "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
 """Half window h of ``"gauss_window_fit"`` by name: the study's setting tuned on the training
@@ -351,3 +351,20 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
     if in_range is None:
         return np.asarray(spc, np.float32)
     return np.where(in_range, spc, other).astype(np.float32, copy=False)
+
+
+def plane_residual(centre: np.ndarray, *, window: int) -> np.ndarray:
+    """RMS (levels) of the filtered peaks ``centre`` about their least-squares plane over
+    the ``window`` x ``window`` square about each pixel (edges reflected): about 0 where
+    the window sees a plane (a slope: the curve blends heights evenly about the pixel's
+    own), large where it sees an edge or a step (float64, ``centre``'s shape)."""
+    z = np.asarray(centre, np.float64)
+    r = window // 2
+    x = np.tile(np.arange(-r, r + 1, dtype=np.float64), (window, 1))
+    n, sxx = window * window, float((x * x).mean())
+    border = cv2.BORDER_REFLECT
+    ez = cv2.boxFilter(z, -1, (window, window), normalize=True, borderType=border)
+    ez2 = cv2.boxFilter(z * z, -1, (window, window), normalize=True, borderType=border)
+    exz = cv2.filter2D(z, -1, x / n, borderType=border)
+    eyz = cv2.filter2D(z, -1, x.T / n, borderType=border)
+    return np.sqrt(np.maximum(ez2 - ez * ez - (exz * exz + eyz * eyz) / sxx, 0.0))

@@ -40,9 +40,11 @@ from sffscan.stages.depth_candidates import (
     SHAPE_SELECT_LIMITS,
     centroid_pull,
     gauss_window_fit,
+    plane_residual,
     shape_select,
     shape_statistics,
     spc_in_range,
+    takes_spc,
     window_pc,
 )
 from sffscan.stages.depth_uncertainty import (
@@ -90,6 +92,14 @@ stack ``shape_select`` (at its shipped limits and reach) gives to SPC (inf: no l
 Smallest first: where settings tie on the training seeds the tuning takes the first, the
 strictest the tie allows."""
 
+PLANE_LIMITS = (0.0, 0.5, 0.75, 1.0)
+"""``planar-peak`` settings the protocol tunes over: for a stack that does not take SPC
+(``shape_select``'s rule), at the pixels whose filtered peaks span more than 2 levels over
+the focus window (``adaptive``'s centroid pixels) but lie within this RMS (levels) of a
+plane over it (:func:`sffscan.stages.depth_candidates.plane_residual`: a slope, not an
+edge), the 3-point Gaussian at the filtered peak instead of the 11-level centroid; 0:
+never (first: ties go to it)."""
+
 SPC_REACHES = (3.0, 2.0, 1.5, 1.0, 0.0)
 """``spc-reach`` settings the protocol tunes over: how many of its widths SPC's depth must lie
 from the range's ends for ``shape_select`` (at its shipped limits) to keep SPC at a pixel
@@ -115,6 +125,7 @@ CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "shape-select": SHAPE_GRID,
                                               "spc-reach": SPC_REACHES,
                                               "spc-pull": SPC_PULLS,
+                                              "planar-peak": PLANE_LIMITS,
                                               "centroid-pull": PULL_LIMITS,
                                               "wide-centroid": WIDE_GRID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
@@ -171,7 +182,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse: dict[str, float] = {}
     depth: dict[str, np.ndarray] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid")):
+    for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select")):
         depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
                                     spread_size=spread_size, argmax=a)[0]
         if m in methods:
@@ -207,6 +218,16 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, **limits,
                          in_range=in_range, pull=pull, max_pull=t)
         sse[_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    if takes_spc(stats, **limits, pull=pull):
+        planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
+    else:
+        blend = level_spread(centre, spread_size, n) > 2
+        residual = plane_residual(centre, window=spread_size)
+        at_peak = adaptive_peak(volume, centre, np.zeros_like(centre))  # gauss3 at the peak
+        planar = {t: np.where(blend & (residual < t), at_peak, depth["adaptive_centroid"])
+                  for t in PLANE_LIMITS}
+    for t, d in planar.items():
+        sse[_key("planar-peak", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     spread = level_spread(centre, spread_size, volume.shape[0])
     peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")
     for t in PULL_LIMITS:

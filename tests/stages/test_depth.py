@@ -514,3 +514,25 @@ def test_depth_from_harmonics_rejects() -> None:
     with pytest.raises(ValueError, match="n_levels"):
         depth_from_harmonics(sums, np.zeros((3, 5), int), n_levels=2)
     assert depth_from_harmonics(sums, None, n_levels=8, method="pc")[0].shape == (3, 5)
+
+
+def test_plane_residual_is_zero_on_a_plane_and_large_at_a_step() -> None:
+    """depth_candidates.plane_residual: 0 on any plane (edges reflected keep a plane's
+    inner windows exact), a step's RMS about its best plane within reach of the step."""
+    from sffscan.stages.depth_candidates import plane_residual
+
+    yy, xx = np.mgrid[0:40, 0:50].astype(np.float64)
+    plane = 3.0 + 0.4 * xx - 0.25 * yy
+    res = plane_residual(plane, window=9)
+    # the variance is E[z^2] - E[z]^2 - ...: round-off of values ~20 levels, square-rooted
+    assert np.abs(res[4:-4, 4:-4]).max() < 1e-5
+    step = np.where(xx < 25, 0.0, 10.0)
+    res = plane_residual(step, window=9)
+    assert np.all(res[:, :20] < 1e-5) and np.all(res[:, 31:] < 1e-5)
+    # 9 columns of 0 and 10 with the step in the middle: the best plane is the ramp through
+    # them; the residual is the RMS of a step about its least-squares line (1.83 levels)
+    x = np.arange(-4, 5, dtype=np.float64)
+    z = np.where(x < 1, 0.0, 10.0)  # the window about column 24: 5 zeros, 4 tens
+    b = (x * (z - z.mean())).sum() / (x * x).sum()
+    want = np.sqrt(np.mean((z - z.mean() - b * x) ** 2))
+    assert res[20, 24] == pytest.approx(want, rel=1e-9)
