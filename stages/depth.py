@@ -42,6 +42,7 @@ from sffscan.stages.depth_candidates import (
     shape_statistics,
     spc_in_range,
     takes_centroid,
+    takes_spc,
     window_pc,
 )
 from sffscan.stages.depth_harmonics import (
@@ -184,10 +185,12 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     width = curve_width(c.volume)
     stats = shape_statistics(c.volume, c.argmax, width)
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    spc = _from_sums(c, method="spc")
     pull = centroid_pull(c.volume, c.argmax)
-    return shape_select(spc, _adaptive_centroid(c, pull), stats, max_skew=max_skew,
-                        max_ratio=max_ratio,
+    other = _adaptive_centroid(c, pull)
+    if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull):
+        return other  # SPC's map only where the stack takes it
+    spc = _from_sums(c, method="spc")
+    return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                         in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull)
 
 
