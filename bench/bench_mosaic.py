@@ -76,6 +76,18 @@ def capture(frames: int, out: Path) -> int:
     return len(kept)
 
 
+def commit_of(tree: Path) -> str:
+    """The tree's git commit (short; "+ changes" where its tracked files differ), or "not
+    a git checkout"."""
+    head = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True, check=False)
+    if head.returncode != 0:
+        return "not a git checkout"
+    dirty = subprocess.run(["git", "-C", str(tree), "diff", "--quiet", "HEAD"],
+                           check=False).returncode != 0
+    return head.stdout.strip() + (" + changes" if dirty else "")
+
+
 def package_of(tree: Path, farm: Path) -> Path:
     """A folder holding ``sffscan`` as ``tree``'s layout maps it (pyproject's package-dir):
     links to the tree's ``sffscan/`` files and its ``pipeline``, ``stages``, ``schemas``."""
@@ -173,9 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         blocks.mkdir()
         n_blocks = capture(args.frames, blocks)
         print(f"captured {n_blocks} blocks of {args.frames} frames", flush=True)
-        trees: dict[str, Path | None] = {"this tree": None}
+        trees: dict[str, Path | None] = {f"this tree ({commit_of(ROOT)})": None}
         if args.against is not None:
-            trees[str(args.against)] = package_of(args.against.resolve(), Path(tmp) / "farm")
+            trees[f"{args.against} ({commit_of(args.against)})"] = package_of(
+                args.against.resolve(), Path(tmp) / "farm")
         runs: dict[str, list[dict[str, Any]]] = {k: [] for k in trees}
         identical = []
         for r in range(args.rounds):

@@ -70,14 +70,25 @@ def blend(
         Updated values of the four arrays.
     """
     w_old = old["weight"].astype(np.float64)
-    w_new = new["weight"].astype(np.float64)
+    w_new = np.asarray(new["weight"], np.float64)  # a band's sums are float64 already
     w = w_old + w_new
+    seen, has = w_old > 0, w > 0  # each used by every array below
+
+    def mean(previous: np.ndarray, added: np.ndarray) -> np.ndarray:
+        # (where(seen, previous, 0) * w_old + added) / w, NaN where nothing weighs: the
+        # same operations in the same order as written out, in one float64 buffer (a
+        # float64 zero: with Python's 0.0 a float32 ``previous`` would keep float32)
+        acc = np.where(seen, previous, np.float64(0.0))
+        acc *= w_old
+        acc += added
+        acc /= w
+        acc[~has] = np.nan
+        return acc.astype(np.float32)
+
     out: dict[str, np.ndarray] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
         for key in ("height", "texture"):
-            prev = np.where(w_old > 0, old[key], 0.0) * w_old
-            val = (prev + new[key]) / w
-            out[key] = np.where(w > 0, val, np.nan).astype(np.float32)
+            out[key] = mean(old[key], new[key])
     out["confidence"] = np.maximum(old["confidence"], new["confidence"]).astype(np.float32)
     out["weight"] = w.astype(np.float32)
     if "uncertainty" in old:  # the weighted mean of the contributions' sigmas (errors of
@@ -87,8 +98,7 @@ def blend(
         if su is None:
             su = np.where(w_new > 0, np.nan, 0.0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            prev = np.where(w_old > 0, old["uncertainty"], 0.0) * w_old
-            out["uncertainty"] = np.where(w > 0, (prev + su) / w, np.nan).astype(np.float32)
+            out["uncertainty"] = mean(old["uncertainty"], su)
     return out
 
 
@@ -145,6 +155,14 @@ class BandGatherer:
         h = item.header
         valid = np.isfinite(item.height_um)
         weight = np.where(valid, np.maximum(item.confidence, MIN_WEIGHT), 0.0)
+        # the block's weighted values once (float32, as the products were), then each band
+        # takes its columns of them
+        wh = np.where(valid, item.height_um, 0.0) * weight
+        wt = np.where(valid, item.texture, 0.0) * weight
+        if item.uncertainty_um is None:  # unknown: NaN where this block contributes
+            wu = np.where(weight > 0, np.nan, 0.0)
+        else:
+            wu = np.where(valid, item.uncertainty_um, 0.0) * weight
         c, ox = self.chunk, self.origin_x
         first = (h.x0_px - ox) // c
         last = (h.x0_px + h.width_px - 1 - ox) // c
@@ -155,15 +173,11 @@ class BandGatherer:
             e = min(h.x0_px + h.width_px, band.x0 + c)
             src = slice(a - h.x0_px, e - h.x0_px)
             dst = slice(a - band.x0, e - band.x0)
-            w = weight[:, src]
-            band.w[:, dst] += w
-            band.wh[:, dst] += np.where(valid[:, src], item.height_um[:, src], 0.0) * w
-            band.wt[:, dst] += np.where(valid[:, src], item.texture[:, src], 0.0) * w
-            band.conf[:, dst] = np.maximum(band.conf[:, dst], item.confidence[:, src])
-            if item.uncertainty_um is None:  # unknown: NaN where this block contributes
-                band.wu[:, dst] += np.where(w > 0, np.nan, 0.0)
-            else:
-                band.wu[:, dst] += np.where(valid[:, src], item.uncertainty_um[:, src], 0.0) * w
+            band.w[:, dst] += weight[:, src]
+            band.wh[:, dst] += wh[:, src]
+            band.wt[:, dst] += wt[:, src]
+            np.maximum(band.conf[:, dst], item.confidence[:, src], out=band.conf[:, dst])
+            band.wu[:, dst] += wu[:, src]
         return [k for k in self.bands if k < first or k > last]
 
     def open_bands(self) -> list[int]:
