@@ -77,13 +77,14 @@ def capture(frames: int, out: Path) -> int:
 
 
 def commit_of(tree: Path) -> str:
-    """The tree's git commit (short; "+ changes" where its tracked files differ), or "not
-    a git checkout"."""
+    """The tree's git commit (short; "+ changes" where its code differs from it: sffscan/,
+    pipeline/, stages/, schemas/), or "not a git checkout"."""
     head = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
                           capture_output=True, text=True, check=False)
     if head.returncode != 0:
         return "not a git checkout"
-    dirty = subprocess.run(["git", "-C", str(tree), "diff", "--quiet", "HEAD"],
+    dirty = subprocess.run(["git", "-C", str(tree), "diff", "--quiet", "HEAD", "--",
+                            "sffscan", "pipeline", "stages", "schemas"],
                            check=False).returncode != 0
     return head.stdout.strip() + (" + changes" if dirty else "")
 
