@@ -47,10 +47,9 @@ from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
 __all__ = ["CENTROID_PULL_LIMIT", "GAUSS_FIT_HALF_WINDOW", "SHAPE_SAMPLE_STEP",
            "SHAPE_SELECT_LIMITS", "SPC_END_REACH", "SPC_PULL_LIMIT", "WINDOW_PC_FACTOR",
-           "centroid_pull",
-           "curve_skew", "gauss_window_fit", "half_height_run", "sampled_curves",
-           "shape_select", "shape_statistics", "spc_in_range", "takes_centroid", "takes_spc",
-           "plane_residual", "window_pc"]
+           "centroid_pull", "curve_skew", "gauss_window_fit", "half_height_run",
+           "plane_residual", "sampled_curves", "shape_select", "shape_statistics",
+           "spc_in_range", "takes_centroid", "takes_spc", "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
 """Half window h of ``"gauss_window_fit"`` by name: the study's setting tuned on the training

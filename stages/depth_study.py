@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 from sffscan.stages.depth import (
+    ADAPTIVE_MAX_SPREAD,
     DEFAULT_METHOD,
     DEPTH_METHODS,
     adaptive_peak,
@@ -182,7 +183,8 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse: dict[str, float] = {}
     depth: dict[str, np.ndarray] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select")):
+    for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select",
+                            DEFAULT_METHOD)):
         depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
                                     spread_size=spread_size, argmax=a)[0]
         if m in methods:
@@ -205,6 +207,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     n = volume.shape[0]
     in_range = spc_in_range(depth["spc"], width, n)
     pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
+    spread = level_spread(centre, spread_size, n)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1], in_range=in_range, pull=pull)
@@ -221,14 +224,13 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     if takes_spc(stats, **limits, pull=pull):
         planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
     else:
-        blend = level_spread(centre, spread_size, n) > 2
+        blend = spread > ADAPTIVE_MAX_SPREAD  # adaptive's centroid pixels
         residual = plane_residual(centre, window=spread_size)
         at_peak = adaptive_peak(volume, centre, np.zeros_like(centre))  # gauss3 at the peak
         planar = {t: np.where(blend & (residual < t), at_peak, depth["adaptive_centroid"])
                   for t in PLANE_LIMITS}
     for t, d in planar.items():
         sse[_key("planar-peak", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    spread = level_spread(centre, spread_size, volume.shape[0])
     peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")
     for t in PULL_LIMITS:
         d = peak_centroid if abs(pull) < t else depth["adaptive"]
@@ -240,10 +242,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
                                         half_window=int(h), peak="centroid")
         d = wide[ms, h] if abs(pull) < t else depth["adaptive"]
         sse[_key("wide-centroid", (t, ms, h))] = float(np.sum((d - truth_levels)[mask] ** 2))
-    default = depth[DEFAULT_METHOD] if DEFAULT_METHOD in depth else depth_from_focus(
-        volume, method=DEFAULT_METHOD, median_size=median_size, spread_size=spread_size,
-        argmax=a)[0]
-    return _uncertainty_terms(volume, default, width, truth_levels, mask, sse=sse,
+    return _uncertainty_terms(volume, depth[DEFAULT_METHOD], width, truth_levels, mask, sse=sse,
                               window=spread_size)
 
 
