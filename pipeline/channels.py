@@ -46,8 +46,13 @@ def own_queues(queues: Iterable[QueueStats], leave_out: Collection[str]) -> list
 
 
 class _Sender:
+    """Puts items into a channel ``q``. With ``precious`` (``drop_newest`` only), ``q``
+    holds ``capacity`` items and a reserve above it that only precious items may take:
+    the others are dropped once ``capacity`` items wait."""
+
     def __init__(self, name: str, q: Any, capacity: int, policy: FullPolicy,
-                 pools: Sequence[SlotPool], stop: threading.Event) -> None:
+                 pools: Sequence[SlotPool], stop: threading.Event,
+                 precious: Callable[[Any], bool] | None = None) -> None:
         if policy is FullPolicy.DROP_OLDEST:
             raise ValueError(f"channel '{name}': drop_oldest cannot be done across processes "
                              "(the sender cannot take back a message); use drop_newest")
@@ -55,11 +60,25 @@ class _Sender:
         self.pools = pools
         self.stop = stop
         self.policy = policy
+        self.capacity = capacity
+        self.precious = precious if policy is FullPolicy.DROP_NEWEST else None
         self.stats = QueueStats(name, capacity, policy.value)
+
+    def _over_capacity(self, item: Any) -> bool:
+        """Whether a dropping channel with a reserve has no room for ``item``."""
+        if self.precious is None or self.precious(item):
+            return False
+        try:
+            return bool(self.q.qsize() >= self.capacity)
+        except NotImplementedError:  # macOS: no count, the reserve is anyone's
+            return False
 
     def send(self, item: Any, *, extra: dict[str, Any] | None = None) -> None:
         eos = item is END_OF_STREAM
         dropping = self.policy is FullPolicy.DROP_NEWEST and not eos
+        if dropping and self._over_capacity(item):
+            self.stats.dropped += 1
+            return
         try:
             # a dropping channel does not wait for a slot either: when its arrays find no
             # free slot within one wait (0.25 s), the item is dropped and counted
@@ -137,10 +156,20 @@ class RecvStage(Stage):
         self.producers = producers
         self.received = 0
         self.done = 0
+        self.ended = 0  # the producers' ends of stream received
+        self._ends = threading.Condition()
+
+    def wait_ends(self, n: int) -> bool:
+        """Wait until ``n`` producers have ended (True), or the stop flag is set (False)."""
+        with self._ends:
+            while self.ended < n:
+                if self.stop.is_set():
+                    return False
+                self._ends.wait(WAIT_S)
+            return True
 
     def produce(self) -> Iterator[Any]:
-        ended = 0
-        while ended < self.producers:
+        while self.ended < self.producers:
             try:
                 data = self.q.get(timeout=WAIT_S)
             except queue.Empty:
@@ -150,7 +179,9 @@ class RecvStage(Stage):
             item, extra = decode(data, self.pools)
             self.done = extra.get("done", self.done)
             if item is END_OF_STREAM:
-                ended += 1
+                with self._ends:
+                    self.ended += 1
+                    self._ends.notify_all()
                 continue
             self.received += 1
             yield item
@@ -165,15 +196,23 @@ class ForwardSink(Sink):
 
     def __init__(self, name: str, taps: tuple[str, ...], q: Any, *, capacity: int,
                  policy: FullPolicy, pools: Sequence[SlotPool], stop: threading.Event,
-                 keep: Callable[[Any], bool] | None = None) -> None:
+                 keep: Callable[[Any], bool] | None = None,
+                 precious: Callable[[Any], bool] | None = None,
+                 channel_capacity: int | None = None) -> None:
         self.name = name
         self.keep = keep
         self.taps = taps
         self.capacity = capacity
-        # the local queue blocks; the channel applies the sink's own policy
+        # the local queue blocks; the channel applies the sink's own policy; the precious
+        # items (see Sink.precious) make way for themselves in both
         self.policy = FullPolicy.BLOCK if policy is FullPolicy.BLOCK else FullPolicy.DROP_NEWEST
-        self._sender = _Sender(f"{'+'.join(taps)}->{name}", q, capacity, self.policy, pools,
-                               stop)
+        self.precious = precious
+        # its queue's consumer (the sender below) never waits: a precious item waits for
+        # room there rather than be dropped, for no longer than a copy into a slot
+        self.precious_wait = precious is not None
+        self._sender = _Sender(f"{'+'.join(taps)}->{name}", q,
+                               capacity if channel_capacity is None else channel_capacity,
+                               self.policy, pools, stop, precious)
 
     @property
     def stats(self) -> QueueStats:

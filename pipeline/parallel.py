@@ -213,7 +213,7 @@ class ProcessPipeline:
             chans = [ctx.Queue(self.capacity) for _ in range(len(self.groups) + 1)]
             sink_qs = [ctx.Queue(k.capacity) for k in self.hosted]
             relays = [relay_of(k) for k in self._relayed()]
-            relay_qs = [ctx.Queue(r.capacity) for r in relays]
+            relay_qs = [ctx.Queue(r.capacity + r.reserve) for r in relays]
             pj = [s.to_json() for s in specs]
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,

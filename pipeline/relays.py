@@ -29,6 +29,11 @@ from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 RELAY_LOCAL_CAPACITY = 4
 #: a relay's channel, and the queue in front of its sink, hold at most this many items each
 RELAY_CAPACITY = 16
+#: room in a relay's channel above its capacity that only the sink's precious items take
+#: (:attr:`~sffscan.stages.protocol.Sink.precious`; none without them): the view's depth
+#: blocks come in bursts at the end of a pass (the frame's width over the block's columns:
+#: 10 at the defaults), while its receiver waits for room for them
+RELAY_PRECIOUS_RESERVE = 16
 
 
 @dataclass(frozen=True)
@@ -36,7 +41,9 @@ class Relay:
     """A sink of the main process fed from stages in worker processes: each process that
     runs some of ``taps`` forwards their outputs (those ``keep`` selects) through one
     channel to the main process, where the sink runs behind a queue of ``capacity`` items
-    with its own ``policy``.
+    with its own ``policy``. The sink's ``precious`` items make way for themselves on the
+    way (:attr:`~sffscan.stages.protocol.Sink.precious`), the channel keeping
+    :attr:`reserve` places above ``capacity`` for them.
 
     ``keep`` is ``(factory, kwargs)``: a module-level function (a worker imports it by
     name) returning a predicate on :class:`~sffscan.stages.protocol.Tapped` items, built
@@ -48,14 +55,22 @@ class Relay:
     capacity: int
     policy: FullPolicy
     keep: tuple[Callable[..., Callable[[Any], bool]], dict[str, Any]] | None = None
+    precious: Callable[[Any], bool] | None = None
+
+    @property
+    def reserve(self) -> int:
+        """Places in the channel above :attr:`capacity`, for the precious items only."""
+        return RELAY_PRECIOUS_RESERVE if self.precious is not None else 0
 
 
 def relay_of(sink: Any) -> Relay:
     """The relay of a main-process sink: its name, taps and policy, its capacity capped
     at :data:`RELAY_CAPACITY` (what it holds stays in shared-memory slots), and the
-    selection it declares as ``relay_keep`` (see :class:`Relay`), if any."""
+    selection it declares as ``relay_keep`` (see :class:`Relay`), if any, and its
+    precious items."""
     return Relay(sink.name, tuple(sink.taps), min(sink.capacity, RELAY_CAPACITY),
-                 FullPolicy(sink.policy), getattr(sink, "relay_keep", None))
+                 FullPolicy(sink.policy), getattr(sink, "relay_keep", None),
+                 sink.precious if sink.policy is not FullPolicy.BLOCK else None)
 
 
 def relayed_sinks(sinks: list[Sink], head: list[str], tail: list[str]) -> list[Sink]:
@@ -70,7 +85,8 @@ def relay_forwarder(relay: Relay, taps: tuple[str, ...], q: Any, *,
     relay's) to the relay's channel ``q``."""
     keep = relay.keep[0](**relay.keep[1]) if relay.keep is not None else None
     return ForwardSink(relay.name, taps, q, capacity=RELAY_LOCAL_CAPACITY,
-                       policy=relay.policy, pools=pools, stop=stop, keep=keep)
+                       policy=relay.policy, pools=pools, stop=stop, keep=keep,
+                       precious=relay.precious, channel_capacity=relay.capacity)
 
 
 def relay_report(fwd: ForwardSink, result: PipelineResult) -> dict[str, Any]:
@@ -141,6 +157,9 @@ class RelayRun:
                               producers=remote_producers + len(self.forwards) + 1)
         self.pipe = Pipeline([self.recv, sink], capacity=relay.capacity,
                              policies={sink.name: relay.policy}, stop=self.stop)
+        # the receiver's thread feeds the sink alone: a precious item it holds back waits
+        # for room there (the channel behind it fills and its senders drop, never wait)
+        self.pipe.queues[0].precious_wait = True
 
     def queue_stats(self, reports: list[dict[str, Any]]) -> QueueStats:
         """The sink's queue as the summary shows it: the queue in front of the sink, with
@@ -172,7 +191,11 @@ class RelayRun:
 
     def finish(self, elapsed: float, stages: list[StageStats], queues: list[QueueStats],
                reports: list[dict[str, Any]]) -> None:
-        """The last statistics, then the main process's end of stream."""
+        """The last statistics, then the main process's end of stream. The statistics are
+        taken once the workers' and the head's items have come out of the channel (each
+        item that the sink's queue drops on the way in is then counted in them); the
+        tail's forwarder ends only once the relays have (:class:`AfterRelays`)."""
+        self.recv.wait_ends(self.recv.producers - 1 - self.in_tail)
         self.snapshot(elapsed, stages, queues, reports, last=True)
         data = encode(END_OF_STREAM, self.pools, lambda: True)
         while True:

@@ -93,6 +93,15 @@ class BoundedQueue:
         discards the new one. Drops are counted. The end-of-stream marker is never dropped.
     wait_s : float
         Longest single wait before the stop flag is checked again.
+    precious : callable, optional
+        Under a dropping policy, the items that other items make way for: a full queue
+        discards its oldest item that is not precious instead (``drop_oldest``, or
+        ``drop_newest`` when the new item is precious), and a precious item only when
+        the queue holds nothing else. It never waits either way.
+    precious_wait : bool
+        A precious item waits for room instead where nothing else can make way: for a
+        queue whose consumer never waits (a relay's forwarder, whose channel drops) or
+        whose producer feeds nothing else (a relay's receiver).
     """
 
     def __init__(
@@ -103,6 +112,8 @@ class BoundedQueue:
         policy: FullPolicy = FullPolicy.BLOCK,
         stop: threading.Event | None = None,
         wait_s: float = 0.25,
+        precious: Callable[[Any], bool] | None = None,
+        precious_wait: bool = False,
     ) -> None:
         if capacity < 1:
             raise ValueError(f"queue '{name}': capacity must be >= 1, got {capacity}")
@@ -111,6 +122,8 @@ class BoundedQueue:
         self.policy = FullPolicy(policy)
         self.stop = stop if stop is not None else threading.Event()
         self.wait_s = wait_s
+        self.precious = precious
+        self.precious_wait = precious_wait
         self._items: collections.deque[Any] = collections.deque()
         self._cond = threading.Condition()
         self.stats = QueueStats(name, capacity, self.policy.value)
@@ -124,12 +137,12 @@ class BoundedQueue:
         keep = keep or item is END_OF_STREAM
         with self._cond:
             full = len(self._items) >= self.capacity
-            if full and not keep and self.policy is FullPolicy.DROP_NEWEST:
-                self.stats.dropped += 1
-                return
-            if full and not keep and self.policy is FullPolicy.DROP_OLDEST:
-                self._items.popleft()  # the end of stream is the last item ever put
-                self.stats.dropped += 1
+            if full and not keep and self.policy is not FullPolicy.BLOCK:
+                way = self._make_way(item)
+                if way is not None:
+                    self.stats.dropped += 1
+                    if not way:
+                        return
             # block (and a kept item, the end of stream included, under any policy): wait for room
             while len(self._items) >= self.capacity:
                 if self.stop.is_set():
@@ -141,6 +154,29 @@ class BoundedQueue:
             self.stats.fill_sum += fill
             self.stats.max_fill = max(self.stats.max_fill, fill)
             self._cond.notify_all()
+
+    def _make_way(self, item: Any) -> bool | None:
+        """In a full dropping queue: discard a held item for ``item`` (True) or not (False:
+        ``item`` is the one dropped; None: it waits for room, see ``precious_wait``). The
+        end of stream is the last item ever put, so it is never held here."""
+        precious = self.precious
+        if precious is None:
+            if self.policy is FullPolicy.DROP_NEWEST:
+                return False
+            self._items.popleft()
+            return True
+        new_precious = precious(item)
+        if self.policy is FullPolicy.DROP_OLDEST or new_precious:
+            for i, held in enumerate(self._items):
+                if not precious(held):  # the oldest that is not precious makes way
+                    del self._items[i]
+                    return True
+        if new_precious and self.precious_wait:
+            return None
+        if self.policy is FullPolicy.DROP_NEWEST or not new_precious:
+            return False  # nothing held is worth less than the new item
+        self._items.popleft()
+        return True
 
     def get(self) -> Any:
         with self._cond:
@@ -185,7 +221,8 @@ class Pipeline:
     capacity : int
         Capacity of each queue between stages.
     policies : dict, optional
-        Full policy per queue, keyed by the name of the stage the queue feeds.
+        Full policy per queue, keyed by the name of the stage the queue feeds (a stage
+        that has ``precious`` items, a sink run as a stage, has them made way for).
     on_progress : callable, optional
         Called from the runner thread about every ``progress_s`` seconds with the stage
         statistics, for progress display.
@@ -233,12 +270,15 @@ class Pipeline:
                 capacity,
                 policy=policies.get(b.name, FullPolicy.BLOCK),
                 stop=self.stop,
+                precious=getattr(b, "precious", None),  # a sink run as a stage (a relay)
             )
             for a, b in zip(stages[:-1], stages[1:], strict=True)
         ]
         self.stats = [StageStats(s.name, s.unit) for s in stages]
         self.sink_queues = [BoundedQueue(f"{'+'.join(k.taps) or 'stats'}->{k.name}", k.capacity,
-                                         policy=k.policy, stop=self.stop) for k in self.sinks]
+                                         policy=k.policy, stop=self.stop, precious=k.precious,
+                                         precious_wait=k.precious_wait)
+                            for k in self.sinks]
         self.sink_stats = [StageStats(k.name, k.unit) for k in self.sinks]
         #: for each main stage, the queues of the sinks that tap it
         self._taps: list[list[BoundedQueue]] = [

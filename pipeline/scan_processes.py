@@ -33,13 +33,14 @@ Ring sizes (:func:`ring_plan`) — the bound on shared memory, whatever the scan
   (depth blocks: height, texture, confidence, uncertainty, float32).
 
 A relayed sink (the viewer, channel and queue capacity ``Cv = min(its capacity, 16)``)
-holds at most ``V = 3 * (4 + 1) + 2 * Cv + 2`` items (:func:`relay_holdings`): ``V`` more
+holds at most ``V = 3 * (4 + 1) + 2 * Cv + P + 2`` items (:func:`relay_holdings`; ``P``
+= 16, the channel's reserve for the sink's precious items, 0 without them): ``V`` more
 frame slots, ``V`` more block slots when it taps the depth blocks, and a pool of 8 slots
 of ``2 * H * W * 4`` bytes for the focus frames it logs.
 
 At the default optics (1280 x 1024, 10-bit, N = 50, C = 8) that is 106 frame slots
-(278 MB), 178 (467 MB) with the recorder, plus 24 block slots (38 MB); the viewer adds 49
-frame slots (128 MB), 49 block slots (78 MB) and 84 MB of focus slots.
+(278 MB), 178 (467 MB) with the recorder, plus 24 block slots (51 MB); the viewer adds 65
+frame slots (170 MB), 65 block slots (138 MB) and 84 MB of focus slots.
 """
 
 from __future__ import annotations
@@ -110,9 +111,9 @@ RELAY_FOCUS_SLOTS = 8
 def relay_holdings(relay: Relay) -> int:
     """Items a relayed sink holds at most (each in at most one slot of a pool): the queue
     and the one in hand of its forwarder in each of 3 processes (head, registration,
-    focus), its channel, the one the receiver has in hand, its queue and the one in the
-    sink's hand."""
-    return 3 * (RELAY_LOCAL_CAPACITY + 1) + 2 * relay.capacity + 2
+    focus), its channel (and its reserve), the one the receiver has in hand, its queue and
+    the one in the sink's hand."""
+    return 3 * (RELAY_LOCAL_CAPACITY + 1) + 2 * relay.capacity + relay.reserve + 2
 
 
 def ring_plan(cfg: ScanConfig, hosted: list[HostedSink], relays: list[Relay] | None = None,

@@ -10,7 +10,7 @@ bounded queues, statistics); it imports nothing from either.
 from __future__ import annotations
 
 import enum
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,6 +89,14 @@ class Sink(Stage):
     #: Capacity and full policy of the sink's own input queue.
     capacity: int = 64
     policy: FullPolicy = FullPolicy.BLOCK
+    #: Under a dropping policy, the items dropped only when the queue holds nothing else
+    #: (the others go first): a module-level predicate on :class:`Tapped` items (worker
+    #: processes import it), set on the instance (a class attribute would bind it as a
+    #: method). None: every item alike.
+    precious: Callable[[Any], bool] | None = None
+    #: A precious item waits for room in the sink's queue where nothing else can make way
+    #: (only for a sink whose own consumer never waits: a relay's forwarder).
+    precious_wait: bool = False
     #: Receive a :class:`StatsSnapshot` about every ``progress_s`` seconds.
     wants_stats: bool = False
     unit = "items"

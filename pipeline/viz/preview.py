@@ -16,6 +16,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from sffscan.pipeline.stats import StatsSnapshot
 from sffscan.stages.messages import DepthBlock, FocusFrame
 from sffscan.stages.protocol import Tapped
 
@@ -180,3 +181,12 @@ def logged_items(frame_step: int) -> Callable[[Any], bool]:
         return True
 
     return keep
+
+
+def precious_to_view(item: Any) -> bool:
+    """The live view's precious items (:attr:`~sffscan.stages.protocol.Sink.precious`):
+    the depth blocks, which build its mosaic, and the statistics (one a second; the last
+    carry the final counts); the frames make way for them when its queue or channel is
+    full."""
+    return isinstance(item, StatsSnapshot) or (isinstance(item, Tapped)
+                                               and isinstance(item.item, DepthBlock))

@@ -4,10 +4,12 @@ One :class:`VizSink` owns one ``rerun.RecordingStream`` (never the global one) a
 placed frames (``registration``, or ``speed_shift`` with registration off), the focus
 measure and the depth blocks; with ``wants_stats`` it also gets the pipeline's statistics.
 Its input queue drops the oldest item when full (and counts the drops), so the viewer
-never holds the pipeline back. In process mode it stays in the main process (where its
-recording stream was opened) and the workers forward it what it taps: only the focus frames
-it logs (``relay_keep``), the rest dropping the newest when a channel is full; every drop on
-the way is counted as the view's (:mod:`sffscan.pipeline.scan_processes`).
+never holds the pipeline back; the depth blocks, from which its mosaic is built, and the
+statistics go last (``precious``: the oldest frames make way for them). In process mode it
+stays in the main process (where its recording stream was opened) and the workers forward
+it what it taps: only the focus frames it logs (``relay_keep``), the rest dropping the
+newest when a channel is full, the depth blocks taking a reserve above the channel's
+capacity; every drop on the way is counted as the view's (:mod:`sffscan.pipeline.scan_processes`).
 
 Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time stamp):
 
@@ -53,6 +55,7 @@ from sffscan.pipeline.viz.preview import (
     MosaicPreview,
     logged_items,
     point_stride,
+    precious_to_view,
     shown,
     surface_points,
     to_u8,
@@ -133,6 +136,9 @@ class VizSink(Sink):
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
         #: what the view uses, selected where the stages run (process mode)
         self.relay_keep = (logged_items, {"frame_step": self.frame_step})
+        #: the depth blocks (a lost one leaves a hole in the mosaic) and the statistics are
+        #: dropped last
+        self.precious = precious_to_view
         x0, y0, x1, y1 = scan_extent_px(cfg)
         self.factor = max(1, -(-max(x1 - x0, y1 - y0) // self.opt.mosaic_max_px))
         self.preview = MosaicPreview(origin_px=(x0, y0), shape=(y1 - y0, x1 - x0),

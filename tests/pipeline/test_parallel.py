@@ -280,6 +280,46 @@ def test_relay_forwarder_selects_and_drops_without_waiting() -> None:
 
 
 
+def test_relay_channel_keeps_a_reserve_for_the_precious_items() -> None:
+    """With ``precious`` (the view's depth blocks), the relay's channel takes other items
+    up to its capacity and precious ones into a reserve above it: once the view's channel
+    is full of frames, a depth block still gets through; beyond the reserve it drops."""
+    import threading
+
+    from sffscan.pipeline.relays import Relay, relay_forwarder
+    from sffscan.pipeline.viz.preview import precious_to_view
+    from sffscan.stages.protocol import FullPolicy
+
+    p = pool(slots=24, slot_bytes=4096, kinds=("frame", "placed", "block"))
+    relay = Relay("viewer", ("registration", "depth"), 2, FullPolicy.DROP_OLDEST,
+                  None, precious_to_view)
+    assert relay.reserve > 0
+    q = CTX.Queue(relay.capacity + relay.reserve)
+    try:
+        fwd = relay_forwarder(relay, relay.taps, q, pools=[p], stop=threading.Event())
+        img = np.zeros((8, 8), np.uint16)
+        placed = Tapped("registration", PlacedFrame(
+            FrameHeader(frame_id=1, timestamp_ns=1, focus_index=0), img, (0.0, 0.0), (0, 0)))
+        f = np.ones((8, 4), np.float32)
+        block = Tapped("depth", DepthBlock(DepthBlockHeader(
+            x0_px=0, y0_px=0, width_px=4, height_px=8, pass_index=0, complete_columns=4,
+            incomplete_columns=0), f, f, f))
+        assert precious_to_view(block) and not precious_to_view(placed)
+        for item in (placed, placed, placed):  # the third finds the capacity taken
+            list(fwd.process(item))
+        assert (fwd.stats.puts, fwd.stats.dropped) == (2, 1)
+        for _ in range(relay.reserve + 1):  # the reserve's fill, then one dropped
+            list(fwd.process(block))
+        n = 2 + relay.reserve
+        assert (fwd.stats.puts, fwd.stats.dropped) == (n, 2)
+        got = [decode(q.get(timeout=5), [p])[0] for _ in range(n)]
+        assert [precious_to_view(g) for g in got] == [False] * 2 + [True] * relay.reserve
+        del got
+        gc.collect()
+    finally:
+        p.close()
+
+
 _FAULTS = """
 import resource, sys
 import numpy as np

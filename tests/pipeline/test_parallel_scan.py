@@ -28,6 +28,8 @@ from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.viz.sink import VizOptions, VizSink, viz_sink_for
 from sffscan.pipeline.wiring import format_summary, run_scan
 from sffscan.pipeline.worker import WorkerGroup
+from sffscan.stages.messages import DepthBlock
+from sffscan.stages.protocol import Tapped
 
 from tests.parallel_helpers import failing_focus_group, shm_names
 from tests.scan_helpers import RenderedScan, small_config
@@ -162,9 +164,11 @@ class SlowViz(VizSink):
     def __init__(self, *args: Any, fail: bool = False, **kw: Any) -> None:
         super().__init__(*args, **kw)
         self.fail = fail
+        self.blocks = 0
 
     def process(self, item: Any) -> tuple[()]:
         time.sleep(0.02)
+        self.blocks += isinstance(item, Tapped) and isinstance(item.item, DepthBlock)
         return super().process(item)
 
     def finish(self) -> tuple[()]:
@@ -187,6 +191,9 @@ def test_slow_viewer_in_process_mode_drops_and_never_holds_the_scan_back(
                    progress=False, sinks=[sink])
     q = [q for q in rep.result.queues if q.name.endswith("->viewer")][0]
     assert q.dropped > 0 and q.capacity == 4
+    # what it dropped were frames: every depth block reached it (its mosaic has no hole)
+    depth = next(s for s in rep.result.stages if s.name == "depth")
+    assert depth.items_out > 3 and sink.blocks == depth.items_out
     assert rep.result.dropped == 0 and all(s.frames == rep.frames
                                            for s in rep.result.stages[:5])
     assert rep.result.extras["viewer"]["dropped_by_viewer"] == q.dropped

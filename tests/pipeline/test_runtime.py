@@ -176,6 +176,58 @@ def test_drop_policies_count_what_they_drop(policy: FullPolicy, kept: list[int])
     assert q.stats.dropped == 2
 
 
+def test_precious_items_go_last_and_never_make_a_dropping_queue_wait() -> None:
+    """``precious`` (the live view's depth blocks): a full dropping queue discards its
+    oldest other item for a precious one, a precious one only when it holds nothing else,
+    and a new ordinary item rather than a held precious one; it never waits."""
+    def precious(item: object) -> bool:
+        return isinstance(item, str)
+
+    stopped = threading.Event()
+    stopped.set()  # a put that would wait raises PipelineStopped instead
+    q = BoundedQueue("viz", 3, policy=FullPolicy.DROP_OLDEST, precious=precious, stop=stopped)
+    for item in (1, "a", 2, 3, "b"):  # 1 makes way for 3, 2 for "b"
+        q.put(item)
+    assert list(q._items) == ["a", 3, "b"] and q.stats.dropped == 2
+    q.put("c")  # 3, the only ordinary item, makes way
+    q.put(4)  # everything held is precious: the new ordinary item is the one dropped
+    assert list(q._items) == ["a", "b", "c"] and q.stats.dropped == 4
+    q.put("d")  # all precious: the oldest goes, as without ``precious``
+    assert list(q._items) == ["b", "c", "d"] and q.stats.dropped == 5
+
+    n = BoundedQueue("viz", 2, policy=FullPolicy.DROP_NEWEST, precious=precious, stop=stopped)
+    for item in (1, 2, 3, "a", "b", "c"):  # 3 dropped; 1 and 2 make way for "a" and "b"
+        n.put(item)
+    assert list(n._items) == ["a", "b"] and n.stats.dropped == 4  # and "c" is dropped
+    assert n.stats.puts == 4
+
+    # precious_wait (a relay's own queues): where nothing else can make way, a precious
+    # item waits for room, and is not counted as dropped
+    w = BoundedQueue("relay", 2, policy=FullPolicy.DROP_OLDEST, precious=precious,
+                     precious_wait=True)
+    for item in ("a", 1, "b"):  # 1 makes way for "b"
+        w.put(item)
+    w.put(2)  # nothing held is worth less: 2 is dropped
+    assert list(w._items) == ["a", "b"] and w.stats.dropped == 2
+    done = threading.Event()
+    t = threading.Thread(target=lambda: (w.put("c"), done.set()))
+    t.start()
+    assert not done.wait(0.3)
+    assert w.get() == "a"
+    t.join(5)
+    assert done.is_set() and list(w._items) == ["b", "c"] and w.stats.dropped == 2
+    f = BoundedQueue("forwarder", 1, policy=FullPolicy.DROP_NEWEST, precious=precious,
+                     precious_wait=True)
+    f.put("a")
+    done.clear()
+    t = threading.Thread(target=lambda: (f.put("b"), done.set()))
+    t.start()
+    assert not done.wait(0.3)
+    assert f.get() == "a"
+    t.join(5)
+    assert done.is_set() and f.get() == "b" and f.stats.dropped == 0
+
+
 @pytest.mark.parametrize("policy", [FullPolicy.DROP_OLDEST, FullPolicy.DROP_NEWEST])
 def test_kept_item_waits_for_room_under_a_drop_policy(policy: FullPolicy) -> None:
     """The last statistics to a dropping viewer: put with ``keep``, nothing is dropped (the
