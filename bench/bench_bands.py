@@ -14,6 +14,12 @@ and depth worker runs them. Over the steady-state frames (from frame ``N + 10`` 
 CPU ms per frame (the process's CPU time, every thread's: the bands', OpenCV's; BLAS one
 thread) and wall ms per frame (the two stages' throughput on this machine's cores); median
 of ``--rounds``. Every round checks that each K's blocks are bit-identical to K = 1's.
+
+``--serial`` adds, for every K > 1, the same K bands run one after another in the caller's
+thread (``BandWorkers.run`` swapped for a loop, here only): what splitting the rows costs by
+itself (the halos, each band's calls) against what running the bands in threads adds (the
+hand-overs, the GIL between the bands' Python code): the share that band *processes*,
+which share no interpreter, would not pay.
 Not a test: nothing here asserts; it writes ``bench/results/bands.json`` and ``.md``.
 """
 
@@ -26,12 +32,15 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.stages.bands import BandWorkers  # noqa: E402
 from sffscan.stages.depth_stage import DepthStage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
@@ -63,6 +72,26 @@ def handoff_us(n: int = 2000) -> tuple[float, float]:
         return 1e6 * (time.perf_counter() - w) / n, 1e6 * (time.process_time() - c) / n
 
 
+@contextmanager
+def bands_in_turn(on: bool) -> Iterator[None]:
+    """With ``on``, every band of every call runs in the caller's thread, one after
+    another (the stages' band workers keep their rows and halos, not their threads)."""
+    if not on:
+        yield
+        return
+    threaded = BandWorkers.run
+
+    def serial(self: BandWorkers, fn: Callable[[int, int], Any],
+               bands: list[tuple[int, int]]) -> list[Any]:
+        return [fn(a, b) for a, b in bands]
+
+    BandWorkers.run = serial  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        BandWorkers.run = threaded  # type: ignore[method-assign]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=150, help="frames per run")
@@ -73,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="where the rendered frames are kept")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "bands",
                     help="results, without suffix (.md and .json are written)")
+    ap.add_argument("--serial", action="store_true",
+                    help="also each K > 1 with its bands in turn in one thread")
     args = ap.parse_args(argv)
     cfg = bench_config()
     cfg.processing.depth_method = type(cfg.processing).model_fields["depth_method"].default
@@ -107,26 +138,30 @@ def main(argv: list[str] | None = None) -> int:
         n = len(placed) - steady
         return 1e3 * (c1 - c0) / n, 1e3 * (w1 - w0) / n, blocks
 
-    cpu: dict[int, list[float]] = {k: [] for k in args.workers}
-    wall: dict[int, list[float]] = {k: [] for k in args.workers}
-    identical: dict[int, list[bool]] = {k: [] for k in args.workers[1:]}
+    # configurations: "K" (K band threads) and, with --serial, "K in turn"
+    configs = [str(k) for k in args.workers] + (
+        [f"{k} in turn" for k in args.workers if k > 1] if args.serial else [])
+    ref = configs[0]
+    cpu: dict[str, list[float]] = {c: [] for c in configs}
+    wall: dict[str, list[float]] = {c: [] for c in configs}
+    identical: dict[str, list[bool]] = {c: [] for c in configs[1:]}
     load0 = " ".join(f"{v:.1f}" for v in os.getloadavg())
     with threadpool_limits(limits=1, user_api="blas"):
         for r in range(args.rounds):
-            order = args.workers if r % 2 == 0 else args.workers[::-1]
+            order = configs if r % 2 == 0 else configs[::-1]
             outs = {}
-            for k in order:
-                c, w, outs[k] = run(k)
-                cpu[k].append(c)
-                wall[k].append(w)
-                print(f"round {r + 1}: K = {k}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
+            for name in order:
+                with bands_in_turn(name.endswith("in turn")):
+                    c, w, outs[name] = run(int(name.split()[0]))
+                cpu[name].append(c)
+                wall[name].append(w)
+                print(f"round {r + 1}: K = {name}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
                       file=sys.stderr, flush=True)
-            for k in args.workers[1:]:
-                identical[k].append(same(outs[args.workers[0]], outs[k]))
+            for name in configs[1:]:
+                identical[name].append(same(outs[ref], outs[name]))
     load1 = " ".join(f"{v:.1f}" for v in os.getloadavg())
     hand_wall, hand_cpu = handoff_us()
     command = "python bench/bench_bands.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    ref = args.workers[0]
     c_ref = statistics.median(cpu[ref])
     w_ref = statistics.median(wall[ref])
     ks = ", ".join(map(str, args.workers))
@@ -138,17 +173,21 @@ def main(argv: list[str] | None = None) -> int:
              f"{len(placed) - steady}), {args.rounds} rounds interleaved; median (min-max).",
              "", f"A no-op handed to a pool thread and waited for: {hand_wall:.0f} µs wall, "
              f"{hand_cpu:.0f} µs CPU (per band and call; each hand-over of the GIL between "
-             "two busy threads costs about as much).",
-             "", "| K | CPU ms/frame | CPU / K=" + str(ref) + " | wall ms/frame | frames/s "
-             "(these two stages) | speed-up | blocks bit-identical to K=" + str(ref) + " |",
-             "|---:|---:|---:|---:|---:|---:|---|"]
-    for k in args.workers:
-        c, w = statistics.median(cpu[k]), statistics.median(wall[k])
-        ident = ("reference" if k == ref else
-                 f"{sum(identical[k])} of {len(identical[k])} rounds")
-        lines.append(f"| {k} | {c:.2f} ({min(cpu[k]):.2f}-{max(cpu[k]):.2f}) | "
-                     f"{c / c_ref:.3f} | {w:.2f} ({min(wall[k]):.2f}-{max(wall[k]):.2f}) | "
-                     f"{1e3 / w:.0f} | {w_ref / w:.2f} | {ident} |")
+             "two busy threads costs about as much)."]
+    if args.serial:
+        lines += ["", "`K in turn`: the same K bands, one after another in one thread (the "
+                  "split's own cost: halos, each band's calls); K against `K in turn`: what "
+                  "the threads add (hand-overs, the GIL shared by the bands' Python code)."]
+    lines += ["", "| K | CPU ms/frame | CPU / K=" + ref + " | wall ms/frame | frames/s "
+              "(these two stages) | speed-up | blocks bit-identical to K=" + ref + " |",
+              "|---|---:|---:|---:|---:|---:|---|"]
+    for name in configs:
+        c, w = statistics.median(cpu[name]), statistics.median(wall[name])
+        ident = ("reference" if name == ref else
+                 f"{sum(identical[name])} of {len(identical[name])} rounds")
+        lines.append(f"| {name} | {c:.2f} ({min(cpu[name]):.2f}-{max(cpu[name]):.2f}) | "
+                     f"{c / c_ref:.3f} | {w:.2f} ({min(wall[name]):.2f}-{max(wall[name]):.2f})"
+                     f" | {1e3 / w:.0f} | {w_ref / w:.2f} | {ident} |")
     text = "\n".join(lines)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -235,8 +235,8 @@ class Execution(ConfigModel):
         1, description="Band workers of the focus measure and of the depth stage: each "
         "frame's rows split among that many threads of each stage, results bit-identical "
         "for any number; 'auto' = the cores available less 2 (the registration and the "
-        "main process), at least 1, at most 8. 1 by default: on the 2-core VM more cost "
-        "CPU and gained no time (bench/results/bands.md)")
+        "main process), at least 1, at most 8. 1 by default: on 2 cores N = 2 costs 1.19x "
+        "the CPU of these stages (bench/results/bands.md), which the other stages need")
 
     def band_workers(self) -> int:
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""
