@@ -20,7 +20,9 @@ them, less the focus window's reach).
 Variants: ``unaligned``; ``aligned`` (:func:`sffscan.stages.fields.align.align_stack`, the
 noise floor taken off as ``stack --align`` does: :mod:`sffscan.stages.fields.aperture`);
 ``true warp`` (the same warp with the true transforms, when ``--true`` is given: isolates
-the estimate from the resampling). Not a test: nothing here asserts.
+the estimate from the resampling). ``--drift`` adds the largest scale that the alignment
+estimates on the breathing-free stack (%, should be 0): what the defocus alone makes the
+estimate see. Not a test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -152,7 +154,8 @@ def true_alignment(st: Stack) -> Alignment:
     return Alignment.breathing(st.mags, st.real.shape[1:])
 
 
-def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:
+def score(st: Stack, *, use_true: bool, old: Any = None, drift: bool = False
+          ) -> dict[str, float]:
     aligned, valid, al = align_stack(st.real)
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))
     stacks = {"ideal": st.ideal, "unaligned": st.real, "aligned": aligned}
@@ -172,6 +175,8 @@ def score(st: Stack, *, use_true: bool, old: Any = None) -> dict[str, float]:
         h = np.where(mask, r.height_um, np.nan)
         out[name] = compare_height_maps(h, st.truth, max_depth_um=float(st.zs[-1])).rmse_um
     out["scale error %"] = float(100 * np.max(np.abs(al.scale / st.mags - 1.0)))
+    if drift:
+        out["drift %"] = float(100 * np.max(np.abs(align_stack(st.ideal)[2].scale - 1.0)))
     return out
 
 
@@ -184,21 +189,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--textures", nargs="+", default=["pink", "dots", "grain"])
     ap.add_argument("--frames", type=int, default=21)
     ap.add_argument("--true", action="store_true", help="also warp with the true transforms")
+    ap.add_argument("--drift", action="store_true",
+                    help="also the scale estimated on the breathing-free stack")
     ap.add_argument("--against", type=Path, help="another tree: its stages/fields/align.py too")
     ap.add_argument("--size", type=int, nargs=2, default=[384, 288], metavar=("W", "H"))
     ap.add_argument("--span-um", type=float, default=1000.0, help="focus range, µm")
+    ap.add_argument("--out", type=Path, help="also write the table there (Markdown)")
     args = ap.parse_args(argv)
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        print(line, flush=True)
+        lines.append(line)
     old = None if args.against is None else load_module(
         "_old_align", args.against / "stages" / "fields" / "align.py")
     t0 = time.perf_counter()
     rows = []
-    print(f"{args.frames} frames of {args.size[0]} x {args.size[1]} px, {100 * args.breathing:g} "
+    say(f"{args.frames} frames of {args.size[0]} x {args.size[1]} px, {100 * args.breathing:g} "
           f"%/frame breathing; RMSE / the ideal stack's")
-    print("| surface | texture | noise | seed | ideal µm | unaligned | aligned | "
+    say("| surface | texture | noise | seed | ideal µm | unaligned | aligned | "
           + ("old aligned | " if old else "") + ("true warp | " if args.true else "")
-          + "max scale error % |" + (" old |" if old else ""))
-    print("|---|---|---:|---:|---:|---:|---:|" + ("---:|" if old else "")
-          + ("---:|" if args.true else "") + "---:|" + ("---:|" if old else ""))
+          + "max scale error % |" + (" old |" if old else "")
+          + (" drift without breathing % |" if args.drift else ""))
+    say("|---|---|---:|---:|---:|---:|---:|" + ("---:|" if old else "")
+          + ("---:|" if args.true else "") + "---:|" + ("---:|" if old else "")
+          + ("---:|" if args.drift else ""))
     for noise in args.noise:
         for i, (surf, tex) in enumerate((s, t) for s in args.surfaces for t in args.textures):
             for seed in args.seeds:
@@ -206,22 +221,31 @@ def main(argv: list[str] | None = None) -> int:
                                 breathing=args.breathing, noise=noise, n=args.frames,
                                 width=args.size[0], height=args.size[1],
                                 step_um=args.span_um / (args.frames - 1))
-                r = score(st, use_true=args.true, old=old)
+                r = score(st, use_true=args.true, old=old, drift=args.drift)
                 rows.append(r)
                 extra = f"{r['old'] / r['ideal']:.3f}x | " if old else ""
                 extra += f"{r['true warp'] / r['ideal']:.3f}x | " if args.true else ""
                 tail = f" {r['old scale error %']:.3f} |" if old else ""
-                print(f"| {surf} | {tex} | {noise:g} | {seed} | {r['ideal']:.2f} | "
-                      f"{r['unaligned'] / r['ideal']:.3f}x | {r['aligned'] / r['ideal']:.3f}x | "
-                      f"{extra}{r['scale error %']:.3f} |{tail}", flush=True)
+                tail += f" {r['drift %']:.3f} |" if args.drift else ""
+                say(f"| {surf} | {tex} | {noise:g} | {seed} | {r['ideal']:.2f} | "
+                    f"{r['unaligned'] / r['ideal']:.3f}x | {r['aligned'] / r['ideal']:.3f}x | "
+                    f"{extra}{r['scale error %']:.3f} |{tail}")
     keys = ("unaligned", "aligned", *(("old",) if old else ()), *(("true warp",) if args.true
                                                                    else ()))
     for key in keys:
         ratios = [r[key] / r["ideal"] for r in rows]
         total = sum(r[key] for r in rows) / sum(r["ideal"] for r in rows)
-        print(f"{key}: median {statistics.median(ratios):.3f}x, worst {max(ratios):.3f}x; "
+        say(f"{key}: median {statistics.median(ratios):.3f}x, worst {max(ratios):.3f}x; "
               f"RMSE ratio of the sums {total:.3f}x")
     print(f"{len(rows)} stacks, {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    if args.out is not None:
+        from bench_pipeline import machine
+
+        cmd = "python bench/bench_align_breathing.py " + " ".join(
+            sys.argv[1:] if argv is None else argv)
+        args.out.write_text(f"# Alignment under focus breathing: point-sampled stacks\n\n"
+                            f"`{cmd.strip()}` ({machine()}; {len(rows)} stacks, "
+                            f"{time.perf_counter() - t0:.0f} s)\n\n" + "\n".join(lines) + "\n")
     return 0
 
 
