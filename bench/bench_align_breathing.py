@@ -46,6 +46,16 @@ from sffscan.stages.fields.stationary import reconstruct_field
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
 
+SURFACES = ("bumps", "waves", "terrace", "tilt")
+TEXTURES = ("pink", "dots", "grain")
+
+
+def stack_seed(surface: str, texture: str, seed: int) -> int:
+    """The generator's seed of a stack: ``1000 i + seed``, ``i`` the (surface, texture)
+    pair's place in :data:`SURFACES` x :data:`TEXTURES`, so that a run over some of them
+    draws the same stacks as the whole grid."""
+    return 1000 * (SURFACES.index(surface) * len(TEXTURES) + TEXTURES.index(texture)) + seed
+
 
 @dataclass(frozen=True)
 class Stack:
@@ -185,8 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--breathing", type=float, default=0.012, help="per frame")
     ap.add_argument("--noise", type=float, nargs="+", default=[0.01, 0.03])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    ap.add_argument("--surfaces", nargs="+", default=["bumps", "waves", "terrace"])
-    ap.add_argument("--textures", nargs="+", default=["pink", "dots", "grain"])
+    ap.add_argument("--surfaces", nargs="+", choices=SURFACES,
+                    default=["bumps", "waves", "terrace"])
+    ap.add_argument("--textures", nargs="+", choices=TEXTURES, default=list(TEXTURES))
     ap.add_argument("--frames", type=int, default=21)
     ap.add_argument("--true", action="store_true", help="also warp with the true transforms")
     ap.add_argument("--drift", action="store_true",
@@ -215,9 +226,9 @@ def main(argv: list[str] | None = None) -> int:
           + ("---:|" if args.true else "") + "---:|" + ("---:|" if old else "")
           + ("---:|" if args.drift else ""))
     for noise in args.noise:
-        for i, (surf, tex) in enumerate((s, t) for s in args.surfaces for t in args.textures):
+        for surf, tex in ((s, t) for s in args.surfaces for t in args.textures):
             for seed in args.seeds:
-                st = make_stack(surface=surf, texture=tex, seed=1000 * i + seed,
+                st = make_stack(surface=surf, texture=tex, seed=stack_seed(surf, tex, seed),
                                 breathing=args.breathing, noise=noise, n=args.frames,
                                 width=args.size[0], height=args.size[1],
                                 step_um=args.span_um / (args.frames - 1))
