@@ -157,8 +157,10 @@ class RelayRun:
                               producers=remote_producers + len(self.forwards) + 1)
         self.pipe = Pipeline([self.recv, sink], capacity=relay.capacity,
                              policies={sink.name: relay.policy}, stop=self.stop)
-        # the receiver's thread feeds the sink alone: a precious item it holds back waits
-        # for room there (the channel behind it fills and its senders drop, never wait)
+        # the sink's precious items make way for themselves in its queue, and as the
+        # receiver's thread feeds the sink alone, one that finds only precious items there
+        # waits for room (the channel behind it fills and its senders drop, never wait)
+        self.pipe.queues[0].precious = relay.precious
         self.pipe.queues[0].precious_wait = True
 
     def queue_stats(self, reports: list[dict[str, Any]]) -> QueueStats:

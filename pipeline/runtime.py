@@ -221,8 +221,7 @@ class Pipeline:
     capacity : int
         Capacity of each queue between stages.
     policies : dict, optional
-        Full policy per queue, keyed by the name of the stage the queue feeds (a stage
-        that has ``precious`` items, a sink run as a stage, has them made way for).
+        Full policy per queue, keyed by the name of the stage the queue feeds.
     on_progress : callable, optional
         Called from the runner thread about every ``progress_s`` seconds with the stage
         statistics, for progress display.
@@ -270,7 +269,6 @@ class Pipeline:
                 capacity,
                 policy=policies.get(b.name, FullPolicy.BLOCK),
                 stop=self.stop,
-                precious=getattr(b, "precious", None),  # a sink run as a stage (a relay)
             )
             for a, b in zip(stages[:-1], stages[1:], strict=True)
         ]
