@@ -20,6 +20,15 @@ Cases:
   processes;
 - the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
 
+``--outputs DIR,DIR`` runs every case once per folder given for what the run writes (the
+mosaic, and the recording with the recorder on), interleaved: the file system's share.
+On the dev VM this matters: its root file system is ext4 without a journal, whose inode
+allocator skips inodes deleted in the last seconds to minutes (the kernel's
+``recently_deleted``, checked only without a journal), so after the benches' and the
+tests' own deletions a new file costs up to ~1 ms of kernel CPU there (the mosaic writes
+~2.4 new chunk files a frame, the recorder 2), against tens of µs on tmpfs or a journaled
+file system. Default: the ``--cache`` folder, as before.
+
 frames/s = frames / wall time of streaming (process mode: from the moment every worker is
 ready; the workers' start-up, mostly importing torch, is reported apart). CPU ms/frame
 is the whole process tree's while streaming (every worker included, start-up excluded).
@@ -105,7 +114,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         frames = replay_frames(cfg, images)
     else:
         frames = open_recording(case["recording"]).frames()
-    with tempfile.TemporaryDirectory(dir=case.get("tmp")) as tmp:
+    with tempfile.TemporaryDirectory(dir=case.get("outputs") or case.get("tmp")) as tmp:
         sinks = [recorder_sink(cfg, str(Path(tmp) / "rec.zarr"))] if case["record"] else []
         ru0 = (resource.getrusage(resource.RUSAGE_SELF),
                resource.getrusage(resource.RUSAGE_CHILDREN))
@@ -164,10 +173,51 @@ def baseline_fps(bank: Path, n: int) -> float:
         return rate(lambda t: glvm_conv2d_baseline(t, window=9), tens)
 
 
+def file_system(path: str | Path) -> str:
+    """The type of the file system ``path`` lies on, from /proc/mounts (the longest mount
+    point above it); '?' where that cannot be read."""
+    real = os.path.realpath(path)
+    best, kind = "", "?"
+    try:
+        lines = Path("/proc/mounts").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return kind
+    for line in lines:
+        parts = line.split()
+        if len(parts) >= 3 and (real == parts[1] or real.startswith(parts[1].rstrip("/") + "/")) \
+                and len(parts[1]) > len(best):
+            best, kind = parts[1], parts[2]
+    return kind
+
+
+def file_create_ms(folder: str | Path, n: int = 300) -> float:
+    """CPU ms (this process, kernel included) to create a 64 kB file as the chunk writer
+    does (a temporary name, written, renamed over the final one), median of 3 bursts of
+    ``n`` files in a new sub-folder, each burst deleted after it (as the runs' outputs are)."""
+    import shutil
+
+    data = os.urandom(65536)
+    costs = []
+    for _ in range(3):
+        d = Path(tempfile.mkdtemp(dir=folder))
+        r0 = resource.getrusage(resource.RUSAGE_SELF)
+        for i in range(n):
+            tmp = d / f"{i}.partial"
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+            os.replace(tmp, d / str(i))
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
+        costs.append(1e3 * (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / n)
+        shutil.rmtree(d)
+    return statistics.median(costs)
+
+
 def label(c: dict[str, Any]) -> str:
     src = "replay of a recording" if c["source"] == "replay" else "from memory"
     rec = ", recorder on" if c["record"] else ""
-    return f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
+    where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
+             if c.get("outputs") else "")
+    return f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}{where}"
 
 
 def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) -> None:
@@ -197,6 +247,10 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
             f"{statistics.median(x['cpu_ms_per_frame'] for x in r['runs']):.2f} | {rec} |")
     lines += ["", f"Baseline (thesis-style torch conv2d GLVM, whole frames, best of 3): "
               f"{base:.1f} frames/s.", ""]
+    for d, (before, after) in meta.get("file_create_ms", {}).items():
+        lines.append(f"- Creating a 64 kB file as the chunk writer does, in {d} "
+                     f"({file_system(d)}): {before:.3f} ms of CPU before the runs, "
+                     f"{after:.3f} after (median of 3 bursts of 300, each deleted after).")
     by = {label(r["case"]): statistics.median(x["fps"] for x in r["runs"]) for r in rows}
     for mode in ("threads", "processes"):
         one, two = (by.get(f"from memory, {mode}, 1 core"),
@@ -222,6 +276,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="spc",
                     help="depth method of the runs (default spc; 'default': the "
                          "configuration's default)")
+    ap.add_argument("--outputs", default="",
+                    help="comma-separated folders for what the runs write (mosaic, "
+                         "recording): every case runs once per folder, interleaved; default "
+                         "the --cache folder")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
@@ -257,7 +315,13 @@ def main(argv: list[str] | None = None) -> int:
     else:
         top = max(cores)
         cases = [c for c in cases if c["cores"] == top]
+    outputs = [d for d in args.outputs.split(",") if d]
+    for d in outputs:
+        Path(d).mkdir(parents=True, exist_ok=True)
+    if outputs:
+        cases = [{**c, "outputs": d} for c in cases for d in outputs]
     rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
+    creates = {d: [file_create_ms(d)] for d in outputs}
     base = baseline_fps(bank, 12)
     for r in range(args.rounds):
         for row in rows:
@@ -266,7 +330,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"round {r + 1}: {label(row['case'])}: {got['fps']:.1f} frames/s "
                   f"(start-up {got['startup_s']:.1f} s, {got['cpu_ms_per_frame']:.2f} CPU "
                   f"ms/frame)", file=sys.stderr, flush=True)
-    meta = {"machine": machine(), "load_before": load_before,
+    for d in outputs:
+        creates[d].append(file_create_ms(d))
+    meta = {"machine": machine(), "load_before": load_before, "file_create_ms": creates,
             "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
             "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
             "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,

@@ -286,7 +286,8 @@ def write(out: Path, res: dict[str, Any]) -> str:
              f"rounds, threads and processes alternating, pinned to {res['cores']} cores, "
              f"median; whole run {res['run_s']:.0f} s). Scan: 1280 x 1024 uint16, N = 50, "
              f"GLVM k = 9, depth method `{res['depth_method']}` (the default), registration "
-             "on, Zarr mosaic, frames from memory.", "",
+             f"on, Zarr mosaic (written in {res.get('outputs', 'the cache folder')}), frames "
+             "from memory.", "",
              "## 1. CPU per frame of each stage (thread placement) and of the transport", "",
              "Stage: its thread's CPU inside its own code (`StageStats.cpu_s`) / frames. "
              "Processes: the same stages in their workers.", "",
@@ -426,18 +427,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench",
                     help="where the rendered frame bank is kept")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scaling.md")
+    ap.add_argument("--outputs", type=Path,
+                    help="folder the runs write their mosaics in (default: --cache); on the "
+                         "dev VM's journal-less ext4 a new file costs up to ~1 ms of kernel "
+                         "CPU after deletions, on tmpfs ~0.05 (bench_parallel.py --outputs)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
         return 0
+    from bench_parallel import file_system
     from bench_pipeline import frame_bank, machine
 
     t0 = time.perf_counter()
     load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
     bank = frame_bank(args.cache, max(args.frames, args.band_frames))
     cores = min(args.cores, len(os.sched_getaffinity(0)))
-    common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache),
+    outputs = args.outputs or args.cache
+    outputs.mkdir(parents=True, exist_ok=True)
+    common = {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
               "cores": cores}
     runs: dict[str, list[dict[str, Any]]] = {"threads": [], "processes": []}
     for rnd in range(args.rounds):
@@ -479,6 +487,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_before": load_before,
         "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
         "frames": args.frames, "rounds": args.rounds, "cores": cores,
+        "outputs": f"{outputs} ({file_system(outputs)})",
         "depth_method": thr[0]["depth_method"], "threads": thr, "processes": prc,
         "stages_ms": stages, "stages_ms_min": stages_min, "stages_ms_processes": stages_p,
         "transport_ms": med_of(prc, "total_ms") - sum(stages_p.values()),
