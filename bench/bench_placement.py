@@ -7,9 +7,10 @@ The other tree (``--against``: a checkout of the commit before, e.g. ``git workt
 --detach /tmp/sffscan-before COMMIT``) is imported instead of this one in its own runs
 (``PYTHONPATH``; the worker processes inherit it). Every run is one end-to-end scan in a
 fresh process (``bench/bench_parallel.py --case``: demo optics 1280 x 1024 uint16, N = 50,
-GLVM k = 9, SPC, registration on, Zarr mosaic, distinct simulated frames read into memory
-first), pinned to 1 or 2 CPUs; frames/s = frames / wall time of streaming (processes: from
-the moment every worker is ready); CPU ms/frame: the whole process tree's while streaming
+GLVM k = 9, SPC unless ``--method``, registration on, Zarr mosaic (in ``--outputs``),
+distinct simulated frames read into memory first), pinned to 1 or 2 CPUs (``--cores``);
+frames/s = frames / wall time of streaming (processes: from the moment every worker is
+ready); CPU ms/frame: the whole process tree's while streaming
 (less sensitive than frames/s to other work on a shared machine). Round-robin over the
 cases, ``--rounds`` times, median. Writes ``--out`` (markdown) and the same figures as
 JSON beside it.
@@ -53,6 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench",
                     help="where the rendered frames are kept")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "placement.md")
+    ap.add_argument("--cores", default="1,2", help="core counts, e.g. 2 (default 1,2)")
+    ap.add_argument("--method", default="spc",
+                    help="depth method of the runs (default spc, as before; 'default': the "
+                         "configuration's default)")
+    ap.add_argument("--outputs", type=Path,
+                    help="folder the runs write their mosaics in (default: --cache; see "
+                         "bench_parallel.py --outputs)")
     args = ap.parse_args(argv)
     from bench_pipeline import frame_bank, machine
 
@@ -60,9 +68,18 @@ def main(argv: list[str] | None = None) -> int:
     load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
     bank = frame_bank(args.cache, args.frames)
     trees = {"before": args.against.resolve(), "after": args.tree.resolve()}
-    cores = [c for c in (1, 2) if c <= len(os.sched_getaffinity(0))]
-    cases = [(t, {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache),
-                  "source": "memory", "record": False, "mode": m, "cores": c})
+    cores = [c for c in (int(v) for v in args.cores.split(","))
+             if c <= len(os.sched_getaffinity(0))]
+    method = args.method
+    if method == "default":
+        from sffscan.pipeline.config_groups import Method
+
+        method = str(Method.model_fields["depth_method"].default)
+    outputs = args.outputs or args.cache
+    outputs.mkdir(parents=True, exist_ok=True)
+    cases = [(t, {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
+                  "method": method, "source": "memory", "record": False, "mode": m,
+                  "cores": c})
              for c in cores for m in ("threads", "processes") for t in trees]
     fps: dict[tuple[str, str, int], list[float]] = {
         (t, c["mode"], c["cores"]): [] for t, c in cases}
@@ -85,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
              f"Command: `python bench/bench_placement.py {' '.join(argv or sys.argv[1:])}` "
              f"({args.frames} frames per run, {args.rounds} rounds interleaved, median; "
              f"whole run {time.perf_counter() - t0:.0f} s). Before: `{trees['before']}`, "
-             f"after: `{trees['after']}`.", "",
+             f"after: `{trees['after']}`. Depth method {method}; mosaics written in "
+             f"{outputs}.", "",
              "| placement | cores | before frames/s | after frames/s | after / before |"
              " CPU ms/frame before | after | runs before | runs after |",
              "|---|---:|---:|---:|---:|---:|---:|---|---|"]
