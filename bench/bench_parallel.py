@@ -20,8 +20,10 @@ Cases:
   processes;
 - the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
 
-``--outputs DIR,DIR`` runs every case once per folder given for what the run writes (the
-mosaic, and the recording with the recorder on), interleaved: the file system's share.
+``--workers 1,2`` runs every case with each number of band workers
+(``processing.workers``), interleaved. ``--outputs DIR,DIR`` runs every case once per
+folder given for what the run writes (the mosaic, and the recording with the recorder on),
+interleaved: the file system's share.
 On the dev VM this matters: its root file system is ext4 without a journal, whose inode
 allocator skips inodes deleted in the last seconds to minutes (the kernel's
 ``recently_deleted``, checked only without a journal), so after the benches' and the
@@ -72,7 +74,8 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
     base = bench_config()
     data = base.model_dump()
     data["processing"].update(execution=case["mode"], depth_method=case.get("method", "spc"),
-                              focus_operator="glvm", window=9, registration=True)
+                              focus_operator="glvm", window=9, registration=True,
+                              workers=case.get("workers", 1))
     return ScanConfig.model_validate(data)
 
 
@@ -217,7 +220,9 @@ def label(c: dict[str, Any]) -> str:
     rec = ", recorder on" if c["record"] else ""
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
-    return f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}{where}"
+    bands = f", {c['workers']} band workers" if c.get("workers", 1) != 1 else ""
+    return (f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
+            f"{bands}{where}")
 
 
 def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) -> None:
@@ -280,6 +285,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated folders for what the runs write (mosaic, "
                          "recording): every case runs once per folder, interleaved; default "
                          "the --cache folder")
+    ap.add_argument("--workers", default="1",
+                    help="comma-separated processing.workers (band threads of the focus "
+                         "measure and depth) to run every case with, interleaved; default 1")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
@@ -320,6 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         Path(d).mkdir(parents=True, exist_ok=True)
     if outputs:
         cases = [{**c, "outputs": d} for c in cases for d in outputs]
+    cases = [{**c, "workers": int(k)} for c in cases for k in args.workers.split(",")]
     rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
     creates = {d: [file_create_ms(d)] for d in outputs}
     base = baseline_fps(bank, 12)
