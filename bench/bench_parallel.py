@@ -176,6 +176,15 @@ def baseline_fps(bank: Path, n: int) -> float:
         return rate(lambda t: glvm_conv2d_baseline(t, window=9), tens)
 
 
+def resolve_method(name: str) -> str:
+    """A ``--method`` value: a depth method's name, or 'default' for the configuration's."""
+    if name != "default":
+        return name
+    from sffscan.pipeline.config_groups import Method
+
+    return str(Method.model_fields["depth_method"].default)
+
+
 def file_system(path: str | Path) -> str:
     """The type of the file system ``path`` lies on, from /proc/mounts (the longest mount
     point above it); '?' where that cannot be read."""
@@ -302,11 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     bank = frame_bank(args.cache, args.frames)
     cores = [c for c in (int(v) for v in args.cores.split(",")) if c <= len(
         os.sched_getaffinity(0))]
-    method = args.method
-    if method == "default":
-        from sffscan.pipeline.config_groups import Method
-
-        method = str(Method.model_fields["depth_method"].default)
+    method = resolve_method(args.method)
     common = {"frames": args.frames, "bank": str(bank), "tmp": str(args.cache),
               "method": method}
     if args.scaling:

@@ -62,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder the runs write their mosaics in (default: --cache; see "
                          "bench_parallel.py --outputs)")
     args = ap.parse_args(argv)
+    from bench_parallel import resolve_method
     from bench_pipeline import frame_bank, machine
 
     t0 = time.perf_counter()
@@ -70,11 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     trees = {"before": args.against.resolve(), "after": args.tree.resolve()}
     cores = [c for c in (int(v) for v in args.cores.split(","))
              if c <= len(os.sched_getaffinity(0))]
-    method = args.method
-    if method == "default":
-        from sffscan.pipeline.config_groups import Method
-
-        method = str(Method.model_fields["depth_method"].default)
+    method = resolve_method(args.method)
     outputs = args.outputs or args.cache
     outputs.mkdir(parents=True, exist_ok=True)
     cases = [(t, {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
