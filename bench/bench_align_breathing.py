@@ -94,6 +94,7 @@ def _surface(kind: str, shape: tuple[int, int], z_max: float, rng: np.random.Gen
 
 def _texture(kind: str, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
     h, w = shape
+    t: np.ndarray
     if kind == "pink":
         f = np.hypot(np.fft.fftfreq(h)[:, None], np.fft.rfftfreq(w)[None, :])
         spec = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) / np.maximum(f, 1 / w)
@@ -144,7 +145,8 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
         bank.append((s, cv2.GaussianBlur(tex, (0, 0), s)))
         s *= math.sqrt(2.0)
     cx, cy = (width - 1) / 2.0 + pad, (height - 1) / 2.0 + pad
-    real, ideal = [], []
+    real: list[np.ndarray] = []
+    ideal: list[np.ndarray] = []
     for k in range(n):
         img = _blurred(tex, world_z, float(zs[k]), s0=0.6, c=c_px_per_um, bank=bank)
         for m, out in ((mags[k], real), (1.0, ideal)):
@@ -154,7 +156,7 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
                             [0.0, a, cy - a * (height - 1) / 2.0]])
             f = cv2.warpAffine(img, mat, (width, height),
                                flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP)
-            f = f + rng.normal(0.0, noise, f.shape).astype(np.float32)
+            f = f + np.asarray(rng.normal(0.0, noise, f.shape), np.float32)
             out.append(np.clip(np.rint(f * 1023), 0, 1023).astype(np.uint16))
     truth = world_z[pad:pad + height, pad:pad + width].astype(np.float32)
     return Stack(np.stack(real), np.stack(ideal), truth, zs, mags)
@@ -183,7 +185,8 @@ def score(st: Stack, *, use_true: bool, old: Any = None, drift: bool = False
         r = reconstruct_field(s, focus_heights_um=st.zs, max_value=1023,
                               noise_floor=floors.get(name))
         h = np.where(mask, r.height_um, np.nan)
-        out[name] = compare_height_maps(h, st.truth, max_depth_um=float(st.zs[-1])).rmse_um
+        rmse = compare_height_maps(h, st.truth, max_depth_um=float(st.zs[-1])).rmse_um
+        out[name] = math.nan if rmse is None else rmse  # None: no pixel to compare
     out["scale error %"] = float(100 * np.max(np.abs(al.scale / st.mags - 1.0)))
     if drift:
         out["drift %"] = float(100 * np.max(np.abs(align_stack(st.ideal)[2].scale - 1.0)))

@@ -65,7 +65,7 @@ def run(spec: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.nda
     o, p = cfg.optics, cfg.processing
     vol = FocusVolume(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
                       focus_heights_um=focus_heights(n_levels=o.n_levels, z_min_um=o.z_min_um,
-                                                     z_step_um=o.z_step_um),
+                                                     z_step_um=o.z_step_um).tolist(),
                       margin=p.focus_reach_px, method=method, median_size=p.median_size,
                       spread_size=p.window, block_columns=p.block_columns,
                       uncertainty=flag != "no-unc")

@@ -357,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     for c, r in e2e:
         cpu = [r["stages"].get(s, {}).get("cpu_ms_per_frame") for s in stage_names]
         lines.append(
-            f"| uint{16 if c['bits'] == 10 else 8} | {c['operator'].upper()} | "
+            f"| uint{16 if c['bits'] == 10 else 8} | {str(c['operator']).upper()} | "
             f"{'on' if c['registration'] else 'off'} | {r['fps']:.1f} | "
             f"{r['fps'] / base:.1f}x | {r['process_cpu_ms']:.2f} | "
             + " | ".join("-" if v is None else f"{v:.2f}" for v in cpu)

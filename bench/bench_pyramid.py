@@ -59,7 +59,7 @@ def one_run(cfg: ScanConfig, frames: list[Frame], out: Path, *, pyramid: bool
     cpu0 = time.process_time()
     children0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     orig = wiring.MosaicWriter
-    wiring.MosaicWriter = factory  # type: ignore[misc]
+    wiring.MosaicWriter = factory  # type: ignore[misc, assignment]
     try:
         report = wiring.run_scan(cfg, frames=iter(frames), output=out, overwrite=True,
                                  progress=False)
