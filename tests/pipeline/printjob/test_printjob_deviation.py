@@ -126,3 +126,17 @@ def test_fit_printer_mapping_finds_the_translation() -> None:
     meas = meas + np.random.default_rng(1).normal(0, 10, meas.shape).astype(np.float32)
     fit = fit_printer_mapping(meas, prog, grid)
     assert fit.offset_um == pytest.approx(truth.offset_um, abs=25.0)  # half a pixel
+
+
+def test_fit_printer_mapping_refuses_a_map_that_does_not_correlate() -> None:
+    """A measured map of noise alone (no printed layer in it) gives no significant peak:
+    ValueError naming the peak, not a translation."""
+    lines = ["M83", "G1 Z0.2"]
+    for j in range(12):
+        y = 1.0 + 0.4 * j
+        lines += [f"G1 X1 Y{y:.2f}", f"G1 X{4 if j > 3 else 8} Y{y:.2f} E0.3"]
+    prog = parse_gcode("\n".join(lines))
+    grid = Grid((0.0, 0.0), 50.0, (160, 240))
+    meas = np.random.default_rng(2).normal(0, 10, grid.shape).astype(np.float32)
+    with pytest.raises(ValueError, match="no significant correlation peak .*peak 0"):
+        fit_printer_mapping(meas, prog, grid)
