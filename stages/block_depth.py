@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_candidates import (
-    centroid_pull,
+    pull_statistics,
     sampled_curves,
     shape_statistics,
     spc_in_range,
@@ -53,8 +53,9 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     by :data:`SPC_BLOCKS` with what ``"adaptive_centroid"`` takes where SPC is out of range;
     else what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
-    (:func:`sffscan.stages.depth_candidates.centroid_pull` within its limit), else
-    ``"adaptive"``.
+    more than their 3-point Gaussians' noise
+    (:func:`sffscan.stages.depth_candidates.pull_statistics`,
+    :func:`~sffscan.stages.depth_candidates.takes_centroid`), else ``"adaptive"``.
 
     Parameters
     ----------
@@ -74,8 +75,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     if sample is None:
         return "adaptive"
     vol, am, seen = sample
-    pull = centroid_pull(vol, am, seen)
-    centroid = takes_centroid(pull)
+    pull, noise = pull_statistics(vol, am, seen)
+    centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select" and takes_spc(shape_statistics(vol, am, curve_width(vol),
                                                                seen), pull=pull):
         return "spc+centroid" if centroid else "spc+gauss3"

@@ -36,8 +36,8 @@ from sffscan.stages.depth_candidates import (
     GAUSS_FIT_HALF_WINDOW,
     SHAPE_SELECT_LIMITS,
     WINDOW_PC_FACTOR,
-    centroid_pull,
     gauss_window_fit,
+    pull_statistics,
     shape_select,
     shape_statistics,
     spc_in_range,
@@ -162,11 +162,12 @@ def _adaptive(c: FocusCurves) -> np.ndarray:
                          level_spread(centre, c.spread_size, c.volume.shape[0]))
 
 
-def _adaptive_centroid(c: FocusCurves, pull: float | None = None) -> np.ndarray:
+def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None
+                       ) -> np.ndarray:
     assert c.argmax is not None
     centre = c.centre()
-    pull = centroid_pull(c.volume, c.argmax) if pull is None else pull
-    peak = "centroid" if takes_centroid(pull) else "gauss3"
+    pull, noise = pull_statistics(c.volume, c.argmax) if stats is None else stats
+    peak = "centroid" if takes_centroid(pull, noise=noise) else "gauss3"
     return adaptive_peak(c.volume, centre,
                          level_spread(centre, c.spread_size, c.volume.shape[0]), peak=peak)
 
@@ -185,8 +186,8 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     width = curve_width(c.volume)
     stats = shape_statistics(c.volume, c.argmax, width)
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    pull = centroid_pull(c.volume, c.argmax)
-    other = _adaptive_centroid(c, pull)
+    pull, noise = pull_statistics(c.volume, c.argmax)
+    other = _adaptive_centroid(c, (pull, noise))
     if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull):
         return other  # SPC's map only where the stack takes it
     spc = _from_sums(c, method="spc")
@@ -264,11 +265,13 @@ def depth_from_focus(
             ``"adaptive"``, but the centroid of the 5 levels about ``a_med`` instead of
             the 3-point Gaussian where ``a_med`` spans at most
             :data:`ADAPTIVE_MAX_SPREAD` levels, if the volume's curves are even enough
-            that a centroid is not pulled from their maxima (the median difference of the
-            two about each curve's argmax within
-            :data:`~sffscan.stages.depth_candidates.CENTROID_PULL_LIMIT`:
-            :func:`~sffscan.stages.depth_candidates.centroid_pull`). Five levels, not
-            three: less noise. On lopsided curves (a thin lens' blur) it is
+            that a centroid is not pulled from their maxima, or the 3-point Gaussian is
+            noisier than that pull (the median difference of the two about each curve's
+            argmax within the larger of
+            :data:`~sffscan.stages.depth_candidates.CENTROID_PULL_LIMIT` and the
+            differences' robust spread:
+            :func:`~sffscan.stages.depth_candidates.pull_statistics`). Five levels, not
+            three: less noise. On clean lopsided curves (a thin lens' blur) it is
             ``"adaptive"``. The streaming depth stage judges each block of columns.
         ``"wcentroid"``
             Windowed centroid about the filtered peak: the argmax, median filtered over

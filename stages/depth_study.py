@@ -39,12 +39,13 @@ from sffscan.stages.depth import (
 )
 from sffscan.stages.depth_candidates import (
     SHAPE_SELECT_LIMITS,
-    centroid_pull,
     gauss_window_fit,
     plane_residual,
+    pull_statistics,
     shape_select,
     shape_statistics,
     spc_in_range,
+    takes_centroid,
     takes_spc,
     window_pc,
 )
@@ -85,7 +86,8 @@ WINDOW_PC_FACTORS = (3.0, 4.0, 5.0)
 PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``centroid-pull`` limits (levels) the protocol tunes over: the largest
 :func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
-centroid at ``adaptive``'s peak pixels (inf: always)."""
+centroid at ``adaptive``'s peak pixels (inf: always), or the pull's noise where that is
+larger (:func:`sffscan.stages.depth_candidates.takes_centroid`)."""
 
 SPC_PULLS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``spc-pull`` settings the protocol tunes over: the largest centroid pull (levels) of a
@@ -206,7 +208,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     stats = shape_statistics(volume, a, width, mask)
     n = volume.shape[0]
     in_range = spc_in_range(depth["spc"], width, n)
-    pull = centroid_pull(volume, a)  # all the curves, as depth_from_focus judges
+    pull, noise = pull_statistics(volume, a)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, n)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
@@ -233,14 +235,15 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         sse[_key("planar-peak", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     peak_centroid = adaptive_peak(volume, centre, spread, peak="centroid")
     for t in PULL_LIMITS:
-        d = peak_centroid if abs(pull) < t else depth["adaptive"]
+        d = peak_centroid if takes_centroid(pull, noise=noise, limit=t) else depth["adaptive"]
         sse[_key("centroid-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     wide: dict[tuple[float, float], np.ndarray] = {}
     for t, ms, h in WIDE_GRID:
-        if abs(pull) < t and (ms, h) not in wide:
+        centroid = takes_centroid(pull, noise=noise, limit=t)
+        if centroid and (ms, h) not in wide:
             wide[ms, h] = adaptive_peak(volume, centre, spread, max_spread=int(ms),
                                         half_window=int(h), peak="centroid")
-        d = wide[ms, h] if abs(pull) < t else depth["adaptive"]
+        d = wide[ms, h] if centroid else depth["adaptive"]
         sse[_key("wide-centroid", (t, ms, h))] = float(np.sum((d - truth_levels)[mask] ** 2))
     return _uncertainty_terms(volume, depth[DEFAULT_METHOD], width, truth_levels, mask, sse=sse,
                               window=spread_size)

@@ -208,17 +208,22 @@ def test_windowed_centroid_known_answers() -> None:
 
 
 @pytest.mark.parametrize("noise", [0.05, 0.1])
-def test_adaptive_centroid_takes_noise_off_even_curves_only(noise: float) -> None:
+def test_adaptive_centroid_takes_the_centroid_where_its_pull_is_under_the_noise(
+        noise: float) -> None:
     """Even Gaussian curves (sigma 1.5 levels) on a floor with additive noise, over a gentle
     surface (most pixels are peak pixels): adaptive_centroid's 5-level centroid has less
-    error than adaptive's 3-point Gaussian (measured 0.081 against 0.129 levels at noise
-    0.05, 0.148 against 0.253 at 0.1); the same curves with an upper flank twice as wide (a
-    centroid pulled 0.2 levels into it) give adaptive's depth exactly. The default
-    (shape_select) gives adaptive_centroid's depth on both: these noisy curves are not
-    clean enough for SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is
-    under its limit, but their centroid pull is not (SPC there: 1.29 levels of error
-    against adaptive's 0.55)."""
-    from sffscan.stages.depth_candidates import centroid_pull
+    error than adaptive's 3-point Gaussian (measured 0.084 against 0.129 levels at noise
+    0.05, 0.154 against 0.254 at 0.1). The same curves with an upper flank twice as wide
+    pull a centroid 0.21-0.22 levels into it: at noise 0.05 the 3-point Gaussian's spread
+    (0.149) is under that pull and the default gives adaptive's depth exactly; at 0.1 it is
+    over it (0.267) and the centroid is taken (measured 0.559 against adaptive's 0.548
+    levels: where pull and noise are close the two err alike). The default (shape_select)
+    gives adaptive_centroid's depth on both: these noisy curves are not clean enough for
+    SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is under its limit, but
+    their centroid pull is not (SPC there: 1.29 levels of error against 0.55)."""
+    from sffscan.stages.depth_candidates import pull_statistics, takes_centroid
+    from sffscan.stages.depth_levels import level_spread, median_filter_levels
+    from sffscan.stages.depth_peak import adaptive_peak
 
     rng = np.random.default_rng(0)
     n = 40
@@ -233,12 +238,22 @@ def test_adaptive_centroid_takes_noise_off_even_curves_only(noise: float) -> Non
         got = {m: depth_from_focus(vol, method=m)[0]
                for m in ("adaptive", "adaptive_centroid", DEFAULT_METHOD)}
         np.testing.assert_array_equal(got[DEFAULT_METHOD], got["adaptive_centroid"])
-        if lopsided:
-            assert centroid_pull(vol, np.argmax(vol, axis=0)) > 0.15
-            np.testing.assert_array_equal(got["adaptive_centroid"], got["adaptive"])
-        else:
-            err = {m: float(np.sqrt(np.mean((g - peaks)[core] ** 2))) for m, g in got.items()}
+        err = {m: float(np.sqrt(np.mean((g - peaks)[core] ** 2))) for m, g in got.items()}
+        pull, spread = pull_statistics(vol, np.argmax(vol, axis=0))
+        if not lopsided:
+            assert abs(pull) < 0.01
             assert err["adaptive_centroid"] < 0.7 * err["adaptive"], err
+            continue
+        assert pull > 0.15
+        if noise == 0.05:  # the pull stands out of the noise: the 3-point Gaussian
+            assert spread < pull and not takes_centroid(pull, noise=spread)
+            np.testing.assert_array_equal(got["adaptive_centroid"], got["adaptive"])
+        else:  # the 3-point Gaussian's noise is larger than the pull: the centroid
+            assert spread > pull and takes_centroid(pull, noise=spread)
+            centre = median_filter_levels(np.argmax(vol, axis=0), 11, n)
+            want = adaptive_peak(vol, centre, level_spread(centre, 9, n), peak="centroid")
+            np.testing.assert_array_equal(got["adaptive_centroid"], want)
+            assert err["adaptive_centroid"] < 1.05 * err["adaptive"], err
 
 
 def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
@@ -253,3 +268,17 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
     assert np.isnan(pull) and not takes_centroid(pull)
     np.testing.assert_array_equal(depth_from_focus(vol, method="adaptive_centroid")[0],
                                   depth_from_focus(vol, method="adaptive")[0])
+
+
+def test_takes_centroid_compares_the_pull_with_the_larger_of_limit_and_noise() -> None:
+    """takes_centroid: abs(pull) under max(limit, noise); a NaN pull never, a NaN noise
+    counts as none."""
+    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, takes_centroid
+
+    assert takes_centroid(CENTROID_PULL_LIMIT / 2)
+    assert not takes_centroid(0.1)
+    assert takes_centroid(0.1, noise=0.2) and takes_centroid(-0.1, noise=0.2)
+    assert not takes_centroid(0.3, noise=0.2)
+    assert not takes_centroid(0.1, noise=float("nan"))
+    assert takes_centroid(0.01, noise=float("nan"))
+    assert not takes_centroid(float("nan"), noise=1.0)
