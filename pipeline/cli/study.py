@@ -29,7 +29,9 @@ the file or option).
 (:mod:`sffscan.stages.sim.families`: even and lopsided blur, Gaussian and pillbox PSFs, noise
 none to heavy, 8-12 bits, textures, flats, slopes, steps, heights near both ends, N =
 20..100), the tunable candidates tuned on the other families' training seeds, every
-method scored on the held-out family's other seeds; ``--imdata`` adds a third-party stack
+method scored on the held-out family's other seeds (``--crossed``: also the ten families
+crossed from those, slopes under every blur, PSF and noise among them); ``--imdata`` adds a
+third-party stack
 scored with the candidates tuned on all families. Prints the method x family table of held-out
 RMSE (levels) and the held-out coverage of the height uncertainty
 (:mod:`sffscan.stages.depth_uncertainty`: share of pixels with |error| <= 2 sigma, its
@@ -273,6 +275,7 @@ def families_study(args: argparse.Namespace) -> int:
         leave_one_family_out,
     )
     from sffscan.stages.focus_measure import focus_measure
+    from sffscan.stages.sim.families import family_names
 
     operator = args.operators.split(",")[0].strip().lower() if args.operators else "glvm"
     window = args.windows[0] if args.windows else 9
@@ -283,7 +286,7 @@ def families_study(args: argparse.Namespace) -> int:
     third: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     try:
         names = ([v.strip() for v in args.family.split(",") if v.strip()]
-                 if args.family else None)
+                 if args.family else family_names(crossed=True) if args.crossed else None)
         if args.imdata is not None:
             st = read_imdata(Path(args.imdata))
             vol = focus_measure(st.images, operator=operator, window=window)
@@ -414,7 +417,11 @@ def register(sub: Any) -> None:
                    help="the leave-one-family-out protocol on synthetic families (with "
                         "--imdata: and that stack as a third-party set)")
     p.add_argument("--family", metavar="NAMES",
-                   help="--families: comma-separated family names (default: all)")
+                   help="--families: comma-separated family names (default: all the "
+                        "study's)")
+    p.add_argument("--crossed", action="store_true",
+                   help="--families: the study's families and the ten crossed from them "
+                        "(sffscan.stages.sim.families.CROSSED_FAMILIES)")
     p.add_argument("--seeds", type=int, default=3,
                    help="--families: training seeds per family, as many held out (default 3)")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")

@@ -23,7 +23,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-__all__ = ["FAMILIES", "Family", "SimStack", "family_stack", "family_names"]
+__all__ = ["CROSSED_FAMILIES", "FAMILIES", "Family", "SimStack", "family_names",
+           "family_stack"]
 
 BANK_RADII_PX = np.array([0.0, 0.35, 0.7, 1.0, 1.4, 2.0, 2.8, 3.8, 5.0, 6.5, 8.5, 11.0, 14.0])
 """Blur radii (px) of the bank; larger blurs are clamped to the last (the texture is gone)."""
@@ -98,6 +99,28 @@ FAMILIES: tuple[Family, ...] = (
 )
 """The families of the study: each differs from the first in one or two ways."""
 
+CROSSED_FAMILIES: tuple[Family, ...] = (
+    Family("slopes-lens-noisy", surface="slope", blur="lens", noise="heavy",
+           contrast=(0.04, 0.12)),
+    Family("slopes-even-noisy", surface="slope", noise="heavy", contrast=(0.04, 0.12)),
+    Family("slopes-even", surface="slope"),
+    Family("slopes-pillbox-noisy", surface="slope", psf="pillbox", noise="heavy",
+           contrast=(0.05, 0.15)),
+    Family("slopes-8bit-fine", surface="slope", bits=(8,), texture_px=(0.7, 1.2),
+           contrast=(0.03, 0.08), noise="heavy"),
+    Family("slopes-lens-pillbox", surface="slope", blur="lens", psf="pillbox"),
+    Family("slopes-coarse-clean", surface="slope", noise="none", bits=(12,),
+           texture_px=(2.5, 5.0), contrast=(0.15, 0.3), blur_per_level_px=(0.8, 2.0)),
+    Family("sinus-lens-light", blur="lens", noise="light", contrast=(0.05, 0.12)),
+    Family("steps-lens-noisy", surface="steps", blur="lens", noise="heavy",
+           contrast=(0.05, 0.15)),
+    Family("flat-lens-12bit", surface="flat", blur="lens", bits=(12,), noise="light"),
+)
+"""More families, each crossing the settings of two or three of :data:`FAMILIES` (slopes
+under each blur, PSF and noise; a thin lens' sinusoid, steps and flat): not in the study's
+default table (``sffscan study --families --crossed`` runs the protocol on both sets), a
+check of the choice on kinds of stack it was not made on (docs/depth-method.md)."""
+
 _NOISE_E = {"none": None, "light": (20000.0, 5.0), "heavy": (1500.0, 15.0)}
 
 
@@ -114,18 +137,20 @@ class SimStack:
     info: dict[str, float]
 
 
-def family_names() -> list[str]:
-    """The names of :data:`FAMILIES`, in order."""
-    return [f.name for f in FAMILIES]
+def family_names(*, crossed: bool = False) -> list[str]:
+    """The names of :data:`FAMILIES`, in order (then :data:`CROSSED_FAMILIES`'s with
+    ``crossed``)."""
+    return [f.name for f in FAMILIES + (CROSSED_FAMILIES if crossed else ())]
 
 
 def _family(name: str | Family) -> Family:
     if isinstance(name, Family):
         return name
-    for f in FAMILIES:
+    for f in FAMILIES + CROSSED_FAMILIES:
         if f.name == name:
             return f
-    raise ValueError(f"unknown family {name!r}; families: {', '.join(family_names())}")
+    raise ValueError(f"unknown family {name!r}; families: "
+                     f"{', '.join(family_names(crossed=True))}")
 
 
 def _texture(rng: np.random.Generator, shape: tuple[int, int], grain_px: float,

@@ -19,11 +19,11 @@ from sffscan.stages.depth_study import (
     leave_one_family_out,
     width_switch,
 )
-from sffscan.stages.sim.families import FAMILIES, family_names, family_stack
+from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_names, family_stack
 
 
 def test_every_family_renders_a_valid_stack() -> None:
-    for fam in FAMILIES:
+    for fam in FAMILIES + CROSSED_FAMILIES:
         s = family_stack(fam.name, 7, size_px=32)
         n = s.images.shape[0]
         assert 20 <= n <= 100 and s.images.shape[1:] == (32, 32)
@@ -146,6 +146,33 @@ def test_study_families_command(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 def test_family_names() -> None:
     assert family_names() == [f.name for f in FAMILIES] and len(set(family_names())) >= 8
+    both = family_names(crossed=True)
+    assert both[:len(FAMILIES)] == family_names() and len(set(both)) == len(both)
+    assert both[len(FAMILIES):] == [f.name for f in CROSSED_FAMILIES]
+
+
+def test_study_crossed_families(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """--crossed runs the protocol on the study's families and the crossed ones (the
+    protocol itself stubbed to record the names: the full run takes 15 s); a crossed name
+    is accepted by --family."""
+    import sffscan.stages.depth_study as ds
+
+    calls: list[list[str]] = []
+    real = ds.leave_one_family_out
+
+    def record(**kw: object) -> object:
+        calls.append(list(kw["families"] or []))  # type: ignore[call-overload]
+        return real(**{**kw, "families": ["slopes", "slopes-lens-noisy"], "seeds": 1,
+                       "size_px": 32})  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ds, "leave_one_family_out", record)
+    assert main(["study", "--families", "--crossed", "-o", str(tmp_path / "a")]) == 0
+    assert calls[-1] == family_names(crossed=True)
+    assert main(["study", "--families", "--family", "slopes,slopes-lens-noisy", "--seeds",
+                 "1", "-o", str(tmp_path / "b")]) == 0
+    assert calls[-1] == ["slopes", "slopes-lens-noisy"]
+    assert "slopes-lens-noisy" in capsys.readouterr().out
 
 
 def test_adaptive_on_a_family_stack_is_finite() -> None:
