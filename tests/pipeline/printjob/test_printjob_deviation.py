@@ -12,7 +12,7 @@ from sffscan.pipeline.printjob.deviation import (
     worst,
 )
 from sffscan.pipeline.printjob.expected import ExpectedMap, Grid, PrinterMapping
-from sffscan.pipeline.printjob.gcode import parse_gcode
+from sffscan.pipeline.printjob.gcode import GcodeProgram, parse_gcode
 
 GRID = Grid((0.0, 0.0), 50.0, (120, 200))  # 10 x 6 mm at 50 µm/px
 
@@ -112,13 +112,17 @@ def test_small_noise_blobs_and_the_edge_band_are_not_alarms() -> None:
     assert v.objects[0].verdict == "warn"
 
 
-def test_fit_printer_mapping_finds_the_translation() -> None:
+def _l_layer() -> tuple[GcodeProgram, Grid]:
+    """An L-shaped first layer of 0.4 mm lines, and a 50 µm grid over it."""
     lines = ["M83", "G1 Z0.2"]
-    for j in range(12):  # an L-shaped first layer, 0.4 mm lines
+    for j in range(12):
         y = 1.0 + 0.4 * j
         lines += [f"G1 X1 Y{y:.2f}", f"G1 X{4 if j > 3 else 8} Y{y:.2f} E0.3"]
-    prog = parse_gcode("\n".join(lines))
-    grid = Grid((0.0, 0.0), 50.0, (160, 240))
+    return parse_gcode("\n".join(lines)), Grid((0.0, 0.0), 50.0, (160, 240))
+
+
+def test_fit_printer_mapping_finds_the_translation() -> None:
+    prog, grid = _l_layer()
     truth = PrinterMapping(offset_um=(730.0, -420.0))
     from sffscan.pipeline.printjob.expected import rasterise_expected
 
@@ -131,12 +135,7 @@ def test_fit_printer_mapping_finds_the_translation() -> None:
 def test_fit_printer_mapping_refuses_a_map_that_does_not_correlate() -> None:
     """A measured map of noise alone (no printed layer in it) gives no significant peak:
     ValueError naming the peak, not a translation."""
-    lines = ["M83", "G1 Z0.2"]
-    for j in range(12):
-        y = 1.0 + 0.4 * j
-        lines += [f"G1 X1 Y{y:.2f}", f"G1 X{4 if j > 3 else 8} Y{y:.2f} E0.3"]
-    prog = parse_gcode("\n".join(lines))
-    grid = Grid((0.0, 0.0), 50.0, (160, 240))
+    prog, grid = _l_layer()
     meas = np.random.default_rng(2).normal(0, 10, grid.shape).astype(np.float32)
     with pytest.raises(ValueError, match="no significant correlation peak .*peak 0"):
         fit_printer_mapping(meas, prog, grid)
