@@ -16,6 +16,7 @@ from sffscan.stages.depth_candidates import (
     sampled_curves,
     shape_statistics,
     spc_in_range,
+    spc_noise,
     takes_centroid,
     takes_spc,
 )
@@ -77,8 +78,9 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
-    if method == "shape_select" and takes_spc(shape_statistics(vol, am, curve_width(vol),
-                                                               seen), pull=pull):
+    if method == "shape_select" and takes_spc(
+            shape_statistics(vol, am, curve_width(vol), seen), pull=pull,
+            noise=(spc_noise(vol, seen), noise)):
         return "spc+centroid" if centroid else "spc+gauss3"
     return "adaptive_centroid" if centroid else "adaptive"
 

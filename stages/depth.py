@@ -41,6 +41,7 @@ from sffscan.stages.depth_candidates import (
     shape_select,
     shape_statistics,
     spc_in_range,
+    spc_noise,
     takes_centroid,
     takes_spc,
     window_pc,
@@ -188,11 +189,14 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     pull, noise = pull_statistics(c.volume, c.argmax)
     other = _adaptive_centroid(c, (pull, noise))
-    if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull):
+    noises = (spc_noise(c.volume), noise)
+    if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
+                     noise=noises):
         return other  # SPC's map only where the stack takes it
     spc = _from_sums(c, method="spc")
     return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                        in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull)
+                        in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull,
+                        noise=noises)
 
 
 ESTIMATORS: dict[str, Estimator] = {
@@ -296,7 +300,11 @@ def depth_from_focus(
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
             clean (:func:`sffscan.stages.depth_candidates.shape_select` at
             :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS` and a centroid
-            pull under :data:`~sffscan.stages.depth_candidates.SPC_PULL_LIMIT`, tuned by the
+            pull under :data:`~sffscan.stages.depth_candidates.SPC_PULL_LIMIT`, and SPC's
+            predicted noise at most
+            :data:`~sffscan.stages.depth_candidates.SPC_NOISE_RATIO` times the pull's
+            noise or negligible, :func:`~sffscan.stages.depth_candidates.spc_noise`; tuned
+            by the
             leave-one-family-out study), except at the pixels whose SPC depth lies within
             :data:`~sffscan.stages.depth_candidates.SPC_END_REACH` curve widths of an end
             of the range (:func:`~sffscan.stages.depth_candidates.spc_in_range`); else, and

@@ -45,6 +45,7 @@ from sffscan.stages.depth_candidates import (
     shape_select,
     shape_statistics,
     spc_in_range,
+    spc_noise,
     takes_centroid,
     takes_spc,
     window_pc,
@@ -111,6 +112,14 @@ where settings tie on the training seeds (a stack that takes SPC with no pixel n
 cannot tell them apart) the tuning takes the first, the widest guard the tie allows, since
 a curve cut by the range's end biases SPC whatever the data say about the others."""
 
+SPC_NOISE_RATIOS = (math.inf, 2.83, 2.0, 1.68, 1.41, 1.19, 1.0, 0.84, 0.71)
+"""``spc-noise`` settings the protocol tunes over (quarter octaves): the largest ratio of
+SPC's predicted noise to the centroid pull's noise
+(:func:`sffscan.stages.depth_candidates.spc_noise`) of a stack ``shape_select`` (at its
+shipped limits, reach and pull limit) gives to SPC (inf: no limit). Largest first: where
+settings tie on the training seeds the tuning takes the first, the loosest the tie allows,
+so the limit changes only what training stacks show."""
+
 WIDE_GRID = tuple((t, ms, h) for t in (0.03, 0.05, 0.1) for ms in (2.0, 4.0)
                   for h in (5.0, 8.0, 12.0, 15.0))
 """``wide-centroid`` settings the protocol tunes over: (largest centroid pull, levels; largest
@@ -128,6 +137,7 @@ CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "shape-select": SHAPE_GRID,
                                               "spc-reach": SPC_REACHES,
                                               "spc-pull": SPC_PULLS,
+                                              "spc-noise": SPC_NOISE_RATIOS,
                                               "planar-peak": PLANE_LIMITS,
                                               "centroid-pull": PULL_LIMITS,
                                               "wide-centroid": WIDE_GRID}
@@ -214,16 +224,22 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1], in_range=in_range, pull=pull)
         sse[_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    limits = {"max_skew": SHAPE_SELECT_LIMITS[0], "max_ratio": SHAPE_SELECT_LIMITS[1]}
+    max_skew, max_ratio = SHAPE_SELECT_LIMITS
+    spc, other = depth["spc"], depth["adaptive_centroid"]
     for k in SPC_REACHES:
-        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, **limits,
-                         in_range=spc_in_range(depth["spc"], width, n, reach=k), pull=pull)
+        d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
+                         in_range=spc_in_range(spc, width, n, reach=k), pull=pull)
         sse[_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for t in SPC_PULLS:
-        d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, **limits,
+        d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, max_pull=t)
         sse[_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    if takes_spc(stats, **limits, pull=pull):
+    noises = (spc_noise(volume), noise)
+    for t in SPC_NOISE_RATIOS:
+        d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
+                         in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t)
+        sse[_key("spc-noise", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull):
         planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
     else:
         blend = spread > ADAPTIVE_MAX_SPREAD  # adaptive's centroid pixels

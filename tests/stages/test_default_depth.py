@@ -282,3 +282,45 @@ def test_takes_centroid_compares_the_pull_with_the_larger_of_limit_and_noise() -
     assert not takes_centroid(0.1, noise=float("nan"))
     assert takes_centroid(0.01, noise=float("nan"))
     assert not takes_centroid(float("nan"), noise=1.0)
+
+
+def test_spc_noise_predicts_the_scatter_of_spc_on_noisy_curves() -> None:
+    """spc_noise against SPC's measured scatter: 4000 curves of one Gaussian peak (sigma 2
+    levels, N = 40) under independent white noise of 0.05 and 0.2 x the peak; the
+    predicted sigma within 15 % of the standard deviation of their SPC depths. Noise-free,
+    the prediction is the curve's shape alone: under the negligible 0.03 levels."""
+    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, spc_noise
+
+    n = 40
+    k = np.arange(n, dtype=np.float64)[:, None, None]
+    curve = 0.1 + np.exp(-0.5 * ((k - 19.3) / 2.0) ** 2) * np.ones((1, 40, 100))
+    rng = np.random.default_rng(3)
+    for s in (0.05, 0.2):
+        vol = (curve + rng.normal(0.0, s, curve.shape)).astype(np.float32)
+        depth = depth_from_focus(vol, method="spc", median_size=1)[0]
+        measured = float(np.std(depth))
+        assert spc_noise(vol) == pytest.approx(measured, rel=0.15), (s, measured)
+    assert spc_noise(curve) < CENTROID_PULL_LIMIT
+    assert np.isnan(spc_noise(curve, np.zeros((40, 100), bool)))
+
+
+def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
+    """takes_spc with ``noise`` (SPC's predicted, the pull's): SPC at most max_noise_ratio
+    times the pull's noise, or negligible (under CENTROID_PULL_LIMIT); a NaN pull noise
+    passes negligible noise only; an infinite ratio turns the test off."""
+    from sffscan.stages.depth_candidates import (
+        CENTROID_PULL_LIMIT,
+        SPC_NOISE_RATIO,
+        takes_spc,
+    )
+
+    even = (0.01, 1.5)  # even and clean curves
+    assert takes_spc(even, pull=0.0)
+    assert takes_spc(even, pull=0.0, noise=(0.1, 0.1))
+    assert takes_spc(even, pull=0.0, noise=(SPC_NOISE_RATIO * 0.2, 0.2))
+    assert not takes_spc(even, pull=0.0, noise=(0.3, 0.1))
+    assert takes_spc(even, pull=0.0, noise=(CENTROID_PULL_LIMIT / 2, 0.001))
+    assert not takes_spc(even, pull=0.0, noise=(0.3, float("nan")))
+    assert not takes_spc(even, pull=0.0, noise=(float("nan"), 0.1))
+    assert takes_spc(even, pull=0.0, noise=(0.3, 0.1), max_noise_ratio=float("inf"))
+    assert not takes_spc((0.2, 1.5), pull=0.0, noise=(0.01, 0.1))  # lopsided: no
