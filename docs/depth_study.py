@@ -46,7 +46,10 @@ it takes SPC, `adaptive_centroid` still stands at the pixels whose SPC depth lie
 1.5 of their curve's widths of an end of the range, where SPC's phase is pulled by the
 cut curve), `spc-reach` (that rule at its shipped limits with another reach, in widths;
 settings that tie on the training seeds go to the largest), `spc-pull` (the largest
-centroid pull of a stack that takes SPC; ties go to the smallest), `planar-peak` (for a
+centroid pull of a stack that takes SPC; ties go to the smallest), `spc-noise` (the
+largest ratio of SPC's predicted noise, from each curve's noise and first harmonic, to the
+centroid pull's noise, of a stack that takes SPC; SPC's noise under 0.03 levels always
+passes; ties go to the largest), `planar-peak` (for a
 stack that does not take SPC, the 3-point Gaussian at the filtered peak instead of the
 11-level centroid where the filtered peaks spread over the window but lie within a limit,
 levels RMS, of a plane: a slope, not an edge; 0: never) and `centroid-pull` (one choice
@@ -93,7 +96,13 @@ every column left of `width-switch`, `shape_select` included) is the default of 
 and stack since 2026-12-02. It was not the default before because the repository's plate
 scan got worse with it; the reason was SPC's pull at pixels near an end of the range, which
 the reach guard (`spc-reach`) removes, and a noisy lopsided stack could pass its skewness
-limit, which the pull limit (`spc-pull`) stops (docs/depth-method.md). Its fallback
+limit, which the pull limit (`spc-pull`) stops (docs/depth-method.md); and even curves
+under heavy noise take the fallback where SPC's predicted noise exceeds 1.19 times the
+centroid pull's noise (`spc-noise`: tuned by this protocol over the twenty families of
+the second table, 1.19 in 19 of its 20 folds; over these ten alone no training stack tells
+the settings apart and the tie goes to no limit, so this table's `spc-noise` column equals
+`spc-pull`'s; with it even-noisy 0.777 -> 0.755 levels, now the best of its row, the other
+rows unchanged). Its fallback
 `adaptive_centroid` (the default earlier that day) takes the 5-level centroid at its peak
 pixels where the curves' centroid pull is under the limit the protocol tunes on every
 family's training seeds (`centroid-pull`, the pertuz row's setting) or under the pull's own
@@ -125,7 +134,10 @@ The same protocol over the study's ten families and the ten crossed from them
 thin lens' sinusoid, noisy steps and a flat; command: `sffscan study --families --crossed
 --seeds {seeds} --imdata {pertuz}`). Tuning now sees twenty families, so the study's rows
 can differ from the table above; the crossed rows show the default on kinds of stack it
-was not chosen on. The bar for sets we do not have is 1.10x.
+was not chosen on. The bar for sets we do not have is 1.10x. Weighing SPC's predicted noise
+(`spc-noise`, shipped at the 1.19 this table's pertuz row tunes) took slopes-even-noisy
+from 1.15x to 1.00x (three of its six stacks had taken SPC, whose error there was 1.7-2.1x
+`adaptive_centroid`'s); slopes-lens-noisy stays 1.26x (`wcentroid` best: no SPC involved).
 
 """
 
