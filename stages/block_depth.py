@@ -78,10 +78,12 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
-    if method == "shape_select" and takes_spc(
-            shape_statistics(vol, am, curve_width(vol), seen), pull=pull,
-            noise=(spc_noise(vol, seen), noise)):
-        return "spc+centroid" if centroid else "spc+gauss3"
+    if method == "shape_select":
+        stats = shape_statistics(vol, am, curve_width(vol), seen)
+        # SPC's noise only for curves that pass the rest (it costs as much as the rest)
+        if takes_spc(stats, pull=pull) and takes_spc(stats, pull=pull,
+                                                     noise=(spc_noise(vol, seen), noise)):
+            return "spc+centroid" if centroid else "spc+gauss3"
     return "adaptive_centroid" if centroid else "adaptive"
 
 
