@@ -187,14 +187,14 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     Parameters
     ----------
     levels : (N, H, W) ndarray of float
-        The curves, N >= 3.
+        The curves; NaN for N < 5 (too few second differences for a spread).
     mask : (H, W) ndarray of bool, optional
         The curves judged.
     """
     vol = np.asarray(levels, np.float32)
     n = vol.shape[0]
     curves = vol.reshape(n, -1) if mask is None else vol[:, np.asarray(mask, bool)]
-    if curves.shape[1] == 0:
+    if curves.shape[1] == 0 or n < 5:  # under 3 second differences: no spread to take
         return math.nan
     cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
     d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]

@@ -302,6 +302,7 @@ def test_spc_noise_predicts_the_scatter_of_spc_on_noisy_curves() -> None:
         assert spc_noise(vol) == pytest.approx(measured, rel=0.15), (s, measured)
     assert spc_noise(curve) < CENTROID_PULL_LIMIT
     assert np.isnan(spc_noise(curve, np.zeros((40, 100), bool)))
+    assert np.isnan(spc_noise(curve[:4]))  # 2 second differences: no spread
 
 
 def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
