@@ -172,6 +172,15 @@ def _row_median(x: np.ndarray) -> np.ndarray:
     return part[:, h] if m % 2 else 0.5 * (part[:, h - 1] + part[:, h])
 
 
+def _curve_noise(cur: np.ndarray) -> np.ndarray:
+    """Each curve's noise sigma (rows of ``cur``, (curves, N) float32, N >= 5) from its
+    second differences: ``1.4826 MAD / sqrt 6``, robust to the few levels of the peak, whose
+    curvature is signal."""
+    d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]
+    d2 -= _row_median(d2)[:, None]
+    return np.float32(1.4826 / math.sqrt(6.0)) * _row_median(np.abs(d2))
+
+
 def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     """SPC's predicted noise (levels, one sigma), the median over the ``mask`` curves (all
     when None); NaN where none is judged.
@@ -197,9 +206,7 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     if curves.shape[1] == 0 or n < 5:  # under 3 second differences: no spread to take
         return math.nan
     cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
-    d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]
-    d2 -= _row_median(d2)[:, None]
-    s = np.float32(1.4826 / math.sqrt(6.0)) * _row_median(np.abs(d2))
+    s = _curve_noise(cur)
     k = np.arange(n) * (2.0 * np.pi / n)
     h1 = np.hypot(cur @ np.cos(k).astype(np.float32), cur @ np.sin(k).astype(np.float32))
     sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
