@@ -20,7 +20,12 @@ from sffscan.stages.depth_candidates import (
     takes_centroid,
     takes_spc,
 )
-from sffscan.stages.depth_harmonics import confidence_from_sums, depth_from_harmonics, focus_sums
+from sffscan.stages.depth_harmonics import (
+    confidence_from_sums,
+    depth_from_harmonics,
+    focus_sums,
+    spc_depth,
+)
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
@@ -33,7 +38,8 @@ BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 
 OWN_LEVEL_METHODS = ("wcentroid", "adaptive", "adaptive_centroid")
 """The methods that read only the block's own columns' levels (about the filtered argmax);
-the other ring methods read the halo's columns too."""
+the other ring methods read the halo's columns too (except the blocks of
+:data:`SPC_BLOCKS`: their own columns too)."""
 
 SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
 """What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at
@@ -98,9 +104,10 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
     ----------
     src : ndarray of float32
         Every row of the block: for the accumulating methods (``streaming``) the sums
-        (S, rows, halo + block + halo columns); for wcentroid and adaptive the levels of
-        the block's columns (N, rows, block); for the other methods the levels of the
-        block and its halo (N, rows, halo + block + halo).
+        (S, rows, halo + block + halo columns); for wcentroid, adaptive, adaptive_centroid
+        and the :data:`SPC_BLOCKS` the levels of the block's columns (N, rows, block); for
+        the other methods the levels of the block and its halo (N, rows, halo + block +
+        halo).
     argmax : ndarray of int, (R, halo + block + halo)
         The running argmax of rows [r0, r1) widened by the filters' reach (R rows).
     low_src : ndarray of float32 or None
@@ -151,21 +158,23 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         sums[:] = focus_sums(levels)
         low[:] = levels.min(axis=0)
         return depth, confidence_from_sums(*sums)
-    vol = src[:, wide]
-    spc_block = method in SPC_BLOCKS
-    depth, conf = depth_from_focus(vol, method="spc" if spc_block else method,
-                                   median_size=median_size, argmax=argmax)
-    if spc_block:  # what adaptive_centroid takes where SPC is out of its range
+    if method in SPC_BLOCKS:
+        # SPC from the sums that adaptive_centroid's pass leaves (float32, the block's own
+        # columns) and its filtered argmax: one median and one pass over the levels, where
+        # depth_from_focus took its own of both over the halo's columns too, in float64
+        # (the depths differ by float32 round-off); adaptive_centroid's depth stands where
+        # SPC is out of its range
         centre = median_filter_levels(argmax, median_size, n_levels)
         spread = level_spread(centre, spread_size, n_levels)
-        other, other_conf = adaptive_block(
-            src[:, r0:r1, inner], centre[own, inner],
+        other, conf = adaptive_block(
+            src[:, r0:r1], centre[own, inner],
             spread[own, inner], peak=SPC_BLOCKS[method], sums_out=sums, min_out=low)
-        spc = depth[own, inner]
+        spc = spc_depth(sums[1], sums[2], centre[own, inner], n_levels=n_levels)
         width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, n_levels)
         keep = spc_in_range(spc, width, n_levels)
-        return (np.where(keep, spc, other).astype(np.float32, copy=False),
-                np.where(keep, conf[own, inner], other_conf).astype(np.float32, copy=False))
+        return np.where(keep, spc, other).astype(np.float32, copy=False), conf
+    vol = src[:, wide]
+    depth, conf = depth_from_focus(vol, method=method, median_size=median_size, argmax=argmax)
     sums[:] = focus_sums(vol[:, own, inner])
     low[:] = vol[:, own, inner].min(axis=0)
     return depth[own, inner], conf[own, inner]

@@ -33,6 +33,7 @@ __all__ = [
     "focus_confidence",
     "focus_sums",
     "harmonic_table",
+    "spc_depth",
     "strip_sums",
     "volume_strips",
 ]
@@ -186,6 +187,33 @@ def _wrap(x: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def _spc_from_phase(phi: np.ndarray, centre: np.ndarray, n: int) -> np.ndarray:
+    """SPC's depth from the first harmonic's phase in levels, ``phi = -angle(H_1) N /
+    (2 pi)``, and the filtered argmax ``centre`` (``a_med``)."""
+    # the shift s = round(N/2) - a_med that would move the filtered argmax to the
+    # centre (MATLAB's round: halves away from zero, round(N/2) = (N + 1) // 2)
+    s = (n + 1) // 2 - centre
+    return _wrap(phi + s, n) - s
+
+
+def spc_depth(re: np.ndarray, im: np.ndarray, centre: np.ndarray, *, n_levels: int
+              ) -> np.ndarray:
+    """SPC's depth (float32 fractional levels) from each curve's first harmonic and its
+    filtered argmax, as :func:`depth_from_sums` computes it for ``"spc"``.
+
+    Parameters
+    ----------
+    re, im : (H, W) ndarray of float
+        Re H_1 and Im H_1 (:func:`harmonic_table`'s last two rows times the curve).
+    centre : (H, W) ndarray of int
+        The argmax median filtered as for SPC (``a_med``), levels.
+    n_levels : int, keyword-only
+        N.
+    """
+    phi = np.arctan2(im, re) * (-n_levels / (2.0 * math.pi))
+    return _spc_from_phase(phi, np.asarray(centre), n_levels).astype(np.float32, copy=False)
+
+
 def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarray,
                     argmax: np.ndarray | None, *, n_levels: int, method: str,
                     median_size: int) -> np.ndarray:
@@ -203,10 +231,7 @@ def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarr
             depth = _wrap(phi, n)
         else:
             assert argmax is not None
-            # the shift s = round(N/2) - a_med that would move the filtered argmax to the
-            # centre (MATLAB's round: halves away from zero, round(N/2) = (N + 1) // 2)
-            s = (n + 1) // 2 - median_filter_levels(argmax, median_size, n)
-            depth = _wrap(phi + s, n) - s
+            depth = _spc_from_phase(phi, median_filter_levels(argmax, median_size, n), n)
     else:
         assert argmax is not None
         if method == "argmax":

@@ -424,8 +424,6 @@ class FocusVolume:
             src = self._gather(self.fv, u0 if own else a0, u1 if own else a1)
             if method in blocks.BLOCK_CHOICES:  # one choice for the block, whatever its bands
                 method = blocks.block_method(src, argmax[:, inner], complete, method=method)
-                if method not in blocks.OWN_LEVEL_METHODS:  # SPC reads the halo's columns too
-                    src = self._gather(self.fv, a0, a1)
 
         def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)

@@ -248,9 +248,11 @@ def test_spc_is_kept_only_a_reach_of_widths_from_the_range_s_ends() -> None:
 
 @pytest.mark.parametrize("peak", ["centroid", "gauss3"])
 def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None:
-    """block_depth.depth_rows of an SPC block (SPC_BLOCKS): SPC's depth where it is in range,
-    what adaptive_centroid's rule gives (its peak estimator named by the label) elsewhere, on
-    the same curves; the curves' sums and minimum as the ring methods give them."""
+    """block_depth.depth_rows of an SPC block (SPC_BLOCKS): SPC's depth where it is in range
+    (from the block's float32 sums: within float32 round-off of depth_from_focus's, whose
+    sums are float64), what adaptive_centroid's rule gives (its peak estimator named by the
+    label) elsewhere, on the same curves; the curves' sums and minimum as the ring methods
+    give them, the confidence depth_from_focus's."""
     from sffscan.stages.block_depth import SPC_BLOCKS, depth_rows
     from sffscan.stages.depth_candidates import spc_in_range
     from sffscan.stages.depth_harmonics import focus_sums
@@ -265,9 +267,10 @@ def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None
     inner = slice(halo, halo + block)
     label = next(k for k, v in SPC_BLOCKS.items() if v == peak)
     out = np.empty((3, rows, block), np.float32), np.empty((rows, block), np.float32)
-    depth, _ = depth_rows(vol, argmax, None, (0, rows), slice(0, rows), inner, *out,
-                          method=label, n_levels=n, median_size=11, spread_size=9,
-                          streaming=False, keep_low=True)
+    # the block's own columns' levels (SPC from their float32 sums), the halo's argmax
+    depth, conf = depth_rows(vol[:, :, inner], argmax, None, (0, rows), slice(0, rows),
+                             inner, *out, method=label, n_levels=n, median_size=11,
+                             spread_size=9, streaming=False, keep_low=True)
     spc = depth_from_focus(vol, method="spc", argmax=argmax)[0][:, inner]
     other = depth_from_focus(vol, method="adaptive", argmax=argmax)[0][:, inner]
     if peak == "centroid":
@@ -282,6 +285,8 @@ def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None
     assert 0.2 < keep.mean() < 0.9  # peaks from 0.5 to 12 levels: both kinds of pixel
     np.testing.assert_allclose(depth[keep], spc[keep], atol=1e-5)
     np.testing.assert_array_equal(depth[~keep], other[~keep])
+    np.testing.assert_allclose(conf, depth_from_focus(vol, method="spc")[1][:, inner],
+                               rtol=1e-6, atol=1e-7)
 
 
 # ----------------------------------------------------------------------------- SPC identity
