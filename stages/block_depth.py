@@ -38,8 +38,8 @@ BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 
 OWN_LEVEL_METHODS = ("wcentroid", "adaptive", "adaptive_centroid")
 """The methods that read only the block's own columns' levels (about the filtered argmax);
-the other ring methods read the halo's columns too (except the blocks of
-:data:`SPC_BLOCKS`: their own columns too)."""
+the other ring methods read the halo's columns too, except the blocks of
+:data:`SPC_BLOCKS`, which read their own columns only."""
 
 SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
 """What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at

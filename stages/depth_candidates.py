@@ -43,6 +43,7 @@ import math
 
 import cv2
 import numpy as np
+from sffscan.stages.depth_harmonics import harmonic_table
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
 __all__ = ["CENTROID_PULL_LIMIT", "GAUSS_FIT_HALF_WINDOW", "SHAPE_SAMPLE_STEP",
@@ -207,8 +208,8 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
         return math.nan
     cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
     s = _curve_noise(cur)
-    k = np.arange(n) * (2.0 * np.pi / n)
-    h1 = np.hypot(cur @ np.cos(k).astype(np.float32), cur @ np.sin(k).astype(np.float32))
+    re, im = (cur @ harmonic_table(n)[2:].T.astype(np.float32)).T
+    h1 = np.hypot(re, im)
     sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
     return float(np.median(sigma))
 

@@ -187,15 +187,6 @@ def _wrap(x: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _spc_from_phase(phi: np.ndarray, centre: np.ndarray, n: int) -> np.ndarray:
-    """SPC's depth from the first harmonic's phase in levels, ``phi = -angle(H_1) N /
-    (2 pi)``, and the filtered argmax ``centre`` (``a_med``)."""
-    # the shift s = round(N/2) - a_med that would move the filtered argmax to the
-    # centre (MATLAB's round: halves away from zero, round(N/2) = (N + 1) // 2)
-    s = (n + 1) // 2 - centre
-    return _wrap(phi + s, n) - s
-
-
 def spc_depth(re: np.ndarray, im: np.ndarray, centre: np.ndarray, *, n_levels: int
               ) -> np.ndarray:
     """SPC's depth (float32 fractional levels) from each curve's first harmonic and its
@@ -210,8 +201,16 @@ def spc_depth(re: np.ndarray, im: np.ndarray, centre: np.ndarray, *, n_levels: i
     n_levels : int, keyword-only
         N.
     """
-    phi = np.arctan2(im, re) * (-n_levels / (2.0 * math.pi))
-    return _spc_from_phase(phi, np.asarray(centre), n_levels).astype(np.float32, copy=False)
+    # the shift s = round(N/2) - a_med that would move the filtered argmax to the
+    # centre (MATLAB's round: halves away from zero, round(N/2) = (N + 1) // 2)
+    s = (n_levels + 1) // 2 - np.asarray(centre)
+    depth = _wrap(_phase_levels(re, im, n_levels) + s, n_levels) - s
+    return depth.astype(np.float32, copy=False)
+
+
+def _phase_levels(re: np.ndarray, im: np.ndarray, n: int) -> np.ndarray:
+    """The first harmonic's phase in levels, ``-angle(H_1) N / (2 pi)``."""
+    return np.arctan2(im, re) * (-n / (2.0 * math.pi))
 
 
 def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarray,
@@ -225,13 +224,11 @@ def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarr
     """
     n = n_levels
     positive = h0 > 0
-    if method in ("pc", "spc"):
-        phi = np.arctan2(im, re) * (-n / (2.0 * math.pi))
-        if method == "pc":
-            depth = _wrap(phi, n)
-        else:
-            assert argmax is not None
-            depth = _spc_from_phase(phi, median_filter_levels(argmax, median_size, n), n)
+    if method == "pc":
+        depth = _wrap(_phase_levels(re, im, n), n)
+    elif method == "spc":
+        assert argmax is not None
+        depth = spc_depth(re, im, median_filter_levels(argmax, median_size, n), n_levels=n)
     else:
         assert argmax is not None
         if method == "argmax":
