@@ -239,7 +239,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t)
         sse[_key("spc-noise", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull):
+    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull, noise=noises):
         planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
     else:
         blend = spread > ADAPTIVE_MAX_SPREAD  # adaptive's centroid pixels
