@@ -322,6 +322,7 @@ def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
     assert not takes_spc(even, pull=0.0, noise=(0.3, 0.1))
     assert takes_spc(even, pull=0.0, noise=(CENTROID_PULL_LIMIT / 2, 0.001))
     assert not takes_spc(even, pull=0.0, noise=(0.3, float("nan")))
+    assert takes_spc(even, pull=0.0, noise=(0.01, float("nan")))
     assert not takes_spc(even, pull=0.0, noise=(float("nan"), 0.1))
     assert takes_spc(even, pull=0.0, noise=(0.3, 0.1), max_noise_ratio=float("inf"))
     assert not takes_spc((0.2, 1.5), pull=0.0, noise=(0.01, 0.1))  # lopsided: no
