@@ -146,33 +146,32 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         if keep_low and low_src is not None:
             low[:] = low_src[r0:r1]
         return depth[own, inner], conf[own, inner]
-    if method in OWN_LEVEL_METHODS:  # the levels about the filtered argmax
+    if method in OWN_LEVEL_METHODS or method in SPC_BLOCKS:  # about the filtered argmax
         centre = median_filter_levels(argmax, median_size, n_levels)
         levels = src[:, r0:r1]
-        if method != "wcentroid":  # depth and confidence in one pass over the levels
-            spread = level_spread(centre, spread_size, n_levels)
-            peak = "centroid" if method == "adaptive_centroid" else "gauss3"
-            return adaptive_block(levels, centre[own, inner], spread[own, inner], peak=peak,
-                                  sums_out=sums, min_out=low if keep_low else None)
-        depth = windowed_centroid(levels, centre[own, inner])
-        sums[:] = focus_sums(levels)
-        low[:] = levels.min(axis=0)
-        return depth, confidence_from_sums(*sums)
-    if method in SPC_BLOCKS:
-        # SPC from the sums that adaptive_centroid's pass leaves (float32, the block's own
-        # columns) and its filtered argmax: one median and one pass over the levels, where
-        # depth_from_focus took its own of both over the halo's columns too, in float64
-        # (the depths differ by float32 round-off); adaptive_centroid's depth stands where
-        # SPC is out of its range
-        centre = median_filter_levels(argmax, median_size, n_levels)
+        if method == "wcentroid":
+            depth = windowed_centroid(levels, centre[own, inner])
+            sums[:] = focus_sums(levels)
+            low[:] = levels.min(axis=0)
+            return depth, confidence_from_sums(*sums)
+        # depth and confidence in one pass over the levels
+        spc_block = method in SPC_BLOCKS
         spread = level_spread(centre, spread_size, n_levels)
-        other, conf = adaptive_block(
-            src[:, r0:r1], centre[own, inner],
-            spread[own, inner], peak=SPC_BLOCKS[method], sums_out=sums, min_out=low)
+        peak = SPC_BLOCKS[method] if spc_block else (
+            "centroid" if method == "adaptive_centroid" else "gauss3")
+        depth, conf = adaptive_block(levels, centre[own, inner], spread[own, inner],
+                                     peak=peak, sums_out=sums,
+                                     min_out=low if keep_low or spc_block else None)
+        if not spc_block:
+            return depth, conf
+        # SPC from that pass's float32 sums (the block's own columns) and filtered argmax,
+        # not depth_from_focus's float64 sums over the halo's columns too and its own
+        # median (the depths differ by float32 round-off); adaptive_centroid's depth
+        # stands where SPC is out of its range
         spc = spc_depth(sums[1], sums[2], centre[own, inner], n_levels=n_levels)
         width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, n_levels)
         keep = spc_in_range(spc, width, n_levels)
-        return np.where(keep, spc, other).astype(np.float32, copy=False), conf
+        return np.where(keep, spc, depth).astype(np.float32, copy=False), conf
     vol = src[:, wide]
     depth, conf = depth_from_focus(vol, method=method, median_size=median_size, argmax=argmax)
     sums[:] = focus_sums(vol[:, own, inner])
