@@ -49,7 +49,8 @@ settings that tie on the training seeds go to the largest), `spc-pull` (the larg
 centroid pull of a stack that takes SPC; ties go to the smallest), `spc-noise` (the
 largest ratio of SPC's predicted noise, from each curve's noise and first harmonic, to the
 centroid pull's noise, of a stack that takes SPC; SPC's noise under 0.03 levels always
-passes; ties go to the largest), `planar-peak` (for a
+passes; ties go to the largest; every setting with the shipped rule's departure test,
+`spc_departure`, which has no constant to tune), `planar-peak` (for a
 stack that does not take SPC, the 3-point Gaussian at the filtered peak instead of the
 11-level centroid where the filtered peaks spread over the window but lie within a limit,
 levels RMS, of a plane: a slope, not an edge; 0: never) and `centroid-pull` (one choice

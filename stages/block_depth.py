@@ -15,6 +15,7 @@ from sffscan.stages.depth_candidates import (
     pull_statistics,
     sampled_curves,
     shape_statistics,
+    spc_departure,
     spc_in_range,
     spc_noise,
     takes_centroid,
@@ -86,9 +87,11 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        # SPC's noise only for curves that pass the rest (it costs as much as the rest)
-        if takes_spc(stats, pull=pull) and takes_spc(stats, pull=pull,
-                                                     noise=(spc_noise(vol, seen), noise)):
+        # SPC's noise and departure only for curves that pass the rest (each costs about
+        # as much as the rest)
+        if (takes_spc(stats, pull=pull)
+                and takes_spc(stats, pull=pull, noise=(spc_noise(vol, seen), noise))
+                and takes_spc(stats, pull=pull, departure=spc_departure(vol, am, seen))):
             return "spc+centroid" if centroid else "spc+gauss3"
     return "adaptive_centroid" if centroid else "adaptive"
 

@@ -40,6 +40,7 @@ from sffscan.stages.depth_candidates import (
     pull_statistics,
     shape_select,
     shape_statistics,
+    spc_departure,
     spc_in_range,
     spc_noise,
     takes_centroid,
@@ -193,10 +194,11 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
                      noise=noises):
         return other  # SPC's map only where the stack takes it
+    departure = spc_departure(c.volume, c.argmax)  # only for curves that pass the rest
     spc = _from_sums(c, method="spc")
     return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                         in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull,
-                        noise=noises)
+                        noise=noises, departure=departure)
 
 
 ESTIMATORS: dict[str, Estimator] = {
@@ -305,7 +307,10 @@ def depth_from_focus(
             :data:`~sffscan.stages.depth_candidates.SPC_NOISE_RATIO` times the pull's
             noise or negligible, :func:`~sffscan.stages.depth_candidates.spc_noise`; tuned
             by the
-            leave-one-family-out study), except at the pixels whose SPC depth lies within
+            leave-one-family-out study; and SPC's departure from the curves' 3-point
+            peaks no larger than its spread,
+            :func:`~sffscan.stages.depth_candidates.spc_departure`), except at the pixels
+            whose SPC depth lies within
             :data:`~sffscan.stages.depth_candidates.SPC_END_REACH` curve widths of an end
             of the range (:func:`~sffscan.stages.depth_candidates.spc_in_range`); else, and
             there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per

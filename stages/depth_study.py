@@ -44,6 +44,7 @@ from sffscan.stages.depth_candidates import (
     pull_statistics,
     shape_select,
     shape_statistics,
+    spc_departure,
     spc_in_range,
     spc_noise,
     takes_centroid,
@@ -235,11 +236,14 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
                          in_range=in_range, pull=pull, max_pull=t)
         sse[_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     noises = (spc_noise(volume), noise)
+    departure = spc_departure(volume, a)
     for t in SPC_NOISE_RATIOS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                         in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t)
+                         in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
+                         departure=departure)
         sse[_key("spc-noise", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull, noise=noises):
+    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull, noise=noises,
+                 departure=departure):
         planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
     else:
         blend = spread > ADAPTIVE_MAX_SPREAD  # adaptive's centroid pixels

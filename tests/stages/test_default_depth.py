@@ -26,6 +26,7 @@ from sffscan.stages.depth import (
     DEPTH_METHODS,
     adaptive_peak,
     depth_from_focus,
+    first_argmax,
     focus_confidence,
     level_spread,
     levels_to_height,
@@ -326,3 +327,74 @@ def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
     assert not takes_spc(even, pull=0.0, noise=(float("nan"), 0.1))
     assert takes_spc(even, pull=0.0, noise=(0.3, 0.1), max_noise_ratio=float("inf"))
     assert not takes_spc((0.2, 1.5), pull=0.0, noise=(0.01, 0.1))  # lopsided: no
+
+
+def test_spc_departure_known_answers() -> None:
+    """spc_departure: on identical noise-free curves, SPC (the first harmonic's phase,
+    -angle(H_1) N / 2 pi) minus the 3-point Gaussian at the argmax, both by their published
+    formulas, with no spread; about 0 on even noisy curves (the median of many); NaN where
+    no curve is judged."""
+    from sffscan.stages.depth_candidates import spc_departure
+
+    n = 21
+    k = np.arange(n, dtype=np.float64)
+    y = 0.05 + np.exp(-0.5 * ((k - 8.2) / 1.5) ** 2) + 0.3 * np.exp(-0.5 * ((k - 15) / 2.5) ** 2)
+    phase = -np.angle(np.sum(y * np.exp(-2j * np.pi * k / n))) * n / (2 * np.pi)
+    a = int(np.argmax(y))
+    spc = (phase - a + n / 2) % n + a - n / 2  # wrapped about the argmax
+    lm, l0, lp = np.log(y[a - 1:a + 2])
+    g3 = a + (lm - lp) / (2 * (lm - 2 * l0 + lp))
+    vol = np.repeat(y[:, None, None], 30, axis=1).repeat(20, axis=2).astype(np.float32)
+    dep, spread = spc_departure(vol, np.full((30, 20), a))
+    assert dep == pytest.approx(spc - g3, abs=2e-4) and spc - g3 > 0.5
+    assert spread == pytest.approx(0.0, abs=1e-4)
+    rng = np.random.default_rng(4)
+    even = 0.1 + np.exp(-0.5 * ((k[:, None, None] - 10.3) / 2.0) ** 2) * np.ones((1, 40, 100))
+    noisy = (even + rng.normal(0.0, 0.05, even.shape)).astype(np.float32)
+    dep, spread = spc_departure(noisy, np.argmax(noisy, axis=0))
+    assert abs(dep) < 0.03 < spread
+    assert np.isnan(spc_departure(vol, np.zeros((30, 20), int))[0])  # argmax at an end
+
+
+def test_takes_spc_refuses_a_departure_larger_than_its_spread() -> None:
+    """takes_spc with ``departure`` (median, spread): SPC where abs(median) is at most the
+    spread or under CENTROID_PULL_LIMIT; a NaN median refuses."""
+    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, takes_spc
+
+    even = (0.01, 1.5)
+    assert takes_spc(even, pull=0.0, departure=(0.1, 0.2))
+    assert takes_spc(even, pull=0.0, departure=(-0.2, 0.2))
+    assert not takes_spc(even, pull=0.0, departure=(0.5, 0.2))
+    assert not takes_spc(even, pull=0.0, departure=(-0.5, 0.2))
+    assert takes_spc(even, pull=0.0, departure=(CENTROID_PULL_LIMIT / 2, 0.0))
+    assert not takes_spc(even, pull=0.0, departure=(float("nan"), 0.2))
+    assert not takes_spc((0.2, 1.5), pull=0.0, departure=(0.0, 0.2))  # lopsided: no
+
+
+def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
+    """The stack that flipped to SPC once aligned (bench/bench_align_families.py: a noisy
+    thin-lens pillbox family, 1.2 %/frame breathing, seed 0): SPC departs from the curves'
+    peaks by more than their spread, and errs over 1.5x as much as adaptive_centroid; the
+    stack and a scan block of it take the fallback."""
+    from sffscan.stages.block_depth import SPC_BLOCKS, block_method
+    from sffscan.stages.depth_candidates import spc_departure
+    from sffscan.stages.fields.align import align_stack
+    from sffscan.stages.fields.aperture import stack_noise_floor
+    from sffscan.stages.sim.families import family_stack
+
+    real = family_stack("lens-pillbox-noisy", 0, size_px=128, n_levels=21, breathing=0.012)
+    aligned, _, al = align_stack(real.images)
+    floor = stack_noise_floor(real.images, al, max_value=1.0)[0].astype(np.float32)
+    vol = np.maximum(focus_measure(aligned, window=9) - floor[:, None, None], np.float32(0))
+    a = first_argmax(vol)
+    dep, spread = spc_departure(vol, a)
+    assert dep > spread > 0.0
+    truth = real.truth_um / 10.0  # 10 µm a level
+    inner = (slice(20, -20), slice(20, -20))
+    def rmse(d: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((d - truth)[inner] ** 2)))
+    fallback = depth_from_focus(vol, method="adaptive_centroid", argmax=a)[0]
+    assert rmse(depth_from_focus(vol, method="spc", argmax=a)[0]) > 1.5 * rmse(fallback)
+    np.testing.assert_array_equal(depth_from_focus(vol, method="shape_select", argmax=a)[0],
+                                  fallback)
+    assert block_method(vol, a) not in SPC_BLOCKS
