@@ -87,8 +87,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        # SPC's noise and departure only for curves that pass the rest (each costs about
-        # as much as the rest)
+        # SPC's noise (it costs about as much as the rest) and departure (a quarter of
+        # that) only for curves that pass the rest
         if (takes_spc(stats, pull=pull)
                 and takes_spc(stats, pull=pull, noise=(spc_noise(vol, seen), noise))
                 and takes_spc(stats, pull=pull, departure=spc_departure(vol, am, seen))):

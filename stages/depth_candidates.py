@@ -152,18 +152,30 @@ def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | N
     mask : (H, W) ndarray of bool, optional
         The curves judged.
     """
-    n = levels.shape[0]
-    am = np.asarray(argmax).astype(np.intp)
-    ok = (am >= 2) & (am <= n - 3)
-    if mask is not None:
-        ok &= np.asarray(mask, bool)
+    am, ok = _judged(argmax, levels.shape[0], mask)
     if not ok.any():
         return math.nan, math.nan
     vol = np.ascontiguousarray(levels, dtype=np.float32)
     diff = (windowed_centroid(vol, am, half_window=2)
             - (am + three_point_offset(vol, am, log=True)))[ok]
-    pull = float(np.median(diff))
-    return pull, 1.4826 * float(np.median(np.abs(diff - pull)))
+    return _median_spread(diff)
+
+
+def _judged(argmax: np.ndarray, n: int, mask: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The argmax as intp, and the curves judged: the ``mask`` ones (all when None) whose
+    argmax lies 2 levels or more from both ends of the N levels."""
+    am = np.asarray(argmax).astype(np.intp)
+    ok = (am >= 2) & (am <= n - 3)
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    return am, ok
+
+
+def _median_spread(diff: np.ndarray) -> tuple[float, float]:
+    """The median of ``diff`` and 1.4826 x its median absolute deviation about it."""
+    m = float(np.median(diff))
+    return m, 1.4826 * float(np.median(np.abs(diff - m)))
 
 
 def _row_median(x: np.ndarray) -> np.ndarray:
@@ -231,7 +243,7 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     curves both find the peak and the departure is about 0 whatever the noise (the median
     of many curves); flanks that are lopsided far from the peak (a thin lens' blur over the
     whole range) pull SPC, not the peak: measured +0.4 to +1.2 levels on thin-lens stacks
-    of 21 levels, where SPC's error was 1.6 to 8 times the fallback's.
+    of 21 levels, where SPC's error was 1.8 to 8.9 times the fallback's.
 
     Parameters
     ----------
@@ -243,10 +255,7 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
         The curves judged.
     """
     n = levels.shape[0]
-    am = np.asarray(argmax).astype(np.intp)
-    ok = (am >= 2) & (am <= n - 3)
-    if mask is not None:
-        ok &= np.asarray(mask, bool)
+    am, ok = _judged(argmax, n, mask)
     if not ok.any():
         return math.nan, math.nan
     cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
@@ -258,9 +267,7 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     if not keep.any():
         return math.nan, math.nan
     peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
-    diff = (spc - peak)[keep]
-    dep = float(np.median(diff))
-    return dep, 1.4826 * float(np.median(np.abs(diff - dep)))
+    return _median_spread((spc - peak)[keep])
 
 
 def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
