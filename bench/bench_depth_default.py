@@ -210,12 +210,14 @@ def main() -> int:
 
 def write_results(res: dict[str, Any], methods: list[str], args: argparse.Namespace) -> None:
     """bench/depth_default_results.md and .json: the table of this run."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_pipeline import machine  # torch with it: loaded after the measurements
     here = Path(__file__).resolve().parent
     ref = methods[0]
     lines = ["# Depth stage: CPU per frame of the demo scan (bench_depth_default.py)", "",
              f"Command: `python bench/bench_depth_default.py --frames {args.frames} --rounds "
              f"{args.rounds} --methods {','.join(methods)}` ({time.strftime('%Y-%m-%d %H:%M')}"
-             ", the shared 2-core VM, methods interleaved in every round; best of the "
+             f", {machine()}, methods interleaved in every round; best of the "
              "rounds).", "",
              f"| method | wall ms/frame (rounds) | best | CPU ms/frame best | state MiB | "
              f"wall / {ref} | CPU / {ref} |", "|---|---|---:|---:|---:|---:|---:|"]
