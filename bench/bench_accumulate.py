@@ -47,8 +47,8 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the depth modules, in an order in which each one's imports come before it
-MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_candidates", "depth",
-           "depth_uncertainty", "accumulate", "focus_volume", "depth_stage")
+MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_uncertainty",
+           "depth_candidates", "depth_choice", "depth", "accumulate", "focus_volume", "depth_stage")
 
 
 def load_tree(root: Path) -> ModuleType:

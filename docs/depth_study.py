@@ -108,7 +108,7 @@ rows unchanged). Its fallback
 pixels where the curves' centroid pull is under the limit the protocol tunes on every
 family's training seeds (`centroid-pull`, the pertuz row's setting) or under the pull's own
 noise, the robust spread of the centroid's differences from the 3-point Gaussian: a
-bias-variance comparison without a tuned constant (`depth_candidates.takes_centroid`).
+bias-variance comparison without a tuned constant (`depth_choice.takes_centroid`).
 With the noise term (2026-12-02, against the table before it): slopes 1.13x -> 1.04x,
 flat-fine-8bit 1.00x (0.098 -> 0.076 levels, now the best of the row), lens-pillbox-noisy
 1.036 -> 1.013 levels; no other row moved by more than 0.3 %. The uncertainty's constants

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_candidates import (
+from sffscan.stages.depth_choice import (
     pull_statistics,
     sampled_curves,
     shape_statistics,
@@ -45,25 +45,25 @@ the other ring methods read the halo's columns too, except the blocks of
 SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
 """What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at
 its pixels outside the range SPC holds in
-(:func:`sffscan.stages.depth_candidates.spc_in_range`) what ``"adaptive_centroid"`` takes
+(:func:`sffscan.stages.depth_choice.spc_in_range`) what ``"adaptive_centroid"`` takes
 (``adaptive``'s peak refined by the 5-level centroid or by the 3-point Gaussian)."""
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
                  complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
     """The method a block takes, judged on the curves of
-    :data:`sffscan.stages.depth_candidates.SHAPE_SAMPLE_STEP`
-    (:func:`sffscan.stages.depth_candidates.sampled_curves`).
+    :data:`sffscan.stages.depth_choice.SHAPE_SAMPLE_STEP`
+    (:func:`sffscan.stages.depth_choice.sampled_curves`).
 
     ``"shape_select"``: SPC where its curves are even and clean
-    (:func:`sffscan.stages.depth_candidates.shape_select`'s rule at its tuned limits, the
+    (:func:`sffscan.stages.depth_choice.shape_select`'s rule at its tuned limits, the
     centroid pull's included), named
     by :data:`SPC_BLOCKS` with what ``"adaptive_centroid"`` takes where SPC is out of range;
     else what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
     more than their 3-point Gaussians' noise
-    (:func:`sffscan.stages.depth_candidates.pull_statistics`,
-    :func:`~sffscan.stages.depth_candidates.takes_centroid`), else ``"adaptive"``.
+    (:func:`sffscan.stages.depth_choice.pull_statistics`,
+    :func:`~sffscan.stages.depth_choice.takes_centroid`), else ``"adaptive"``.
 
     Parameters
     ----------

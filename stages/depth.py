@@ -19,7 +19,9 @@ it also exports the public names of the modules that compute,
   that need only the sums (:func:`depth_from_harmonics`, the streaming path);
 * :mod:`sffscan.stages.depth_peak`: the 3-point fits, the windowed centroid and the
   default, ``adaptive``;
-* :mod:`sffscan.stages.depth_candidates`: the study's candidates.
+* :mod:`sffscan.stages.depth_choice`: the statistics by which the default chooses its
+  estimator per stack or block (``shape_select``, ``adaptive_centroid``);
+* :mod:`sffscan.stages.depth_candidates`: the study's other candidates.
 
 All functions are pure and vectorised (no Python loops over pixels).
 """
@@ -34,9 +36,12 @@ from typing import NamedTuple
 import numpy as np
 from sffscan.stages.depth_candidates import (
     GAUSS_FIT_HALF_WINDOW,
-    SHAPE_SELECT_LIMITS,
     WINDOW_PC_FACTOR,
     gauss_window_fit,
+    window_pc,
+)
+from sffscan.stages.depth_choice import (
+    SHAPE_SELECT_LIMITS,
     pull_statistics,
     shape_select,
     shape_statistics,
@@ -45,7 +50,6 @@ from sffscan.stages.depth_candidates import (
     spc_noise,
     takes_centroid,
     takes_spc,
-    window_pc,
 )
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
@@ -274,9 +278,9 @@ def depth_from_focus(
             that a centroid is not pulled from their maxima, or the 3-point Gaussian is
             noisier than that pull (the median difference of the two about each curve's
             argmax within the larger of
-            :data:`~sffscan.stages.depth_candidates.CENTROID_PULL_LIMIT` and the
+            :data:`~sffscan.stages.depth_choice.CENTROID_PULL_LIMIT` and the
             differences' robust spread:
-            :func:`~sffscan.stages.depth_candidates.pull_statistics`). Five levels, not
+            :func:`~sffscan.stages.depth_choice.pull_statistics`). Five levels, not
             three: less noise. On clean lopsided curves (a thin lens' blur) it is
             ``"adaptive"``. The streaming depth stage judges each block of columns.
         ``"wcentroid"``
@@ -300,19 +304,19 @@ def depth_from_focus(
             filtered argmax (the same result as rolling each curve, the test's reference).
         ``"shape_select"`` (the default of scan, replay and stack)
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
-            clean (:func:`sffscan.stages.depth_candidates.shape_select` at
-            :data:`~sffscan.stages.depth_candidates.SHAPE_SELECT_LIMITS` and a centroid
-            pull under :data:`~sffscan.stages.depth_candidates.SPC_PULL_LIMIT`, and SPC's
+            clean (:func:`sffscan.stages.depth_choice.shape_select` at
+            :data:`~sffscan.stages.depth_choice.SHAPE_SELECT_LIMITS` and a centroid
+            pull under :data:`~sffscan.stages.depth_choice.SPC_PULL_LIMIT`, and SPC's
             predicted noise at most
-            :data:`~sffscan.stages.depth_candidates.SPC_NOISE_RATIO` times the pull's
-            noise or negligible, :func:`~sffscan.stages.depth_candidates.spc_noise`; tuned
+            :data:`~sffscan.stages.depth_choice.SPC_NOISE_RATIO` times the pull's
+            noise or negligible, :func:`~sffscan.stages.depth_choice.spc_noise`; tuned
             by the
             leave-one-family-out study; and SPC's departure from the curves' 3-point
             peaks no larger than its spread,
-            :func:`~sffscan.stages.depth_candidates.spc_departure`), except at the pixels
+            :func:`~sffscan.stages.depth_choice.spc_departure`), except at the pixels
             whose SPC depth lies within
-            :data:`~sffscan.stages.depth_candidates.SPC_END_REACH` curve widths of an end
-            of the range (:func:`~sffscan.stages.depth_candidates.spc_in_range`); else, and
+            :data:`~sffscan.stages.depth_choice.SPC_END_REACH` curve widths of an end
+            of the range (:func:`~sffscan.stages.depth_choice.spc_in_range`); else, and
             there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per
             block of columns.
         ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)

@@ -37,10 +37,9 @@ from sffscan.stages.depth import (
     level_spread,
     median_filter_levels,
 )
-from sffscan.stages.depth_candidates import (
+from sffscan.stages.depth_candidates import gauss_window_fit, plane_residual, window_pc
+from sffscan.stages.depth_choice import (
     SHAPE_SELECT_LIMITS,
-    gauss_window_fit,
-    plane_residual,
     pull_statistics,
     shape_select,
     shape_statistics,
@@ -49,7 +48,6 @@ from sffscan.stages.depth_candidates import (
     spc_noise,
     takes_centroid,
     takes_spc,
-    window_pc,
 )
 from sffscan.stages.depth_uncertainty import (
     MIX_SCALE,
@@ -76,7 +74,7 @@ SCATTER_WINDOWS = (5.0, 9.0, 15.0, 21.0)
 SHAPE_GRID = tuple((s, r) for s in (0.03, 0.05, 0.08, 0.12, 0.2)
                    for r in (1.5, 2.0, 3.0, 4.0, 6.0, 9.0, math.inf))
 """``shape-select`` settings the protocol tunes over: (largest |median skewness|, largest
-median width ratio) for which a stack takes SPC (:func:`sffscan.stages.depth_candidates.
+median width ratio) for which a stack takes SPC (:func:`sffscan.stages.depth_choice.
 shape_select`)."""
 
 GAUSS_FIT_HALF_WINDOWS = (3.0, 5.0, 7.0)
@@ -87,9 +85,9 @@ WINDOW_PC_FACTORS = (3.0, 4.0, 5.0)
 
 PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``centroid-pull`` limits (levels) the protocol tunes over: the largest
-:func:`sffscan.stages.depth_candidates.centroid_pull` for which a stack takes the 5-level
+:func:`sffscan.stages.depth_choice.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always), or the pull's noise where that is
-larger (:func:`sffscan.stages.depth_candidates.takes_centroid`)."""
+larger (:func:`sffscan.stages.depth_choice.takes_centroid`)."""
 
 SPC_PULLS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``spc-pull`` settings the protocol tunes over: the largest centroid pull (levels) of a
@@ -108,7 +106,7 @@ never (first: ties go to it)."""
 SPC_REACHES = (3.0, 2.0, 1.5, 1.0, 0.0)
 """``spc-reach`` settings the protocol tunes over: how many of its widths SPC's depth must lie
 from the range's ends for ``shape_select`` (at its shipped limits) to keep SPC at a pixel
-(:func:`sffscan.stages.depth_candidates.spc_in_range`; 0: everywhere). Largest first:
+(:func:`sffscan.stages.depth_choice.spc_in_range`; 0: everywhere). Largest first:
 where settings tie on the training seeds (a stack that takes SPC with no pixel near an end
 cannot tell them apart) the tuning takes the first, the widest guard the tie allows, since
 a curve cut by the range's end biases SPC whatever the data say about the others."""
@@ -116,7 +114,7 @@ a curve cut by the range's end biases SPC whatever the data say about the others
 SPC_NOISE_RATIOS = (math.inf, 2.83, 2.0, 1.68, 1.41, 1.19, 1.0, 0.84, 0.71)
 """``spc-noise`` settings the protocol tunes over (quarter octaves): the largest ratio of
 SPC's predicted noise to the centroid pull's noise
-(:func:`sffscan.stages.depth_candidates.spc_noise`) of a stack ``shape_select`` (at its
+(:func:`sffscan.stages.depth_choice.spc_noise`) of a stack ``shape_select`` (at its
 shipped limits, reach and pull limit) gives to SPC (inf: no limit). Largest first: where
 settings tie on the training seeds the tuning takes the first, the loosest the tie allows,
 so the limit changes only what training stacks show."""

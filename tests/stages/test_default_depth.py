@@ -222,7 +222,7 @@ def test_adaptive_centroid_takes_the_centroid_where_its_pull_is_under_the_noise(
     gives adaptive_centroid's depth on both: these noisy curves are not clean enough for
     SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is under its limit, but
     their centroid pull is not (SPC there: 1.29 levels of error against 0.55)."""
-    from sffscan.stages.depth_candidates import pull_statistics, takes_centroid
+    from sffscan.stages.depth_choice import pull_statistics, takes_centroid
     from sffscan.stages.depth_levels import level_spread, median_filter_levels
     from sffscan.stages.depth_peak import adaptive_peak
 
@@ -261,7 +261,7 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
     """Curves that cannot be judged (every argmax within 2 levels of an end of the range:
     here N = 4) give no pull (NaN), and the default keeps the 3-point Gaussian: adaptive's
     depth bit for bit."""
-    from sffscan.stages.depth_candidates import centroid_pull, takes_centroid
+    from sffscan.stages.depth_choice import centroid_pull, takes_centroid
 
     rng = np.random.default_rng(3)
     vol = rng.random((4, 20, 30), dtype=np.float32) + 0.1
@@ -274,7 +274,7 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
 def test_takes_centroid_compares_the_pull_with_the_larger_of_limit_and_noise() -> None:
     """takes_centroid: abs(pull) under max(limit, noise); a NaN pull never, a NaN noise
     counts as none."""
-    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, takes_centroid
+    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, takes_centroid
 
     assert takes_centroid(CENTROID_PULL_LIMIT / 2)
     assert not takes_centroid(0.1)
@@ -290,7 +290,7 @@ def test_spc_noise_predicts_the_scatter_of_spc_on_noisy_curves() -> None:
     levels, N = 40) under independent white noise of 0.05 and 0.2 x the peak; the
     predicted sigma within 15 % of the standard deviation of their SPC depths. Noise-free,
     the prediction is the curve's shape alone: under the negligible 0.03 levels."""
-    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, spc_noise
+    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, spc_noise
 
     n = 40
     k = np.arange(n, dtype=np.float64)[:, None, None]
@@ -310,11 +310,7 @@ def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
     """takes_spc with ``noise`` (SPC's predicted, the pull's): SPC at most max_noise_ratio
     times the pull's noise, or negligible (under CENTROID_PULL_LIMIT); a NaN pull noise
     passes negligible noise only; an infinite ratio turns the test off."""
-    from sffscan.stages.depth_candidates import (
-        CENTROID_PULL_LIMIT,
-        SPC_NOISE_RATIO,
-        takes_spc,
-    )
+    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, SPC_NOISE_RATIO, takes_spc
 
     even = (0.01, 1.5)  # even and clean curves
     assert takes_spc(even, pull=0.0)
@@ -334,7 +330,7 @@ def test_spc_departure_known_answers() -> None:
     -angle(H_1) N / 2 pi) minus the 3-point Gaussian at the argmax, both by their published
     formulas, with no spread; about 0 on even noisy curves (the median of many); NaN where
     no curve is judged."""
-    from sffscan.stages.depth_candidates import spc_departure
+    from sffscan.stages.depth_choice import spc_departure
 
     n = 21
     k = np.arange(n, dtype=np.float64)
@@ -359,7 +355,7 @@ def test_spc_departure_known_answers() -> None:
 def test_takes_spc_refuses_a_departure_larger_than_its_spread() -> None:
     """takes_spc with ``departure`` (median, spread): SPC where abs(median) is at most the
     spread or under CENTROID_PULL_LIMIT; a NaN median refuses."""
-    from sffscan.stages.depth_candidates import CENTROID_PULL_LIMIT, takes_spc
+    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, takes_spc
 
     even = (0.01, 1.5)
     assert takes_spc(even, pull=0.0, departure=(0.1, 0.2))
@@ -377,7 +373,7 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     peaks by more than their spread, and errs over 1.5x as much as adaptive_centroid; the
     stack and a scan block of it take the fallback."""
     from sffscan.stages.block_depth import SPC_BLOCKS, block_method
-    from sffscan.stages.depth_candidates import spc_departure
+    from sffscan.stages.depth_choice import spc_departure
     from sffscan.stages.fields.align import align_stack
     from sffscan.stages.fields.aperture import stack_noise_floor
     from sffscan.stages.sim.families import family_stack

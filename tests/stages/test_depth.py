@@ -144,14 +144,13 @@ def test_every_method_is_selectable_by_name() -> None:
     import typing
 
     from sffscan.pipeline.config import ProcessingConfig
-    from sffscan.stages.depth_candidates import (
+    from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
+    from sffscan.stages.depth_choice import (
         SHAPE_SELECT_LIMITS,
         SPC_END_REACH,
-        gauss_window_fit,
         shape_select,
         shape_statistics,
         spc_in_range,
-        window_pc,
     )
     from sffscan.stages.depth_uncertainty import curve_width
 
@@ -205,7 +204,7 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
     flank is twice as wide as its lower one skews positive (measured 0.18 at least, beyond
     the 0.08 that ``shape_select`` allows); a narrow peak on a noisy floor widens the
     harmonic width, not the run above half height."""
-    from sffscan.stages.depth_candidates import curve_skew, shape_select, shape_statistics
+    from sffscan.stages.depth_choice import curve_skew, shape_select, shape_statistics
     from sffscan.stages.depth_uncertainty import curve_width
 
     n, sigma = 60, 3.0
@@ -232,7 +231,7 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
 def test_spc_is_kept_only_a_reach_of_widths_from_the_range_s_ends() -> None:
     """spc_in_range: margin = reach x width from 0 and from N - 1 (inclusive), NaN out;
     shape_select takes ``other`` outside it, and only where it takes SPC at all."""
-    from sffscan.stages.depth_candidates import shape_select, spc_in_range
+    from sffscan.stages.depth_choice import shape_select, spc_in_range
 
     d = np.array([2.9, 3.0, 15.0, 26.0, 26.1, np.nan], np.float32)
     w = np.array([2.0, 2.0, 9.0, 2.0, 2.0, 2.0], np.float32)
@@ -254,7 +253,7 @@ def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None
     label) elsewhere, on the same curves; the curves' sums and minimum as the ring methods
     give them, the confidence depth_from_focus's."""
     from sffscan.stages.block_depth import SPC_BLOCKS, depth_rows
-    from sffscan.stages.depth_candidates import spc_in_range
+    from sffscan.stages.depth_choice import spc_in_range
     from sffscan.stages.depth_harmonics import focus_sums
     from sffscan.stages.depth_uncertainty import width_from_sums
 

@@ -342,11 +342,7 @@ def test_a_depth_block_crosses_processes_with_its_uncertainty() -> None:
 def test_candidate_estimators_known_answers() -> None:
     """The weighted log-Gaussian fit finds a sampled Gaussian on a floor; the windowed PC a
     symmetric peak; both at sub-level positions either side of the window's centre."""
-    from sffscan.stages.depth_candidates import (
-        gauss_window_fit,
-        half_height_run,
-        window_pc,
-    )
+    from sffscan.stages.depth_candidates import gauss_window_fit, half_height_run, window_pc
 
     n = 40
     k = np.arange(n, dtype=np.float64).reshape(n, 1, 1)

@@ -1,0 +1,400 @@
+"""The statistics by which the default depth method chooses its estimator, per stack or
+per scan block (SFF_NOTES.md section 3; docs/depth-method.md):
+
+* :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
+  :func:`curve_skew` near 0: blur even in z) and clean (the curves' width from their first
+  harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their
+  run above half height gives: a noisy floor widens the first, not the second) and whose
+  :func:`centroid_pull` is small, whose SPC is not much noisier than the fallback
+  (:func:`spc_noise`) and does not depart from the curves' peaks by more than their spread
+  (:func:`spc_departure`), else ``adaptive_centroid``; SPC's depth only where it
+  lies a reach of curve widths from the range's ends (:func:`spc_in_range`). SPC reads the
+  whole curve, so it holds where wide or ringing curves (pillbox PSFs, coarse textures)
+  move the 3-point peak; but it is biased by a lopsided curve (a thin lens' blur, even in
+  1/z), by a noisy floor under a narrow peak and by a curve cut by an end of the range.
+  The default of scan, replay and stack since 2026-12-02.
+* ``adaptive_centroid``'s statistic, :func:`centroid_pull`: how far the 5-level centroid
+  about each curve's argmax lies from its 3-point Gaussian, the median over the curves;
+  :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
+
+A scan's block is judged on its :func:`sampled_curves`
+(:func:`sffscan.stages.block_depth.block_method`). The thresholds are the
+leave-one-family-out protocol's (:mod:`sffscan.stages.depth_study`); the estimators the
+study tried beside them are in :mod:`sffscan.stages.depth_candidates`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from sffscan.stages.depth_candidates import half_height_run
+from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
+from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
+from sffscan.stages.depth_uncertainty import width_from_sums
+
+__all__ = ["CENTROID_PULL_LIMIT", "SHAPE_SAMPLE_STEP", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
+           "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
+           "centroid_pull", "curve_skew", "pull_statistics", "sampled_curves", "shape_select",
+           "shape_statistics", "spc_departure", "spc_in_range", "spc_noise", "takes_centroid",
+           "takes_spc"]
+
+CENTROID_PULL_LIMIT = 0.03
+"""Largest :func:`centroid_pull` (levels) for which ``"adaptive_centroid"`` takes the
+5-level centroid, tuned by the study on the training seeds of all its families (as
+:data:`~sffscan.stages.depth_candidates.GAUSS_FIT_HALF_WINDOW`; docs/depth-study.md)."""
+
+SHAPE_SELECT_LIMITS = (0.08, 6.0)
+"""(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
+tuned as :data:`CENTROID_PULL_LIMIT` (the same in every leave-one-family-out fold)."""
+
+SPC_END_REACH = 1.5
+"""How many of its widths (sigma, levels) SPC's depth must lie from both ends of the range
+for ``"shape_select"`` to keep it (:func:`spc_in_range`), tuned as
+:data:`CENTROID_PULL_LIMIT` (candidate ``spc-reach``)."""
+
+SPC_PULL_LIMIT = 0.05
+"""Largest :func:`centroid_pull` (levels) of curves ``"shape_select"`` gives to SPC: the
+skewness of :func:`shape_statistics` is a noisy judge of evenness (heavy additive noise
+brings a lopsided stack's median skewness under its limit: measured 0.076 at noise 0.1,
+where SPC's error was 2.35 x adaptive's), the pull of a centroid a steady one (> 0.15
+levels on the same curves). Tuned as :data:`CENTROID_PULL_LIMIT` (candidate
+``spc-pull``; limits that tie on the training seeds go to the smallest)."""
+
+SPC_NOISE_RATIO = 1.19
+"""Largest ratio of SPC's predicted noise to the pull's noise (:func:`spc_noise` over
+:func:`pull_statistics`' second number) of curves ``"shape_select"`` gives to SPC: even,
+clean-looking curves under heavy noise (noisy slopes: SPC's error 1.7-2.1x the fallback's)
+take the fallback, whose few levels about the peak see less of the noise. Tuned by the
+protocol over all twenty families of ``sffscan study --families --crossed`` (candidate
+``spc-noise``; 1.19 in 19 of 20 leave-one-out folds, 2.0 in the other; over the study's ten
+families alone no training stack tells the settings apart and the tie goes to inf)."""
+
+SHAPE_SAMPLE_STEP = (16, 8)
+"""The curves' shape is judged on every 16th row and 8th column (:func:`sampled_curves`):
+a 1040-row block of 64 columns gives 520 curves, enough to place two medians; judging every
+curve would cost a scan's block more than its reduction (bench/results:
+bench_depth_default.py)."""
+
+def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
+                   complete: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The curves of :data:`SHAPE_SAMPLE_STEP` a shape is judged on: (N, r, c) float32
+    levels, their argmax and the mask of those with data, or None where none has.
+
+    Parameters
+    ----------
+    levels : (N, rows, columns) ndarray of float
+        The curves (a block of a scan, or a whole stack).
+    argmax : (rows, columns) ndarray of int
+        Their argmax.
+    complete : (columns,) ndarray of bool, optional
+        The columns seen at every level; the others are left out, and so are the curves
+        without data (flat: the rows beyond the frames, kept for wobble).
+    """
+    rs, cs = SHAPE_SAMPLE_STEP
+    vol = np.ascontiguousarray(levels[:, ::rs, ::cs], dtype=np.float32)
+    seen = vol.max(axis=0) > vol.min(axis=0)
+    if complete is not None:
+        seen &= np.asarray(complete, bool)[::cs][None, :]
+    if not seen.any():
+        return None
+    return vol, np.asarray(argmax)[::rs, ::cs], seen
+
+
+def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
+                    ) -> tuple[float, float]:
+    """How far a centroid is pulled from the curves' maximum, and how noisy that comparison
+    is: over the ``mask`` curves (all when None), the baseline-free centroid of the 5 levels
+    about each curve's argmax minus its 3-point Gaussian (levels; curves whose argmax lies
+    within 2 levels of an end of the range left out), and of those differences the median
+    (the *pull*) and the robust standard deviation (1.4826 x their median absolute
+    deviation about it: the *noise*). NaN, NaN where no curve is left, which
+    :func:`takes_centroid` refuses.
+
+    The pull is about 0 on even curves, whatever their noise (the median of many curves);
+    positive where the curves' tails run to higher levels (a thin lens' blur, even in 1/z):
+    measured 0.14 on pertuz-simu02, 0.22 on Gaussians whose upper flank is twice as wide.
+    The noise is mostly the 3-point Gaussian's (three samples against the centroid's five).
+
+    Parameters
+    ----------
+    levels : (N, H, W) ndarray of float
+        The curves.
+    argmax : (H, W) ndarray of int
+        Their argmax.
+    mask : (H, W) ndarray of bool, optional
+        The curves judged.
+    """
+    am, ok = _judged(argmax, levels.shape[0], mask)
+    if not ok.any():
+        return math.nan, math.nan
+    vol = np.ascontiguousarray(levels, dtype=np.float32)
+    diff = (windowed_centroid(vol, am, half_window=2)
+            - (am + three_point_offset(vol, am, log=True)))[ok]
+    return _median_spread(diff)
+
+
+def _judged(argmax: np.ndarray, n: int, mask: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The argmax as intp, and the curves judged: the ``mask`` ones (all when None) whose
+    argmax lies 2 levels or more from both ends of the N levels."""
+    am = np.asarray(argmax).astype(np.intp)
+    ok = (am >= 2) & (am <= n - 3)
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    return am, ok
+
+
+def _median_spread(diff: np.ndarray) -> tuple[float, float]:
+    """The median of ``diff`` and 1.4826 x its median absolute deviation about it."""
+    m = float(np.median(diff))
+    return m, 1.4826 * float(np.median(np.abs(diff - m)))
+
+
+def _row_median(x: np.ndarray) -> np.ndarray:
+    """Median of each row of a 2-D array (np.median's with axis=1), by one partition: 6x
+    faster than np.median on a block's (520, 48) second differences (0.06 against 0.37 ms,
+    measured), whose time was that of the rest of the block's choice."""
+    m = x.shape[1]
+    h = m // 2
+    part = np.partition(x, [h - 1, h] if m % 2 == 0 else [h], axis=1)
+    return part[:, h] if m % 2 else 0.5 * (part[:, h - 1] + part[:, h])
+
+
+def _curve_noise(cur: np.ndarray) -> np.ndarray:
+    """Each curve's noise sigma (rows of ``cur``, (curves, N) float32, N >= 5) from its
+    second differences: ``1.4826 MAD / sqrt 6``, robust to the few levels of the peak, whose
+    curvature is signal."""
+    d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]
+    d2 -= _row_median(d2)[:, None]
+    return np.float32(1.4826 / math.sqrt(6.0)) * _row_median(np.abs(d2))
+
+
+def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """SPC's predicted noise (levels, one sigma), the median over the ``mask`` curves (all
+    when None); NaN where none is judged.
+
+    SPC reads the phase of the curve's first harmonic H_1: white noise of sigma s on each
+    of the N levels gives its real and imaginary parts a variance of s^2 N / 2 each, so the
+    phase a sigma of about ``s sqrt(N / 2) / |H_1|`` radians and the depth
+    ``N / (2 pi)`` times that. The curve's s is taken from its second differences
+    (``1.4826 MAD / sqrt 6``: robust to the few levels of the peak, whose curvature is
+    signal). A number to weigh against the other estimator's noise, not a calibrated
+    uncertainty (that is :mod:`sffscan.stages.depth_uncertainty`'s).
+
+    Parameters
+    ----------
+    levels : (N, H, W) ndarray of float
+        The curves; NaN for N < 5 (too few second differences for a spread).
+    mask : (H, W) ndarray of bool, optional
+        The curves judged.
+    """
+    vol = np.asarray(levels, np.float32)
+    n = vol.shape[0]
+    curves = vol.reshape(n, -1) if mask is None else vol[:, np.asarray(mask, bool)]
+    if curves.shape[1] == 0 or n < 5:  # under 3 second differences: no spread to take
+        return math.nan
+    cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
+    s = _curve_noise(cur)
+    re, im = (cur @ harmonic_table(n)[2:].T.astype(np.float32)).T
+    h1 = np.hypot(re, im)
+    sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
+    return float(np.median(sigma))
+
+
+def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
+                  ) -> tuple[float, float]:
+    """How far SPC lies from the curves' own peaks: over the ``mask`` curves (all when
+    None), SPC's depth (each curve's first-harmonic phase, wrapped about its argmax) minus
+    the 3-point Gaussian about its argmax, levels; of those differences the median (SPC's
+    *departure*) and the robust spread (1.4826 x their median absolute deviation). Curves
+    whose argmax lies within 2 levels of an end, or whose SPC lies out of its range
+    (:func:`spc_in_range`: those pixels take the other method anyway), are left out;
+    NaN, NaN where none is left.
+
+    SPC reads the whole curve, the 3-point Gaussian the three levels at its peak. On even
+    curves both find the peak and the departure is about 0 whatever the noise (the median
+    of many curves); flanks that are lopsided far from the peak (a thin lens' blur over the
+    whole range) pull SPC, not the peak: measured +0.4 to +1.2 levels on thin-lens stacks
+    of 21 levels, where SPC's error was 1.8 to 8.9 times the fallback's.
+
+    Parameters
+    ----------
+    levels : (N, H, W) ndarray of float
+        The curves (N >= 5).
+    argmax : (H, W) ndarray of int
+        Their argmax.
+    mask : (H, W) ndarray of bool, optional
+        The curves judged.
+    """
+    n = levels.shape[0]
+    am, ok = _judged(argmax, n, mask)
+    if not ok.any():
+        return math.nan, math.nan
+    cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
+    a = am[ok]
+    h0, _, re, im = harmonic_table(n).astype(np.float32) @ cur
+    spc = spc_depth(re, im, a, n_levels=n)
+    width = width_from_sums(h0, np.hypot(re, im), cur.min(axis=0), n)
+    keep = spc_in_range(spc, width, n)
+    if not keep.any():
+        return math.nan, math.nan
+    peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
+    return _median_spread((spc - peak)[keep])
+
+
+def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
+                  ) -> float:
+    """The pull of :func:`pull_statistics` alone (levels; NaN where no curve is judged)."""
+    return pull_statistics(levels, argmax, mask)[0]
+
+
+def takes_centroid(pull: float, *, noise: float = 0.0,
+                   limit: float = CENTROID_PULL_LIMIT) -> bool:
+    """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this pull and
+    noise (:func:`pull_statistics`): ``abs(pull) < max(limit, noise)`` (``limit`` default
+    :data:`CENTROID_PULL_LIMIT`); not for a NaN pull (no curve judged).
+
+    The noise term is a bias-variance comparison, no tuned constant: at a curve's peak the
+    centroid's error is about the pull (a bias) and the 3-point Gaussian's about its own
+    noise, whose spread the differences show; where the pull is smaller than that spread
+    the centroid errs less, even on lopsided curves. Measured with the leave-one-family-out
+    protocol (docs/depth-study.md; the default's held-out RMSE, levels, before -> after):
+    slopes 0.258 -> 0.238 (1.13x -> 1.04x the best fixed method), flat-fine-8bit 0.098 ->
+    0.076, lens-pillbox-noisy 1.036 -> 1.013, the other families and pertuz-simu02 within
+    0.3 %; on ten families crossed from the study's (not in it), noisy slopes under a thin
+    lens' blur 0.508 -> 0.318 (2.02x -> 1.26x), a thin lens' flat 12-bit plate 0.133 ->
+    0.127, the other eight unchanged.
+    """
+    return bool(abs(pull) < max(limit, 0.0 if math.isnan(noise) else noise))
+
+def curve_skew(volume: np.ndarray, peak: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Skewness of each focus curve: the third standardised moment of its values above its
+    minimum over the levels within ``max(3, ceil(2.5 width))`` of ``peak``.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus volume.
+    peak : (H, W) ndarray of int
+        Each curve's argmax, levels (where the window is centred).
+    width : (H, W) ndarray of float
+        Curve width, levels (:func:`sffscan.stages.depth_uncertainty.curve_width`).
+
+    Returns
+    -------
+    (H, W) ndarray of float64
+        About 0 for an even curve; positive when the curve's tail runs to higher levels.
+    """
+    vol = np.asarray(volume, np.float64)
+    n = vol.shape[0]
+    v = vol - vol.min(axis=0)
+    reach = np.clip(np.ceil(2.5 * np.maximum(width, 1.0)), 3, n)
+    d = np.arange(n, dtype=np.float64)[:, None, None] - np.asarray(peak, np.float64)[None]
+    w = np.where(np.abs(d) <= reach[None], v, 0.0)
+    # the moments about the peak, then about their mean: one product per power (the
+    # two-pass form took 3x the time; d spans a few tens of levels, no cancellation)
+    m0 = w.sum(axis=0) + 1e-300
+    w *= d
+    m1 = w.sum(axis=0) / m0
+    w *= d
+    m2 = w.sum(axis=0) / m0
+    w *= d
+    m3 = w.sum(axis=0) / m0
+    var = m2 - m1 * m1
+    third = m3 - 3.0 * m1 * m2 + 2.0 * m1**3
+    return third / np.maximum(var, 1e-12) ** 1.5
+
+
+def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
+                     mask: np.ndarray | None = None) -> tuple[float, float]:
+    """The two numbers :func:`shape_select` decides by, over the ``mask`` pixels (all when
+    None): ``abs(median skewness)`` (:func:`curve_skew` about each curve's argmax ``peak``)
+    and the median ratio of the harmonic width ``width`` to the sigma of the run above half
+    height (:func:`half_height_run` / 2.355, a Gaussian's FWHM / sigma)."""
+    sel = np.ones(np.shape(peak), bool) if mask is None else np.asarray(mask, bool)
+    skew = curve_skew(volume, peak, width)
+    run = half_height_run(volume, peak).astype(np.float64)
+    ratio = np.asarray(width, np.float64) / (run / 2.355)
+    return abs(float(np.median(skew[sel]))), float(np.median(ratio[sel]))
+
+
+def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT_LIMITS[0],
+              max_ratio: float = SHAPE_SELECT_LIMITS[1], pull: float | None = None,
+              max_pull: float = SPC_PULL_LIMIT, noise: tuple[float, float] | None = None,
+              max_noise_ratio: float = SPC_NOISE_RATIO,
+              departure: tuple[float, float] | None = None) -> bool:
+    """Whether curves with these :func:`shape_statistics` are even and clean enough for SPC:
+    both below their limits (default :data:`SHAPE_SELECT_LIMITS`), and, where their
+    :func:`centroid_pull` is given, its size below ``max_pull`` (not for NaN: no curve
+    judged), and where ``noise`` is given (SPC's predicted noise, :func:`spc_noise`, and
+    the pull's noise, :func:`pull_statistics`), the first at most ``max_noise_ratio``
+    times the second or under :data:`CENTROID_PULL_LIMIT` (an error the study's choices
+    treat as negligible: noise-free curves' second differences are their shape, not
+    noise), and where ``departure`` is given (:func:`spc_departure`), SPC's departure from
+    the curves' peaks at most their spread or under :data:`CENTROID_PULL_LIMIT` (not for
+    NaN).
+
+    The departure test is a bias-variance comparison with no tuned constant, as
+    :func:`takes_centroid`'s: a departure larger than the differences' spread is a bias of
+    SPC larger than the noise of the 3-point peak, which is at least the fallback's (it
+    reads 3 to 5 levels about the same peak), so SPC errs more there. Over the twenty
+    families of ``sffscan study --families --crossed`` it refuses no stack that the other
+    tests give to SPC (the study's tables are unchanged); it refuses a breathing thin-lens
+    stack that took SPC once aligned (``bench/bench_align_families.py``: 1.90x its twin's
+    error)."""
+    if pull is not None and not abs(pull) < max_pull:
+        return False
+    if departure is not None:
+        dep, spread = departure
+        if not abs(dep) <= max(CENTROID_PULL_LIMIT, spread):  # NaN: not shown small
+            return False
+    if noise is not None and not math.isinf(max_noise_ratio):
+        sigma, pull_noise = noise
+        bound = max_noise_ratio * pull_noise
+        if not (sigma < CENTROID_PULL_LIMIT or sigma <= bound):  # NaN: not shown small
+            return False
+    skew, ratio = statistics
+    return skew < max_skew and ratio < max_ratio
+
+
+def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
+                 reach: float = SPC_END_REACH) -> np.ndarray:
+    """Where SPC's depth (levels) lies at least ``reach`` of the curve's widths (sigma,
+    levels: :func:`sffscan.stages.depth_uncertainty.curve_width`) from both ends of the
+    range, 0 and N - 1.
+
+    SPC reads the phase of the curve's first harmonic over the whole range, as if the
+    curve were periodic: a curve whose peak lies within about its width of an end has its
+    tail cut there (or, in the harmonic's eyes, wrapped to the other end), and the phase is
+    pulled towards the middle. Measured on the repository's plate scan (its base 2-4 levels
+    above the range's start): SPC +86 um off where the default is within 6 um, while SPC is
+    the better of the two on the relief (levels 8-30). NaN widths or depths are out of
+    range.
+    """
+    margin = reach * np.asarray(width, np.float32)
+    return (spc >= margin) & (spc <= np.float32(n_levels - 1) - margin)
+
+
+def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, float], *,
+                 max_skew: float, max_ratio: float, in_range: np.ndarray | None = None,
+                 pull: float | None = None, max_pull: float = SPC_PULL_LIMIT,
+                 noise: tuple[float, float] | None = None,
+                 max_noise_ratio: float = SPC_NOISE_RATIO,
+                 departure: tuple[float, float] | None = None) -> np.ndarray:
+    """SPC's depth map where the stack's curves are even and clean (:func:`takes_spc`), else
+    ``other`` (``adaptive_centroid``'s depth map in ``"shape_select"``);
+    float32 levels. One choice for the whole stack (the streaming depth stage chooses per
+    block: :func:`sffscan.stages.block_depth.block_method`); where SPC is taken, ``other``
+    still stands at the pixels outside ``in_range`` (:func:`spc_in_range`; all inside
+    when None). ``pull``, ``max_pull``, ``noise``, ``max_noise_ratio``, ``departure``: as
+    for :func:`takes_spc`."""
+    use_spc = takes_spc(statistics, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
+                        max_pull=max_pull, noise=noise,
+                        max_noise_ratio=max_noise_ratio, departure=departure)
+    if not use_spc:
+        return np.asarray(other, np.float32)
+    if in_range is None:
+        return np.asarray(spc, np.float32)
+    return np.where(in_range, spc, other).astype(np.float32, copy=False)
