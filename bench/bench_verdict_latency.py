@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -95,12 +93,13 @@ def main() -> int:
     ap.add_argument("--out", default=str(Path(__file__).with_name("verdict_latency_results")))
     args = ap.parse_args()
     results = {kind: run(kind, args.layers) for kind in args.paths.split(",")}
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_pipeline import machine  # after the runs: it imports the pipeline and torch
     lines = ["# Verdict latency (issue 25): scan end -> verdict written", "",
              f"`python bench/bench_verdict_latency.py --layers {args.layers} --paths "
              f"{args.paths}`, "
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-             f"{platform.machine()} with {os.cpu_count()} CPUs (the shared 2-core VM: other "
-             "jobs ran meanwhile), Python " + platform.python_version() + ". Each row set "
+             f"{machine()} (a shared VM: other jobs may have run meanwhile). Each row set "
              "is one fresh process: layer 0 is cold (imports, first expected map).", "",
              "| path | layer | scan s | verdict after scan end, s | verdict | reason (start) |",
              "|---|---|---|---|---|---|"]
