@@ -48,6 +48,7 @@ from sffscan.stages.depth_choice import (
     spc_departure,
     spc_in_range,
     spc_noise,
+    stack_sample,
     takes_centroid,
     takes_spc,
 )
@@ -172,7 +173,8 @@ def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None
                        ) -> np.ndarray:
     assert c.argmax is not None
     centre = c.centre()
-    pull, noise = pull_statistics(c.volume, c.argmax) if stats is None else stats
+    pull, noise = pull_statistics(*stack_sample(c.volume, c.argmax)[:2]) if stats is None \
+        else stats
     peak = "centroid" if takes_centroid(pull, noise=noise) else "gauss3"
     return adaptive_peak(c.volume, centre,
                          level_spread(centre, c.spread_size, c.volume.shape[0]), peak=peak)
@@ -190,15 +192,18 @@ def _window_pc(c: FocusCurves) -> np.ndarray:
 def _shape_select(c: FocusCurves) -> np.ndarray:
     assert c.argmax is not None
     width = curve_width(c.volume)
-    stats = shape_statistics(c.volume, c.argmax, width)
+    # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
+    vol, peak, wid = stack_sample(c.volume, c.argmax, width)
+    assert wid is not None
+    stats = shape_statistics(vol, peak, wid)
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    pull, noise = pull_statistics(c.volume, c.argmax)
+    pull, noise = pull_statistics(vol, peak)
     other = _adaptive_centroid(c, (pull, noise))
-    noises = (spc_noise(c.volume), noise)
+    noises = (spc_noise(vol), noise)
     if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
                      noise=noises):
         return other  # SPC's map only where the stack takes it
-    departure = spc_departure(c.volume, c.argmax)  # only for curves that pass the rest
+    departure = spc_departure(vol, peak)  # only for curves that pass the rest
     spc = _from_sums(c, method="spc")
     return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                         in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull,

@@ -394,3 +394,61 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     np.testing.assert_array_equal(depth_from_focus(vol, method="shape_select", argmax=a)[0],
                                   fallback)
     assert block_method(vol, a) not in SPC_BLOCKS
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (255, 255), (256, 256), (512, 512), (1000, 700),
+                                   (1024, 1280)])
+def test_stack_sample_judges_at_least_its_count_of_curves_on_an_even_grid(
+        shape: tuple[int, int]) -> None:
+    from sffscan.stages.depth_choice import SHAPE_STACK_CURVES, stack_sample
+
+    h, w = shape
+    vol = np.zeros((3, h, w), np.float32)
+    am = np.arange(h * w).reshape(h, w)
+    width = am.astype(np.float32)
+    v, a, wd = stack_sample(vol, am, width)
+    s = max(1, int(np.sqrt(h * w // SHAPE_STACK_CURVES)))
+    if h * w < 4 * SHAPE_STACK_CURVES:
+        assert s == 1 and v is vol and a is am and wd is width  # every curve, no copy
+    assert a.size >= SHAPE_STACK_CURVES or a.size == h * w
+    np.testing.assert_array_equal(a, am[::s, ::s])  # every s-th row and column
+    assert v.shape == (3, *a.shape) and v.flags.c_contiguous
+    assert wd is not None and np.array_equal(wd, width[::s, ::s])
+    assert stack_sample(vol, am)[2] is None
+
+
+def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
+    """The statistics shape_select and adaptive_centroid take on a 300 x 300 stack's sample
+    (every 2nd row and column) are those of all its curves within their noise, and so are
+    the choices they make."""
+    from sffscan.stages.depth import curve_width
+    from sffscan.stages.depth_choice import (
+        pull_statistics,
+        shape_statistics,
+        spc_noise,
+        stack_sample,
+        takes_centroid,
+        takes_spc,
+    )
+
+    rng = np.random.default_rng(3)
+    n, h, w = 23, 300, 300
+    yy, xx = np.mgrid[0:h, 0:w]
+    mu = 4.0 + 14.0 * (xx + yy) / (h + w)  # a slope, levels
+    k = np.arange(n, dtype=np.float64)[:, None, None]
+    for sigma, noise_sd in ((2.0, 0.002), (2.0, 0.05), (3.5, 0.02)):
+        vol = (np.exp(-0.5 * ((k - mu) / sigma) ** 2) * (1.0 + 0.3 * rng.random((h, w)))
+               + noise_sd * rng.standard_normal((n, h, w))).astype(np.float32)
+        am = np.argmax(vol, axis=0)
+        width = curve_width(vol)
+        v, a, wd = stack_sample(vol, am, width)
+        assert a.shape == (150, 150) and wd is not None
+        full, part = shape_statistics(vol, am, width), shape_statistics(v, a, wd)
+        np.testing.assert_allclose(part, full, rtol=0.05, atol=0.01)
+        pf, pp = pull_statistics(vol, am), pull_statistics(v, a)
+        np.testing.assert_allclose(pp, pf, rtol=0.05, atol=0.005)
+        sf, sp = spc_noise(vol), spc_noise(v)
+        assert sp == pytest.approx(sf, rel=0.05)
+        assert takes_centroid(pp[0], noise=pp[1]) == takes_centroid(pf[0], noise=pf[1])
+        assert (takes_spc(part, pull=pp[0], noise=(sp, pp[1]))
+                == takes_spc(full, pull=pf[0], noise=(sf, pf[1])))
