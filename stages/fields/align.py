@@ -275,7 +275,12 @@ def _scale_step(template: np.ndarray, image: np.ndarray, a: np.ndarray
     if ok.sum() < 64:
         return np.array([math.log(s), *shift]), np.full(3, np.inf)
     tv, wv = t[ok].astype(np.float64), wi[ok].astype(np.float64)
-    gain, offset = np.polyfit(tv, wv, 1)  # the photometric fit ECC makes implicitly
+    # the photometric fit ECC makes implicitly: least squares wv ~ gain tv + offset, in
+    # closed form (np.polyfit's Vandermonde lstsq took 0.3 s a 2048 x 1536 pair)
+    tm, wm = float(tv.mean()), float(wv.mean())
+    dt = tv - tm
+    gain = float(np.dot(dt, wv - wm)) / max(float(np.dot(dt, dt)), 1e-300)
+    offset = wm - gain * tm
     res = np.zeros((h, w))
     res[ok] = wv - (gain * tv + offset)
     var_r = float(np.mean(res[ok] ** 2))
@@ -285,9 +290,9 @@ def _scale_step(template: np.ndarray, image: np.ndarray, a: np.ndarray
     area = max(1.0, 4.0 * math.pi * (-1.0 / (4.0 * math.log(r1))))
     # the derivatives of both frames multiplied: their noise is independent, so the sums
     # hold the structure the frames share, not the noise (a blurred, noisy pair tells little)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    xx -= (w - 1) / 2.0
-    yy -= (h - 1) / 2.0
+    # pixel coordinates about the centre, broadcast (a row and a column, not two planes)
+    xx = np.arange(w, dtype=np.float64)[None, :] - (w - 1) / 2.0
+    yy = np.arange(h, dtype=np.float64)[:, None] - (h - 1) / 2.0
     d = []
     for img in (t, wi):
         gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3) / 8.0
@@ -361,7 +366,8 @@ def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np
 
 def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.ndarray:
     h, w = shape
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    xx = np.arange(w, dtype=np.float64)[None, :]  # broadcast: the same values, no planes
+    yy = np.arange(h, dtype=np.float64)[:, None]
     x = matrix[0, 0] * xx + matrix[0, 1] * yy + matrix[0, 2]
     y = matrix[1, 0] * xx + matrix[1, 1] * yy + matrix[1, 2]
     return (x >= inset) & (x <= w - 1 - inset) & (y >= inset) & (y <= h - 1 - inset)
