@@ -323,8 +323,8 @@ def depth_from_focus(
             :data:`~sffscan.stages.depth_choice.SPC_END_REACH` curve widths of an end
             of the range (:func:`~sffscan.stages.depth_choice.spc_in_range`); else, and
             there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per
-            block of columns (judged on a grid of its curves); a volume of more than
-            4 x 16384 curves is judged on an even grid of at least 16384
+            block of columns (judged on a grid of its curves); a volume of 4 x 16384 or more
+            curves is judged on an even grid of at least 16384
             (:func:`~sffscan.stages.depth_choice.stack_sample`), and so is
             ``"adaptive_centroid"``'s pull.
         ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
