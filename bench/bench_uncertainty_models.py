@@ -57,10 +57,11 @@ class Stack:
 
 
 def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) -> Stack:
-    sc = uncertainty_sample(volume, truth_levels, mask)
-    d, spc, other = (depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
-                     for m in ("shape_select", "spc", "adaptive_centroid"))
-    return Stack(sc, ((d == spc) & (d != other))[mask])
+    sc = uncertainty_sample(volume, truth_levels, mask)  # the default's errors, d - truth
+    # the default's depth is SPC's where its error is SPC's (the same subtraction: exact)
+    spc, other = ((depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
+                   - truth_levels)[mask] for m in ("spc", "adaptive_centroid"))
+    return Stack(sc, (sc.error == spc) & (sc.error != other))
 
 
 def subset(st: Stack, sel: np.ndarray) -> Any:
