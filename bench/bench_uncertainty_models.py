@@ -19,7 +19,15 @@ Models (each stated before it was scored; add one as a function of the pixels' t
   (:mod:`sffscan.stages.depth_uncertainty`); the table must reproduce docs/depth-study.md;
 - ``per estimator``: the same, (a, c) fitted apart on the pixels whose depth is SPC's
   (``shape_select`` gave their stack SPC) and on the others: ``c`` is the estimator's
-  sub-level bias (2026-12-03: not kept, 9 of 21 sets in band against 14).
+  sub-level bias (2026-12-03: not kept, 9 of 21 sets in band against 14);
+- ``curve noise``: the shipped terms and the noise that each pixel's own focus curve puts
+  on a 3-point peak, ``sqrt((a scatter)^2 + (excess / 2)^2 + (b nu)^2 + c^2)``, (a, b, c)
+  fitted by the same pinball loss: ``nu = s_f / (sqrt(2) |D|)`` levels, the first-order
+  spread of ``(f[-1] - f[+1]) / (2 D)`` for independent noise ``s_f`` on each level, ``D``
+  the curve's second difference at its argmax (the argmax kept one level off the ends),
+  ``s_f`` the median absolute deviation of the curve's second differences over its levels
+  / (0.6745 sqrt 6) (a second difference of white noise has variance 6 s^2); ``nu`` at most
+  N levels. Nothing in it is tuned but (a, b, c) (stated 2026-12-03, before its first run).
 
 Not a test: nothing here asserts.
 """
@@ -28,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -35,9 +44,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.optimize import minimize
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_levels import levels_from_heights
-from sffscan.stages.depth_study import fit_uncertainty, uncertainty_coverage, uncertainty_sample
+from sffscan.stages.depth_study import (
+    COVERAGE_TARGET,
+    fit_uncertainty,
+    uncertainty_coverage,
+    uncertainty_sample,
+)
+from sffscan.stages.depth_uncertainty import MIX_SCALE
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import family_names, family_stack
 
@@ -54,6 +70,21 @@ class Stack:
 
     scores: Any  # sffscan.stages.depth_study's per-stack scores
     spc: np.ndarray  # bool, the scored pixels whose depth is SPC's
+    nu: np.ndarray  # the scored pixels' 3-point peak noise from their own curve, levels
+
+
+def peak_noise(volume: np.ndarray) -> np.ndarray:
+    """``nu`` of the ``curve noise`` model (module docstring), (H, W) levels, of a
+    (N, H, W) focus volume."""
+    n = volume.shape[0]
+    v = volume.astype(np.float64)
+    d2 = v[:-2] - 2.0 * v[1:-1] + v[2:]  # (N - 2, H, W): level i + 1's second difference
+    s_f = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / (0.6745 * np.sqrt(6.0))
+    i = np.clip(v.argmax(axis=0), 1, n - 2)
+    d = np.abs(np.take_along_axis(d2, (i - 1)[None], axis=0)[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        nu = s_f / (np.sqrt(2.0) * d)
+    return np.where(np.isfinite(nu), np.minimum(nu, n), float(n))
 
 
 def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) -> Stack:
@@ -61,7 +92,7 @@ def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) 
     # the default's depth is SPC's where its error is SPC's (the same subtraction: exact)
     spc, other = ((depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
                    - truth_levels)[mask] for m in ("spc", "adaptive_centroid"))
-    return Stack(sc, (sc.error == spc) & (sc.error != other))
+    return Stack(sc, (sc.error == spc) & (sc.error != other), peak_noise(volume)[mask])
 
 
 def subset(st: Stack, sel: np.ndarray) -> Any:
@@ -98,7 +129,39 @@ def per_estimator(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> fl
     return hit / total
 
 
-MODELS: dict[str, Model] = {"shipped": shipped, "per estimator": per_estimator}
+def curve_noise(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
+    def terms(g: Sequence[Stack]) -> tuple[np.ndarray, ...]:
+        e = np.abs(np.concatenate([s.scores.error for s in g])).astype(np.float64)
+        sc = np.concatenate([s.scores.scatter for s in g]).astype(np.float64)
+        x = MIX_SCALE * np.concatenate([s.scores.excess for s in g]).astype(np.float64)
+        nu = np.concatenate([s.nu for s in g])
+        return e, sc * sc, x * x, nu * nu
+
+    data = [terms(g) for g in train]
+    logs = [np.log(e + 1e-3) for e, *_ in data]
+    tau = COVERAGE_TARGET
+
+    def loss(p: np.ndarray) -> float:
+        a2, b2, c2 = np.exp(2.0 * p)
+        total = 0.0
+        for le, (_, s2, x2, n2) in zip(logs, data, strict=True):
+            r = le - np.log(2.0 * np.sqrt(a2 * s2 + x2 + b2 * n2 + c2) + 1e-3)
+            total += float(np.mean(np.maximum(tau * r, (tau - 1.0) * r)))
+        return total / len(data)
+
+    bounds = [(math.log(0.1), math.log(100.0)), (math.log(1e-3), math.log(100.0)),
+              (math.log(1e-4), math.log(10.0))]
+    best = min((minimize(loss, np.log([a0, b0, c0]), method="Nelder-Mead", bounds=bounds,
+                         options={"xatol": 1e-3, "fatol": 1e-9})
+                for a0 in (1.0, 4.0) for b0 in (0.1, 1.0) for c0 in (0.01, 0.1)),
+               key=lambda r: float(r.fun))
+    a, b, c = np.exp(best.x)
+    e, s2, x2, n2 = terms(held)
+    return float(np.mean(e <= 2.0 * np.sqrt(a * a * s2 + x2 + b * b * n2 + c * c)))
+
+
+MODELS: dict[str, Model] = {"shipped": shipped, "per estimator": per_estimator,
+                            "curve noise": curve_noise}
 
 
 def table(names: list[str], stacks: dict[tuple[str, int], Stack], third: Stack) -> str:
