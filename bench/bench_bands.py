@@ -12,8 +12,9 @@ reversed every other round), each frame's focus measure
 stage (:class:`~sffscan.stages.depth_stage.DepthStage` with ``workers=K``), as the focus
 and depth worker runs them. Over the steady-state frames (from frame ``N + 10`` on):
 CPU ms per frame (the process's CPU time, every thread's: the bands', OpenCV's; BLAS one
-thread) and wall ms per frame (the two stages' throughput on this machine's cores); median
-of ``--rounds``. Every round checks that each K's blocks are bit-identical to K = 1's.
+thread, OpenCV's threads as the scan's focus worker sets them) and wall ms per frame (the
+two stages' throughput on this machine's cores); median of ``--rounds``. Every round
+checks that each K's blocks are bit-identical to K = 1's.
 
 ``--serial`` adds, for every K > 1, the same K bands run one after another in the caller's
 thread (``BandWorkers.run`` swapped for a loop, here only): what splitting the rows costs by
@@ -40,6 +41,7 @@ from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
 from sffscan.stages.bands import BandWorkers  # noqa: E402
 from sffscan.stages.depth_stage import DepthStage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
@@ -146,7 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     wall: dict[str, list[float]] = {c: [] for c in configs}
     identical: dict[str, list[bool]] = {c: [] for c in configs[1:]}
     load0 = " ".join(f"{v:.1f}" for v in os.getloadavg())
-    with threadpool_limits(limits=1, user_api="blas"):
+    # OpenCV's own threads as the scan's focus worker has them (one where the cores are no
+    # more than the process placement's three processes)
+    cv_threads = opencv_threads(3)
+    with threadpool_limits(limits=1, user_api="blas"), opencv_thread_limit(cv_threads):
         for r in range(args.rounds):
             order = configs if r % 2 == 0 else configs[::-1]
             outs = {}
@@ -170,7 +175,9 @@ def main(argv: list[str] | None = None) -> int:
              f"Machine: {machine()}; cores available {len(os.sched_getaffinity(0))}; load "
              f"before / after {load0} / {load1}. Depth method "
              f"{depth_ref.kwargs['method']}, {len(placed)} frames (steady state: the last "
-             f"{len(placed) - steady}), {args.rounds} rounds interleaved; median (min-max).",
+             f"{len(placed) - steady}), {args.rounds} rounds interleaved; median (min-max); "
+             f"OpenCV's threads {cv_threads or 'its default'} (as in the scan's focus worker "
+             "here: sffscan.pipeline.opencv_threads).",
              "", f"A no-op handed to a pool thread and waited for: {hand_wall:.0f} µs wall, "
              f"{hand_cpu:.0f} µs CPU (per band and call; each hand-over of the GIL between "
              "two busy threads costs about as much)."]

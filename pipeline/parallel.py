@@ -58,6 +58,7 @@ from sffscan.pipeline.channels import (
     RecvStage,
     SendStage,
 )
+from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
 from sffscan.pipeline.relays import AfterRelays, Relay, RelayRun, relay_of, relayed_sinks
 from sffscan.pipeline.runtime import Pipeline, PipelineStopped, StageFailed, gc_frozen
@@ -198,6 +199,14 @@ class ProcessPipeline:
     progress_s: float = 1.0
 
     def run(self) -> PipelineResult:
+        """Run to the end of the stream (:meth:`Pipeline.run`'s contract). OpenCV runs one
+        thread of its own in every process where the machine has no more cores than the
+        placement has processes (:mod:`sffscan.pipeline.opencv_threads`)."""
+        threads = opencv_threads(1 + len(self.groups) + len(self.hosted))
+        with opencv_thread_limit(threads):
+            return self._run_processes(threads)
+
+    def _run_processes(self, opencv_threads: int | None) -> PipelineResult:
         ctx = spawn_context()
         specs = [new_spec(label, slots=n, slot_bytes=b, kinds=k) for label, n, b, k in self.pools]
         syncs = [(ctx.Lock(), ctx.Semaphore(s.slots)) for s in specs]
@@ -217,7 +226,7 @@ class ProcessPipeline:
             pj = [s.to_json() for s in specs]
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
-                        "capacity": self.capacity}
+                        "capacity": self.capacity, "opencv_threads": opencv_threads}
                 mine = [(r, q) for r, q in zip(relays, relay_qs, strict=True)
                         if set(r.taps) & set(g.stages)]
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
@@ -226,7 +235,8 @@ class ProcessPipeline:
                                 daemon=True)
                 workers.append(_Worker(g.label, p, g.stages))
             for k, q in zip(self.hosted, sink_qs, strict=True):
-                spec = {"label": k.name, "factory": k.factory, "kwargs": k.kwargs}
+                spec = {"label": k.name, "factory": k.factory, "kwargs": k.kwargs,
+                        "opencv_threads": opencv_threads}
                 p = ctx.Process(target=worker_main, name=f"sffscan-{k.name}",
                                 args=(spec, "sink", pj, syncs, q, None, results,
                                       abort.pipe(ctx), os.getpid()), daemon=True)
@@ -356,7 +366,8 @@ class ProcessPipeline:
 
         def run_local(key: str, pipe: Pipeline) -> None:
             try:
-                outcome[key] = pipe.run(freeze_gc=False)  # frozen around both
+                # frozen around both; OpenCV's threads set around the whole run
+                outcome[key] = pipe.run(freeze_gc=False, limit_opencv=False)
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread
                 outcome[key] = exc
                 abort.set()

@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, Protocol
 
+from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.stats import (
     PipelineResult,
     QueueStats,
@@ -371,7 +372,7 @@ class Pipeline:
         for k, q in zip(self.sinks, self.sink_queues, strict=True):
             offer_stats(k, q, snap, last=last)
 
-    def run(self, *, freeze_gc: bool = True) -> PipelineResult:
+    def run(self, *, freeze_gc: bool = True, limit_opencv: bool = True) -> PipelineResult:
         """Run to the end of the stream; raise :class:`StageFailed` if a stage failed.
 
         While it runs, BLAS is limited to one thread: the stages already run in parallel,
@@ -379,11 +380,16 @@ class Pipeline:
         which cost 9 ms of CPU per frame on 2 cores (measured: 66 -> 89 frames/s). With
         ``freeze_gc`` the objects that exist before streaming are kept out of the garbage
         collector's passes meanwhile (:func:`gc_frozen`); a caller that runs several
-        pipelines at once freezes once around them all and passes False.
+        pipelines at once freezes once around them all and passes False. With
+        ``limit_opencv`` OpenCV runs one thread of its own where the machine has no more
+        cores than stages (:mod:`sffscan.pipeline.opencv_threads`); the process placement
+        decides for its processes and passes False for the pipelines inside them.
         """
         if self.placement is not None:
             return self.placement.run(self)
         with threadpool_limits(limits=1, user_api="blas"), \
+                opencv_thread_limit(opencv_threads(len(self.stages)) if limit_opencv
+                                    else None), \
                 gc_frozen() if freeze_gc else contextlib.nullcontext():
             return self._run()
 

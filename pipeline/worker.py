@@ -130,10 +130,15 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
     pipe from the main process: a message there stops the worker (another part failed, or
     the consumer closed); end of file means the main process is gone. ``relays``: (relay,
     its channel) for each sink of the main process that taps some of this worker's
-    stages; their forwarders' statistics come back in the report.
+    stages; their forwarders' statistics come back in the report. ``group["opencv_threads"]``
+    (optional): OpenCV's threads in this process (:mod:`sffscan.pipeline.opencv_threads`).
     """
     helper_start(parent)
     keep_freed_memory()
+    if group.get("opencv_threads") is not None:  # this process is the scan's: no restore
+        import cv2
+
+        cv2.setNumThreads(int(group["opencv_threads"]))
     label = group["label"]
     pools = [SlotPool(PoolSpec.from_json(s), sync, create=False)
              for s, sync in zip(pool_specs, syncs, strict=True)]
@@ -180,7 +185,7 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         report({"kind": "ready"})
         cpu0 = time.process_time()
         try:
-            result = pipe.run()
+            result = pipe.run(limit_opencv=False)  # OpenCV's threads: set above
         except StageFailed as err:
             aborted.set()
             report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})

@@ -57,11 +57,13 @@ class Collect(Stage):
     def __init__(self) -> None:
         self.ids: list[int] = []
         self.sums: list[int] = []
+        self.corners: list[tuple[int, int]] = []  # pixels (0, 0) and (0, 1)
         self.closed: bool | None = None
 
     def process(self, item: Frame) -> Iterator[None]:
         self.ids.append(item.header.frame_id)
         self.sums.append(int(item.image.sum()))
+        self.corners.append((int(item.image[0, 0]), int(item.image[0, 1])))
         return iter(())
 
     def close(self, *, failed: bool) -> None:
@@ -76,6 +78,27 @@ def explode_group(at: int) -> list[Stage]:
 def pass_group() -> list[Stage]:
     """Worker factory: one stage that passes every frame on."""
     return [Explode(at=-1)]
+
+
+class OpenCVThreads(Stage):
+    """Writes this process's ``cv2.getNumThreads()`` into pixel (0, ``col``) of each frame
+    (a copy; the other pixels kept)."""
+
+    def __init__(self, col: int = 0, name: str = "opencv_threads") -> None:
+        self.col = col
+        self.name = name
+
+    def process(self, item: Frame) -> Iterator[Frame]:
+        import cv2
+
+        image = np.array(item.image)
+        image[0, self.col] = cv2.getNumThreads()
+        yield Frame(item.header, image)
+
+
+def opencv_threads_group() -> list[Stage]:
+    """Worker factory: one :class:`OpenCVThreads` stage."""
+    return [OpenCVThreads()]
 
 
 def failing_focus_group(cfg: dict[str, Any], at: int) -> list[Stage]:

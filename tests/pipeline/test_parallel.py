@@ -37,7 +37,15 @@ from sffscan.stages.messages import (
 )
 from sffscan.stages.protocol import END_OF_STREAM, Stage, Tapped
 
-from tests.parallel_helpers import Collect, FrameNumbers, explode_group, pass_group, shm_names
+from tests.parallel_helpers import (
+    Collect,
+    FrameNumbers,
+    OpenCVThreads,
+    explode_group,
+    opencv_threads_group,
+    pass_group,
+    shm_names,
+)
 from tests.scan_helpers import small_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -385,6 +393,50 @@ def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
     Pipeline([FrameNumbers(5), Probe(), tail], capacity=2).run()
     assert tail.ids == list(range(5)) and min(seen) > 0
     assert gc.get_freeze_count() == 0
+
+
+def test_opencv_runs_one_thread_a_process_where_the_cores_are_few(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """OpenCV's own pool is set to one thread in every process of a process placement (and
+    around a thread placement) where the cores available are no more than its parallel
+    parts, restored after; left alone with more cores or a user's OPENCV_FOR_THREADS_NUM."""
+    import cv2
+    from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
+
+    monkeypatch.delenv("OPENCV_FOR_THREADS_NUM", raising=False)
+    default = cv2.getNumThreads()
+
+    def run(cores: int) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
+        """(worker's, main process's) threads of a process placement; a thread
+        placement's (twice)."""
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+        procs, threads = Collect(), Collect()
+        ProcessPipeline(
+            head=[FrameNumbers(3)],
+            groups=[WorkerGroup("a", opencv_threads_group, {}, ("opencv_threads",))],
+            tail=[OpenCVThreads(1, "main"), procs],
+            pools=[("frames", 6, 16 * 24 * 2, ("frame",))], capacity=2).run()
+        Pipeline([FrameNumbers(3), OpenCVThreads(0), OpenCVThreads(1, "main"), threads],
+                 capacity=2).run()
+        assert cv2.getNumThreads() == default  # restored after each run
+        assert procs.ids == threads.ids == [0, 1, 2]
+        return set(procs.corners), set(threads.corners)
+
+    assert run(2) == ({(1, 1)}, {(1, 1)})  # 2 cores: 2 processes, 4 stages
+    worker, main = run(64)  # more cores than parts: OpenCV's default (this machine's)
+    assert main == {(default, default)}
+    assert len(worker) == 1 and next(iter(worker))[1] == default
+    assert next(iter(worker))[0] >= 1  # a fresh process's default
+    assert opencv_threads(3) is None  # 64 "cores"
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    assert opencv_threads(3) == 1 and opencv_threads(2) == 1
+    monkeypatch.setenv("OPENCV_FOR_THREADS_NUM", "2")
+    assert opencv_threads(3) is None
+    with opencv_thread_limit(1):
+        assert cv2.getNumThreads() == 1
+    assert cv2.getNumThreads() == default
+    with opencv_thread_limit(None):
+        assert cv2.getNumThreads() == default
 
 
 def test_poll_returns_when_a_report_comes_not_at_its_timeout() -> None:
