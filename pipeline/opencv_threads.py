@@ -8,7 +8,7 @@ calls. Measured (2026-12-03, the 2-core AMD EPYC VM of docs/performance-log.md,
 ``bench_parallel.py --quick --frames 600 --cores 2 --method default``, 4 rounds alternating
 with ``OPENCV_FOR_THREADS_NUM=1``): processes from memory 90.6 -> 98.7 frames/s (median; 4
 of 4 pairs faster), 18.9 -> 16.6 ms of CPU a frame (every pair less); threads 4 of 4 pairs
-less CPU; replay 3 of 3 pairs faster; with the recorder on no gain (1 of 6 pairs faster:
+less CPU; replay 3 of 3 pairs faster; with the recorder on no gain (2 of 6 pairs faster, 3 slower:
 its process waits on its writes, and OpenCV's threads elsewhere used that core). On
 machines with more cores than parallel parts OpenCV keeps its default (not measured
 there). A user's ``OPENCV_FOR_THREADS_NUM`` is always left to rule.
