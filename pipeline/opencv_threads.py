@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 from collections.abc import Iterator
 
 __all__ = ["opencv_thread_limit", "opencv_threads"]
@@ -34,9 +35,21 @@ def opencv_threads(parts: int) -> int | None:
     return 1 if cores <= parts else None
 
 
+class _Holders:
+    """Who holds a limit now, and OpenCV's setting before the first of them: process-wide
+    state, as ``cv2.setNumThreads`` is (runs overlapping in one process, e.g. several
+    threads of a Dask worker, must not leave the limit behind when they end out of
+    order)."""
+
+    lock = threading.Lock()
+    count = 0
+    before = 0
+
+
 @contextlib.contextmanager
 def opencv_thread_limit(threads: int | None) -> Iterator[None]:
-    """OpenCV's pool at ``threads`` while the block runs, then as it was (None: untouched).
+    """OpenCV's pool at ``threads`` while the block runs, then as it was before the first
+    of the overlapping blocks began, once the last has ended (None: untouched).
 
     ``cv2.setNumThreads`` is process-wide: another thread's OpenCV calls in this process
     run with the same limit meanwhile."""
@@ -45,9 +58,15 @@ def opencv_thread_limit(threads: int | None) -> Iterator[None]:
         return
     import cv2
 
-    old = cv2.getNumThreads()
-    cv2.setNumThreads(threads)
+    with _Holders.lock:
+        if _Holders.count == 0:
+            _Holders.before = cv2.getNumThreads()
+        _Holders.count += 1
+        cv2.setNumThreads(threads)
     try:
         yield
     finally:
-        cv2.setNumThreads(old)
+        with _Holders.lock:
+            _Holders.count -= 1
+            if _Holders.count == 0:
+                cv2.setNumThreads(_Holders.before)

@@ -437,6 +437,15 @@ def test_opencv_runs_one_thread_a_process_where_the_cores_are_few(
     assert cv2.getNumThreads() == default
     with opencv_thread_limit(None):
         assert cv2.getNumThreads() == default
+    # two runs in one process ending out of order (threads of a Dask worker): the first
+    # ends while the second runs (still limited), the last restores what was before both
+    first, second = opencv_thread_limit(1), opencv_thread_limit(1)
+    first.__enter__()
+    second.__enter__()
+    first.__exit__(None, None, None)
+    assert cv2.getNumThreads() == 1
+    second.__exit__(None, None, None)
+    assert cv2.getNumThreads() == default
 
 
 def test_poll_returns_when_a_report_comes_not_at_its_timeout() -> None:
