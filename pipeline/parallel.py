@@ -202,11 +202,11 @@ class ProcessPipeline:
         """Run to the end of the stream (:meth:`Pipeline.run`'s contract). OpenCV runs one
         thread of its own in every process where the machine has no more cores than the
         placement has processes (:mod:`sffscan.pipeline.opencv_threads`)."""
-        threads = opencv_threads(1 + len(self.groups) + len(self.hosted))
-        with opencv_thread_limit(threads):
-            return self._run_processes(threads)
+        cv_threads = opencv_threads(1 + len(self.groups) + len(self.hosted))
+        with opencv_thread_limit(cv_threads):
+            return self._run_processes(cv_threads)
 
-    def _run_processes(self, opencv_threads: int | None) -> PipelineResult:
+    def _run_processes(self, cv_threads: int | None) -> PipelineResult:
         ctx = spawn_context()
         specs = [new_spec(label, slots=n, slot_bytes=b, kinds=k) for label, n, b, k in self.pools]
         syncs = [(ctx.Lock(), ctx.Semaphore(s.slots)) for s in specs]
@@ -226,7 +226,7 @@ class ProcessPipeline:
             pj = [s.to_json() for s in specs]
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
-                        "capacity": self.capacity, "opencv_threads": opencv_threads}
+                        "capacity": self.capacity, "opencv_threads": cv_threads}
                 mine = [(r, q) for r, q in zip(relays, relay_qs, strict=True)
                         if set(r.taps) & set(g.stages)]
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
@@ -236,7 +236,7 @@ class ProcessPipeline:
                 workers.append(_Worker(g.label, p, g.stages))
             for k, q in zip(self.hosted, sink_qs, strict=True):
                 spec = {"label": k.name, "factory": k.factory, "kwargs": k.kwargs,
-                        "opencv_threads": opencv_threads}
+                        "opencv_threads": cv_threads}
                 p = ctx.Process(target=worker_main, name=f"sffscan-{k.name}",
                                 args=(spec, "sink", pj, syncs, q, None, results,
                                       abort.pipe(ctx), os.getpid()), daemon=True)
