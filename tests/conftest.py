@@ -19,16 +19,21 @@ FRAME_CACHE_ENV = "SFFSCAN_TEST_FRAME_CACHE"
 PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "pertuz-simu02"
 
 
-#: the files whose tests take longest, longest first (``-n 0 --durations`` per file on the
-#: loaded 2-core VM, issue 27: test_parallel_scan ~115 s, test_crash ~105 s,
-#: test_scan_pipeline 70-110 s, test_scan_errors ~75 s, test_parallel ~60 s; then
-#: test_transport's two-process scans and test_replay's live-vs-replay scans): collected
-#: first, so that with pytest-xdist's ``--dist loadfile`` no worker is left alone with one
-#: of them at the end of the run
-SLOW_FIRST = ("test_parallel_scan.py", "test_crash.py", "test_optics_bars.py",
-              "test_optics_bars_fields.py", "test_mosaic_pyramid.py", "test_mosaic_ngff.py",
-              "test_scan_pipeline.py",
-              "test_scan_errors.py", "test_parallel.py", "test_transport.py", "test_replay.py")
+#: the files whose tests take longest, longest first (each file's summed test time, two
+#: whole runs on the 2-core AMD VM, 2026-12-03: test_optics_bars_fields 36-39 s,
+#: test_scan_pipeline 31-33 s, test_parallel_scan 27-35 s, test_focus_operators ~25 s, then
+#: 20 s down to ~9 s): collected first, so that with pytest-xdist's ``--dist loadfile`` no
+#: worker is left alone with one of them at the end of the run. xdist reorders files by
+#: their number of tests unless told not to (``--no-loadscope-reorder`` in pyproject.toml):
+#: that put the heavy files of few tests last, and one worker ran test_optics_bars_fields
+#: alone for its last ~35 s.
+SLOW_FIRST = ("test_optics_bars_fields.py", "test_scan_pipeline.py", "test_parallel_scan.py",
+              "test_focus_operators.py", "test_optics_bars.py", "test_scan_errors.py",
+              "test_crash.py", "test_parallel.py", "test_moonraker_trapq.py",
+              "test_scan_bars.py", "test_run_path.py", "test_batch.py",
+              "test_mosaic_pyramid.py", "test_octoprint_link.py", "test_batch_resume.py",
+              "test_printjob_service_store.py", "test_packaging.py", "test_viz.py",
+              "test_replay.py", "test_transport_auth.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
