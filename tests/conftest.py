@@ -26,7 +26,7 @@ PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" 
 #: worker is left alone with one of them at the end of the run. xdist reorders files by
 #: their number of tests unless told not to (``--no-loadscope-reorder`` in pyproject.toml):
 #: that put the heavy files of few tests last, and one worker ran test_optics_bars_fields
-#: alone for its last ~35 s.
+#: alone for the last ~27 s of a 264 s run.
 SLOW_FIRST = ("test_optics_bars_fields.py", "test_scan_pipeline.py", "test_parallel_scan.py",
               "test_focus_operators.py", "test_optics_bars.py", "test_scan_errors.py",
               "test_crash.py", "test_parallel.py", "test_moonraker_trapq.py",
