@@ -23,10 +23,10 @@ PERTUZ_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" 
 #: whole runs on the 2-core AMD VM, 2026-12-03: test_optics_bars_fields 36-39 s,
 #: test_scan_pipeline 31-33 s, test_parallel_scan 27-35 s, test_focus_operators ~25 s, then
 #: 20 s down to ~9 s): collected first, so that with pytest-xdist's ``--dist loadfile`` no
-#: worker is left alone with one of them at the end of the run. xdist reorders files by
-#: their number of tests unless told not to (``--no-loadscope-reorder`` in pyproject.toml):
-#: that put the heavy files of few tests last, and one worker ran test_optics_bars_fields
-#: alone for the last ~27 s of a 264 s run.
+#: worker is left alone with one of them at the end of the run. xdist (3.5 on) reorders
+#: files by their number of tests unless told not to (``--no-loadscope-reorder``, xdist
+#: 3.8, in pyproject.toml): that put the heavy files of few tests last, and one worker ran
+#: test_optics_bars_fields alone for the last ~27 s of a 264 s run.
 SLOW_FIRST = ("test_optics_bars_fields.py", "test_scan_pipeline.py", "test_parallel_scan.py",
               "test_focus_operators.py", "test_optics_bars.py", "test_scan_errors.py",
               "test_crash.py", "test_parallel.py", "test_moonraker_trapq.py",
