@@ -540,3 +540,27 @@ def test_plane_residual_is_zero_on_a_plane_and_large_at_a_step() -> None:
     b = (x * (z - z.mean())).sum() / (x * x).sum()
     want = np.sqrt(np.mean((z - z.mean() - b * x) ** 2))
     assert res[20, 24] == pytest.approx(want, rel=1e-9)
+
+
+def test_width_from_the_shared_sums_equals_curve_width() -> None:
+    """``shape_select`` on a stack takes the curves' widths from the float64 sums every
+    estimator shares (no float64 copy of the volume): curve_width's values to float64
+    round-off, on curves narrow, wide, lopsided and flat."""
+    from sffscan.stages.depth_harmonics import curve_moments
+    from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
+
+    rng = np.random.default_rng(11)
+    n = 50
+    k = np.arange(n, dtype=np.float32)[:, None, None]
+    centre = rng.uniform(-3.0, n + 3.0, (1, 24, 32)).astype(np.float32)
+    sigma = rng.uniform(0.8, 12.0, (1, 24, 32)).astype(np.float32)
+    upper = sigma * rng.uniform(1.0, 2.5, sigma.shape).astype(np.float32)
+    s = np.where(k > centre, upper, sigma)
+    vol = np.exp(-0.5 * ((k - centre) / s) ** 2) + 0.05 * rng.random((n, 24, 32))
+    vol = vol.astype(np.float32)
+    vol[:, 0, :4] = 0.3  # flat curves
+    m = curve_moments(vol)
+    want = curve_width(vol)
+    got = width_from_sums(m[0], np.hypot(m[2], m[3]), vol.min(axis=0), n)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert want[0, :4].min() > n / 10  # the flat curves: wide, finite
