@@ -421,7 +421,7 @@ def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
     """The statistics shape_select and adaptive_centroid take on a 300 x 300 stack's sample
     (every 2nd row and column) are those of all its curves within their noise, and so are
     the choices they make."""
-    from sffscan.stages.depth import curve_width
+    from sffscan.stages.depth_uncertainty import curve_width
     from sffscan.stages.depth_choice import (
         pull_statistics,
         shape_statistics,
