@@ -28,7 +28,9 @@ from sffscan.pipeline.metrology.optics_correction import (
     flat_field,
     level_magnification,
     unbreathe_frame,
+    unbreathe_resampler,
 )
+from sffscan.stages.fields.resample import ScaleResampler
 from sffscan.stages.messages import DepthBlock, Frame, FrameError
 from sffscan.stages.protocol import Stage
 
@@ -39,6 +41,10 @@ __all__ = ["CurvatureStage", "FrameOpticsStage", "corrections_applied",
 class FrameOpticsStage(Stage):
     """Flat-fields each frame (vignetting), then resamples it to the reference level's scale
     about the optical centre (magnification per level).
+
+    Each level's resampling is prepared at its first frame and kept (float32 weights,
+    ~0.7 MiB a level for 1280 x 1024 frames; ~8 ms of CPU to prepare), with one pair of
+    work arrays for every level.
 
     Parameters
     ----------
@@ -61,6 +67,8 @@ class FrameOpticsStage(Stage):
         self.centre = (float(centre_px[0]), float(centre_px[1]))
         self.illumination = illumination
         self.max_value = max_value
+        self._resamplers: dict[tuple[int, tuple[int, int]], ScaleResampler] = {}
+        self._buffers: tuple[np.ndarray, np.ndarray] | None = None
 
     def process(self, item: Frame) -> Iterator[Frame]:
         img = item.image
@@ -74,7 +82,17 @@ class FrameOpticsStage(Stage):
             if not 0 <= k < self.mags.size:
                 raise FrameError(f"frame_id {item.header.frame_id}: focus_index {k} outside "
                                  f"the calibrated levels 0..{self.mags.size - 1}")
-            img = unbreathe_frame(img, float(self.mags[k]), centre_px=self.centre)
+            m = float(self.mags[k])
+            key = (k, (int(img.shape[0]), int(img.shape[1])))
+            rs = self._resamplers.get(key)
+            if rs is None and m != 1.0:
+                rs = self._resamplers[key] = unbreathe_resampler(key[1], m,
+                                                                 centre_px=self.centre)
+            if rs is not None and (self._buffers is None
+                                   or self._buffers[0].shape != key[1]):
+                self._buffers = rs.buffers()
+            img = unbreathe_frame(img, m, centre_px=self.centre, resampler=rs,
+                                  buffers=self._buffers if rs is not None else None)
         yield Frame(item.header, img)
 
 

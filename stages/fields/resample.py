@@ -14,18 +14,28 @@ flat almost to the Nyquist frequency, so that every frame keeps its texture.
 
 A scale-and-shift map is separable (``x' = s_x x + t_x``, ``y' = s_y y + t_y``): two sparse
 1-D resampling matrices, one per axis, each row ``2 TAPS`` weights (borders replicated).
+:class:`ScaleResampler` applies them as dense blocks of :data:`BLOCK` output rows or columns
+against the band of input rows or columns they read, one BLAS product each: a 1280 x 1024
+frame in 5-8 ms of one core (float32), against ~38 ms for the sparse products in float64
+and ~60 ms for :func:`cv2.warpAffine` with ``INTER_LANCZOS4`` (measured 2026-12-03, AMD EPYC
+VM). The continuous scan's breathing correction resamples every frame this way
+(:func:`sffscan.pipeline.metrology.optics_correction.unbreathe_frame`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
-import scipy.sparse
 from sffscan.stages.fields.aperture import equalise_aperture
 
-__all__ = ["TAPS", "is_separable", "resample_matrix", "scale_warp", "warp_frame"]
+if TYPE_CHECKING:
+    import scipy.sparse
+
+__all__ = ["BLOCK", "TAPS", "ScaleResampler", "is_separable", "resample_matrix", "scale_warp",
+           "warp_frame"]
 
 TAPS = 8
 """Lobes of the Lanczos (windowed sinc) kernel on each side: 16 weights per output pixel
@@ -38,14 +48,10 @@ def is_separable(matrix: np.ndarray, *, tol: float = 1e-12) -> bool:
     return abs(float(m[0, 1])) <= tol and abs(float(m[1, 0])) <= tol
 
 
-def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: int = TAPS
-                    ) -> scipy.sparse.csr_matrix:
-    """Sparse (n_out, n_in) matrix ``R`` with ``(R f)[i] = f(scale * i + shift)``.
-
-    Lanczos-``taps`` weights, normalised to sum 1 per row (a constant stays constant), input
-    indices outside ``0 .. n_in - 1`` clamped (replicated border). An integer position gets
-    the single weight 1: an identity map is exact.
-    """
+def _weights(n_out: int, n_in: int, scale: float, shift: float, taps: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Input index (clamped) and weight of each output sample's ``2 taps`` terms,
+    (n_out, 2 taps) each: the entries of :func:`resample_matrix`."""
     x = scale * np.arange(n_out, dtype=np.float64) + shift
     base = np.floor(x).astype(np.intp)
     offs = np.arange(-taps + 1, taps + 1)
@@ -54,13 +60,129 @@ def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: 
     w = np.sinc(d) * np.sinc(d / taps)
     w[np.abs(d) >= taps] = 0.0
     w /= w.sum(axis=1, keepdims=True)
-    rows = np.repeat(np.arange(n_out), offs.size)
-    cols = np.clip(idx, 0, n_in - 1).ravel()
-    return scipy.sparse.csr_matrix((w.ravel(), (rows, cols)), shape=(n_out, n_in))
+    return np.clip(idx, 0, n_in - 1), w
+
+
+def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: int = TAPS
+                    ) -> scipy.sparse.csr_matrix:
+    """Sparse (n_out, n_in) matrix ``R`` with ``(R f)[i] = f(scale * i + shift)``.
+
+    Lanczos-``taps`` weights, normalised to sum 1 per row (a constant stays constant), input
+    indices outside ``0 .. n_in - 1`` clamped (replicated border). An integer position gets
+    the single weight 1: an identity map is exact.
+    """
+    import scipy.sparse  # here only: the scan imports this module, and needs no sparse form
+
+    cols, w = _weights(n_out, n_in, scale, shift, taps)
+    rows = np.repeat(np.arange(n_out), cols.shape[1])
+    return scipy.sparse.csr_matrix((w.ravel(), (rows, cols.ravel())), shape=(n_out, n_in))
+
+
+BLOCK = 64
+"""Output rows (columns) per dense block of :class:`ScaleResampler`: a block reads ~``BLOCK s
++ 2 TAPS`` input rows, so the products do ~1.3x the sparse products' multiplications, in
+BLAS."""
+
+
+class _Band(NamedTuple):
+    out0: int  # output rows (columns) [out0, out1)
+    out1: int
+    in0: int  # input rows (columns) [in0, in1) they read
+    in1: int
+    weights: np.ndarray  # (out1 - out0, in1 - in0)
+
+
+def _bands(n: int, scale: float, shift: float, taps: int, block: int, dtype: type
+           ) -> tuple[_Band, ...]:
+    """:func:`resample_matrix` (n, n) cut into dense blocks of ``block`` rows, each over
+    the columns its rows read."""
+    cols, w = _weights(n, n, scale, shift, taps)
+    bands = []
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        c, ww = cols[a:b], w[a:b]
+        c0, c1 = int(c.min()), int(c.max()) + 1
+        dense = np.zeros((b - a, c1 - c0))
+        np.add.at(dense, (np.repeat(np.arange(b - a), c.shape[1]), (c - c0).ravel()),
+                  ww.ravel())  # clamped border taps add up, as in the sparse matrix
+        bands.append(_Band(a, b, c0, c1, dense.astype(dtype)))
+    return tuple(bands)
+
+
+class ScaleResampler:
+    """:func:`resample_matrix` along both axes of (H, W) frames, prepared once, applied to
+    many frames (the continuous scan resamples every frame of a focus level by the same
+    map).
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Frame shape, px.
+    matrix : (2, 3) array_like
+        Output px -> image px, no rotation or shear (:func:`is_separable`).
+    taps : int, keyword-only
+        Kernel lobes per side.
+    dtype : numpy dtype, keyword-only
+        Of the weights and the arithmetic: float32 (default) or float64.
+
+    Notes
+    -----
+    The weights are :func:`resample_matrix`'s; each block of :data:`BLOCK` output columns
+    (rows) is one matrix product with the band of input columns (rows) it reads. Per pixel
+    the same sums as the sparse products, in another order (equal to round-off).
+    """
+
+    def __init__(self, shape: tuple[int, int], matrix: np.ndarray, *, taps: int = TAPS,
+                 dtype: type = np.float32) -> None:
+        m = np.asarray(matrix, dtype=np.float64)
+        if not is_separable(m):
+            raise ValueError(f"ScaleResampler needs a map without rotation or shear, got "
+                             f"{m.tolist()}")
+        h, w = (int(v) for v in shape)
+        self.shape = (h, w)
+        self.dtype = np.dtype(dtype)
+        self._cols = _bands(w, m[0, 0], m[0, 2], taps, BLOCK, self.dtype.type)
+        self._rows = _bands(h, m[1, 1], m[1, 2], taps, BLOCK, self.dtype.type)
+
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """Two arrays for :meth:`__call__`'s ``buffers``: a caller that resamples many frames
+        keeps them (new 5 MB arrays each frame cost ~3.5 ms of page faults, measured)."""
+        return np.empty(self.shape, self.dtype), np.empty(self.shape, self.dtype)
+
+    def __call__(self, image: np.ndarray, *,
+                 buffers: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """The resampled frame, (H, W) of :attr:`dtype`, not clipped nor rounded.
+
+        ``buffers`` (:meth:`buffers`, any resampler of the same shape and dtype): the
+        intermediate and the result are written there (the result is ``buffers[1]``).
+
+        Raises
+        ------
+        ValueError
+            If ``image`` or a buffer is not of :attr:`shape` (or a buffer not of
+            :attr:`dtype`).
+        """
+        img = np.asarray(image)
+        if img.shape != self.shape:
+            raise ValueError(f"image of shape {img.shape}, the resampler's is {self.shape}")
+        if buffers is None:
+            buffers = self.buffers()
+        tmp, out = buffers
+        for buf in buffers:
+            if buf.shape != self.shape or buf.dtype != self.dtype:
+                raise ValueError(f"buffers must be {self.dtype} of shape {self.shape}, got "
+                                 f"{buf.dtype} {buf.shape}")
+        f = img.astype(self.dtype, copy=False)
+        for b in self._cols:  # along the rows: tmp[:, out] = f[:, in] @ W.T
+            np.matmul(f[:, b.in0:b.in1], b.weights.T, out=tmp[:, b.out0:b.out1])
+        for b in self._rows:  # down the columns
+            np.matmul(b.weights, tmp[b.in0:b.in1], out=out[b.out0:b.out1])
+        return out
 
 
 def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
-               aperture: bool = False) -> np.ndarray:
+               aperture: bool = False, resampler: ScaleResampler | None = None,
+               buffers: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``out(x, y) = image(matrix [x, y, 1])`` for a map without rotation or shear.
 
     Parameters
@@ -73,6 +195,12 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
     aperture : bool, keyword-only
         Also give the result the reference pixel's aperture
         (:func:`~sffscan.stages.fields.aperture.equalise_aperture`).
+    resampler : ScaleResampler, optional, keyword-only
+        Prepared for ``matrix`` and ``image``'s shape (reused over frames); made here if
+        None, in float64 for a float64 image, else float32.
+    buffers : (ndarray, ndarray), optional, keyword-only
+        Work arrays reused over frames (:meth:`ScaleResampler.buffers`); the result is
+        always a new array.
 
     Returns
     -------
@@ -88,10 +216,10 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
     m = np.asarray(matrix, dtype=np.float64)
     if not is_separable(m):
         raise ValueError(f"scale_warp needs a map without rotation or shear, got {m.tolist()}")
-    h, w = img.shape
-    rx = resample_matrix(w, w, m[0, 0], m[0, 2], taps=taps)
-    ry = resample_matrix(h, h, m[1, 1], m[1, 2], taps=taps)
-    out = np.asarray(ry @ (rx @ img.astype(np.float64).T).T)
+    if resampler is None:
+        resampler = ScaleResampler(img.shape, m, taps=taps,
+                                   dtype=np.float64 if img.dtype == np.float64 else np.float32)
+    out = resampler(img, buffers=buffers)
     if aperture:
         out = equalise_aperture(out, float(m[0, 0]), float(m[1, 1]))
     lo, hi = float(img.min()), float(img.max())

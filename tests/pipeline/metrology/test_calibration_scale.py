@@ -110,3 +110,37 @@ def test_stack_refuses_a_reference_level_without_the_given_scale(
     inner = (slice(24, H - 24), slice(24, W - 24))
     err = np.sqrt(np.mean((out[:, *inner] - texture[32:-32, 32:-32][inner]) ** 2, axis=(1, 2)))
     assert err.max() < 0.01, err
+
+
+def test_breathing_correction_reproduces_a_band_limited_frame() -> None:
+    """Known answer: a frame of a band-limited pattern (periods 7 to 20 px) seen at
+    magnification M, corrected by the frame_optics stage, is the pattern at the reference
+    scale within 0.5 % of its amplitude away from the border (OpenCV's 4-lobe Lanczos,
+    which the stage used before, errs ~1.5 %: bench/bench_frame_optics.py); the stage's
+    frames equal unbreathe_frame's, level by level."""
+    from sffscan.pipeline.metrology.correction_stages import FrameOpticsStage
+    from sffscan.pipeline.metrology.optics_correction import unbreathe_frame
+    from sffscan.stages.messages import Frame, FrameHeader
+
+    h, w, centre = 200, 260, (131.3, 97.6)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+
+    def pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return (500 + 200 * np.sin(0.9 * x + 0.3) * np.cos(0.7 * y - 0.2)
+                + 150 * np.sin(0.31 * x + 0.45 * y))
+
+    mags = np.array([0.99, 1.0, 1.012])
+    stage = FrameOpticsStage(mags, centre_px=centre)
+    inner = (slice(30, -30), slice(30, -30))
+    for k, m in enumerate(mags):
+        # what a lens of relative magnification m shows: the world point at reference
+        # pixel u appears at centre + m (u - centre)
+        seen = pattern(centre[0] + (xx - centre[0]) / m, centre[1] + (yy - centre[1]) / m)
+        frame = np.rint(seen).astype(np.uint16)
+        header = FrameHeader(frame_id=k, timestamp_ns=k, focus_index=k, stage_x_um=0.0,
+                             stage_y_um=0.0)
+        got = next(iter(stage.process(Frame(header, frame)))).image
+        assert got.dtype == np.uint16
+        np.testing.assert_array_equal(got, unbreathe_frame(frame, float(m), centre_px=centre))
+        err = np.abs(got.astype(np.float64) - pattern(xx, yy))[inner]
+        assert err.max() < 0.005 * 350, (m, err.max())
