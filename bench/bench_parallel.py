@@ -75,7 +75,8 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
     data = base.model_dump()
     data["processing"].update(execution=case["mode"], depth_method=case.get("method", "spc"),
                               focus_operator="glvm", window=9, registration=True,
-                              workers=case.get("workers", 1))
+                              workers=case.get("workers", 1),
+                              calibration=case.get("calibration") or None)
     return ScanConfig.model_validate(data)
 
 

@@ -61,6 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--outputs", type=Path,
                     help="folder the runs write their mosaics in (default: --cache; see "
                          "bench_parallel.py --outputs)")
+    ap.add_argument("--calibration", type=Path,
+                    help="calibration file every run applies (processing.calibration), e.g. "
+                         "bench_frame_optics.py --write-calibration's; the other tree's "
+                         "bench_parallel.py must pass it on too")
     args = ap.parse_args(argv)
     from bench_parallel import resolve_method
     from bench_pipeline import frame_bank, machine
@@ -76,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     outputs.mkdir(parents=True, exist_ok=True)
     cases = [(t, {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
                   "method": method, "source": "memory", "record": False, "mode": m,
-                  "cores": c})
+                  "cores": c, "calibration": str(args.calibration or "")})
              for c in cores for m in ("threads", "processes") for t in trees]
     fps: dict[tuple[str, str, int], list[float]] = {
         (t, c["mode"], c["cores"]): [] for t, c in cases}
@@ -100,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
              f"({args.frames} frames per run, {args.rounds} rounds interleaved, median; "
              f"whole run {time.perf_counter() - t0:.0f} s). Before: `{trees['before']}`, "
              f"after: `{trees['after']}`. Depth method {method}; mosaics written in "
-             f"{outputs}.", "",
+             f"{outputs}"
+             + (f"; calibration `{args.calibration}` applied" if args.calibration else "")
+             + ".", "",
              "| placement | cores | before frames/s | after frames/s | after / before |"
              " CPU ms/frame before | after | runs before | runs after |",
              "|---|---:|---:|---:|---:|---:|---:|---|---|"]
