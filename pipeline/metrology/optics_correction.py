@@ -159,8 +159,8 @@ def unbreathe_frame(image: np.ndarray, magnification: float, *,
     (:func:`sffscan.stages.fields.resample.scale_warp`, 8 lobes a side, clipped to the
     frame's own range), not OpenCV's 4-lobe Lanczos: that one attenuates fine texture by an
     amount that depends on each pixel's sub-pixel phase (a moire over the frame, different
-    at every level, which a focus measure reads as focus), and its 8 x 8 taps cost ~60 ms a
-    1280 x 1024 frame against 8-15 ms (measured 2026-12-03, AMD EPYC VM, one core).
+    at every level, which a focus measure reads as focus), and its 8 x 8 taps cost 60-70 ms a
+    1280 x 1024 frame against 6-8 ms (bench/bench_frame_optics.py, 2026-12-03, AMD EPYC VM).
     ``resampler``: prepared for this magnification and the frame's shape
     (:func:`unbreathe_resampler`), reused over the frames of a level; ``buffers``: its work
     arrays (:meth:`~sffscan.stages.fields.resample.ScaleResampler.buffers`), reused over

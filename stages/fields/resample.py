@@ -16,8 +16,8 @@ A scale-and-shift map is separable (``x' = s_x x + t_x``, ``y' = s_y y + t_y``):
 1-D resampling matrices, one per axis, each row ``2 TAPS`` weights (borders replicated).
 :class:`ScaleResampler` applies them as dense blocks of :data:`BLOCK` output rows or columns
 against the band of input rows or columns they read, one BLAS product each: a 1280 x 1024
-frame in 5-8 ms of one core (float32), against ~38 ms for the sparse products in float64
-and ~60 ms for :func:`cv2.warpAffine` with ``INTER_LANCZOS4`` (measured 2026-12-03, AMD EPYC
+frame in 6-8 ms of one core (float32), against ~38 ms for the sparse products in float64
+and 60-70 ms for :func:`cv2.warpAffine` with ``INTER_LANCZOS4`` (measured 2026-12-03, AMD EPYC
 VM). The continuous scan's breathing correction resamples every frame this way
 (:func:`sffscan.pipeline.metrology.optics_correction.unbreathe_frame`).
 """
@@ -172,7 +172,11 @@ class ScaleResampler:
             if buf.shape != self.shape or buf.dtype != self.dtype:
                 raise ValueError(f"buffers must be {self.dtype} of shape {self.shape}, got "
                                  f"{buf.dtype} {buf.shape}")
-        f = img.astype(self.dtype, copy=False)
+        if img.dtype == self.dtype:
+            f = img
+        else:  # converted into the result's array, free until the second pass
+            f = out
+            np.copyto(f, img, casting="unsafe")
         for b in self._cols:  # along the rows: tmp[:, out] = f[:, in] @ W.T
             np.matmul(f[:, b.in0:b.in1], b.weights.T, out=tmp[:, b.out0:b.out1])
         for b in self._rows:  # down the columns

@@ -34,8 +34,12 @@ def test_blocks_equal_the_sparse_products(s: float) -> None:
     got32 = rs(img.astype(np.float32), buffers=buffers)
     assert got32.dtype == np.float32 and got32 is buffers[1]
     np.testing.assert_allclose(got32, want, rtol=0, atol=2e-6)
-    # scale_warp takes the prepared resampler and its buffers: the same frame
+    # an integer frame is converted in the buffers: the same sums
     grey = (img * 1023).astype(np.uint16)
+    want_grey = resample_matrix(h, h, m[1, 1], m[1, 2]) @ (
+        resample_matrix(w, w, m[0, 0], m[0, 2]) @ grey.T.astype(np.float64)).T
+    np.testing.assert_allclose(rs(grey, buffers=buffers), want_grey, rtol=0, atol=2e-3)
+    # scale_warp takes the prepared resampler and its buffers: the same frame
     np.testing.assert_array_equal(scale_warp(grey, m, resampler=rs, buffers=buffers),
                                   scale_warp(grey, m))
 
