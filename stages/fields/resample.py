@@ -80,8 +80,9 @@ def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: 
 
 BLOCK = 64
 """Output rows (columns) per dense block of :class:`ScaleResampler`: a block reads ~``BLOCK s
-+ 2 TAPS`` input rows, so the products do ~1.3x the sparse products' multiplications, in
-BLAS."""
++ 2 TAPS`` input rows (~80), of which each output row weighs ``2 TAPS`` (16), so the dense
+products do ~5x the sparse products' multiplications, in BLAS, and still take ~1/6 of their
+time (measured; blocks of 32 rows were no faster, of 128 and 256 slower)."""
 
 
 class _Band(NamedTuple):
