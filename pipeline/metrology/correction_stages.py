@@ -26,6 +26,7 @@ from sffscan.pipeline.metrology.optics_correction import (
     applied,
     check_configured_scale,
     flat_field,
+    flat_field_into,
     level_magnification,
     unbreathe_frame,
     unbreathe_resampler,
@@ -72,28 +73,49 @@ class FrameOpticsStage(Stage):
 
     def process(self, item: Frame) -> Iterator[Frame]:
         img = item.image
+        fid, k = item.header.frame_id, item.header.focus_index
+        rs = None
+        if self.mags is not None and 0 <= k < self.mags.size:
+            rs = self._resampler(k, img.shape)
+        dtype = None
         if self.illumination is not None:
             try:
-                img = flat_field(img, self.illumination, max_value=self.max_value)
+                if rs is not None and self._buffers is not None and \
+                        np.issubdtype(img.dtype, np.integer):
+                    # flat-fielded into the resampling's work array (which it reads from
+                    # there): two full-frame arrays fewer a frame, the same values
+                    dtype = img.dtype
+                    img = flat_field_into(img, self.illumination, self._buffers[1],
+                                          max_value=self.max_value)
+                else:
+                    img = flat_field(img, self.illumination, max_value=self.max_value)
             except ValueError as err:
-                raise FrameError(f"frame_id {item.header.frame_id}: {err}") from None
+                raise FrameError(f"frame_id {fid}: {err}") from None
         if self.mags is not None:
-            k = item.header.focus_index
             if not 0 <= k < self.mags.size:
-                raise FrameError(f"frame_id {item.header.frame_id}: focus_index {k} outside "
+                raise FrameError(f"frame_id {fid}: focus_index {k} outside "
                                  f"the calibrated levels 0..{self.mags.size - 1}")
-            m = float(self.mags[k])
-            key = (k, (int(img.shape[0]), int(img.shape[1])))
-            rs = self._resamplers.get(key)
-            if rs is None and m != 1.0:
-                rs = self._resamplers[key] = unbreathe_resampler(key[1], m,
-                                                                 centre_px=self.centre)
-            if rs is not None and (self._buffers is None
-                                   or self._buffers[0].shape != key[1]):
-                self._buffers = rs.buffers()
-            img = unbreathe_frame(img, m, centre_px=self.centre, resampler=rs,
-                                  buffers=self._buffers if rs is not None else None)
+            try:
+                img = unbreathe_frame(img, float(self.mags[k]), centre_px=self.centre,
+                                      resampler=rs, buffers=self._buffers if rs else None,
+                                      dtype=dtype)
+            except ValueError as err:
+                raise FrameError(f"frame_id {fid}: {err}") from None
         yield Frame(item.header, img)
+
+    def _resampler(self, k: int, shape: tuple[int, ...]) -> ScaleResampler | None:
+        """Level ``k``'s resampling of frames of ``shape`` (None at magnification 1), and
+        the work arrays for that shape."""
+        m = float(self.mags[k]) if self.mags is not None else 1.0
+        if m == 1.0 or len(shape) != 2:
+            return None
+        key = (k, (int(shape[0]), int(shape[1])))
+        rs = self._resamplers.get(key)
+        if rs is None:
+            rs = self._resamplers[key] = unbreathe_resampler(key[1], m, centre_px=self.centre)
+        if self._buffers is None or self._buffers[0].shape != key[1]:
+            self._buffers = rs.buffers()
+        return rs
 
 
 class CurvatureStage(Stage):

@@ -56,6 +56,7 @@ __all__ = [
     "curvature_at",
     "first_view_columns",
     "flat_field",
+    "flat_field_into",
     "check_configured_scale",
     "level_magnification",
     "level_scale",
@@ -148,7 +149,8 @@ def unbreathe_matrix(magnification: float, *, centre_px: tuple[float, float]) ->
 def unbreathe_frame(image: np.ndarray, magnification: float, *,
                     centre_px: tuple[float, float],
                     resampler: ScaleResampler | None = None,
-                    buffers: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                    buffers: tuple[np.ndarray, np.ndarray] | None = None,
+                    dtype: np.dtype | type | None = None) -> np.ndarray:
     """Resample a frame of relative magnification M to the reference scale.
 
     ``out(u) = image(centre + (u - centre) * M)``: a point ``d`` px from the centre in the
@@ -164,13 +166,14 @@ def unbreathe_frame(image: np.ndarray, magnification: float, *,
     ``resampler``: prepared for this magnification and the frame's shape
     (:func:`unbreathe_resampler`), reused over the frames of a level; ``buffers``: its work
     arrays (:meth:`~sffscan.stages.fields.resample.ScaleResampler.buffers`), reused over
-    every frame.
+    every frame; ``dtype``: of the result, for a frame of integers held in a float array
+    (:func:`flat_field_into`'s), default ``image``'s.
     """
     img = np.asarray(image)
     mat = unbreathe_matrix(magnification, centre_px=centre_px)
     if magnification == 1.0:
-        return img
-    return scale_warp(img, mat, resampler=resampler, buffers=buffers)
+        return img if dtype is None else img.astype(dtype)
+    return scale_warp(img, mat, resampler=resampler, buffers=buffers, dtype=dtype)
 
 
 def unbreathe_resampler(shape: tuple[int, int], magnification: float, *,
@@ -185,14 +188,24 @@ def flat_field(image: np.ndarray, illumination: np.ndarray, *, max_value: float)
     Integer frames are rounded and clipped to ``max_value``.
     """
     img = np.asarray(image)
+    out = flat_field_into(img, illumination, np.empty(img.shape, np.float32),
+                          max_value=max_value)
+    return out.astype(img.dtype)
+
+
+def flat_field_into(image: np.ndarray, illumination: np.ndarray, out: np.ndarray, *,
+                    max_value: float) -> np.ndarray:
+    """:func:`flat_field`'s values, in float32, written into ``out`` (float32, the frame's
+    shape; returned): a caller that resamples the frame next reads them from there."""
+    img = np.asarray(image)
     if img.shape != illumination.shape:
         raise CalibrationError(f"vignetting calibrated on {illumination.shape[::-1]} px frames; "
                                f"this frame is {img.shape[::-1]} px")
-    out = img.astype(np.float32) / illumination
+    np.divide(img, illumination, out=out, dtype=np.float32)
     if np.issubdtype(img.dtype, np.integer):
         np.rint(out, out=out)
         np.clip(out, 0, max_value, out=out)
-    return out.astype(img.dtype)
+    return out
 
 
 def curvature_at(fit: FieldCurvatureFit, u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -187,7 +187,8 @@ class ScaleResampler:
 
 def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
                aperture: bool = False, resampler: ScaleResampler | None = None,
-               buffers: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+               buffers: tuple[np.ndarray, np.ndarray] | None = None,
+               dtype: np.dtype | type | None = None) -> np.ndarray:
     """``out(x, y) = image(matrix [x, y, 1])`` for a map without rotation or shear.
 
     Parameters
@@ -205,7 +206,10 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
         None, in float64 for a float64 image, else float32.
     buffers : (ndarray, ndarray), optional, keyword-only
         Work arrays reused over frames (:meth:`ScaleResampler.buffers`); the result is
-        always a new array.
+        always a new array. ``image`` may be ``buffers[1]`` (a frame prepared there).
+    dtype : numpy dtype, optional, keyword-only
+        Of the result (default ``image``'s): an integer dtype rounds. For a frame of
+        integer values held in a float array.
 
     Returns
     -------
@@ -224,14 +228,15 @@ def scale_warp(image: np.ndarray, matrix: np.ndarray, *, taps: int = TAPS,
     if resampler is None:
         resampler = ScaleResampler(img.shape, m, taps=taps,
                                    dtype=np.float64 if img.dtype == np.float64 else np.float32)
+    lo, hi = float(img.min()), float(img.max())  # before: img may be the result's buffer
     out = resampler(img, buffers=buffers)
     if aperture:
         out = equalise_aperture(out, float(m[0, 0]), float(m[1, 1]))
-    lo, hi = float(img.min()), float(img.max())
     np.clip(out, lo, hi, out=out)
-    if np.issubdtype(img.dtype, np.integer):
+    to = np.dtype(img.dtype if dtype is None else dtype)
+    if np.issubdtype(to, np.integer):
         np.rint(out, out=out)
-    return out.astype(img.dtype)
+    return out.astype(to)
 
 
 def warp_frame(image: np.ndarray, matrix: np.ndarray, *, aperture: bool = True) -> np.ndarray:

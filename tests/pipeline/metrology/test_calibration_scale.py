@@ -144,3 +144,35 @@ def test_breathing_correction_reproduces_a_band_limited_frame() -> None:
         np.testing.assert_array_equal(got, unbreathe_frame(frame, float(m), centre_px=centre))
         err = np.abs(got.astype(np.float64) - pattern(xx, yy))[inner]
         assert err.max() < 0.005 * 350, (m, err.max())
+
+
+def test_flat_field_then_resampling_in_the_work_arrays_is_the_two_steps() -> None:
+    """With vignetting and a magnification, an integer frame is flat-fielded into the
+    resampling's work array: the frames equal flat_field then unbreathe_frame, bit for
+    bit, level after level (the arrays reused); a frame of another shape is refused with
+    its frame_id."""
+    from sffscan.pipeline.metrology.correction_stages import FrameOpticsStage
+    from sffscan.pipeline.metrology.optics_correction import flat_field, unbreathe_frame
+    from sffscan.stages.messages import Frame, FrameError, FrameHeader
+
+    rng = np.random.default_rng(2)
+    h, w, centre = 70, 90, (44.2, 35.9)
+    yy, xx = np.mgrid[0:h, 0:w]
+    illum = (1.0 - 0.2 * ((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2)
+             / (centre[0] ** 2 + centre[1] ** 2)).astype(np.float32)
+    mags = np.array([0.99, 1.0, 1.011])
+    stage = FrameOpticsStage(mags, centre_px=centre, illumination=illum, max_value=1023.0)
+    for i in range(6):
+        k = i % 3
+        frame = rng.integers(0, 1024, (h, w), dtype=np.uint16)
+        header = FrameHeader(frame_id=i, timestamp_ns=i, focus_index=k, stage_x_um=0.0,
+                             stage_y_um=0.0)
+        got = next(iter(stage.process(Frame(header, frame)))).image
+        want = unbreathe_frame(flat_field(frame, illum, max_value=1023.0), float(mags[k]),
+                               centre_px=centre)
+        assert got.dtype == np.uint16
+        np.testing.assert_array_equal(got, want)
+    header = FrameHeader(frame_id=9, timestamp_ns=9, focus_index=2, stage_x_um=0.0,
+                         stage_y_um=0.0)
+    with pytest.raises(FrameError, match=r"frame_id 9: vignetting calibrated on \(90, 70\)"):
+        list(stage.process(Frame(header, np.zeros((h, w + 2), np.uint16))))
