@@ -85,9 +85,8 @@ def accuracy(m: float) -> dict[str, float]:
                 + 150 * np.sin(0.31 * x + 0.45 * y))
 
     img = f(xx, yy).astype(np.float32)
-    mx, my = unbreathe_matrix(m, centre_px=CENTRE)[:, 0], unbreathe_matrix(
-        m, centre_px=CENTRE)[:, 1]
-    truth = f(mx[0] * xx + CENTRE[0] * (1 - m), my[1] * yy + CENTRE[1] * (1 - m))
+    mat = unbreathe_matrix(m, centre_px=CENTRE)  # output px -> frame px
+    truth = f(mat[0, 0] * xx + mat[0, 2], mat[1, 1] * yy + mat[1, 2])
     inner = (slice(40, -40), slice(40, -40))
     out = {}
     for name, got in (("this tree", unbreathe_frame(img, m, centre_px=CENTRE)),
