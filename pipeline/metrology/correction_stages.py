@@ -44,7 +44,7 @@ class FrameOpticsStage(Stage):
     about the optical centre (magnification per level).
 
     Each level's resampling is prepared at its first frame and kept (float32 weights,
-    ~0.7 MiB a level for 1280 x 1024 frames; ~8 ms of CPU to prepare), with one pair of
+    ~0.4 MiB a level for 1280 x 1024 frames; 5-12 ms of CPU to prepare), with one pair of
     work arrays for every level.
 
     Parameters

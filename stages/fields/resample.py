@@ -16,7 +16,7 @@ A scale-and-shift map is separable (``x' = s_x x + t_x``, ``y' = s_y y + t_y``):
 1-D resampling matrices, one per axis, each row ``2 TAPS`` weights (borders replicated).
 :class:`ScaleResampler` applies them as dense blocks of :data:`BLOCK` output rows or columns
 against the band of input rows or columns they read, one BLAS product each: a 1280 x 1024
-frame in 6-8 ms of one core (float32), against ~38 ms for the sparse products in float64
+frame in 4-5.5 ms of one core (float32), against ~38 ms for the sparse products in float64
 and 60-70 ms for :func:`cv2.warpAffine` with ``INTER_LANCZOS4`` (measured 2026-12-03, AMD EPYC
 VM). The continuous scan's breathing correction resamples every frame this way
 (:func:`sffscan.pipeline.metrology.optics_correction.unbreathe_frame`).
@@ -78,11 +78,14 @@ def resample_matrix(n_out: int, n_in: int, scale: float, shift: float, *, taps: 
     return scipy.sparse.csr_matrix((w.ravel(), (rows, cols.ravel())), shape=(n_out, n_in))
 
 
-BLOCK = 64
+BLOCK = 32
 """Output rows (columns) per dense block of :class:`ScaleResampler`: a block reads ~``BLOCK s
-+ 2 TAPS`` input rows (~80), of which each output row weighs ``2 TAPS`` (16), so the dense
-products do ~5x the sparse products' multiplications, in BLAS, and still take ~1/6 of their
-time (measured; blocks of 32 rows were no faster, of 128 and 256 slower)."""
++ 2 TAPS`` input rows (~48), of which each output row weighs ``2 TAPS`` (16), so the dense
+products do ~3x the sparse products' multiplications, in BLAS, and still take ~1/7 of their
+time. Blocks of 32 against 64 (1280 x 1024 uint16 frame, one BLAS thread, 12 rounds
+alternating, twice; 2026-12-03, AMD EPYC VM): 5.1-5.4 against 6.6-6.7 ms a frame, faster in
+24 of 24 pairs, the same values bit for bit there; 24 about as fast as 32, 48 between,
+128 slower (8.9 ms). An earlier, not interleaved, comparison had found 32 no faster."""
 
 
 class _Band(NamedTuple):
