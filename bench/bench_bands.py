@@ -21,6 +21,9 @@ thread (``BandWorkers.run`` swapped for a loop, here only): what splitting the r
 itself (the halos, each band's calls) against what running the bands in threads adds (the
 hand-overs, the GIL between the bands' Python code): the share that band *processes*,
 which share no interpreter, would not pay.
+``--twin`` adds K = 1 run while a second process does the same work on its own copy of the
+frames: the CPU a frame costs on this machine when both cores are busy, whatever shares
+them (the reference a band placement's CPU on 2 cores should be read against).
 Not a test: nothing here asserts; it writes ``bench/results/bands.json`` and ``.md``.
 """
 
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 import statistics
 import sys
@@ -35,7 +39,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, cast
 
@@ -94,6 +98,124 @@ def bands_in_turn(on: bool) -> Iterator[None]:
         BandWorkers.run = threaded  # type: ignore[method-assign]
 
 
+def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthStage, k: int,
+               steady: int, go: Any = None) -> tuple[float, float, list[Any]]:
+    """The focus measure and depth stages with ``k`` band workers over ``placed``: CPU
+    and wall ms per frame from frame ``steady`` on, and the blocks. ``go`` (an Event): stop
+    at the first frame it is found cleared (the twin)."""
+    fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
+                           max_value=fm_ref.max_value, margin=fm_ref.margin,
+                           directions=fm_ref.directions, workers=k)
+    kw = dict(depth_ref.kwargs)
+    kw["slack_px"] = kw.pop("row_slack")
+    del kw["col_slack"]
+    depth = DepthStage(directions=depth_ref.directions, workers=k, **kw)  # type: ignore[arg-type]
+    depth.prepare()
+    blocks: list[Any] = []
+    c0 = w0 = 0.0
+    try:
+        for i, q in enumerate(placed):
+            if go is not None and not go.is_set():
+                break
+            if i == steady:
+                c0, w0 = time.process_time(), time.perf_counter()
+            for f in fm.process(q):
+                blocks += depth.process(f)
+        c1, w1 = time.process_time(), time.perf_counter()
+        blocks += depth.finish()
+    finally:
+        fm.close(failed=False)
+        depth.close(failed=False)
+    n = max(1, len(placed) - steady)
+    return 1e3 * (c1 - c0) / n, 1e3 * (w1 - w0) / n, blocks
+
+
+def prepared(cache: Path, frames: int) -> tuple[list[Any], FocusMeasureStage, DepthStage, int]:
+    """The bench's placed frames and the reference stages (their settings)."""
+    cfg = bench_config()
+    cfg.processing.depth_method = type(cfg.processing).model_fields["depth_method"].default
+    images = load_bank(cfg, frame_bank(cache, frames), frames)
+    placed, built = placed_frames(cfg, images)
+    return (placed, cast(FocusMeasureStage, built["focus_measure"]),
+            cast(DepthStage, built["depth"]), cfg.optics.n_levels + 10)
+
+
+def twin_main(cache: str, frames: int, cv_threads: int | None, go: Any, busy: Any,
+              idle: Any, ready: Any, stop: Any) -> None:
+    """The twin process: the same K = 1 work over its own copy of the frames, pass after
+    pass while ``go`` is set (``busy`` set meanwhile, ``idle`` cleared); otherwise blocked
+    on ``go``."""
+    placed, fm_ref, depth_ref, steady = prepared(Path(cache), frames)
+    idle.set()
+    ready.set()
+    with threadpool_limits(limits=1, user_api="blas"), opencv_thread_limit(cv_threads):
+        while not stop.is_set():
+            if not go.wait(0.2):
+                continue
+            idle.clear()
+            busy.set()
+            while go.is_set():
+                run_stages(placed, fm_ref, depth_ref, 1, steady, go)
+            busy.clear()
+            idle.set()
+
+
+class Twin:
+    """Another process doing the same K = 1 work (:func:`twin_main`), on while
+    :meth:`beside` runs something."""
+
+    def __init__(self, cache: Path, frames: int, cv_threads: int | None) -> None:
+        ctx = mp.get_context("spawn")
+        self.go, self.busy, self.idle, self.stop = (ctx.Event() for _ in range(4))
+        ready = ctx.Event()
+        self.proc = ctx.Process(target=twin_main, args=(str(cache), frames, cv_threads,
+                                                        self.go, self.busy, self.idle, ready,
+                                                        self.stop), daemon=True)
+        self.proc.start()
+        while not ready.wait(1.0):
+            if not self.proc.is_alive():
+                raise RuntimeError(f"the twin process exited ({self.proc.exitcode})")
+
+    @contextmanager
+    def beside(self) -> Iterator[None]:
+        self.go.set()
+        if not self.busy.wait(60.0):
+            raise RuntimeError("the twin did not start within 60 s")
+        try:
+            yield
+        finally:
+            self.go.clear()
+            if not self.idle.wait(60.0):  # the twin leaves at its next frame (a few ms)
+                raise RuntimeError("the twin did not stop within 60 s")
+
+    def close(self) -> None:
+        self.stop.set()
+        self.go.clear()
+        self.proc.join(10.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+
+
+def rounds(n: int, configs: list[str], run: Callable[[int], tuple[float, float, list[Any]]],
+           twin: Twin | None, cpu: dict[str, list[float]], wall: dict[str, list[float]],
+           identical: dict[str, list[bool]], ref: str) -> None:
+    """``n`` rounds over ``configs``, the order reversed every other round."""
+    for r in range(n):
+        order = configs if r % 2 == 0 else configs[::-1]
+        outs = {}
+        for name in order:
+            with bands_in_turn(name.endswith("in turn")), \
+                    (twin.beside() if twin is not None and name.endswith("twin")
+                     else nullcontext()):
+                c, w, outs[name] = run(int(name.split()[0]))
+            cpu[name].append(c)
+            wall[name].append(w)
+            print(f"round {r + 1}: K = {name}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
+                  file=sys.stderr, flush=True)
+        for name in configs[1:]:
+            identical[name].append(same(outs[ref], outs[name]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=150, help="frames per run")
@@ -106,43 +228,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="results, without suffix (.md and .json are written)")
     ap.add_argument("--serial", action="store_true",
                     help="also each K > 1 with its bands in turn in one thread")
+    ap.add_argument("--twin", action="store_true",
+                    help="also K = 1 while another process does the same work (every core "
+                         "busy: what this machine's shared caches and memory cost)")
     args = ap.parse_args(argv)
-    cfg = bench_config()
-    cfg.processing.depth_method = type(cfg.processing).model_fields["depth_method"].default
-    images = load_bank(cfg, frame_bank(args.cache, args.frames), args.frames)
-    placed, built = placed_frames(cfg, images)
-    fm_ref = cast(FocusMeasureStage, built["focus_measure"])
-    del images
-    depth_ref = cast(DepthStage, built["depth"])
-    steady = cfg.optics.n_levels + 10
+    placed, fm_ref, depth_ref, steady = prepared(args.cache, args.frames)
 
     def run(k: int) -> tuple[float, float, list[Any]]:
-        fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
-                               max_value=fm_ref.max_value, margin=fm_ref.margin,
-                               directions=fm_ref.directions, workers=k)
-        kw = dict(depth_ref.kwargs)
-        kw["slack_px"] = kw.pop("row_slack")
-        del kw["col_slack"]
-        depth = DepthStage(directions=depth_ref.directions, workers=k, **kw)  # type: ignore[arg-type]
-        depth.prepare()
-        blocks: list[Any] = []
-        try:
-            for i, q in enumerate(placed):
-                if i == steady:
-                    c0, w0 = time.process_time(), time.perf_counter()
-                for f in fm.process(q):
-                    blocks += depth.process(f)
-            c1, w1 = time.process_time(), time.perf_counter()
-            blocks += depth.finish()
-        finally:
-            fm.close(failed=False)
-            depth.close(failed=False)
-        n = len(placed) - steady
-        return 1e3 * (c1 - c0) / n, 1e3 * (w1 - w0) / n, blocks
+        return run_stages(placed, fm_ref, depth_ref, k, steady)
 
     # configurations: "K" (K band threads) and, with --serial, "K in turn"
     configs = [str(k) for k in args.workers] + (
-        [f"{k} in turn" for k in args.workers if k > 1] if args.serial else [])
+        [f"{k} in turn" for k in args.workers if k > 1] if args.serial else []) + (
+        ["1 beside a twin"] if args.twin else [])
     ref = configs[0]
     cpu: dict[str, list[float]] = {c: [] for c in configs}
     wall: dict[str, list[float]] = {c: [] for c in configs}
@@ -151,19 +249,13 @@ def main(argv: list[str] | None = None) -> int:
     # OpenCV's own threads as the scan's focus worker has them (one where the cores are no
     # more than the process placement's three processes)
     cv_threads = opencv_threads(3)
-    with threadpool_limits(limits=1, user_api="blas"), opencv_thread_limit(cv_threads):
-        for r in range(args.rounds):
-            order = configs if r % 2 == 0 else configs[::-1]
-            outs = {}
-            for name in order:
-                with bands_in_turn(name.endswith("in turn")):
-                    c, w, outs[name] = run(int(name.split()[0]))
-                cpu[name].append(c)
-                wall[name].append(w)
-                print(f"round {r + 1}: K = {name}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
-                      file=sys.stderr, flush=True)
-            for name in configs[1:]:
-                identical[name].append(same(outs[ref], outs[name]))
+    twin = Twin(args.cache, args.frames, cv_threads) if args.twin else None
+    try:
+        with threadpool_limits(limits=1, user_api="blas"), opencv_thread_limit(cv_threads):
+            rounds(args.rounds, configs, run, twin, cpu, wall, identical, ref)
+    finally:
+        if twin is not None:
+            twin.close()
     load1 = " ".join(f"{v:.1f}" for v in os.getloadavg())
     hand_wall, hand_cpu = handoff_us()
     command = "python bench/bench_bands.py " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -185,15 +277,26 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", "`K in turn`: the same K bands, one after another in one thread (the "
                   "split's own cost: halos, each band's calls); K against `K in turn`: what "
                   "the threads add (hand-overs, the GIL shared by the bands' Python code)."]
-    lines += ["", "| K | CPU ms/frame | CPU / K=" + ref + " | wall ms/frame | frames/s "
-              "(these two stages) | speed-up | blocks bit-identical to K=" + ref + " |",
-              "|---|---:|---:|---:|---:|---:|---|"]
+    if args.twin:
+        lines += ["", "`1 beside a twin`: K = 1 while another process does the same work on "
+                  "its own copy of the frames (started before, stopped after): both cores "
+                  "busy, nothing shared but the machine (its caches, memory bandwidth, the "
+                  "hypervisor's scheduling). Its CPU / K=1 is what any placement that keeps "
+                  "two cores busy pays here, band threads or band processes alike."]
+    lines += ["", "Round by round: the median over rounds of each round's CPU against K=" + ref
+              + "'s in the same round (the machine's speed drifts between rounds)."]
+    lines += ["", "| K | CPU ms/frame | CPU / K=" + ref + " | round by round (median) | "
+              "wall ms/frame | frames/s (these two stages) | speed-up | blocks bit-identical "
+              "to K=" + ref + " |",
+              "|---|---:|---:|---:|---:|---:|---:|---|"]
     for name in configs:
         c, w = statistics.median(cpu[name]), statistics.median(wall[name])
         ident = ("reference" if name == ref else
                  f"{sum(identical[name])} of {len(identical[name])} rounds")
+        paired = statistics.median(a / b for a, b in zip(cpu[name], cpu[ref], strict=True))
         lines.append(f"| {name} | {c:.2f} ({min(cpu[name]):.2f}-{max(cpu[name]):.2f}) | "
-                     f"{c / c_ref:.3f} | {w:.2f} ({min(wall[name]):.2f}-{max(wall[name]):.2f})"
+                     f"{c / c_ref:.3f} | {paired:.3f} | "
+                     f"{w:.2f} ({min(wall[name]):.2f}-{max(wall[name]):.2f})"
                      f" | {1e3 / w:.0f} | {w_ref / w:.2f} | {ident} |")
     text = "\n".join(lines)
     print(text)
