@@ -81,6 +81,51 @@ def test_process_mode_mosaic_is_bit_identical_to_thread_mode(tmp_path: Path) -> 
     assert all(np.array_equal(a.image, b.image) for a, b in zip(got, frames, strict=True))
 
 
+def test_calibrated_scan_in_processes_is_the_thread_placements_bit_for_bit(
+        tmp_path: Path) -> None:
+    """With a calibration that corrects the frames (magnification per level, vignetting:
+    the frame_optics stage, whose frames are new arrays, not the source's slots) the
+    process placement's mosaic is the thread placement's bit for bit."""
+    from sffscan.pipeline.metrology.calibration_model import (
+        Calibration,
+        LateralScale,
+        VignettingFit,
+        ZResponse,
+        save_calibration,
+    )
+
+    o = small_config().optics
+    p, n = o.pixel_um, o.n_levels
+    centre = ((o.width_px - 1) / 2, (o.height_px - 1) / 2)
+    r2 = centre[0] ** 2 + centre[1] ** 2
+    cal = save_calibration(Calibration(
+        z_response=ZResponse(um_per_level=o.z_step_um, intercept_um=o.z_min_um, pearson_r=1.0,
+                             heights_um=[o.z_min_um, o.z_min_um + (n - 1) * o.z_step_um],
+                             peak_levels=[0.0, n - 1.0], residuals_um=[0.0, 0.0]),
+        lateral=LateralScale(um_per_px_x=p, um_per_px_y=p, reference_level=(n - 1) / 2,
+                             slope_x_per_level=-0.02 * p / (n - 1),
+                             slope_y_per_level=-0.02 * p / (n - 1), optical_centre_px=centre),
+        vignetting=VignettingFit(frame_width_px=o.width_px, frame_height_px=o.height_px,
+                                 centre_px=centre,
+                                 coefficients=(1.0, 0.0, 0.0, -0.2 / r2, 0.0, -0.2 / r2),
+                                 corner_loss=0.2)), tmp_path / "cal.json")
+    motion = {"x_end_mm": 6.0, "wobble_along_px": 1.0}
+    frames = list(simulate_frames(small_config(motion=motion)))
+    out = {}
+    for mode in ("threads", "processes"):
+        cfg = small_config(motion=motion, processing={"execution": mode,
+                                                      "calibration": str(cal)})
+        rep = run_scan(cfg, frames=iter(frames), output=tmp_path / f"{mode}.zarr",
+                       progress=False)
+        assert rep.frames == len(frames) and rep.result.dropped == 0
+        assert ("processes" in rep.result.extras) == (mode == "processes")
+        assert "frame_optics" in [s.name for s in rep.result.stages]
+        out[mode] = mosaic_arrays(tmp_path / f"{mode}.zarr")
+    for k, a in out["threads"].items():
+        assert np.array_equal(a, out["processes"][k], equal_nan=True), k
+    assert np.isfinite(out["processes"]["height"]).sum() > 1000
+
+
 def test_a_failing_worker_stage_fails_the_scan_exit_1_mosaic_readable(
         tmp_path: Path, capsys: pytest.CaptureFixture[str],
         monkeypatch: pytest.MonkeyPatch, scan_2_8: RenderedScan) -> None:
