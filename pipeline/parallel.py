@@ -77,6 +77,7 @@ from sffscan.pipeline.worker import (
     rebuild_exception,
     worker_main,
 )
+from sffscan.stages.frame_source import FrameBuffers
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import FullPolicy, Sink, Stage
 
@@ -85,7 +86,9 @@ log = logging.getLogger(__name__)
 
 class PooledSource(Stage):
     """The source stage, its frames copied once into the frame pool (then passed on by
-    reference to every process and sink)."""
+    reference to every process and sink). A source that writes its frames' pixels itself
+    (a replay's decoder: ``inner.buffers``, :class:`~sffscan.stages.frame_source.FrameBuffers`)
+    writes them into the pool's slots instead, and nothing is copied."""
 
     def __init__(self, inner: Stage, pool: SlotPool, stop: threading.Event) -> None:
         self.inner = inner
@@ -93,6 +96,19 @@ class PooledSource(Stage):
         self.unit = inner.unit
         self.pool = pool
         self.stop = stop
+        self.buffers: FrameBuffers | None = getattr(inner, "buffers", None)
+        if self.buffers is not None:
+            self.buffers.bind(self._slot_array)
+
+    def _slot_array(self, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        """An array in a free slot of the frame pool (a new one where it would not fit)."""
+        if int(np.prod(shape)) * dtype.itemsize > self.pool.spec.slot_bytes:
+            return np.empty(shape, dtype)
+        try:
+            slot = self.pool.acquire(self.stop.is_set)
+        except PoolStopped:
+            raise PipelineStopped(self.name) from None
+        return self.pool.array(slot, offset=0, shape=shape, dtype=dtype.str)
 
     def produce(self) -> Iterator[Any]:
         for frame in self.inner.produce():
@@ -108,6 +124,8 @@ class PooledSource(Stage):
             yield frame
 
     def close(self, *, failed: bool) -> None:
+        if self.buffers is not None:
+            self.buffers.bind(None)
         self.inner.close(failed=failed)
 
     def extra_stats(self) -> dict[str, Any]:

@@ -35,20 +35,25 @@ from sffscan.pipeline.progress import ScanProgress as Progress
 from sffscan.pipeline.runtime import Pipeline
 from sffscan.pipeline.scan_processes import process_placement, use_processes
 from sffscan.pipeline.stats import PipelineResult
-from sffscan.stages.frame_source import SourceStage
+from sffscan.stages.frame_source import FrameBuffers, SourceStage
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import Sink, Stage
 from sffscan.stages.speed_shift import SpeedShiftStage
 
 
-def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter) -> list[Stage]:
+def build_stages(cfg: ScanConfig, frames: Iterator[Frame], writer: MosaicWriter, *,
+                 buffers: FrameBuffers | None = None) -> list[Stage]:
+    """The scan's stages, source to mosaic; ``buffers``: where the source's frames are
+    decoded (:class:`~sffscan.stages.frame_source.FrameBuffers`; default ``frames``'
+    own, if it has any)."""
     o, m = cfg.optics, cfg.motion
     x0, y0, x1, y1 = (v * o.pixel_um for v in scan_extent_px(cfg))
     # the calibration's magnification per level and field curvature (issue 14)
     optics_pre, optics_post = optics_correction_stages(cfg, focus_heights_um(cfg))
     stages: list[Stage] = [
         SourceStage(frames, shape=(o.height_px, o.width_px), dtype=o.dtype, n_levels=o.n_levels,
-                    max_value=int(o.max_value), passes=m.passes, area_um=(x0, y0, x1, y1)),
+                    max_value=int(o.max_value), passes=m.passes, area_um=(x0, y0, x1, y1),
+                    buffers=buffers),
         *optics_pre,
         SpeedShiftStage(pixel_um=o.pixel_um, speed_mm_s=m.speed_mm_s,
                         pass_start=lambda i: pass_start_px(cfg, i)),
@@ -103,10 +108,11 @@ def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | N
     ``complete`` only if every expected frame was (else ``incomplete``)."""
     if writer is None:
         writer = open_writer(cfg, path=output, overwrite=overwrite)
-    if account is not None:
+    buffers = getattr(frames, "buffers", None)  # a replay's (FrameBuffers), kept through
+    if account is not None:                     # the count below
         frames = account.count(frames)
         writer.account = account.status
-    stages = build_stages(cfg, frames, writer)
+    stages = build_stages(cfg, frames, writer, buffers=buffers)
     prog = Progress(frame_count(cfg)) if progress else None
     placement = (process_placement(cfg, stages, sinks=list(sinks or []))
                  if use_processes(cfg, list(sinks or [])) else None)

@@ -6,11 +6,36 @@ Sources (the simulated scanner, a replay, a camera) are plain iterators of
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from sffscan.stages.messages import Frame, FrameError, check_frame
 from sffscan.stages.protocol import Stage
+
+__all__ = ["FrameBuffers", "SourceStage"]
+
+
+class FrameBuffers:
+    """Where a source that writes its frames' pixels itself (a replay's decoder) puts them:
+    new arrays, unless a runtime has bound an allocator.
+
+    The process placement binds one that hands out slots of its shared-memory frame ring
+    (:class:`sffscan.pipeline.parallel.PooledSource`): a frame decoded there crosses the
+    processes without the copy into the ring that a frame in a new array takes. A source
+    offers its buffers by an attribute ``buffers`` of its frame iterator.
+    """
+
+    def __init__(self) -> None:
+        self._alloc: Callable[[tuple[int, ...], np.dtype], np.ndarray] | None = None
+
+    def bind(self, alloc: Callable[[tuple[int, ...], np.dtype], np.ndarray] | None) -> None:
+        """Use ``alloc(shape, dtype)`` for the arrays from now on (None: new arrays again)."""
+        self._alloc = alloc
+
+    def empty(self, shape: tuple[int, ...], dtype: np.dtype | str) -> np.ndarray:
+        """An array of ``shape`` and ``dtype`` for a frame's pixels (values undefined)."""
+        dt = np.dtype(dtype)
+        return np.empty(shape, dt) if self._alloc is None else self._alloc(shape, dt)
 
 
 class SourceStage(Stage):
@@ -39,14 +64,22 @@ class SourceStage(Stage):
         Configured number of passes.
     area_um : (x0, y0, x1, y1)
         Box the commanded stage positions must lie in, µm.
+    buffers : FrameBuffers, optional
+        Where a source that writes its frames' pixels itself (a replay) puts them; default
+        the iterator's ``buffers`` attribute, if any.
     """
 
     name = "source"
 
     def __init__(self, frames: Iterator[Frame], *, shape: tuple[int, int], dtype: str,
                  n_levels: int, max_value: int, passes: int,
-                 area_um: tuple[float, float, float, float]) -> None:
+                 area_um: tuple[float, float, float, float],
+                 buffers: FrameBuffers | None = None) -> None:
         self.frames = frames
+        #: where the frames' pixels are written, for a source that writes them itself
+        #: (``buffers``, else the iterator's own ``buffers`` attribute, if any)
+        self.buffers: FrameBuffers | None = (buffers if buffers is not None
+                                             else getattr(frames, "buffers", None))
         self.shape = shape
         self.dtype = np.dtype(dtype)
         self.n_levels = n_levels

@@ -40,7 +40,8 @@ from sffscan.pipeline.formats.recording_checks import (
     timestamp_defects,
 )
 from sffscan.pipeline.formats.recording_motion import read_motion_queue, stage_positions_um
-from sffscan.pipeline.formats.zarr_chunks import Plans, read_many
+from sffscan.pipeline.formats.zarr_chunks import Plans, read_into, read_many
+from sffscan.stages.frame_source import FrameBuffers
 from sffscan.stages.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
@@ -200,8 +201,11 @@ class Recording:
 
     def frames(self, *, realtime: bool = False, start: int = 0,
                clock: Callable[[], float] = time.monotonic,
-               sleep: Callable[[float], None] = time.sleep) -> Iterator[Frame]:
-        """The usable frames in frame_id order, from the ``start``-th.
+               sleep: Callable[[float], None] = time.sleep) -> RecordedFrames:
+        """The usable frames in frame_id order, from the ``start``-th; each decoded
+        straight into an array of the iterator's ``buffers``
+        (:class:`~sffscan.stages.frame_source.FrameBuffers`: new arrays, or the process
+        placement's frame ring, which then takes no copy).
 
         A frame whose chunk cannot be decoded is left out (a lost frame for the pipeline)
         and its frame_id added to ``report.corrupt``; so is a frame whose pixels are not the
@@ -209,6 +213,13 @@ class Recording:
         the frame index and file). ``realtime`` paces the frames by their time stamps, each
         step bounded (:class:`~sffscan.pipeline.formats.recording_checks.Pacer`; ``clock``
         and ``sleep`` are replaceable for tests)."""
+        buffers = FrameBuffers()
+        return RecordedFrames(self._frames(buffers, realtime=realtime, start=start,
+                                           clock=clock, sleep=sleep), buffers)
+
+    def _frames(self, buffers: FrameBuffers, *, realtime: bool, start: int,
+                clock: Callable[[], float], sleep: Callable[[float], None]
+                ) -> Iterator[Frame]:
         arr = _array(self.group, "frames", str(self.path))
         assert arr is not None
         shape = self.attrs.frame_shape
@@ -217,11 +228,14 @@ class Recording:
         plans = Plans()  # the two arrays' chunk plans, worked out once for the stream
         for index in self.order[start:]:
             header = self.header(int(index))
+            # the array first, outside the try: a runtime that cannot give one (stopped,
+            # its ring starved) stops the replay; it is not a corrupt frame
+            out = buffers.empty(tuple(shape), arr.dtype)
             try:
                 # chunk by chunk without zarr's event loop (zarr_chunks: the same values)
-                image = read_many([(arr, int(index))], plans=plans)[0]
-                if image.shape != shape:
-                    raise ValueError(f"shape {image.shape}")
+                if tuple(arr.shape[1:]) != tuple(shape):
+                    raise ValueError(f"shape {tuple(arr.shape[1:])}")
+                image = read_into(arr, int(index), out, plans=plans)
             except Exception:  # noqa: BLE001 - undecodable or truncated chunk
                 if header.frame_id not in self.report.corrupt:
                     self.report.corrupt.append(header.frame_id)
@@ -281,6 +295,25 @@ class Recording:
                                          "matching the metadata (the frames are usable): "
                                          "frame_id " + _ids([str(i) for i in bad]))
         return self.report.corrupt[before:] + self.report.misplaced[before_misplaced:]
+
+
+class RecordedFrames(Iterator[Frame]):
+    """A recording's frames (:meth:`Recording.frames`), with the
+    :class:`~sffscan.stages.frame_source.FrameBuffers` they are decoded into (the source
+    stage offers them to the runtime: :attr:`sffscan.stages.frame_source.SourceStage.buffers`)."""
+
+    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers) -> None:
+        self._frames = frames
+        self.buffers = buffers
+
+    def __next__(self) -> Frame:
+        return next(self._frames)
+
+    def close(self) -> None:
+        """Stop reading (the generator's own close)."""
+        close = getattr(self._frames, "close", None)
+        if close is not None:
+            close()
 
 
 def open_recording(path: str | Path, *, motion: bool = True) -> Recording:

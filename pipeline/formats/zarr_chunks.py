@@ -48,7 +48,8 @@ import numpy as np
 import zarr
 from zarr.storage import LocalStore
 
-__all__ = ["ChunkChecksumError", "Plans", "read_many", "write_many", "direct_plan"]
+__all__ = ["ChunkChecksumError", "Plans", "direct_plan", "read_into", "read_many",
+           "write_many"]
 
 Selection = Any  # a slice, an int, or a tuple of them
 
@@ -203,6 +204,35 @@ def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
     return data.copy() if copy else data
 
 
+def _load_into(plan: _Plan, path: Path, into: np.ndarray) -> bool:
+    """Decode a whole chunk straight into ``into`` (C-contiguous, the chunk's shape and
+    dtype); False where no file is stored (``into`` untouched)."""
+    try:
+        raw: Any = path.read_bytes()
+    except FileNotFoundError:
+        return False
+    if plan.crc:
+        view = memoryview(raw)
+        if len(raw) < 4 or _crc32c(view[:-4]) != bytes(view[-4:]):
+            raise ChunkChecksumError(f"{path}: stored and computed CRC-32C do not match "
+                                     "(the chunk is corrupt)")
+        raw = view[:-4]
+    if plan.codec is None:
+        if len(raw) != into.nbytes:
+            raise ValueError(f"{path}: {len(raw)} bytes stored, a chunk of {plan.chunks} "
+                             f"holds {into.nbytes}")
+        np.copyto(into, np.frombuffer(raw, plan.dtype).reshape(plan.chunks))
+        return True
+    try:
+        got = plan.codec.decode(raw, out=into)
+    except Exception as exc:  # noqa: BLE001 - a codec's own error (truncated, corrupt)
+        raise ValueError(f"{path}: cannot be decoded ({type(exc).__name__}: {exc})") from exc
+    if np.asarray(got).nbytes != into.nbytes:
+        raise ValueError(f"{path}: decoded to {np.asarray(got).nbytes} bytes, a chunk of "
+                         f"{plan.chunks} holds {into.nbytes}")
+    return True
+
+
 def _is_fill(plan: _Plan, data: np.ndarray) -> bool:
     fill = plan.fill
     if isinstance(fill, float | np.floating) and np.isnan(fill):
@@ -316,6 +346,32 @@ def read_many(items: Sequence[tuple[zarr.Array, Selection]], *,
     for n, arr, sel in rest:
         out[n] = np.asarray(arr[sel])
     return [v for v in out if v is not None]
+
+
+def read_into(arr: zarr.Array, sel: Selection, out: np.ndarray, *,
+              plans: Plans | None = None) -> np.ndarray:
+    """One array region, written into ``out`` (the region's shape and the array's dtype);
+    returns ``out``. Where the region is one whole chunk and ``out`` is C-contiguous, the
+    chunk is decoded straight into it (no intermediate array: a replayed frame decoded into
+    the process placement's frame ring, :class:`sffscan.stages.frame_source.FrameBuffers`);
+    otherwise as :func:`read_many`, then copied. Errors as :func:`read_many`'s."""
+    plan = direct_plan(arr) if plans is None else plans.of(arr)
+    if plan is None:
+        out[...] = np.asarray(arr[sel])
+        return out
+    reg = _region(plan.folder, arr.shape, sel)
+    if out.shape != reg.value_shape or out.dtype != plan.dtype:
+        raise ValueError(f"{plan.folder}: a region of {reg.value_shape} {plan.dtype} cannot be "
+                         f"read into {out.shape} {out.dtype}")
+    parts = list(_overlaps(plan, arr.shape, reg))
+    if (len(parts) == 1 and parts[0][3] and reg.shape == plan.chunks
+            and out.flags.c_contiguous):
+        key = parts[0][0]
+        if not _load_into(plan, plan.path(key), out.reshape(plan.chunks)):
+            out[...] = plan.fill
+        return out
+    np.copyto(out, read_many([(arr, sel)], plans=plans)[0])
+    return out
 
 
 def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]], *,

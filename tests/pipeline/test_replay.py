@@ -55,6 +55,61 @@ def test_replay_reproduces_the_live_mosaic_bit_for_bit(live: tuple[Path, Path],
     assert attrs["processing"] == _attrs(mosaic)["processing"]
 
 
+def test_frames_are_decoded_into_the_arrays_the_runtime_binds(live: tuple[Path, Path]) -> None:
+    """A recording's frames iterator offers its FrameBuffers: bound to an allocator (what
+    the process placement binds: its frame ring's slots), every frame is decoded into an
+    array from it, the values those of the unbound read."""
+    rec, _ = live
+    want = [f.image for f in open_recording(rec).frames()]
+    frames = open_recording(rec).frames()
+    handed: list[np.ndarray] = []
+
+    def alloc(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        handed.append(np.full(shape, 12345, dtype))
+        return handed[-1]
+
+    frames.buffers.bind(alloc)
+    got = list(frames)
+    assert len(got) == len(want) == len(handed) > 100
+    for f, a, w in zip(got, handed, want, strict=True):
+        assert f.image is a
+        np.testing.assert_array_equal(f.image, w)
+
+
+def test_replay_in_processes_equals_threads_with_corrupt_frames(live: tuple[Path, Path],
+                                                               tmp_path: Path) -> None:
+    """Replayed in processes (frames decoded straight into the frame ring's slots) the
+    mosaic is the thread placement's bit for bit, also when two frames in three fail their
+    checksum: each is left out as lost, and the slot it was decoded into is given back (77
+    slots kept would leave too few of the ring's for the scan to finish)."""
+    import shutil
+
+    rec, mosaic = live
+    bad = tmp_path / "bad.zarr"
+    shutil.copytree(rec, bad)
+    chunks = sorted((bad / "frames").glob("c.*"), key=lambda p: int(p.name.split(".")[1]))
+    assert len(chunks) == 116
+    for p in chunks:
+        if int(p.name.split(".")[1]) % 3:
+            raw = bytearray(p.read_bytes())
+            raw[len(raw) // 2] ^= 0x01
+            p.write_bytes(bytes(raw))
+    outs = {}
+    for mode in ("threads", "processes"):
+        out = tmp_path / f"{mode}.zarr"
+        assert main(["replay", str(rec), "-o", str(out), "-q", "--execution", mode]) == 0
+        outs[mode] = _arrays(out)
+        corrupt = tmp_path / f"bad-{mode}.zarr"
+        assert main(["replay", str(bad), "-o", str(corrupt), "-q", "--execution", mode]) == 3
+        outs[f"bad-{mode}"] = _arrays(corrupt)
+        assert _attrs(corrupt)["frames_received"] == 39
+    want = _arrays(mosaic)
+    for name in ARRAYS:
+        assert np.array_equal(outs["processes"][name], want[name], equal_nan=True), name
+        assert np.array_equal(outs["bad-processes"][name], outs["bad-threads"][name],
+                              equal_nan=True), name
+
+
 def test_overrides_are_applied_and_recorded(live: tuple[Path, Path], tmp_path: Path) -> None:
     rec, mosaic = live
     out = tmp_path / "tenv.zarr"

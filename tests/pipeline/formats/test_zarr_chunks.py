@@ -13,6 +13,7 @@ from sffscan.pipeline.formats.zarr_chunks import (
     ChunkChecksumError,
     Plans,
     direct_plan,
+    read_into,
     read_many,
     write_many,
 )
@@ -153,6 +154,54 @@ def test_a_corrupt_chunk_is_an_error_naming_its_file(tmp_path: Path, damage: str
     (tmp_path / "m.zarr" / "by_zarr" / "c" / "1").write_bytes(chunk.read_bytes())
     with pytest.raises(ValueError, match="checksum"):  # zarr refuses it as well
         by_zarr[200:300]
+
+
+@pytest.mark.parametrize("codec", list(CODECS))
+@pytest.mark.parametrize("layout", ["frames", "tiles", "blocks"])
+def test_read_into_gives_read_many_s_values_whole_chunks_decoded_in_place(
+        tmp_path: Path, layout: str, codec: str) -> None:
+    """read_into writes a region into the caller's array: the values read_many gives (a
+    chunk never written reads as the fill value), for whole chunks decoded straight into
+    it, for other regions copied; a C-contiguous array of the wrong shape or dtype is
+    refused naming the array."""
+    shape, chunks, dtype, fill = LAYOUTS[layout]
+    _, direct = _pair(tmp_path, layout, [*CODECS[codec], Crc32cCodec()])
+    rng = np.random.default_rng(3)
+    write_many([(direct, tuple(slice(0, s) for s in shape),
+                 _values(rng, shape, dtype, fill, 0))])
+    # a chunk left unwritten: the last one (deleted as all fill if it was)
+    last = tuple(slice((s - 1) // c * c, min(((s - 1) // c + 1) * c, s))
+                 for s, c in zip(shape, chunks, strict=True))
+    write_many([(direct, last, np.full([x.stop - x.start for x in last], fill, dtype))])
+    plans = Plans()
+    for sel in [*_selections(rng, shape, chunks, 12), last]:
+        want = read_many([(direct, sel)])[0]
+        out = np.full(want.shape, 7, dtype)
+        assert read_into(direct, sel, out, plans=plans) is out
+        np.testing.assert_array_equal(out, want)
+    with pytest.raises(ValueError, match="direct"):
+        read_into(direct, (0,), np.empty((1, 2), dtype))
+
+
+def test_read_into_refuses_a_corrupt_or_truncated_chunk_naming_its_file(
+        tmp_path: Path) -> None:
+    _, direct = _pair(tmp_path, "frames", [*frame_codecs("blosc-lz4"), Crc32cCodec()])
+    write_many([(direct, slice(0, 5), np.arange(5 * 24 * 40, dtype="uint16").reshape(5, 24, 40))])
+    chunk = tmp_path / "m.zarr" / "direct" / "c" / "2" / "0" / "0"
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    chunk.write_bytes(bytes(raw))
+    out = np.empty((24, 40), "uint16")
+    with pytest.raises(ChunkChecksumError, match=f"{chunk}: stored and computed"):
+        read_into(direct, 2, out)
+    # without a checksum a truncated chunk fails in the decoder, named
+    _, plain = _pair(tmp_path / "b", "frames", frame_codecs("blosc-lz4"))
+    write_many([(plain, slice(0, 5), np.zeros((5, 24, 40), "uint16") + 3)])
+    part = tmp_path / "b" / "m.zarr" / "direct" / "c" / "1" / "0" / "0"
+    part.write_bytes(part.read_bytes()[:-7])
+    with pytest.raises(ValueError, match=str(part)):
+        read_into(plain, 1, out)
+    np.testing.assert_array_equal(read_into(plain, 0, out), 3)
 
 
 def test_other_codecs_and_orders_go_through_zarr(tmp_path: Path) -> None:
