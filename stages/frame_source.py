@@ -12,7 +12,7 @@ import numpy as np
 from sffscan.stages.messages import Frame, FrameError, check_frame
 from sffscan.stages.protocol import Stage
 
-__all__ = ["FrameBuffers", "SourceStage"]
+__all__ = ["BufferedFrames", "FrameBuffers", "SourceStage"]
 
 
 class FrameBuffers:
@@ -36,6 +36,24 @@ class FrameBuffers:
         """An array of ``shape`` and ``dtype`` for a frame's pixels (values undefined)."""
         dt = np.dtype(dtype)
         return np.empty(shape, dt) if self._alloc is None else self._alloc(shape, dt)
+
+
+class BufferedFrames(Iterator[Frame]):
+    """A source's frames with the :class:`FrameBuffers` it writes their pixels into (a
+    replay's decoder, a camera's fetch): what :attr:`SourceStage.buffers` finds."""
+
+    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers) -> None:
+        self._frames = frames
+        self.buffers = buffers
+
+    def __next__(self) -> Frame:
+        return next(self._frames)
+
+    def close(self) -> None:
+        """Close the source (a generator's own close releases its file or device)."""
+        close = getattr(self._frames, "close", None)
+        if close is not None:
+            close()
 
 
 class SourceStage(Stage):

@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 from sffscan.pipeline.cli.common import (
     EXIT_BAD_INPUT,
@@ -16,6 +17,9 @@ from sffscan.pipeline.cli.common import (
     json_option,
 )
 from sffscan.pipeline.config import ConfigError, ScanConfig, config_from_dict, load_config
+
+if TYPE_CHECKING:
+    from sffscan.stages.messages import Frame
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +83,7 @@ def cmd_grab(args: argparse.Namespace) -> int:
     if cfg.source.kind == "tcp":
         raise ConfigError("source.kind = 'tcp': 'sffscan grab' acquires frames itself; set "
                           "source.kind to 'camera' (or 'sim')")
+    frames: Iterator[Frame]
     if cfg.source.kind == "camera":
         from sffscan.pipeline.hardware.camera_source import camera_frames
 

@@ -41,7 +41,7 @@ from sffscan.pipeline.formats.recording_checks import (
 )
 from sffscan.pipeline.formats.recording_motion import read_motion_queue, stage_positions_um
 from sffscan.pipeline.formats.zarr_chunks import Plans, read_into, read_many
-from sffscan.stages.frame_source import FrameBuffers
+from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
 from sffscan.stages.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
@@ -201,7 +201,7 @@ class Recording:
 
     def frames(self, *, realtime: bool = False, start: int = 0,
                clock: Callable[[], float] = time.monotonic,
-               sleep: Callable[[float], None] = time.sleep) -> RecordedFrames:
+               sleep: Callable[[float], None] = time.sleep) -> BufferedFrames:
         """The usable frames in frame_id order, from the ``start``-th; each decoded
         straight into an array of the iterator's ``buffers``
         (:class:`~sffscan.stages.frame_source.FrameBuffers`: new arrays, or the process
@@ -214,7 +214,7 @@ class Recording:
         step bounded (:class:`~sffscan.pipeline.formats.recording_checks.Pacer`; ``clock``
         and ``sleep`` are replaceable for tests)."""
         buffers = FrameBuffers()
-        return RecordedFrames(self._frames(buffers, realtime=realtime, start=start,
+        return BufferedFrames(self._frames(buffers, realtime=realtime, start=start,
                                            clock=clock, sleep=sleep), buffers)
 
     def _frames(self, buffers: FrameBuffers, *, realtime: bool, start: int,
@@ -295,25 +295,6 @@ class Recording:
                                          "matching the metadata (the frames are usable): "
                                          "frame_id " + _ids([str(i) for i in bad]))
         return self.report.corrupt[before:] + self.report.misplaced[before_misplaced:]
-
-
-class RecordedFrames(Iterator[Frame]):
-    """A recording's frames (:meth:`Recording.frames`), with the
-    :class:`~sffscan.stages.frame_source.FrameBuffers` they are decoded into (the source
-    stage offers them to the runtime: :attr:`sffscan.stages.frame_source.SourceStage.buffers`)."""
-
-    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers) -> None:
-        self._frames = frames
-        self.buffers = buffers
-
-    def __next__(self) -> Frame:
-        return next(self._frames)
-
-    def close(self) -> None:
-        """Stop reading (the generator's own close)."""
-        close = getattr(self._frames, "close", None)
-        if close is not None:
-            close()
 
 
 def open_recording(path: str | Path, *, motion: bool = True) -> Recording:

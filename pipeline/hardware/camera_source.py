@@ -45,6 +45,7 @@ from sffscan.pipeline.config import ConfigError, ScanConfig
 from sffscan.pipeline.hardware.daq import Daq, open_daq, waveform_for
 from sffscan.pipeline.hardware.lens_waveform import exposure_window_us, max_exposure_us
 from sffscan.pipeline.plan import frame_count, pass_bounds_px
+from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
 from sffscan.stages.messages import Frame, FrameHeader
 
 log = logging.getLogger(__name__)
@@ -77,8 +78,13 @@ class Camera(Protocol):
 
     def start(self) -> None: ...
 
-    def fetch(self, timeout_s: float) -> RawImage:
-        """The next image; raises :class:`CameraError` after ``timeout_s`` without one."""
+    def fetch(self, timeout_s: float, *, out: np.ndarray | None = None) -> RawImage:
+        """The next image; raises :class:`CameraError` after ``timeout_s`` without one.
+
+        ``out``: an array of the configured frame's shape and dtype (a slot of the process
+        placement's frame ring) to copy the image into, returned as the image; an image of
+        another shape or dtype comes as a new array instead (the source stage names it).
+        """
         ...
 
     def underruns(self) -> int | None:
@@ -259,13 +265,20 @@ class HarvestersCamera:
     def start(self) -> None:
         self._ia.start()
 
-    def fetch(self, timeout_s: float) -> RawImage:
+    def fetch(self, timeout_s: float, *, out: np.ndarray | None = None) -> RawImage:
         from genicam.gentl import TimeoutException
 
         try:
             with self._ia.fetch(timeout=timeout_s) as buf:
                 comp = buf.payload.components[0]
-                image = np.array(comp.data, copy=True).reshape(comp.height, comp.width)
+                data = np.asarray(comp.data)
+                if (out is not None and out.shape == (comp.height, comp.width)
+                        and out.dtype == data.dtype):
+                    # one copy, out of the producer's buffer into the caller's array
+                    np.copyto(out, data.reshape(comp.height, comp.width))
+                    image = out
+                else:
+                    image = np.array(data, copy=True).reshape(comp.height, comp.width)
                 frame_id = _info(buf.module, "frame_id")
                 ts = _info(buf, "timestamp_ns")
         except TimeoutException:
@@ -347,14 +360,27 @@ def pass_of_frames(cfg: ScanConfig) -> list[int]:
 
 
 def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | None = None,
-                  stats: CameraStats | None = None) -> Iterator[Frame]:
+                  stats: CameraStats | None = None) -> BufferedFrames:
     """Frames from the configured camera until the scan plan's frame count (or
-    ``camera.frames``) is reached; the device and the DAQ are released in ``finally``.
+    ``camera.frames``) is reached; the device and the DAQ are released when the iterator
+    ends or is closed.
 
     ``camera`` and ``daq`` replace the configured ones (tests); ``stats`` is filled as the
-    frames go and its summary is logged (INFO) at the end.
+    frames go and its summary is logged (INFO) at the end. Each image is copied out of the
+    producer's buffer into an array of the iterator's ``buffers``
+    (:class:`~sffscan.stages.frame_source.FrameBuffers`: a new one, or a slot of the process
+    placement's frame ring, which then takes no second copy).
     """
+    buffers = FrameBuffers()
+    return BufferedFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=stats),
+                          buffers)
+
+
+def _camera_frames(cfg: ScanConfig, buffers: FrameBuffers, *, camera: Camera | None,
+                   daq: Daq | None, stats: CameraStats | None) -> Iterator[Frame]:
     st = stats if stats is not None else CameraStats()
+    o = cfg.optics
+    shape, dtype = (o.height_px, o.width_px), np.dtype(o.dtype)
     n_total = cfg.camera.frames or frame_count(cfg)
     n_levels = cfg.optics.n_levels
     pass_starts = pass_of_frames(cfg)
@@ -377,7 +403,8 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
         fetched = 0
         last_fid = -1
         while True:
-            raw = cam.fetch(cfg.camera.fetch_timeout_s)
+            # the array before the fetch: waiting for a ring slot never holds a camera buffer
+            raw = cam.fetch(cfg.camera.fetch_timeout_s, out=buffers.empty(shape, dtype))
             host_ns = time.monotonic_ns()
             if raw.frame_id is None:
                 st.frame_ids = "host count"

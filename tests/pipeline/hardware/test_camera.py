@@ -77,6 +77,39 @@ def test_viky_200_frames_through_the_whole_pipeline(tmp_path: Path) -> None:
     assert report.result.extras["depth"]["complete_columns"] > 0
 
 
+def test_viky_images_are_copied_once_into_the_arrays_the_runtime_binds(
+        tmp_path: Path) -> None:
+    """camera_frames offers its FrameBuffers: bound to an allocator (what the process
+    placement binds: its frame ring's slots), each image is copied out of the producer's
+    buffer into an array from it, the array the frame carries; the scan in processes, where
+    that is the ring, takes every frame through the pipeline."""
+    cfg = viky_config()
+    frames = camera_frames(cfg)
+    handed: list[np.ndarray] = []
+
+    def alloc(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        handed.append(np.zeros(shape, dtype))
+        return handed[-1]
+
+    frames.buffers.bind(alloc)
+    try:
+        got = [next(frames) for _ in range(30)]
+    finally:
+        frames.close()
+    assert len(handed) >= 30
+    assert all(any(f.image is a for a in handed) for f in got)
+    assert all(f.image.shape == (100, 160) and f.image.dtype == np.uint8 for f in got)
+    assert sum(int(f.image.max()) > 0 for f in got) >= 25  # viky's pattern, copied in
+    pcfg = viky_config().model_copy(update={"processing": viky_config().processing.model_copy(
+        update={"execution": "processes"})})
+    st = CameraStats()
+    report = run_scan(pcfg, frames=camera_frames(pcfg, stats=st),
+                      output=tmp_path / "p.zarr", progress=False)
+    assert "processes" in report.result.extras
+    assert report.frames == st.frames >= 200
+    assert {s.name: s.frames for s in report.result.stages}["depth"] == st.frames
+
+
 def test_viky_lost_frames_are_counted_and_marked(tmp_path: Path) -> None:
     """A consumer that stalls for 0.3 s (60 frames at 200 fps, 8 buffers) loses frames:
     the gap shows in frame_id, the source counts it and the focus volume invalidates the
@@ -136,6 +169,7 @@ class FakeCamera:
         self.n_under = underruns
         self.shape = shape
         self.calls: list[str] = []
+        self.outs: list[np.ndarray | None] = []  # the arrays offered to fetch
         self.k = 0
 
     def configure(self, cfg: ScanConfig) -> list[str]:
@@ -145,7 +179,8 @@ class FakeCamera:
     def start(self) -> None:
         self.calls.append("start")
 
-    def fetch(self, timeout_s: float) -> RawImage:
+    def fetch(self, timeout_s: float, *, out: np.ndarray | None = None) -> RawImage:
+        self.outs.append(out)
         if self.k >= len(self.ids):
             raise CameraError(f"no frame within camera.fetch_timeout_s = {timeout_s:g} s")
         img = np.full(self.shape, self.k % 256, np.uint8)
@@ -202,6 +237,9 @@ def test_fake_camera_headers_follow_the_rules() -> None:
     assert st.timestamps == "device"
     assert "buffer underruns 2" in st.summary()
     assert cam.calls == ["configure", "start", "stop", "close"]
+    # every fetch was offered an array of the configured frame for the image
+    assert len(cam.outs) == cam.k == 11 and all(
+        o is not None and o.shape == (100, 160) and o.dtype == np.uint8 for o in cam.outs)
     assert daq.calls == ["start", "stop", "close"]
 
 

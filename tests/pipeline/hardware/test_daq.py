@@ -118,7 +118,7 @@ class _TriggeredCamera:
     def start(self) -> None:
         self.calls.append("start")
 
-    def fetch(self, timeout_s: float) -> object:
+    def fetch(self, timeout_s: float, *, out: object = None) -> object:
         raise AssertionError("no frame may be fetched without the DAQ")
 
     def underruns(self) -> int | None:
