@@ -37,6 +37,7 @@ from sffscan.pipeline.spawn import (
 )
 from sffscan.pipeline.wire import decode
 from sffscan.pipeline.worker import rebuild_exception, worker_main
+from sffscan.stages.frame_source import FrameBuffers
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import END_OF_STREAM, Stage
 
@@ -176,7 +177,9 @@ class _Renderers:
         self.stops.close()
         self.pool.close()
 
-    def frames(self) -> Iterator[Frame]:
+    def frames(self, buffers: FrameBuffers) -> Iterator[Frame]:
+        """The frames in order, each copied out of its render slot into an array of
+        ``buffers`` (the frame ring's slot in the process placement: the only copy)."""
         try:
             ended = 0
             i = 0
@@ -190,7 +193,9 @@ class _Renderers:
                     ended += 1
                     continue
                 # a copy: a stage may hold its frames as long as it likes, the slot is free
-                frame = Frame(item.header, item.image.copy())
+                image = buffers.empty(item.image.shape, item.image.dtype)
+                np.copyto(image, item.image)
+                frame = Frame(item.header, image)
                 del item
                 yield frame
         finally:
@@ -235,6 +240,9 @@ class ParallelSimFrames:
         from sffscan.pipeline.sim_source import simulate_frames
 
         steps = noise_steps(cfg, world=world)
+        #: where the workers' frames are copied (the process placement binds its frame
+        #: ring: :class:`~sffscan.stages.frame_source.FrameBuffers`)
+        self.buffers = FrameBuffers()
         self._renderers: _Renderers | None = None
         if steps is None:
             log.info("simulated frames rendered in this process (the renderer's noise draws "
@@ -243,7 +251,7 @@ class ParallelSimFrames:
             return
         self._renderers = _Renderers(cfg, workers, steps)
         self._finalizer = weakref.finalize(self, self._renderers.stop)
-        self._it = self._renderers.frames()
+        self._it = self._renderers.frames(self.buffers)
 
     def __iter__(self) -> Iterator[Frame]:
         return self

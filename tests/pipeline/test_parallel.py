@@ -161,6 +161,21 @@ def test_simulated_frames_rendered_by_workers_equal_the_serial_ones() -> None:
     assert [f.header for f in par] == [f.header for f in serial]
     assert all(np.array_equal(a.image, b.image) for a, b in zip(par, serial, strict=True))
     assert not mp.active_children()
+    # bound to an allocator (the process placement binds its frame ring's slots), each
+    # frame is copied out of its render slot into an array from it, the same values
+    bound = ParallelSimFrames(cfg, workers=2)
+    handed: list[np.ndarray] = []
+
+
+    def alloc(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        handed.append(np.empty(shape, dtype))
+        return handed[-1]
+
+    bound.buffers.bind(alloc)
+    got = list(bound)
+    assert len(got) == len(serial) == len(handed)
+    assert all(f.image is a and np.array_equal(a, b.image)
+               for f, a, b in zip(got, handed, serial, strict=True))
     started = ParallelSimFrames(cfg, workers=2)  # workers start at once ...
     assert len(mp.active_children()) == 2
     started.close()  # ... and stop when closed, never iterated
