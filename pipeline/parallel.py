@@ -87,8 +87,9 @@ log = logging.getLogger(__name__)
 class PooledSource(Stage):
     """The source stage, its frames copied once into the frame pool (then passed on by
     reference to every process and sink). A source that writes its frames' pixels itself
-    (a replay's decoder: ``inner.buffers``, :class:`~sffscan.stages.frame_source.FrameBuffers`)
-    writes them into the pool's slots instead, and nothing is copied."""
+    (a replay, a camera, the simulator's render workers: ``inner.buffers``,
+    :class:`~sffscan.stages.frame_source.FrameBuffers`) writes them into the pool's slots
+    instead, and nothing is copied here."""
 
     def __init__(self, inner: Stage, pool: SlotPool, stop: threading.Event) -> None:
         self.inner = inner

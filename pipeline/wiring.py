@@ -108,8 +108,9 @@ def run_scan(cfg: ScanConfig, *, frames: Iterator[Frame], output: str | Path | N
     ``complete`` only if every expected frame was (else ``incomplete``)."""
     if writer is None:
         writer = open_writer(cfg, path=output, overwrite=overwrite)
-    buffers = getattr(frames, "buffers", None)  # a replay's (FrameBuffers), kept through
-    if account is not None:                     # the count below
+    # the source's FrameBuffers (a replay, a camera, the simulator), kept through the count
+    buffers = getattr(frames, "buffers", None)
+    if account is not None:
         frames = account.count(frames)
         writer.account = account.status
     stages = build_stages(cfg, frames, writer, buffers=buffers)

@@ -16,8 +16,9 @@ __all__ = ["BufferedFrames", "FrameBuffers", "SourceStage"]
 
 
 class FrameBuffers:
-    """Where a source that writes its frames' pixels itself (a replay's decoder) puts them:
-    new arrays, unless a runtime has bound an allocator.
+    """Where a source that writes its frames' pixels itself (a replay's decoder, a camera's
+    fetch, the simulator's render workers) puts them: new arrays, unless a runtime has
+    bound an allocator.
 
     The process placement binds one that hands out slots of its shared-memory frame ring
     (:class:`sffscan.pipeline.parallel.PooledSource`): a frame decoded there crosses the
