@@ -37,7 +37,7 @@ from sffscan.pipeline.spawn import (
 )
 from sffscan.pipeline.wire import decode
 from sffscan.pipeline.worker import rebuild_exception, worker_main
-from sffscan.stages.frame_source import FrameBuffers
+from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import END_OF_STREAM, Stage
 
@@ -228,41 +228,33 @@ class _Renderers:
                                    f"{START_TIMEOUT_S:g} s")
 
 
-class ParallelSimFrames:
+class ParallelSimFrames(BufferedFrames):
     """Every frame of the simulated scan (as :func:`simulate_frames`), rendered by
     ``workers`` processes that start at once (while the pipeline's own workers start).
 
     An iterator with ``close()``; the workers also stop when it is garbage. Renders in
-    this process when the noise cannot be split (:func:`noise_steps`).
+    this process when the noise cannot be split (:func:`noise_steps`). The workers' frames
+    are copied into arrays of :attr:`buffers` (the process placement binds its frame ring:
+    :class:`~sffscan.stages.frame_source.FrameBuffers`).
     """
 
     def __init__(self, cfg: ScanConfig, *, workers: int, world: Any = None) -> None:
         from sffscan.pipeline.sim_source import simulate_frames
 
         steps = noise_steps(cfg, world=world)
-        #: where the workers' frames are copied (the process placement binds its frame
-        #: ring: :class:`~sffscan.stages.frame_source.FrameBuffers`)
-        self.buffers = FrameBuffers()
+        buffers = FrameBuffers()
         self._renderers: _Renderers | None = None
         if steps is None:
             log.info("simulated frames rendered in this process (the renderer's noise draws "
                      "cannot be split between workers)")
-            self._it: Iterator[Frame] = simulate_frames(cfg, world=world)
+            super().__init__(simulate_frames(cfg, world=world), buffers)
             return
         self._renderers = _Renderers(cfg, workers, steps)
         self._finalizer = weakref.finalize(self, self._renderers.stop)
-        self._it = self._renderers.frames(self.buffers)
-
-    def __iter__(self) -> Iterator[Frame]:
-        return self
-
-    def __next__(self) -> Frame:
-        return next(self._it)
+        super().__init__(self._renderers.frames(buffers), buffers)
 
     def close(self) -> None:
-        close = getattr(self._it, "close", None)
-        if close is not None:
-            close()
+        super().close()
         if self._renderers is not None:
             self._renderers.stop()
 

@@ -181,9 +181,9 @@ def _crc32c(data: Any) -> bytes:
     return int(google_crc32c.value(np.frombuffer(data, np.uint8))).to_bytes(4, "little")
 
 
-def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
-    """A chunk's values (``copy``: a new, writable array; else possibly a read-only view of
-    the decoded bytes), or None where no file is stored."""
+def _stored(plan: _Plan, path: Path) -> Any:
+    """A chunk file's encoded bytes, its CRC-32C checked and cut off; None where no file is
+    stored."""
     try:
         raw: Any = path.read_bytes()
     except FileNotFoundError:
@@ -194,6 +194,15 @@ def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
             raise ChunkChecksumError(f"{path}: stored and computed CRC-32C do not match "
                                      "(the chunk is corrupt)")
         raw = view[:-4]
+    return raw
+
+
+def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
+    """A chunk's values (``copy``: a new, writable array; else possibly a read-only view of
+    the decoded bytes), or None where no file is stored."""
+    raw = _stored(plan, path)
+    if raw is None:
+        return None
     if plan.codec is not None:
         raw = plan.codec.decode(raw)
     data = np.frombuffer(raw, plan.dtype)
@@ -207,16 +216,9 @@ def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
 def _load_into(plan: _Plan, path: Path, into: np.ndarray) -> bool:
     """Decode a whole chunk straight into ``into`` (C-contiguous, the chunk's shape and
     dtype); False where no file is stored (``into`` untouched)."""
-    try:
-        raw: Any = path.read_bytes()
-    except FileNotFoundError:
+    raw = _stored(plan, path)
+    if raw is None:
         return False
-    if plan.crc:
-        view = memoryview(raw)
-        if len(raw) < 4 or _crc32c(view[:-4]) != bytes(view[-4:]):
-            raise ChunkChecksumError(f"{path}: stored and computed CRC-32C do not match "
-                                     "(the chunk is corrupt)")
-        raw = view[:-4]
     if plan.codec is None:
         if len(raw) != into.nbytes:
             raise ValueError(f"{path}: {len(raw)} bytes stored, a chunk of {plan.chunks} "
