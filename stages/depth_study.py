@@ -127,6 +127,20 @@ with which a stack whose curves pull a centroid less than the limit takes ``adap
 rule with the 5-level centroid at its peak pixels, the span limit and a centroid of
 2h + 1 levels elsewhere; the other stacks ``adaptive`` (span 2, h = 5, 3-point Gaussian)."""
 
+NOISE_WCENTROID = (math.inf, 0.5, 0.3, 0.2, 0.15, 0.1, 0.05)
+"""``noise-wcentroid`` settings the protocol tunes over: the pull's noise
+(:func:`sffscan.stages.depth_choice.pull_statistics`, levels) above which a stack that does
+not take SPC (``shape_select`` at its shipped limits) takes ``wcentroid`` (the whole curve's
+weighted centroid) instead of ``shape_select``'s depth (inf: never; first: ties go to it).
+Prompted by the crossed family slopes-lens-noisy, where ``wcentroid`` is best."""
+
+LOPSIDED_WCENTROID = tuple((t, p) for t in (math.inf, 0.3, 0.2, 0.15, 0.1)
+                           for p in (0.0, 0.05, 0.1, 0.2))
+"""``lopsided-wcentroid`` settings the protocol tunes over: ``noise-wcentroid``'s rule, and
+only for a stack whose curves pull a centroid toward their longer tail by more than the
+second value (:func:`sffscan.stages.depth_choice.pull_statistics`' pull, levels: about 0 on
+even curves, positive on a thin lens' lopsided ones); (inf, 0) first: never."""
+
 Setting = float | tuple[float, ...]
 
 CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
@@ -139,7 +153,9 @@ CANDIDATES: dict[str, tuple[Setting, ...]] = {"width-switch": THRESHOLDS,
                                               "spc-noise": SPC_NOISE_RATIOS,
                                               "planar-peak": PLANE_LIMITS,
                                               "centroid-pull": PULL_LIMITS,
-                                              "wide-centroid": WIDE_GRID}
+                                              "wide-centroid": WIDE_GRID,
+                                              "noise-wcentroid": NOISE_WCENTROID,
+                                              "lopsided-wcentroid": LOPSIDED_WCENTROID}
 """The tunable candidates and the settings each is tuned over (on training data only)."""
 
 
@@ -195,7 +211,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     depth: dict[str, np.ndarray] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
     for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select",
-                            DEFAULT_METHOD)):
+                            "wcentroid", DEFAULT_METHOD)):
         depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
                                     spread_size=spread_size, argmax=a)[0]
         if m in methods:
@@ -240,8 +256,16 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
                          departure=departure)
         sse[_key("spc-noise", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    if takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull, noise=noises,
-                 departure=departure):
+    took_spc = takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
+                         noise=noises, departure=departure)
+    for t in NOISE_WCENTROID:
+        d = depth["wcentroid"] if not took_spc and noise > t else depth["shape_select"]
+        sse[_key("noise-wcentroid", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
+    for t, p in LOPSIDED_WCENTROID:
+        d = (depth["wcentroid"] if not took_spc and noise > t and pull > p
+             else depth["shape_select"])
+        sse[_key("lopsided-wcentroid", (t, p))] = float(np.sum((d - truth_levels)[mask] ** 2))
+    if took_spc:
         planar: dict[float, np.ndarray] = dict.fromkeys(PLANE_LIMITS, depth["shape_select"])
     else:
         blend = spread > ADAPTIVE_MAX_SPREAD  # adaptive's centroid pixels
