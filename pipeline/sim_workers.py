@@ -37,7 +37,7 @@ from sffscan.pipeline.spawn import (
 )
 from sffscan.pipeline.wire import decode
 from sffscan.pipeline.worker import rebuild_exception, worker_main
-from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
+from sffscan.stages.frame_source import FrameBuffers, SourceFrames
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import END_OF_STREAM, Stage
 
@@ -228,7 +228,7 @@ class _Renderers:
                                    f"{START_TIMEOUT_S:g} s")
 
 
-class ParallelSimFrames(BufferedFrames):
+class ParallelSimFrames(SourceFrames):
     """Every frame of the simulated scan (as :func:`simulate_frames`), rendered by
     ``workers`` processes that start at once (while the pipeline's own workers start).
 

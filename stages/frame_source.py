@@ -12,7 +12,7 @@ import numpy as np
 from sffscan.stages.messages import Frame, FrameError, check_frame
 from sffscan.stages.protocol import Stage
 
-__all__ = ["BufferedFrames", "FrameBuffers", "SourceStage"]
+__all__ = ["SourceFrames", "FrameBuffers", "SourceStage"]
 
 
 class FrameBuffers:
@@ -39,11 +39,14 @@ class FrameBuffers:
         return np.empty(shape, dt) if self._alloc is None else self._alloc(shape, dt)
 
 
-class BufferedFrames(Iterator[Frame]):
-    """A source's frames with the :class:`FrameBuffers` it writes their pixels into (a
-    replay's decoder, a camera's fetch): what :attr:`SourceStage.buffers` finds."""
+class SourceFrames(Iterator[Frame]):
+    """A source's frames as an object: ``close()`` closes the iterator it wraps (a generator
+    releases its file or device); ``buffers`` is the :class:`FrameBuffers` the source writes
+    their pixels into (a replay's decoder, a camera's fetch, the simulator's render
+    workers: what :attr:`SourceStage.buffers` finds), None for frames that arrive made (a
+    message's bytes)."""
 
-    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers) -> None:
+    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers | None = None) -> None:
         self._frames = frames
         self.buffers = buffers
 

@@ -41,7 +41,7 @@ from sffscan.pipeline.formats.recording_checks import (
 )
 from sffscan.pipeline.formats.recording_motion import read_motion_queue, stage_positions_um
 from sffscan.pipeline.formats.zarr_chunks import Plans, read_into, read_many
-from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
+from sffscan.stages.frame_source import FrameBuffers, SourceFrames
 from sffscan.stages.messages import Frame, FrameHeader
 
 if TYPE_CHECKING:
@@ -201,7 +201,7 @@ class Recording:
 
     def frames(self, *, realtime: bool = False, start: int = 0,
                clock: Callable[[], float] = time.monotonic,
-               sleep: Callable[[float], None] = time.sleep) -> BufferedFrames:
+               sleep: Callable[[float], None] = time.sleep) -> SourceFrames:
         """The usable frames in frame_id order, from the ``start``-th; each decoded
         straight into an array of the iterator's ``buffers``
         (:class:`~sffscan.stages.frame_source.FrameBuffers`: new arrays, or the process
@@ -214,7 +214,7 @@ class Recording:
         step bounded (:class:`~sffscan.pipeline.formats.recording_checks.Pacer`; ``clock``
         and ``sleep`` are replaceable for tests)."""
         buffers = FrameBuffers()
-        return BufferedFrames(self._frames(buffers, realtime=realtime, start=start,
+        return SourceFrames(self._frames(buffers, realtime=realtime, start=start,
                                            clock=clock, sleep=sleep), buffers)
 
     def _frames(self, buffers: FrameBuffers, *, realtime: bool, start: int,

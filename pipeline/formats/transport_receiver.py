@@ -46,6 +46,7 @@ from sffscan.pipeline.formats.transport_auth import (
     remove_pairing,
     write_pairing,
 )
+from sffscan.stages.frame_source import SourceFrames
 from sffscan.stages.messages import Frame
 
 if TYPE_CHECKING:
@@ -147,24 +148,16 @@ class _Receiver:
             remove_pairing(self.address, self.secret)
 
 
-class FrameStream(Iterator[Frame]):
+class FrameStream(SourceFrames):
     """The frames of a bound receiver (:func:`receive_frames`); ``close()`` releases the
     socket and the pairing file, whether or not a frame was taken."""
 
     def __init__(self, rx: _Receiver, frames: Iterator[Frame]) -> None:
+        super().__init__(frames)
         self._rx = rx
-        self._frames = frames
-
-    def __iter__(self) -> FrameStream:
-        return self
-
-    def __next__(self) -> Frame:
-        return next(self._frames)
 
     def close(self) -> None:
-        close = getattr(self._frames, "close", None)
-        if close is not None:
-            close()
+        super().close()
         self._rx.close()
 
     def __del__(self) -> None:

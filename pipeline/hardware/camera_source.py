@@ -45,7 +45,7 @@ from sffscan.pipeline.config import ConfigError, ScanConfig
 from sffscan.pipeline.hardware.daq import Daq, open_daq, waveform_for
 from sffscan.pipeline.hardware.lens_waveform import exposure_window_us, max_exposure_us
 from sffscan.pipeline.plan import frame_count, pass_bounds_px
-from sffscan.stages.frame_source import BufferedFrames, FrameBuffers
+from sffscan.stages.frame_source import FrameBuffers, SourceFrames
 from sffscan.stages.messages import Frame, FrameHeader
 
 log = logging.getLogger(__name__)
@@ -360,7 +360,7 @@ def pass_of_frames(cfg: ScanConfig) -> list[int]:
 
 
 def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | None = None,
-                  stats: CameraStats | None = None) -> BufferedFrames:
+                  stats: CameraStats | None = None) -> SourceFrames:
     """Frames from the configured camera until the scan plan's frame count (or
     ``camera.frames``) is reached; the device and the DAQ are released when the iterator
     ends or is closed.
@@ -372,7 +372,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
     placement's frame ring, which then takes no second copy).
     """
     buffers = FrameBuffers()
-    return BufferedFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=stats),
+    return SourceFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=stats),
                           buffers)
 
 
