@@ -12,7 +12,7 @@ import numpy as np
 from sffscan.stages.messages import Frame, FrameError, check_frame
 from sffscan.stages.protocol import Stage
 
-__all__ = ["SourceFrames", "FrameBuffers", "SourceStage"]
+__all__ = ["FrameBuffers", "SourceFrames", "SourceStage"]
 
 
 class FrameBuffers:

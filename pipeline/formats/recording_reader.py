@@ -215,7 +215,7 @@ class Recording:
         and ``sleep`` are replaceable for tests)."""
         buffers = FrameBuffers()
         return SourceFrames(self._frames(buffers, realtime=realtime, start=start,
-                                           clock=clock, sleep=sleep), buffers)
+                                         clock=clock, sleep=sleep), buffers)
 
     def _frames(self, buffers: FrameBuffers, *, realtime: bool, start: int,
                 clock: Callable[[], float], sleep: Callable[[float], None]

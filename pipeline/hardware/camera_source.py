@@ -373,7 +373,7 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
     """
     buffers = FrameBuffers()
     return SourceFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=stats),
-                          buffers)
+                        buffers)
 
 
 def _camera_frames(cfg: ScanConfig, buffers: FrameBuffers, *, camera: Camera | None,
