@@ -181,7 +181,7 @@ def _crc32c(data: Any) -> bytes:
     return int(google_crc32c.value(np.frombuffer(data, np.uint8))).to_bytes(4, "little")
 
 
-def _stored(plan: _Plan, path: Path) -> Any:
+def _stored_bytes(plan: _Plan, path: Path) -> Any:
     """A chunk file's encoded bytes, its CRC-32C checked and cut off; None where no file is
     stored."""
     try:
@@ -200,7 +200,7 @@ def _stored(plan: _Plan, path: Path) -> Any:
 def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
     """A chunk's values (``copy``: a new, writable array; else possibly a read-only view of
     the decoded bytes), or None where no file is stored."""
-    raw = _stored(plan, path)
+    raw = _stored_bytes(plan, path)
     if raw is None:
         return None
     if plan.codec is not None:
@@ -216,7 +216,7 @@ def _load(plan: _Plan, path: Path, *, copy: bool = True) -> np.ndarray | None:
 def _load_into(plan: _Plan, path: Path, into: np.ndarray) -> bool:
     """Decode a whole chunk straight into ``into`` (C-contiguous, the chunk's shape and
     dtype); False where no file is stored (``into`` untouched)."""
-    raw = _stored(plan, path)
+    raw = _stored_bytes(plan, path)
     if raw is None:
         return False
     if plan.codec is None:
