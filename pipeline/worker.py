@@ -13,10 +13,8 @@ and dies with the main process (:mod:`sffscan.pipeline.spawn`).
 
 from __future__ import annotations
 
-import ctypes
 import importlib
 import json
-import sys
 import threading
 import time
 import traceback
@@ -25,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sffscan.pipeline.channels import RecvStage, SendStage, is_channel_stage, own_queues, own_stages
+from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.pipeline.relays import Relay, relay_forwarder, relay_report
 from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.pipeline.shm_ring import PoolSpec, SlotPool
@@ -34,10 +33,6 @@ from sffscan.stages.protocol import FullPolicy, Sink, Stage
 #: capacity of the queues between the stages inside one process (the channels between
 #: processes have the pipeline's ``capacity``)
 INNER_CAPACITY = 2
-#: glibc ``mallopt`` parameters (malloc.h) and the values a worker sets (see keep_freed_memory)
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD_BYTES = 32 * 2**20  # glibc's largest on 64-bit
-TRIM_THRESHOLD_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -90,33 +85,6 @@ def rebuild_exception(info: dict[str, Any]) -> BaseException:
         pass
     err = RemoteError(info["type"], info["message"], info.get("traceback", ""))
     return err
-
-
-def keep_freed_memory() -> bool:
-    """Ask glibc to keep freed memory in the process instead of giving it back at once.
-
-    By default an array over 128 KiB to a few MiB (a frame's reduced copy, a crop's
-    spectrum, a column range of the focus measure) is mapped fresh from the kernel and
-    unmapped when freed, and the stage threads' heaps are trimmed as soon as their top is
-    free: every frame then pays page faults and the zeroing of new pages again. Measured
-    with perf in the registration and focus workers (1280 x 1024 default scan): 0.6-0.9 ms
-    of kernel time per frame each; with these settings the registration stage's CPU went
-    from 4.7-5.3 to 3.5-4.0 ms per frame (3 interleaved runs each). Arrays up to
-    :data:`MMAP_THRESHOLD_BYTES` come from the heap, and a heap gives memory back only
-    when :data:`TRIM_THRESHOLD_BYTES` are free at its top: a worker keeps its peak use
-    until it exits (the arrays of one frame, a few tens of MB), nothing grows with the
-    scan. Only worker processes call it (the main process is the caller's). Returns
-    whether both settings took (False off glibc).
-    """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
-                and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
 
 
 def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any]],

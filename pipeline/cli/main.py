@@ -354,6 +354,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.verbose = int(getattr(args, "verbose", 0) or 0)
         from sffscan.pipeline.cli.logsetup import cli_logging, level_for
         from sffscan.pipeline.config import ConfigError
+        from sffscan.pipeline.heap import keep_freed_memory
+
+        # this process is the command's own: its stages (the thread placement's, the main
+        # process's of the process placement) reuse freed memory as the workers' do
+        # (thread placement, 300 frames, 2 cores, six pairs: 45.8-49.2 against 47.4-54.0 ms
+        # of CPU a frame)
+        keep_freed_memory()
 
         with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)):
             try:

@@ -346,7 +346,7 @@ def test_relay_channel_keeps_a_reserve_for_the_precious_items() -> None:
 _FAULTS = """
 import resource, sys
 import numpy as np
-from sffscan.pipeline.worker import keep_freed_memory
+from sffscan.pipeline.heap import keep_freed_memory
 if sys.argv[1] == "keep":
     assert keep_freed_memory()
 def frame():  # a stage's temporaries: three 2.5 MiB arrays alive at once, then freed
@@ -382,7 +382,7 @@ def test_workers_keep_freed_memory_and_gc_is_thawed_after_a_run() -> None:
     """A worker's glibc settings take (on Linux), in a fresh process so this one keeps its
     own; the main process's objects are back in the collector after a process run."""
     if sys.platform.startswith("linux"):
-        code = ("from sffscan.pipeline.worker import keep_freed_memory; "
+        code = ("from sffscan.pipeline.heap import keep_freed_memory; "
                 "print(keep_freed_memory())")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                              timeout=120, check=True).stdout.split()

@@ -243,3 +243,16 @@ def test_batch_takes_the_same_processing_choices_as_replay() -> None:
     for command in (["batch", "layers", "-o", "out"], ["replay", "rec.zarr", "-o", "m.zarr"]):
         args = parser.parse_args([*command, "--operator", "LAPM", "--method", "wcentroid"])
         assert (args.operator, args.method) == ("lapm", "wcentroid")
+
+
+def test_the_command_line_keeps_freed_memory_as_the_workers_do(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The command's own process takes the workers' glibc heap settings
+    (:func:`sffscan.pipeline.heap.keep_freed_memory`) before it runs anything."""
+    import sffscan.pipeline.heap as heap
+
+    calls: list[int] = []
+    monkeypatch.setattr(heap, "keep_freed_memory", lambda: calls.append(1) or True)
+    assert main(["config"]) == 0
+    assert "[optics]" in capsys.readouterr().out
+    assert calls == [1]
