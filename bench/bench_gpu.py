@@ -35,39 +35,31 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_pipeline import bench_config, machine, replay_frames  # noqa: E402
+from sffscan.pipeline.config import ScanConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the synthetic stack of section 1: a family with steps and slopes of the surface
 AGREEMENT_FAMILY = "steps"
 
 
-def machine(device: str) -> str:
-    """CPU, cores, memory, Python, torch and the device, in words."""
+def machine_and_device(device: str) -> str:
+    """The machine (:func:`bench_pipeline.machine`) and the torch device, in words."""
     import torch
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     dev = (torch.cuda.get_device_name(torch.device(device))
            if device.startswith("cuda") else device)
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"torch {torch.__version__}, device {dev}")
+    return f"{machine()}, device {dev}"
 
 
 def sync(device: str) -> None:
@@ -178,13 +170,14 @@ def throughput(images: list[np.ndarray], device: str, *, batches: tuple[int, ...
 # ----------------------------------------------------------------------------- 3. end to end
 
 
-def scan_config(backend: str, device: str) -> Any:
-    from sffscan.pipeline.config import demo_config
-
-    return demo_config(optics={"bit_depth": 10}, motion={"x_end_mm": 400.0},
-                       source={"plate_length_mm": 400.0},
-                       processing={"backend": backend, "device": device,
-                                   "execution": "processes"})
+def scan_config(backend: str, device: str) -> ScanConfig:
+    """The benchmarks' scan (:func:`bench_pipeline.bench_config`) with the default depth
+    method, in the processes placement, the focus measure on ``backend`` and ``device``."""
+    data = bench_config().model_dump()
+    default = type(bench_config().processing).model_fields["depth_method"].default
+    data["processing"].update(depth_method=default, execution="processes", backend=backend,
+                              device=device)
+    return ScanConfig.model_validate(data)
 
 
 def render(count: int) -> list[np.ndarray]:
@@ -204,21 +197,12 @@ def render(count: int) -> list[np.ndarray]:
     return out
 
 
-def frames_of(cfg: Any, images: list[np.ndarray]) -> Iterator[Any]:
-    from sffscan.pipeline.plan import plan_frames
-    from sffscan.pipeline.sim_source import header_of
-    from sffscan.stages.messages import Frame
-
-    for image, pf in zip(images, plan_frames(cfg), strict=False):
-        yield Frame(header_of(cfg, pf), image)
-
-
 def scan(backend: str, device: str, images: list[np.ndarray], out: Path) -> dict[str, Any]:
     from sffscan.pipeline.wiring import run_scan
 
     cfg = scan_config(backend, device)
     c0 = resource.getrusage(resource.RUSAGE_SELF)
-    rep = run_scan(cfg, frames=frames_of(cfg, images), output=out, progress=False)
+    rep = run_scan(cfg, frames=replay_frames(cfg, images), output=out, progress=False)
     c1 = resource.getrusage(resource.RUSAGE_SELF)
     r = rep.result
     cpu = r.extras.get("processes", {}).get("cpu_s") or (
@@ -327,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         args.rounds, args.seconds, args.stack_px = 1, min(args.seconds, 0.5), 128
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {
-        "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine(args.device),
+        "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_and_device(args.device),
         "command": "python bench/bench_gpu.py " + " ".join(
             sys.argv[1:] if argv is None else argv), "frames": args.frames}
     t0 = time.perf_counter()
