@@ -5,7 +5,6 @@ is written; it refuses a CUDA device it cannot see."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
@@ -14,17 +13,12 @@ import numpy as np
 import pytest
 import zarr
 
+from tests.bench_modules import load_bench
+
 pytest.importorskip("torch")
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_gpu.py"
-
-
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_gpu", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_gpu")
 
 
 def test_agreement_of_the_torch_path_with_the_cpu_path() -> None:

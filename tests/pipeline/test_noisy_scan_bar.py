@@ -4,10 +4,8 @@ reference's headers put every frame where the simulator rendered it."""
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import math
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -15,15 +13,11 @@ from sffscan.pipeline.plan import plan_frames
 from sffscan.pipeline.sim_source import make_optics, make_world, simulate_frames, wobble_px
 from sffscan.stages.sim.camera import render_frame
 
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_noisy_scan.py"
+from tests.bench_modules import load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_noisy_scan", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_noisy_scan")
 
 
 def test_true_offset_headers_place_frames_where_rendered() -> None:
