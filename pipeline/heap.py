@@ -26,9 +26,9 @@ def keep_freed_memory() -> bool:
     :data:`MMAP_THRESHOLD_BYTES` come from the heap, and a heap gives memory back only
     when :data:`TRIM_THRESHOLD_BYTES` are free at its top: a worker keeps its peak use
     until it exits (the arrays of one frame, a few tens of MB), nothing grows with the
-    scan. Worker processes call it, and the command line (its process is ours), not the
-    library's functions (a caller's process is the caller's). Returns whether both
-    settings took (False off glibc).
+    scan. Worker processes call it, and the ``sffscan`` command in its own process, not the
+    library's functions nor ``main(argv)`` called from another program (a caller's process
+    is the caller's). Returns whether both settings took (False off glibc).
     """
     if not sys.platform.startswith("linux"):
         return False

@@ -356,11 +356,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from sffscan.pipeline.config import ConfigError
         from sffscan.pipeline.heap import keep_freed_memory
 
-        # this process is the command's own: its stages (the thread placement's, the main
-        # process's of the process placement) reuse freed memory as the workers' do
-        # (thread placement, 300 frames, 2 cores, six pairs: 45.8-49.2 against 47.4-54.0 ms
-        # of CPU a frame)
-        keep_freed_memory()
+        if argv is None:
+            # the `sffscan` command's own process (not a caller's that runs main(argv)): its
+            # stages (the thread placement's, the process placement's main process) reuse
+            # freed memory as the workers' do (thread placement, 300 frames, 2 cores, six
+            # pairs: 45.8-49.2 against 47.4-54.0 ms of CPU a frame)
+            keep_freed_memory()
 
         with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)):
             try:

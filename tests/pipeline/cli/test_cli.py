@@ -247,12 +247,17 @@ def test_batch_takes_the_same_processing_choices_as_replay() -> None:
 
 def test_the_command_line_keeps_freed_memory_as_the_workers_do(
         monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    """The command's own process takes the workers' glibc heap settings
-    (:func:`sffscan.pipeline.heap.keep_freed_memory`) before it runs anything."""
+    """The `sffscan` command's own process (main() without arguments, as the console script
+    calls it) takes the workers' glibc heap settings
+    (:func:`sffscan.pipeline.heap.keep_freed_memory`) before it runs anything; main(argv),
+    called from another program, leaves that program's process alone."""
     import sffscan.pipeline.heap as heap
 
     calls: list[int] = []
     monkeypatch.setattr(heap, "keep_freed_memory", lambda: calls.append(1) or True)
     assert main(["config"]) == 0
+    assert calls == []
+    monkeypatch.setattr(sys, "argv", ["sffscan", "config"])
+    assert main() == 0
     assert "[optics]" in capsys.readouterr().out
     assert calls == [1]
