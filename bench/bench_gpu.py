@@ -15,9 +15,10 @@ a run cut short keeps what it measured):
    (:func:`depth_from_focus` with SPC on the CPU focus volume): the argmax's share of equal
    pixels and the depth's largest and RMS difference, levels; and both depths' RMS error
    against the truth, µm.
-2. **device throughput**: focus measure + accumulation of full-size frames (the scan's
-   1280 x 1024, uint16 and uint8) on the device in batches of 1, 8 and 32 frames, uploads
-   included, frames/s (the frames are re-sent: throughput only).
+2. **device throughput**: focus measure (GLVM and TENV) + accumulation of full-size frames
+   (the scan's 1280 x 1024, uint16 and uint8) on the device in batches of 1, 8 and 32
+   frames, uploads included, frames/s (:func:`bench_pipeline.device_rates`: the frames are
+   re-sent, throughput only).
 3. **end to end**: the scan of ``--frames`` simulated frames from memory (the default
    configuration, processes placement) with ``processing.backend = "opencv"`` and with
    ``"torch"`` on the device, alternating for ``--rounds`` rounds: frames/s, CPU per frame,
@@ -45,7 +46,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import bench_config, machine, replay_frames  # noqa: E402
+from bench_pipeline import bench_config, device_rates, machine, replay_frames  # noqa: E402
 from sffscan.pipeline.config import ScanConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,13 +61,6 @@ def machine_and_device(device: str) -> str:
     dev = (torch.cuda.get_device_name(torch.device(device))
            if device.startswith("cuda") else device)
     return f"{machine()}, device {dev}"
-
-
-def sync(device: str) -> None:
-    import torch
-
-    if device.startswith("cuda"):
-        torch.cuda.synchronize(torch.device(device))
 
 
 # ----------------------------------------------------------------------------- 1. agreement
@@ -130,41 +124,11 @@ def rms_error(depth: np.ndarray, stack: Any) -> float:
 
 
 def throughput(images: list[np.ndarray], device: str, *, batches: tuple[int, ...],
-               seconds: float) -> list[dict[str, Any]]:
-    """Focus measure + accumulation of full frames on the device, frames/s per batch size."""
-    import torch
-    from sffscan.stages.focus_torch import (
-        DeviceFocus,
-        accumulate_levels_torch,
-        new_accumulator_torch,
-    )
-
-    rows = []
-    dev = torch.device(device)
-    for bits in (16, 8):
-        for b in batches:
-            frames = np.stack([images[i % len(images)] for i in range(b)])
-            if bits == 8:
-                frames = (frames >> 2).astype(np.uint8)
-            df = DeviceFocus(device=dev, operator="glvm", window=9,
-                             max_value=255.0 if bits == 8 else 1023.0)
-            acc = new_accumulator_torch(n_levels=50, shape=frames.shape[1:], device=dev)
-            levels = torch.arange(b, device=dev) % 50
-            for _ in range(2):  # warm up (kernels, pinned buffers)
-                accumulate_levels_torch(acc, df.measure(frames if b > 1 else frames[0])[1]
-                                        .reshape(b, *frames.shape[1:]), levels)
-            sync(device)
-            done, t0 = 0, time.perf_counter()
-            while time.perf_counter() - t0 < seconds:
-                accumulate_levels_torch(acc, df.measure(frames if b > 1 else frames[0])[1]
-                                        .reshape(b, *frames.shape[1:]), levels)
-                done += b
-                if done % (8 * b) == 0:
-                    sync(device)
-            sync(device)
-            wall = time.perf_counter() - t0
-            rows.append({"bits": bits, "batch": b, "frames": done, "fps": done / wall})
-    return rows
+               frames: int) -> list[dict[str, Any]]:
+    """Focus measure + accumulation of full frames on the device, frames/s per batch size
+    (:func:`bench_pipeline.device_rates`, about ``frames`` frames timed per case)."""
+    return [device_rates(images, device=device, batch=b, reps=max(2, round(frames / b)))
+            for b in batches]
 
 
 # ----------------------------------------------------------------------------- 3. end to end
@@ -256,10 +220,12 @@ def write(out: Path, device: str, results: dict[str, Any]) -> Path:
                   if k != "stack"]
         lines.append("")
     if "throughput" in results:
-        lines += ["## 2. Focus measure + accumulation on the device (1280 x 1024, GLVM k = 9, "
-                  "N = 50, uploads included)", "", "| bits | batch | frames/s |",
-                  "|---:|---:|---:|"]
-        lines += [f"| {t['bits']} | {t['batch']} | {t['fps']:,.0f} |"
+        cases = [k for k in results["throughput"][0] if k not in ("device", "batch")]
+        lines += ["## 2. Focus measure + accumulation on the device (1280 x 1024, k = 9, "
+                  "N = 50, uploads included), frames/s", "",
+                  "| batch | " + " | ".join(cases) + " |",
+                  "|---:|" + "---:|" * len(cases)]
+        lines += [f"| {t['batch']} | " + " | ".join(f"{t[c]:,.0f}" for c in cases) + " |"
                   for t in results["throughput"]]
         lines.append("")
     if "end to end" in results:
@@ -289,8 +255,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="torch device (default: cuda where there is one, else cpu)")
     ap.add_argument("--frames", type=int, default=300, help="frames of the end-to-end scans")
     ap.add_argument("--rounds", type=int, default=2, help="end-to-end rounds (alternating)")
-    ap.add_argument("--seconds", type=float, default=3.0,
-                    help="timed seconds per throughput case")
+    ap.add_argument("--timed", type=int, default=320,
+                    help="frames timed per throughput case (batch size and operator)")
     ap.add_argument("--stack-px", type=int, default=512, help="agreement stack size, px")
     ap.add_argument("--sections", default="agreement,throughput,end-to-end",
                     help="comma-separated sections to run (default: all three)")
@@ -308,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     if args.quick:
-        args.rounds, args.seconds, args.stack_px = 1, min(args.seconds, 0.5), 128
+        args.rounds, args.timed, args.stack_px = 1, min(args.timed, 8), 128
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {
         "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_and_device(args.device),
@@ -326,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
     if "throughput" in sections:
         results["throughput"] = throughput(images, args.device, batches=(1, 8, 32),
-                                           seconds=args.seconds)
+                                           frames=args.timed)
         print(f"throughput done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
         md = write(args.out, args.device, results)
     if "end-to-end" in sections:

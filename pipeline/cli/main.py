@@ -354,9 +354,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.verbose = int(getattr(args, "verbose", 0) or 0)
         from sffscan.pipeline.cli.logsetup import cli_logging, level_for
         from sffscan.pipeline.config import ConfigError
-        from sffscan.pipeline.heap import keep_freed_memory
 
         if argv is None:
+            from sffscan.pipeline.heap import keep_freed_memory
+
             # the `sffscan` command's own process (not a caller's that runs main(argv)): its
             # stages (the thread placement's, the process placement's main process) reuse
             # freed memory as the workers' do (thread placement, 300 frames, 2 cores, six
