@@ -137,8 +137,9 @@ def throughput(images: list[np.ndarray], device: str, *, batches: tuple[int, ...
 def scan_config(backend: str, device: str) -> ScanConfig:
     """The benchmarks' scan (:func:`bench_pipeline.bench_config`) with the default depth
     method, in the processes placement, the focus measure on ``backend`` and ``device``."""
-    data = bench_config().model_dump()
-    default = type(bench_config().processing).model_fields["depth_method"].default
+    base = bench_config()
+    default = type(base.processing).model_fields["depth_method"].default
+    data = base.model_dump()
     data["processing"].update(depth_method=default, execution="processes", backend=backend,
                               device=device)
     return ScanConfig.model_validate(data)
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     if args.quick:
-        args.rounds, args.timed, args.stack_px = 1, min(args.timed, 8), 128
+        args.rounds, args.timed, args.stack_px = 1, min(args.timed, 8), min(args.stack_px, 128)
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {
         "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_and_device(args.device),
