@@ -21,9 +21,12 @@ Cases:
 - the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
 
 ``--workers 1,2`` runs every case with each number of band workers
-(``processing.workers``), interleaved. ``--outputs DIR,DIR`` runs every case once per
-folder given for what the run writes (the mosaic, and the recording with the recorder on),
-interleaved: the file system's share.
+(``processing.workers``), interleaved. ``--one-thread on,off`` runs every processes case
+with each worker process's stages in one thread (on) and in a thread each (off),
+interleaved; by default the placement's own rule decides
+(:func:`sffscan.pipeline.parallel.one_thread_per_process`). ``--outputs DIR,DIR`` runs
+every case once per folder given for what the run writes (the mosaic, and the recording
+with the recorder on), interleaved: the file system's share.
 On the dev VM this matters: its root file system is ext4 without a journal, whose inode
 allocator skips inodes deleted in the last seconds to minutes (the kernel's
 ``recently_deleted``, checked only without a journal), so after the benches' and the
@@ -106,6 +109,12 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs."""
     cpus = sorted(os.sched_getaffinity(0))[:case["cores"]]
     os.sched_setaffinity(0, cpus)
+    if case.get("one_thread", "auto") != "auto":
+        # the placement's rule replaced in this case's own process (a fresh one per run)
+        import sffscan.pipeline.parallel as placement
+
+        on = case["one_thread"] == "on"
+        placement.one_thread_per_process = lambda processes: on  # type: ignore[assignment]
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.formats.recording_writer import recorder_sink
@@ -231,8 +240,10 @@ def label(c: dict[str, Any]) -> str:
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
     bands = f", {c['workers']} band workers" if c.get("workers", 1) != 1 else ""
+    one = {"on": ", one thread a worker", "off": ", a thread a stage"}.get(
+        c.get("one_thread", "auto"), "")
     return (f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
-            f"{bands}{where}")
+            f"{bands}{one}{where}")
 
 
 def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) -> None:
@@ -298,6 +309,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", default="1",
                     help="comma-separated processing.workers (band threads of the focus "
                          "measure and depth) to run every case with, interleaved; default 1")
+    ap.add_argument("--one-thread", default="auto",
+                    help="comma-separated on/off: each worker process's stages in one thread "
+                         "or a thread each, every processes case with each, interleaved; "
+                         "default auto (the placement's rule)")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
@@ -335,6 +350,11 @@ def main(argv: list[str] | None = None) -> int:
     if outputs:
         cases = [{**c, "outputs": d} for c in cases for d in outputs]
     cases = [{**c, "workers": int(k)} for c in cases for k in args.workers.split(",")]
+    ones = [v for v in args.one_thread.split(",") if v]
+    if any(v not in ("auto", "on", "off") for v in ones):
+        ap.error(f"--one-thread takes auto, on, off; got {args.one_thread!r}")
+    cases = [{**c, "one_thread": v} for c in cases
+             for v in (ones if c["mode"] == "processes" else ["auto"])]
     rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
     creates = {d: [file_create_ms(d)] for d in outputs}
     base = baseline_fps(bank, 12)

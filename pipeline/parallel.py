@@ -133,6 +133,16 @@ class PooledSource(Stage):
         return self.inner.extra_stats()
 
 
+def one_thread_per_process(processes: int) -> bool:
+    """Whether each worker process runs its stages in one thread (``Pipeline``'s
+    ``one_thread``): where the cores available (the affinity mask) are no more than the
+    placement's ``processes``, so that a process's stages would only take turns on its
+    core."""
+    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+             else os.cpu_count() or 1)
+    return cores <= processes
+
+
 @dataclass
 class _Worker:
     label: str
@@ -176,7 +186,8 @@ class ProcessPlacement:
             tail=pipeline.stages[first + len(placed):], pools=self.pools,
             capacity=pipeline.capacity, hosted=self.hosted,
             sinks=[k for k in pipeline.sinks if k.name not in hosted],
-            on_progress=pipeline.on_progress, progress_s=pipeline.progress_s).run()
+            on_progress=pipeline.on_progress, progress_s=pipeline.progress_s,
+            one_thread=one_thread_per_process(1 + len(self.groups) + len(self.hosted))).run()
 
 
 @dataclass
@@ -216,6 +227,7 @@ class ProcessPipeline:
     hosted: list[HostedSink] = field(default_factory=list)
     on_progress: Callable[[list[StageStats], float], None] | None = None
     progress_s: float = 1.0
+    one_thread: bool = False
 
     def run(self) -> PipelineResult:
         """Run to the end of the stream (:meth:`Pipeline.run`'s contract). OpenCV runs one
@@ -245,7 +257,8 @@ class ProcessPipeline:
             pj = [s.to_json() for s in specs]
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
-                        "capacity": self.capacity, "opencv_threads": cv_threads}
+                        "capacity": self.capacity, "opencv_threads": cv_threads,
+                        "one_thread": self.one_thread}
                 mine = [(r, q) for r, q in zip(relays, relay_qs, strict=True)
                         if set(r.taps) & set(g.stages)]
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",

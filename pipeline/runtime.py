@@ -1,7 +1,9 @@
 """Stage runtime: concurrent stages joined by bounded queues.
 
 Every stage runs in its own thread (numpy, OpenCV and torch release the GIL in their
-kernels, so stages overlap on several cores). Stages are joined by :class:`BoundedQueue`,
+kernels, so stages overlap on several cores), or, with ``one_thread``, the whole chain
+runs in one thread, each item passed straight through every stage (for a worker process
+whose stages would only take turns on one core anyway). Stages are joined by :class:`BoundedQueue`,
 whose policy when full is declared (``block`` by default; ``drop_oldest`` and
 ``drop_newest`` count every drop). Every put and get waits with a timeout and re-checks
 the pipeline's stop flag between waits; nothing sleeps to poll.
@@ -232,6 +234,15 @@ class Pipeline:
         Where the stages run: None, each in a thread of this process; a
         :class:`~sffscan.pipeline.parallel.ProcessPlacement`, groups of them in worker
         processes (the same chain, sinks, statistics, end of stream and failures).
+    one_thread : bool
+        Run the whole chain in one thread: each output goes straight on through the next
+        stages, with no queue between them (the sinks keep their threads and queues).
+        For a process whose stages would only take turns on its core anyway
+        (:func:`sffscan.pipeline.parallel.one_thread_per_process`): threads that hand items
+        over and contend for the interpreter's lock cost CPU there
+        (``bench/bench_parallel.py --one-thread``). Same items, order, statistics, end of
+        stream and failures; the queues between the stages count each hand-over as a put
+        into an empty queue (fill 1).
     """
 
     def __init__(
@@ -245,6 +256,7 @@ class Pipeline:
         sinks: list[Sink] | None = None,
         stop: threading.Event | None = None,
         placement: Placement | None = None,
+        one_thread: bool = False,
     ) -> None:
         if not stages:
             raise ValueError("a pipeline needs at least a source stage")
@@ -260,6 +272,7 @@ class Pipeline:
         self.stages = stages
         self.capacity = capacity
         self.placement = placement
+        self.one_thread = one_thread
         self.prepared = False  # Stage.prepare done (see prepare)
         self.stop = stop if stop is not None else threading.Event()
         self.cancelled = False
@@ -292,22 +305,24 @@ class Pipeline:
         self._lock = threading.Lock()
 
     def _emit(self, index: int, outputs: Iterable[Any]) -> None:
-        stats = self.stats[index]
         out_q = self.queues[index] if index < len(self.queues) else None
-        taps = self._taps[index]
-        name = self.stages[index].name
         for out in outputs:
-            stats.items_out += 1
-            for q in taps:
-                t0 = time.perf_counter()
-                q.put(Tapped(name, out))
-                waited = time.perf_counter() - t0
-                if waited > 1e-3 and q.policy is FullPolicy.BLOCK:
-                    with self._lock:
-                        sink = q.name.rsplit("->", 1)[1]
-                        self.sink_wait_s[sink] += waited
+            self._tap(index, out)
             if out_q is not None:
                 out_q.put(out)
+
+    def _tap(self, index: int, out: Any) -> None:
+        """Count an output of stage ``index`` and hand it to the sinks that tap the stage."""
+        self.stats[index].items_out += 1
+        name = self.stages[index].name
+        for q in self._taps[index]:
+            t0 = time.perf_counter()
+            q.put(Tapped(name, out))
+            waited = time.perf_counter() - t0
+            if waited > 1e-3 and q.policy is FullPolicy.BLOCK:
+                with self._lock:
+                    sink = q.name.rsplit("->", 1)[1]
+                    self.sink_wait_s[sink] += waited
 
     def _run_stage(self, index: int) -> None:
         out_q = self.queues[index] if index < len(self.queues) else None
@@ -358,6 +373,67 @@ class Pipeline:
         except BaseException as exc:  # noqa: BLE001 - reported with the stage's name
             with self._lock:
                 self._errors.append((stage.name, exc))
+            self.stop.set()
+
+    def _run_chain(self) -> None:
+        """The chain in this one thread (``one_thread``): the source's items, each passed
+        through every later stage before the next is taken; then each stage's ``finish``,
+        in order, its outputs passed on alike. A failure is recorded with the name of the
+        stage that raised and stops the pipeline, as in :meth:`_drive`."""
+        stages, stats = self.stages, self.stats
+        failed: list[int] = []  # the stage whose call raised
+
+        def timed(index: int, call: Callable[[], list[Any]]) -> list[Any]:
+            st = stats[index]
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return call()
+            except PipelineStopped:
+                raise
+            except BaseException:
+                failed.append(index)
+                raise
+            finally:
+                st.busy_s += time.perf_counter() - t0
+                st.cpu_s += time.thread_time() - c0
+
+        def handed(index: int) -> None:
+            # the queue after stage ``index`` as a hand-over: an item put into it is taken
+            # at once, so it holds one at each put (the end of stream counted, as a put)
+            q = self.queues[index].stats
+            q.puts += 1
+            q.fill_sum += 1
+            q.max_fill = max(q.max_fill, 1)
+
+        def push(index: int, outputs: list[Any]) -> None:
+            for out in outputs:
+                self._tap(index, out)
+                nxt = index + 1
+                if nxt < len(stages):
+                    handed(index)
+                    stats[nxt].items_in += 1
+                    more = timed(nxt, functools.partial(_process_all, stages[nxt], out))
+                    stats[nxt].frames += 1
+                    push(nxt, more)
+
+        try:
+            it = iter(stages[0].produce())
+            while not self.stop.is_set():
+                produced = timed(0, lambda: list(itertools.islice(it, 1)))
+                if not produced:
+                    break
+                stats[0].frames += 1
+                push(0, produced)
+            for i, stage in enumerate(stages):
+                push(i, timed(i, lambda stage=stage: list(stage.finish())))  # type: ignore[misc]
+                if i < len(self.queues):
+                    handed(i)  # the end of stream
+        except PipelineStopped:
+            return
+        except BaseException as exc:  # noqa: BLE001 - reported with the stage's name
+            name = stages[failed[-1]].name if failed else stages[0].name
+            with self._lock:
+                self._errors.append((name, exc))
             self.stop.set()
 
     def cancel(self) -> None:
@@ -415,7 +491,8 @@ class Pipeline:
         threads = [
             threading.Thread(target=self._run_stage, args=(i,), name=f"stage-{s.name}", daemon=True)
             for i, s in enumerate(self.stages)
-        ]
+        ] if not self.one_thread else [
+            threading.Thread(target=self._run_chain, name="stages", daemon=True)]
         sink_threads = [
             threading.Thread(target=self._run_sink, args=(i,), name=f"sink-{k.name}", daemon=True)
             for i, k in enumerate(self.sinks)

@@ -99,7 +99,9 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
     the consumer closed); end of file means the main process is gone. ``relays``: (relay,
     its channel) for each sink of the main process that taps some of this worker's
     stages; their forwarders' statistics come back in the report. ``group["opencv_threads"]``
-    (optional): OpenCV's threads in this process (:mod:`sffscan.pipeline.opencv_threads`).
+    (optional): OpenCV's threads in this process (:mod:`sffscan.pipeline.opencv_threads`);
+    ``group["one_thread"]`` (optional): the chain in one thread (``Pipeline``'s
+    ``one_thread``).
     """
     helper_start(parent)
     keep_freed_memory()
@@ -138,7 +140,8 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
                 mine = tuple(t for t in relay.taps if t in {s.name for s in stages})
                 forwards.append(relay_forwarder(relay, mine, rq, pools=pools, stop=stop))
             built_pipe = Pipeline(chain, capacity=INNER_CAPACITY, stop=stop,
-                                  sinks=list(forwards))
+                                  sinks=list(forwards),
+                                  one_thread=bool(group.get("one_thread", False)))
             built_pipe.prepare()  # before "ready": the main process's clock starts there
         except StageFailed as err:
             report({"kind": "error", "stage": err.stage, **_exc_info(err.cause)})
