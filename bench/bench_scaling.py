@@ -12,12 +12,13 @@ pinned to ``--cores`` CPUs; threads and processes alternate, ``--rounds`` times;
 
 Measured:
 
-1. **Per-stage CPU per frame**, thread placement: each stage's ``StageStats.cpu_s`` (its
-   thread's CPU inside its own code) / frames of the scan. **Transport**, process
-   placement: the CPU of every process while streaming (``extras["processes"]["cpu_s"]``)
-   minus the sum of its stages' ``cpu_s``, per frame; split per process with the workers'
-   own reports (the bench wraps ``process_figures.process_result`` in its case process to
-   read them; no product code changes).
+1. **Per-stage CPU per frame**, in the process placement (what the model takes) and in the
+   thread placement: each stage's ``StageStats.cpu_s`` (its thread's CPU inside its own
+   code) / frames of the scan. **Transport**, process placement: the CPU of every process
+   while streaming (``extras["processes"]["cpu_s"]``) minus the sum of its stages'
+   ``cpu_s``, per frame; split per process with the workers' own reports (the bench wraps
+   ``process_figures.process_result`` in its case process to read them; no product code
+   changes).
 2. **Band split overhead**: ``focus_measure_raw(frame[:, cols], rows=(r0, r1))`` over K
    equal row bands (each widened by the operator's reach: the halo), K = 1, 2, 4, 8, 16,
    against the whole frame, in this process (OpenCV and BLAS on one thread, as one worker
@@ -80,6 +81,9 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """One end-to-end run in this (fresh) process, pinned to ``case['cores']`` CPUs."""
     os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:case["cores"]])
     import sffscan.pipeline.parallel as parallel
+    from sffscan.pipeline.heap import keep_freed_memory
+
+    keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.wiring import run_scan
 
@@ -233,7 +237,7 @@ def model(stages: dict[str, float], transport: dict[str, float],
           ov_focus: dict[str, float], ov_depth: dict[str, float]) -> dict[str, Any]:
     """Predicted frames/s for each core count, today's placement and K-band placements.
 
-    ``stages``: CPU ms per frame of each stage (thread placement); ``transport``: ms per
+    ``stages``: CPU ms per frame of each stage; ``transport``: ms per
     frame of each process beyond its stages' code; ``ov_focus``, ``ov_depth``: K -> CPU of
     K bands / CPU of the whole frame, of the focus measure and of accumulation + depth.
     One message end (a receive or a send of a frame) costs ``x``: half the registration
@@ -288,9 +292,12 @@ def write(out: Path, res: dict[str, Any]) -> str:
              f"GLVM k = 9, depth method `{res['depth_method']}` (the default), registration "
              f"on, Zarr mosaic (written in {res.get('outputs', 'the cache folder')}), frames "
              "from memory.", "",
-             "## 1. CPU per frame of each stage (thread placement) and of the transport", "",
-             "Stage: its thread's CPU inside its own code (`StageStats.cpu_s`) / frames. "
-             "Processes: the same stages in their workers.", "",
+             "## 1. CPU per frame of each stage and of the transport", "",
+             "Stage: its thread's CPU inside its own code (`StageStats.cpu_s`) / frames, "
+             "in the thread placement (every stage a thread of one process) and in the "
+             "process placement (the same stages in their workers; what the model takes). "
+             "Every run's own process keeps freed memory as the `sffscan` command's does "
+             "(`sffscan.pipeline.heap`).", "",
              "| stage | threads ms/frame | least of the runs | processes ms/frame |"
              " runs (threads) |",
              "|---|---:|---:|---:|---|"]
@@ -351,8 +358,12 @@ def write(out: Path, res: dict[str, Any]) -> str:
               "group that cannot be split (one process). From the measured figures "
               f"(ms/frame): stages of the main process (source, speed shift, mosaic) "
               f"{sg[MAIN]:.2f}, registration {sg[REG]:.2f}, focus measure + depth "
-              f"(accumulation and reduction) {sg[FOCUS]:.2f} (thread placement); each "
-              "process's transport as measured above; T = "
+              f"(accumulation and reduction) {sg[FOCUS]:.2f}, as measured in their "
+              "processes (where the cores are no more than the processes, as here, each "
+              "worker runs its stages in one thread, "
+              "`sffscan.pipeline.parallel.one_thread_per_process`; on more cores each stage "
+              "has a thread, whose contention for the interpreter is not in these figures); "
+              "each process's transport as measured above; T = "
               f"{m['total_ms']:.2f}.", "",
               "- **Today's placement** (built): main, registration worker, focus + depth "
               "worker.",
@@ -402,12 +413,10 @@ def write(out: Path, res: dict[str, Any]) -> str:
               "worth of CPU (frames/s x its CPU per frame): on a machine this loaded the "
               "pipeline gets only a share of the 2 cores, so the measured frames/s is a "
               "floor, and the check holds only on a quiet machine.",
-              f"- The model's T for today's placement ({m['total_ms']:.2f} ms: the thread "
-              "placement's stages plus the processes' transport) against the processes "
-              f"runs' measured CPU per frame ({med_of(prc, 'total_ms'):.2f} ms): ratio "
-              f"{m['total_ms'] / med_of(prc, 'total_ms'):.3f}. This part holds whatever the "
-              "load: the stages cost the same CPU in either placement, and the processes "
-              "add the transport.", ""]
+              f"- The same stages in the thread placement: {s_thr:.2f} ms of CPU a frame "
+              f"against {s_prc:.2f} in their processes (ratio {s_thr / s_prc:.3f}): there "
+              "every stage's thread contends for one interpreter (the variant rows above "
+              "take those figures).", ""]
     text = "\n".join(lines)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
@@ -467,15 +476,16 @@ def main(argv: list[str] | None = None) -> int:
     transport = {g: v["transport_ms"] for g, v in groups.items()}
     ov, halo = bands["overhead"], bands["halo_rows_share"]
     ov_safe = {k: max(ov[k], bands["overhead_user"][k], halo[k]) for k in ov}
-    mdl = model(stages, transport, ov_safe, ov_safe)
+    mdl = model(stages_p, transport, ov_safe, ov_safe)
     variants = {
-        "least CPU of the rounds (thread placement)": model(stages_min, transport, ov_safe,
-                                                              ov_safe),
-        "stages as measured in their processes": model(stages_p, transport, ov_safe, ov_safe),
-        "measured band ratio for the focus measure only": model(stages, transport, ov,
+        "stages as measured in the thread placement": model(stages, transport, ov_safe,
+                                                            ov_safe),
+        "least CPU of the thread placement's rounds": model(stages_min, transport, ov_safe,
+                                                            ov_safe),
+        "measured band ratio for the focus measure only": model(stages_p, transport, ov,
                                                                  ov_safe),
         "measured band ratio for focus measure + accumulation + depth": model(
-            stages, transport, ov, ov),
+            stages_p, transport, ov, ov),
     }
     pred = mdl["placements"][0]["fps"].get(cores) or min(
         cores / mdl["total_ms"], 1.0 / max(mdl["placements"][0]["groups_ms"].values())) * 1e3
