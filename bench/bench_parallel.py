@@ -106,9 +106,13 @@ def make_recording(cache: Path, bank: Path, frames: int) -> Path:
 
 
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
-    """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs."""
+    """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs, which keeps
+    freed memory as the sffscan command's own process does."""
     cpus = sorted(os.sched_getaffinity(0))[:case["cores"]]
     os.sched_setaffinity(0, cpus)
+    from sffscan.pipeline.heap import keep_freed_memory
+
+    keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
     if case.get("one_thread", "auto") != "auto":
         # the placement's rule replaced in this case's own process (a fresh one per run)
         import sffscan.pipeline.parallel as placement
