@@ -18,7 +18,7 @@ import threading
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from typing import Any
 
-from sffscan.pipeline.runtime import PipelineStopped
+from sffscan.pipeline.queues import PipelineStopped
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
 from sffscan.pipeline.spawn import WAIT_S
 from sffscan.pipeline.stats import QueueStats, StageStats

@@ -60,8 +60,9 @@ from sffscan.pipeline.channels import (
 )
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
+from sffscan.pipeline.queues import PipelineStopped
 from sffscan.pipeline.relays import AfterRelays, Relay, RelayRun, relay_of, relayed_sinks
-from sffscan.pipeline.runtime import Pipeline, PipelineStopped, StageFailed, gc_frozen
+from sffscan.pipeline.runtime import Pipeline, StageFailed, gc_frozen
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from sffscan.pipeline.channels import ForwardSink, RecvStage
-from sffscan.pipeline.runtime import Pipeline, offer_stats
+from sffscan.pipeline.queues import offer_stats
+from sffscan.pipeline.runtime import Pipeline
 from sffscan.pipeline.shm_ring import SlotPool
 from sffscan.pipeline.spawn import WAIT_S
 from sffscan.pipeline.stats import PipelineResult, QueueStats, StageStats, stats_snapshot
@@ -185,7 +186,7 @@ class RelayRun:
     def snapshot(self, elapsed: float, stages: list[StageStats], queues: list[QueueStats],
                  reports: list[dict[str, Any]], *, last: bool = False) -> None:
         """The pipeline's statistics, this sink's queue last, to the sink if it wants
-        them (:func:`~sffscan.pipeline.runtime.offer_stats`). The main process is one of
+        them (:func:`~sffscan.pipeline.queues.offer_stats`). The main process is one of
         the channel's producers and sends its end of stream after the last ones
         (:meth:`finish`): none can come after the end of stream."""
         snap = stats_snapshot(elapsed, stages, [*queues, self.queue_stats(reports)])

@@ -7,7 +7,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sffscan.pipeline.runtime import BoundedQueue, Pipeline, PipelineStopped, StageFailed
+from sffscan.pipeline.queues import BoundedQueue, PipelineStopped
+from sffscan.pipeline.runtime import Pipeline, StageFailed
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage, Tapped
 
 

@@ -8,7 +8,8 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, PipelineStopped, StageFailed
+from sffscan.pipeline.queues import PipelineStopped
+from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.stages.protocol import Stage
 
 from tests.pipeline.test_runtime import Batch, Collect, Double, Explode, Numbers, Recorder
