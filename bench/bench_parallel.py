@@ -24,7 +24,7 @@ Cases:
 (``processing.workers``), interleaved. ``--one-thread on,off`` runs every processes case
 with each worker process's stages in one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
-(:func:`sffscan.pipeline.parallel.one_thread_per_process`). ``--outputs DIR,DIR`` runs
+(:func:`sffscan.pipeline.cores.one_thread_per_process`). ``--outputs DIR,DIR`` runs
 every case once per folder given for what the run writes (the mosaic, and the recording
 with the recorder on), interleaved: the file system's share.
 On the dev VM this matters: its root file system is ext4 without a journal, whose inode

@@ -361,7 +361,7 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"(accumulation and reduction) {sg[FOCUS]:.2f}, as measured in their "
               "processes (where the cores are no more than the processes, as here, each "
               "worker runs its stages in one thread, "
-              "`sffscan.pipeline.parallel.one_thread_per_process`; on more cores each stage "
+              "`sffscan.pipeline.cores.one_thread_per_process`; on more cores each stage "
               "has a thread, whose contention for the interpreter is not in these figures); "
               "each process's transport as measured above; T = "
               f"{m['total_ms']:.2f}.", "",

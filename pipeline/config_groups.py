@@ -25,7 +25,6 @@ reference lists every table's fields by group.
 
 from __future__ import annotations
 
-import os
 from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -242,9 +241,9 @@ class Execution(ConfigModel):
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""
         if isinstance(self.workers, int):
             return self.workers
-        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                 else os.cpu_count() or 1)
-        return max(1, min(8, cores - 2))
+        from sffscan.pipeline.cores import cores_available
+
+        return max(1, min(8, cores_available() - 2))
 
 
 class Output(ConfigModel):

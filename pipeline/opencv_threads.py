@@ -21,6 +21,8 @@ import os
 import threading
 from collections.abc import Iterator
 
+from sffscan.pipeline.cores import cores_available
+
 __all__ = ["opencv_thread_limit", "opencv_threads"]
 
 
@@ -30,9 +32,7 @@ def opencv_threads(parts: int) -> int | None:
     (OpenCV's default); None too where ``OPENCV_FOR_THREADS_NUM`` is set."""
     if "OPENCV_FOR_THREADS_NUM" in os.environ:
         return None
-    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-             else os.cpu_count() or 1)
-    return 1 if cores <= parts else None
+    return 1 if cores_available() <= parts else None
 
 
 class _Holders:

@@ -58,6 +58,7 @@ from sffscan.pipeline.channels import (
     RecvStage,
     SendStage,
 )
+from sffscan.pipeline.cores import one_thread_per_process
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
 from sffscan.pipeline.queues import PipelineStopped
@@ -132,16 +133,6 @@ class PooledSource(Stage):
 
     def extra_stats(self) -> dict[str, Any]:
         return self.inner.extra_stats()
-
-
-def one_thread_per_process(processes: int) -> bool:
-    """Whether each worker process runs its stages in one thread (``Pipeline``'s
-    ``one_thread``): where the cores available (the affinity mask) are no more than the
-    placement's ``processes``, so that a process's stages would only take turns on its
-    core."""
-    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-             else os.cpu_count() or 1)
-    return cores <= processes
 
 
 @dataclass

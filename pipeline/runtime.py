@@ -113,7 +113,7 @@ class Pipeline:
         Run the whole chain in one thread: each output goes straight on through the next
         stages, with no queue between them (the sinks keep their threads and queues).
         For a process whose stages would only take turns on its core anyway
-        (:func:`sffscan.pipeline.parallel.one_thread_per_process`): threads that hand items
+        (:func:`sffscan.pipeline.cores.one_thread_per_process`): threads that hand items
         over and contend for the interpreter's lock cost CPU there
         (``bench/bench_parallel.py --one-thread``). Same items, order, statistics, end of
         stream and failures; the queues between the stages count each hand-over as a put

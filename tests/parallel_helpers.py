@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -99,6 +100,38 @@ class OpenCVThreads(Stage):
 def opencv_threads_group() -> list[Stage]:
     """Worker factory: one :class:`OpenCVThreads` stage."""
     return [OpenCVThreads()]
+
+
+class ThreadMark(Stage):
+    """Writes the low 32 bits of its thread's id into pixels (0, 0) and (0, 1) of each frame
+    (a copy)."""
+
+    name = "thread_mark"
+
+    def process(self, item: Frame) -> Iterator[Frame]:
+        ident = threading.get_ident()
+        image = np.array(item.image)
+        image[0, 0], image[0, 1] = ident & 0xFFFF, (ident >> 16) & 0xFFFF
+        yield Frame(item.header, image)
+
+
+class SameThread(Stage):
+    """Writes into pixel (0, 0) whether it runs in the thread :class:`ThreadMark` marked
+    (1 or 0), and 0 into (0, 1)."""
+
+    name = "same_thread"
+
+    def process(self, item: Frame) -> Iterator[Frame]:
+        ident = threading.get_ident()
+        image = np.array(item.image)
+        same = (int(image[0, 0]), int(image[0, 1])) == (ident & 0xFFFF, (ident >> 16) & 0xFFFF)
+        image[0, 0], image[0, 1] = int(same), 0
+        yield Frame(item.header, image)
+
+
+def thread_mark_group() -> list[Stage]:
+    """Worker factory: :class:`ThreadMark` then :class:`SameThread`."""
+    return [ThreadMark(), SameThread()]
 
 
 def failing_focus_group(cfg: dict[str, Any], at: int) -> list[Stage]:

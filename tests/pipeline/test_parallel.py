@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from sffscan.pipeline.channels import RecvStage, SendStage
 from sffscan.pipeline.config import demo_config
+from sffscan.pipeline.cores import one_thread_per_process
 from sffscan.pipeline.parallel import ProcessPipeline
 from sffscan.pipeline.runtime import Pipeline, StageFailed
 from sffscan.pipeline.scan_processes import ring_plan, use_processes
@@ -45,6 +46,7 @@ from tests.parallel_helpers import (
     opencv_threads_group,
     pass_group,
     shm_names,
+    thread_mark_group,
 )
 from tests.scan_helpers import small_config
 
@@ -461,6 +463,28 @@ def test_opencv_runs_one_thread_a_process_where_the_cores_are_few(
     assert cv2.getNumThreads() == 1
     second.__exit__(None, None, None)
     assert cv2.getNumThreads() == default
+
+
+def test_worker_runs_its_stages_in_one_thread_where_cores_are_few(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the cores available are no more than the placement's processes, a worker runs
+    its stages in one thread (the same frames either way); with more cores, a thread each."""
+
+    def same_thread(cores: int) -> set[tuple[int, int]]:
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)))
+        tail = Collect()
+        ProcessPipeline(head=[FrameNumbers(4)],
+                        groups=[WorkerGroup("a", thread_mark_group, {},
+                                            ("thread_mark", "same_thread"))],
+                        tail=[tail], pools=[("frames", 8, 16 * 24 * 2, ("frame",))],
+                        capacity=2,
+                        one_thread=one_thread_per_process(2)).run()
+        assert tail.ids == [0, 1, 2, 3]
+        return set(tail.corners)
+
+    assert same_thread(2) == {(1, 0)}  # 2 cores, 2 processes: one thread
+    assert same_thread(3) == {(0, 0)}  # more cores than processes: a thread each
+
 
 
 def test_poll_returns_when_a_report_comes_not_at_its_timeout() -> None:
