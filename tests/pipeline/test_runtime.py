@@ -122,14 +122,17 @@ def test_stages_prepare_before_the_stream_and_a_failure_is_named() -> None:
     assert sink.items == [] and sink.closed_failed is True
 
 
+class Broken(Stage):
+    """A source that yields one item, then fails."""
+
+    name = "camera"
+
+    def produce(self) -> Iterator[int]:
+        yield 1
+        raise OSError("cable unplugged")
+
+
 def test_failing_source_is_reported() -> None:
-    class Broken(Stage):
-        name = "camera"
-
-        def produce(self) -> Iterator[int]:
-            yield 1
-            raise OSError("cable unplugged")
-
     sink = Collect()
     with pytest.raises(StageFailed, match="camera.*cable unplugged"):
         Pipeline([Broken(), sink]).run()

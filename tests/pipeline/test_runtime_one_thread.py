@@ -12,7 +12,15 @@ from sffscan.pipeline.queues import PipelineStopped
 from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.stages.protocol import Stage
 
-from tests.pipeline.test_runtime import Batch, Collect, Double, Explode, Numbers, Recorder
+from tests.pipeline.test_runtime import (
+    Batch,
+    Broken,
+    Collect,
+    Double,
+    Explode,
+    Numbers,
+    Recorder,
+)
 
 
 class Threads(Stage):
@@ -80,14 +88,6 @@ def test_one_thread_failing_finish_and_source_are_named() -> None:
 
     with pytest.raises(StageFailed, match="flush.*cannot flush"):
         Pipeline([Numbers(3), BadFinish(), Collect()], one_thread=True).run()
-
-    class Broken(Stage):
-        name = "camera"
-
-        def produce(self) -> Iterator[int]:
-            yield 1
-            raise OSError("cable unplugged")
-
     sink = Collect()
     with pytest.raises(StageFailed, match="camera.*cable unplugged"):
         Pipeline([Broken(), Double(), sink], one_thread=True).run()
