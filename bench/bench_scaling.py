@@ -8,7 +8,9 @@ The scan is the default one from memory: the demo optics (1280 x 1024 uint16, 10
 N = 50, GLVM k = 9, the default depth method (``processing.depth_method``'s default),
 registration on, Zarr mosaic; distinct simulated frames (the frame bank of
 ``bench_pipeline.py``) read into memory first. Every end-to-end run is a fresh process
-pinned to ``--cores`` CPUs; threads and processes alternate, ``--rounds`` times; medians.
+pinned to ``--cores`` CPUs; the thread placement, the process placement and the process
+placement with a thread a stage (the rule of more cores forced) in turn, ``--rounds`` times;
+medians.
 
 Measured:
 
@@ -63,6 +65,7 @@ RUSAGE_THREAD = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)  # Linu
 CORES = (2, 4, 8, 16)
 COLUMNS = slice(300, 920)  # the focus stage's columns of a frame at 15 mm/s (48 %)
 MAIN, REG, FOCUS = "main", "registration", "focus"
+PER_STAGE = "processes, a thread a stage"  # the process placement with one_thread forced off
 GROUP_STAGES = {REG: ("registration",), FOCUS: ("focus_measure", "depth")}
 
 
@@ -84,6 +87,9 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     from sffscan.pipeline.heap import keep_freed_memory
 
     keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
+    if case["mode"] == "processes, a thread a stage":
+        # the placement's rule on more cores than processes, forced here
+        parallel.one_thread_per_process = lambda processes: False  # type: ignore[assignment]
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.wiring import run_scan
 
@@ -98,7 +104,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         return original(pipe, outcome, send, forwards, labels, reports, *rest)
 
     parallel.process_result = capture  # type: ignore[assignment]
-    cfg = scan_config(case["mode"])
+    cfg = scan_config("processes" if case["mode"].startswith("processes") else "threads")
     images = load_bank(cfg, Path(case["bank"]), case["frames"])
     with tempfile.TemporaryDirectory(dir=case.get("tmp")) as tmp:
         ru0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -107,7 +113,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         ru1 = resource.getrusage(resource.RUSAGE_SELF)
     r = rep.result
     n = rep.frames
-    if case["mode"] == "processes":
+    if case["mode"].startswith("processes"):
         total = r.extras["processes"]["cpu_s"]
     else:
         total = ru1.ru_utime + ru1.ru_stime - ru0.ru_utime - ru0.ru_stime
@@ -287,7 +293,8 @@ def write(out: Path, res: dict[str, Any]) -> str:
              f"{res['load_before']} / {res['load_after']} (a shared machine: other work "
              "lowers every frames/s figure; CPU time per frame is the steadier one).", "",
              f"Command: `{res['command']}` ({res['frames']} frames per run, {res['rounds']} "
-             f"rounds, threads and processes alternating, pinned to {res['cores']} cores, "
+             "rounds, threads, processes and processes with a thread a stage in turn, "
+             f"pinned to {res['cores']} cores, "
              f"median; whole run {res['run_s']:.0f} s). Scan: 1280 x 1024 uint16, N = 50, "
              f"GLVM k = 9, depth method `{res['depth_method']}` (the default), registration "
              f"on, Zarr mosaic (written in {res.get('outputs', 'the cache folder')}), frames "
@@ -299,17 +306,24 @@ def write(out: Path, res: dict[str, Any]) -> str:
              "Every run's own process keeps freed memory as the `sffscan` command's does "
              "(`sffscan.pipeline.heap`).", "",
              "| stage | threads ms/frame | least of the runs | processes ms/frame |"
-             " runs (threads) |",
-             "|---|---:|---:|---:|---|"]
+             " processes, a thread a stage | runs (threads) |",
+             "|---|---:|---:|---:|---:|---|"]
+    pt = res["stages_ms_processes_thread_a_stage"]
     for s in names:
         each = ", ".join(f"{r['stages_ms'].get(s, 0.0):.2f}" for r in thr)
         lines.append(f"| {s} | {res['stages_ms'][s]:.2f} | {res['stages_ms_min'][s]:.2f} | "
-                     f"{res['stages_ms_processes'][s]:.2f} | {each} |")
+                     f"{res['stages_ms_processes'][s]:.2f} | {pt[s]:.2f} | {each} |")
     s_thr, s_prc = sum(res["stages_ms"].values()), sum(res["stages_ms_processes"].values())
-    s_min = sum(res["stages_ms_min"].values())
-    lines += [f"| **sum of stages** | **{s_thr:.2f}** | **{s_min:.2f}** | **{s_prc:.2f}** | |",
+    s_min, s_pt = sum(res["stages_ms_min"].values()), sum(pt.values())
+    per = res["processes_thread_a_stage"]
+    lines += [f"| **sum of stages** | **{s_thr:.2f}** | **{s_min:.2f}** | **{s_prc:.2f}** | "
+              f"**{s_pt:.2f}** | |",
               f"| whole process(es), all threads | {med_of(thr, 'total_ms'):.2f} | | "
-              f"{med_of(prc, 'total_ms'):.2f} | |", "",
+              f"{med_of(prc, 'total_ms'):.2f} | {med_of(per, 'total_ms'):.2f} | |", "",
+              "Processes: each worker runs its stages in one thread where the cores are no "
+              "more than the processes (`sffscan.pipeline.cores.one_thread_per_process`, "
+              "as here); \"a thread a stage\": the same placement with that rule forced off, "
+              "as it runs on more cores than processes.", "",
               f"- Transport (processes: all processes' CPU while streaming minus the sum of "
               f"their stages): **{res['transport_ms']:.2f} ms/frame** (it includes what any "
               "process spends outside its stages' code: queues, Zarr's codec threads, the "
@@ -456,9 +470,10 @@ def main(argv: list[str] | None = None) -> int:
     outputs.mkdir(parents=True, exist_ok=True)
     common = {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
               "cores": cores}
-    runs: dict[str, list[dict[str, Any]]] = {"threads": [], "processes": []}
+    modes = ["threads", "processes", PER_STAGE]
+    runs: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
     for rnd in range(args.rounds):
-        order = ("threads", "processes") if rnd % 2 == 0 else ("processes", "threads")
+        order = modes[rnd % 3:] + modes[:rnd % 3]  # each mode first in turn
         for mode in order:
             got = spawn_case({**common, "mode": mode})
             runs[mode].append(got)
@@ -467,17 +482,21 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
     bands = band_overhead(bank, args.band_frames, args.band_rounds)
     print(f"bands: {bands['overhead']}", file=sys.stderr, flush=True)
-    thr, prc = runs["threads"], runs["processes"]
+    thr, prc, per = runs["threads"], runs["processes"], runs[PER_STAGE]
     names = list(thr[0]["stages_ms"])
     stages = {s: statistics.median(r["stages_ms"].get(s, 0.0) for r in thr) for s in names}
     stages_min = {s: min(r["stages_ms"].get(s, 0.0) for r in thr) for s in names}
     stages_p = {s: statistics.median(r["stages_ms"].get(s, 0.0) for r in prc) for s in names}
+    stages_pt = {s: statistics.median(r["stages_ms"].get(s, 0.0) for r in per) for s in names}
+    transport_pt = {g: v["transport_ms"] for g, v in measured_groups(per).items()}
     groups = measured_groups(prc)
     transport = {g: v["transport_ms"] for g, v in groups.items()}
     ov, halo = bands["overhead"], bands["halo_rows_share"]
     ov_safe = {k: max(ov[k], bands["overhead_user"][k], halo[k]) for k in ov}
     mdl = model(stages_p, transport, ov_safe, ov_safe)
     variants = {
+        "stages and transport in their processes, a thread a stage (the rule on more cores "
+        "than processes)": model(stages_pt, transport_pt, ov_safe, ov_safe),
         "stages as measured in the thread placement": model(stages, transport, ov_safe,
                                                             ov_safe),
         "least CPU of the thread placement's rounds": model(stages_min, transport, ov_safe,
@@ -499,7 +518,9 @@ def main(argv: list[str] | None = None) -> int:
         "frames": args.frames, "rounds": args.rounds, "cores": cores,
         "outputs": f"{outputs} ({file_system(outputs)})",
         "depth_method": thr[0]["depth_method"], "threads": thr, "processes": prc,
+        "processes_thread_a_stage": per,
         "stages_ms": stages, "stages_ms_min": stages_min, "stages_ms_processes": stages_p,
+        "stages_ms_processes_thread_a_stage": stages_pt,
         "transport_ms": med_of(prc, "total_ms") - sum(stages_p.values()),
         "groups_measured": groups, "bands": bands, "model": mdl,
         "overhead_used": ov_safe, "variants": variants,
