@@ -21,8 +21,6 @@ class PipelineStopped(Exception):
     """Raised inside a stage's wait when another stage has failed."""
 
 
-
-
 class BoundedQueue:
     """A bounded FIFO between two stages with a declared full policy.
 

@@ -299,6 +299,8 @@ class Pipeline:
                     break
                 stats[0].frames += 1
                 push(0, produced)
+            if self.stop.is_set():  # stopped (cancelled, or a sink failed): no flushing
+                return
             for i, stage in enumerate(stages):
                 push(i, timed(i, lambda stage=stage: list(stage.finish())))  # type: ignore[misc]
                 if i < len(self.queues):

@@ -143,3 +143,21 @@ def test_one_thread_cancel_leaves_a_waiting_source() -> None:
     assert not t.is_alive()
     assert len(errors) == 1 and isinstance(errors[0], PipelineCancelled)
     assert sink.items == [2] and sink.closed_failed is True
+
+
+def test_one_thread_stopped_by_a_failing_sink_flushes_nothing() -> None:
+    class Flush(Batch):
+        def __init__(self) -> None:
+            super().__init__()
+            self.finished = False
+
+        def finish(self) -> Iterator[tuple[int, ...]]:
+            self.finished = True
+            return super().finish()
+
+    flush, sink = Flush(), Recorder(fail_at=10)
+    with pytest.raises(StageFailed, match="recorder.*disk full"):
+        Pipeline([Numbers(10_000), Double(), flush, Collect()], capacity=2, sinks=[sink],
+                 one_thread=True).run()
+    assert not flush.finished  # a stopped chain ends where it is
+    assert sink.closed_failed is True
