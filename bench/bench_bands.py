@@ -45,6 +45,7 @@ from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.pipeline.heap import keep_freed_memory  # noqa: E402
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
 from sffscan.stages.bands import BandWorkers  # noqa: E402
 from sffscan.stages.depth_stage import DepthStage  # noqa: E402
@@ -145,6 +146,7 @@ def twin_main(cache: str, frames: int, cv_threads: int | None, go: Any, busy: An
     """The twin process: the same K = 1 work over its own copy of the frames, pass after
     pass while ``go`` is set (``busy`` set meanwhile, ``idle`` cleared); otherwise blocked
     on ``go``."""
+    keep_freed_memory()  # as the scan's focus worker
     placed, fm_ref, depth_ref, steady = prepared(Path(cache), frames)
     idle.set()
     ready.set()
@@ -232,6 +234,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="also K = 1 while another process does the same work (every core "
                          "busy: what this machine's shared caches and memory cost)")
     args = ap.parse_args(argv)
+    keep_freed_memory()  # the heap setting of the scan's focus worker
     placed, fm_ref, depth_ref, steady = prepared(args.cache, args.frames)
 
     def run(k: int) -> tuple[float, float, list[Any]]:
@@ -268,8 +271,8 @@ def main(argv: list[str] | None = None) -> int:
              f"before / after {load0} / {load1}. Depth method "
              f"{depth_ref.kwargs['method']}, {len(placed)} frames (steady state: the last "
              f"{len(placed) - steady}), {args.rounds} rounds interleaved; median (min-max); "
-             f"OpenCV's threads {cv_threads or 'its default'} (as in the scan's focus worker "
-             "here: sffscan.pipeline.opencv_threads).",
+             f"OpenCV's threads {cv_threads or 'its default'} and the heap setting "
+             "(`sffscan.pipeline.heap`) as in the scan's focus worker here.",
              "", f"A no-op handed to a pool thread and waited for: {hand_wall:.0f} µs wall, "
              f"{hand_cpu:.0f} µs CPU (per band and call; each hand-over of the GIL between "
              "two busy threads costs about as much)."]
