@@ -87,7 +87,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     from sffscan.pipeline.heap import keep_freed_memory
 
     keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
-    if case["mode"] == "processes, a thread a stage":
+    if case["mode"] == PER_STAGE:
         # the placement's rule on more cores than processes, forced here
         parallel.one_thread_per_process = lambda processes: False  # type: ignore[assignment]
     from bench_pipeline import load_bank, replay_frames
