@@ -105,6 +105,14 @@ def make_recording(cache: Path, bank: Path, frames: int) -> Path:
     return path
 
 
+def force_one_thread(on: bool) -> None:
+    """Replace the process placement's rule (one thread a worker process, or a thread a
+    stage) in this process: for a case run in a fresh process of its own."""
+    import sffscan.pipeline.parallel as placement
+
+    placement.one_thread_per_process = lambda processes: on  # type: ignore[assignment]
+
+
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
     """One end-to-end run, in a fresh process pinned to ``case['cores']`` CPUs, which keeps
     freed memory as the sffscan command's own process does."""
@@ -114,11 +122,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
 
     keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
     if case.get("one_thread", "auto") != "auto":
-        # the placement's rule replaced in this case's own process (a fresh one per run)
-        import sffscan.pipeline.parallel as placement
-
-        on = case["one_thread"] == "on"
-        placement.one_thread_per_process = lambda processes: on  # type: ignore[assignment]
+        force_one_thread(case["one_thread"] == "on")
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.formats.recording_writer import recorder_sink

@@ -87,9 +87,10 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     from sffscan.pipeline.heap import keep_freed_memory
 
     keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
-    if case["mode"] == PER_STAGE:
-        # the placement's rule on more cores than processes, forced here
-        parallel.one_thread_per_process = lambda processes: False  # type: ignore[assignment]
+    if case["mode"] == PER_STAGE:  # the placement's rule on more cores than processes
+        from bench_parallel import force_one_thread
+
+        force_one_thread(False)
     from bench_pipeline import load_bank, replay_frames
     from sffscan.pipeline.wiring import run_scan
 

@@ -178,8 +178,7 @@ class ProcessPlacement:
             tail=pipeline.stages[first + len(placed):], pools=self.pools,
             capacity=pipeline.capacity, hosted=self.hosted,
             sinks=[k for k in pipeline.sinks if k.name not in hosted],
-            on_progress=pipeline.on_progress, progress_s=pipeline.progress_s,
-            one_thread=one_thread_per_process(1 + len(self.groups) + len(self.hosted))).run()
+            on_progress=pipeline.on_progress, progress_s=pipeline.progress_s).run()
 
 
 @dataclass
@@ -219,17 +218,23 @@ class ProcessPipeline:
     hosted: list[HostedSink] = field(default_factory=list)
     on_progress: Callable[[list[StageStats], float], None] | None = None
     progress_s: float = 1.0
-    one_thread: bool = False
+    #: each stage worker runs its stages in one thread (``Pipeline``'s ``one_thread``);
+    #: None: where the machine has no more cores than the placement has processes
+    #: (:func:`~sffscan.pipeline.cores.one_thread_per_process`)
+    one_thread: bool | None = None
 
     def run(self) -> PipelineResult:
         """Run to the end of the stream (:meth:`Pipeline.run`'s contract). OpenCV runs one
         thread of its own in every process where the machine has no more cores than the
-        placement has processes (:mod:`sffscan.pipeline.opencv_threads`)."""
-        cv_threads = opencv_threads(1 + len(self.groups) + len(self.hosted))
+        placement has processes (:mod:`sffscan.pipeline.opencv_threads`), and so do the
+        stage workers' stages (:attr:`one_thread`)."""
+        processes = 1 + len(self.groups) + len(self.hosted)
+        cv_threads = opencv_threads(processes)
+        one = one_thread_per_process(processes) if self.one_thread is None else self.one_thread
         with opencv_thread_limit(cv_threads):
-            return self._run_processes(cv_threads)
+            return self._run_processes(cv_threads, one)
 
-    def _run_processes(self, cv_threads: int | None) -> PipelineResult:
+    def _run_processes(self, cv_threads: int | None, one_thread: bool) -> PipelineResult:
         ctx = spawn_context()
         specs = [new_spec(label, slots=n, slot_bytes=b, kinds=k) for label, n, b, k in self.pools]
         syncs = [(ctx.Lock(), ctx.Semaphore(s.slots)) for s in specs]
@@ -250,7 +255,7 @@ class ProcessPipeline:
             for i, g in enumerate(self.groups):
                 spec = {"label": g.label, "factory": g.factory, "kwargs": g.kwargs,
                         "capacity": self.capacity, "opencv_threads": cv_threads,
-                        "one_thread": self.one_thread}
+                        "one_thread": one_thread}
                 mine = [(r, q) for r, q in zip(relays, relay_qs, strict=True)
                         if set(r.taps) & set(g.stages)]
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
