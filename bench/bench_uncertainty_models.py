@@ -28,6 +28,14 @@ Models (each stated before it was scored; add one as a function of the pixels' t
   ``s_f`` the median absolute deviation of the curve's second differences over its levels
   / (0.6745 sqrt 6) (a second difference of white noise has variance 6 s^2); ``nu`` at most
   N levels. Nothing in it is tuned but (a, b, c) (stated 2026-12-03, before its first run).
+- ``plane scatter``: the shipped form with another scatter: the depth's RMS over the focus
+  window (k x k px) about the mean of its 5 x 5 median over ``2k + 1`` px square (the value
+  at the centre of that square's least-squares plane), instead of about the 5 x 5 median
+  itself. Errors that are smooth over a few pixels (neighbours share most of the focus
+  window) follow a 5 x 5 median and hide from its scatter, so ``a`` had to be ~4; a plane
+  over the square that the excess width already looks at follows a slope, not a bump or an
+  edge. (a, c) fitted as shipped (stated 2026-12-03, before its first run: no new constant;
+  an ``a`` near 1 was the hope).
 
 Not a test: nothing here asserts.
 """
@@ -43,9 +51,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy.optimize import minimize
-from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth import DEFAULT_METHOD, depth_from_focus
 from sffscan.stages.depth_levels import levels_from_heights
 from sffscan.stages.depth_study import (
     COVERAGE_TARGET,
@@ -71,6 +80,7 @@ class Stack:
     scores: Any  # sffscan.stages.depth_study's per-stack scores
     spc: np.ndarray  # bool, the scored pixels whose depth is SPC's
     nu: np.ndarray  # the scored pixels' 3-point peak noise from their own curve, levels
+    plane: np.ndarray  # the scored pixels' ``plane scatter`` (module docstring), levels
 
 
 def peak_noise(volume: np.ndarray) -> np.ndarray:
@@ -87,12 +97,23 @@ def peak_noise(volume: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(nu), np.minimum(nu, n), float(n))
 
 
+def plane_scatter(depth: np.ndarray, *, window: int = 9) -> np.ndarray:
+    """The ``plane scatter`` of a depth map (module docstring), (H, W) levels."""
+    d = np.ascontiguousarray(np.nan_to_num(depth), dtype=np.float32)
+    k = 2 * window + 1
+    r = d - cv2.blur(cv2.medianBlur(d, 5), (k, k), borderType=cv2.BORDER_REPLICATE)
+    return np.sqrt(np.maximum(cv2.blur(r * r, (window, window),
+                                       borderType=cv2.BORDER_REPLICATE), 0.0))
+
+
 def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) -> Stack:
     sc = uncertainty_sample(volume, truth_levels, mask)  # the default's errors, d - truth
+    default = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=11, spread_size=9)[0]
     # the default's depth is SPC's where its error is SPC's (the same subtraction: exact)
     spc, other = ((depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
                    - truth_levels)[mask] for m in ("spc", "adaptive_centroid"))
-    return Stack(sc, (sc.error == spc) & (sc.error != other), peak_noise(volume)[mask])
+    return Stack(sc, (sc.error == spc) & (sc.error != other), peak_noise(volume)[mask],
+                 plane_scatter(default)[mask])
 
 
 def subset(st: Stack, sel: np.ndarray) -> Any:
@@ -160,8 +181,16 @@ def curve_noise(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> floa
     return float(np.mean(e <= 2.0 * np.sqrt(a * a * s2 + x2 + b * b * n2 + c * c)))
 
 
+def plane(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
+    def swap(s: Stack) -> Any:
+        return dataclasses.replace(s.scores, scatter=s.plane)
+
+    a, c = fit_uncertainty([[swap(s) for s in g] for g in train])
+    return uncertainty_coverage([swap(s) for s in held], a, c)
+
+
 MODELS: dict[str, Model] = {"shipped": shipped, "per estimator": per_estimator,
-                            "curve noise": curve_noise}
+                            "curve noise": curve_noise, "plane scatter": plane}
 
 
 def table(names: list[str], stacks: dict[tuple[str, int], Stack], third: Stack) -> str:
