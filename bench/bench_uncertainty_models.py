@@ -36,6 +36,13 @@ Models (each stated before it was scored; add one as a function of the pixels' t
   over the square that the excess width already looks at follows a slope, not a bump or an
   edge. (a, c) fitted as shipped (stated 2026-12-03, before its first run: no new constant;
   an ``a`` near 1 was the hope).
+- ``pull floor``: the shipped terms and ``b |pull|`` in quadrature, ``pull`` the stack's
+  centroid pull (:func:`sffscan.stages.depth_choice.pull_statistics`, levels; 0 where no
+  curve is judged): a lopsided curve (a thin lens' blur) biases every centroid-like
+  estimate toward its longer tail by about the pull, a bias no scatter shows, and the
+  floor ``c`` alone must then cover the lopsided stacks and over-cover the even ones.
+  (a, b, c) fitted as ``curve noise`` (stated 2026-12-03, before its first run; a block of
+  a scan has this pull already: ``shape_select`` computes it).
 
 Not a test: nothing here asserts.
 """
@@ -55,6 +62,7 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 from sffscan.stages.depth import DEFAULT_METHOD, depth_from_focus
+from sffscan.stages.depth_choice import pull_statistics
 from sffscan.stages.depth_levels import levels_from_heights
 from sffscan.stages.depth_study import (
     COVERAGE_TARGET,
@@ -81,6 +89,7 @@ class Stack:
     spc: np.ndarray  # bool, the scored pixels whose depth is SPC's
     nu: np.ndarray  # the scored pixels' 3-point peak noise from their own curve, levels
     plane: np.ndarray  # the scored pixels' ``plane scatter`` (module docstring), levels
+    pull: float  # the stack's centroid pull (``pull floor``, module docstring), levels
 
 
 def peak_noise(volume: np.ndarray) -> np.ndarray:
@@ -112,8 +121,9 @@ def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) 
     # the default's depth is SPC's where its error is SPC's (the same subtraction: exact)
     spc, other = ((depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
                    - truth_levels)[mask] for m in ("spc", "adaptive_centroid"))
+    pull = pull_statistics(volume, np.argmax(volume, axis=0), mask)[0]
     return Stack(sc, (sc.error == spc) & (sc.error != other), peak_noise(volume)[mask],
-                 plane_scatter(default)[mask])
+                 plane_scatter(default)[mask], 0.0 if math.isnan(pull) else pull)
 
 
 def subset(st: Stack, sel: np.ndarray) -> Any:
@@ -150,35 +160,41 @@ def per_estimator(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> fl
     return hit / total
 
 
-def curve_noise(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
-    def terms(g: Sequence[Stack]) -> tuple[np.ndarray, ...]:
-        e = np.abs(np.concatenate([s.scores.error for s in g])).astype(np.float64)
-        sc = np.concatenate([s.scores.scatter for s in g]).astype(np.float64)
-        x = MIX_SCALE * np.concatenate([s.scores.excess for s in g]).astype(np.float64)
-        nu = np.concatenate([s.nu for s in g])
-        return e, sc * sc, x * x, nu * nu
+def with_term(term: Callable[[Stack], np.ndarray]) -> Model:
+    """The shipped terms and ``b term`` in quadrature, (a, b, c) fitted by the shipped
+    quantile fit (the pinball loss of :func:`fit_uncertainty`, families weighted equally)."""
 
-    data = [terms(g) for g in train]
-    logs = [np.log(e + 1e-3) for e, *_ in data]
-    tau = COVERAGE_TARGET
+    def model(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
+        def terms(g: Sequence[Stack]) -> tuple[np.ndarray, ...]:
+            e = np.abs(np.concatenate([s.scores.error for s in g])).astype(np.float64)
+            sc = np.concatenate([s.scores.scatter for s in g]).astype(np.float64)
+            x = MIX_SCALE * np.concatenate([s.scores.excess for s in g]).astype(np.float64)
+            t = np.concatenate([np.broadcast_to(term(s), s.scores.error.shape) for s in g])
+            return e, sc * sc, x * x, t.astype(np.float64) ** 2
 
-    def loss(p: np.ndarray) -> float:
-        a2, b2, c2 = np.exp(2.0 * p)
-        total = 0.0
-        for le, (_, s2, x2, n2) in zip(logs, data, strict=True):
-            r = le - np.log(2.0 * np.sqrt(a2 * s2 + x2 + b2 * n2 + c2) + 1e-3)
-            total += float(np.mean(np.maximum(tau * r, (tau - 1.0) * r)))
-        return total / len(data)
+        data = [terms(g) for g in train]
+        logs = [np.log(e + 1e-3) for e, *_ in data]
+        tau = COVERAGE_TARGET
 
-    bounds = [(math.log(0.1), math.log(100.0)), (math.log(1e-3), math.log(100.0)),
-              (math.log(1e-4), math.log(10.0))]
-    best = min((minimize(loss, np.log([a0, b0, c0]), method="Nelder-Mead", bounds=bounds,
-                         options={"xatol": 1e-3, "fatol": 1e-9})
-                for a0 in (1.0, 4.0) for b0 in (0.1, 1.0) for c0 in (0.01, 0.1)),
-               key=lambda r: float(r.fun))
-    a, b, c = np.exp(best.x)
-    e, s2, x2, n2 = terms(held)
-    return float(np.mean(e <= 2.0 * np.sqrt(a * a * s2 + x2 + b * b * n2 + c * c)))
+        def loss(p: np.ndarray) -> float:
+            a2, b2, c2 = np.exp(2.0 * p)
+            total = 0.0
+            for le, (_, s2, x2, n2) in zip(logs, data, strict=True):
+                r = le - np.log(2.0 * np.sqrt(a2 * s2 + x2 + b2 * n2 + c2) + 1e-3)
+                total += float(np.mean(np.maximum(tau * r, (tau - 1.0) * r)))
+            return total / len(data)
+
+        bounds = [(math.log(0.1), math.log(100.0)), (math.log(1e-3), math.log(100.0)),
+                  (math.log(1e-4), math.log(10.0))]
+        best = min((minimize(loss, np.log([a0, b0, c0]), method="Nelder-Mead", bounds=bounds,
+                             options={"xatol": 1e-3, "fatol": 1e-9})
+                    for a0 in (1.0, 4.0) for b0 in (0.1, 1.0) for c0 in (0.01, 0.1)),
+                   key=lambda r: float(r.fun))
+        a, b, c = np.exp(best.x)
+        e, s2, x2, n2 = terms(held)
+        return float(np.mean(e <= 2.0 * np.sqrt(a * a * s2 + x2 + b * b * n2 + c * c)))
+
+    return model
 
 
 def plane(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
@@ -190,7 +206,9 @@ def plane(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
 
 
 MODELS: dict[str, Model] = {"shipped": shipped, "per estimator": per_estimator,
-                            "curve noise": curve_noise, "plane scatter": plane}
+                            "curve noise": with_term(lambda s: s.nu),
+                            "plane scatter": plane,
+                            "pull floor": with_term(lambda s: np.array(abs(s.pull)))}
 
 
 def table(names: list[str], stacks: dict[tuple[str, int], Stack], third: Stack) -> str:
