@@ -8,7 +8,7 @@ ten and the ten crossed from them, seeds 0..5, 64 px, GLVM 9) and pertuz-simu02
 (../shared/datasets/pertuz-simu02, BSD-3-Clause, read in place), the default depth's
 per-pixel errors and the uncertainty's terms
 (:func:`sffscan.stages.depth_study.uncertainty_sample`). Each model's constants are fitted
-by :func:`sffscan.stages.depth_study.fit_uncertainty` on the training seeds (0..2) of the
+by :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` on the training seeds (0..2) of the
 other families and scored on the held-out seeds (3..5) of the family; pertuz-simu02 with
 the constants fitted on every family. Twice: over the study's ten families, and over all
 twenty.
@@ -64,15 +64,11 @@ from scipy.optimize import minimize
 from sffscan.stages.depth import DEFAULT_METHOD, depth_from_focus
 from sffscan.stages.depth_choice import pull_statistics
 from sffscan.stages.depth_levels import levels_from_heights
-from sffscan.stages.depth_study import (
-    COVERAGE_TARGET,
-    fit_uncertainty,
-    uncertainty_coverage,
-    uncertainty_sample,
-)
+from sffscan.stages.depth_study import uncertainty_sample
 from sffscan.stages.depth_uncertainty import MIX_SCALE
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import family_names, family_stack
+from sffscan.stages.uncertainty_fit import COVERAGE_TARGET, fit_uncertainty, uncertainty_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
 PERTUZ = ROOT.parent / "shared" / "datasets" / "pertuz-simu02" / "imdata.mat"

@@ -25,7 +25,6 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 from sffscan.stages.depth import (
     ADAPTIVE_MAX_SPREAD,
     DEFAULT_METHOD,
@@ -50,7 +49,6 @@ from sffscan.stages.depth_choice import (
     takes_spc,
 )
 from sffscan.stages.depth_uncertainty import (
-    MIX_SCALE,
     curve_width,
     depth_range,
     depth_scatter,
@@ -59,11 +57,11 @@ from sffscan.stages.depth_uncertainty import (
 )
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
+from sffscan.stages.uncertainty_fit import fit_uncertainty, uncertainty_coverage
 
-__all__ = ["CANDIDATES", "COVERAGE_TARGET", "SHAPE_GRID", "THRESHOLDS", "HeldOutTable",
-           "curve_width", "fit_uncertainty", "format_coverage", "format_setting", "format_table",
-           "leave_one_family_out", "scatter_select", "score_volume", "uncertainty_coverage",
-           "uncertainty_sample", "width_switch"]
+__all__ = ["CANDIDATES", "SHAPE_GRID", "THRESHOLDS", "HeldOutTable", "curve_width",
+           "format_coverage", "format_setting", "format_table", "leave_one_family_out",
+           "scatter_select", "score_volume", "uncertainty_sample", "width_switch"]
 
 THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 12.0, math.inf)
 """``width-switch`` thresholds (levels) the protocol tunes over (inf: never SPC)."""
@@ -169,11 +167,6 @@ def format_setting(value: Setting) -> str:
 
 def _key(candidate: str, value: Setting) -> str:
     return f"{candidate}@{format_setting(value)}"
-
-COVERAGE_TARGET = 0.94
-"""Share of pixels with |error| <= 2 sigma the uncertainty's constants aim at: the quantile
-of the fit (the bar: 0.90 .. 0.98 on every held-out family)."""
-
 
 def width_switch(spc: np.ndarray, adaptive: np.ndarray, width: np.ndarray, *,
                  threshold: float) -> np.ndarray:
@@ -305,63 +298,12 @@ def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
 def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
                        median_size: int = 11, spread_size: int = 9) -> _Scores:
     """The default method's errors and the uncertainty's terms on the ``mask`` pixels of
-    one focus volume (levels), for :func:`fit_uncertainty` and :func:`uncertainty_coverage`
+    one focus volume (levels), for :mod:`sffscan.stages.uncertainty_fit`
     without scoring every method."""
     d = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
                          spread_size=spread_size)[0]
     return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
                               window=spread_size)
-
-
-def _sigma(scores: Sequence[_Scores], a: float, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """|error| and sigma (levels) of the pixels of ``scores`` for the constants (a, c)."""
-    e = np.abs(np.concatenate([x.error for x in scores])).astype(np.float64)
-    s = np.concatenate([x.scatter for x in scores]).astype(np.float64)
-    x = np.concatenate([x.excess for x in scores]).astype(np.float64)
-    return e, np.sqrt((a * s) ** 2 + (MIX_SCALE * x) ** 2 + c * c)
-
-
-def uncertainty_coverage(scores: Sequence[_Scores], a: float, c: float) -> float:
-    """Share of the pixels of ``scores`` with |error| <= 2 sigma for the constants (a, c)."""
-    e, sg = _sigma(scores, a, c)
-    return float(np.mean(e <= 2.0 * sg))
-
-
-_FIT_BOUNDS = [(math.log(0.1), math.log(100.0)), (math.log(1e-4), math.log(10.0))]
-
-
-def fit_uncertainty(groups: Sequence[Sequence[_Scores]]) -> tuple[float, float]:
-    """The constants (a, c) of :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`
-    by a quantile fit: the least mean over the groups (families, equal weights) of the
-    pinball loss at :data:`COVERAGE_TARGET` of ``log(|error|) - log(2 sigma)`` (so that
-    about that share of each group's pixels has |error| <= 2 sigma, no group deciding alone);
-    Nelder-Mead on (log a, log c) from a few starts, a in 0.1 .. 100, c in 1e-4 .. 10
-    levels."""
-    data = []
-    for g in groups:
-        e, _ = _sigma(g, 1.0, 0.0)
-        s = np.concatenate([x.scatter for x in g]).astype(np.float64)
-        x = MIX_SCALE * np.concatenate([x.excess for x in g]).astype(np.float64)
-        data.append((np.log(e + 1e-3), s * s, x * x))
-    tau = COVERAGE_TARGET
-
-    def loss(p: np.ndarray) -> float:
-        a2, c2 = math.exp(2 * p[0]), math.exp(2 * p[1])
-        total = 0.0
-        for le, s2, x2 in data:
-            r = le - np.log(2.0 * np.sqrt(a2 * s2 + x2 + c2) + 1e-3)
-            total += float(np.mean(np.maximum(tau * r, (tau - 1.0) * r)))
-        return total / len(data)
-
-    best = None
-    for a0 in (1.0, 4.0):
-        for c0 in (0.01, 0.1):
-            r = minimize(loss, np.log([a0, c0]), method="Nelder-Mead", bounds=_FIT_BOUNDS,
-                         options={"xatol": 1e-3, "fatol": 1e-9})
-            if best is None or r.fun < best.fun:
-                best = r
-    assert best is not None
-    return float(np.exp(best.x[0])), float(np.exp(best.x[1]))
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ Three terms, added in quadrature (levels; times the local focus step for µm):
 
 ``a`` and ``c`` are fitted on the *training* seeds of the synthetic families
 (:mod:`sffscan.stages.sim.families`) by a quantile fit, the 0.94 quantile of
-``|error| / (2 sigma)`` equal to 1 (:func:`sffscan.stages.depth_study.fit_uncertainty`);
+``|error| / (2 sigma)`` equal to 1 (:func:`sffscan.stages.uncertainty_fit.fit_uncertainty`);
 ``sffscan study --families`` fits them without each family in turn and reports the
 coverage (share of |error| <= 2 sigma) on the held-out family (docs/depth-study.md): in
 0.90 .. 0.98 on 9 of the 10 families (0.906 .. 0.978), above on flat-fine-8bit (0.990: its
@@ -52,7 +52,7 @@ __all__ = ["FLOOR_LEVELS", "MIX_SCALE", "SCATTER_SCALE", "curve_width", "depth_r
 
 SCATTER_SCALE = 3.892
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
-:func:`sffscan.stages.depth_study.fit_uncertainty` (``sffscan study --families``, the row
+:func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study --families``, the row
 "fit on every family's training seeds"; docs/depth-study.md), to the errors of the default
 depth method (refitted when it became ``adaptive_centroid``: 4.138 and 0.0602 before; and
 ``shape_select``: 4.197 and 0.0301 before; and when ``adaptive_centroid`` weighed the pull

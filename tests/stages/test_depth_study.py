@@ -20,6 +20,7 @@ from sffscan.stages.depth_study import (
     width_switch,
 )
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_names, family_stack
+from sffscan.stages.uncertainty_fit import UncertaintyTerms
 
 
 def test_every_family_renders_a_valid_stack() -> None:
@@ -275,14 +276,11 @@ def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
     whose large errors are at the terraces' edges, where the depth map shows no scatter
     (the scatter and width model of 681dca9 fitted without steps covered 0.79 .. 0.90;
     the protocol's figure with 3 + 3 seeds of 64 px: docs/depth-study.md)."""
-    from sffscan.stages.depth_study import (
-        fit_uncertainty,
-        uncertainty_coverage,
-        uncertainty_sample,
-    )
+    from sffscan.stages.depth_study import uncertainty_sample
     from sffscan.stages.focus_measure import focus_measure
+    from sffscan.stages.uncertainty_fit import fit_uncertainty, uncertainty_coverage
 
-    def sample(name: str, seed: int) -> object:
+    def sample(name: str, seed: int) -> UncertaintyTerms:
         s = family_stack(name, seed, size_px=64)
         vol = focus_measure(s.images, window=9)
         mask = np.zeros(s.truth_um.shape, bool)
@@ -291,9 +289,9 @@ def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
 
     train = [[sample(f, seed) for seed in (0, 1)]
              for f in ("even-gauss", "lens-gauss", "pillbox", "ends")]
-    a, c = fit_uncertainty(train)  # type: ignore[arg-type]
+    a, c = fit_uncertainty(train)
     held = [sample("steps", seed) for seed in (3, 4, 5)]
-    share = uncertainty_coverage(held, a, c)  # type: ignore[arg-type]
+    share = uncertainty_coverage(held, a, c)
     print(f"fit without steps: a={a:.3f} c={c:.4f}; steps seeds 3-5: {share:.3f}")
     assert 0.90 <= share <= 0.98
 
