@@ -27,10 +27,19 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import cv2
 import numpy as np
+from sffscan.stages.fields.align_pairs import (
+    Model,
+    coverage,
+    homogeneous,
+    invert_step,
+    pair_transform,
+    reduce_to_model,
+    scale_step,
+    to_float,
+)
 from sffscan.stages.fields.resample import TAPS, is_separable, warp_frame
 
 __all__ = [
@@ -41,16 +50,12 @@ __all__ = [
     "estimate_alignment",
     "mask_uncovered",
     "misalignment",
-    "pair_transform",
     "prepare_stack",
     "warp_frame",
 ]
 
 log = logging.getLogger(__name__)
 
-Model = Literal["scale", "similarity", "affine"]
-ECC_ITERATIONS = 200
-ECC_EPS = 1e-7
 
 
 @dataclass(frozen=True)
@@ -105,97 +110,6 @@ class Alignment:
                    model="scale")
 
 
-def _to_float(img: np.ndarray) -> np.ndarray:
-    a = np.asarray(img)
-    if a.ndim != 2:
-        raise ValueError(f"frames must be 2-D grey images, got shape {a.shape}")
-    out = a.astype(np.float32)
-    top = float(out.max()) if out.size else 0.0
-    if top > 0:
-        out *= np.float32(1.0 / top)
-    return out
-
-
-def _h(m: np.ndarray) -> np.ndarray:
-    return np.vstack([m, [0.0, 0.0, 1.0]])
-
-
-def pair_transform(template: np.ndarray, image: np.ndarray, *, init: np.ndarray | None = None,
-                   levels: int | None = None, gauss_size: int = 5) -> tuple[np.ndarray, float]:
-    """Affine transform ``A`` with ``image(A [x, y, 1]) ~ template(x, y)`` (ECC, coarse to fine).
-
-    Parameters
-    ----------
-    template, image : (H, W) arrays of the same shape (any real dtype)
-    init : (2, 3) float, optional
-        Starting transform at full resolution; default the identity.
-    levels : int, optional
-        Pyramid levels (halvings); default so that the coarsest image is about 128 px.
-    gauss_size : int
-        ECC's Gaussian pre-filter size (odd px), applied to both images at every level.
-
-    Returns
-    -------
-    A : (2, 3) float64
-    correlation : float
-        ECC's correlation coefficient at full resolution.
-
-    Raises ValueError when ECC does not converge (featureless or unrelated images).
-    """
-    t, im = _to_float(template), _to_float(image)
-    if t.shape != im.shape:
-        raise ValueError(f"images differ in shape: {t.shape} and {im.shape}")
-    if levels is None:
-        levels = max(0, int(math.floor(math.log2(min(t.shape) / 128.0))))
-    pyr_t, pyr_i = [t], [im]
-    for _ in range(levels):
-        pyr_t.append(cv2.pyrDown(pyr_t[-1]))
-        pyr_i.append(cv2.pyrDown(pyr_i[-1]))
-    warp = (np.eye(2, 3) if init is None else np.asarray(init, dtype=np.float64)).copy()
-    warp = warp.astype(np.float32)
-    f = 2.0 ** levels
-    warp[:, 2] /= f
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, ECC_ITERATIONS, ECC_EPS)
-    rho = 0.0
-    for lev in range(levels, -1, -1):
-        try:
-            # the stubs lack the (mask None, gaussFiltSize) overload the library has
-            rho, warp = cv2.findTransformECC(  # type: ignore[call-overload]
-                pyr_t[lev], pyr_i[lev], warp, cv2.MOTION_AFFINE, crit, None, gauss_size)
-        except cv2.error as err:
-            raise ValueError(f"ECC alignment did not converge at pyramid level {lev}: "
-                             f"{str(err).strip().splitlines()[-1]}") from None
-        if lev > 0:
-            warp[:, 2] *= 2.0
-    return warp.astype(np.float64), float(rho)
-
-
-def _reduce(a: np.ndarray, shape: tuple[int, int], model: Model
-            ) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """Project an affine transform onto the model, about the frame centre."""
-    h, w = shape
-    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    lin = a[:, :2]
-    shift = lin @ c + a[:, 2] - c  # where the centre goes, minus the centre
-    if model == "affine":
-        s = math.sqrt(abs(float(np.linalg.det(lin))))
-        rot = math.degrees(math.atan2(lin[1, 0] - lin[0, 1], lin[0, 0] + lin[1, 1]))
-        m = a.copy()
-    else:
-        # closest similarity (least squares): [[p, -q], [q, p]]
-        p = 0.5 * (lin[0, 0] + lin[1, 1])
-        q = 0.5 * (lin[1, 0] - lin[0, 1])
-        if model == "scale":
-            q = 0.0
-        new = np.array([[p, -q], [q, p]])
-        s = math.hypot(p, q)
-        rot = math.degrees(math.atan2(q, p))
-        m = np.hstack([new, (c + shift - new @ c)[:, None]])
-    # a reference point d px from the centre appears s * d px from it in the frame: s is the
-    # frame's magnification relative to the reference
-    return m, s, shift, rot
-
-
 def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
                        reference: int | None = None) -> Alignment:
     """Each frame's transform onto the reference (middle) frame, chained through neighbours.
@@ -241,73 +155,19 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
                             "its scale step is the other steps' mean")
                 a, rho[k] = (np.eye(2, 3) if step_init is None else step_init), math.nan
             step_init = a
-            full[k] = _h(a) @ full[j]  # reference px -> frame j px -> frame k px
+            full[k] = homogeneous(a) @ full[j]  # reference px -> frame j px -> frame k px
             if model == "scale":
                 i = max(j, k)  # the step from frame i - 1 to frame i
-                step, var = _scale_step(st[j], st[k], a)
+                step, var = scale_step(st[j], st[k], a)
                 var = np.full(3, np.inf) if math.isnan(rho[k]) else var
-                steps[i], variances[i] = (step if direction > 0 else _invert_step(step)), var
+                steps[i], variances[i] = (step if direction > 0 else invert_step(step)), var
             k += direction
     if model == "scale" and n >= 6:
         full = _chain_steps(_smooth_steps(steps[1:], variances[1:]), ref, st.shape[1:])
-    mats, scales, shifts, rots = zip(*(_reduce(f[:2], st.shape[1:], model) for f in full),
+    mats, scales, shifts, rots = zip(*(reduce_to_model(f[:2], st.shape[1:], model) for f in full),
                                      strict=True)
     return Alignment(matrices=np.array(mats), scale=np.array(scales), shift_px=np.array(shifts),
                      rotation_deg=np.array(rots), reference=ref, correlation=rho, model=model)
-
-
-# ----------------------------------------------------------------------------- scale steps
-
-
-def _scale_step(template: np.ndarray, image: np.ndarray, a: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """A pair's ``(log s, shift x, shift y)`` about the frame centre (:func:`_reduce`) and
-    each one's variance (Cramér-Rao: the residual variance times its correlation area, over
-    the sum of the frames' shared squared derivatives along the parameter)."""
-    t, im = _to_float(template), _to_float(image)
-    h, w = t.shape
-    m, s, shift, _ = _reduce(a, (h, w), "scale")
-    t = cv2.GaussianBlur(t, (5, 5), 0)
-    wi = cv2.warpAffine(cv2.GaussianBlur(im, (5, 5), 0), m, (w, h),
-                        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    ok = _coverage(m, (h, w), 2.0)
-    ok[:2], ok[-2:], ok[:, :2], ok[:, -2:] = False, False, False, False
-    if ok.sum() < 64:
-        return np.array([math.log(s), *shift]), np.full(3, np.inf)
-    tv, wv = t[ok].astype(np.float64), wi[ok].astype(np.float64)
-    # the photometric fit ECC makes implicitly: least squares wv ~ gain tv + offset, in
-    # closed form (np.polyfit's Vandermonde lstsq took 0.3 s a 2048 x 1536 pair)
-    tm, wm = float(tv.mean()), float(wv.mean())
-    dt = tv - tm
-    gain = float(np.dot(dt, wv - wm)) / max(float(np.dot(dt, dt)), 1e-300)
-    offset = wm - gain * tm
-    res = np.zeros((h, w))
-    res[ok] = wv - (gain * tv + offset)
-    var_r = float(np.mean(res[ok] ** 2))
-    # correlation of the residual between neighbours: its correlation area (Gaussian model)
-    r1 = float(np.sum(res[:, 1:] * res[:, :-1]) / max(np.sum(res[:, 1:] ** 2), 1e-30))
-    r1 = min(max(r1, 0.01), 0.99)
-    area = max(1.0, 4.0 * math.pi * (-1.0 / (4.0 * math.log(r1))))
-    # the derivatives of both frames multiplied: their noise is independent, so the sums
-    # hold the structure the frames share, not the noise (a blurred, noisy pair tells little)
-    # pixel coordinates about the centre, broadcast (a row and a column, not two planes)
-    xx = np.arange(w, dtype=np.float64)[None, :] - (w - 1) / 2.0
-    yy = np.arange(h, dtype=np.float64)[:, None] - (h - 1) / 2.0
-    d = []
-    for img in (t, wi):
-        gx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=3) / 8.0
-        gy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=3) / 8.0
-        d.append((gx * xx + gy * yy, gx, gy))
-    info = gain * np.array([max(0.0, float(np.sum((a * b)[ok])))
-                            for a, b in zip(*d, strict=True)])
-    var = np.where(info > 0, var_r * area / np.maximum(info, 1e-300), np.inf)
-    return np.array([math.log(s), *shift]), var
-
-
-def _invert_step(step: np.ndarray) -> np.ndarray:
-    """The inverse of a scale step: ``x' = c + s (x - c) + t`` -> ``x = c + (x' - c - t) / s``."""
-    s = math.exp(step[0])
-    return np.array([-step[0], -step[1] / s, -step[2] / s])
 
 
 def _smooth_steps(steps: np.ndarray, var: np.ndarray) -> np.ndarray:
@@ -364,15 +224,6 @@ def _chain_steps(steps: np.ndarray, ref: int, shape: tuple[int, int]) -> list[np
     return full
 
 
-def _coverage(matrix: np.ndarray, shape: tuple[int, int], inset: float) -> np.ndarray:
-    h, w = shape
-    xx = np.arange(w, dtype=np.float64)[None, :]  # broadcast: the same values, no planes
-    yy = np.arange(h, dtype=np.float64)[:, None]
-    x = matrix[0, 0] * xx + matrix[0, 1] * yy + matrix[0, 2]
-    y = matrix[1, 0] * xx + matrix[1, 1] * yy + matrix[1, 2]
-    return (x >= inset) & (x <= w - 1 - inset) & (y >= inset) & (y <= h - 1 - inset)
-
-
 def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | None = None,
                 alignment: Alignment | None = None, aperture: bool = True
                 ) -> tuple[np.ndarray, np.ndarray, Alignment]:
@@ -408,7 +259,7 @@ def align_stack(stack: np.ndarray, *, model: Model = "scale", reference: int | N
     for k in range(st.shape[0]):
         out[k] = warp_frame(st[k], al.matrices[k], aperture=aperture)
         reach = float(TAPS) if is_separable(al.matrices[k]) else 3.0
-        valid &= _coverage(al.matrices[k], st.shape[1:], reach)
+        valid &= coverage(al.matrices[k], st.shape[1:], reach)
     return out, valid, al
 
 
@@ -424,7 +275,7 @@ def misalignment(stack: np.ndarray) -> tuple[float, float]:
         return 0.0, 0.0
     f = max(1, int(math.ceil(max(st.shape[1:]) / 512)))
     def small(i: int) -> np.ndarray:
-        img = _to_float(st[i])
+        img = to_float(st[i])
         return img if f == 1 else cv2.resize(img, (img.shape[1] // f, img.shape[0] // f),
                                               interpolation=cv2.INTER_AREA)
     try:
