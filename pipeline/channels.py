@@ -8,7 +8,7 @@ a process's chain: it encodes each item and puts it, blocking while the channel 
 timeout and re-checks the pipeline's stop flag. :class:`RecvStage` is the first stage of the
 next process's chain: it yields the decoded items until the end of stream.
 :class:`ForwardSink` taps stages like any sink and sends what it gets to a sink hosted in
-its own process.
+its own process. :class:`PooledSource` puts the source's frames into the frame pool.
 """
 
 from __future__ import annotations
@@ -18,11 +18,14 @@ import threading
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from typing import Any
 
+import numpy as np
 from sffscan.pipeline.queues import PipelineStopped
 from sffscan.pipeline.shm_ring import PoolStopped, SlotPool
 from sffscan.pipeline.spawn import WAIT_S
 from sffscan.pipeline.stats import QueueStats, StageStats
 from sffscan.pipeline.wire import decode, discard, encode
+from sffscan.stages.frame_source import FrameBuffers
+from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import END_OF_STREAM, FullPolicy, Sink, Stage
 
 
@@ -226,3 +229,52 @@ class ForwardSink(Sink):
     def finish(self) -> Iterator[Any]:
         self._sender.send(END_OF_STREAM)
         return iter(())
+
+
+class PooledSource(Stage):
+    """The source stage, its frames copied once into the frame pool (then passed on by
+    reference to every process and sink). A source that writes its frames' pixels itself
+    (a replay, a camera, the simulator's render workers: ``inner.buffers``,
+    :class:`~sffscan.stages.frame_source.FrameBuffers`) writes them into the pool's slots
+    instead, and nothing is copied here."""
+
+    def __init__(self, inner: Stage, pool: SlotPool, stop: threading.Event) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.unit = inner.unit
+        self.pool = pool
+        self.stop = stop
+        self.buffers: FrameBuffers | None = getattr(inner, "buffers", None)
+        if self.buffers is not None:
+            self.buffers.bind(self._slot_array)
+
+    def _slot_array(self, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        """An array in a free slot of the frame pool (a new one where it would not fit)."""
+        if int(np.prod(shape)) * dtype.itemsize > self.pool.spec.slot_bytes:
+            return np.empty(shape, dtype)
+        try:
+            slot = self.pool.acquire(self.stop.is_set)
+        except PoolStopped:
+            raise PipelineStopped(self.name) from None
+        return self.pool.array(slot, offset=0, shape=shape, dtype=dtype.str)
+
+    def produce(self) -> Iterator[Any]:
+        for frame in self.inner.produce():
+            img = frame.image
+            if self.pool.locate(img) is None:
+                try:
+                    slot = self.pool.acquire(self.stop.is_set)
+                except PoolStopped:
+                    raise PipelineStopped(self.name) from None
+                view = self.pool.array(slot, offset=0, shape=img.shape, dtype=img.dtype.str)
+                np.copyto(view, img, casting="no")
+                frame = Frame(frame.header, view)
+            yield frame
+
+    def close(self, *, failed: bool) -> None:
+        if self.buffers is not None:
+            self.buffers.bind(None)
+        self.inner.close(failed=failed)
+
+    def extra_stats(self) -> dict[str, Any]:
+        return self.inner.extra_stats()

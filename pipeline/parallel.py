@@ -48,23 +48,22 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 from sffscan.pipeline.channels import (
     ForwardSink,
+    PooledSource,
     RecvStage,
     SendStage,
 )
 from sffscan.pipeline.cores import one_thread_per_process
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.process_figures import chain_queues, live_stages, process_result
-from sffscan.pipeline.queues import PipelineStopped
 from sffscan.pipeline.relays import AfterRelays, Relay, RelayRun, relay_of, relayed_sinks
 from sffscan.pipeline.runtime import Pipeline, StageFailed, gc_frozen
-from sffscan.pipeline.shm_ring import PoolStopped, SlotPool, new_spec
+from sffscan.pipeline.shm_ring import SlotPool, new_spec
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,
     StopPipes,
@@ -79,60 +78,9 @@ from sffscan.pipeline.worker import (
     rebuild_exception,
     worker_main,
 )
-from sffscan.stages.frame_source import FrameBuffers
-from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import FullPolicy, Sink, Stage
 
 log = logging.getLogger(__name__)
-
-
-class PooledSource(Stage):
-    """The source stage, its frames copied once into the frame pool (then passed on by
-    reference to every process and sink). A source that writes its frames' pixels itself
-    (a replay, a camera, the simulator's render workers: ``inner.buffers``,
-    :class:`~sffscan.stages.frame_source.FrameBuffers`) writes them into the pool's slots
-    instead, and nothing is copied here."""
-
-    def __init__(self, inner: Stage, pool: SlotPool, stop: threading.Event) -> None:
-        self.inner = inner
-        self.name = inner.name
-        self.unit = inner.unit
-        self.pool = pool
-        self.stop = stop
-        self.buffers: FrameBuffers | None = getattr(inner, "buffers", None)
-        if self.buffers is not None:
-            self.buffers.bind(self._slot_array)
-
-    def _slot_array(self, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
-        """An array in a free slot of the frame pool (a new one where it would not fit)."""
-        if int(np.prod(shape)) * dtype.itemsize > self.pool.spec.slot_bytes:
-            return np.empty(shape, dtype)
-        try:
-            slot = self.pool.acquire(self.stop.is_set)
-        except PoolStopped:
-            raise PipelineStopped(self.name) from None
-        return self.pool.array(slot, offset=0, shape=shape, dtype=dtype.str)
-
-    def produce(self) -> Iterator[Any]:
-        for frame in self.inner.produce():
-            img = frame.image
-            if self.pool.locate(img) is None:
-                try:
-                    slot = self.pool.acquire(self.stop.is_set)
-                except PoolStopped:
-                    raise PipelineStopped(self.name) from None
-                view = self.pool.array(slot, offset=0, shape=img.shape, dtype=img.dtype.str)
-                np.copyto(view, img, casting="no")
-                frame = Frame(frame.header, view)
-            yield frame
-
-    def close(self, *, failed: bool) -> None:
-        if self.buffers is not None:
-            self.buffers.bind(None)
-        self.inner.close(failed=failed)
-
-    def extra_stats(self) -> dict[str, Any]:
-        return self.inner.extra_stats()
 
 
 @dataclass

@@ -21,7 +21,7 @@ class FrameBuffers:
     bound an allocator.
 
     The process placement binds one that hands out slots of its shared-memory frame ring
-    (:class:`sffscan.pipeline.parallel.PooledSource`): a frame decoded there crosses the
+    (:class:`sffscan.pipeline.channels.PooledSource`): a frame decoded there crosses the
     processes without the copy into the ring that a frame in a new array takes. A source
     offers its buffers by an attribute ``buffers`` of its frame iterator.
     """
