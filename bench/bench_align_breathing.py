@@ -22,7 +22,9 @@ noise floor taken off as ``stack --align`` does: :mod:`sffscan.stages.fields.ape
 ``true warp`` (the same warp with the true transforms, when ``--true`` is given: isolates
 the estimate from the resampling). ``--drift`` adds the largest scale that the alignment
 estimates on the breathing-free stack (%, should be 0): what the defocus alone makes the
-estimate see. Not a test: nothing here asserts.
+estimate see. ``--twin`` adds the breathing-free stack again with noise of its own
+(``ideal, other noise``): how far a stack's ratio to the ideal moves with the noise alone,
+the resolution of a per-stack comparison. Not a test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class Stack:
     truth: np.ndarray
     zs: np.ndarray
     mags: np.ndarray
+    twin: np.ndarray | None = None  # the ideal stack again with noise of its own (--twin)
 
 
 def _surface(kind: str, shape: tuple[int, int], z_max: float, rng: np.random.Generator
@@ -129,7 +132,7 @@ def _blurred(tex: np.ndarray, heights: np.ndarray, focus: float, *, s0: float, c
 
 def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int = 384,
                height: int = 288, breathing: float = 0.012, noise: float = 0.01,
-               step_um: float = 50.0, c_px_per_um: float = 0.04) -> Stack:
+               step_um: float = 50.0, c_px_per_um: float = 0.04, twin: bool = False) -> Stack:
     rng = np.random.default_rng(seed)
     ref = n // 2
     mags = (1.0 + breathing) ** (np.arange(n) - ref)
@@ -147,6 +150,7 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
     cx, cy = (width - 1) / 2.0 + pad, (height - 1) / 2.0 + pad
     real: list[np.ndarray] = []
     ideal: list[np.ndarray] = []
+    clean: list[np.ndarray] = []
     for k in range(n):
         img = _blurred(tex, world_z, float(zs[k]), s0=0.6, c=c_px_per_um, bank=bank)
         for m, out in ((mags[k], real), (1.0, ideal)):
@@ -156,10 +160,18 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
                             [0.0, a, cy - a * (height - 1) / 2.0]])
             f = cv2.warpAffine(img, mat, (width, height),
                                flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP)
+            if out is ideal:
+                clean.append(f)
             f = f + np.asarray(rng.normal(0.0, noise, f.shape), np.float32)
             out.append(np.clip(np.rint(f * 1023), 0, 1023).astype(np.uint16))
     truth = world_z[pad:pad + height, pad:pad + width].astype(np.float32)
-    return Stack(np.stack(real), np.stack(ideal), truth, zs, mags)
+    other = None
+    if twin:  # a draw of its own: the stacks above are the same with or without --twin
+        rng2 = np.random.default_rng([seed, 1])
+        other = np.stack([np.clip(np.rint((f + np.asarray(rng2.normal(0.0, noise, f.shape),
+                                                           np.float32)) * 1023), 0, 1023)
+                          .astype(np.uint16) for f in clean])
+    return Stack(np.stack(real), np.stack(ideal), truth, zs, mags, other)
 
 
 def true_alignment(st: Stack) -> Alignment:
@@ -171,6 +183,8 @@ def score(st: Stack, *, use_true: bool, old: Any = None, drift: bool = False
     aligned, valid, al = align_stack(st.real)
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))
     stacks = {"ideal": st.ideal, "unaligned": st.real, "aligned": aligned}
+    if st.twin is not None:
+        stacks["ideal twin"] = st.twin
     floors = {"aligned": stack_noise_floor(st.real, al, max_value=1023)[0]}
     out = {}
     if old is not None:
@@ -203,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--textures", nargs="+", choices=TEXTURES, default=list(TEXTURES))
     ap.add_argument("--frames", type=int, default=21)
     ap.add_argument("--true", action="store_true", help="also warp with the true transforms")
+    ap.add_argument("--twin", action="store_true",
+                    help="also the breathing-free stack with noise of its own: how much the "
+                         "ratio to the ideal stack moves with the noise alone")
     ap.add_argument("--drift", action="store_true",
                     help="also the scale estimated on the breathing-free stack")
     ap.add_argument("--against", type=Path, help="another tree: its stages/fields/align.py too")
@@ -223,10 +240,12 @@ def main(argv: list[str] | None = None) -> int:
           f"%/frame breathing; RMSE / the ideal stack's")
     say("| surface | texture | noise | seed | ideal µm | unaligned | aligned | "
           + ("old aligned | " if old else "") + ("true warp | " if args.true else "")
+          + ("ideal, other noise | " if args.twin else "")
           + "max scale error % |" + (" old |" if old else "")
           + (" drift without breathing % |" if args.drift else ""))
     say("|---|---|---:|---:|---:|---:|---:|" + ("---:|" if old else "")
-          + ("---:|" if args.true else "") + "---:|" + ("---:|" if old else "")
+          + ("---:|" if args.true else "") + ("---:|" if args.twin else "") + "---:|"
+          + ("---:|" if old else "")
           + ("---:|" if args.drift else ""))
     for noise in args.noise:
         for surf, tex in ((s, t) for s in args.surfaces for t in args.textures):
@@ -234,18 +253,19 @@ def main(argv: list[str] | None = None) -> int:
                 st = make_stack(surface=surf, texture=tex, seed=stack_seed(surf, tex, seed),
                                 breathing=args.breathing, noise=noise, n=args.frames,
                                 width=args.size[0], height=args.size[1],
-                                step_um=args.span_um / (args.frames - 1))
+                                step_um=args.span_um / (args.frames - 1), twin=args.twin)
                 r = score(st, use_true=args.true, old=old, drift=args.drift)
                 rows.append(r)
                 extra = f"{r['old'] / r['ideal']:.3f}x | " if old else ""
                 extra += f"{r['true warp'] / r['ideal']:.3f}x | " if args.true else ""
+                extra += f"{r['ideal twin'] / r['ideal']:.3f}x | " if args.twin else ""
                 tail = f" {r['old scale error %']:.3f} |" if old else ""
                 tail += f" {r['drift %']:.3f} |" if args.drift else ""
                 say(f"| {surf} | {tex} | {noise:g} | {seed} | {r['ideal']:.2f} | "
                     f"{r['unaligned'] / r['ideal']:.3f}x | {r['aligned'] / r['ideal']:.3f}x | "
                     f"{extra}{r['scale error %']:.3f} |{tail}")
-    keys = ("unaligned", "aligned", *(("old",) if old else ()), *(("true warp",) if args.true
-                                                                   else ()))
+    keys = ("unaligned", "aligned", *(("old",) if old else ()),
+            *(("true warp",) if args.true else ()), *(("ideal twin",) if args.twin else ()))
     for key in keys:
         ratios = [r[key] / r["ideal"] for r in rows]
         total = sum(r[key] for r in rows) / sum(r["ideal"] for r in rows)
