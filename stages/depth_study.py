@@ -168,6 +168,7 @@ def format_setting(value: Setting) -> str:
 def _key(candidate: str, value: Setting) -> str:
     return f"{candidate}@{format_setting(value)}"
 
+
 def width_switch(spc: np.ndarray, adaptive: np.ndarray, width: np.ndarray, *,
                  threshold: float) -> np.ndarray:
     """SPC where the curve is wider than ``threshold`` levels (the centroid window and the

@@ -57,7 +57,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-
 @dataclass(frozen=True)
 class Alignment:
     """Per-frame transforms onto the reference frame's grid.
