@@ -181,8 +181,12 @@ the peaks, 1.21 levels, is under its own spread, 1.46, which SPC's pull varying 
 range widens. Weighing the departure against the pull's noise instead (0.52 there; no
 constant) was measured and not kept: 1.65x -> 1.06x on that row, but pillbox and
 clean-coarse go from 1.00x to 1.70x on seeds {seeds}..{held_last}, whose flat-topped curves
-make the 3-point peak, not SPC, the biased one. The uncertainty is in band on 12 of the 21
-sets here (14 above).
+make the 3-point peak, not SPC, the biased one. Nor was the noise test's tuned ratio
+replaced by the two depth maps' own scatter (SPC where its map's RMS about its 5 x 5 median
+is at most the fallback's; no constant): even-noisy 1.25x -> 1.26x here, steps 1.00x ->
+1.10x on seeds {seeds}..{held_last} (the fallback's errors on even-noisy are its wrong
+maxima, which its stack's shape statistics already keep from SPC). The uncertainty is in
+band on 12 of the 21 sets here (14 above).
 
 """
 
