@@ -184,9 +184,8 @@ clean-coarse go from 1.00x to 1.70x on seeds {seeds}..{held_last}, whose flat-to
 make the 3-point peak, not SPC, the biased one. Nor was the noise test's tuned ratio
 replaced by the two depth maps' own scatter (SPC where its map's RMS about its 5 x 5 median
 is at most the fallback's; no constant): even-noisy 1.25x -> 1.26x here, steps 1.00x ->
-1.10x on seeds {seeds}..{held_last} (the fallback's errors on even-noisy are its wrong
-maxima, which its stack's shape statistics already keep from SPC). The uncertainty is in
-band on 12 of the 21 sets here (14 above).
+1.10x on seeds {seeds}..{held_last}. The uncertainty is in band on 12 of the 21 sets here
+(14 above).
 
 """
 
