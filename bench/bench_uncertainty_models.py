@@ -43,6 +43,12 @@ Models (each stated before it was scored; add one as a function of the pixels' t
   floor ``c`` alone must then cover the lopsided stacks and over-cover the even ones.
   (a, b, c) fitted as ``curve noise`` (stated 2026-12-03, before its first run; a block of
   a scan has this pull already: ``shape_select`` computes it).
+- ``disagreement``: the shipped terms and ``b g`` in quadrature, ``g`` the 5 x 5 median of
+  ``|SPC - adaptive_centroid|`` (levels), the two estimators ``shape_select`` chooses
+  between, whichever it took: where they disagree one of them errs, and a stack given the
+  wrong one (held-out seeds show a few) has no other sign of it. (a, b, c) fitted as
+  ``curve noise`` (stated 2026-12-03, before its first run; a block of a scan has SPC's
+  sums already, the fallback would cost its reduction again).
 
 Not a test: nothing here asserts.
 """
@@ -86,6 +92,7 @@ class Stack:
     nu: np.ndarray  # the scored pixels' 3-point peak noise from their own curve, levels
     plane: np.ndarray  # the scored pixels' ``plane scatter`` (module docstring), levels
     pull: float  # the stack's centroid pull (``pull floor``, module docstring), levels
+    disagree: np.ndarray  # the scored pixels' ``disagreement`` (module docstring), levels
 
 
 def peak_noise(volume: np.ndarray) -> np.ndarray:
@@ -114,12 +121,15 @@ def plane_scatter(depth: np.ndarray, *, window: int = 9) -> np.ndarray:
 def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) -> Stack:
     sc = uncertainty_sample(volume, truth_levels, mask)  # the default's errors, d - truth
     default = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=11, spread_size=9)[0]
+    maps = [depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
+            for m in ("spc", "adaptive_centroid")]
     # the default's depth is SPC's where its error is SPC's (the same subtraction: exact)
-    spc, other = ((depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
-                   - truth_levels)[mask] for m in ("spc", "adaptive_centroid"))
+    spc, other = ((d - truth_levels)[mask] for d in maps)
     pull = pull_statistics(volume, np.argmax(volume, axis=0), mask)[0]
+    gap = np.ascontiguousarray(np.abs(np.nan_to_num(maps[0] - maps[1])), dtype=np.float32)
     return Stack(sc, (sc.error == spc) & (sc.error != other), peak_noise(volume)[mask],
-                 plane_scatter(default)[mask], 0.0 if math.isnan(pull) else pull)
+                 plane_scatter(default)[mask], 0.0 if math.isnan(pull) else pull,
+                 cv2.medianBlur(gap, 5)[mask])
 
 
 def subset(st: Stack, sel: np.ndarray) -> Any:
@@ -204,7 +214,8 @@ def plane(train: Sequence[Sequence[Stack]], held: Sequence[Stack]) -> float:
 MODELS: dict[str, Model] = {"shipped": shipped, "per estimator": per_estimator,
                             "curve noise": with_term(lambda s: s.nu),
                             "plane scatter": plane,
-                            "pull floor": with_term(lambda s: np.array(abs(s.pull)))}
+                            "pull floor": with_term(lambda s: np.array(abs(s.pull))),
+                            "disagreement": with_term(lambda s: s.disagree)}
 
 
 def table(names: list[str], stacks: dict[tuple[str, int], Stack], third: Stack) -> str:
