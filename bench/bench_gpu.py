@@ -46,7 +46,13 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import bench_config, device_rates, machine, replay_frames  # noqa: E402
+from bench_pipeline import (  # noqa: E402
+    bench_config,
+    device_rates,
+    machine,
+    replay_frames,
+    scan_figures,
+)
 from sffscan.pipeline.config import ScanConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,13 +175,7 @@ def scan(backend: str, device: str, images: list[np.ndarray], out: Path) -> dict
     c0 = resource.getrusage(resource.RUSAGE_SELF)
     rep = run_scan(cfg, frames=replay_frames(cfg, images), output=out, progress=False)
     c1 = resource.getrusage(resource.RUSAGE_SELF)
-    r = rep.result
-    cpu = r.extras.get("processes", {}).get("cpu_s") or (
-        c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime)
-    return {"frames": rep.frames, "fps": rep.frames / r.wall_s,
-            "cpu_ms_per_frame": 1e3 * cpu / rep.frames, "dropped": r.dropped,
-            "stages": {s.name: round(1e3 * s.cpu_s / max(1, rep.frames), 2)
-                       for s in r.stages}}
+    return scan_figures(rep, c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime)
 
 
 def height_difference(a: Path, b: Path) -> dict[str, float]:

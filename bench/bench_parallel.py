@@ -123,7 +123,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     keep_freed_memory()  # as the sffscan command does in its own process (its workers too)
     if case.get("one_thread", "auto") != "auto":
         force_one_thread(case["one_thread"] == "on")
-    from bench_pipeline import load_bank, replay_frames
+    from bench_pipeline import load_bank, replay_frames, scan_figures
     from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.pipeline.formats.recording_writer import recorder_sink
     from sffscan.pipeline.wiring import run_scan
@@ -147,17 +147,11 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
                resource.getrusage(resource.RUSAGE_CHILDREN))
         r = rep.result
         # process mode: CPU of every process while streaming (start-up excluded)
-        cpu = r.extras.get("processes", {}).get("cpu_s") or sum(
+        out: dict[str, Any] = scan_figures(rep, sum(
             b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime
-            for a, b in zip(ru0, ru1, strict=True))
-        out: dict[str, Any] = {
-            "frames": rep.frames, "wall_s": r.wall_s, "fps": rep.frames / r.wall_s,
-            "total_s": total_s, "fps_with_startup": rep.frames / total_s,
-            "cpu_ms_per_frame": 1e3 * cpu / rep.frames, "dropped": r.dropped,
-            "startup_s": r.extras.get("processes", {}).get("startup_s", 0.0),
-            "stages": {s.name: round(1e3 * s.cpu_s / max(1, rep.frames), 2)
-                       for s in r.stages},
-        }
+            for a, b in zip(ru0, ru1, strict=True)))
+        out.update(wall_s=r.wall_s, total_s=total_s, fps_with_startup=rep.frames / total_s,
+                   startup_s=r.extras.get("processes", {}).get("startup_s", 0.0))
         if case["record"]:
             got = open_recording(Path(tmp) / "rec.zarr")
             n = same = 0

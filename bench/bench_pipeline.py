@@ -193,6 +193,18 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     return best
 
 
+def scan_figures(rep: Any, cpu_s: float) -> dict[str, Any]:
+    """A :func:`run_scan` report's frames, frames/s, CPU per frame (ms: every process's CPU
+    while streaming where the placement counts it, else ``cpu_s``), drops, and each
+    stage's own CPU per frame (ms)."""
+    r = rep.result
+    cpu = r.extras.get("processes", {}).get("cpu_s") or cpu_s
+    return {"frames": rep.frames, "fps": rep.frames / r.wall_s,
+            "cpu_ms_per_frame": 1e3 * cpu / rep.frames, "dropped": r.dropped,
+            "stages": {s.name: round(1e3 * s.cpu_s / max(1, rep.frames), 2)
+                       for s in r.stages}}
+
+
 def spawn_case(case: dict[str, Any]) -> dict[str, Any]:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--case", json.dumps(case)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
