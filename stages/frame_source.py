@@ -46,9 +46,14 @@ class SourceFrames(Iterator[Frame]):
     workers: what :attr:`SourceStage.buffers` finds), None for frames that arrive made (a
     message's bytes)."""
 
-    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers | None = None) -> None:
+    def __init__(self, frames: Iterator[Frame], buffers: FrameBuffers | None = None, *,
+                 lost_at_end: Callable[[], int] | None = None) -> None:
         self._frames = frames
         self.buffers = buffers
+        #: frames the source knows it lost after the last one it gave (a camera whose
+        #: frame_id jumped past the plan's end), read by :class:`SourceStage` when the
+        #: frames end; None where a source cannot know
+        self.lost_at_end = lost_at_end
 
     def __next__(self) -> Frame:
         return next(self._frames)
@@ -68,7 +73,8 @@ class SourceStage(Stage):
     above the bit depth's full scale, a focus index out of range or out of step with the
     staircase ((frame_id - focus_index) mod N must stay constant), a frame_id that repeats
     or goes back, a pass index that goes back or exceeds the configured passes, and a stage
-    position outside the planned scan area. Frame-id gaps (lost frames) are counted: their
+    position outside the planned scan area. Frame-id gaps (lost frames) are counted, and the
+    frames a source knows it lost after its last one (``frames.lost_at_end``): their
     levels are missing, and the columns that needed them are marked invalid downstream.
 
     Parameters
@@ -150,6 +156,13 @@ class SourceStage(Stage):
                                      f"exceeds the full scale {self.max_value} of the bit depth")
             self._check_header(frame)
             yield frame
+        # frames lost after the last one (no later frame_id shows their gap), where the
+        # source knows them (SourceFrames.lost_at_end)
+        at_end = getattr(self.frames, "lost_at_end", None)
+        tail = int(at_end()) if at_end is not None else 0
+        if tail > 0:
+            self.gaps += 1
+            self.lost += tail
 
     def close(self, *, failed: bool) -> None:
         close = getattr(self.frames, "close", None)  # a generator releases its device/socket

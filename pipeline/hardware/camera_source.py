@@ -103,6 +103,7 @@ class CameraStats:
     frames: int = 0
     lost: int = 0
     gaps: int = 0
+    lost_at_end: int = 0  # of ``lost``: planned frames after the last one delivered
     underruns: int | None = None
     timestamps: str = "device"  # or "host clock"
     frame_ids: str = "device"  # or "host count"
@@ -372,8 +373,11 @@ def camera_frames(cfg: ScanConfig, *, camera: Camera | None = None, daq: Daq | N
     placement's frame ring, which then takes no second copy).
     """
     buffers = FrameBuffers()
-    return SourceFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=stats),
-                        buffers)
+    st = stats if stats is not None else CameraStats()
+    # the source stage counts the frame_id gaps it sees; those after the last frame, only
+    # the camera knows
+    return SourceFrames(_camera_frames(cfg, buffers, camera=camera, daq=daq, stats=st),
+                        buffers, lost_at_end=lambda: st.lost_at_end)
 
 
 def _camera_frames(cfg: ScanConfig, buffers: FrameBuffers, *, camera: Camera | None,
@@ -417,6 +421,7 @@ def _camera_frames(cfg: ScanConfig, buffers: FrameBuffers, *, camera: Camera | N
                 missing = n_total - 1 - last_fid
                 if missing > 0:
                     st.gaps, st.lost = st.gaps + 1, st.lost + missing
+                    st.lost_at_end = missing
                 break
             if fetched == 1:
                 t0_dev, t0_host = raw.timestamp_ns, host_ns

@@ -309,6 +309,33 @@ def test_frames_lost_at_the_end_of_the_scan_are_counted() -> None:
     assert "2 lost in 1 frame_id gaps" in st.summary()
 
 
+def test_frames_lost_at_the_end_reach_the_source_stage() -> None:
+    """No later frame_id shows those 2 frames' gap to the source stage; the camera tells it
+    (``SourceFrames.lost_at_end``), so the scan's report counts them as the camera does
+    (a viky scan on a loaded machine lost 38 frames this way and reported 0)."""
+    from sffscan.stages.frame_source import SourceStage
+
+    cfg = viky_config(frames=12)
+    st = CameraStats()
+    src = SourceStage(camera_frames(cfg, camera=FakeCamera(list(range(1, 11)) + [14, 15]),
+                                    daq=SimDaq(), stats=st),
+                      shape=(100, 160), dtype="uint8", n_levels=10, max_value=255, passes=1,
+                      area_um=(0.0, 0.0, 1e9, 1e9))
+    assert [f.header.frame_id for f in src.produce()] == list(range(10))
+    assert src.extra_stats() == {"frame_id_gaps": 1, "frames_lost": 2}
+    assert (st.gaps, st.lost, st.lost_at_end) == (1, 2, 2)
+    # a gap inside the stream and none at the end: the stage's own count, nothing added
+    st = CameraStats()
+    src = SourceStage(camera_frames(cfg, camera=FakeCamera([1, 2, 5, 6, 7, 8, 9, 10, 11, 12,
+                                                            13]),
+                                    daq=SimDaq(), stats=st),
+                      shape=(100, 160), dtype="uint8", n_levels=10, max_value=255, passes=1,
+                      area_um=(0.0, 0.0, 1e9, 1e9))
+    assert len(list(src.produce())) == 10
+    assert src.extra_stats() == {"frame_id_gaps": 1, "frames_lost": 2}
+    assert (st.gaps, st.lost, st.lost_at_end) == (1, 2, 0)
+
+
 def test_an_exposure_longer_than_half_a_step_is_refused_before_anything_starts() -> None:
     """The trigger sits at the step's centre: an exposure past 1 / (2 fps) (2500 µs at
     200 fps) runs into the lens's next step, mixing two focus levels in one frame."""
