@@ -95,7 +95,8 @@ in `bench/align_families_results.md`.
 The issue's bar is: the default <= 1.05 x the best single method on every held-out family
 and on pertuz-simu02. `shape_select` meets it on these sets (the last row, 1.04x on slopes;
 the line below the table names the method with the smallest worst ratio over the held-out
-sets), but not on other seeds of the same families (the last section: 1.25x). `shape_select` (the column `shape_select` at its shipped limits, `shape-select` the
+sets), but not on other seeds of the same families (the last section: 1.25x).
+`shape_select` (the column `shape_select` at its shipped limits, `shape-select` the
 same rule tuned without the row's family; the best fixed method of a row is taken over
 every column left of `width-switch`, `shape_select` included) is the default of scan, replay
 and stack since 2026-12-02. It was not the default before because the repository's plate
