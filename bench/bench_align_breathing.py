@@ -160,18 +160,22 @@ def make_stack(*, surface: str, texture: str, seed: int, n: int = 21, width: int
                             [0.0, a, cy - a * (height - 1) / 2.0]])
             f = cv2.warpAffine(img, mat, (width, height),
                                flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP)
-            if out is ideal:
+            if twin and out is ideal:
                 clean.append(f)
-            f = f + np.asarray(rng.normal(0.0, noise, f.shape), np.float32)
-            out.append(np.clip(np.rint(f * 1023), 0, 1023).astype(np.uint16))
+            out.append(_sensor(f, rng, noise))
     truth = world_z[pad:pad + height, pad:pad + width].astype(np.float32)
     other = None
     if twin:  # a draw of its own: the stacks above are the same with or without --twin
         rng2 = np.random.default_rng([seed, 1])
-        other = np.stack([np.clip(np.rint((f + np.asarray(rng2.normal(0.0, noise, f.shape),
-                                                           np.float32)) * 1023), 0, 1023)
-                          .astype(np.uint16) for f in clean])
+        other = np.stack([_sensor(f, rng2, noise) for f in clean])
     return Stack(np.stack(real), np.stack(ideal), truth, zs, mags, other)
+
+
+def _sensor(f: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarray:
+    """A frame as the sensor gives it: Gaussian read noise of ``noise`` (full scale), then
+    10-bit quantisation."""
+    f = f + np.asarray(rng.normal(0.0, noise, f.shape), np.float32)
+    return np.clip(np.rint(f * 1023), 0, 1023).astype(np.uint16)
 
 
 def true_alignment(st: Stack) -> Alignment:
