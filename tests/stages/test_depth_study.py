@@ -11,14 +11,9 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
-from sffscan.stages.depth_study import (
-    CANDIDATES,
-    THRESHOLDS,
-    curve_width,
-    format_table,
-    leave_one_family_out,
-    width_switch,
-)
+from sffscan.stages.depth_study import format_table, leave_one_family_out
+from sffscan.stages.depth_study_grid import CANDIDATES, THRESHOLDS, width_switch
+from sffscan.stages.depth_uncertainty import curve_width
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_names, family_stack
 from sffscan.stages.uncertainty_fit import UncertaintyTerms
 
