@@ -102,7 +102,7 @@ every column left of `width-switch`, `shape_select` included) is the default of 
 and stack since 2026-12-02. It was not the default before because the repository's plate
 scan got worse with it; the reason was SPC's pull at pixels near an end of the range, which
 the reach guard (`spc-reach`) removes, and a noisy lopsided stack could pass its skewness
-limit, which the pull limit (`spc-pull`) stops (docs/depth-method.md); and even curves
+limit, which the pull limit (`spc-pull`) stops (docs/depth-method-log.md); and even curves
 under heavy noise take the fallback where SPC's predicted noise exceeds 1.19 times the
 centroid pull's noise (`spc-noise`: tuned by this protocol over the twenty families of
 the second table, 1.19 in 19 of its 20 folds; over these ten alone no training stack tells

@@ -108,7 +108,7 @@ as a scan's block is on :func:`sampled_curves`: the medians the choice takes are
 those of the whole stack within about 1 % of the curves' spread (a median of n values
 has a standard error of about 1.25 sigma / sqrt n). Judging every curve had made
 ``shape_select`` 4.3-5.6x slower on 512 x 512 stacks, for the same maps
-(docs/depth-method.md). Stacks of fewer than 4 x 16384 curves (the study's 64 x 64 px
+(docs/depth-method-log.md). Stacks of fewer than 4 x 16384 curves (the study's 64 x 64 px
 among them) are judged on every curve."""
 
 

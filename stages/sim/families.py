@@ -119,7 +119,7 @@ CROSSED_FAMILIES: tuple[Family, ...] = (
 """More families, each crossing the settings of two or three of :data:`FAMILIES` (slopes
 under each blur, PSF and noise; a thin lens' sinusoid, steps and flat): not in the study's
 default table (``sffscan study --families --crossed`` runs the protocol on both sets), a
-check of the choice on kinds of stack it was not made on (docs/depth-method.md)."""
+check of the choice on kinds of stack it was not made on (docs/depth-method-log.md)."""
 
 _NOISE_E = {"none": None, "light": (20000.0, 5.0), "heavy": (1500.0, 15.0)}
 
