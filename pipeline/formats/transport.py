@@ -107,6 +107,9 @@ class EndMessage(BaseModel):
 
     kind: Literal["end"] = "end"
     frames_sent: int = Field(ge=0, le=2**53, description="Frames sent before the end")
+    last_frame_id: int | None = Field(
+        None, ge=0, le=2**63 - 1,
+        description="frame_id of the last frame sent (absent: none sent, or an older sender)")
     reason: str = Field("complete", max_length=4096,
                         description="'complete', or why the sender stopped")
 
@@ -231,6 +234,7 @@ class FrameSender:
         self.address = check_address(address)
         self.stop = stop if stop is not None else threading.Event()
         self.sent = 0
+        self.last_frame_id: int | None = None  # of the last frame sent, for the end message
         self.bytes = 0
         self.blocked_s = 0.0
         self.loopback = not curve if curve is not None else is_loopback(address)
@@ -310,11 +314,13 @@ class FrameSender:
             img.flags.writeable = False  # zmq may still read it after send returns
         self._send(head, [img])
         self.sent += 1
+        self.last_frame_id = frame.header.frame_id
         self.bytes += img.nbytes
 
     def end(self, reason: str = "complete", *, timeout_s: float | None = 10.0) -> None:
         """Send the end-of-stream message (waiting at most ``timeout_s`` for room)."""
-        head = EndMessage(frames_sent=self.sent, reason=reason[:4096]).model_dump_json().encode()
+        head = EndMessage(frames_sent=self.sent, last_frame_id=self.last_frame_id,
+                          reason=reason[:4096]).model_dump_json().encode()
         self._send(head, [], timeout_s=timeout_s)
 
     def close(self, *, linger_s: float = 10.0) -> None:

@@ -66,6 +66,9 @@ class ReceiverStats:
     ended: bool = False
     frames_sent: int | None = None
     lost: int = 0  # frames the end message says were sent that never arrived here
+    #: planned frame_ids after the last frame received, up to the end message's last one
+    #: (no later frame_id shows their gap to the scan's source stage)
+    lost_at_end: int = 0
     rejected: int = 0  # messages refused: malformed, unauthenticated, out of order
     unauthenticated: int = 0  # of which not from the paired sender (dropped, never fatal)
     beyond_plan: int = 0  # frames from the sender whose frame_id is past the plan
@@ -152,8 +155,8 @@ class FrameStream(SourceFrames):
     """The frames of a bound receiver (:func:`receive_frames`); ``close()`` releases the
     socket and the pairing file, whether or not a frame was taken."""
 
-    def __init__(self, rx: _Receiver, frames: Iterator[Frame]) -> None:
-        super().__init__(frames)
+    def __init__(self, rx: _Receiver, frames: Iterator[Frame], stats: ReceiverStats) -> None:
+        super().__init__(frames, lost_at_end=lambda: stats.lost_at_end)
         self._rx = rx
 
     def close(self) -> None:
@@ -197,7 +200,7 @@ def receive_frames(address: str, cfg: ScanConfig, *, hwm: int | None = None,
                    secret, keys_dir, curve)
     idle = idle_timeout_s if idle_timeout_s is not None else cfg.source.idle_timeout_s
     limit_bad = max_bad if max_bad is not None else cfg.source.max_bad_messages
-    return FrameStream(rx, _frames(rx, st, idle, first_timeout_s, limit_bad, account))
+    return FrameStream(rx, _frames(rx, st, idle, first_timeout_s, limit_bad, account), st)
 
 
 def _frames(rx: _Receiver, st: ReceiverStats, idle: float, first_timeout_s: float | None,
@@ -253,7 +256,7 @@ def _frames(rx: _Receiver, st: ReceiverStats, idle: float, first_timeout_s: floa
                 continue
             last = time.monotonic()
             if isinstance(item, EndMessage):
-                _end(item, st, account, plan)
+                _end(item, st, account, plan, last_id)
                 return
             fid = item.header.frame_id
             if fid <= last_id:
@@ -283,10 +286,15 @@ def _frames(rx: _Receiver, st: ReceiverStats, idle: float, first_timeout_s: floa
 
 
 def _end(item: EndMessage, st: ReceiverStats, account: FrameAccount | None,
-         plan: int | None) -> None:
-    """The end message: counts, and the account's expected count (never below the plan)."""
+         plan: int | None, last_id: int) -> None:
+    """The end message: counts, and the account's expected count (never below the plan).
+    ``last_id``: the frame_id of the last frame received within the plan (-1: none)."""
     st.ended, st.frames_sent = True, item.frames_sent
     st.lost = max(item.frames_sent - st.frames - st.beyond_plan, 0)
+    if item.last_frame_id is not None and plan is not None:
+        # the sender's frame_ids past the last one received, within the plan (a sender
+        # claiming more cannot push the count past the plan)
+        st.lost_at_end = max(min(item.last_frame_id, plan - 1) - last_id, 0)
     if st.lost:  # at a receiver restart; also after the last frame_id seen
         logger.warning("transport: received %d of the %d frames sent: %d lost in "
                        "transit", st.frames, item.frames_sent, st.lost)

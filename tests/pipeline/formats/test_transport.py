@@ -272,6 +272,54 @@ def test_frames_lost_in_transit_are_reported_at_the_end(
     assert "received 2 of the 4 frames sent: 2 lost in transit" in caplog.text
 
 
+def test_frames_lost_after_the_last_one_received_reach_the_source_stage() -> None:
+    """Frames 0-2 and 4 arrive; 3 and 5 were sent and lost. No later frame_id shows frame
+    5's gap: the end message's last frame_id does, so the scan's source stage counts both
+    (a frame_id gap mid-stream, the tail from the stream), as a camera's tail losses."""
+    from sffscan.pipeline.completeness import FrameAccount
+    from sffscan.stages.frame_source import SourceStage
+
+    address = f"tcp://127.0.0.1:{free_port()}"
+    st = ReceiverStats()
+    frames = receive_frames(address, tiny_config(), first_timeout_s=30, stats=st,
+                            account=FrameAccount(planned=6))
+    img = (np.arange(12 * 16, dtype=np.uint16).reshape(12, 16) * 5) % 1024
+
+    def send() -> None:
+        sender = FrameSender(address)
+        try:
+            for fid in (0, 1, 2, 4):
+                sender.send(Frame(FrameHeader(frame_id=fid, timestamp_ns=10 * fid,
+                                              focus_index=fid % 10), img.copy()))
+            sender.sent, sender.last_frame_id = 6, 5  # 3 and 5 never arrived
+            sender.end()
+        finally:
+            sender.close()
+
+    thread = threading.Thread(target=send)
+    thread.start()
+    src = SourceStage(frames, shape=(12, 16), dtype="uint16", n_levels=10, max_value=1023,
+                      passes=1, area_um=(0.0, 0.0, 1e9, 1e9))
+    got = [f.header.frame_id for f in src.produce()]
+    thread.join(30)
+    assert got == [0, 1, 2, 4] and (st.lost, st.lost_at_end) == (2, 1)
+    assert src.extra_stats() == {"frame_id_gaps": 2, "frames_lost": 2}
+
+
+def test_a_sender_cannot_claim_tail_losses_past_the_plan() -> None:
+    """An end message's last frame_id far past the plan counts only the plan's frames."""
+    from sffscan.pipeline.completeness import FrameAccount
+    from sffscan.pipeline.formats.transport_receiver import _end
+
+    st = ReceiverStats(frames=2)
+    end = EndMessage(frames_sent=2, last_frame_id=2**63 - 1)
+    _end(end, st, FrameAccount(planned=6), 6, 1)
+    assert st.lost_at_end == 4
+    st = ReceiverStats(frames=2)
+    _end(EndMessage(frames_sent=2), st, FrameAccount(planned=6), 6, 1)  # an older sender
+    assert st.lost_at_end == 0
+
+
 def test_a_negative_shape_is_refused_naming_the_frame() -> None:
     """(-12, -16) has the same byte count as (12, 16): refused as a bad header, not a
     numpy ValueError that names nothing."""
