@@ -37,14 +37,11 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus, first_argmax
-from sffscan.stages.depth_levels import levels_from_heights
 from sffscan.stages.depth_uncertainty import curve_width
-from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import family_names, family_stack
+from sffscan.stages.sim.families import family_names
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "template_match.md"
-PERTUZ = ROOT.parent / "shared" / "datasets" / "pertuz-simu02" / "imdata.mat"
 LIMITS = (0.5, 1.0, 1.5, math.inf)
 SEEDS = 6  # training 0..5, held out 6..11
 
@@ -123,24 +120,16 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
     from bench_pipeline import machine
-    from sffscan.pipeline.cli.study import read_imdata
+    from study_stacks import family_volume, pertuz_volume
 
     t0 = time.perf_counter()
     names = family_names(crossed=True)
     errs = {}
     for f in names:
         for s in range(2 * SEEDS):
-            st = family_stack(f, s, size_px=64)
-            vol = focus_measure(st.images, operator="glvm", window=9)
-            mask = np.zeros(st.truth_um.shape, bool)
-            mask[4:-4, 4:-4] = True  # the focus window's reach left out, as the study does
-            truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-            errs[f, s] = stack_errors(vol, truth, mask)
+            errs[f, s] = stack_errors(*family_volume(f, s))
         print(f"{f}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
-    pz = read_imdata(PERTUZ)
-    vol = focus_measure(pz.images, operator="glvm", window=9)
-    third = stack_errors(vol, levels_from_heights(pz.truth_um, focus_heights_um=pz.focus_um),
-                         pz.mask)
+    third = stack_errors(*pertuz_volume())
 
     def rmse(groups: list[tuple[dict[str, float], int]], key: str) -> float:
         return math.sqrt(sum(g[0][key] for g in groups) / sum(g[1] for g in groups))

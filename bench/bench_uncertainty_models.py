@@ -69,15 +69,12 @@ import numpy as np
 from scipy.optimize import minimize
 from sffscan.stages.depth import DEFAULT_METHOD, depth_from_focus
 from sffscan.stages.depth_choice import pull_statistics
-from sffscan.stages.depth_levels import levels_from_heights
 from sffscan.stages.depth_study import uncertainty_sample
 from sffscan.stages.depth_uncertainty import MIX_SCALE
-from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import family_names, family_stack
+from sffscan.stages.sim.families import family_names
 from sffscan.stages.uncertainty_fit import COVERAGE_TARGET, fit_uncertainty, uncertainty_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
-PERTUZ = ROOT.parent / "shared" / "datasets" / "pertuz-simu02" / "imdata.mat"
 OUT = ROOT / "bench" / "results" / "uncertainty_models.md"
 BAND = (0.90, 0.98)
 SEEDS = 3  # training seeds 0..2, held out 3..5
@@ -244,22 +241,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
     from bench_pipeline import machine
-    from sffscan.pipeline.cli.study import read_imdata
+    from study_stacks import family_volume, pertuz_volume
 
     t0 = time.perf_counter()
     stacks = {}
     for f in family_names(crossed=True):
         for s in range(2 * SEEDS):
-            st = family_stack(f, s, size_px=64)
-            vol = focus_measure(st.images, operator="glvm", window=9)
-            mask = np.zeros(st.truth_um.shape, bool)
-            mask[4:-4, 4:-4] = True  # the focus window's reach left out, as the study does
-            truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-            stacks[f, s] = stack_terms(vol, truth, mask)
-    pz = read_imdata(PERTUZ)
-    vol = focus_measure(pz.images, operator="glvm", window=9)
-    third = stack_terms(vol, levels_from_heights(pz.truth_um, focus_heights_um=pz.focus_um),
-                        pz.mask)
+            stacks[f, s] = stack_terms(*family_volume(f, s))
+    third = stack_terms(*pertuz_volume())
     parts = [
         "# Height-uncertainty models, held out (leave one family out)", "",
         f"`python bench/bench_uncertainty_models.py` ({machine()}; "
