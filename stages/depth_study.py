@@ -52,6 +52,7 @@ from sffscan.stages.uncertainty_fit import fit_uncertainty, uncertainty_coverage
 __all__ = ["HeldOutTable", "format_coverage", "format_table", "leave_one_family_out",
            "score_volume", "uncertainty_sample"]
 
+
 @dataclass
 class _Scores:
     """Sum of squared errors (levels^2) and pixel count per method, one stack; the default

@@ -186,24 +186,23 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
         Keyed by :func:`score_key`.
     """
     sse: dict[str, float] = {}
-    a = argmax
     for t in THRESHOLDS:
         d = width_switch(depth["spc"], depth["adaptive"], width, threshold=t)
         sse[score_key("width-switch", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for k in SCATTER_WINDOWS:
         d = scatter_select(depth["spc"], depth["adaptive"], window=int(k))
         sse[score_key("scatter-select", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    centre = median_filter_levels(a, median_size, volume.shape[0])
+    centre = median_filter_levels(argmax, median_size, volume.shape[0])
     for h in GAUSS_FIT_HALF_WINDOWS:
         d = gauss_window_fit(volume, centre, depth["adaptive"], half_window=int(h))
         sse[score_key("gauss-fit", h)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for g in WINDOW_PC_FACTORS:
         d = window_pc(volume, centre, factor=g)
         sse[score_key("window-pc", g)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    stats = shape_statistics(volume, a, width, mask)
+    stats = shape_statistics(volume, argmax, width, mask)
     n = volume.shape[0]
     in_range = spc_in_range(depth["spc"], width, n)
-    pull, noise = pull_statistics(volume, a)  # all the curves, as depth_from_focus judges
+    pull, noise = pull_statistics(volume, argmax)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, n)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
@@ -220,7 +219,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
                          in_range=in_range, pull=pull, max_pull=t)
         sse[score_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, a)
+    departure = spc_departure(volume, argmax)
     for t in SPC_NOISE_RATIOS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
