@@ -41,6 +41,7 @@ from typing import Any, cast
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.stages import depth_stage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
@@ -111,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "sffscan-bench")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "accumulate_results")
     args = ap.parse_args(argv)
+    keep_freed_memory()  # the heap setting of the scan's focus worker (pipeline/heap.py)
     cfg = bench_config()
     # the configuration's default method (bench_config's is SPC), unless told
     cfg.processing.depth_method = args.method or type(

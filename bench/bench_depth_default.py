@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.pipeline.config import demo_config
+from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.pipeline.plan import plan_frames
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.focus_volume import FocusVolume, new_columns
@@ -192,6 +193,7 @@ def main() -> int:
                     help="every method's RMSE over this recording and the wobble scan")
     ap.add_argument("--execution", default="threads", choices=["threads", "processes"])
     args = ap.parse_args()
+    keep_freed_memory()  # the heap setting of the scan's focus worker (pipeline/heap.py)
     methods = [m for m in args.methods.split(",") if m]
     bad = [m for m in methods if m.partition("/")[0] not in DEPTH_METHODS
            or m.partition("/")[2] not in ("", "no-unc")]

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.stages.focus_measure import focus_measure_raw
 from threadpoolctl import threadpool_limits
 
@@ -188,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="where the rendered frame bank is kept (bench_pipeline.py's)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "glvm_results.md")
     args = ap.parse_args(argv)
+    keep_freed_memory()  # the heap setting of the scan's focus worker (pipeline/heap.py)
     cv2.setNumThreads(args.cv_threads)
     frames = load_frames(args.cache, args.frames)
     with threadpool_limits(1):
