@@ -184,3 +184,36 @@ def holder(path: str | Path) -> dict[str, Any] | None:
         return None
     finally:
         os.close(fd)
+
+
+def claim_mosaic(path: str | Path, *, overwrite: bool) -> WriterLock:
+    """The lock of a new mosaic at ``path`` for a tool that computes before it writes
+    (``stack``, ``stop-and-go``): the folders above it made (as the mosaic writer makes
+    them), the lock taken, then the path checked as the writer will check it, so that a
+    second writer or an existing output is refused before any work, not after it.
+
+    Raises
+    ------
+    LockHeld
+        Another writer (a scan, a stack, a stop-and-go run) holds the lock.
+    FileExistsError
+        ``path`` exists and ``overwrite`` is false, or it is not a mosaic nor an empty
+        folder (the message names it).
+    ConfigError
+        The folders or the lock file cannot be created (the message names them).
+    """
+    from sffscan.pipeline.mosaic.writer import check_replaceable
+
+    target = Path(path)
+    try:
+        target.resolve().parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"mosaic {target}: cannot create its folder "
+                          f"({err.strerror or err})") from None
+    held = acquire(target, what="mosaic")
+    try:
+        check_replaceable(target, overwrite=overwrite)
+    except BaseException:
+        held.release()
+        raise
+    return held

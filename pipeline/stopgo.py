@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from sffscan.pipeline import locks
 from sffscan.pipeline.metrology.optics_correction import StackCorrection, applied
 from sffscan.pipeline.mosaic.writer import MosaicWriter
 from sffscan.stages.fields.stationary import FieldResult, StackSettings, reconstruct_field
@@ -265,6 +266,14 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
     correction : StackCorrection, keyword-only
         A calibration applied to every field: vignetting and magnification per level in
         the frames, the z response in the focus table, the field curvature in the heights.
+
+    Raises
+    ------
+    LockHeld
+        Another writer (a scan, a stack, another stop-and-go run) holds ``output``'s lock
+        (:mod:`sffscan.pipeline.locks`); nothing is acquired.
+    FileExistsError
+        ``output`` exists and ``overwrite`` is false (or it is not a mosaic).
     """
     if not positions:
         raise ValueError("positions: the grid has no fields")
@@ -277,10 +286,22 @@ def run_stop_and_go(camera: FieldCamera, positions: Sequence[FieldPosition], out
                   "calibration_applied": [] if correction is None else
                   applied(correction.calibration),
                   "fields": [[p.ix, p.iy, p.stage_x_um, p.stage_y_um] for p in positions]}
-    writer = MosaicWriter(output, origin_px=(x0, y0), shape=(y1 - y0, x1 - x0), pixel_um=px,
-                          chunk_px=chunk_px, overwrite=overwrite,
-                          attrs={"processing": processing,
-                                 "focus_heights_um": [float(v) for v in table]})
+    with locks.claim_mosaic(output, overwrite=overwrite):  # one writer a mosaic
+        writer = MosaicWriter(output, origin_px=(x0, y0), shape=(y1 - y0, x1 - x0),
+                              pixel_um=px, chunk_px=chunk_px, overwrite=overwrite,
+                              attrs={"processing": processing,
+                                     "focus_heights_um": [float(v) for v in table]})
+        return _stitch_fields(camera, positions, writer, table=table, settings=settings,
+                              overlap_px=overlap_px, progress=progress,
+                              correction=correction)
+
+
+def _stitch_fields(camera: FieldCamera, positions: Sequence[FieldPosition],
+                   writer: MosaicWriter, *, table: np.ndarray, settings: StackSettings,
+                   overlap_px: int, progress: Callable[[int, int, float], None] | None,
+                   correction: StackCorrection | None) -> StopAndGoReport:
+    """:func:`run_stop_and_go`'s fields, each acquired, reconstructed and stitched."""
+    px = camera.pixel_um
     feather = feather_weights((camera.field_px[1], camera.field_px[0]), overlap_px=overlap_px)
     start = time.perf_counter()
     valid = done = 0

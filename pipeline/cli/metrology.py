@@ -156,6 +156,17 @@ def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cmd_stack(args: argparse.Namespace) -> int:
+    from sffscan.pipeline import locks
+
+    try:  # one writer a mosaic, refused before the stack is read and reconstructed
+        held = locks.claim_mosaic(args.output, overwrite=args.overwrite)
+    except (ValueError, FileExistsError) as err:
+        return _fail(str(err))
+    with held:
+        return _stack(args)
+
+
+def _stack(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from sffscan.pipeline.metrology.optics_correction import applied

@@ -89,6 +89,18 @@ def is_replaceable(path: Path) -> bool:
     return group.attrs.get("format") == "sffscan-mosaic"
 
 
+def check_replaceable(path: Path, *, overwrite: bool) -> None:
+    """Raise :class:`FileExistsError` naming ``path`` unless a new mosaic may be written
+    there: nothing there, or (with ``overwrite``) a mosaic or an empty folder."""
+    if path.exists():
+        if not overwrite:
+            raise FileExistsError(f"{path}: exists; --overwrite (output.overwrite in a "
+                                  "configuration) replaces it, or remove it")
+        if not is_replaceable(path):
+            raise FileExistsError(f"{path}: exists and is not an sffscan mosaic nor an "
+                                  "empty folder; refusing to overwrite it")
+
+
 class MosaicWriter:
     """Owns a mosaic Zarr group: creates it, blends blocks in, marks its status.
 
@@ -140,13 +152,7 @@ class MosaicWriter:
                  overwrite: bool = False, codec: str = DEFAULT_CODEC,
                  levels: int | None = None, pyramid_lag_s: float | None = None) -> None:
         self.path = Path(path)
-        if self.path.exists():
-            if not overwrite:
-                raise FileExistsError(f"{self.path}: exists; --overwrite (output.overwrite in a "
-                                      "configuration) replaces it, or remove it")
-            if not is_replaceable(self.path):
-                raise FileExistsError(f"{self.path}: exists and is not an sffscan mosaic nor an "
-                                      "empty folder; refusing to overwrite it")
+        check_replaceable(self.path, overwrite=overwrite)
         self.origin = origin_px
         self.chunk = chunk_px
         levels = default_levels(shape) if levels is None else levels

@@ -153,6 +153,84 @@ def test_the_lock_holds_across_processes_and_names_the_holder(tmp_path: Path) ->
         assert mine.fd is not None
 
 
+class _Holder:
+    """Another process holding the writer lock of ``target`` (HOLDER) while in ``with``."""
+
+    def __init__(self, target: Path) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(target)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def __enter__(self) -> subprocess.Popen[str]:
+        assert self.proc.stdout is not None and self.proc.stdout.readline() == "held\n"
+        return self.proc
+
+    def __exit__(self, *exc: object) -> None:
+        assert self.proc.stdin is not None
+        self.proc.communicate("\n", timeout=30)  # released; closes its pipes
+        assert self.proc.returncode == 0
+
+
+def test_stack_and_stop_and_go_refuse_a_mosaic_another_writer_holds(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A second writer of one mosaic (a scan, a stack or a stop-and-go run into the same
+    output) is refused naming the holder before it reads or acquires anything; an existing
+    output without --overwrite is refused before the stack is read too."""
+    import cv2
+    import numpy as np
+    import zarr
+    from sffscan.pipeline.cli import metrology
+    from sffscan.pipeline.cli.main import main
+    from sffscan.pipeline.stopgo import SimFieldCamera, plan_grid, run_stop_and_go
+    from sffscan.stages.sim.camera import Optics, focus_heights
+    from sffscan.stages.sim.world import sinusoid_world
+
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(5):
+        files.append(str(tmp_path / f"z{k}.png"))
+        assert cv2.imwrite(files[-1], rng.integers(0, 256, (24, 32), dtype=np.uint8))
+    stack = ["stack", *files, "--focus-start", "0", "--focus-step", "10", "--pixel-um", "5"]
+    out = tmp_path / "m.zarr"
+    read = metrology.read_images
+    reads: list[int] = []
+
+    def counted(paths: list[str], *, grey: bool) -> np.ndarray:
+        reads.append(len(paths))
+        return read(paths, grey=grey)
+
+    monkeypatch.setattr(metrology, "read_images", counted)  # where cmd_stack reads it
+    with _Holder(out) as holder:
+        assert main([*stack, "-o", str(out)]) == 2
+        assert f"pid {holder.pid}" in capsys.readouterr().err
+        assert not out.exists() and reads == []
+
+        world = sinusoid_world(pixel_um=20.0, amplitude_um=3000.0, period_px=300.0,
+                               offset_um=4800.0)
+        acquired: list[float] = []
+
+        class Counted(SimFieldCamera):
+            def acquire(self, *, stage_x_um: float, stage_y_um: float) -> np.ndarray:
+                acquired.append(stage_x_um)
+                return super().acquire(stage_x_um=stage_x_um, stage_y_um=stage_y_um)
+
+        cam = Counted(world, Optics(width=160, height=128, pixel_um=20.0),
+                      focus_heights(n_levels=25, z_step_um=400.0))
+        grid = plan_grid(x_um=(0.0, 4500.0), y_um=(0.0, 2000.0), field_px=(160, 128),
+                         pixel_um=20.0, overlap_px=32)
+        with pytest.raises(locks.LockHeld, match=f"pid {holder.pid}"):
+            run_stop_and_go(cam, grid, out, overlap_px=32)
+        assert not out.exists() and acquired == []
+    assert main([*stack, "-o", str(out)]) == 0 and reads == [5]  # free again
+    assert zarr.open_group(str(out), mode="r").attrs["status"] == "complete"
+    assert not locks.lock_path(out).exists()
+    capsys.readouterr()
+    assert main([*stack, "-o", str(out)]) == 2  # exists: refused before the stack is read
+    assert "exists; --overwrite" in capsys.readouterr().err and reads == [5]
+    assert not locks.lock_path(out).exists()
+    assert main([*stack, "-o", str(tmp_path / "new" / "deep" / "m.zarr")]) == 0  # folders made
+
+
 def test_an_interruption_before_the_pipeline_runs_marks_the_mosaic_failed(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import zarr
