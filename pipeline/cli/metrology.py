@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -159,6 +160,8 @@ def cmd_stack(args: argparse.Namespace) -> int:
     from sffscan.pipeline import locks
 
     try:  # one writer a mosaic, refused before the stack is read and reconstructed
+        if not 0 < args.pixel_um < math.inf:
+            raise ValueError(f"--pixel-um must be a finite number > 0, got {args.pixel_um}")
         held = locks.claim_mosaic(args.output, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as err:
         return _fail(str(err))
@@ -195,8 +198,6 @@ def _stack(args: argparse.Namespace) -> int:
                      f"frames' noise floor corrected by {floor.min():+.3g} .. "
                      f"{floor.max():+.3g} (focus measure units)")
         del taken
-        if not args.pixel_um > 0:
-            raise ValueError(f"--pixel-um must be > 0, got {args.pixel_um}")
         log.info(f"stack: {stack.shape[0]} images of {stack.shape[2]}x{stack.shape[1]} px "
                  f"{stack.dtype}, focus {table[0]:g} .. {table[-1]:g} µm; {settings.operator} "
                  f"k={settings.window}, {settings.method}, weighted median "

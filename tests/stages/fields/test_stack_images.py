@@ -225,6 +225,22 @@ def test_stack_names_an_unmatched_glob_and_a_missing_file_first(
     err = capsys.readouterr().err
     assert "im_2.tif: file not found" in err and "ambiguous" not in err
     assert not (tmp_path / "a.zarr").exists()
+    # a file given twice (overlapping globs, another spelling of one path) is refused
+    shutil.copy(pertuz_dir / "im_03.tif", tmp_path / "im_3.tif")
+    twice = [str(tmp_path / "im_1.tif"), str(tmp_path / "im_3.tif"),
+             str(tmp_path / "." / "im_1.tif")]
+    assert main(["stack", *twice, *common]) == 2
+    err = capsys.readouterr().err
+    assert "im_1.tif: given twice (images 0 and 2" in err
+    # a pixel size that is not a finite positive number, before anything is read
+    ok = [str(tmp_path / n) for n in ("im_1.tif", "im_01.tif", "im_3.tif")]
+    for bad in ("inf", "nan", "0"):
+        args = ["stack", *ok, "--focus-start", "0", "--focus-step", "1", "--pixel-um", bad,
+                "-o", str(tmp_path / "a.zarr")]
+        assert main(args) == 2
+        assert f"--pixel-um must be a finite number > 0, got {float(bad)}" in \
+            capsys.readouterr().err
+    assert not (tmp_path / "a.zarr").exists()
 
 
 def _weighted_median_by_argsort(z: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
