@@ -182,9 +182,12 @@ def zarr_store_of(path: str | Path) -> Path | None:
     return None
 
 
-def check_file_output(path: str | Path, what: str, *, stores: Sequence[str | Path] = ()) -> None:
+def check_file_output(path: str | Path, what: str, *, stores: Sequence[str | Path] = (),
+                      overwrite: bool | None = None) -> None:
     """A file output (``--rrd``, ``--x3p``, ``--ply``...) that would write into a Zarr store
-    (an existing one, or one of ``stores`` about to be written) is refused."""
+    (an existing one, or one of ``stores`` about to be written) is refused; with
+    ``overwrite=False`` an existing file too (a mistyped name would replace an input: an
+    image, a calibration), named with the option that allows it."""
     p = Path(path).resolve()
     inside = zarr_store_of(p)
     if inside is None:
@@ -195,6 +198,9 @@ def check_file_output(path: str | Path, what: str, *, stores: Sequence[str | Pat
                           "would damage it, choose a path outside")
     if p.is_dir():
         raise ConfigError(f"{what} {path}: is a folder, expected a file path")
+    if overwrite is False and p.exists():
+        raise ConfigError(f"{what} {path}: exists; --overwrite replaces it, or choose another "
+                          "path")
 
 
 def check_clashes(cfg: ScanConfig, *, inputs: Sequence[str | Path] = (),

@@ -326,6 +326,8 @@ def parse_region(text: str | None, *, pixel_um: float | None = None
     for k, m in enumerate(matches):
         assert m is not None
         value, unit = float(m.group(1)), m.group(2) or "px"
+        if not math.isfinite(value):  # 1e400: a number the regular expression lets through
+            raise ValueError(f"--region {text}: {parts[k].strip()}: not a finite number")
         if unit == "px":
             if value != int(value):
                 raise ValueError(f"--region {text}: {parts[k].strip()}: a px coordinate is a "

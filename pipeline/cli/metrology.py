@@ -158,10 +158,14 @@ def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
 
 def cmd_stack(args: argparse.Namespace) -> int:
     from sffscan.pipeline import locks
+    from sffscan.pipeline.run import check_file_output
 
     try:  # one writer a mosaic, refused before the stack is read and reconstructed
         if not 0 < args.pixel_um < math.inf:
             raise ValueError(f"--pixel-um must be a finite number > 0, got {args.pixel_um}")
+        if args.save_npy:  # the name np.save writes (.npy appended when missing)
+            npy = args.save_npy if str(args.save_npy).endswith(".npy") else f"{args.save_npy}.npy"
+            check_file_output(npy, "--save-npy", stores=[args.output], overwrite=args.overwrite)
         held = locks.claim_mosaic(args.output, overwrite=args.overwrite)
     except (ValueError, FileExistsError) as err:
         return _fail(str(err))
@@ -324,8 +328,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
         read_height_map,
         region_mask,
     )
+    from sffscan.pipeline.run import check_file_output
 
     try:
+        if args.json:
+            check_file_output(args.json, "--json", overwrite=args.overwrite)
         check_trust([args.estimate, args.reference], allow=args.allow_untrustworthy)
         est = read_height_map(args.estimate, array=args.array)
         ref = read_height_map(args.reference, array=args.array)
@@ -363,8 +370,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     try:
         for flag, value in (("--ply", args.ply), ("--x3p", args.x3p), ("--json", args.json)):
-            if value:  # never into a Zarr store (the mosaic's zarr.json...)
-                check_file_output(value, flag, stores=[args.mosaic])
+            if value:  # never into a Zarr store (the mosaic's zarr.json...), nor over a file
+                check_file_output(value, flag, stores=[args.mosaic], overwrite=args.overwrite)
         ex.check_trust([args.mosaic], allow=args.allow_untrustworthy)
         region = parse_region(args.region, pixel_um=_mosaic_pixel_um(args.mosaic))
         ex.check_export_size(args.mosaic, region)
@@ -429,7 +436,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     stack_input_options(p)
     p.add_argument("--pixel-um", type=float, required=True, help="object pixel size, µm/px")
     p.add_argument("-o", "--output", required=True, help="mosaic Zarr group to write")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing mosaic")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing mosaic (and --save-npy file)")
     p.add_argument("--save-npy", help="also save the height map (µm) as .npy")
     p.add_argument("--align", action="store_true",
                    help="align the frames first: each frame's scale and shift against the "
@@ -489,6 +497,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--range-um", type=float, nargs=2, metavar=("LO", "HI"),
                    help="histogram range, µm (default +-99.9th percentile of |error|)")
     p.add_argument("--json", help="write the report (schemas/compare_report.v1.json)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --json file (refused otherwise)")
     _allow_option(p)
     p.set_defaults(func=cmd_compare)
 
@@ -504,5 +514,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--level", choices=["plane", "mean", "none"], default="plane",
                    help="reference surface of the areal parameters (default plane)")
     p.add_argument("--json", help="write the areal parameters as JSON")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing --ply, --x3p and --json files (refused otherwise)")
     _allow_option(p)
     p.set_defaults(func=cmd_export)

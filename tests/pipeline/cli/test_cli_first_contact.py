@@ -150,6 +150,7 @@ def test_region_takes_units(text: str, box: tuple[int, int, int, int]) -> None:
 @pytest.mark.parametrize("text, words", [
     ("1,2,3", "four coordinates"), ("1in,0,2in,1in", "four coordinates"),
     ("1.5,0,3,4", "whole number"), ("5mm,0,1mm,1mm", "empty box"),
+    ("0,0,1e400,10", "1e400: not a finite number"), ("0,-1e999mm,1,1", "not a finite"),
 ])
 def test_region_errors_name_the_option(text: str, words: str) -> None:
     from sffscan.pipeline.cli.common import parse_region

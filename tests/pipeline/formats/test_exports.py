@@ -236,6 +236,34 @@ def test_export_command(mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: P
     assert main(["export", str(tmp_path / "a.ply")]) == 2  # not a mosaic
 
 
+def test_file_outputs_replace_a_file_only_with_overwrite(
+        mosaic: tuple[Path, np.ndarray, np.ndarray], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """An export, a comparison's report or a stack's height map written over an existing
+    file (a mistyped name: an input image, a calibration) is refused naming the option and
+    leaves the file as it was; ``--overwrite`` replaces it."""
+    path, _, _ = mosaic
+    image = tmp_path / "im_01.png"
+    image.write_bytes(b"\x89PNG the user's own image")
+    for flag in ("--x3p", "--ply", "--json"):
+        assert main(["export", str(path), flag, str(image)]) == 2
+        assert f"{flag} {image}: exists; --overwrite replaces it" in capsys.readouterr().err
+        assert image.read_bytes() == b"\x89PNG the user's own image"
+    assert main(["compare", str(path), str(path), "--json", str(image)]) == 2
+    assert "--json" in capsys.readouterr().err
+    assert image.read_bytes() == b"\x89PNG the user's own image"
+    assert main(["export", str(path), "--x3p", str(image), "--overwrite"]) == 0
+    assert zipfile.is_zipfile(image)  # replaced, as asked
+    npy = tmp_path / "h.npy"
+    npy.write_bytes(b"kept")
+    stack = ["stack", str(tmp_path / "missing.png"), "--focus-start", "0", "--focus-step", "1",
+             "--pixel-um", "5", "-o", str(tmp_path / "s.zarr")]
+    for name in ("h.npy", "h"):  # np.save appends .npy
+        assert main([*stack, "--save-npy", str(tmp_path / name)]) == 2
+        assert f"--save-npy {npy}: exists" in capsys.readouterr().err  # before the images
+    assert npy.read_bytes() == b"kept"
+
+
 def test_x3p_and_areal_parameters_against_surfalize(tmp_path: Path) -> None:
     """A third-party implementation (surfalize, MIT: its own x3p reader, its own levelling
     and ISO 25178-2 height parameters) reads the exported x3p and gets the same surface,

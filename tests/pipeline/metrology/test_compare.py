@@ -128,7 +128,7 @@ def test_region_is_in_world_px_when_only_one_map_is_placed(tmp_path: Path) -> No
     json_path = tmp_path / "c.json"
     for est_path, ref_path in (("e.zarr", "r.npy"), ("r.npy", "e.zarr")):
         assert main(["compare", str(tmp_path / est_path), str(tmp_path / ref_path),
-                     "--region", "130,210,140,220", "--json", str(json_path)]) == 0
+                     "--region", "130,210,140,220", "--json", str(json_path), "--overwrite"]) == 0
         r = CompareReport.model_validate_json(json_path.read_text())
         assert r.pixels == 100
         assert r.rmse_um == pytest.approx(100.0, rel=1e-5)
