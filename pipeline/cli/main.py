@@ -26,9 +26,9 @@ import logging
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from sffscan.pipeline.cli.common import (
     EXIT_BAD_INPUT,
@@ -213,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_completion)
     for module in COMMAND_MODULES:
         importlib.import_module(module).register(sub)
-    for p in sub.choices.values():  # -q / -v after the sub-command too
+    for p in _sub_parsers(sub):  # -q / -v after the sub-command (and its own) too
         _log_options(p)
     _plain_texts(parser)
     return parser
@@ -264,6 +264,16 @@ def _version() -> str:
         return version("sffscan")
     except PackageNotFoundError:  # pragma: no cover - a source tree, not installed
         return "0+unknown"
+
+
+def _sub_parsers(sub: Any) -> Iterator[argparse.ArgumentParser]:
+    """Every parser under a sub-parsers action, nested ones (``calibrate z``, ``job
+    show``) included."""
+    for p in sub.choices.values():
+        yield p
+        for action in p._actions:  # argparse keeps its sub-commands only there
+            if isinstance(action, argparse._SubParsersAction):
+                yield from _sub_parsers(action)
 
 
 def _log_options(p: argparse.ArgumentParser) -> None:

@@ -59,6 +59,29 @@ def test_global_and_subcommand_quiet_parse_alike() -> None:
     assert not hasattr(p.parse_args(["demo"]), "quiet")  # main() sets it False
 
 
+def test_every_command_at_any_depth_takes_quiet_and_verbose_after_its_name() -> None:
+    """``sffscan calibrate targets DIR -q`` was refused ("unrecognized arguments: -q") while
+    the top-level help offers -q to every command: the nested commands (calibrate, job)
+    lacked the options."""
+    import argparse
+
+    def commands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()
+                 ) -> list[tuple[tuple[str, ...], argparse.ArgumentParser]]:
+        out = []
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    out.append(((*path, name), sub))
+                    out += commands(sub, (*path, name))
+        return out
+
+    found = commands(build_parser())
+    assert {("calibrate", "targets"), ("job", "show")} <= {path for path, _ in found}
+    for path, sub in found:
+        flags = {f for a in sub._actions for f in a.option_strings}
+        assert {"-q", "--quiet", "-v", "--verbose"} <= flags, " ".join(path)
+
+
 def _stderr_prints(path: Path) -> list[int]:
     """Lines of ``print(..., file=sys.stderr)`` calls in a module."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
