@@ -140,6 +140,9 @@ def load_calibration(path: str | Path) -> Calibration:
         text = p.read_text(encoding="utf-8")
     except OSError as err:
         raise CalibrationError(f"{p}: cannot read calibration: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:  # an image, a binary file given for a calibration
+        raise CalibrationError(f"{p}: not a calibration file (not UTF-8 text: byte "
+                               f"{err.start})") from err
     try:
         return Calibration.model_validate_json(text)
     except ValidationError as err:

@@ -74,6 +74,10 @@ def test_bad_files_name_the_file_and_field(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match="missing.json"):
         load_calibration(tmp_path / "missing.json")
     assert main(["calibrate", "show", str(bad)]) == 2
+    image = tmp_path / "im_01.png"  # a binary file given for a calibration (or as -o)
+    image.write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(CalibrationError, match=r"im_01\.png: not a calibration file"):
+        load_calibration(image)
 
 
 def test_schema_is_registered_and_current() -> None:
