@@ -133,12 +133,16 @@ def plan_scan(*, fov_mm: tuple[float, float], fps: float, n_levels: int, overlap
     """
     if not 0.0 <= overlap < 1.0:
         raise PlanError(f"overlap = {overlap:g}: must lie in [0, 1)")
-    if min(fov_mm) <= 0 or pixel_um <= 0 or fps <= 0:
-        raise PlanError("FOV, pixel scale and frame rate must be > 0")
-    if min(area_mm) <= 0:
-        raise PlanError(f"area {area_mm[0]:g} x {area_mm[1]:g} mm: both sides must be > 0")
-    if speed_mm_s is not None and speed_mm_s <= 0:
-        raise PlanError(f"speed = {speed_mm_s:g} mm/s: must be > 0")
+    for name, value in (("FOV width", fov_mm[0]), ("FOV height", fov_mm[1]),
+                        ("pixel scale", pixel_um), ("frame rate", fps)):
+        if not 0 < value < math.inf:  # inf, nan, 0 or below
+            raise PlanError(f"{name} = {value:g}: FOV, pixel scale and frame rate must be "
+                            "finite and > 0")
+    if not (0 < area_mm[0] < math.inf and 0 < area_mm[1] < math.inf):
+        raise PlanError(f"area {area_mm[0]:g} x {area_mm[1]:g} mm: both sides must be finite "
+                        "and > 0")
+    if speed_mm_s is not None and not 0 < speed_mm_s < math.inf:
+        raise PlanError(f"speed = {speed_mm_s:g} mm/s: must be finite and > 0")
     along, across = (fov_mm[0], fov_mm[1]) if direction == "x" else (fov_mm[1], fov_mm[0])
     fov_px = (round(along * 1000.0 / pixel_um), round(across * 1000.0 / pixel_um))
     base = _config(fov_px, fps=fps, n_levels=n_levels, overlap=overlap, pixel_um=pixel_um,

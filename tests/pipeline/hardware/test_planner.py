@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import pytest
@@ -60,7 +61,11 @@ def test_direction_y_swaps_the_fov() -> None:
     ({"area_mm": (0.0, 10.0)}, "area"),
     ({"speed_mm_s": 40.0}, "exceeds the sliding-window limit"),
     ({"fov_mm": (0.5, 9.0)}, "fewer than N = 50"),
-    ({"fps": 0.0}, "must be > 0"),
+    ({"fps": 0.0}, "frame rate = 0: .* finite and > 0"),
+    ({"fov_mm": (math.inf, 9.0)}, "FOV width = inf"),  # an OverflowError before
+    ({"pixel_um": math.nan}, "pixel scale = nan"),
+    ({"area_mm": (math.inf, 10.0)}, "area inf x 10"),
+    ({"speed_mm_s": math.inf}, "speed = inf"),
 ])
 def test_impossible_requests_are_refused_with_the_reason(kwargs: dict[str, Any],
                                                           reason: str) -> None:
