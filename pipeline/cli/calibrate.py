@@ -172,9 +172,11 @@ def cmd_twostep(args: argparse.Namespace) -> int:
 def cmd_restrict(args: argparse.Namespace) -> int:
     from sffscan.pipeline.config import config_to_toml, load_config, max_speed_sliding_mm_s
     from sffscan.pipeline.restrict import prior_from_mosaic, restrict_scan, strip_level_range
+    from sffscan.pipeline.run import check_file_output
 
     cfg = load_config(args.config)
-    try:
+    try:  # never over a file (the scan's own configuration) unless asked
+        check_file_output(args.output, "-o", overwrite=args.overwrite)
         prior = prior_from_mosaic(args.prior, uncertainty_um=args.uncertainty_um,
                                   pixel_um=cfg.optics.pixel_um)
     except ValueError as err:
@@ -246,4 +248,6 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="levels added at each end so every focus curve keeps its peak and "
                         "flanks (default 8)")
     p.add_argument("-o", "--output", required=True, help="restricted configuration (TOML)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing -o file (refused otherwise)")
     p.set_defaults(func=cmd_restrict)

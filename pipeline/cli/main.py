@@ -102,6 +102,13 @@ def cmd_config(args: argparse.Namespace) -> int:
     cfg = demo_config(passes=args.passes)
     text = config_to_toml(cfg)
     if args.output:
+        from sffscan.pipeline.run import check_file_output
+
+        try:  # never over a configuration already edited, unless asked
+            check_file_output(args.output, "-o", overwrite=args.overwrite)
+        except ValueError as err:
+            print(f"sffscan: {err}", file=sys.stderr)
+            return EXIT_BAD_INPUT
         Path(args.output).write_text(text, encoding="utf-8")
         log.info("wrote %s", args.output)
     else:
@@ -190,6 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--passes", type=int, default=1,
                    help="parallel passes across the part (default 1)")
     p.add_argument("-o", "--output", help="write to this file instead of stdout")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing -o file (refused otherwise)")
     p.set_defaults(func=cmd_config)
 
     p = sub.add_parser("schemas", help="write (or --check) the JSON Schemas",

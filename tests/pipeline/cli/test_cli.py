@@ -43,6 +43,18 @@ def test_quiet_before_or_after_the_subcommand(argv: list[str], shown: bool, tmp_
     assert (f"wrote {path}" in capsys.readouterr().err) is shown
 
 
+def test_config_never_replaces_an_edited_file_unless_asked(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "c.toml"
+    assert main(["config", "-o", str(path), "-q"]) == 0
+    path.write_text(path.read_text() + "# my edits\n")
+    assert main(["config", "-o", str(path), "-q"]) == 2
+    assert f"-o {path}: exists; --overwrite replaces it" in capsys.readouterr().err
+    assert path.read_text().endswith("# my edits\n")
+    assert main(["config", "-o", str(path), "-q", "--overwrite"]) == 0
+    assert not path.read_text().endswith("# my edits\n")
+
+
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_verbose_names_the_logger(where: str, tmp_path: Path,
                                   capsys: pytest.CaptureFixture[str]) -> None:

@@ -158,6 +158,12 @@ def test_previous_layer_mosaic_restricts_a_continuous_scan(tmp_path: Path) -> No
     kept = restricted.optics.focus_heights_um()
     assert kept[0] <= np.nanmin(h) - 150.0 + 1e-6 or levels[0] == 0
     assert kept[-1] >= np.nanmax(h) + 150.0 - 1e-6 or levels[-1] == cfg.optics.n_levels - 1
+    # -o over an existing file (the scan's own configuration): refused unless --overwrite
+    before = toml.read_bytes()
+    again = ["restrict", "--config", str(toml), "--prior", str(layer), "--uncertainty-um",
+             "150", "--pad-levels", "3", "-o", str(toml)]
+    assert main(again) == 2 and toml.read_bytes() == before
+    assert main([*again, "--overwrite"]) == 0 and load_config(toml) == restricted
 
 
 def test_a_prior_that_does_not_cover_the_strip_restricts_nothing(tmp_path: Path) -> None:
