@@ -223,7 +223,7 @@ def cmd_targets(args: argparse.Namespace) -> int:
     try:
         t = write_optics_targets(args.folder, optics=make_optics(cfg),
                                  focus_heights_um=np.array(cfg.optics.focus_heights_um()),
-                                 seed=args.seed, progress=progress)
+                                 seed=args.seed, progress=None if args.quiet else progress)
     finally:
         for display in shown:
             display.close()

@@ -60,7 +60,8 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
     Parameters
     ----------
     folder : str or Path
-        Created if missing.
+        Created if missing; an existing folder must be empty (the calibrate commands read
+        every image of a target's folder, and a user's images there would be replaced).
     optics : Optics
         The camera and lens to calibrate (with its real-lens effects).
     focus_heights_um : (N,) array_like of float
@@ -77,6 +78,9 @@ def write_optics_targets(folder: str | Path, *, optics: Optics, focus_heights_um
     OpticsTargets
     """
     out = Path(folder)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out}: exists and is not an empty folder; the target images are "
+                         "written into a new or empty folder")
     out.mkdir(parents=True, exist_ok=True)
     zs = np.asarray(focus_heights_um, dtype=np.float64)
     rng = np.random.default_rng(seed + 7)

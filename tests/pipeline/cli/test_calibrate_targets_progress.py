@@ -27,3 +27,17 @@ def test_targets_show_their_progress(tmp_path: Path,
     # comes after the first gauge stack
     assert re.search(r"images 6/47 \(12\.8 %\)", err), err
     assert re.search(r"rendered in \d+\.\d s", err), err
+    # -q: no progress display, no status lines; the commands are still printed
+    out = tmp_path / "q"
+    assert main(["calibrate", "targets", str(out), "--config", str(toml), "-q"]) == 0
+    captured = capsys.readouterr()
+    assert "images" not in captured.err and "rendered in" not in captured.err
+    assert "sffscan calibrate z" in captured.out
+    # a folder that is not empty (the user's own images) is refused, untouched
+    mine = tmp_path / "mine"
+    (mine / "gauge_1470").mkdir(parents=True)
+    (mine / "gauge_1470" / "img_0.png").write_bytes(b"the user's image")
+    assert main(["calibrate", "targets", str(mine), "--config", str(toml), "-q"]) == 2
+    assert "exists and is not an empty folder" in capsys.readouterr().err
+    assert (mine / "gauge_1470" / "img_0.png").read_bytes() == b"the user's image"
+    assert sorted(p.name for p in mine.rglob("*")) == ["gauge_1470", "img_0.png"]
