@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from sffscan.stages.depth_levels import levels_from_heights
 from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import family_stack
+from sffscan.stages.sim.families import Family, family_stack
 
 PERTUZ = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "pertuz-simu02"
           / "imdata.mat")
@@ -20,7 +20,7 @@ Scored = tuple[np.ndarray, np.ndarray, np.ndarray]
 """(focus volume (N, H, W) float32, true depth (H, W) in levels, scored pixels (H, W) bool)"""
 
 
-def family_volume(family: str, seed: int, *, size_px: int = 64, window: int = 9) -> Scored:
+def family_volume(family: str | Family, seed: int, *, size_px: int = 64, window: int = 9) -> Scored:
     """A family's stack as the study scores it (GLVM, ``window`` px)."""
     st = family_stack(family, seed, size_px=size_px)
     vol = focus_measure(st.images, operator="glvm", window=window)

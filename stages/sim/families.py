@@ -69,6 +69,13 @@ class Family:
         Range of the texture's standard deviation (0..1 images, mean 0.5).
     blur_per_level_px : (float, float)
         Range of the blur radius added per level of defocus (``b * STEP``), px.
+    texture : {"uniform", "mixed"}
+        One texture over the image, or two (the drawn one and one 3x coarser with twice its
+        contrast, capped at 0.3) blended by a smooth random map of patches about 10 px
+        across, so that texture scale and contrast, and with them the focus curves' width
+        and height, vary from pixel to pixel within a stack as in a real scene (a uniform
+        family's stacks are unchanged by this option's existence: its draws come after
+        theirs).
     """
 
     name: str
@@ -80,6 +87,7 @@ class Family:
     texture_px: tuple[float, float] = (1.0, 3.0)
     contrast: tuple[float, float] = (0.1, 0.25)
     blur_per_level_px: tuple[float, float] = (0.4, 1.2)
+    texture: Literal["uniform", "mixed"] = "uniform"
 
 
 FAMILIES: tuple[Family, ...] = (
@@ -161,6 +169,19 @@ def _texture(rng: np.random.Generator, shape: tuple[int, int], grain_px: float,
                    dtype=np.float32)
     t = (t - t.mean()) * np.float32(contrast / max(float(t.std()), 1e-9))
     return np.clip(t + np.float32(0.5), 0.0, 1.0)
+
+
+def _mixed_texture(rng: np.random.Generator, shape: tuple[int, int], grain_px: float,
+                   contrast: float, q: int) -> np.ndarray:
+    """:attr:`Family.texture` ``"mixed"``: the drawn texture and one 3x coarser with twice
+    the contrast (at most 0.3), blended by a logistic of a smooth random field (patches
+    ~10 px across at the sensor's scale, ``q`` times finer here)."""
+    fine = _texture(rng, shape, grain_px, contrast)
+    coarse = _texture(rng, shape, 3.0 * grain_px, min(2.0 * contrast, 0.3))
+    field = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0),
+                             3.0 * q, borderType=cv2.BORDER_REFLECT)
+    w = 1.0 / (1.0 + np.exp(-4.0 * field / max(float(field.std()), 1e-9)))
+    return np.clip(w * fine + (1.0 - w) * coarse, 0.0, 1.0).astype(np.float32)
 
 
 def _disc(radius: float) -> np.ndarray:
@@ -309,8 +330,11 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
     contrast = float(rng.uniform(*fam.contrast))
     b = float(rng.uniform(*fam.blur_per_level_px))
     bits = int(rng.choice(fam.bits))
-    bank = _bank(_texture(rng, fine, grain * q, contrast), fam.psf, q)
+    tex = _texture(rng, fine, grain * q, contrast)
     z = _surface(fam, rng, shape, n)
+    if fam.texture == "mixed":  # drawn after the uniform families' draws: theirs unchanged
+        tex = _mixed_texture(rng, fine, grain * q, contrast, q)
+    bank = _bank(tex, fam.psf, q)
     zf = z if q == 1 else cv2.resize(z, fine[::-1], interpolation=cv2.INTER_LINEAR)
     radii = BANK_RADII_PX * q
     flat_bank = bank.reshape(len(radii), -1)
