@@ -431,6 +431,17 @@ async def _close_workers(cluster: Any, timeout: float) -> None:
     await asyncio.gather(*(w.close(timeout=timeout) for w in cluster.workers.values()))
 
 
+def is_results_csv(path: Path) -> bool:
+    """True when ``path`` holds a batch's results table (:func:`write_csv`'s header first):
+    the only existing file a batch replaces with its own."""
+    try:
+        with open(path, encoding="utf-8", newline="") as f:
+            first = f.readline().strip()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return first == ",".join(f.name for f in fields(BatchRow))
+
+
 def write_csv(rows: Sequence[BatchRow], path: Path) -> None:
     """The results table as CSV (one row per recording, header first)."""
     names = [f.name for f in fields(BatchRow)]

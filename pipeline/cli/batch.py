@@ -46,9 +46,13 @@ def cmd_batch(args: argparse.Namespace) -> int:
         BatchRow,
         find_recordings,
         format_table,
+        is_results_csv,
+        mosaic_path,
         run_batch,
         write_csv,
     )
+    from sffscan.pipeline.config import ConfigError
+    from sffscan.pipeline.run import check_file_output
 
     if len(args.recordings) == 1 and (Path(args.recordings[0]) / "manifest.json").is_file():
         # a print job's folder: its layers are reprocessed in place ('sffscan job reprocess')
@@ -73,6 +77,15 @@ def cmd_batch(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     out = Path(args.output)
     csv_path = Path(args.csv) if args.csv else out / "batch.csv"
+    try:  # never into a recording or a mosaic, never over another file
+        check_file_output(csv_path, "--csv",
+                          stores=[*recordings, *(mosaic_path(r, out) for r in recordings)])
+        if csv_path.exists() and not is_results_csv(csv_path):
+            raise ConfigError(f"--csv {csv_path}: exists and is not a batch's results table; "
+                              "refusing to overwrite it, choose another path")
+    except ValueError as err:
+        print(f"sffscan: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     where = args.scheduler or f"a local cluster of {args.workers} worker process(es)"
     log.info("batch: %d recording(s) -> %s on %s, %d thread(s) per task", len(recordings), out,
              where, args.threads)

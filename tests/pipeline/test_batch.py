@@ -98,6 +98,22 @@ def test_batch_of_good_recordings_exits_0(layers: Path, tmp_path: Path,
     assert code == 0, capsys.readouterr().err
     row = _csv(tmp_path / "r.csv")["layer_000.zarr"]
     assert row["status"] == "complete" and row["rmse_um"] == ""
+    # the results table is never written into a recording, nor over another file, and
+    # nothing is processed then; a previous batch's table is replaced on a rerun
+    layer = layers / "layer_000.zarr"
+    meta = (layer / "zarr.json").read_bytes()
+    image = tmp_path / "im_01.png"
+    image.write_bytes(b"the user's image")
+    for csv_path, words in ((layer / "zarr.json", "inside the Zarr store"),
+                            (image, "is not a batch's results table")):
+        assert main(["batch", str(layer), "-o", str(tmp_path / "o2"), "--workers", "1",
+                     "--csv", str(csv_path)]) == 2
+        assert words in capsys.readouterr().err
+    assert (layer / "zarr.json").read_bytes() == meta  # the recording's metadata kept
+    assert image.read_bytes() == b"the user's image" and not (tmp_path / "o2").exists()
+    assert main(["batch", str(layer), "-o", str(out), "--workers", "1", "--no-evaluate",
+                 "--csv", str(tmp_path / "r.csv")]) == 0  # a rerun: its table replaced
+    assert _csv(tmp_path / "r.csv")["layer_000.zarr"]["status"] == "skipped"
 
 
 def test_bad_batch_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
