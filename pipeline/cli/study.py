@@ -325,6 +325,14 @@ def families_study(args: argparse.Namespace) -> int:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.run import zarr_store_of
+
+    out = Path(args.output).resolve()
+    store = out if (out / "zarr.json").is_file() else zarr_store_of(out)
+    if store is not None:  # its tables and figure would land among a mosaic's arrays
+        print(f"sffscan study: -o {args.output}: inside the Zarr store {store}; choose a "
+              "folder outside it", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.families:
         return families_study(args)
     args.operators = args.operators or DEFAULT_OPERATORS

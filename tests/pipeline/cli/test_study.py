@@ -38,6 +38,15 @@ def test_study_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) 
     assert main(["study", "--chapter3", "--windows", "4", "-o", str(tmp_path)]) == 2
     assert main(["study", "--imdata", str(tmp_path / "missing.mat"), "-o", str(tmp_path)]) == 2
     assert "missing.mat" in capsys.readouterr().err
+    # -o inside a Zarr store (a mosaic, a recording): refused before any work
+    store = tmp_path / "m.zarr"
+    store.mkdir()
+    (store / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
+    for out in (store, store / "study"):
+        for fam in ([], ["--families"]):
+            assert main(["study", "--chapter3", *fam, "-o", str(out)]) == 2
+            assert "inside the Zarr store" in capsys.readouterr().err
+    assert sorted(p.name for p in store.iterdir()) == ["zarr.json"]
 
 
 STEP_UM = 100.0
