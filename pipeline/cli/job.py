@@ -106,12 +106,20 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from sffscan.pipeline.config import ConfigError
     from sffscan.pipeline.printjob.jobstore import JobError
     from sffscan.pipeline.printjob.report import write_report
+    from sffscan.pipeline.run import check_file_output
 
     try:
+        if args.output is not None:  # never into a layer's recording or mosaic, nor over a
+            check_file_output(args.output, "-o")  # file that is not a job report
+            old = Path(args.output)
+            if old.is_file() and b"<title>sffscan job " not in old.read_bytes()[:4096]:
+                raise ConfigError(f"-o {args.output}: exists and is not an sffscan job "
+                                  "report; refusing to overwrite it, choose another path")
         out = write_report(args.job, args.output)
-    except JobError as err:
+    except (JobError, ConfigError) as err:
         print(f"sffscan: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as err:  # the output cannot be written

@@ -122,6 +122,17 @@ def test_the_cli_writes_the_report(job: Path, tmp_path: Path,
     assert main(["job", "report", str(job), "-o", str(tmp_path / "x.html")]) == 0
     assert (tmp_path / "x.html").read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
     assert str(tmp_path / "x.html") in capsys.readouterr().out
+    assert main(["job", "report", str(job), "-o", str(tmp_path / "x.html")]) == 0  # again
+    # never over a file that is not a report, nor into a layer's recording or mosaic
+    notes = tmp_path / "notes.html"
+    notes.write_text("<html>the user's page</html>")
+    assert main(["job", "report", str(job), "-o", str(notes)]) == 2
+    assert "is not an sffscan job report" in capsys.readouterr().err
+    assert notes.read_text() == "<html>the user's page</html>"
+    store = next(job.rglob("zarr.json")).parent
+    assert main(["job", "report", str(job), "-o", str(store / "r.html")]) == 2
+    assert "inside the Zarr store" in capsys.readouterr().err
+    assert not (store / "r.html").exists()
 
 
 def test_the_tolerance_band_is_neutral_and_the_sides_diverge() -> None:
