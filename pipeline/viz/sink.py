@@ -355,6 +355,16 @@ def web_viewer_url(grpc_url: str, *, web_port: int) -> str:
     return f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(grpc_url, safe='')}"
 
 
+def _is_rrd(path: Path) -> bool:
+    """A Rerun recording file: it starts with Rerun's file magic ``RRF`` (then the version
+    of its encoding; ``RRF2`` in rerun-sdk 0.41)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(3) == b"RRF"
+    except OSError:
+        return False
+
+
 def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
     """Check the viewer words (``--viewer MODE``, and ``--rrd PATH`` as ``["save", PATH]``):
     ("spawn" | "serve" | "auto", None) or ("save", path)."""
@@ -368,6 +378,9 @@ def parse_mode(mode: list[str]) -> tuple[str, Path | None]:
         if path.is_dir():
             raise ConfigError(f"--viewer save --rrd {path}: is a folder; give an .rrd file "
                               "name")
+        if path.is_file() and not _is_rrd(path):  # an image, a configuration: never replaced
+            raise ConfigError(f"--viewer save --rrd {path}: exists and is not a Rerun "
+                              "recording; refusing to overwrite it, choose another path")
         return "save", path
     if len(mode) == 1 and mode[0] in ("spawn", "serve", "auto"):
         return mode[0], None

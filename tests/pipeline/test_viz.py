@@ -224,6 +224,18 @@ def test_viewer_mode_words(tmp_path: Path) -> None:
     with redirect_stderr(err):
         code = main(["demo", "-o", str(tmp_path / "d.zarr"), "--viewer", "bogus", "-q"])
     assert code == 2 and "--viewer bogus" in err.getvalue()
+    # an existing file is replaced only when it is a Rerun recording (its file magic)
+    old = tmp_path / "old.rrd"
+    old.write_bytes(b"RRF2" + bytes(12))
+    assert parse_mode(["save", str(old)]) == ("save", old)
+    image = tmp_path / "im_01.png"
+    image.write_bytes(b"\x89PNG the user's image")
+    with pytest.raises(ConfigError, match="exists and is not a Rerun recording"):
+        parse_mode(["save", str(image)])
+    with redirect_stderr(io.StringIO()) as err:
+        code = main(["demo", "-o", str(tmp_path / "e.zarr"), "-q", "--rrd", str(image)])
+    assert code == 2 and "not a Rerun recording" in err.getvalue()
+    assert image.read_bytes() == b"\x89PNG the user's image"
 
 
 def test_spawn_without_a_display_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
