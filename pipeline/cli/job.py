@@ -105,6 +105,12 @@ def cmd_show(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _head(path: Path, size: int = 4096) -> bytes:
+    """The first ``size`` bytes of a file (a report's title is in them)."""
+    with open(path, "rb") as f:
+        return f.read(size)
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from sffscan.pipeline.config import ConfigError
     from sffscan.pipeline.printjob.jobstore import JobError
@@ -115,7 +121,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         if args.output is not None:  # never into a layer's recording or mosaic, nor over a
             check_file_output(args.output, "-o")  # file that is not a job report
             old = Path(args.output)
-            if old.is_file() and b"<title>sffscan job " not in old.read_bytes()[:4096]:
+            if old.is_file() and b"<title>sffscan job " not in _head(old):
                 raise ConfigError(f"-o {args.output}: exists and is not an sffscan job "
                                   "report; refusing to overwrite it, choose another path")
         out = write_report(args.job, args.output)
