@@ -120,7 +120,20 @@ def _unbreathe(cal: Calibration, stack: np.ndarray, max_value: float) -> np.ndar
     return StackCorrection(cal).frames(stack, max_value=max_value)
 
 
+def _distinct(paths: list[str], what: str) -> None:
+    """No stack or image given twice (one gauge's stack for two heights, one flat for both
+    stacks of the noise, one board for two levels): named with both places."""
+    seen: dict[Path, int] = {}
+    for i, p in enumerate(paths):
+        key = Path(p).resolve()
+        if key in seen:
+            raise ValueError(f"{p}: given twice ({what} {seen[key] + 1} and {i + 1}); each "
+                             f"{what} is its own stack or image")
+        seen[key] = i
+
+
 def cmd_z(args: argparse.Namespace) -> int:
+    _distinct([s for _, s in args.gauge], "--gauge")
     cal = _open(args.output)
     heights = np.array([float(h) for h, _ in args.gauge])
     stacks = [read_stack(s, grey=args.grey) for _, s in args.gauge]
@@ -138,6 +151,7 @@ def cmd_z(args: argparse.Namespace) -> int:
 
 
 def cmd_lateral(args: argparse.Namespace) -> int:
+    _distinct([f for _, f in args.image], "--image")
     cal = _open(args.output)
     levels = np.array([float(lv) for lv, _ in args.image])
     images = [read_one(f) for _, f in args.image]
@@ -180,6 +194,7 @@ def cmd_curvature(args: argparse.Namespace) -> int:
 
 
 def cmd_noise(args: argparse.Namespace) -> int:
+    _distinct([args.stack1, args.stack2], "stack")  # one stack twice: a noise of 0
     cal = _open(args.output)
     s1 = read_stack(args.stack1, grey=args.grey)
     s1 = _unbreathe(cal, s1, _max_value(args, s1))

@@ -127,7 +127,8 @@ def fit_z_response(peak_levels: np.ndarray, heights_um: np.ndarray) -> ZResponse
     peak_levels : (B,) array_like of float
         Measured peak focus level of each gauge, levels.
     heights_um : (B,) array_like of float
-        Known gauge heights, µm; at least 3, not all equal.
+        Known gauge heights, µm; at least 3, not all equal. A gauge whose residual exceeds
+        one focus step (the fitted µm per level) is refused: its height or stack is wrong.
 
     Returns
     -------
@@ -147,6 +148,12 @@ def fit_z_response(peak_levels: np.ndarray, heights_um: np.ndarray) -> ZResponse
     slope, intercept = np.polyfit(lv, hz, 1)
     r = float(np.corrcoef(lv, hz)[0, 1])
     resid = intercept + slope * lv - hz
+    worst = int(np.argmax(np.abs(resid)))
+    if abs(resid[worst]) > abs(slope):  # a gauge off the line by more than a focus step
+        raise CalibrationError(
+            f"z response: the gauge of {hz[worst]:g} µm lies {resid[worst]:+.1f} µm off the "
+            f"fitted line, more than one focus step ({abs(slope):.1f} µm/level; r = {r:.4f}): "
+            "a gauge's height or its stack is wrong")
     return ZResponse(um_per_level=float(slope), intercept_um=float(intercept),
                      pearson_r=max(-1.0, min(1.0, r)), heights_um=hz.tolist(),
                      peak_levels=lv.tolist(), residuals_um=resid.tolist())

@@ -115,6 +115,31 @@ def test_bad_input_names_the_file(calibrated: dict, capsys: pytest.CaptureFixtur
     assert "nothere" in capsys.readouterr().err
 
 
+def test_a_stack_or_image_given_twice_or_a_gauge_off_the_line_is_refused(
+        calibrated: dict, capsys: pytest.CaptureFixture[str]) -> None:
+    """One gauge's stack given for two heights fitted r = 0.87 with residuals of 833 µm and
+    was written (exit 0); one flat for both noise stacks gives a noise of 0; one board for
+    two levels a wrong scale change. Each is refused naming the path; nothing is written."""
+    d, out = calibrated["dir"], calibrated["dir"] / "twice.json"
+    g = [str(d / f"gauge{h:g}") for h in GAUGES]
+    args = ["calibrate", "z", "-o", str(out), "--bit-depth", "10"]
+    assert main([*args, "--gauge", "1000", g[0], "--gauge", "2500", g[0] + "/",
+                 "--gauge", "4000", g[2]]) == 2
+    assert f"{g[0]}/: given twice (--gauge 1 and 2)" in capsys.readouterr().err
+    # distinct stacks, one with the wrong height: more than a focus step off the line
+    assert main([*args, "--gauge", "1000", g[0], "--gauge", "4000", g[1],
+                 "--gauge", "4000", g[2], "--gauge", "5500", g[3]]) == 2
+    assert "off the fitted line, more than one focus step" in capsys.readouterr().err
+    assert main(["calibrate", "noise", str(d / "flat1"), str(d / "flat1"), "-o", str(out),
+                 "--focus-start", "0", "--focus-step", "200"]) == 2
+    assert "given twice (stack 1 and 2)" in capsys.readouterr().err
+    board = str(d / "board_0.png")
+    assert main(["calibrate", "lateral", "-o", str(out), "--squares", "11", "9",
+                 "--square-um", "400", "--image", "0", board, "--image", "13", board]) == 2
+    assert "given twice (--image 1 and 2)" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_targets_command_writes_the_images_and_prints_the_commands(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from sffscan.pipeline.config import REALISTIC_OPTICS, config_to_toml, demo_config

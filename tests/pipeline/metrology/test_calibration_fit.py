@@ -59,6 +59,13 @@ def test_fit_z_response_exact_on_linear_data_and_refuses_too_few() -> None:
         fit_z_response(lv[:2], lv[:2])
     with pytest.raises(CalibrationError, match="all equal"):
         fit_z_response(lv, np.full(4, 7.0))
+    # one gauge's height mistyped: off the line by more than a focus step, named
+    wrong = 50.0 + 210.0 * lv
+    wrong[2] += 900.0
+    with pytest.raises(CalibrationError, match=r"gauge of 4520 µm lies -663.9 µm off"):
+        fit_z_response(lv, wrong)
+    z = fit_z_response(lv, 50.0 + 210.0 * lv + np.array([30.0, -40.0, 35.0, -20.0]))
+    assert max(abs(r) for r in z.residuals_um) < 210.0  # ordinary scatter is kept
 
 
 @pytest.mark.parametrize("centre", [10.0, 10.23, 10.5, 10.81])
