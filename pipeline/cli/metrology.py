@@ -152,7 +152,8 @@ def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError("give image files or --zarr, not both")
         stack, zarr_table = read_zarr_stack(args.zarr, array=args.array)
     else:
-        stack, zarr_table = read_images(image_order(args), grey=args.grey), None
+        stack, zarr_table = read_images(image_order(args), grey=args.grey,
+                                        progress=not getattr(args, "quiet", False)), None
     return stack, _focus_table(args, stack.shape[0], zarr_table)
 
 
@@ -163,6 +164,11 @@ def cmd_stack(args: argparse.Namespace) -> int:
     try:  # one writer a mosaic, refused before the stack is read and reconstructed
         if not 0 < args.pixel_um < math.inf:
             raise ValueError(f"--pixel-um must be a finite number > 0, got {args.pixel_um}")
+        out = Path(args.output).resolve()
+        for src in [args.zarr] if args.zarr else []:  # the mosaic inside the input store
+            if out == Path(src).resolve() or Path(src).resolve() in out.parents:
+                raise ValueError(f"-o {args.output}: inside the input {src}; writing the "
+                                 "mosaic there would change it, choose another path")
         if args.save_npy:  # the name np.save writes (.npy appended when missing)
             npy = args.save_npy if str(args.save_npy).endswith(".npy") else f"{args.save_npy}.npy"
             check_file_output(npy, "--save-npy", stores=[args.output], overwrite=args.overwrite)
@@ -207,7 +213,8 @@ def _stack(args: argparse.Namespace) -> int:
                  f"k={settings.window}, {settings.method}, weighted median "
                  f"{settings.filter_size}x{settings.filter_size}")
         t0 = time.perf_counter()
-        result = reconstruct_with_progress(stack, table, settings, max_value, floor)
+        result = reconstruct_with_progress(stack, table, settings, max_value, floor,
+                                           progress=not args.quiet)
         if correction is not None:
             result = correction.field(result)
         if covered is not None:  # pixels some aligned frame does not cover: not measured

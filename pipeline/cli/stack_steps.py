@@ -8,7 +8,7 @@ import argparse
 import logging
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,17 +36,37 @@ def check_files_exist(paths: list[str]) -> None:
         seen[key] = i
 
 
-def read_images(paths: list[str], *, grey: bool) -> np.ndarray:
-    """The images of ``paths`` as an (N, H, W) stack, with a progress display of the files
-    read; the checks of :func:`sffscan.stages.fields.stationary.read_image_stack`."""
+def _display(total: int, desc: str, show: bool) -> Any:
+    """A progress display, or a stand-in that shows nothing (``-q``)."""
     from sffscan.pipeline.progress import ProgressDisplay
+
+    return ProgressDisplay(total, desc=desc) if show else _NoDisplay()
+
+
+class _NoDisplay:
+    """What ``with ProgressDisplay(...) as display`` gives, showing nothing."""
+
+    def __enter__(self) -> _NoDisplay:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def update(self, *_: object) -> None:
+        pass
+
+
+def read_images(paths: list[str], *, grey: bool, progress: bool = True) -> np.ndarray:
+    """The images of ``paths`` as an (N, H, W) stack, with a progress display of the files
+    read (none without ``progress``); the checks of
+    :func:`sffscan.stages.fields.stationary.read_image_stack`."""
     from sffscan.stages.fields.image_io import read_image
 
     if len(paths) < 3:
         raise ValueError(f"a focus stack needs at least 3 images, got {len(paths)}")
     images: list[np.ndarray] = []
     t0 = time.perf_counter()
-    with ProgressDisplay(len(paths), desc="images") as display:
+    with _display(len(paths), "images", progress) as display:
         for p in paths:
             img = read_image(p, grey=grey)
             if images and (img.shape != images[0].shape or img.dtype != images[0].dtype):
@@ -60,13 +80,13 @@ def read_images(paths: list[str], *, grey: bool) -> np.ndarray:
 
 def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: StackSettings,
                               max_value: float | None,
-                              noise_floor: np.ndarray | None = None) -> FieldResult:
+                              noise_floor: np.ndarray | None = None, *,
+                              progress: bool = True) -> FieldResult:
     """:func:`~sffscan.stages.fields.stationary.reconstruct_field` with what it does said on
     stderr: the reconstruction (its time), then the weighted median with a progress display
-    of its rows (on large photographs it is the longer part)."""
+    of its rows (on large photographs it is the longer part; none without ``progress``)."""
     from dataclasses import replace
 
-    from sffscan.pipeline.progress import ProgressDisplay
     from sffscan.stages.fields.stationary import confidence_weighted_median, reconstruct_field
 
     t0 = time.perf_counter()
@@ -79,7 +99,7 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
         height = raw.height_um
     else:
         t1 = time.perf_counter()
-        with ProgressDisplay(raw.height_um.shape[0], desc="median rows") as display:
+        with _display(raw.height_um.shape[0], "median rows", progress) as display:
             height = confidence_weighted_median(
                 raw.raw_height_um, raw.confidence, size=settings.filter_size,
                 progress=lambda done, _n: display.update(done, time.perf_counter() - t1))

@@ -292,6 +292,20 @@ def test_stack_shows_its_progress(pertuz_dir: Path, tmp_path: Path,
     assert "reconstruction done in" in err
     assert re.search(r"median rows \d+/256", err), err
     assert "weighted median 5x5 done in" in err
+    # -q: warnings and errors only, no progress display (both displays showed before)
+    assert main(["stack", *padded, "--focus-start", "0", "--focus-step", "1", "--pixel-um",
+                 "1", "--filter-size", "5", "-o", str(tmp_path / "b.zarr"), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "images" not in err and "median rows" not in err and "done in" not in err, err
+    # the mosaic is never written inside the --zarr stack it is made from
+    stack = tmp_path / "s.zarr"
+    arr = zarr.create_array(str(stack), shape=(5, 24, 32), dtype="uint8")
+    arr[...] = np.random.default_rng(0).integers(0, 256, (5, 24, 32), dtype=np.uint8)
+    arr.attrs["focus_heights_um"] = [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert main(["stack", "--zarr", str(stack), "--pixel-um", "1", "-q",
+                 "-o", str(stack / "m.zarr")]) == 2
+    assert "inside the input" in capsys.readouterr().err
+    assert sorted(p.name for p in stack.iterdir()) == ["c", "zarr.json"]
 
 
 def test_the_stack_command_reconstructs_as_reconstruct_field(pertuz_dir: Path) -> None:
