@@ -301,9 +301,10 @@ def start_scan(tmp_path: Path) -> tuple[subprocess.Popen[bytes], list[int]]:
         workers = [c for c in children(proc.pid)
                    if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
         if len(workers) >= 2 and not shm_names(proc.pid):  # attached: names unlinked
-            time.sleep(2.0)  # let frames flow
-            assert proc.poll() is None, "the scan ended before it could be interrupted"
-            return proc, workers
+            # frames flow: a depth block has reached the mosaic (its first chunk written)
+            if any((tmp_path / "m.zarr" / "height").glob("c/*/*")):
+                assert proc.poll() is None, "the scan ended before it could be interrupted"
+                return proc, workers
         assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
         time.sleep(0.2)
     proc.kill()
