@@ -280,6 +280,11 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
 
     try:
         settings = _settings(args)
+        if args.levels < 3:  # before any field: a stack needs three images
+            raise ValueError(f"--levels must be >= 3, got {args.levels}")
+        if not all(-1e5 <= v <= 1e5 for v in args.area_mm):  # as motion.x_start_mm ...
+            raise ValueError(f"--area-mm {' '.join(f'{v:g}' for v in args.area_mm)}: "
+                             "coordinates must be finite and within +-100000 mm (100 m)")
         zs = focus_heights(n_levels=args.levels, z_step_um=args.z_step_um)
         world = characterisation_plate(seed=args.seed, pixel_um=args.pixel_um,
                                        length_mm=args.plate_length_mm,

@@ -140,3 +140,9 @@ def test_stopgo_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     text = capsys.readouterr().out
     assert "RMSE" in text and "coverage 100.0 %" in text
     assert main(["stopgo", "-o", str(out), "--field", "10", "10", "-q"]) == 2  # overlap > field
+    # refused before anything is written: an area typed in metres (it planned ~1e8 fields
+    # and did not end), a stack of two levels (refused at the first field, after the mosaic)
+    for bad in (["--area-mm", "3", "1e9", "0", "3"], ["--levels", "2"]):
+        other = tmp_path / "other.zarr"
+        assert main(["stopgo", "-o", str(other), "--field", "160", "128", "-q", *bad]) == 2
+        assert not other.exists()
