@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -143,19 +144,33 @@ def cmd_twostep(args: argparse.Namespace) -> int:
     from sffscan.stages.sim.world import characterisation_plate
 
     px = args.pixel_um
-    heights = focus_heights(n_levels=50, z_min_um=0.0, z_step_um=200.0)
-    span = (0.0, float(heights[-1]))
-    world = characterisation_plate(seed=args.seed, pixel_um=px, length_mm=60.0, width_mm=9.0,
-                                   z_range_um=span)
-    region = (0, 0, int(60_000 / px), int(9_000 / px))
-    pad = 2 * args.field_px
-    cover = world.height_um(float(-pad), float(-pad), region[2] + 2 * pad, region[3] + 2 * pad)
-    prior = simulated_prior(cover, step_px=args.prior_step_px, uncertainty_um=args.margin_um,
-                            origin_px=(-pad, -pad), rng=np.random.default_rng(args.seed + 3))
-    optics = Optics(width=args.field_px, height=args.field_px, pixel_um=px)
-    t = time.perf_counter()
-    r = two_step_fields(world, optics=optics, region_px=region, focus_heights_um=heights,
-                        prior=prior, pad_levels=args.pad_levels, seed=args.seed)
+    try:  # bad options: a clear message and exit 2, before anything is rendered
+        if not 0 < px < math.inf:
+            raise ValueError(f"--pixel-um must be a finite number > 0, got {px}")
+        if not 1 <= args.field_px * px <= 9_000:
+            raise ValueError(f"--field-px {args.field_px} x --pixel-um {px:g} = "
+                             f"{args.field_px * px / 1000:g} mm: a field must fit the 9 mm "
+                             "width of the simulated plate")
+        if not 0 <= args.margin_um < math.inf:
+            raise ValueError(f"--margin-um must be a finite number >= 0, got {args.margin_um}")
+        heights = focus_heights(n_levels=50, z_min_um=0.0, z_step_um=200.0)
+        span = (0.0, float(heights[-1]))
+        world = characterisation_plate(seed=args.seed, pixel_um=px, length_mm=60.0,
+                                       width_mm=9.0, z_range_um=span)
+        region = (0, 0, int(60_000 / px), int(9_000 / px))
+        pad = 2 * args.field_px
+        cover = world.height_um(float(-pad), float(-pad), region[2] + 2 * pad,
+                                region[3] + 2 * pad)
+        prior = simulated_prior(cover, step_px=args.prior_step_px,
+                                uncertainty_um=args.margin_um, origin_px=(-pad, -pad),
+                                rng=np.random.default_rng(args.seed + 3))
+        optics = Optics(width=args.field_px, height=args.field_px, pixel_um=px)
+        t = time.perf_counter()
+        r = two_step_fields(world, optics=optics, region_px=region, focus_heights_um=heights,
+                            prior=prior, pad_levels=args.pad_levels, seed=args.seed)
+    except ValueError as err:
+        print(f"sffscan twostep: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     a_full = accuracy(r.height_full_um, r.truth_um, max_depth=span[1])
     a_prior = accuracy(r.height_prior_um, r.truth_um, max_depth=span[1])
     print(f"plate 60 x 9 mm, {len(r.levels_per_field)} fields of {args.field_px} px "

@@ -183,3 +183,23 @@ def test_a_prior_that_does_not_cover_the_strip_restricts_nothing(tmp_path: Path)
     assert not out.exists()
     assert main(["restrict", "--config", str(toml), "--prior", str(tmp_path / "none.zarr"),
                  "--uncertainty-um", "100", "-o", str(out)]) == 2
+
+
+def test_twostep_command_runs_and_refuses_bad_options(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``sffscan twostep``: a small run prints its frames and RMSE ratio; a bad option is a
+    clear message and exit 2 (each raised a traceback, exit 1; 100000 px fields tried to
+    allocate 599 GiB)."""
+    from sffscan.pipeline.cli.main import main
+
+    assert main(["twostep", "--field-px", "64", "--pixel-um", "68", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "fewer)" in out and "ratio" in out
+    for bad, words in ((["--field-px", "100000"], "must fit the 9 mm width"),
+                       (["--field-px", "0"], "must fit"),
+                       (["--pixel-um", "nan"], "--pixel-um must be a finite number"),
+                       (["--prior-step-px", "0"], "step_px must be >= 1"),
+                       (["--margin-um", "-5"], "--margin-um must be"),
+                       (["--pad-levels", "-3"], "pad_levels >= 1")):
+        assert main(["twostep", *bad, "-q"]) == 2, bad
+        assert words in capsys.readouterr().err
