@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, seed
 from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
     calibrate_z,
@@ -224,7 +224,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     q = cs.add_parser("sim", help="calibrate on simulated targets with known answers")
     q.add_argument("-o", "--output", default="sffscan-calibration.json",
                    help="calibration file to write (default sffscan-calibration.json)")
-    q.add_argument("--seed", type=int, default=0, help="texture and noise seed")
+    q.add_argument("--seed", type=seed, default=0, help="texture and noise seed")
     q.set_defaults(func=cmd_calibrate_sim)
     q = cs.add_parser("show", help="validate and print a calibration file")
     q.add_argument("file", help="calibration JSON file to validate and print")
@@ -245,7 +245,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="coarse prior's uncertainty = margin, µm (default 50)")
     p.add_argument("--pad-levels", type=int, default=8,
                    help="levels added beyond the range on each side (default 8)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="seed of the simulated surface's texture and noise (default 0)")
     p.set_defaults(func=cmd_twostep)
 

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, seed
 from sffscan.pipeline.config import ConfigError
 from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
@@ -317,7 +317,7 @@ def register_subcommands(cs: argparse._SubParsersAction) -> None:  # type: ignor
     q.add_argument("--config", help="scan configuration whose [optics] to use (default demo)")
     q.add_argument("--realistic", action="store_true",
                    help="the demo with real-lens optics (as 'demo --realistic')")
-    q.add_argument("--seed", type=int, default=0,
+    q.add_argument("--seed", type=seed, default=0,
                    help="seed of the targets' texture and noise (default 0)")
     q.add_argument("-o", "--output", default="sffscan-calibration.json",
                    help="calibration file the printed commands write")

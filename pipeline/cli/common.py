@@ -45,6 +45,18 @@ DEPTH_METHOD_CHOICES: tuple[str, ...] = get_args(
     ProcessingConfig.model_fields["depth_method"].annotation)
 
 
+def seed(text: str) -> int:
+    """argparse type of every ``--seed``: a non-negative integer (numpy's seeds), so that a
+    negative one is a usage error naming the option, not a traceback."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a seed is a non-negative integer, got {value}")
+    return value
+
+
 def processing_choices(p: argparse.ArgumentParser) -> None:
     """Options that choose how frames are processed: registration, depth method, operator,
     window, calibration (scan, replay, batch)."""
@@ -93,7 +105,7 @@ def scan_options(p: argparse.ArgumentParser, *,
                         "this Zarr v3 group, for 'sffscan replay'")
     p.add_argument("--speed", type=float, help="stage speed, mm/s")
     p.add_argument("--wobble", type=float, help="sim: stage wobble, ± px along and across")
-    p.add_argument("--seed", type=int, help="sim: seed of texture and noise")
+    p.add_argument("--seed", type=seed, help="sim: seed of texture and noise")
     p.add_argument("--source", metavar="ADDRESS",
                    help="receive frames from 'sffscan grab' at tcp://HOST:PORT or ipc://PATH")
     processing_options(p)

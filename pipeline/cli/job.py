@@ -22,6 +22,7 @@ from sffscan.pipeline.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
+    seed,
 )
 
 
@@ -222,7 +223,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="job folder (default sffscan-job-demo; an existing job is resumed)")
     d.add_argument("--layers", type=int, default=None, help="print only the first N layers")
     d.add_argument("--no-defects", action="store_true", help="a defect-free print")
-    d.add_argument("--seed", type=int, default=0, help="texture, bead and noise seed")
+    d.add_argument("--seed", type=seed, default=0, help="texture, bead and noise seed")
     d.add_argument("--record", action="store_true",
                    help="keep each layer's raw recording in the job (larger, slower)")
     d.add_argument("--overwrite", action="store_true", help="replace an existing job folder")

@@ -31,6 +31,7 @@ from sffscan.pipeline.cli.common import (
     OPERATOR_CHOICES,
     REGION_HELP,
     parse_region,
+    seed,
 )
 from sffscan.pipeline.cli.stack_steps import (
     image_order,
@@ -481,7 +482,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="simulated characterisation plate's length (x), mm (default 24)")
     p.add_argument("--plate-width-mm", type=float, default=4.0,
                    help="simulated plate's width (y), mm (default 4)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="seed of the simulated texture and sensor noise (default 0)")
     p.add_argument("--realistic", action="store_true",
                    help="real-lens optics as 'demo --realistic' (breathing, field curvature, "

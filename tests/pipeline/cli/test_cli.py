@@ -296,3 +296,16 @@ def test_the_command_line_keeps_freed_memory_as_the_workers_do(
     assert main() == 0
     assert "[optics]" in capsys.readouterr().out
     assert calls == [1]
+
+
+@pytest.mark.parametrize("argv", [["calibrate", "sim"], ["demo"], ["stopgo"], ["twostep"],
+                                  ["job", "demo"], ["calibrate", "targets", "t"]])
+def test_every_seed_is_a_non_negative_integer_or_a_usage_error(
+        argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """``calibrate sim --seed -5`` raised numpy's ValueError (a traceback, exit 1)."""
+    for bad, words in (("-5", "a seed is a non-negative integer, got -5"),
+                       ("x", "not an integer: 'x'")):
+        with pytest.raises(SystemExit) as info:
+            main([*argv, "--seed", bad])
+        assert info.value.code == 2
+        assert f"argument --seed: {words}" in capsys.readouterr().err
