@@ -26,6 +26,7 @@ import numpy as np
 from sffscan.pipeline.cli.common import (
     DEPTH_METHOD_CHOICES,
     EXIT_BAD_INPUT,
+    EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
     OPERATOR_CHOICES,
@@ -283,6 +284,11 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
         settings = _settings(args)
         if args.levels < 3:  # before any field: a stack needs three images
             raise ValueError(f"--levels must be >= 3, got {args.levels}")
+        for opt, value, top in (("--pixel-um", args.pixel_um, 10_000.0),  # as [optics] and
+                                ("--plate-length-mm", args.plate_length_mm, 2_000.0),  # [source]
+                                ("--plate-width-mm", args.plate_width_mm, 2_000.0)):
+            if not 0 < value <= top:
+                raise ValueError(f"{opt} must be > 0 and <= {top:g}, got {value:g}")
         if not all(-1e5 <= v <= 1e5 for v in args.area_mm):  # as motion.x_start_mm ...
             raise ValueError(f"--area-mm {' '.join(f'{v:g}' for v in args.area_mm)}: "
                              "coordinates must be finite and within +-100000 mm (100 m)")
@@ -323,9 +329,15 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
     h, w = hm.height_um.shape
     truth = world.height_um(float(hm.origin_px[0]), float(hm.origin_px[1]), w, h)
     cmp = compare_height_maps(hm.height_um, truth, max_depth_um=float(zs[-1] - zs[0]))
+    if cmp.rmse_um is None:  # nothing measured: not a result to score
+        print(f"sffscan: {report.path}: {report.fields} fields, no valid pixel to score "
+              "against the true surface", file=sys.stderr)
+        return EXIT_FAILED
+    corr = "n/a (a map without variation)" if cmp.corr is None else f"{cmp.corr:.5f}"
+    psnr = "n/a" if cmp.psnr_db is None else f"{cmp.psnr_db:.2f} dB"
     print(f"wrote {report.path}: {report.fields} fields in {report.seconds:.1f} s; against the "
-          f"true surface: RMSE {cmp.rmse_um:.1f} µm, CORR {cmp.corr:.5f}, PSNR "
-          f"{cmp.psnr_db:.2f} dB, coverage {100 * cmp.coverage:.1f} %")
+          f"true surface: RMSE {cmp.rmse_um:.1f} µm, CORR {corr}, PSNR {psnr}, coverage "
+          f"{100 * cmp.coverage:.1f} %")
     return EXIT_OK
 
 

@@ -142,7 +142,12 @@ def test_stopgo_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert main(["stopgo", "-o", str(out), "--field", "10", "10", "-q"]) == 2  # overlap > field
     # refused before anything is written: an area typed in metres (it planned ~1e8 fields
     # and did not end), a stack of two levels (refused at the first field, after the mosaic)
-    for bad in (["--area-mm", "3", "1e9", "0", "3"], ["--levels", "2"]):
+    for bad in (["--area-mm", "3", "1e9", "0", "3"], ["--levels", "2"],
+                ["--plate-width-mm", "1e30"], ["--pixel-um", "nan"]):  # 1e30: no end either
         other = tmp_path / "other.zarr"
         assert main(["stopgo", "-o", str(other), "--field", "160", "128", "-q", *bad]) == 2
         assert not other.exists()
+    # one field seeing a flat (no correlation defined): said, not a TypeError (exit 1)
+    capsys.readouterr()
+    assert main(["stopgo", "-o", str(tmp_path / "flat.zarr"), "--pixel-um", "9000", "-q"]) == 0
+    assert "CORR n/a (a map without variation)" in capsys.readouterr().out
