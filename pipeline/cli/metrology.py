@@ -364,6 +364,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
         a, b, origin = overlap_by_origin(est, ref)
         region = parse_region(args.region, pixel_um=est.pixel_um or ref.pixel_um)
         mask = None if region is None else region_mask(a.shape, origin, region)
+        if args.max_depth_um is not None and not 0 < args.max_depth_um < math.inf:
+            raise ValueError(f"--max-depth-um must be a finite number > 0, got "
+                             f"{args.max_depth_um:g}")  # 0 was taken for 'not given'
         max_depth = args.max_depth_um or est.max_depth_um or ref.max_depth_um
         note = ""
         if max_depth is None:

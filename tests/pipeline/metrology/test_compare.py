@@ -115,6 +115,11 @@ def test_compare_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "RMSE" in capsys.readouterr().out
     assert main(["compare", str(tmp_path / "a.zarr"), str(tmp_path / "r.npy")]) == 2  # shapes
     assert main(["compare", str(tmp_path / "r.npy"), str(tmp_path / "missing.npy")]) == 2
+    capsys.readouterr()
+    for bad in ("0", "nan", "inf"):  # 0 was taken for 'not given' (exit 0)
+        assert main(["compare", str(tmp_path / "b.zarr"), str(tmp_path / "a.zarr"),
+                     "--max-depth-um", bad]) == 2
+        assert "--max-depth-um must be a finite number > 0" in capsys.readouterr().err
 
 
 def test_region_is_in_world_px_when_only_one_map_is_placed(tmp_path: Path) -> None:
