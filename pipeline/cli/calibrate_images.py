@@ -25,13 +25,21 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import re
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, seed
+from sffscan.pipeline.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_OK,
+    bit_depth,
+    finite,
+    finite_positive,
+    seed,
+)
 from sffscan.pipeline.config import ConfigError
 from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
@@ -132,6 +140,26 @@ def _distinct(paths: list[str], what: str) -> None:
         seen[key] = i
 
 
+def _level(text: str) -> float:
+    """An ``--image LEVEL``: a finite number, or a message naming it."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"--image {text}: the focus level must be a finite number")
+    return value
+
+
+def _margin(args: argparse.Namespace, shape: tuple[int, ...]) -> int:
+    """``--margin-px``: 0 up to less than half the frame's smaller side."""
+    m = int(args.margin_px)
+    if not 0 <= m < min(shape[-2:]) // 2:
+        raise ValueError(f"--margin-px must be 0 .. {min(shape[-2:]) // 2 - 1} for frames of "
+                         f"{shape[-1]} x {shape[-2]} px, got {m}")
+    return m
+
+
 def cmd_z(args: argparse.Namespace) -> int:
     _distinct([s for _, s in args.gauge], "--gauge")
     cal = _open(args.output)
@@ -152,8 +180,11 @@ def cmd_z(args: argparse.Namespace) -> int:
 
 def cmd_lateral(args: argparse.Namespace) -> int:
     _distinct([f for _, f in args.image], "--image")
+    if min(args.squares) < 4:  # OpenCV finds boards of at least 3 x 3 inner corners
+        raise ValueError(f"--squares {args.squares[0]} {args.squares[1]}: a board needs at "
+                         "least 4 squares along each side")
     cal = _open(args.output)
-    levels = np.array([float(lv) for lv, _ in args.image])
+    levels = np.array([_level(lv) for lv, _ in args.image])
     images = [read_one(f) for _, f in args.image]
     if len({im.shape for im in images}) != 1:
         raise ValueError("the checkerboard images differ in shape")
@@ -175,13 +206,14 @@ def cmd_lateral(args: argparse.Namespace) -> int:
 def cmd_curvature(args: argparse.Namespace) -> int:
     cal = _open(args.output)
     raw = read_stack(args.stack, grey=args.grey)
-    vig = fit_vignetting(raw, margin_px=args.margin_px)
+    margin = _margin(args, raw.shape)
+    vig = fit_vignetting(raw, margin_px=margin)
     print(f"vignetting: {100 * vig.corner_loss:.1f} % less light at the frame corners")
     cal = cal.model_copy(update={"vignetting": vig})
     stack = _unbreathe(cal, raw, _max_value(args, raw))
     table, source = _focus_table(args, cal, stack.shape[0])
     height, _ = measure_height(stack, focus_heights_um=table, max_value=_max_value(args, stack))
-    fit = fit_field_curvature(height, margin_px=args.margin_px)
+    fit = fit_field_curvature(height, margin_px=margin)
     c = fit.coefficients_um
     cx, cy = fit.centre_px
     corner = c[3] * cx * cx + c[4] * cx * cy + c[5] * cy * cy
@@ -203,7 +235,7 @@ def cmd_noise(args: argparse.Namespace) -> int:
     mv = _max_value(args, s1)
     z1, _ = measure_height(s1, focus_heights_um=table, max_value=mv)
     z2, _ = measure_height(s2, focus_heights_um=table, max_value=mv)
-    m = args.margin_px
+    m = _margin(args, s1.shape)
     inner = (slice(m, -m or None), slice(m, -m or None))
     noise = noise_by_subtraction(z1[inner], z2[inner])
     print(f"noise by subtraction ({source} heights): N_M = {noise:.2f} µm")
@@ -264,13 +296,15 @@ def _common(q: argparse.ArgumentParser) -> None:
     q.add_argument("-o", "--output", default="sffscan-calibration.json",
                    help="calibration file to write; an existing one is updated, its other "
                         "sections kept (default sffscan-calibration.json)")
-    q.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+    q.add_argument("--bit-depth", type=bit_depth,
+                   help="bit depth of the images, 1..16 (default: the dtype's)")
     q.add_argument("--grey", action="store_true", help="convert colour images to grey")
 
 
 def _table_options(q: argparse.ArgumentParser) -> None:
-    q.add_argument("--focus-start", type=float, help="nominal focus height of the first image, µm")
-    q.add_argument("--focus-step", type=float, help="nominal focus step, µm")
+    q.add_argument("--focus-start", type=finite,
+                   help="nominal focus height of the first image, µm")
+    q.add_argument("--focus-step", type=finite, help="nominal focus step, µm")
     q.add_argument("--nominal", action="store_true",
                    help="use the nominal table even when the file has a z response")
     q.add_argument("--margin-px", type=int, default=10,
@@ -296,8 +330,8 @@ def register_subcommands(cs: argparse._SubParsersAction) -> None:  # type: ignor
                    help="focus level at which the board is in focus, and its image")
     q.add_argument("--squares", type=int, nargs=2, required=True, metavar=("NX", "NY"),
                    help="squares of the board along x and y")
-    q.add_argument("--square-um", type=float, required=True, help="square side, µm")
-    q.add_argument("--reference-level", type=float,
+    q.add_argument("--square-um", type=finite_positive, required=True, help="square side, µm")
+    q.add_argument("--reference-level", type=finite,
                    help="level the stored scale refers to (default the mean level)")
     _common(q)
     q.set_defaults(func=_guarded(cmd_lateral))

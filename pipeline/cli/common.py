@@ -57,6 +57,39 @@ def seed(text: str) -> int:
     return value
 
 
+def bit_depth(text: str) -> int:
+    """argparse type of ``--bit-depth``: 1..16 bits (the images' integer samples)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 1 <= value <= 16:
+        raise argparse.ArgumentTypeError(f"a bit depth is 1..16, got {value}")
+    return value
+
+
+def finite_positive(text: str) -> float:
+    """argparse type of a length or size: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def finite(text: str) -> float:
+    """argparse type of a coordinate or level: a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
 def processing_choices(p: argparse.ArgumentParser) -> None:
     """Options that choose how frames are processed: registration, depth method, operator,
     window, calibration (scan, replay, batch)."""

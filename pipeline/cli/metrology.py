@@ -31,6 +31,7 @@ from sffscan.pipeline.cli.common import (
     EXIT_OK,
     OPERATOR_CHOICES,
     REGION_HELP,
+    bit_depth,
     parse_region,
     seed,
 )
@@ -448,7 +449,8 @@ def stack_input_options(p: argparse.ArgumentParser) -> None:
                    help="focus position of the last image (with --focus-start: evenly spaced)")
     p.add_argument("--focus-unit", choices=sorted(UNIT_TO_UM), default="um",
                    help="unit of the focus positions (default um)")
-    p.add_argument("--bit-depth", type=int, help="bit depth of the images (default: the dtype's)")
+    p.add_argument("--bit-depth", type=bit_depth,
+                   help="bit depth of the images, 1..16 (default: the dtype's)")
 
 
 def _allow_option(p: argparse.ArgumentParser) -> None:

@@ -140,6 +140,37 @@ def test_a_stack_or_image_given_twice_or_a_gauge_off_the_line_is_refused(
     assert not out.exists()
 
 
+@pytest.mark.parametrize("argv, words", [
+    (["lateral", "--squares", "1", "1", "--square-um", "400"], "at least 4 squares"),
+    (["lateral", "--squares", "11", "9", "--square-um", "0"], "--square-um: must be a finite"),
+    (["lateral", "--squares", "11", "9", "--square-um", "400", "--reference-level", "nan"],
+     "--reference-level: must be a finite number"),
+    (["z", "--gauge", "1000", "g", "--bit-depth", "40"], "a bit depth is 1..16, got 40"),
+    (["curvature", "FLAT", "--margin-px", "-1"], "--margin-px must be 0 .. 79"),
+    (["noise", "FLAT", "FLAT2", "--margin-px", "100000", "--focus-start", "0",
+      "--focus-step", "200"], "--margin-px must be 0 .. 79"),
+])
+def test_bad_options_are_named_not_a_traceback(
+        calibrated: dict, argv: list[str], words: str,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Each gave an OpenCV error (traceback), pydantic's raw text, "SVD did not converge",
+    "negative dimensions" or was accepted (a negative margin, 40 bits)."""
+    d = calibrated["dir"]
+    argv = [str(d / "flat1") if a == "FLAT" else str(d / "flat2") if a == "FLAT2" else a
+            for a in argv]
+    if argv[0] == "lateral":
+        argv += ["--image", "0", str(d / "board_0.png"), "--image", "13",
+                 str(d / "board_13.png")]
+    code = None
+    try:
+        code = main(["calibrate", *argv, "-o", str(d / "bad.json")])
+    except SystemExit as err:  # argparse's usage errors
+        code = int(err.code or 0)
+    assert code == 2
+    assert words in capsys.readouterr().err
+    assert not (d / "bad.json").exists()
+
+
 def test_targets_command_writes_the_images_and_prints_the_commands(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from sffscan.pipeline.config import REALISTIC_OPTICS, config_to_toml, demo_config
