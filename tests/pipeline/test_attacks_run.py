@@ -195,9 +195,9 @@ def test_stack_and_stop_and_go_refuse_a_mosaic_another_writer_holds(
     read = metrology.read_images
     reads: list[int] = []
 
-    def counted(paths: list[str], *, grey: bool) -> np.ndarray:
+    def counted(paths: list[str], *, grey: bool, progress: bool = True) -> np.ndarray:
         reads.append(len(paths))
-        return read(paths, grey=grey)
+        return read(paths, grey=grey, progress=progress)
 
     monkeypatch.setattr(metrology, "read_images", counted)  # where cmd_stack reads it
     with _Holder(out) as holder:
