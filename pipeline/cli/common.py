@@ -12,7 +12,7 @@ import json
 import math
 import re
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, get_args
 
 from sffscan.pipeline.config import (
@@ -45,49 +45,34 @@ DEPTH_METHOD_CHOICES: tuple[str, ...] = get_args(
     ProcessingConfig.model_fields["depth_method"].annotation)
 
 
-def seed(text: str) -> int:
-    """argparse type of every ``--seed``: a non-negative integer (numpy's seeds), so that a
-    negative one is a usage error naming the option, not a traceback."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"a seed is a non-negative integer, got {value}")
-    return value
+def _option_type(convert: Callable[[str], Any], ok: Callable[[Any], bool], rule: str,
+                 name: str) -> Callable[[str], Any]:
+    """An argparse ``type``: ``convert`` the text, then ``ok`` or a usage error saying
+    ``rule`` and the value given (argparse names the option)."""
+    what = "an integer" if convert is int else "a number"
+
+    def parse(text: str) -> Any:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"{rule}, got {text}")
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
-def bit_depth(text: str) -> int:
-    """argparse type of ``--bit-depth``: 1..16 bits (the images' integer samples)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 1 <= value <= 16:
-        raise argparse.ArgumentTypeError(f"a bit depth is 1..16, got {value}")
-    return value
-
-
-def finite_positive(text: str) -> float:
-    """argparse type of a length or size: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0 < value < math.inf:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
-def finite(text: str) -> float:
-    """argparse type of a coordinate or level: a finite number."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return value
+#: ``--seed``: numpy's seeds are non-negative integers
+seed = _option_type(int, lambda v: v >= 0, "a seed is a non-negative integer", "seed")
+#: ``--bit-depth``: the images' integer samples, 1..16 bits
+bit_depth = _option_type(int, lambda v: 1 <= v <= 16, "a bit depth is 1..16", "bit_depth")
+#: a length or size: a finite number > 0
+finite_positive = _option_type(float, lambda v: 0 < v < math.inf,
+                               "must be a finite number > 0", "finite_positive")
+#: a coordinate or level: a finite number
+finite = _option_type(float, math.isfinite, "must be a finite number", "finite")
 
 
 def processing_choices(p: argparse.ArgumentParser) -> None:
