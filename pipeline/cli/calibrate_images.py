@@ -36,6 +36,7 @@ from sffscan.pipeline.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_OK,
     bit_depth,
+    check_distinct,
     finite,
     finite_positive,
     seed,
@@ -130,14 +131,8 @@ def _unbreathe(cal: Calibration, stack: np.ndarray, max_value: float) -> np.ndar
 
 def _distinct(paths: list[str], what: str) -> None:
     """No stack or image given twice (one gauge's stack for two heights, one flat for both
-    stacks of the noise, one board for two levels): named with both places."""
-    seen: dict[Path, int] = {}
-    for i, p in enumerate(paths):
-        key = Path(p).resolve()
-        if key in seen:
-            raise ValueError(f"{p}: given twice ({what} {seen[key] + 1} and {i + 1}); each "
-                             f"{what} is its own stack or image")
-        seen[key] = i
+    stacks of the noise, one board for two levels)."""
+    check_distinct(paths, what, why=f"each {what} is its own stack or image")
 
 
 def _level(text: str) -> float:

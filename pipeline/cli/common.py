@@ -12,7 +12,8 @@ import json
 import math
 import re
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, get_args
 
 from sffscan.pipeline.config import (
@@ -62,6 +63,19 @@ def _option_type(convert: Callable[[str], Any], ok: Callable[[Any], bool], rule:
 
     parse.__name__ = name
     return parse
+
+
+def check_distinct(paths: Sequence[str], what: str, *, first: int = 1, why: str) -> None:
+    """No file or folder given twice in one command (overlapping globs, two spellings of
+    one path): a ``ValueError`` naming it and both places (``what`` counted from
+    ``first``), then ``why`` it matters."""
+    seen: dict[Path, int] = {}
+    for i, p in enumerate(paths):
+        key = Path(p).resolve()
+        if key in seen:
+            raise ValueError(f"{p}: given twice ({what} {seen[key] + first} and {i + first}); "
+                             f"{why}")
+        seen[key] = i
 
 
 #: ``--seed``: numpy's seeds are non-negative integers

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from sffscan.pipeline.cli.common import check_distinct
 
 if TYPE_CHECKING:
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
@@ -22,18 +23,13 @@ def check_files_exist(paths: list[str]) -> None:
     """Every image file exists: a shell glob that matched nothing comes as its own pattern
     (``'d/*.tif'``), named as such, before anything else is said about the images; and no
     file is given twice (two globs that overlap would make one image two focus levels)."""
-    seen: dict[Path, int] = {}
-    for i, p in enumerate(paths):
+    for p in paths:
         if not Path(p).exists():
             if any(c in p for c in "*?["):
                 raise ValueError(f"no file matches the pattern {p!r} (the shell passes a "
                                  "pattern that matches nothing as it is)")
             raise ValueError(f"{p}: file not found")
-        key = Path(p).resolve()
-        if key in seen:
-            raise ValueError(f"{p}: given twice (images {seen[key]} and {i} of the list); "
-                             "each focus level is one image")
-        seen[key] = i
+    check_distinct(paths, "images", first=0, why="each focus level is one image")
 
 
 def _display(total: int, desc: str, show: bool) -> Any:
