@@ -89,9 +89,12 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         stats = shape_statistics(vol, am, curve_width(vol), seen)
         # SPC's noise (it costs about as much as the rest) and departure (a quarter of
         # that) only for curves that pass the rest
-        if (takes_spc(stats, pull=pull)
-                and takes_spc(stats, pull=pull, noise=(spc_noise(vol, seen), noise))
-                and takes_spc(stats, pull=pull, departure=spc_departure(vol, am, seen))):
+        if not takes_spc(stats, pull=pull):
+            return "adaptive_centroid" if centroid else "adaptive"
+        noises = (spc_noise(vol, seen), noise)
+        if (takes_spc(stats, pull=pull, noise=noises)
+                and takes_spc(stats, pull=pull, noise=noises,
+                              departure=spc_departure(vol, am, seen, centroid=centroid))):
             return "spc+centroid" if centroid else "spc+gauss3"
     return "adaptive_centroid" if centroid else "adaptive"
 

@@ -207,7 +207,8 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
                      noise=noises):
         return other  # SPC's map only where the stack takes it
-    departure = spc_departure(vol, peak)  # only for curves that pass the rest
+    # only for curves that pass the rest; against the peak the fallback takes
+    departure = spc_departure(vol, peak, centroid=takes_centroid(pull, noise=noise))
     spc = _from_sums(c, method="spc")
     return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                         in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull,
@@ -315,14 +316,13 @@ def depth_from_focus(
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
             clean (:func:`sffscan.stages.depth_choice.shape_select` at
             :data:`~sffscan.stages.depth_choice.SHAPE_SELECT_LIMITS` and a centroid
-            pull under :data:`~sffscan.stages.depth_choice.SPC_PULL_LIMIT`, and SPC's
-            predicted noise at most
-            :data:`~sffscan.stages.depth_choice.SPC_NOISE_RATIO` times the pull's
-            noise or negligible, :func:`~sffscan.stages.depth_choice.spc_noise`; tuned
-            by the
-            leave-one-family-out study; and SPC's departure from the curves' 3-point
-            peaks no larger than its spread,
-            :func:`~sffscan.stages.depth_choice.spc_departure`), except at the pixels
+            pull under :data:`~sffscan.stages.depth_choice.SPC_PULL_LIMIT`, tuned by
+            the leave-one-family-out study; and SPC's departure from the peaks the
+            fallback takes (3-point Gaussian or 5-level centroid) and its predicted
+            noise (:func:`~sffscan.stages.depth_choice.spc_noise`) small enough that
+            its mean squared error is predicted no larger than the fallback's,
+            :func:`~sffscan.stages.depth_choice.spc_departure`,
+            :func:`~sffscan.stages.depth_choice.takes_spc`), except at the pixels
             whose SPC depth lies within
             :data:`~sffscan.stages.depth_choice.SPC_END_REACH` curve widths of an end
             of the range (:func:`~sffscan.stages.depth_choice.spc_in_range`); else, and

@@ -219,7 +219,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
                          in_range=in_range, pull=pull, max_pull=t)
         sse[score_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, argmax)
+    departure = spc_departure(volume, argmax, centroid=takes_centroid(pull, noise=noise))
     for t in SPC_NOISE_RATIOS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
