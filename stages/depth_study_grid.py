@@ -204,22 +204,28 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     in_range = spc_in_range(depth["spc"], width, n)
     pull, noise = pull_statistics(volume, argmax)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, n)
+    # every candidate below is the shipped rule with one setting varied: the pull, SPC's
+    # noise and its departure tested as the default tests them (docs/depth-method-log.md,
+    # 2026-12-04: before, shape-select, spc-reach and spc-pull left the last two out)
+    noises = (spc_noise(volume), noise)
+    departure = spc_departure(volume, argmax, centroid=takes_centroid(pull, noise=noise))
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
-                         max_ratio=pair[1], in_range=in_range, pull=pull)
+                         max_ratio=pair[1], in_range=in_range, pull=pull, noise=noises,
+                         departure=departure)
         sse[score_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     spc, other = depth["spc"], depth["adaptive_centroid"]
     for k in SPC_REACHES:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                         in_range=spc_in_range(spc, width, n, reach=k), pull=pull)
+                         in_range=spc_in_range(spc, width, n, reach=k), pull=pull,
+                         noise=noises, departure=departure)
         sse[score_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for t in SPC_PULLS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                         in_range=in_range, pull=pull, max_pull=t)
+                         in_range=in_range, pull=pull, max_pull=t, noise=noises,
+                         departure=departure)
         sse[score_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
-    noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, argmax, centroid=takes_centroid(pull, noise=noise))
     for t in SPC_NOISE_RATIOS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
