@@ -416,22 +416,12 @@ def test_shape_select_refuses_spc_on_a_noisy_thin_lens_slope() -> None:
     takes by about as much as their spread, and errs over twice as much as the fallback
     (SPC 1.32, adaptive_centroid 0.58 levels RMS, measured 2026-12-04); the stack and a scan
     block of it take the fallback."""
-    from sffscan.stages.block_depth import SPC_BLOCKS, block_method
     from sffscan.stages.sim.families import family_stack
 
     st = family_stack("slopes-lens-noisy", 8, size_px=64)
     vol = focus_measure(st.images, operator="glvm", window=9)
     truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-    a = first_argmax(vol)
-    inner = (slice(4, -4), slice(4, -4))
-
-    def rmse(d: np.ndarray) -> float:
-        return float(np.sqrt(np.mean((d - truth)[inner] ** 2)))
-    fallback = depth_from_focus(vol, method="adaptive_centroid", argmax=a)[0]
-    assert rmse(depth_from_focus(vol, method="spc", argmax=a)[0]) > 2.0 * rmse(fallback)
-    np.testing.assert_array_equal(depth_from_focus(vol, method="shape_select", argmax=a)[0],
-                                  fallback)
-    assert block_method(vol, a) not in SPC_BLOCKS
+    _takes_the_fallback(vol, truth, (slice(4, -4), slice(4, -4)), spc_over=2.0)
 
 
 def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
@@ -439,7 +429,6 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     thin-lens pillbox family, 1.2 %/frame breathing, seed 0): SPC departs from the curves'
     peaks by more than their spread, and errs over 1.5x as much as adaptive_centroid; the
     stack and a scan block of it take the fallback."""
-    from sffscan.stages.block_depth import SPC_BLOCKS, block_method
     from sffscan.stages.depth_choice import spc_departure
     from sffscan.stages.fields.align import align_stack
     from sffscan.stages.fields.aperture import stack_noise_floor
@@ -453,11 +442,21 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     dep, spread = spc_departure(vol, a)
     assert dep > spread > 0.0
     truth = real.truth_um / 10.0  # 10 µm a level
-    inner = (slice(20, -20), slice(20, -20))
+    _takes_the_fallback(vol, truth, (slice(20, -20), slice(20, -20)), spc_over=1.5)
+
+
+def _takes_the_fallback(vol: np.ndarray, truth: np.ndarray, inner: tuple[slice, slice], *,
+                        spc_over: float) -> None:
+    """SPC's RMSE over ``inner`` is more than ``spc_over`` times adaptive_centroid's, and
+    the stack and a scan block of it take adaptive_centroid."""
+    from sffscan.stages.block_depth import SPC_BLOCKS, block_method
+
+    a = first_argmax(vol)
+
     def rmse(d: np.ndarray) -> float:
         return float(np.sqrt(np.mean((d - truth)[inner] ** 2)))
     fallback = depth_from_focus(vol, method="adaptive_centroid", argmax=a)[0]
-    assert rmse(depth_from_focus(vol, method="spc", argmax=a)[0]) > 1.5 * rmse(fallback)
+    assert rmse(depth_from_focus(vol, method="spc", argmax=a)[0]) > spc_over * rmse(fallback)
     np.testing.assert_array_equal(depth_from_focus(vol, method="shape_select", argmax=a)[0],
                                   fallback)
     assert block_method(vol, a) not in SPC_BLOCKS
