@@ -31,8 +31,8 @@ from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
-__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_method",
-           "block_uncertainty", "depth_rows"]
+__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
+           "block_method", "block_uncertainty", "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
@@ -51,7 +51,16 @@ its pixels outside the range SPC holds in
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
                  complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
-    """The method a block takes, judged on the curves of
+    """The method a block takes: :func:`block_choice`'s first element."""
+    return block_choice(levels, argmax, complete, method=method)[0]
+
+
+def block_choice(levels: np.ndarray, argmax: np.ndarray,
+                 complete: np.ndarray | None = None, *, method: str = "shape_select"
+                 ) -> tuple[str, float]:
+    """The method a block takes, and SPC's bias where it takes SPC (levels: the departure
+    ``|d|`` of :func:`sffscan.stages.depth_choice.spc_departure`, which the height
+    uncertainty adds in quadrature; 0.0 for the other methods), judged on the curves of
     :data:`sffscan.stages.depth_choice.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_choice.sampled_curves`).
 
@@ -81,7 +90,7 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
     sample = sampled_curves(levels, argmax, complete)
     if sample is None:
-        return "adaptive"
+        return "adaptive", 0.0
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
@@ -89,14 +98,12 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
         stats = shape_statistics(vol, am, curve_width(vol), seen)
         # SPC's noise (it costs about as much as the rest) and departure (a quarter of
         # that) only for curves that pass the rest
-        if not takes_spc(stats, pull=pull):
-            return "adaptive_centroid" if centroid else "adaptive"
-        noises = (spc_noise(vol, seen), noise)
-        if (takes_spc(stats, pull=pull, noise=noises)
-                and takes_spc(stats, pull=pull, noise=noises,
-                              departure=spc_departure(vol, am, seen, centroid=centroid))):
-            return "spc+centroid" if centroid else "spc+gauss3"
-    return "adaptive_centroid" if centroid else "adaptive"
+        noises = (spc_noise(vol, seen), noise) if takes_spc(stats, pull=pull) else None
+        if noises is not None and takes_spc(stats, pull=pull, noise=noises):
+            departure = spc_departure(vol, am, seen, centroid=centroid)
+            if takes_spc(stats, pull=pull, noise=noises, departure=departure):
+                return ("spc+centroid" if centroid else "spc+gauss3"), abs(departure[0])
+    return ("adaptive_centroid" if centroid else "adaptive"), 0.0
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
@@ -187,17 +194,19 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
 
 def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
                       rows: tuple[int, int], *, n_levels: int, focus_heights_um: np.ndarray,
-                      window: int) -> np.ndarray:
+                      window: int, bias_levels: float = 0.0) -> np.ndarray:
     """:func:`~sffscan.stages.depth_uncertainty.height_uncertainty_um` of rows [r0, r1)
     of a block, from the rows within its filters' reach (a 5 x 5 median, then ranges and
     means over ``2 window + 1`` px: 2 + ``window`` rows; one more is read).
 
     ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
-    every row of the block; returns float32 (r1 - r0, block), µm.
+    every row of the block; ``bias_levels``: the block's SPC bias (:func:`block_choice`);
+    returns float32 (r1 - r0, block), µm.
     """
     r0, r1 = rows
     reach = 3 + window
     a0, a1 = max(r0 - reach, 0), min(r1 + reach, depth.shape[0])
     u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], n_levels=n_levels,
-                              focus_heights_um=focus_heights_um, window=window)
+                              focus_heights_um=focus_heights_um, window=window,
+                              bias_levels=bias_levels)
     return u[r0 - a0:r1 - a0]

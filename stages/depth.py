@@ -41,16 +41,11 @@ from sffscan.stages.depth_candidates import (
     window_pc,
 )
 from sffscan.stages.depth_choice import (
-    SHAPE_SELECT_LIMITS,
     pull_statistics,
-    shape_select,
-    shape_statistics,
-    spc_departure,
     spc_in_range,
-    spc_noise,
+    stack_choice,
     stack_sample,
     takes_centroid,
-    takes_spc,
 )
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
@@ -197,22 +192,13 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     width = width_from_sums(h0, np.hypot(re, im), c.volume.min(axis=0),
                             c.volume.shape[0])
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
-    vol, peak, wid = stack_sample(c.volume, c.argmax, width)
-    assert wid is not None
-    stats = shape_statistics(vol, peak, wid)
-    max_skew, max_ratio = SHAPE_SELECT_LIMITS
-    pull, noise = pull_statistics(vol, peak)
-    other = _adaptive_centroid(c, (pull, noise))
-    noises = (spc_noise(vol), noise)
-    if not takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
-                     noise=noises):
+    choice = stack_choice(c.volume, c.argmax, width)
+    other = _adaptive_centroid(c, (choice.pull, choice.noise))
+    if not choice.spc:
         return other  # SPC's map only where the stack takes it
-    # only for curves that pass the rest; against the peak the fallback takes
-    departure = spc_departure(vol, peak, centroid=takes_centroid(pull, noise=noise))
     spc = _from_sums(c, method="spc")
-    return shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                        in_range=spc_in_range(spc, width, c.volume.shape[0]), pull=pull,
-                        noise=noises, departure=departure)
+    in_range = spc_in_range(spc, width, c.volume.shape[0])
+    return np.where(in_range, spc, other).astype(np.float32, copy=False)
 
 
 ESTIMATORS: dict[str, Estimator] = {

@@ -26,18 +26,19 @@ study tried beside them are in :mod:`sffscan.stages.depth_candidates`.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.depth_candidates import half_height_run
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
-from sffscan.stages.depth_uncertainty import width_from_sums
+from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
 
 __all__ = ["CENTROID_PULL_LIMIT", "SHAPE_SAMPLE_STEP", "SHAPE_SELECT_LIMITS", "SHAPE_STACK_CURVES",
-           "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
+           "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice",
            "centroid_pull", "curve_skew", "pull_statistics", "sampled_curves", "shape_select",
-           "shape_statistics", "spc_departure", "spc_in_range", "spc_noise", "stack_sample",
-           "takes_centroid", "takes_spc"]
+           "shape_statistics", "spc_departure", "spc_in_range", "spc_noise", "stack_choice",
+           "stack_sample", "takes_centroid", "takes_spc"]
 
 CENTROID_PULL_LIMIT = 0.03
 """Largest :func:`centroid_pull` (levels) for which ``"adaptive_centroid"`` takes the
@@ -462,3 +463,51 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
     if in_range is None:
         return np.asarray(spc, np.float32)
     return np.where(in_range, spc, other).astype(np.float32, copy=False)
+
+
+class StackChoice(NamedTuple):
+    """``"shape_select"``'s choice for a stack (:func:`stack_choice`)."""
+
+    spc: bool
+    """The stack takes SPC (where it is in range)."""
+    bias: float
+    """SPC's departure from the fallback's peaks, ``|d|`` of :func:`spc_departure` (levels),
+    where the stack takes SPC; 0.0 where it does not: a bias of SPC's depth the depth's
+    scatter does not show, which the height uncertainty adds in quadrature
+    (:mod:`sffscan.stages.depth_uncertainty`)."""
+    pull: float
+    """The curves' centroid pull (:func:`pull_statistics`), levels."""
+    noise: float
+    """The pull's noise (:func:`pull_statistics`), levels."""
+
+
+def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None
+                 ) -> StackChoice:
+    """``"shape_select"``'s choice for a whole stack, judged on :func:`stack_sample`'s curves
+    as :func:`sffscan.stages.depth.depth_from_focus` judges it (a scan's block is judged
+    by :func:`sffscan.stages.block_depth.block_choice`).
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        The focus curves.
+    argmax : (H, W) ndarray of int
+        Their argmax.
+    width : (H, W) ndarray of float, optional
+        Their widths (:func:`sffscan.stages.depth_uncertainty.curve_width`; computed when
+        None).
+    """
+    if width is None:
+        width = curve_width(volume)
+    vol, peak, wid = stack_sample(volume, argmax, width)
+    assert wid is not None
+    stats = shape_statistics(vol, peak, wid)
+    pull, noise = pull_statistics(vol, peak)
+    noises = (spc_noise(vol), noise)
+    if not takes_spc(stats, pull=pull, noise=noises):
+        return StackChoice(False, 0.0, pull, noise)
+    # only for curves that pass the rest; against the peak the fallback takes
+    departure = spc_departure(vol, peak, centroid=takes_centroid(pull, noise=noise))
+    if not takes_spc(stats, pull=pull, noise=noises, departure=departure):
+        return StackChoice(False, 0.0, pull, noise)
+    return StackChoice(True, abs(departure[0]), pull, noise)

@@ -31,6 +31,7 @@ from sffscan.stages.depth import (
     first_argmax,
     focus_sums,
 )
+from sffscan.stages.depth_choice import stack_choice
 from sffscan.stages.depth_study_grid import (
     CANDIDATES,
     Setting,
@@ -64,6 +65,7 @@ class _Scores:
     error: np.ndarray
     scatter: np.ndarray
     excess: np.ndarray
+    bias: np.ndarray
 
 
 def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
@@ -83,18 +85,21 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse.update(candidate_errors(volume, truth_levels, mask, depth=depth, argmax=a, width=width,
                                 median_size=median_size, spread_size=spread_size))
     return _uncertainty_terms(volume, depth[DEFAULT_METHOD], width, truth_levels, mask, sse=sse,
-                              window=spread_size)
+                              window=spread_size, argmax=a)
 
 
 def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
-                       sse: dict[str, float], window: int) -> _Scores:
+                       sse: dict[str, float], window: int, argmax: np.ndarray) -> _Scores:
     scatter = depth_scatter(depth, window=window)
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
     excess = width_excess(width, share, depth_range(depth, window=window), window=window)
-    return _Scores(sse, int(mask.sum()), (depth - truth_levels)[mask], scatter[mask],
-                   excess[mask])
+    # SPC's bias where the default took SPC for the stack (depth_uncertainty's b)
+    bias = stack_choice(volume, argmax, width).bias if DEFAULT_METHOD == "shape_select" else 0.0
+    count = int(mask.sum())
+    return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], excess[mask],
+                   np.full(count, bias, np.float32))
 
 
 def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
@@ -102,10 +107,11 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     """The default method's errors and the uncertainty's terms on the ``mask`` pixels of
     one focus volume (levels), for :mod:`sffscan.stages.uncertainty_fit`
     without scoring every method."""
+    a = first_argmax(np.ascontiguousarray(volume, np.float32))
     d = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
-                         spread_size=spread_size)[0]
+                         spread_size=spread_size, argmax=a)[0]
     return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
-                              window=spread_size)
+                              window=spread_size, argmax=a)
 
 
 @dataclass(frozen=True)

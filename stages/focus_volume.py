@@ -414,7 +414,7 @@ class FocusVolume:
         sums = np.empty((3, self.rows, width), np.float32)  # H_0, Re H_1, Im H_1
         low = np.empty((self.rows, width), np.float32)  # each curve's minimum
         argmax = self._gather(self.argmax, a0, a1)
-        method, low_src = self.method, None
+        method, low_src, bias = self.method, None, 0.0
         complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
         if self.fv is None:
             src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
@@ -423,7 +423,8 @@ class FocusVolume:
             own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
             src = self._gather(self.fv, u0 if own else a0, u1 if own else a1)
             if method in blocks.BLOCK_CHOICES:  # one choice for the block, whatever its bands
-                method = blocks.block_method(src, argmax[:, inner], complete, method=method)
+                method, bias = blocks.block_choice(src, argmax[:, inner], complete,
+                                                   method=method)
 
         def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)
@@ -452,7 +453,7 @@ class FocusVolume:
             filled = np.where(valid, depth, fill)
             us = self._by_bands(lambda r0, r1: blocks.block_uncertainty(
                 filled, sums, low, (r0, r1), n_levels=self.n, focus_heights_um=self.heights,
-                window=self.spread_size))
+                window=self.spread_size, bias_levels=bias))
             unc = us[0] if len(us) == 1 else np.concatenate(us)
             np.copyto(unc, np.nan, where=invalid)
         conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)

@@ -3,8 +3,9 @@ errors are known (the synthetic families' training and held-out seeds,
 :func:`sffscan.stages.depth_study.leave_one_family_out`).
 
 The uncertainty (:mod:`sffscan.stages.depth_uncertainty`) is
-``sigma = sqrt((a scatter)^2 + (excess / 2)^2 + c^2)`` levels; :func:`fit_uncertainty`
-chooses ``a`` and ``c`` by a quantile fit, :func:`uncertainty_coverage` is the bar's
+``sigma = sqrt((a scatter)^2 + (excess / 2)^2 + b^2 + c^2)`` levels (``b`` SPC's bias
+where the stack took SPC, not fitted); :func:`fit_uncertainty` chooses ``a`` and ``c`` by a
+quantile fit, :func:`uncertainty_coverage` is the bar's
 measure: the share of pixels with ``|error| <= 2 sigma`` (the bar: 0.90 .. 0.98 on every
 held-out family). Pure computation.
 """
@@ -33,6 +34,9 @@ class UncertaintyTerms(Protocol):
     error: np.ndarray
     scatter: np.ndarray
     excess: np.ndarray
+    bias: np.ndarray
+    """SPC's bias where the stack took SPC, else 0 (levels; added in quadrature, not
+    fitted: :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`'s ``b``)."""
 
 
 def _sigma(scores: Sequence[UncertaintyTerms], a: float, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +44,8 @@ def _sigma(scores: Sequence[UncertaintyTerms], a: float, c: float) -> tuple[np.n
     e = np.abs(np.concatenate([x.error for x in scores])).astype(np.float64)
     s = np.concatenate([x.scatter for x in scores]).astype(np.float64)
     x = np.concatenate([x.excess for x in scores]).astype(np.float64)
-    return e, np.sqrt((a * s) ** 2 + (MIX_SCALE * x) ** 2 + c * c)
+    b = np.concatenate([x.bias for x in scores]).astype(np.float64)
+    return e, np.sqrt((a * s) ** 2 + (MIX_SCALE * x) ** 2 + b * b + c * c)
 
 
 def uncertainty_coverage(scores: Sequence[UncertaintyTerms], a: float, c: float) -> float:
@@ -64,7 +69,8 @@ def fit_uncertainty(groups: Sequence[Sequence[UncertaintyTerms]]) -> tuple[float
         e, _ = _sigma(g, 1.0, 0.0)
         s = np.concatenate([x.scatter for x in g]).astype(np.float64)
         x = MIX_SCALE * np.concatenate([x.excess for x in g]).astype(np.float64)
-        data.append((np.log(e + 1e-3), s * s, x * x))
+        b = np.concatenate([x.bias for x in g]).astype(np.float64)
+        data.append((np.log(e + 1e-3), s * s, x * x + b * b))
     tau = COVERAGE_TARGET
 
     def loss(p: np.ndarray) -> float:

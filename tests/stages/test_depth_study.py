@@ -376,3 +376,55 @@ def test_candidate_estimators_known_answers() -> None:
     np.testing.assert_allclose(pc, peaks, atol=0.05)
     flat = np.ones((n, 1, 1))  # no maximum: the fallback
     assert gauss_window_fit(flat, np.array([[7]]), np.array([[3.5]]), half_window=3)[0, 0] == 3.5
+
+
+def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
+    """depth_uncertainty's ``b``: sigma^2 grows by exactly b^2 (levels; in µm times the
+    focus step), nothing else changes; a stack that takes SPC carries its departure |d| as
+    b (stack_choice), a scan block of it the same (block_choice), and a stack or block that
+    does not take SPC carries 0."""
+    from sffscan.stages.block_depth import SPC_BLOCKS, block_choice
+    from sffscan.stages.depth import first_argmax, focus_sums
+    from sffscan.stages.depth_choice import (
+        pull_statistics,
+        spc_departure,
+        stack_choice,
+        takes_centroid,
+    )
+    from sffscan.stages.depth_uncertainty import (
+        curve_width,
+        depth_uncertainty,
+        floor_share,
+        height_uncertainty_um,
+    )
+    from sffscan.stages.focus_measure import focus_measure
+
+    s = family_stack("even-gauss", 0, size_px=48, n_levels=30)
+    vol = focus_measure(s.images, window=9)
+    a = first_argmax(vol)
+    d = depth_from_focus(vol, method="shape_select", argmax=a)[0]
+    share = floor_share(focus_sums(vol)[0], vol.min(axis=0), 30)
+    w = curve_width(vol)
+    plain = depth_uncertainty(d, w, share).astype(np.float64)
+    biased = depth_uncertainty(d, w, share, bias_levels=0.4).astype(np.float64)
+    np.testing.assert_allclose(biased ** 2, plain ** 2 + 0.16, rtol=1e-5)
+    step = float(s.focus_um[1] - s.focus_um[0])
+    um = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
+                               focus_heights_um=s.focus_um, bias_levels=0.4)
+    um0 = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
+                                focus_heights_um=s.focus_um)
+    np.testing.assert_allclose(um.astype(np.float64) ** 2,
+                               um0.astype(np.float64) ** 2 + (0.4 * step) ** 2, rtol=1e-4)
+    choice = stack_choice(vol, a)  # even, clean curves: SPC
+    pull, noise = pull_statistics(vol, a)
+    dep = spc_departure(vol, a, centroid=takes_centroid(pull, noise=noise))
+    assert choice.spc and choice.bias == pytest.approx(abs(dep[0])) and choice.bias > 0
+    big = focus_measure(family_stack("even-gauss", 0, size_px=160, n_levels=30).images,
+                        window=9)  # a block judges every 16th row and 8th column
+    method, bias = block_choice(big, first_argmax(big))
+    assert method in SPC_BLOCKS and bias > 0
+    lopsided = family_stack("lens-pillbox-noisy", 0, size_px=48, n_levels=30)
+    lv = focus_measure(lopsided.images, window=9)
+    la = first_argmax(lv)
+    assert stack_choice(lv, la) == (False, 0.0, *pull_statistics(lv, la))
+    assert block_choice(lv, la)[1] == 0.0
