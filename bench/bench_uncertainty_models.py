@@ -132,7 +132,8 @@ def stack_terms(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray) 
 def subset(st: Stack, sel: np.ndarray) -> Any:
     sc = st.scores
     return dataclasses.replace(sc, count=int(sel.sum()), error=sc.error[sel],
-                               scatter=sc.scatter[sel], excess=sc.excess[sel])
+                               scatter=sc.scatter[sel], excess=sc.excess[sel],
+                               bias=sc.bias[sel])
 
 
 Model = Callable[[Sequence[Sequence[Stack]], Sequence[Stack]], float]
@@ -172,8 +173,9 @@ def with_term(term: Callable[[Stack], np.ndarray]) -> Model:
             e = np.abs(np.concatenate([s.scores.error for s in g])).astype(np.float64)
             sc = np.concatenate([s.scores.scatter for s in g]).astype(np.float64)
             x = MIX_SCALE * np.concatenate([s.scores.excess for s in g]).astype(np.float64)
+            b = np.concatenate([s.scores.bias for s in g]).astype(np.float64)  # SPC's bias
             t = np.concatenate([np.broadcast_to(term(s), s.scores.error.shape) for s in g])
-            return e, sc * sc, x * x, t.astype(np.float64) ** 2
+            return e, sc * sc, x * x + b * b, t.astype(np.float64) ** 2
 
         data = [terms(g) for g in train]
         logs = [np.log(e + 1e-3) for e, *_ in data]
