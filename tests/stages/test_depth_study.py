@@ -13,7 +13,13 @@ from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_study import format_table, leave_one_family_out
 from sffscan.stages.depth_study_grid import CANDIDATES, THRESHOLDS, width_switch
-from sffscan.stages.depth_uncertainty import curve_width
+from sffscan.stages.depth_uncertainty import (
+    curve_width,
+    depth_uncertainty,
+    floor_share,
+    height_uncertainty_um,
+)
+from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_names, family_stack
 from sffscan.stages.uncertainty_fit import UncertaintyTerms
 
@@ -273,13 +279,6 @@ def test_depth_uncertainty_known_answers() -> None:
 def test_height_uncertainty_from_sums_matches_the_volume_path() -> None:
     """The streaming form (sums and minima) gives the whole-volume form's sigma, in µm."""
     from sffscan.stages.depth import focus_sums
-    from sffscan.stages.depth_uncertainty import (
-        curve_width,
-        depth_uncertainty,
-        floor_share,
-        height_uncertainty_um,
-    )
-    from sffscan.stages.focus_measure import focus_measure
 
     s = family_stack("steps", 0, size_px=48, n_levels=30)
     vol = focus_measure(s.images, window=9)
@@ -391,13 +390,6 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
         stack_choice,
         takes_centroid,
     )
-    from sffscan.stages.depth_uncertainty import (
-        curve_width,
-        depth_uncertainty,
-        floor_share,
-        height_uncertainty_um,
-    )
-    from sffscan.stages.focus_measure import focus_measure
 
     s = family_stack("even-gauss", 0, size_px=48, n_levels=30)
     vol = focus_measure(s.images, window=9)
