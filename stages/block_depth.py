@@ -15,11 +15,9 @@ from sffscan.stages.depth_choice import (
     pull_statistics,
     sampled_curves,
     shape_statistics,
-    spc_departure,
+    spc_bias,
     spc_in_range,
-    spc_noise,
     takes_centroid,
-    takes_spc,
 )
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
@@ -96,13 +94,9 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        # SPC's noise (it costs about as much as the rest) and departure (a quarter of
-        # that) only for curves that pass the rest
-        noises = (spc_noise(vol, seen), noise) if takes_spc(stats, pull=pull) else None
-        if noises is not None and takes_spc(stats, pull=pull, noise=noises):
-            departure = spc_departure(vol, am, seen, centroid=centroid)
-            if takes_spc(stats, pull=pull, noise=noises, departure=departure):
-                return ("spc+centroid" if centroid else "spc+gauss3"), abs(departure[0])
+        bias = spc_bias(vol, am, stats, pull, noise, seen)
+        if bias is not None:
+            return ("spc+centroid" if centroid else "spc+gauss3"), bias
     return ("adaptive_centroid" if centroid else "adaptive"), 0.0
 
 

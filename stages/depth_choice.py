@@ -37,8 +37,8 @@ from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
 __all__ = ["CENTROID_PULL_LIMIT", "SHAPE_SAMPLE_STEP", "SHAPE_SELECT_LIMITS", "SHAPE_STACK_CURVES",
            "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice",
            "centroid_pull", "curve_skew", "pull_statistics", "sampled_curves", "shape_select",
-           "shape_statistics", "spc_departure", "spc_in_range", "spc_noise", "stack_choice",
-           "stack_sample", "takes_centroid", "takes_spc"]
+           "shape_statistics", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
+           "stack_choice", "stack_sample", "takes_centroid", "takes_spc"]
 
 CENTROID_PULL_LIMIT = 0.03
 """Largest :func:`centroid_pull` (levels) for which ``"adaptive_centroid"`` takes the
@@ -501,13 +501,39 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
         width = curve_width(volume)
     vol, peak, wid = stack_sample(volume, argmax, width)
     assert wid is not None
-    stats = shape_statistics(vol, peak, wid)
     pull, noise = pull_statistics(vol, peak)
-    noises = (spc_noise(vol), noise)
-    if not takes_spc(stats, pull=pull, noise=noises):
-        return StackChoice(False, 0.0, pull, noise)
-    # only for curves that pass the rest; against the peak the fallback takes
-    departure = spc_departure(vol, peak, centroid=takes_centroid(pull, noise=noise))
-    if not takes_spc(stats, pull=pull, noise=noises, departure=departure):
-        return StackChoice(False, 0.0, pull, noise)
-    return StackChoice(True, abs(departure[0]), pull, noise)
+    bias = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise)
+    return StackChoice(bias is not None, 0.0 if bias is None else bias, pull, noise)
+
+
+def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
+             pull: float, noise: float, mask: np.ndarray | None = None) -> float | None:
+    """``"shape_select"``'s tests on curves of these :func:`shape_statistics` and
+    :func:`pull_statistics`: SPC's departure ``|d|`` (:func:`spc_departure` against the
+    peak the fallback takes; levels) where they take SPC, None where they do not. SPC's
+    noise and departure are measured only for curves that pass the rest (they cost about
+    as much as the rest). One home for the choice of a stack (:func:`stack_choice`) and of
+    a scan block (:func:`sffscan.stages.block_depth.block_choice`).
+
+    Parameters
+    ----------
+    levels : (N, H, W) ndarray of float
+        The curves judged (a stack's sample or a block's).
+    argmax : (H, W) ndarray of int
+        Their argmax.
+    statistics : (float, float)
+        Their :func:`shape_statistics`.
+    pull, noise : float
+        Their :func:`pull_statistics`.
+    mask : (H, W) ndarray of bool, optional
+        The curves judged (all when None).
+    """
+    if not takes_spc(statistics, pull=pull):
+        return None
+    noises = (spc_noise(levels, mask), noise)
+    if not takes_spc(statistics, pull=pull, noise=noises):
+        return None
+    departure = spc_departure(levels, argmax, mask, centroid=takes_centroid(pull, noise=noise))
+    if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
+        return None
+    return abs(departure[0])
