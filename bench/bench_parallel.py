@@ -32,7 +32,11 @@ allocator skips inodes deleted in the last seconds to minutes (the kernel's
 ``recently_deleted``, checked only without a journal), so after the benches' and the
 tests' own deletions a new file costs up to ~1 ms of kernel CPU there (the mosaic writes
 ~2.4 new chunk files a frame, the recorder 2), against tens of µs on tmpfs or a journaled
-file system. Default: the ``--cache`` folder, as before.
+file system. Default: the ``--cache`` folder, as before. Each run's outputs are kept
+(in a ``runs-<pid>`` folder there) until the bench ends, so that no run pays for the
+deletion of the runs before it, as a scan in the field does not; ``--delete-each`` deletes
+them after each run, as the bench did before 2026-12-04 (a later bench, or test run, still
+pays for this one's deletions for a minute or more).
 
 frames/s = frames / wall time of streaming (process mode: from the moment every worker is
 ready; the workers' start-up, mostly importing torch, is reported apart). CPU ms/frame
@@ -50,9 +54,11 @@ prints each pair's ratio and the ratio of the medians (nothing written)::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -135,7 +141,11 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         frames = replay_frames(cfg, images)
     else:
         frames = open_recording(case["recording"]).frames()
-    with tempfile.TemporaryDirectory(dir=case.get("outputs") or case.get("tmp")) as tmp:
+    where = str(case.get("outputs") or case["tmp"])
+    # "keep": the run's outputs stay until the bench ends (main removes that folder), so no
+    # run pays for the deletion of the one before (see the module's docstring)
+    with (contextlib.nullcontext(tempfile.mkdtemp(dir=Path(where) / case["keep"]))
+          if case.get("keep") else tempfile.TemporaryDirectory(dir=where)) as tmp:
         sinks = [recorder_sink(cfg, str(Path(tmp) / "rec.zarr"))] if case["record"] else []
         ru0 = (resource.getrusage(resource.RUSAGE_SELF),
                resource.getrusage(resource.RUSAGE_CHILDREN))
@@ -274,7 +284,9 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
             f"{statistics.median(x['startup_s'] for x in r['runs']):.1f} | "
             f"{statistics.median(x['cpu_ms_per_frame'] for x in r['runs']):.2f} | {rec} |")
     lines += ["", f"Baseline (thesis-style torch conv2d GLVM, whole frames, best of 3): "
-              f"{base:.1f} frames/s.", ""]
+              f"{base:.1f} frames/s.", "",
+              f"- Each run's outputs (mosaic, recording) deleted "
+              f"{meta.get('outputs_deleted', 'after each run')}."]
     for d, (before, after) in meta.get("file_create_ms", {}).items():
         lines.append(f"- Creating a 64 kB file as the chunk writer does, in {d} "
                      f"({file_system(d)}): {before:.3f} ms of CPU before the runs, "
@@ -315,11 +327,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated on/off: each worker process's stages in one thread "
                          "or a thread each, every processes case with each, interleaved; "
                          "default auto (the placement's rule)")
+    ap.add_argument("--delete-each", action="store_true",
+                    help="delete each run's outputs right after it (before 2026-12-04 the "
+                         "only way); default: keep them until the bench ends")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--scaling", type=int, metavar="ROUNDS",
                     help="only the core scaling of processes from memory, ROUNDS pairs")
     args = ap.parse_args(argv)
-    from bench_pipeline import frame_bank, machine
+    from bench_pipeline import frame_bank
 
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
@@ -357,6 +372,23 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--one-thread takes auto, on, off; got {args.one_thread!r}")
     cases = [{**c, "one_thread": v} for c in cases
              for v in (ones if c["mode"] == "processes" else ["auto"])]
+    keep = "" if args.delete_each else f"runs-{os.getpid()}"
+    for d in {c.get("outputs") or c["tmp"] for c in cases} if keep else ():
+        (Path(d) / keep).mkdir(parents=True, exist_ok=True)
+    cases = [{**c, "keep": keep} for c in cases]
+    try:
+        return run_rounds(args, argv, cases, outputs, bank, method, t_run, load_before)
+    finally:
+        for d in {c.get("outputs") or c["tmp"] for c in cases} if keep else ():
+            shutil.rmtree(Path(d) / keep, ignore_errors=True)
+
+
+def run_rounds(args: argparse.Namespace, argv: list[str] | None,
+               cases: list[dict[str, Any]], outputs: list[str], bank: Path, method: str,
+               t_run: float, load_before: str) -> int:
+    """Every case ``args.rounds`` times, interleaved; writes the report."""
+    from bench_pipeline import machine
+
     rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
     creates = {d: [file_create_ms(d)] for d in outputs}
     base = baseline_fps(bank, 12)
@@ -373,7 +405,8 @@ def main(argv: list[str] | None = None) -> int:
             "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
             "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
             "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,
-            "method": method,
+            "method": method, "outputs_deleted": "after each run" if args.delete_each
+            else "at the end of the bench",
             "run_s": time.perf_counter() - t_run}
     write_report(args.out, meta, rows)
     print(args.out.read_text(encoding="utf-8"))
