@@ -44,9 +44,11 @@ Not a test: nothing here asserts.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -107,7 +109,9 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     parallel.process_result = capture  # type: ignore[assignment]
     cfg = scan_config("processes" if case["mode"].startswith("processes") else "threads")
     images = load_bank(cfg, Path(case["bank"]), case["frames"])
-    with tempfile.TemporaryDirectory(dir=case.get("tmp")) as tmp:
+    # the run's mosaic stays until the bench ends (main removes the folder): no run pays for
+    # the deletion of the one before (bench_parallel.py's docstring)
+    with contextlib.nullcontext(tempfile.mkdtemp(dir=case["tmp"])) as tmp:
         ru0 = resource.getrusage(resource.RUSAGE_SELF)
         rep = run_scan(cfg, frames=replay_frames(cfg, images), output=Path(tmp) / "m.zarr",
                        progress=False)
@@ -460,8 +464,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
         return 0
-    from bench_parallel import file_system
-    from bench_pipeline import frame_bank, machine
+    from bench_pipeline import frame_bank
 
     t0 = time.perf_counter()
     load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
@@ -469,8 +472,21 @@ def main(argv: list[str] | None = None) -> int:
     cores = min(args.cores, len(os.sched_getaffinity(0)))
     outputs = args.outputs or args.cache
     outputs.mkdir(parents=True, exist_ok=True)
-    common = {"frames": args.frames, "bank": str(bank), "tmp": str(outputs),
-              "cores": cores}
+    keep = outputs / f"runs-{os.getpid()}"
+    keep.mkdir()
+    try:
+        return measure(args, argv, bank, cores, outputs, keep, t0, load_before)
+    finally:
+        shutil.rmtree(keep, ignore_errors=True)
+
+
+def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores: int,
+            outputs: Path, keep: Path, t0: float, load_before: str) -> int:
+    """The runs, the band overhead and the model; writes the report."""
+    from bench_parallel import file_system
+    from bench_pipeline import machine
+
+    common = {"frames": args.frames, "bank": str(bank), "tmp": str(keep), "cores": cores}
     modes = ["threads", "processes", PER_STAGE]
     runs: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
     for rnd in range(args.rounds):
@@ -517,7 +533,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_before": load_before,
         "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
         "frames": args.frames, "rounds": args.rounds, "cores": cores,
-        "outputs": f"{outputs} ({file_system(outputs)})",
+        "outputs": f"{outputs} ({file_system(outputs)}; kept until the bench ends)",
         "depth_method": thr[0]["depth_method"], "threads": thr, "processes": prc,
         "processes_thread_a_stage": per,
         "stages_ms": stages, "stages_ms_min": stages_min, "stages_ms_processes": stages_p,
