@@ -15,9 +15,10 @@ other tree's depth modules (``stages/depth*.py``, ``focus_volume.py`` and, where
 runs its own code; trees alternate pass by pass (old first in even rounds), so the
 machine's load hits both alike.
 
-Reported per tree (process CPU time; OpenCV with the focus worker's threads, one on 2 cores, BLAS one thread; median of
-``--rounds``), over the steady-state frames only (from frame ``N + 10`` on: before, no
-column is complete and every frame is measured whole): the focus measure's CPU per frame,
+Reported per tree (process CPU time; OpenCV with the focus worker's threads, one on 2
+cores; BLAS one thread; median of ``--rounds``), over the steady-state frames only (from
+frame ``N + 10`` on: before, no column is complete and every frame is measured whole): the
+focus measure's CPU per frame,
 the depth stage's, and the depth stage's split into the accumulation (everything but the
 block reductions; deferred writes applied before a reduction count here) and the block
 reduction. Every round checks that the trees' blocks (those of the end of the pass too)

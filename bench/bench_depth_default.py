@@ -39,10 +39,12 @@ from typing import Any
 import numpy as np
 from sffscan.pipeline.config import demo_config
 from sffscan.pipeline.heap import keep_freed_memory
+from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.plan import plan_frames
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
 from sffscan.stages.focus_volume import FocusVolume, new_columns
 from sffscan.stages.sim.camera import focus_heights
+from threadpoolctl import threadpool_limits
 
 
 def frames(n: int) -> list[tuple[int, int, int, int, int]]:
@@ -91,12 +93,17 @@ def focus_volume_cost(methods: list[str], n_frames: int, rounds: int) -> dict[st
     wall: dict[str, list[float]] = {m: [] for m in methods}
     cpu: dict[str, list[float]] = {m: [] for m in methods}
     mem = {}
-    for _ in range(rounds):
-        for method in methods:
-            ms, cpu_ms, nbytes = run(method, plan, bank, tex)
-            wall[method].append(round(ms, 3))
-            cpu[method].append(round(cpu_ms, 3))
-            mem[method] = nbytes
+    # BLAS and OpenCV threads as in the scan's focus worker (OpenCV one thread where the
+    # cores are no more than the placement's three processes; before 2026-12-04 this
+    # benchmark left OpenCV a thread per core, which the worker does not run with)
+    with threadpool_limits(limits=1, user_api="blas"), \
+            opencv_thread_limit(opencv_threads(3)):
+        for _ in range(rounds):
+            for method in methods:
+                ms, cpu_ms, nbytes = run(method, plan, bank, tex)
+                wall[method].append(round(ms, 3))
+                cpu[method].append(round(cpu_ms, 3))
+                mem[method] = nbytes
     best = {m: min(v) for m, v in wall.items()}
     best_cpu = {m: min(v) for m, v in cpu.items()}
     ref = methods[0]

@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
 from sffscan.stages import focus_measure, registration  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
@@ -72,7 +73,9 @@ def main(argv: list[str] | None = None) -> int:
 
     times: dict[str, dict[str, list[float]]] = {k: {"reg": [], "fm": []} for k in trees}
     outs: dict[str, Any] = {}
-    with threadpool_limits(limits=1, user_api="blas"):
+    # OpenCV's threads as in the scan's worker processes (one where the cores are no more
+    # than the placement's three processes; before 2026-12-04 left at one per core)
+    with threadpool_limits(limits=1, user_api="blas"), opencv_thread_limit(opencv_threads(3)):
         for _ in range(args.rounds):
             for k, (rm, fmm) in trees.items():
                 r, f, out, first = run(rm, fmm)
