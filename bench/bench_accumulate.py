@@ -18,12 +18,11 @@ machine's load hits both alike.
 Reported per tree (process CPU time; OpenCV with the focus worker's threads, one on 2
 cores; BLAS one thread; median of ``--rounds``), over the steady-state frames only (from
 frame ``N + 10`` on: before, no column is complete and every frame is measured whole): the
-focus measure's CPU per frame,
-the depth stage's, and the depth stage's split into the accumulation (everything but the
-block reductions; deferred writes applied before a reduction count here) and the block
-reduction. Every round checks that the trees' blocks (those of the end of the pass too)
-are bit-identical. Not a test: nothing here asserts; it writes
-``bench/results/accumulate_results.json`` and ``.md``.
+focus measure's CPU per frame, the depth stage's, and the depth stage's split into the
+accumulation (everything but the block reductions; deferred writes applied before a
+reduction count here) and the block reduction. Every round checks that the trees' blocks
+(those of the end of the pass too) are bit-identical. Not a test: nothing here asserts; it
+writes ``bench/results/accumulate_results.json`` and ``.md``.
 """
 
 from __future__ import annotations

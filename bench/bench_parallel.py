@@ -373,14 +373,16 @@ def main(argv: list[str] | None = None) -> int:
     cases = [{**c, "one_thread": v} for c in cases
              for v in (ones if c["mode"] == "processes" else ["auto"])]
     keep = "" if args.delete_each else f"runs-{os.getpid()}"
-    for d in {c.get("outputs") or c["tmp"] for c in cases} if keep else ():
-        (Path(d) / keep).mkdir(parents=True, exist_ok=True)
+    kept = [Path(d) / keep for d in sorted({c.get("outputs") or c["tmp"] for c in cases})
+            ] if keep else []
+    for d in kept:
+        d.mkdir(parents=True, exist_ok=True)
     cases = [{**c, "keep": keep} for c in cases]
     try:
         return run_rounds(args, argv, cases, outputs, bank, method, t_run, load_before)
     finally:
-        for d in {c.get("outputs") or c["tmp"] for c in cases} if keep else ():
-            shutil.rmtree(Path(d) / keep, ignore_errors=True)
+        for d in kept:
+            shutil.rmtree(d, ignore_errors=True)
 
 
 def run_rounds(args: argparse.Namespace, argv: list[str] | None,

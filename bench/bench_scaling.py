@@ -44,7 +44,6 @@ Not a test: nothing here asserts.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import resource
@@ -111,11 +110,11 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     images = load_bank(cfg, Path(case["bank"]), case["frames"])
     # the run's mosaic stays until the bench ends (main removes the folder): no run pays for
     # the deletion of the one before (bench_parallel.py's docstring)
-    with contextlib.nullcontext(tempfile.mkdtemp(dir=case["tmp"])) as tmp:
-        ru0 = resource.getrusage(resource.RUSAGE_SELF)
-        rep = run_scan(cfg, frames=replay_frames(cfg, images), output=Path(tmp) / "m.zarr",
-                       progress=False)
-        ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    tmp = tempfile.mkdtemp(dir=case["tmp"])
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    rep = run_scan(cfg, frames=replay_frames(cfg, images), output=Path(tmp) / "m.zarr",
+                   progress=False)
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
     r = rep.result
     n = rep.frames
     if case["mode"].startswith("processes"):
