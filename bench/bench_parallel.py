@@ -26,7 +26,10 @@ with each worker process's stages in one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
 (:func:`sffscan.pipeline.cores.one_thread_per_process`). ``--outputs DIR,DIR`` runs
 every case once per folder given for what the run writes (the mosaic, and the recording
-with the recorder on), interleaved: the file system's share.
+with the recorder on), interleaved: the file system's share. ``--recorder-io
+unbuffered,page-cache`` runs every recorder case with the frames written past the page
+cache (the default since 2026-12-04: :mod:`sffscan.pipeline.formats.unbuffered`) and
+through it, interleaved; the table gives the recorder's own CPU per frame.
 On the dev VM this matters: its root file system is ext4 without a journal, whose inode
 allocator skips inodes deleted in the last seconds to minutes (the kernel's
 ``recently_deleted``, checked only without a journal), so after the benches' and the
@@ -146,7 +149,9 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     # run pays for the deletion of the one before (see the module's docstring)
     with (contextlib.nullcontext(tempfile.mkdtemp(dir=Path(where) / case["keep"]))
           if case.get("keep") else tempfile.TemporaryDirectory(dir=where)) as tmp:
-        sinks = [recorder_sink(cfg, str(Path(tmp) / "rec.zarr"))] if case["record"] else []
+        sinks = [recorder_sink(cfg, str(Path(tmp) / "rec.zarr"),
+                               page_cache=case.get("page_cache", False))
+                 ] if case["record"] else []
         ru0 = (resource.getrusage(resource.RUSAGE_SELF),
                resource.getrusage(resource.RUSAGE_CHILDREN))
         t0 = time.perf_counter()
@@ -248,7 +253,8 @@ def file_create_ms(folder: str | Path, n: int = 300) -> float:
 
 def label(c: dict[str, Any]) -> str:
     src = "replay of a recording" if c["source"] == "replay" else "from memory"
-    rec = ", recorder on" if c["record"] else ""
+    rec = ((", recorder on (frames through the page cache)" if c.get("page_cache") else
+            ", recorder on") if c["record"] else "")
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
     bands = f", {c['workers']} band workers" if c.get("workers", 1) != 1 else ""
@@ -277,6 +283,8 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
         rec = ""
         if r["case"]["record"]:
             rec = "; ".join(f"{x['recorded_equal']}/{x['frames']}" for x in r["runs"])
+            own = statistics.median(x["stages"]["recorder"] for x in r["runs"])
+            rec += f" (the recorder's own CPU {own:.2f} ms/frame)"
         lines.append(
             f"| {label(r['case'])} | {med:.1f} | {', '.join(f'{v:.0f}' for v in fps)} | "
             f"{med / base:.1f}x | "
@@ -323,6 +331,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", default="1",
                     help="comma-separated processing.workers (band threads of the focus "
                          "measure and depth) to run every case with, interleaved; default 1")
+    ap.add_argument("--recorder-io", default="unbuffered",
+                    help="comma-separated unbuffered/page-cache: how the recorder writes its "
+                         "frames (past the page cache, the default, or through it), every "
+                         "recorder case with each, interleaved")
     ap.add_argument("--one-thread", default="auto",
                     help="comma-separated on/off: each worker process's stages in one thread "
                          "or a thread each, every processes case with each, interleaved; "
@@ -367,6 +379,11 @@ def main(argv: list[str] | None = None) -> int:
     if outputs:
         cases = [{**c, "outputs": d} for c in cases for d in outputs]
     cases = [{**c, "workers": int(k)} for c in cases for k in args.workers.split(",")]
+    ios = [v for v in args.recorder_io.split(",") if v]
+    if not ios or any(v not in ("unbuffered", "page-cache") for v in ios):
+        ap.error(f"--recorder-io takes unbuffered, page-cache; got {args.recorder_io!r}")
+    cases = [{**c, "page_cache": v == "page-cache"} for c in cases
+             for v in (ios if c["record"] else ["unbuffered"])]
     ones = [v for v in args.one_thread.split(",") if v]
     if any(v not in ("auto", "on", "off") for v in ones):
         ap.error(f"--one-thread takes auto, on, off; got {args.one_thread!r}")

@@ -4,8 +4,10 @@ The camera makes 150 frames/s of 1280 x 1024 uint16 = 393 MB/s. For each codec o
 frames array, frames go through the recorder's own writer
 (:class:`sffscan.pipeline.formats.recording_writer.RecordingWriter`: one chunk per
 frame, metadata every 16 frames)
-to a temporary folder, by both of its write paths, interleaved (zarr's setitem, then the
-direct chunk writes of :mod:`sffscan.pipeline.formats.zarr_chunks`, ``--repeat`` times): the
+to a temporary folder, by each of its write paths, interleaved (zarr's setitem, the direct
+chunk writes of :mod:`sffscan.pipeline.formats.zarr_chunks` through the page cache, and
+the same with the frames past it, :mod:`sffscan.pipeline.formats.unbuffered`, the default
+since 2026-12-04; ``--repeat`` times): the
 median and best of MB/s of raw frame data, CPU ms per frame of the whole process (blosc and
 zarr use their own threads), and the compression ratio. The keys section runs the writer with
 the chunk keys of recording formats 2 (``c/i/0/0``) and 3 (``c.i.0.0``) the same way, system
@@ -50,15 +52,18 @@ def _du(path: Path) -> int:
 
 
 #: variants of the writer: name -> RecordingWriter keywords
-WRITE_PATHS: dict[str, dict[str, Any]] = {"zarr setitem": {"via_zarr": True},
-                                          "zarr_chunks": {"via_zarr": False}}
+WRITE_PATHS: dict[str, dict[str, Any]] = {
+    "zarr setitem": {"via_zarr": True, "page_cache": True},
+    "zarr_chunks": {"via_zarr": False, "page_cache": True},
+    # the default since 2026-12-04 (sffscan.pipeline.formats.unbuffered)
+    "zarr_chunks, frames past the page cache": {"via_zarr": False, "page_cache": False}}
 KEY_ENCODINGS: dict[str, dict[str, Any]] = {
     "keys c/i/0/0 (format 2)": {"key_separator": "/"},
     "keys c.i.0.0 (format 3)": {"key_separator": "."}}
 
 
 def bench_writers(frames: list[Frame], codec: str, folder: Path, repeat: int,
-                  variants: dict[str, dict[str, Any]] = WRITE_PATHS
+                  variants: dict[str, dict[str, Any]] = WRITE_PATHS, *, keep: bool = False
                   ) -> dict[str, dict[str, float]]:
     """Variants of the recorder's writer, interleaved run by run on the same frames (the
     order reversed every other run): per
@@ -93,7 +98,8 @@ def bench_writers(frames: list[Frame], codec: str, folder: Path, repeat: int,
             t.join()
             out["size"] = _du(path / "frames")
             runs[name].append(out)
-            shutil.rmtree(path)
+            if not keep:
+                shutil.rmtree(path)
     raw = sum(f.image.nbytes for f in frames)
     n = len(frames)
     res = {}
@@ -173,6 +179,10 @@ def main() -> None:
                          "layout, mosaic")
     ap.add_argument("--codecs", default="none,blosc-lz4,blosc-zstd,zstd",
                     help="frames codecs of the writer section")
+    ap.add_argument("--keep-runs", action="store_true",
+                    help="writer section: keep every run's recording until the end (the page "
+                         "cache then grows as it does under a long recording) instead of "
+                         "deleting each after its run (its pages are then reused)")
     args = ap.parse_args()
     sections = set(args.sections.split(","))
     cfg = demo_config()
@@ -189,15 +199,18 @@ def main() -> None:
                  f"Command: `python bench/bench_recorder.py {' '.join(sys.argv[1:])}`. "
                  f"Camera: 150 frames/s = {CAMERA_MB_S:.0f} MB/s."]
         if "writer" in sections:
-            lines += ["", "Recorder's writer, its two write paths interleaved run by run, in a "
+            lines += ["", "Recorder's writer, its write paths interleaved run by run, in a "
                       "thread as in the pipeline (median, best in brackets). Whole: from the "
                       "first frame (which creates the recording) to the end of close (fsync "
-                      "included); steady: the frames after the first, close excluded.", "",
+                      "included); steady: the frames after the first, close excluded. "
+                      + ("Every run's recording kept until the end (--keep-runs)."
+                         if args.keep_runs else "Each run's recording deleted after it."), "",
                       "| frames codec (1 frame/chunk) | write path | MB/s whole | frames/s "
                       "whole | CPU ms/frame whole | MB/s steady | CPU ms/frame steady | ratio |",
                       "|---|---|---|---|---|---|---|---|"]
             for codec in args.codecs.split(","):
-                for name, r in bench_writers(frames, codec, folder, args.repeat).items():
+                for name, r in bench_writers(frames, codec, folder, args.repeat,
+                                             keep=args.keep_runs).items():
                     lines.append(f"| {codec} | {name} | {r['MB/s']:.0f} ({r['MB/s best']:.0f}) | "
                                  f"{r['fps']:.0f} | {r['cpu_ms']:.1f} ({r['cpu_ms best']:.1f}) | "
                                  f"{r['steady MB/s']:.0f} | {r['steady_cpu_ms']:.2f} "

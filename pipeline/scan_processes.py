@@ -83,11 +83,12 @@ def focus_group(cfg: dict[str, Any]) -> list[Stage]:
     return measure_stages(_cfg(cfg), only=("focus_measure", "depth"))
 
 
-def hosted_recorder(cfg: dict[str, Any], path: str, codec: str) -> Sink:
+def hosted_recorder(cfg: dict[str, Any], path: str, codec: str, page_cache: bool = False
+                    ) -> Sink:
     """Worker factory: the raw-stream recorder, in its own process."""
     from sffscan.pipeline.formats.recording_writer import recorder_sink
 
-    return recorder_sink(_cfg(cfg), path, codec=codec)
+    return recorder_sink(_cfg(cfg), path, codec=codec, page_cache=page_cache)
 
 
 def _hostable(sink: Sink) -> HostedSink | None:
@@ -99,7 +100,8 @@ def _hostable(sink: Sink) -> HostedSink | None:
         w = sink.writer
         return HostedSink(sink.name, tuple(sink.taps), min(sink.capacity, HOSTED_SINK_CAPACITY),
                           sink.policy, hosted_recorder,
-                          {"path": str(w.path), "codec": w.codec})
+                          {"path": str(w.path), "codec": w.codec,
+                           "page_cache": w.page_cache})
     return None
 
 

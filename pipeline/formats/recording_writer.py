@@ -62,6 +62,7 @@ from sffscan.pipeline.formats.recording import (
     header_row,
 )
 from sffscan.pipeline.formats.recording_checks import frame_digest
+from sffscan.pipeline.formats.unbuffered import UnbufferedFiles
 from sffscan.pipeline.formats.zarr_chunks import Plans, write_many
 from sffscan.stages.messages import Frame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
@@ -131,13 +132,18 @@ class RecordingWriter:
     recording_id : str, optional
         The recording's id (32 hex digits); default: a new uuid4 (tests that compare two
         recordings byte for byte give both the same).
+    page_cache : bool
+        Write the frames' chunks through the kernel's page cache (True) rather than past
+        it (False, the default, where the file system allows it:
+        :mod:`~sffscan.pipeline.formats.unbuffered`; the same files). The small header and
+        metadata chunks always go through it.
     """
 
     def __init__(self, path: str | Path, cfg: ScanConfig, *, codec: str = DEFAULT_CODEC,
                  flush_every: int = 16, flush_s: float = 0.25, fsync_s: float = FSYNC_S,
                  account: Any | None = None, via_zarr: bool = False,
                  key_separator: Literal[".", "/"] = ".",
-                 recording_id: str | None = None) -> None:
+                 recording_id: str | None = None, page_cache: bool = False) -> None:
         self.path = Path(path)
         self.via_zarr = via_zarr
         if key_separator not in KEY_SEPARATORS:
@@ -165,6 +171,8 @@ class RecordingWriter:
         self.group: zarr.Group | None = None
         self.capacity = 0
         self.plans = Plans()  # the arrays' chunk plans, worked out once
+        self.page_cache = page_cache
+        self.unbuffered = None if page_cache else UnbufferedFiles()
         self.count = 0  # frames whose chunk is written
         self.committed = 0  # frames whose metadata is written too
         self.bytes = 0
@@ -212,7 +220,7 @@ class RecordingWriter:
             for arr, sel, value in items:
                 arr[sel] = value
         else:
-            write_many(items, plans=self.plans)
+            write_many(items, plans=self.plans, unbuffered=self.unbuffered)
 
     def _grow(self, n: int) -> None:
         if n <= self.capacity:
@@ -288,6 +296,8 @@ class RecordingWriter:
         if self.closed:
             return
         self.closed = True
+        if self.unbuffered is not None:
+            self.unbuffered.close()
         if self.group is None:  # no frame arrived: nothing to keep
             return
         free_reserve(self.path)  # room for the metadata and the status, even on a full disk
@@ -457,6 +467,10 @@ class RecorderSink(Sink):
         out: dict[str, Any] = {"frames_recorded": w.committed, "MB": round(mb, 1),
                                "MB/s (own busy time)": round(mb / self.busy_s, 1)
                                if self.busy_s else 0.0}
+        if w.unbuffered is not None:  # frames written past the page cache, and refused
+            out["frames_unbuffered"] = w.unbuffered.written
+            if w.unbuffered.refused:
+                out["frames_page_cache"] = w.unbuffered.refused
         if self.behind_windows:
             out["FELL BEHIND"] = (f"in {self.behind_windows} window(s), slowest "
                                   f"{self.worst_fps:.0f} frames/s < {self.fps:g} fps")
@@ -471,9 +485,9 @@ def queue_capacity(cfg: ScanConfig) -> int:
 
 
 def recorder_sink(cfg: ScanConfig, path: str, *, codec: str = DEFAULT_CODEC,
-                  account: Any | None = None) -> Sink:
+                  account: Any | None = None, page_cache: bool = False) -> Sink:
     """The sink that records the raw stream of a scan into ``path`` (``--record PATH``);
     ``account`` (the scan's :class:`~sffscan.pipeline.completeness.FrameAccount`) gives the
-    recording's ``frames_planned``."""
-    writer = RecordingWriter(path, cfg, codec=codec, account=account)
+    recording's ``frames_planned``; ``page_cache`` as :class:`RecordingWriter`'s."""
+    writer = RecordingWriter(path, cfg, codec=codec, account=account, page_cache=page_cache)
     return RecorderSink(writer, fps=cfg.optics.fps, capacity=queue_capacity(cfg))

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+from sffscan.pipeline.formats.unbuffered import UnbufferedFiles
 from zarr.storage import LocalStore
 
 __all__ = ["ChunkChecksumError", "Plans", "direct_plan", "read_into", "read_many",
@@ -242,9 +243,10 @@ def _is_fill(plan: _Plan, data: np.ndarray) -> bool:
     return bool((data == fill).all())
 
 
-def _store(plan: _Plan, path: Path, data: np.ndarray) -> None:
+def _store(plan: _Plan, path: Path, data: np.ndarray,
+           unbuffered: UnbufferedFiles | None = None) -> None:
     """Write a whole chunk atomically, or delete it if it holds only the fill value (unless
-    the array writes empty chunks)."""
+    the array writes empty chunks); past the page cache where ``unbuffered`` takes it."""
     if not plan.write_empty and _is_fill(plan, data):
         path.unlink(missing_ok=True)
         return
@@ -255,10 +257,11 @@ def _store(plan: _Plan, path: Path, data: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{uuid.uuid4().hex}.partial")  # as zarr's local store names it
     try:
-        with open(tmp, "wb") as fh:
-            fh.write(raw)
-            if tail:
-                fh.write(tail)
+        if unbuffered is None or not unbuffered.write(tmp, (raw, tail)):
+            with open(tmp, "wb") as fh:
+                fh.write(raw)
+                if tail:
+                    fh.write(tail)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -377,11 +380,13 @@ def read_into(arr: zarr.Array, sel: Selection, out: np.ndarray, *,
 
 
 def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]], *,
-               plans: Plans | None = None) -> None:
+               plans: Plans | None = None, unbuffered: UnbufferedFiles | None = None) -> None:
     """Write several array regions (a chunk partly under a region is read, patched and
     written whole; a chunk under it whole is not read): directly where :func:`direct_plan`
     allows, the others through zarr (``array[selection] = value``). ``value`` has the region's
-    shape, without the axes indexed by integers. ``plans`` as for :func:`read_many`."""
+    shape, without the axes indexed by integers. ``plans`` as for :func:`read_many`;
+    ``unbuffered``: the chunk files it takes are written past the page cache
+    (:class:`~sffscan.pipeline.formats.unbuffered.UnbufferedFiles`; the same bytes)."""
     rest = []
     for arr, sel, value in items:
         plan = direct_plan(arr) if plans is None else plans.of(arr)
@@ -397,12 +402,12 @@ def write_many(items: Sequence[tuple[zarr.Array, Selection, np.ndarray]], *,
         for key, inner, part, whole in _overlaps(plan, arr.shape, reg):
             path = plan.path(key)
             if whole and value[part].shape == plan.chunks:  # the chunk is the value itself
-                _store(plan, path, value[part])
+                _store(plan, path, value[part], unbuffered)
                 continue
             chunk = None if whole else _load(plan, path)
             if chunk is None:
                 chunk = np.full(plan.chunks, plan.fill, plan.dtype)
             chunk[inner] = value[part]
-            _store(plan, path, chunk)
+            _store(plan, path, chunk, unbuffered)
     for arr, sel, value in rest:
         arr[sel] = value

@@ -286,8 +286,9 @@ def test_a_failing_final_flush_still_marks_the_recording_failed(tmp_path: Path) 
                                                ("zstd", "complete"), ("none", "complete")])
 def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, codec: str, status: str) -> None:
-    """The writer's own chunk writes (zarr_chunks) and zarr's setitem: the same files, the
-    same files made durable; arrays grown and metadata chunks crossed several times."""
+    """The writer's own chunk writes (zarr_chunks), through the page cache and past it,
+    and zarr's setitem: the same files, the same files made durable; arrays grown and
+    metadata chunks crossed several times."""
     import json
 
     from sffscan.pipeline.formats import durable
@@ -295,37 +296,53 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
 
     monkeypatch.setattr(recorder, "GROW", 8)
     monkeypatch.setattr(recorder, "META_CHUNK", 8)
-    synced: dict[bool, set[str]] = {}
+    synced: dict[str, set[str]] = {}
     frames = _frames(27, positions=True)
     frames[3] = Frame(frames[3].header, np.zeros((H, W), np.uint16))  # a black frame: kept
     frames[9] = Frame(frames[9].header.model_copy(update={"stage_x_um": None}), frames[9].image)
     n = 23 if status == "failed" else 27
-    for via_zarr in (True, False):
-        root = tmp_path / f"via_zarr={via_zarr}.zarr"
+    unbuffered = 0
+    for way in ("zarr", "page_cache", "unbuffered"):
+        root = tmp_path / f"{way}.zarr"
         done: set[str] = set()
         monkeypatch.setattr(durable, "fsync_path", lambda path, directory=False, done=done,
                             root=root: done.add(str(Path(path).relative_to(root.parent))
                                                 .replace(root.name, "<rec>")))
         w = RecordingWriter(root, small_config(), codec=codec, flush_every=5, flush_s=1e9,
-                            fsync_s=3600.0, via_zarr=via_zarr, recording_id="0" * 32)
+                            fsync_s=3600.0, via_zarr=way == "zarr", recording_id="0" * 32,
+                            page_cache=way != "unbuffered")
+        if w.unbuffered is not None:
+            w.unbuffered.min_bytes = 0  # every chunk file (the frames here are small)
         for f in frames[:n]:
             w.write(f)
+        if w.unbuffered is not None:
+            unbuffered = w.unbuffered.written
         w.close(status=status, error="stopped" if status == "failed" else None)
-        synced[via_zarr] = done
-    by_zarr, direct = (tmp_path / f"via_zarr={v}.zarr" for v in (True, False))
+        synced[way] = done
+    by_zarr = tmp_path / "zarr.zarr"
     files = _files_of(by_zarr)
-    assert files == _files_of(direct)
     assert "frames/c.3.0.0" in files and "frame_id/c/2" in files and "headers/c.22.0" in files
-    for name in files:
-        a, b = (by_zarr / name).read_bytes(), (direct / name).read_bytes()
-        if name == "zarr.json":  # the group's attributes: all equal but the creation time
-            a, b = (json.dumps({k: v for k, v in json.loads(x)["attributes"].items()
-                                if k != "created"}).encode() for x in (a, b))
-        assert a == b, name
-    assert synced[True] == synced[False]
-    assert {f"<rec>/frames/c.{n - 1}.0.0", "<rec>/frame_id/c/2", "<rec>"} <= synced[False]
-    r = open_recording(direct)
-    assert r.report.frames == n and r.report.defects == 0
+    for way in ("page_cache", "unbuffered"):
+        direct = tmp_path / f"{way}.zarr"
+        assert files == _files_of(direct)
+        for name in files:
+            a, b = (by_zarr / name).read_bytes(), (direct / name).read_bytes()
+            if name == "zarr.json":  # the group's attributes: all equal but the creation time
+                a, b = (json.dumps({k: v for k, v in json.loads(x)["attributes"].items()
+                                    if k != "created"}).encode() for x in (a, b))
+            assert a == b, (way, name)
+        assert synced["zarr"] == synced[way]
+        assert {f"<rec>/frames/c.{n - 1}.0.0", "<rec>/frame_id/c/2", "<rec>"} <= synced[way]
+        r = open_recording(direct)
+        assert r.report.frames == n and r.report.defects == 0
+    # past the page cache where this file system allows it (ext4, xfs; not tmpfs)
+    assert unbuffered >= (2 * n if _takes_o_direct(tmp_path) else 0)
+
+
+def _takes_o_direct(folder: Path) -> bool:
+    from sffscan.pipeline.formats.unbuffered import UnbufferedFiles
+
+    return UnbufferedFiles(min_bytes=0).write(folder / "o_direct.probe", (b"x",))
 
 
 def _files_of(folder: Path) -> list[str]:

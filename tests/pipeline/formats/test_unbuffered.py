@@ -1,0 +1,106 @@
+"""Files written past the page cache: the same bytes as a plain write, refusals sent back to
+the caller, other failures raised with nothing left behind."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sffscan.pipeline.formats.unbuffered import ALIGN, UnbufferedFiles
+
+SIZES = [1, ALIGN - 1, ALIGN, ALIGN + 1, 3 * ALIGN + 5, (1 << 20) + 17, (3 << 20) - 3]
+
+
+def _parts(n: int, seed: int) -> tuple[bytes, bytes]:
+    data = os.urandom(n) if seed < 0 else bytes((i * 131 + seed) % 251 for i in range(n))
+    return data[: n - min(n, 4)], data[n - min(n, 4):]  # a body and a tail, as a chunk's
+
+
+def test_the_file_holds_exactly_the_bytes_given_whatever_its_length(tmp_path: Path) -> None:
+    u = UnbufferedFiles(min_bytes=0)
+    for i, n in enumerate(SIZES):
+        body, tail = _parts(n, i)
+        path = tmp_path / f"f{i}"
+        if not u.write(path, (body, tail)):  # this file system has no O_DIRECT
+            assert not path.exists() and u.refused == 1
+            pytest.skip(f"{tmp_path}: the file system refuses O_DIRECT (fallback: below)")
+        assert path.read_bytes() == body + tail, n
+        assert path.stat().st_size == n
+    assert u.written == len(SIZES)
+    u.close()
+    assert u.write(tmp_path / "after-close", (b"x" * 5000,))
+    assert (tmp_path / "after-close").read_bytes() == b"x" * 5000
+
+
+def test_small_or_empty_files_are_left_to_the_caller(tmp_path: Path) -> None:
+    u = UnbufferedFiles(min_bytes=1 << 18)
+    assert not u.write(tmp_path / "small", (b"a" * ((1 << 18) - 1),))
+    assert not UnbufferedFiles(min_bytes=0).write(tmp_path / "empty", (b"",))
+    assert not (tmp_path / "small").exists() and not (tmp_path / "empty").exists()
+    assert u.written == u.refused == 0
+    with pytest.raises(ValueError, match="min_bytes"):
+        UnbufferedFiles(min_bytes=-1)
+
+
+def test_a_file_system_that_refuses_o_direct_at_open_is_asked_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    opened: list[int] = []
+    real_open = os.open
+
+    def refusing(path: Any, flags: int, mode: int = 0o777) -> int:
+        opened.append(flags)
+        if flags & getattr(os, "O_DIRECT", 0):
+            raise OSError(errno.EINVAL, "Invalid argument", str(path))
+        return real_open(path, flags, mode)
+
+    monkeypatch.setattr(os, "open", refusing)
+    monkeypatch.setattr(os, "O_DIRECT", getattr(os, "O_DIRECT", 0o40000), raising=False)
+    u = UnbufferedFiles(min_bytes=0)
+    assert not u.write(tmp_path / "a", (b"1" * 10_000,))
+    assert not u.write(tmp_path / "b", (b"2" * 10_000,))
+    assert len(opened) == 1 and u.refused == 2 and u.written == 0
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_device_block_larger_than_the_alignment_is_a_refusal(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "O_DIRECT", getattr(os, "O_DIRECT", 0o40000), raising=False)
+    real_open = os.open
+    # the open succeeds without the flag where the file system has none (tmpfs)
+    monkeypatch.setattr(os, "open", lambda p, f, m=0o777: real_open(p, f & ~os.O_DIRECT, m))
+
+    def einval(fd: int, data: Any, offset: int) -> int:
+        raise OSError(errno.EINVAL, "Invalid argument")
+
+    monkeypatch.setattr(os, "pwrite", einval)
+    u = UnbufferedFiles(min_bytes=0)
+    assert not u.write(tmp_path / "a", (b"1" * 10_000,))
+    assert u.refused == 1 and not (tmp_path / "a").exists()
+
+
+def test_other_failures_are_raised_and_leave_no_partial_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(os, "O_DIRECT", getattr(os, "O_DIRECT", 0o40000), raising=False)
+    real_open, real_pwrite = os.open, os.pwrite
+    monkeypatch.setattr(os, "open", lambda p, f, m=0o777: real_open(p, f & ~os.O_DIRECT, m))
+    calls: list[int] = []
+
+    def full_after_one_block(fd: int, data: Any, offset: int) -> int:
+        calls.append(offset)
+        if offset == 0:
+            return real_pwrite(fd, memoryview(data)[:ALIGN], 0)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full_after_one_block)
+    u = UnbufferedFiles(min_bytes=0)
+    with pytest.raises(OSError, match="No space left"):
+        u.write(tmp_path / "a", (b"1" * (5 * ALIGN),))
+    assert calls == [0, ALIGN] and not (tmp_path / "a").exists()
+
+    monkeypatch.setattr(os, "pwrite", lambda fd, data, offset: 100)  # not a whole block
+    with pytest.raises(OSError, match="short unbuffered write"):
+        u.write(tmp_path / "b", (b"1" * (5 * ALIGN),))
+    assert not (tmp_path / "b").exists() and u.written == 0 and u.refused == 0
