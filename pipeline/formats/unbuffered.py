@@ -119,7 +119,8 @@ class UnbufferedFiles:
             at += v.nbytes
         buf[n:size] = bytes(size - n)  # the slack beyond the end: no bytes of an older file
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | flag, 0o644)
+            # 0o666 less the umask: the permissions open(path, "wb") gives
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | flag, 0o666)
         except OSError as exc:
             if exc.errno != errno.EINVAL:
                 raise

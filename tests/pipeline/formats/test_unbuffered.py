@@ -29,6 +29,9 @@ def test_the_file_holds_exactly_the_bytes_given_whatever_its_length(tmp_path: Pa
             pytest.skip(f"{tmp_path}: the file system refuses O_DIRECT (fallback: below)")
         assert path.read_bytes() == body + tail, n
         assert path.stat().st_size == n
+        plain = tmp_path / f"plain{i}"
+        plain.write_bytes(body + tail)  # the permissions a plain write gives (the umask's)
+        assert path.stat().st_mode == plain.stat().st_mode
     assert u.written == len(SIZES)
     u.close()
     assert u.write(tmp_path / "after-close", (b"x" * 5000,))
