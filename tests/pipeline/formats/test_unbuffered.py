@@ -107,3 +107,50 @@ def test_other_failures_are_raised_and_leave_no_partial_file(
     with pytest.raises(OSError, match="short unbuffered write"):
         u.write(tmp_path / "b", (b"1" * (5 * ALIGN),))
     assert not (tmp_path / "b").exists() and u.written == 0 and u.refused == 0
+
+
+def test_a_real_full_disk_stops_the_recording_with_its_frames_readable(tmp_path: Path) -> None:
+    """A small ext4 file system (loop-mounted: root only), which takes O_DIRECT: frames
+    written past the cache until it is full, then ENOSPC, no partial chunk left, the frames
+    before it readable."""
+    import shutil
+    import subprocess
+
+    import numpy as np
+    from sffscan.pipeline.config import demo_config
+    from sffscan.pipeline.formats.recording_reader import open_recording
+    from sffscan.pipeline.formats.recording_writer import RecordingWriter
+    from sffscan.stages.messages import Frame, FrameHeader
+
+    image, mnt = tmp_path / "fs.img", tmp_path / "mnt"
+    mnt.mkdir()
+    with open(image, "wb") as fh:
+        fh.truncate(12 << 20)
+    made = subprocess.run(["mkfs.ext4", "-q", "-F", str(image)], capture_output=True,
+                          check=False) if shutil.which("mkfs.ext4") else None
+    mounted = made is not None and made.returncode == 0 and subprocess.run(
+        ["mount", "-o", "loop", str(image), str(mnt)], capture_output=True,
+        check=False).returncode == 0
+    if not mounted:
+        pytest.skip("cannot make and loop-mount an ext4 file system here (needs root, "
+                    "mkfs.ext4 and a loop device)")
+    try:
+        cfg = demo_config()
+        w = RecordingWriter(mnt / "rec.zarr", cfg)
+        rng = np.random.default_rng(0)
+        shape = (cfg.optics.height_px, cfg.optics.width_px)
+        written = 0
+        with pytest.raises(OSError) as exc:
+            for i in range(100):  # ~1.7 MB each: the 12 MB file system fills
+                w.write(Frame(FrameHeader(frame_id=i, timestamp_ns=i, focus_index=i % 50),
+                              rng.integers(0, 1024, shape, dtype=np.uint16)))
+                written += 1
+        assert exc.value.errno == errno.ENOSPC
+        assert w.unbuffered is not None and w.unbuffered.written == written > 0
+        w.close(status="failed", error="disk full")
+        assert not [p for p in (mnt / "rec.zarr" / "frames").iterdir() if "partial" in p.name]
+        r = open_recording(mnt / "rec.zarr")
+        assert r.attrs.status == "failed" and r.report.frames == written
+        assert r.report.defects == 0
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True, check=False)
