@@ -5,9 +5,9 @@ Why: a recorder writes every raw frame once (about 1.5 MB compressed at 1280 x 1
 each frame is first copied into cache pages by the writing process, and on the 2-core
 development VM (a virtual machine; the cost is highest while the cache grows into memory
 not touched before, so probably the host backing those pages) that copy cost more than the
-frame's compression: perf of
-a scan with the recorder on (600 frames, processes) put 7.6 % of all the processes' CPU,
-half of the recorder's, in the kernel's ``copy_folio_from_iter_atomic``. Measured there
+frame's compression: perf of a scan with the recorder on (600 frames, processes) put 7.6 %
+of all the processes' CPU, half of the recorder's, in the kernel's
+``copy_folio_from_iter_atomic``. Measured there
 (2026-12-04, ``bench/bench_parallel.py --recorder-io unbuffered,page-cache``, 3 rounds
 interleaved, bench/results/parallel_default_results.md): the recorder's own CPU 5.2 -> 3.2
 ms a frame in processes (5.5 -> 3.2 in threads); frames/s with the recorder on 90.9 -> 91.6
@@ -59,6 +59,10 @@ class UnbufferedFiles:
     ----------
     min_bytes : int, keyword-only
         Files smaller than this are not written here (:meth:`write` returns False).
+
+    Notes
+    -----
+    One buffer, reused: one thread writes at a time (the recorder's).
 
     Attributes
     ----------
