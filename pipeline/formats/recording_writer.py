@@ -173,6 +173,7 @@ class RecordingWriter:
         self.plans = Plans()  # the arrays' chunk plans, worked out once
         self.page_cache = page_cache
         self.unbuffered = None if page_cache else UnbufferedFiles()
+        self.page_cache_from: int | None = None  # frame index from which it took the cache
         self.count = 0  # frames whose chunk is written
         self.committed = 0  # frames whose metadata is written too
         self.bytes = 0
@@ -220,7 +221,15 @@ class RecordingWriter:
             for arr, sel, value in items:
                 arr[sel] = value
         else:
-            write_many(items, plans=self.plans, unbuffered=self.unbuffered)
+            write_many(items, plans=self.plans,
+                       unbuffered=self.unbuffered if self.page_cache_from is None else None)
+
+    def use_page_cache(self) -> None:
+        """Write the frames from the next one on through the page cache (the disk is
+        slower than the stream past it: :class:`RecorderSink`)."""
+        if self.unbuffered is not None and self.page_cache_from is None:
+            self.page_cache_from = self.count
+            self.unbuffered.close()
 
     def _grow(self, n: int) -> None:
         if n <= self.capacity:
@@ -369,8 +378,17 @@ class RecorderSink(Sink):
     While the recorder is busy more than ``behind_share`` of the time (over windows of
     ``window_s``) it is the bottleneck: a warning is logged (at most every 5 s) and the
     summary says it fell behind; the runtime adds ``pipeline_waited_s``, the time the
-    pipeline waited for it.
+    pipeline waited for it. If in such a window more than :attr:`DISK_SHARE` of its busy
+    time went to waiting for the disk past the page cache
+    (:mod:`~sffscan.pipeline.formats.unbuffered`), the rest of the recording goes through
+    the cache (:meth:`RecordingWriter.use_page_cache`), which can hold a short scan's frames
+    while a slow disk catches up; where the recorder's own CPU holds it back, nothing
+    changes (the cache's copy would cost more CPU).
     """
+
+    #: the share of a behind window's busy time spent waiting for the disk past the page
+    #: cache above which the disk, not the recorder's CPU, is what holds it back
+    DISK_SHARE = 0.5
 
     name = "recorder"
     taps = ("source",)
@@ -387,6 +405,7 @@ class RecorderSink(Sink):
         self.busy_s = 0.0
         self.t_first: float | None = None
         self._win = (0.0, 0.0, 0)  # window start, busy in window, frames in window
+        self._wait0 = 0.0  # the writer's disk wait past the cache at the window's start
         self.behind_windows = 0
         self.worst_fps: float | None = None
         self._warned_at = -1e9
@@ -400,6 +419,7 @@ class RecorderSink(Sink):
         if self.t_first is None:
             self.t_first = t0
             self._win = (t0, 0.0, 0)
+            self._wait0 = self._disk_wait()
         try:
             self.writer.write(item.item)
         except OSError as exc:
@@ -409,6 +429,10 @@ class RecorderSink(Sink):
         self._watch(t0 + dt, dt)
         return iter(())
 
+    def _disk_wait(self) -> float:
+        u = self.writer.unbuffered
+        return u.wait_s if u is not None else 0.0
+
     def _watch(self, now: float, dt: float) -> None:
         start, busy, n = self._win
         busy, n = busy + dt, n + 1
@@ -417,8 +441,16 @@ class RecorderSink(Sink):
             self._win = (start, busy, n)
             return
         self._win = (now, 0.0, 0)
+        waited, self._wait0 = self._disk_wait() - self._wait0, self._disk_wait()
         if busy / span < self.behind_share:
             return
+        w = self.writer
+        if w.unbuffered is not None and w.page_cache_from is None \
+                and waited > self.DISK_SHARE * busy:
+            w.use_page_cache()
+            log.warning("the recorder waited for the disk %.0f %% of its busy time writing "
+                        "past the page cache; from frame %d on it writes through the cache",
+                        100 * waited / busy, w.page_cache_from)
         self.behind_windows += 1
         rate = n / busy if busy > 0 else 0.0
         self.worst_fps = rate if self.worst_fps is None else min(self.worst_fps, rate)
@@ -471,6 +503,8 @@ class RecorderSink(Sink):
             out["frames_unbuffered"] = w.unbuffered.written
             if w.unbuffered.refused:
                 out["frames_page_cache"] = w.unbuffered.refused
+            if w.page_cache_from is not None:
+                out["page_cache_from_frame"] = w.page_cache_from
         if self.behind_windows:
             out["FELL BEHIND"] = (f"in {self.behind_windows} window(s), slowest "
                                   f"{self.worst_fps:.0f} frames/s < {self.fps:g} fps")

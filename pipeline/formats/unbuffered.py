@@ -19,8 +19,11 @@ recording is deleted before the next, whose pages the cache then reuses
 (bench/results/recorder_io_kept.md, recorder_io.md). Writing past the cache also keeps a
 long recording from filling memory with dirty pages that the kernel writes back in bursts.
 The price: each write waits for the device (about 1 ms for a frame on the VM's disk), and
-a disk slower than the stream is no longer hidden for a while by the cache; the writer's
-``page_cache=True`` writes through it.
+a disk slower than the stream is no longer hidden for a while by the cache (a short scan
+on a slow disk would fit in the cache): so the recorder goes back to the page cache for the
+rest of a recording when it falls behind while waiting for the disk
+(:class:`~sffscan.pipeline.formats.recording_writer.RecorderSink`); the writer's
+``page_cache=True`` writes through it from the start.
 
 How: the file's bytes are copied into a page-aligned buffer that is reused from file to
 file, padded to a multiple of :data:`ALIGN` bytes, written with ``O_DIRECT``, and the file
@@ -41,6 +44,7 @@ from __future__ import annotations
 import errno
 import mmap
 import os
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -70,6 +74,8 @@ class UnbufferedFiles:
         Files written past the page cache.
     refused : int
         Files that a file system's refusal sent back to the caller.
+    wait_s : float
+        Wall time spent in the writes themselves (waiting for the device), s.
     """
 
     def __init__(self, *, min_bytes: int = 1 << 18) -> None:
@@ -78,6 +84,7 @@ class UnbufferedFiles:
         self.min_bytes = min_bytes
         self.written = 0
         self.refused = 0
+        self.wait_s = 0.0
         self._buf: mmap.mmap | None = None
         self._refusing: set[int] = set()  # st_dev of the file systems that refused
 
@@ -132,6 +139,7 @@ class UnbufferedFiles:
             self.refused += 1
             return False
         done = 0
+        t0 = time.perf_counter()
         try:
             with memoryview(buf) as whole:
                 while done < size:
@@ -142,6 +150,7 @@ class UnbufferedFiles:
                     done += k
             os.ftruncate(fd, n)
         except OSError as exc:
+            self.wait_s += time.perf_counter() - t0
             os.close(fd)
             path.unlink(missing_ok=True)
             if exc.errno == errno.EINVAL and done == 0:  # the device's block is larger
@@ -150,6 +159,7 @@ class UnbufferedFiles:
                 return False
             raise
         os.close(fd)
+        self.wait_s += time.perf_counter() - t0
         self.written += 1
         return True
 

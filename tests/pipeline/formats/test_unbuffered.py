@@ -154,3 +154,71 @@ def test_a_real_full_disk_stops_the_recording_with_its_frames_readable(tmp_path:
         assert r.report.defects == 0
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True, check=False)
+
+
+def _sink_frames(n: int) -> list[Any]:
+    import numpy as np
+    from sffscan.stages.messages import Frame, FrameHeader
+
+    rng = np.random.default_rng(3)
+    return [Frame(FrameHeader(frame_id=i, timestamp_ns=i * 6_666_667, focus_index=i % 50),
+                  rng.integers(0, 1024, (256, 640), dtype=np.uint16)) for i in range(n)]
+
+
+@pytest.mark.parametrize("slow", ["disk", "cpu"])
+def test_a_recorder_behind_because_of_the_disk_goes_back_to_the_page_cache(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        slow: str) -> None:
+    """Behind while waiting for the disk past the cache: the rest goes through the cache
+    (said in a warning and the summary); behind for its own CPU: nothing changes."""
+    import logging
+    import time
+
+    from sffscan.pipeline.formats import recording_writer as recorder
+    from sffscan.pipeline.formats.recording_reader import open_recording
+    from sffscan.stages.protocol import Tapped
+
+    from tests.scan_helpers import small_config
+
+    if not UnbufferedFiles(min_bytes=0).write(tmp_path / "probe", (b"x",)):
+        pytest.skip(f"{tmp_path}: the file system refuses O_DIRECT")
+    real_pwrite, real_digest = os.pwrite, recorder.frame_digest
+
+    def slow_disk(fd: int, data: Any, offset: int) -> int:
+        time.sleep(0.004)
+        return real_pwrite(fd, data, offset)
+
+    def slow_cpu(*args: Any, **kwargs: Any) -> int:
+        t = time.perf_counter()
+        while time.perf_counter() - t < 0.008:  # twice the slow disk's wait: a margin
+            pass
+        return real_digest(*args, **kwargs)
+
+    if slow == "disk":
+        monkeypatch.setattr(os, "pwrite", slow_disk)
+    else:
+        monkeypatch.setattr(recorder, "frame_digest", slow_cpu)
+    w = recorder.RecordingWriter(tmp_path / "rec.zarr", small_config())
+    assert w.unbuffered is not None
+    w.unbuffered.min_bytes = 4096  # the frames (256 x 640 px), not the header rows
+    sink = recorder.RecorderSink(w, fps=150.0, capacity=16, behind_share=0.5, window_s=0.05)
+    frames = _sink_frames(40)
+    with caplog.at_level(logging.WARNING, logger=recorder.__name__):
+        for f in frames:
+            list(sink.process(Tapped("source", f)))
+        list(sink.finish())
+    stats = sink.extra_stats()
+    assert sink.behind_windows > 0  # both ways it fell behind
+    if slow == "disk":
+        assert w.page_cache_from is not None and 0 < w.page_cache_from < len(frames)
+        assert w.unbuffered.written == w.page_cache_from  # then the cache took the rest
+        assert stats["page_cache_from_frame"] == w.page_cache_from
+        assert f"from frame {w.page_cache_from} on it writes through the cache" in caplog.text
+    else:
+        assert w.page_cache_from is None and w.unbuffered.written == len(frames)
+        assert "page_cache_from_frame" not in stats and "through the cache" not in caplog.text
+    r = open_recording(tmp_path / "rec.zarr")
+    assert r.attrs.status == "complete" and r.report.frames == len(frames)
+    assert r.report.defects == 0
+    for got, want in zip(r.frames(), frames, strict=True):
+        assert got.header == want.header and (got.image == want.image).all()
