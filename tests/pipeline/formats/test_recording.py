@@ -335,7 +335,7 @@ def test_direct_chunk_writes_make_the_recording_zarr_makes_byte_for_byte(
         assert {f"<rec>/frames/c.{n - 1}.0.0", "<rec>/frame_id/c/2", "<rec>"} <= synced[way]
         r = open_recording(direct)
         assert r.report.frames == n and r.report.defects == 0
-    # past the page cache where this file system allows it (ext4, xfs; not tmpfs)
+    # past the page cache where this file system allows it (ext4, xfs; tmpfs since Linux 6.6)
     assert unbuffered >= (2 * n if _takes_o_direct(tmp_path) else 0)
 
 
