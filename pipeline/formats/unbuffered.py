@@ -29,11 +29,12 @@ How: the file's bytes are copied into a page-aligned buffer that is reused from 
 file, padded to a multiple of :data:`ALIGN` bytes, written with ``O_DIRECT``, and the file
 is truncated to its true length. The file holds exactly the bytes given (tested against a
 plain write). Where the platform has no ``O_DIRECT`` (macOS, Windows) or the file system
-refuses it (tmpfs before Linux 6.6: ``EINVAL`` when the file is opened; a device whose logical block is
-larger than :data:`ALIGN`: ``EINVAL`` at the first write), :meth:`UnbufferedFiles.write`
-returns False and the caller writes the file the usual way; a refusal is remembered per
-file system, so it costs one attempt. Small files (below ``min_bytes``: a frame's header
-row) are left to the page cache: each unbuffered write waits for the device.
+refuses it (tmpfs before Linux 6.6: ``EINVAL`` when the file is opened; a device whose
+logical block is larger than :data:`ALIGN`: ``EINVAL`` at the first write),
+:meth:`UnbufferedFiles.write` returns False and the caller writes the file the usual way;
+a refusal is remembered per file system, so it costs one attempt. Small files (below
+``min_bytes``: a frame's header row) are left to the page cache: each unbuffered write
+waits for the device.
 
 What it does not change: the durability the recorder promises comes from its fsyncs (the
 file's size and folder entry are metadata, which ``O_DIRECT`` does not make durable).
