@@ -441,7 +441,8 @@ class RecorderSink(Sink):
             self._win = (start, busy, n)
             return
         self._win = (now, 0.0, 0)
-        waited, self._wait0 = self._disk_wait() - self._wait0, self._disk_wait()
+        wait = self._disk_wait()
+        waited, self._wait0 = wait - self._wait0, wait
         if busy / span < self.behind_share:
             return
         w = self.writer
