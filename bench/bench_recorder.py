@@ -174,7 +174,7 @@ def main() -> None:
     ap.add_argument("--dir", default=None, help="folder to write in (default: system temp)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("recorder_results.md")))
     ap.add_argument("--sections", default="writer,layout,mosaic",
-                    help="comma-separated: writer (both write paths, all codecs), keys (the "
+                    help="comma-separated: writer (its write paths, all codecs), keys (the "
                          "two chunk key encodings of frames and headers, formats 2 and 3), "
                          "layout, mosaic")
     ap.add_argument("--codecs", default="none,blosc-lz4,blosc-zstd,zstd",
