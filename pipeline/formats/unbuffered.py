@@ -3,9 +3,10 @@
 Why: a recorder writes every raw frame once (about 1.5 MB compressed at 1280 x 1024,
 10-bit, 150 frames/s) and reads none of them back during the scan. Through the page cache
 each frame is first copied into cache pages by the writing process, and on the 2-core
-development VM (a virtual machine; the cost is highest while the cache grows into memory
-not touched before, so probably the host backing those pages) that copy cost more than the
-frame's compression: perf of a scan with the recorder on (600 frames, processes) put 7.6 %
+development VM (a virtual machine whose balloon driver reports freed pages to the host:
+perf shows ``page_reporting_*`` and ``clear_page_erms`` wherever memory is handed out
+anew, so new cache pages are expensive there) that copy cost more than the frame's
+compression: perf of a scan with the recorder on (600 frames, processes) put 7.6 %
 of all the processes' CPU, half of the recorder's, in the kernel's
 ``copy_folio_from_iter_atomic``. Measured there
 (2026-12-04, ``bench/bench_parallel.py --recorder-io unbuffered,page-cache``, 3 rounds
