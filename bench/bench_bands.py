@@ -45,6 +45,7 @@ from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
+from sffscan.pipeline.band_processes import BandProcesses  # noqa: E402
 from sffscan.pipeline.heap import keep_freed_memory  # noqa: E402
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
 from sffscan.stages.bands import BandWorkers  # noqa: E402
@@ -100,18 +101,28 @@ def bands_in_turn(on: bool) -> Iterator[None]:
 
 
 def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthStage, k: int,
-               steady: int, go: Any = None) -> tuple[float, float, list[Any]]:
+               steady: int, go: Any = None, processes: bool = False
+               ) -> tuple[float, float, list[Any]]:
     """The focus measure and depth stages with ``k`` band workers over ``placed``: CPU
     and wall ms per frame from frame ``steady`` on, and the blocks. ``go`` (an Event): stop
-    at the first frame it is found cleared (the twin)."""
+    at the first frame it is found cleared (the twin). ``processes``: the depth stage's
+    bands in processes (their CPU counted too), the focus measure's in threads."""
     fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
                            max_value=fm_ref.max_value, margin=fm_ref.margin,
                            directions=fm_ref.directions, workers=k)
     kw = dict(depth_ref.kwargs)
     kw["slack_px"] = kw.pop("row_slack")
     del kw["col_slack"]
-    depth = DepthStage(directions=depth_ref.directions, workers=k, **kw)  # type: ignore[arg-type]
+    depth = DepthStage(directions=depth_ref.directions, workers=k,
+                       band_processes=BandProcesses if processes else None,
+                       **kw)  # type: ignore[arg-type]
     depth.prepare()
+
+    def cpu_s() -> float:  # this process's and the band processes'
+        pool = depth._bands
+        return time.process_time() + (pool.helpers_cpu_s()
+                                      if isinstance(pool, BandProcesses) else 0.0)
+
     blocks: list[Any] = []
     c0 = w0 = 0.0
     try:
@@ -119,10 +130,10 @@ def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthSta
             if go is not None and not go.is_set():
                 break
             if i == steady:
-                c0, w0 = time.process_time(), time.perf_counter()
+                c0, w0 = cpu_s(), time.perf_counter()
             for f in fm.process(q):
                 blocks += depth.process(f)
-        c1, w1 = time.process_time(), time.perf_counter()
+        c1, w1 = cpu_s(), time.perf_counter()
         blocks += depth.finish()
     finally:
         fm.close(failed=False)
@@ -198,7 +209,8 @@ class Twin:
             self.proc.kill()
 
 
-def rounds(n: int, configs: list[str], run: Callable[[int], tuple[float, float, list[Any]]],
+def rounds(n: int, configs: list[str],
+           run: Callable[[int, bool], tuple[float, float, list[Any]]],
            twin: Twin | None, cpu: dict[str, list[float]], wall: dict[str, list[float]],
            identical: dict[str, list[bool]], ref: str) -> None:
     """``n`` rounds over ``configs``, the order reversed every other round."""
@@ -209,7 +221,7 @@ def rounds(n: int, configs: list[str], run: Callable[[int], tuple[float, float, 
             with bands_in_turn(name.endswith("in turn")), \
                     (twin.beside() if twin is not None and name.endswith("twin")
                      else nullcontext()):
-                c, w, outs[name] = run(int(name.split()[0]))
+                c, w, outs[name] = run(int(name.split()[0]), name.endswith("processes"))
             cpu[name].append(c)
             wall[name].append(w)
             print(f"round {r + 1}: K = {name}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
@@ -230,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="results, without suffix (.md and .json are written)")
     ap.add_argument("--serial", action="store_true",
                     help="also each K > 1 with its bands in turn in one thread")
+    ap.add_argument("--processes", action="store_true",
+                    help="also each K with the depth stage's bands in processes "
+                         "(sffscan.pipeline.band_processes; the focus measure's in threads)")
     ap.add_argument("--twin", action="store_true",
                     help="also K = 1 while another process does the same work (every core "
                          "busy: what this machine's shared caches and memory cost)")
@@ -237,12 +252,13 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # the heap setting of the scan's focus worker
     placed, fm_ref, depth_ref, steady = prepared(args.cache, args.frames)
 
-    def run(k: int) -> tuple[float, float, list[Any]]:
-        return run_stages(placed, fm_ref, depth_ref, k, steady)
+    def run(k: int, processes: bool) -> tuple[float, float, list[Any]]:
+        return run_stages(placed, fm_ref, depth_ref, k, steady, processes=processes)
 
     # configurations: "K" (K band threads) and, with --serial, "K in turn"
     configs = [str(k) for k in args.workers] + (
         [f"{k} in turn" for k in args.workers if k > 1] if args.serial else []) + (
+        [f"{k} processes" for k in args.workers] if args.processes else []) + (
         ["1 beside a twin"] if args.twin else [])
     ref = configs[0]
     cpu: dict[str, list[float]] = {c: [] for c in configs}
@@ -280,6 +296,11 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", "`K in turn`: the same K bands, one after another in one thread (the "
                   "split's own cost: halos, each band's calls); K against `K in turn`: what "
                   "the threads add (hand-overs, the GIL shared by the bands' Python code)."]
+    if args.processes:
+        lines += ["", "`K processes`: the depth stage's K bands in K processes sharing its "
+                  "state (`sffscan.pipeline.band_processes`: the caller's and K - 1 "
+                  "helpers, their CPU counted), the focus measure's K bands in threads "
+                  "as in `K`."]
     if args.twin:
         lines += ["", "`1 beside a twin`: K = 1 while another process does the same work on "
                   "its own copy of the frames (started before, stopped after): both cores "

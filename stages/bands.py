@@ -8,19 +8,22 @@ thread taking the first. Each band reads its rows widened by the reach and keeps
 rows, so the result is bit-identical for every K (tested in
 ``tests/stages/test_bands.py``).
 
-Threads, not processes: the work inside a band is OpenCV and numpy on arrays of a few
-hundred rows, which release the GIL, and the bands share the frame and the focus volume's
-state without copies. What still holds the GIL (the calls' Python overhead) limits the
-gain; ``bench/bench_bands.py`` measures it.
+Threads: the work inside a band is OpenCV and numpy on arrays of a few hundred rows,
+which release the GIL, and the bands share the frame and the focus volume's state without
+copies. What still holds the GIL (the calls' Python overhead) limits the gain;
+``bench/bench_bands.py`` measures it. The focus volume's bands can also run in processes
+(:class:`BandTasks`, :mod:`sffscan.pipeline.band_processes`), which share no GIL.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, Protocol, TypeVar
 
-__all__ = ["BandWorkers", "row_bands"]
+import numpy as np
+
+__all__ = ["BandTasks", "BandWorkers", "row_bands"]
 
 T = TypeVar("T")
 
@@ -49,6 +52,23 @@ def row_bands(start: int, stop: int, k: int) -> list[tuple[int, int]]:
     k = min(k, n)
     edges = [start + (n * i) // k for i in range(k + 1)]
     return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+class BandTasks(Protocol):
+    """Band workers in other processes (:class:`sffscan.pipeline.band_processes.BandProcesses`):
+    they share ``arrays`` (named, in shared memory) with the caller and run named tasks
+    (:mod:`sffscan.stages.volume_tasks`) on bands of their rows."""
+
+    k: int
+    arrays: dict[str, np.ndarray]
+
+    def run_task(self, task: str, params: dict[str, Any],
+                 bands: list[tuple[int, int]]) -> None:
+        """Run ``task`` with ``params`` on every band at once; return when all are done
+        (raise, naming the band, where one failed)."""
+
+    def close(self) -> None:
+        """Stop the processes (idempotent)."""
 
 
 class BandWorkers:

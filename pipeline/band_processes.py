@@ -1,0 +1,282 @@
+"""Band processes: the focus volume's rows split among K processes that share its state.
+
+Band threads (:class:`sffscan.stages.bands.BandWorkers`) share one interpreter: their
+Python code takes turns on the GIL, so K threads cost more CPU per frame than one
+(bench/results/bands.md: 1.23x for 2, 1.41x for 4 on 2 cores). :class:`BandProcesses`
+runs the same work in K - 1 helper processes and the caller's own, each on its band of
+rows. The focus volume's per-pixel state, the frame being added and a block's scratch are
+named arrays in one shared-memory segment (laid out by
+:meth:`sffscan.stages.focus_volume.FocusVolume.shared_layout`); a task is a name and
+JSON parameters (:mod:`sffscan.stages.volume_tasks`), sent down a pipe to each helper,
+its answer an acknowledgement (with the helper's CPU time) or the error it raised. Each
+band reads its rows widened by the filters' reach, as with threads, so the blocks are
+bit-identical for any K (``tests/pipeline/test_band_processes.py``).
+
+Lifetime, as for the pipeline's other helpers (:mod:`sffscan.pipeline.spawn`): spawned,
+they die with their parent (``PR_SET_PDEATHSIG``, and a pipe at end of file); the segment
+is unlinked as soon as they have mapped it, so no name is left in ``/dev/shm`` whatever
+happens; :meth:`BandProcesses.close` stops and joins them (terminated past
+:data:`~sffscan.pipeline.spawn.JOIN_TIMEOUT_S`). Every wait has a timeout: a helper that
+died or took longer than ``timeout_s`` fails the call with its name and rows.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import time
+import traceback
+import weakref
+from multiprocessing import shared_memory
+from typing import Any
+
+import numpy as np
+from sffscan.pipeline.spawn import (
+    START_TIMEOUT_S,
+    WAIT_S,
+    helper_start,
+    join_or_kill,
+    spawn_context,
+)
+from sffscan.stages.volume_tasks import Layout, run_task
+
+__all__ = ["BandProcessFailed", "BandProcesses", "map_arrays", "segment_bytes"]
+
+_ALIGN = 64  # bytes: each array starts on a cache line
+_MADV_POPULATE_WRITE = 23  # linux/mman.h; not in Python 3.11's mmap module
+
+
+class BandProcessFailed(RuntimeError):
+    """A band process raised, died or did not answer in time."""
+
+
+def _offsets(layout: Layout) -> tuple[dict[str, int], int]:
+    off, pos = {}, 0
+    for name, (shape, dtype) in layout.items():
+        off[name] = pos
+        n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        pos += (n + _ALIGN - 1) // _ALIGN * _ALIGN
+    return off, pos
+
+
+def segment_bytes(layout: Layout) -> int:
+    """Bytes of the segment that holds ``layout``'s arrays."""
+    return max(_offsets(layout)[1], 1)
+
+
+def map_arrays(buf: Any, layout: Layout) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """``layout``'s arrays over the buffer ``buf`` (a segment's ``memoryview``), and the
+    byte array they are all views of (their ``base``: alive while any of them is)."""
+    off, size = _offsets(layout)
+    base = np.ndarray((size,), np.uint8, buffer=buf)
+    return base, {name: base[off[name]:off[name] + int(np.prod(shape)) * np.dtype(dtype)
+                             .itemsize].view(np.dtype(dtype)).reshape(shape)
+                  for name, (shape, dtype) in layout.items()}
+
+
+def _close_segment(shm: shared_memory.SharedMemory) -> None:
+    """Unmap ``shm`` (once no array of it is left; at exit, whatever is left)."""
+    with contextlib.suppress(BufferError):
+        shm.close()
+
+
+def _helper_main(conn: Any, segment: str, layout: dict[str, Any], parent: int,
+                 opencv_threads: int | None) -> None:
+    """A band process: map the segment, then run the tasks that come down ``conn``."""
+    helper_start(parent)
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    if opencv_threads is not None:
+        cv2.setNumThreads(opencv_threads)
+    shm = shared_memory.SharedMemory(name=segment)
+    with contextlib.suppress(OSError, ValueError, AttributeError):  # map every page now
+        shm._mmap.madvise(_MADV_POPULATE_WRITE)  # type: ignore[attr-defined]
+    lay: Layout = {k: (tuple(v[0]), v[1]) for k, v in layout.items()}
+    base, arrays = map_arrays(shm.buf, lay)
+    with threadpool_limits(limits=1, user_api="blas"):
+        conn.send_bytes(b'{"ready": true}')
+        while True:
+            try:
+                if not conn.poll(WAIT_S):
+                    if os.getppid() != parent:
+                        os._exit(1)
+                    continue
+                msg = json.loads(conn.recv_bytes())
+            except (EOFError, OSError):  # the parent is gone
+                os._exit(1)
+            if msg["task"] == "stop":
+                break
+            try:
+                run_task(arrays, msg["task"], msg["params"], tuple(msg["rows"]))
+                reply: dict[str, Any] = {"cpu_s": time.process_time()}
+            except Exception as err:  # reported to the caller, which fails the stage
+                reply = {"error": f"{type(err).__name__}: {err}",
+                         "traceback": traceback.format_exc()}
+            conn.send_bytes(json.dumps(reply).encode())
+    del arrays, base
+    _close_segment(shm)
+    conn.send_bytes(json.dumps({"cpu_s": time.process_time()}).encode())
+
+
+class BandProcesses:
+    """K band workers: the caller's process and K - 1 helpers sharing ``layout``'s arrays.
+
+    Parameters
+    ----------
+    k : int
+        Band workers, >= 1 (1: no helper, the tasks run in the caller on the shared arrays).
+    layout : dict
+        The arrays, name -> (shape, dtype string)
+        (:meth:`sffscan.stages.focus_volume.FocusVolume.shared_layout`); zero-filled.
+    timeout_s : float, keyword-only
+        The longest a band's task may take before the call fails.
+    name : str, keyword-only
+        The helpers' process names (``sffscan-<name>-<i>``) and the segment's label.
+    opencv_threads : int or None, keyword-only
+        OpenCV threads in each helper (None: OpenCV's default).
+
+    Attributes
+    ----------
+    arrays : dict of str to ndarray
+        The shared arrays (this process's mapping).
+    """
+
+    def __init__(self, k: int, layout: Layout, *, timeout_s: float = 120.0,
+                 name: str = "band", opencv_threads: int | None = 1) -> None:
+        if k < 1:
+            raise ValueError(f"k (band workers) must be >= 1, got {k}")
+        self.k = k
+        self.timeout_s = timeout_s
+        self.name = name
+        self._procs: list[Any] = []
+        self._conns: list[Any] = []
+        self._cpu = [0.0] * (k - 1)
+        self.arrays: dict[str, np.ndarray] = {}
+        self._shm = shared_memory.SharedMemory(
+            name=f"sffscan-{os.getpid()}-{name}-{secrets.token_hex(4)}", create=True,
+            size=segment_bytes(layout))
+        self._unlinked = False
+        try:
+            with contextlib.suppress(OSError, ValueError, AttributeError):  # map it now
+                self._shm._mmap.madvise(_MADV_POPULATE_WRITE)  # type: ignore[attr-defined]
+            base, self.arrays = map_arrays(self._shm.buf, layout)
+            # unmapped when the last array is gone, the volume's views included
+            weakref.finalize(base, _close_segment, self._shm)
+            del base
+            self._start(layout, opencv_threads)
+        except BaseException:
+            self.close()
+            raise
+        self._unlink()  # every helper has mapped it
+
+    def _start(self, layout: Layout, opencv_threads: int | None) -> None:
+        ctx = spawn_context()
+        lay = {k: [list(v[0]), v[1]] for k, v in layout.items()}
+        for i in range(1, self.k):
+            mine, theirs = ctx.Pipe(duplex=True)
+            p = ctx.Process(target=_helper_main, name=f"sffscan-{self.name}-{i}",
+                            args=(theirs, self._shm.name, lay, os.getpid(), opencv_threads),
+                            daemon=True)
+            p.start()
+            theirs.close()
+            self._procs.append(p)
+            self._conns.append(mine)
+        for i in range(1, self.k):
+            self._receive(i, START_TIMEOUT_S, "start")
+
+    def _receive(self, i: int, timeout_s: float, what: str) -> dict[str, Any]:
+        """Helper ``i``'s answer (1-based), waiting at most ``timeout_s``."""
+        conn, proc = self._conns[i - 1], self._procs[i - 1]
+        deadline = time.monotonic() + timeout_s
+        while not conn.poll(min(WAIT_S, max(0.0, deadline - time.monotonic()))):
+            if not proc.is_alive():
+                raise BandProcessFailed(f"band process {proc.name} ({what}) died, exit code "
+                                        f"{proc.exitcode}")
+            if time.monotonic() >= deadline:
+                raise BandProcessFailed(f"band process {proc.name} ({what}) did not answer "
+                                        f"within {timeout_s:g} s")
+        try:
+            reply: dict[str, Any] = json.loads(conn.recv_bytes())
+        except (EOFError, OSError) as err:
+            raise BandProcessFailed(f"band process {proc.name} ({what}) closed its pipe: "
+                                    f"{err}") from None
+        if "error" in reply:
+            raise BandProcessFailed(f"band process {proc.name} ({what}): {reply['error']}\n"
+                                    f"{reply.get('traceback', '')}")
+        if "cpu_s" in reply:
+            self._cpu[i - 1] = float(reply["cpu_s"])
+        return reply
+
+    def run_task(self, task: str, params: dict[str, Any],
+                 bands: list[tuple[int, int]]) -> None:
+        """Run ``task`` (:data:`sffscan.stages.volume_tasks.TASKS`) with ``params`` on every
+        band, the first in this process; return when every band is done.
+
+        Raises
+        ------
+        BandProcessFailed
+            A helper raised (its error and traceback), died or took more than
+            ``timeout_s``; the other bands are still waited for.
+        """
+        if len(bands) > self.k:
+            raise ValueError(f"{len(bands)} bands for {self.k} band workers")
+        if not self._conns and self.k > 1:
+            raise BandProcessFailed(f"band processes '{self.name}' are closed")
+        body = json.dumps(params, separators=(",", ":"))
+        failure: BaseException | None = None
+        sent = []
+        for i, (a, b) in enumerate(bands[1:], start=1):
+            try:
+                self._conns[i - 1].send_bytes(
+                    f'{{"task":"{task}","rows":[{a},{b}],"params":{body}}}'.encode())
+                sent.append((i, a, b))
+            except OSError as err:  # its end of the pipe is closed: it died
+                proc = self._procs[i - 1]
+                proc.join(1.0)
+                failure = failure or BandProcessFailed(
+                    f"band process {proc.name} ({task}, rows {a}..{b}) died, exit code "
+                    f"{proc.exitcode} ({err})")
+        if failure is None:
+            try:
+                run_task(self.arrays, task, params, bands[0])
+            except BaseException as err:  # the helpers write into the same arrays: wait
+                failure = err
+        for i, a, b in sent:
+            try:
+                self._receive(i, self.timeout_s, f"{task}, rows {a}..{b}")
+            except BandProcessFailed as err:
+                failure = failure or err
+        if failure is not None:
+            raise failure
+
+    def helpers_cpu_s(self) -> float:
+        """CPU seconds the helpers have used so far (as of their last answers)."""
+        return sum(self._cpu)
+
+    def _unlink(self) -> None:
+        if not self._unlinked:
+            self._unlinked = True
+            with contextlib.suppress(FileNotFoundError):
+                self._shm.unlink()
+
+    def close(self) -> None:
+        """Stop and join the helpers, release the segment (idempotent)."""
+        for i, conn in enumerate(self._conns, start=1):
+            with contextlib.suppress(OSError, BandProcessFailed):
+                conn.send_bytes(b'{"task":"stop"}')
+                self._receive(i, 5.0, "stop")
+        join_or_kill((p.name, p) for p in self._procs)
+        for conn in self._conns:
+            conn.close()
+        self._conns, self._procs = [], []
+        self._unlink()
+        self.arrays = {}  # the segment is unmapped when no array of it is left
+
+    def __enter__(self) -> BandProcesses:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

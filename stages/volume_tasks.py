@@ -1,0 +1,169 @@
+"""The focus volume's band work as tasks on named arrays, for band *processes*.
+
+Band threads (:class:`sffscan.stages.bands.BandWorkers`) run closures over the focus
+volume's arrays. A band process shares no interpreter with the volume: it maps the same
+arrays (one shared-memory segment, :mod:`sffscan.pipeline.band_processes`) and receives
+what to do as a task, a name and JSON-able parameters. :func:`run_task` runs one on
+rows [r0, r1) of those arrays; the volume's own process runs the first band the same way.
+Each task calls the functions the threads call (:func:`~sffscan.stages.accumulate.apply_writes`,
+:func:`~sffscan.stages.block_depth.depth_rows`,
+:func:`~sffscan.stages.block_depth.block_uncertainty`) on the same values, so the blocks
+are bit-identical for any number of bands and either kind of band worker (tested in
+``tests/pipeline/test_band_processes.py``).
+
+The arrays (:func:`volume_layout`): the volume's per-pixel state (``best``, ``argmax``,
+``tex``, ``sums``, ``low``, ``fv``, ``level_buf``, the sums' weights ``coef`` and the
+levels' heights ``heights``), the frame being added (``focus``, ``image01``, written by
+the volume before its writes are applied), and a block's scratch (``b_*``, flat, cut to
+the block's shape by :func:`scratch`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+from sffscan.stages import block_depth as blocks
+from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
+
+__all__ = ["TASKS", "gather", "pieces", "run_task", "scratch", "volume_layout"]
+
+Layout = dict[str, tuple[tuple[int, ...], str]]
+"""Array name -> (shape, dtype string)."""
+
+
+def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int, int],
+                  block_columns: int, n_sums: int, levels: bool, low: bool) -> Layout:
+    """The arrays a focus volume with band processes keeps in shared memory.
+
+    Parameters
+    ----------
+    n_levels, rows, ring : int, keyword-only
+        N, the state's rows (frame height + wobble slack) and ring columns.
+    frame_shape : (int, int), keyword-only
+        Frame (height, width), px: the largest focus measure a frame adds.
+    block_columns : int, keyword-only
+        Columns of a block (the scratch's width).
+    n_sums : int, keyword-only
+        Planes of running sums (0 for the methods that store every level).
+    levels, low : bool, keyword-only
+        Whether the N-level ring is kept; whether a running minimum is.
+    """
+    amax = "|u1" if n_levels <= 256 else "<u2"
+    plane = (rows, ring)
+    out: Layout = {
+        "best": (plane, "<f4"), "argmax": (plane, amax), "tex": (plane, "<f4"),
+        "sums": ((n_sums, *plane), "<f4"), "low": (plane if low else (0, 0), "<f4"),
+        "level_buf": ((rows, frame_shape[1]), amax),
+        "coef": ((max(n_sums, 1), n_levels), "<f8"), "heights": ((n_levels,), "<f8"),
+        "focus": (frame_shape, "<f4"), "image01": (frame_shape, "<f4"),
+    }
+    if levels:
+        out["fv"] = ((n_levels, *plane), "<f4")
+    flat = (rows * block_columns,)
+    for name, planes in (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1),
+                         ("b_filled", 1), ("b_unc", 1)):
+        out[name] = ((planes * flat[0],), "<f4")
+    return out
+
+
+def scratch(arrays: dict[str, np.ndarray], name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The flat scratch array ``name`` cut to a contiguous ``shape`` (a block's)."""
+    n = int(np.prod(shape))
+    return arrays[name][:n].reshape(shape)
+
+
+def pieces(u0: int, u1: int, ring: int) -> Iterator[tuple[int, int, int]]:
+    """Internal columns [u0, u1) as (v0, v1, first slot) runs contiguous in a ring of
+    ``ring`` slots."""
+    while u0 < u1:
+        s0 = u0 % ring
+        v1 = min(u1, u0 + ring - s0)
+        yield u0, v1, s0
+        u0 = v1
+
+
+def gather(arr: np.ndarray, u0: int, u1: int, ring: int) -> np.ndarray:
+    """``arr[..., columns u0..u1)`` from a ring: a view unless it wraps."""
+    parts = [arr[..., s0:s0 + (v1 - v0)] for v0, v1, s0 in pieces(u0, u1, ring)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+
+
+def _state(arrays: dict[str, np.ndarray], p: dict[str, Any]) -> AccumulatorState:
+    return AccumulatorState(arrays["best"], arrays["argmax"], arrays["tex"], arrays["sums"],
+                            arrays["coef"], arrays["low"] if p["low"] else None,
+                            arrays.get("fv"), arrays["level_buf"])
+
+
+def accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]
+               ) -> None:
+    """The frame's writes (``p["writes"]``: level, the focus measure's first row and
+    column, rows r0, r1 and ring slots s0, s1 of the state) applied to ``rows``, the
+    frame's focus measure of shape ``p["shape"]`` in ``arrays["focus"]``; each write on
+    its own (strips sized for one frame's values: see
+    :func:`~sffscan.stages.accumulate.apply_writes`)."""
+    h, w = p["shape"]
+    focus, image01 = arrays["focus"][:h, :w], arrays["image01"][:h, :w]
+    writes = [Write(level, focus[fr0:fr0 + (r1 - r0), fc0:fc0 + (s1 - s0)],
+                    image01[fr0:fr0 + (r1 - r0), fc0:fc0 + (s1 - s0)], r0, r1, slice(s0, s1))
+              for level, fr0, fc0, r0, r1, s0, s1 in p["writes"]]
+    state = _state(arrays, p)
+    for w in writes:  # one at a time, as the volume without band processes does
+        apply_writes(state, [w], cache_bytes=p["cache_bytes"], rows=rows)
+
+
+def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]) -> None:
+    """A block's depth and confidence (``b_depth``, ``b_conf``) and its curves' sums and
+    minima (``b_sums``, ``b_low``), rows [r0, r1): what the volume's band closure does
+    (:meth:`sffscan.stages.focus_volume.FocusVolume.reduce`)."""
+    r0, r1 = rows
+    u0, u1, a0, a1, ring = p["u0"], p["u1"], p["a0"], p["a1"], p["ring"]
+    n_rows, width, halo = p["rows"], u1 - u0, p["halo"]
+    streaming = "fv" not in arrays
+    if streaming:
+        src = gather(arrays["sums"], a0, a1, ring)
+        low_src = gather(arrays["low"], u0, u1, ring) if p["uncertainty"] else None
+    else:
+        src = gather(arrays["fv"], u0 if p["own"] else a0, u1 if p["own"] else a1, ring)
+        low_src = None
+    ra0, ra1 = max(r0 - halo, 0), min(r1 + halo, n_rows)
+    argmax = gather(arrays["argmax"][ra0:ra1], a0, a1, ring)
+    sums = scratch(arrays, "b_sums", (3, n_rows, width))
+    low = scratch(arrays, "b_low", (n_rows, width))
+    d, c = blocks.depth_rows(src, argmax, low_src, (r0, r1), slice(r0 - ra0, r1 - ra0),
+                             slice(u0 - a0, u1 - a0), sums[:, r0:r1], low[r0:r1],
+                             method=p["method"], n_levels=p["n_levels"],
+                             median_size=p["median_size"], spread_size=p["spread_size"],
+                             streaming=streaming, keep_low=p["uncertainty"])
+    scratch(arrays, "b_depth", (n_rows, width))[r0:r1] = d
+    scratch(arrays, "b_conf", (n_rows, width))[r0:r1] = c
+
+
+def uncertainty(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]
+                ) -> None:
+    """A block's height uncertainty (``b_unc``), rows [r0, r1), from its filled depth
+    (``b_filled``), sums and minima (:func:`sffscan.stages.block_depth.block_uncertainty`)."""
+    r0, r1 = rows
+    shape = (p["rows"], p["width"])
+    u = blocks.block_uncertainty(scratch(arrays, "b_filled", shape),
+                                 scratch(arrays, "b_sums", (3, *shape)),
+                                 scratch(arrays, "b_low", shape), (r0, r1),
+                                 n_levels=p["n_levels"], focus_heights_um=arrays["heights"],
+                                 window=p["window"], bias_levels=p["bias"])
+    scratch(arrays, "b_unc", shape)[r0:r1] = u
+
+
+TASKS: dict[str, Callable[[dict[str, np.ndarray], dict[str, Any], tuple[int, int]], None]] = {
+    "accumulate": accumulate, "depth": depth, "uncertainty": uncertainty}
+"""The tasks a band process runs, by name."""
+
+
+def run_task(arrays: dict[str, np.ndarray], task: str, params: dict[str, Any],
+             rows: tuple[int, int]) -> None:
+    """Run task ``task`` (a :data:`TASKS` name) with ``params`` on rows [r0, r1)."""
+    try:
+        fn = TASKS[task]
+    except KeyError:
+        raise ValueError(f"unknown band task {task!r}; known: {sorted(TASKS)}") from None
+    fn(arrays, params, rows)
