@@ -21,6 +21,9 @@ thread (``BandWorkers.run`` swapped for a loop, here only): what splitting the r
 itself (the halos, each band's calls) against what running the bands in threads adds (the
 hand-overs, the GIL between the bands' Python code): the share that band *processes*,
 which share no interpreter, would not pay.
+``--processes`` adds every K with the depth stage's bands in processes
+(:mod:`sffscan.pipeline.band_processes`), which measure the focus of the rows they
+accumulate; their CPU is counted with this process's.
 ``--twin`` adds K = 1 run while a second process does the same work on its own copy of the
 frames: the CPU a frame costs on this machine when both cores are busy, whatever shares
 them (the reference a band placement's CPU on 2 cores should be read against).
@@ -45,12 +48,13 @@ from typing import Any, cast
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
-from sffscan.pipeline.band_processes import BandProcesses  # noqa: E402
+from sffscan.pipeline.band_processes import LazyBandProcesses  # noqa: E402
 from sffscan.pipeline.heap import keep_freed_memory  # noqa: E402
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
 from sffscan.stages.bands import BandWorkers  # noqa: E402
 from sffscan.stages.depth_stage import DepthStage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
+from sffscan.stages.shared_volume import SharedFocusVolume  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,27 +105,30 @@ def bands_in_turn(on: bool) -> Iterator[None]:
 
 
 def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthStage, k: int,
-               steady: int, go: Any = None, processes: bool = False
+               steady: int, go: Any = None, kind: str = "threads"
                ) -> tuple[float, float, list[Any]]:
     """The focus measure and depth stages with ``k`` band workers over ``placed``: CPU
     and wall ms per frame from frame ``steady`` on, and the blocks. ``go`` (an Event): stop
-    at the first frame it is found cleared (the twin). ``processes``: the depth stage's
-    bands in processes (their CPU counted too), the focus measure's in threads."""
-    fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
-                           max_value=fm_ref.max_value, margin=fm_ref.margin,
-                           directions=fm_ref.directions, workers=k)
+    at the first frame it is found cleared (the twin). ``kind``: ``"threads"``, or
+    ``"processes"``: the depth stage's band processes (their CPU counted too), each
+    measuring the focus of the rows it accumulates."""
     kw = dict(depth_ref.kwargs)
     kw["slack_px"] = kw.pop("row_slack")
     del kw["col_slack"]
-    depth = DepthStage(directions=depth_ref.directions, workers=k,
-                       band_processes=BandProcesses if processes else None,
+    pool = None
+    if kind != "threads":
+        pool = LazyBandProcesses(k, SharedFocusVolume.shared_layout(
+            **depth_ref.kwargs, raw_dtype=placed[0].image.dtype.str))  # type: ignore[arg-type]
+    fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
+                           max_value=fm_ref.max_value, margin=fm_ref.margin,
+                           directions=fm_ref.directions, workers=k,
+                           band_processes=pool is not None)
+    depth = DepthStage(directions=depth_ref.directions, workers=k, band_tasks=pool,
                        **kw)  # type: ignore[arg-type]
     depth.prepare()
 
     def cpu_s() -> float:  # this process's and the band processes'
-        pool = depth._bands
-        return time.process_time() + (pool.helpers_cpu_s()
-                                      if isinstance(pool, BandProcesses) else 0.0)
+        return time.process_time() + (0.0 if pool is None else pool.helpers_cpu_s())
 
     blocks: list[Any] = []
     c0 = w0 = 0.0
@@ -210,7 +217,7 @@ class Twin:
 
 
 def rounds(n: int, configs: list[str],
-           run: Callable[[int, bool], tuple[float, float, list[Any]]],
+           run: Callable[[int, str], tuple[float, float, list[Any]]],
            twin: Twin | None, cpu: dict[str, list[float]], wall: dict[str, list[float]],
            identical: dict[str, list[bool]], ref: str) -> None:
     """``n`` rounds over ``configs``, the order reversed every other round."""
@@ -221,7 +228,8 @@ def rounds(n: int, configs: list[str],
             with bands_in_turn(name.endswith("in turn")), \
                     (twin.beside() if twin is not None and name.endswith("twin")
                      else nullcontext()):
-                c, w, outs[name] = run(int(name.split()[0]), name.endswith("processes"))
+                kind = "processes" if name.endswith("processes") else "threads"
+                c, w, outs[name] = run(int(name.split()[0]), kind)
             cpu[name].append(c)
             wall[name].append(w)
             print(f"round {r + 1}: K = {name}: {c:.2f} CPU ms/frame, {w:.2f} wall ms/frame",
@@ -243,8 +251,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--serial", action="store_true",
                     help="also each K > 1 with its bands in turn in one thread")
     ap.add_argument("--processes", action="store_true",
-                    help="also each K with the depth stage's bands in processes "
-                         "(sffscan.pipeline.band_processes; the focus measure's in threads)")
+                    help="also each K with the focus measure's and depth stage's bands in "
+                         "processes (sffscan.pipeline.band_processes)")
     ap.add_argument("--twin", action="store_true",
                     help="also K = 1 while another process does the same work (every core "
                          "busy: what this machine's shared caches and memory cost)")
@@ -252,8 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     keep_freed_memory()  # the heap setting of the scan's focus worker
     placed, fm_ref, depth_ref, steady = prepared(args.cache, args.frames)
 
-    def run(k: int, processes: bool) -> tuple[float, float, list[Any]]:
-        return run_stages(placed, fm_ref, depth_ref, k, steady, processes=processes)
+    def run(k: int, kind: str) -> tuple[float, float, list[Any]]:
+        return run_stages(placed, fm_ref, depth_ref, k, steady, kind=kind)
 
     # configurations: "K" (K band threads) and, with --serial, "K in turn"
     configs = [str(k) for k in args.workers] + (
@@ -297,10 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                   "split's own cost: halos, each band's calls); K against `K in turn`: what "
                   "the threads add (hand-overs, the GIL shared by the bands' Python code)."]
     if args.processes:
-        lines += ["", "`K processes`: the depth stage's K bands in K processes sharing its "
+        lines += ["", "`K processes`: K bands in K processes sharing the depth stage's "
                   "state (`sffscan.pipeline.band_processes`: the caller's and K - 1 "
-                  "helpers, their CPU counted), the focus measure's K bands in threads "
-                  "as in `K`."]
+                  "helpers, their CPU counted), each band measuring the focus of the rows "
+                  "it accumulates (one task a frame, the frame's columns copied once)."]
     if args.twin:
         lines += ["", "`1 beside a twin`: K = 1 while another process does the same work on "
                   "its own copy of the frames (started before, stopped after): both cores "

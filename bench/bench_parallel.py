@@ -21,7 +21,8 @@ Cases:
 - the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
 
 ``--workers 1,2`` runs every case with each number of band workers
-(``processing.workers``), interleaved. ``--one-thread on,off`` runs every processes case
+(``processing.workers``), interleaved; ``--bands threads,processes`` with each kind of
+band worker (``processing.bands``; the band processes' CPU counted in process mode). ``--one-thread on,off`` runs every processes case
 with each worker process's stages in one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
 (:func:`sffscan.pipeline.cores.one_thread_per_process`). ``--outputs DIR,DIR`` runs
@@ -88,6 +89,7 @@ def case_config(case: dict[str, Any]) -> ScanConfig:
     data["processing"].update(execution=case["mode"], depth_method=case.get("method", "spc"),
                               focus_operator="glvm", window=9, registration=True,
                               workers=case.get("workers", 1),
+                              bands=case.get("bands", "threads"),
                               calibration=case.get("calibration") or None)
     return ScanConfig.model_validate(data)
 
@@ -258,6 +260,8 @@ def label(c: dict[str, Any]) -> str:
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
     bands = f", {c['workers']} band workers" if c.get("workers", 1) != 1 else ""
+    if c.get("bands", "threads") == "processes":
+        bands += " in band processes"
     one = {"on": ", one thread a worker", "off": ", a thread a stage"}.get(
         c.get("one_thread", "auto"), "")
     return (f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
@@ -331,6 +335,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", default="1",
                     help="comma-separated processing.workers (band threads of the focus "
                          "measure and depth) to run every case with, interleaved; default 1")
+    ap.add_argument("--bands", default="threads",
+                    help="comma-separated processing.bands (threads, processes: the band "
+                         "workers' kind), each case run with each")
     ap.add_argument("--recorder-io", default="unbuffered",
                     help="comma-separated unbuffered/page-cache: how the recorder writes its "
                          "frames (past the page cache, the default, or through it), every "
@@ -379,6 +386,10 @@ def main(argv: list[str] | None = None) -> int:
     if outputs:
         cases = [{**c, "outputs": d} for c in cases for d in outputs]
     cases = [{**c, "workers": int(k)} for c in cases for k in args.workers.split(",")]
+    kinds = [v for v in args.bands.split(",") if v]
+    if not kinds or any(v not in ("threads", "processes") for v in kinds):
+        ap.error(f"--bands takes threads, processes; got {args.bands!r}")
+    cases = [{**c, "bands": v} for c in cases for v in kinds]
     ios = [v for v in args.recorder_io.split(",") if v]
     if not ios or any(v not in ("unbuffered", "page-cache") for v in ios):
         ap.error(f"--recorder-io takes unbuffered, page-cache; got {args.recorder_io!r}")

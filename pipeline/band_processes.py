@@ -26,6 +26,7 @@ import contextlib
 import json
 import os
 import secrets
+import threading
 import time
 import traceback
 import weakref
@@ -42,7 +43,8 @@ from sffscan.pipeline.spawn import (
 )
 from sffscan.stages.volume_tasks import Layout, run_task
 
-__all__ = ["BandProcessFailed", "BandProcesses", "map_arrays", "segment_bytes"]
+__all__ = ["BandProcessFailed", "BandProcesses", "LazyBandProcesses", "map_arrays",
+           "segment_bytes"]
 
 _ALIGN = 64  # bytes: each array starts on a cache line
 _MADV_POPULATE_WRITE = 23  # linux/mman.h; not in Python 3.11's mmap module
@@ -97,7 +99,7 @@ def _helper_main(conn: Any, segment: str, layout: dict[str, Any], parent: int,
     lay: Layout = {k: (tuple(v[0]), v[1]) for k, v in layout.items()}
     base, arrays = map_arrays(shm.buf, lay)
     with threadpool_limits(limits=1, user_api="blas"):
-        conn.send_bytes(b'{"ready": true}')
+        conn.send_bytes(json.dumps({"cpu_s": time.process_time()}).encode())  # ready
         while True:
             try:
                 if not conn.poll(WAIT_S):
@@ -153,7 +155,9 @@ class BandProcesses:
         self.name = name
         self._procs: list[Any] = []
         self._conns: list[Any] = []
+        self._lock = threading.Lock()  # one task at a time (the stages' threads share it)
         self._cpu = [0.0] * (k - 1)
+        self._cpu0 = [0.0] * (k - 1)
         self.arrays: dict[str, np.ndarray] = {}
         self._shm = shared_memory.SharedMemory(
             name=f"sffscan-{os.getpid()}-{name}-{secrets.token_hex(4)}", create=True,
@@ -186,6 +190,7 @@ class BandProcesses:
             self._conns.append(mine)
         for i in range(1, self.k):
             self._receive(i, START_TIMEOUT_S, "start")
+        self._cpu0 = list(self._cpu)  # their start-up (imports) is not the stages' work
 
     def _receive(self, i: int, timeout_s: float, what: str) -> dict[str, Any]:
         """Helper ``i``'s answer (1-based), waiting at most ``timeout_s``."""
@@ -225,6 +230,10 @@ class BandProcesses:
             raise ValueError(f"{len(bands)} bands for {self.k} band workers")
         if not self._conns and self.k > 1:
             raise BandProcessFailed(f"band processes '{self.name}' are closed")
+        with self._lock:
+            self._run(task, params, bands)
+
+    def _run(self, task: str, params: dict[str, Any], bands: list[tuple[int, int]]) -> None:
         body = json.dumps(params, separators=(",", ":"))
         failure: BaseException | None = None
         sent = []
@@ -253,8 +262,9 @@ class BandProcesses:
             raise failure
 
     def helpers_cpu_s(self) -> float:
-        """CPU seconds the helpers have used so far (as of their last answers)."""
-        return sum(self._cpu)
+        """CPU seconds the helpers have used since they were ready (as of their last
+        answers; after :meth:`close`, all of it)."""
+        return sum(self._cpu) - sum(self._cpu0)
 
     def _unlink(self) -> None:
         if not self._unlinked:
@@ -280,3 +290,52 @@ class BandProcesses:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class LazyBandProcesses:
+    """:class:`BandProcesses` started at the first use of :attr:`arrays` or
+    :meth:`run_task` (in the process that runs the stages, not where they are built), shared
+    by the stages that use them (the focus measure and depth stages); :meth:`close`,
+    idempotent, stops them.
+
+    Parameters
+    ----------
+    k, layout, **options
+        :class:`BandProcesses`'s.
+    """
+
+    def __init__(self, k: int, layout: Layout, **options: Any) -> None:
+        if k < 1:
+            raise ValueError(f"k (band workers) must be >= 1, got {k}")
+        self.k = k
+        self.layout = layout
+        self.options = options
+        self._pool: BandProcesses | None = None
+        self._closed = False
+        self._cpu_s = 0.0  # the helpers' CPU once closed
+
+    def _started(self) -> BandProcesses:
+        if self._pool is None:
+            if self._closed:
+                raise BandProcessFailed("band processes used after they were closed")
+            self._pool = BandProcesses(self.k, self.layout, **self.options)
+        return self._pool
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        return self._started().arrays
+
+    def run_task(self, task: str, params: dict[str, Any],
+                 bands: list[tuple[int, int]]) -> None:
+        self._started().run_task(task, params, bands)
+
+    def helpers_cpu_s(self) -> float:
+        """:meth:`BandProcesses.helpers_cpu_s` (kept once closed)."""
+        return self._cpu_s if self._pool is None else self._pool.helpers_cpu_s()
+
+    def close(self) -> None:
+        self._closed = True
+        if self._pool is not None:
+            self._pool.close()
+            self._cpu_s = self._pool.helpers_cpu_s()
+            self._pool = None

@@ -17,7 +17,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 from sffscan.pipeline.config_groups import (
     GROUP_TITLES,
     ConfigModel,
@@ -86,6 +86,13 @@ class MotionConfig(SimMotion, Motion):
 
 class ProcessingConfig(Execution, Method):
     """The measuring method, and where and how the stages compute."""
+
+    @model_validator(mode="after")
+    def _band_processes_measure_with_opencv(self) -> ProcessingConfig:
+        if self.bands == "processes" and self.backend != "opencv":
+            raise ValueError(f"bands = 'processes' measures the focus with the OpenCV "
+                             f"backend; backend is {self.backend!r}")
+        return self
 
 
 class OutputConfig(Output):

@@ -237,6 +237,14 @@ class Execution(ConfigModel):
         "main process), at least 1, at most 8. 1 by default: on 2 cores N = 2 costs 1.19x "
         "the CPU of these stages (bench/results/bands.md), which the other stages need")
 
+    bands: Literal["threads", "processes"] = Field(
+        "threads", description="Where the band workers run: 'threads' of the focus measure "
+        "and depth stages, or 'processes' that share the depth stage's state, each "
+        "measuring the focus of the rows it accumulates (OpenCV backend; no GIL shared: "
+        "on 2 cores N = 2 costs 1.12-1.20x the CPU of these stages against 1.23-1.45x in "
+        "threads, bench/results/band_processes.md); with 'processes' the live view shows "
+        "no focus frames")
+
     def band_workers(self) -> int:
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""
         if isinstance(self.workers, int):

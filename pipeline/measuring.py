@@ -11,13 +11,17 @@ these modules 0.32 s, measured).
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
+from typing import Any
 
+import numpy as np
+from sffscan.pipeline.band_processes import LazyBandProcesses
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.plan import pass_direction
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.protocol import Stage
 from sffscan.stages.registration import RegistrationStage
+from sffscan.stages.shared_volume import SharedFocusVolume
 
 __all__ = ["focus_heights_um", "measure_stages"]
 
@@ -43,19 +47,30 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     slack = int(2 * (m.wobble_along_px + m.wobble_across_px)) + 8
     directions = [pass_direction(cfg, i) for i in range(m.passes)]
+    def depth_kw() -> dict[str, Any]:
+        return dict(n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
+                    focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
+                    method=p.depth_method, median_size=p.median_size, spread_size=p.window,
+                    block_columns=p.block_columns)
+
+    wanted = {"focus_measure", "depth"} if only is None else set(only)
+    bands = None
+    if p.bands == "processes" and {"focus_measure", "depth"} <= wanted:
+        # the depth stage's band processes, started where the stages run
+        # (sffscan.pipeline.band_processes); they measure the focus too
+        bands = LazyBandProcesses(p.band_workers(), SharedFocusVolume.shared_layout(
+            **depth_kw(), row_slack=slack, col_slack=slack,
+            raw_dtype=np.dtype(o.dtype).str), name="band")
     build: dict[str, Callable[[], Stage]] = {
         "registration": lambda: RegistrationStage(n_levels=o.n_levels,
                                                   scale=p.registration_scale),
         "focus_measure": lambda: FocusMeasureStage(
             operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
             max_value=o.max_value, margin=p.focus_reach_px, directions=directions,
-            workers=p.band_workers()),
+            workers=p.band_workers(), band_processes=bands is not None),
         "depth": lambda: DepthStage(
-            n_levels=o.n_levels, frame_shape=(o.height_px, o.width_px),
-            focus_heights_um=focus_heights_um(cfg), margin=p.focus_reach_px,
-            method=p.depth_method, median_size=p.median_size, spread_size=p.window,
-            block_columns=p.block_columns, directions=directions, slack_px=slack,
-            workers=p.band_workers()),
+            directions=directions, slack_px=slack, workers=p.band_workers(),
+            band_tasks=bands, **depth_kw()),
     }
     if not p.registration:
         del build["registration"]

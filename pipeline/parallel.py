@@ -209,7 +209,7 @@ class ProcessPipeline:
                 p = ctx.Process(target=worker_main, name=f"sffscan-{g.label}",
                                 args=(spec, "stages", pj, syncs, chans[i], chans[i + 1],
                                       results, abort.pipe(ctx), os.getpid(), 1, mine),
-                                daemon=True)
+                                daemon=not g.spawns)
                 workers.append(_Worker(g.label, p, g.stages))
             for k, q in zip(self.hosted, sink_qs, strict=True):
                 spec = {"label": k.name, "factory": k.factory, "kwargs": k.kwargs,

@@ -54,6 +54,7 @@ log = logging.getLogger(__name__)
 #: differ in them (the mosaics of threads and processes are bit for bit the same)
 RUN_ONLY: tuple[tuple[str, str], ...] = (
     ("processing", "execution"), ("processing", "queue_capacity"), ("processing", "workers"),
+    ("processing", "bands"),
     ("source", "idle_timeout_s"), ("source", "max_bad_messages"), ("source", "keys_dir"),
     ("source", "address"))
 

@@ -169,7 +169,8 @@ def process_placement(cfg: ScanConfig, stages: list[Stage], *,
     if "registration" in names:
         groups.append(WorkerGroup("registration", registration_group, {"cfg": cj},
                                   ("registration",)))
-    groups.append(WorkerGroup("focus", focus_group, {"cfg": cj}, ("focus_measure", "depth")))
+    groups.append(WorkerGroup("focus", focus_group, {"cfg": cj}, ("focus_measure", "depth"),
+                              spawns=cfg.processing.bands == "processes"))
     hosted: list[HostedSink] = []
     local: list[Sink] = []
     for k in sinks:

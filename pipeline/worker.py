@@ -28,6 +28,7 @@ from sffscan.pipeline.relays import Relay, relay_forwarder, relay_report
 from sffscan.pipeline.runtime import Pipeline, PipelineCancelled, StageFailed
 from sffscan.pipeline.shm_ring import PoolSpec, SlotPool
 from sffscan.pipeline.spawn import helper_start, watch_stop
+from sffscan.stages.bands import BAND_CPU_KEY
 from sffscan.stages.protocol import FullPolicy, Sink, Stage
 
 #: capacity of the queues between the stages inside one process (the channels between
@@ -41,13 +42,17 @@ class WorkerGroup:
 
     ``factory`` is a module-level function (a spawned process imports it by name)
     returning the list of stages; ``kwargs`` must be JSON-able. ``stages`` names what the
-    factory builds, in order (for the statistics).
+    factory builds, in order (for the statistics). ``spawns``: its stages start processes
+    of their own (band processes), so the worker is not a daemonic process (which may not
+    have children); it dies with the main process all the same
+    (:func:`sffscan.pipeline.spawn.helper_start`).
     """
 
     label: str
     factory: Callable[..., list[Stage]]
     kwargs: dict[str, Any]
     stages: tuple[str, ...]
+    spawns: bool = False
 
 
 @dataclass(frozen=True)
@@ -165,7 +170,10 @@ def worker_main(group: dict[str, Any], kind: str, pool_specs: list[dict[str, Any
         else:
             send = chain[-1]
             fw = {f.name for f in forwards}
-            report({"kind": "done", "cpu_s": time.process_time() - cpu0,
+            # the band processes this worker started (their streaming CPU, BAND_CPU_KEY)
+            helpers = sum(float(v.get(BAND_CPU_KEY, 0.0)) for v in result.extras.values()
+                          if isinstance(v, dict))
+            report({"kind": "done", "cpu_s": time.process_time() - cpu0 + helpers,
                     "channel": send.stats.to_json() if isinstance(send, SendStage) else None,
                     "stages": [st.to_json() for st in own_stages(result.stages, fw)],
                     "queues": [q.to_json() for q in own_queues(result.queues, fw)],

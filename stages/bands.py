@@ -19,11 +19,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
-__all__ = ["BandTasks", "BandWorkers", "row_bands"]
+__all__ = ["BAND_CPU_KEY", "BandTasks", "BandWorkers", "row_bands"]
+
+BAND_CPU_KEY = "band_processes_cpu_s"
+"""A stage's statistic (:meth:`~sffscan.stages.protocol.Stage.extra_stats`): CPU seconds
+its band processes, other than the stage's own, used while streaming; the process that
+runs the stage counts it with its own CPU."""
 
 T = TypeVar("T")
 
@@ -54,18 +59,25 @@ def row_bands(start: int, stop: int, k: int) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:], strict=True))
 
 
+@runtime_checkable
 class BandTasks(Protocol):
     """Band workers in other processes (:class:`sffscan.pipeline.band_processes.BandProcesses`):
     they share ``arrays`` (named, in shared memory) with the caller and run named tasks
     (:mod:`sffscan.stages.volume_tasks`) on bands of their rows."""
 
     k: int
-    arrays: dict[str, np.ndarray]
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The shared arrays, by name."""
 
     def run_task(self, task: str, params: dict[str, Any],
                  bands: list[tuple[int, int]]) -> None:
         """Run ``task`` with ``params`` on every band at once; return when all are done
         (raise, naming the band, where one failed)."""
+
+    def helpers_cpu_s(self) -> float:
+        """CPU seconds the other processes have used on the tasks."""
 
     def close(self) -> None:
         """Stop the processes (idempotent)."""

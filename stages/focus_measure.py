@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.focus_volume import new_columns
-from sffscan.stages.messages import FocusFrame, PlacedFrame
+from sffscan.stages.messages import FocusFrame, PlacedFrame, RawColumns
 from sffscan.stages.operators import (
     FOCUS_OPERATORS,
     check_operator,
@@ -247,13 +247,21 @@ class FocusMeasureStage(Stage):
         Band workers (:mod:`sffscan.stages.bands`): with the OpenCV backend, each frame's
         rows are measured in that many bands at once (:func:`focus_measure_raw`'s
         ``rows``), then joined: bit-identical for GLVM and TENV. 1: one call per frame.
+    band_processes : bool
+        The depth stage's band processes measure the focus (the OpenCV backend): each
+        the rows it accumulates, never gathered
+        (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`). The stage then
+        passes on, instead of each focus frame, the frame and its columns
+        (:class:`~sffscan.stages.messages.RawColumns`): a sink that taps it (the live
+        view) gets no focus frames.
     """
 
     name = "focus_measure"
 
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
                  device: str = "cpu", max_value: float = 255.0, margin: int,
-                 directions: Sequence[int] = (1,), workers: int = 1) -> None:
+                 directions: Sequence[int] = (1,), workers: int = 1,
+                 band_processes: bool = False) -> None:
         self.operator = check_operator(operator)
         self.window = check_window(window)
         self.backend = backend
@@ -267,14 +275,20 @@ class FocusMeasureStage(Stage):
         self._device_focus: DeviceFocus | None = None
         self.workers = workers
         self._bands: BandWorkers | None = None  # made at the first frame
+        if band_processes and backend != "opencv":
+            raise ValueError("band processes measure the focus with the OpenCV backend "
+                             f"only, not {backend!r}")
+        self.band_processes = band_processes
         self.columns_measured = 0
         self.columns_total = 0
 
-    def process(self, item: PlacedFrame) -> Iterator[FocusFrame]:
+    def columns(self, item: PlacedFrame) -> tuple[int, int, int, int]:
+        """The frame columns [c0, c1) measured and [a0, a1) read (see the class); counted
+        in the stage's statistics."""
         hdr = item.header
         if hdr.pass_index != self._pass:
             self._pass, self._prev_x = hdr.pass_index, {}
-        h, w = item.image.shape
+        w = item.image.shape[1]
         x = item.offset_px[0]
         c0, c1 = new_columns(x, self._prev_x.get(hdr.focus_index), width=w,
                              margin=self.margin,
@@ -282,6 +296,17 @@ class FocusMeasureStage(Stage):
         self._prev_x[hdr.focus_index] = x
         a0, a1 = max(c0 - self.margin, 0), min(c1 + self.margin, w)
         a0 -= a0 % self.alignment  # the wavelet operators decimate: start on their grid
+        self.columns_measured += c1 - c0
+        self.columns_total += w
+        return c0, c1, a0, a1
+
+    def process(self, item: PlacedFrame) -> Iterator[FocusFrame | RawColumns]:
+        c0, c1, a0, a1 = self.columns(item)
+        if self.band_processes:  # measured by the depth stage's band processes
+            yield RawColumns(item, (c0, c1, a0, a1), {
+                "operator": self.operator, "window": self.window,
+                "max_value": self.max_value})
+            return
         if self.backend == "opencv" and self.workers > 1:
             image01, fm = self._measure_bands(item.image[:, a0:a1])
         elif self.backend == "opencv":
@@ -295,8 +320,6 @@ class FocusMeasureStage(Stage):
                                                  window=self.window, max_value=self.max_value)
             t01, tfm = self._device_focus.measure(item.image[:, a0:a1])
             image01, fm = t01.cpu().numpy(), tfm.cpu().numpy()
-        self.columns_measured += c1 - c0
-        self.columns_total += w
         yield FocusFrame(item, image01[:, c0 - a0:c1 - a0], fm[:, c0 - a0:c1 - a0], c0)
 
     def _measure_bands(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -315,6 +338,7 @@ class FocusMeasureStage(Stage):
         if self._bands is not None:
             self._bands.close()
             self._bands = None
+
 
     def extra_stats(self) -> dict[str, float]:
         share = self.columns_measured / self.columns_total if self.columns_total else 0.0

@@ -42,11 +42,11 @@ from typing import NamedTuple, TypeVar
 import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
-from sffscan.stages.bands import BandTasks, BandWorkers, row_bands
+from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
-from sffscan.stages.volume_tasks import Layout, gather, pieces, scratch, volume_layout
+from sffscan.stages.volume_tasks import gather, pieces
 
 T = TypeVar("T")
 
@@ -81,9 +81,9 @@ def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, directio
     return lo, max(lo, hi)
 
 
-def _geometry(frame_shape: tuple[int, int], *, method: str, median_size: int,
-              spread_size: int, block_columns: int, row_slack: int, col_slack: int
-              ) -> tuple[int, int, int]:
+def volume_geometry(frame_shape: tuple[int, int], *, method: str, median_size: int,
+                    spread_size: int, block_columns: int, row_slack: int, col_slack: int
+                    ) -> tuple[int, int, int]:
     """A volume's halo of columns, its rows and its ring's columns (see :class:`FocusVolume`)."""
     # the median's reach (+1), and for "adaptive" the spread window's beyond it, so that a
     # block's filtered peaks and spreads equal those of the whole volume
@@ -149,15 +149,10 @@ class FocusVolume:
         frame at once, the default: 32 was slower end to end, commit 2d4ebc8).
         :meth:`add` keeps views of ``focus`` and ``image01`` until then: the caller must
         not change them.
-    workers : BandWorkers or BandTasks, optional
+    workers : BandWorkers, optional
         Band workers (:mod:`sffscan.stages.bands`): the accumulation and the reduction
         split by rows among their threads, each band read with the filters' reach; blocks
-        bit-identical for any number. None: all in the caller's thread. Band *processes*
-        (:class:`~sffscan.stages.bands.BandTasks`) hold the per-pixel state in their
-        shared arrays (laid out by :meth:`shared_layout` with the same parameters) and
-        run :mod:`sffscan.stages.volume_tasks`' tasks; each frame's focus measure is
-        copied there and its writes applied at the end of :meth:`add` (``defer_writes``
-        is not used).
+        bit-identical for any number. None: all in the caller's thread.
     """
 
     #: bytes of per-pixel state per strip of rows kept in cache while the deferred writes
@@ -181,7 +176,7 @@ class FocusVolume:
         reuse: FocusVolume | None = None,
         uncertainty: bool = True,
         defer_writes: int = 1,
-        workers: BandWorkers | BandTasks | None = None,
+        workers: BandWorkers | None = None,
     ) -> None:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction}")
@@ -200,27 +195,20 @@ class FocusVolume:
         self.track_low = uncertainty and self.streaming
         self.median_size = median_size
         self.spread_size = spread_size
-        self.halo, self.rows, self.ring = _geometry(
+        self.halo, self.rows, self.ring = volume_geometry(
             frame_shape, method=method, median_size=median_size, spread_size=spread_size,
             block_columns=block_columns, row_slack=row_slack, col_slack=col_slack)
         self.block = block_columns
         self.row_slack = row_slack
         self.col_slack = col_slack
-        plane = (self.rows, self.ring)
         self.fv: np.ndarray | None = None
-        self.tasks = None if workers is None or isinstance(workers, BandWorkers) else workers
-        if self.tasks is not None:
-            self._shared_state(reuse)
-        else:
-            self._own_state(plane, reuse)
+        self._init_state((self.rows, self.ring), reuse)
         if defer_writes < 1:
             raise ValueError(f"defer_writes must be >= 1, got {defer_writes}")
         self.defer_writes = defer_writes
         self.workers = workers
         self._bands = row_bands(0, self.rows, workers.k if workers is not None else 1)
         self._pending: list[Write] = []
-        self._specs: list[list[int]] = []  # the pending writes as band tasks' parameters
-        self._frame_shape = (0, 0)  # the focus measure's shape in the shared arrays
         self._state = AccumulatorState(
             self.best, self.argmax, self.tex, self.sums, self.coef,
             self.low if self.track_low else None, self.fv, self._level_buf)
@@ -230,61 +218,8 @@ class FocusVolume:
         self.end_u = 0  # one past the last internal column stored
         self.dead_below = -(2**62)  # internal columns below this cannot be completed
 
-    @classmethod
-    def shared_layout(cls, *, n_levels: int, frame_shape: tuple[int, int],
-                      method: str = "spc", median_size: int = 11, spread_size: int = 9,
-                      block_columns: int = 64, row_slack: int = 8, col_slack: int = 8,
-                      uncertainty: bool = True, **_other: object) -> Layout:
-        """The arrays band processes share with a volume of these parameters
-        (:func:`sffscan.stages.volume_tasks.volume_layout`); the other parameters of the
-        constructor are accepted and ignored."""
-        _halo, rows, ring = _geometry(frame_shape, method=method, median_size=median_size,
-                                  spread_size=spread_size, block_columns=block_columns,
-                                  row_slack=row_slack, col_slack=col_slack)
-        streaming = method in STREAMING_METHODS
-        return volume_layout(n_levels=n_levels, rows=rows, ring=ring,
-                             frame_shape=frame_shape, block_columns=block_columns,
-                             n_sums=(4 if method == "centroid" else 3) if streaming else 0,
-                             levels=not streaming, low=uncertainty and streaming)
-
-    def _shared_state(self, reuse: FocusVolume | None) -> None:
-        """The state in the band processes' arrays, set as a new volume's would be (the
-        N-level ring as it is: its stale values are never read, see :meth:`_release`)."""
-        assert self.tasks is not None
-        a = self.tasks.arrays
-        want = type(self).shared_layout(
-            n_levels=self.n, frame_shape=(self.h, self.w), method=self.method,
-            median_size=self.median_size, spread_size=self.spread_size,
-            block_columns=self.block, row_slack=self.row_slack, col_slack=self.col_slack,
-            uncertainty=self.uncertainty)
-        have = {k: (v.shape, v.dtype.str) for k, v in a.items()}
-        if have != want:
-            raise ValueError("the band processes' arrays were laid out for another focus "
-                             "volume (FocusVolume.shared_layout of these parameters)")
-        if reuse is not None:
-            reuse._apply_pending()
-        self.fv = a.get("fv")
-        if reuse is None and self.fv is not None:  # as a new ring would be (see _own_state)
-            self.fv.fill(0.0)
-        self.argmax = a["argmax"]
-        self.argmax.fill(0)
-        self._level_buf = a["level_buf"]
-        self.sums = a["sums"]
-        self.sums.fill(0.0)
-        n_sums = len(self.sums)
-        self.coef = a["coef"]
-        self.coef[:n_sums] = harmonic_table(self.n)[[0, 2, 3, 1][:n_sums]]
-        a["heights"][:] = self.heights
-        self.best = a["best"]
-        self.best.fill(-1.0)
-        self.low = a["low"]
-        self.low.fill(np.inf)
-        self.tex = a["tex"]
-        self.tex.fill(0.0)
-        self._init_bookkeeping()
-
-    def _own_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
-        """The state in this process's own arrays."""
+    def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
+        """The per-pixel state, in this process's own arrays, and the bookkeeping."""
         # filled now, so the pages are touched at start-up and not during the scan
         # the running argmax of every curve (all methods: the N-level methods reuse it)
         self.argmax = np.zeros(plane, np.uint8 if self.n <= 256 else np.uint16)
@@ -354,10 +289,14 @@ class FocusVolume:
         if self.direction == -1:
             focus, image01 = focus[:, ::-1], image01[:, ::-1]
             col0 = self.w - (col0 + focus.shape[1])
-            if self.tasks is None:  # OpenCV takes positive strides only
-                focus, image01 = np.ascontiguousarray(focus), np.ascontiguousarray(image01)
-        if self.tasks is not None:  # where the band processes read it (copied below)
-            focus, image01 = self._to_shared(focus, image01)
+            # OpenCV takes positive strides only
+            focus, image01 = np.ascontiguousarray(focus), np.ascontiguousarray(image01)
+        return self._add(focus, image01, focus.shape[1], x=x, y=y, level=level, col0=col0)
+
+    def _add(self, focus: np.ndarray | None, image01: np.ndarray | None, width: int, *,
+             x: int, y: int, level: int, col0: int) -> list[BlockResult]:
+        """:meth:`add` of a frame ``width`` columns wide whose values are ``focus`` and
+        ``image01`` (mirrored already; None where a subclass's writes find them elsewhere)."""
         u_frame = self._to_internal(x)
         m = self.margin
         if self.y0 is None:
@@ -373,7 +312,7 @@ class FocusVolume:
         fr0 = r0 - (y - self.y0)
         # columns: valid frame columns [m, w - m) that were given -> internal u_frame + j
         u_lo = max(u_frame + max(m, col0), self.next_u)
-        u_hi = u_frame + min(self.w - m, col0 + focus.shape[1])
+        u_hi = u_frame + min(self.w - m, col0 + width)
         # make room: columns that would not fit in the ring are given up (left the view)
         done: list[BlockResult] = []
         self.dead_below = max(self.dead_below, u_frame + m - self.col_slack)
@@ -394,62 +333,43 @@ class FocusVolume:
                 for v0, v1, s0 in self._pieces(u_lo + int(a), u_lo + int(b)):
                     self._write(level, v0, v1, s0, focus, image01, u_frame + col0, r0, r1,
                                 fr0)
-        if self.tasks is not None:
-            self._apply_pending()  # before the next frame overwrites the shared copy
         done += [self.reduce(*r) for r in self._advance()]
         return done
-
-    def _to_shared(self, focus: np.ndarray, image01: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """The frame's focus measure and image copied into the band processes' arrays."""
-        assert self.tasks is not None
-        self._apply_pending()
-        h, w = focus.shape
-        if image01.shape != focus.shape or h > self.h or w > self.w:
-            raise ValueError(f"focus {focus.shape} and image01 {image01.shape} must have "
-                             f"one shape within the frame's {(self.h, self.w)}")
-        a = self.tasks.arrays
-        out = a["focus"][:h, :w], a["image01"][:h, :w]
-        np.copyto(out[0], focus, casting="same_kind")
-        np.copyto(out[1], image01, casting="same_kind")
-        self._frame_shape = (h, w)
-        return out
 
     def _pieces(self, u0: int, u1: int) -> Iterator[tuple[int, int, int]]:
         """Split internal columns [u0, u1) into (v0, v1, first slot) runs contiguous in the
         ring, so that they are read and written as slices, not gathered."""
         return pieces(u0, u1, self.ring)
 
-    def _write(self, level: int, v0: int, v1: int, s0: int, focus: np.ndarray,
-               image01: np.ndarray, u_frame: int, r0: int, r1: int, fr0: int) -> None:
+    def _write(self, level: int, v0: int, v1: int, s0: int, focus: np.ndarray | None,
+               image01: np.ndarray | None, u_frame: int, r0: int, r1: int, fr0: int) -> None:
         """Store one frame's focus measure for columns [v0, v1) (ring slots from s0)."""
         cs = slice(s0, s0 + (v1 - v0))
         fc = slice(v0 - u_frame, v1 - u_frame)
-        fr = slice(fr0, fr0 + (r1 - r0))
-        fm = focus[fr, fc]
-        if fm.strides[1] != 4:
-            fm = np.ascontiguousarray(fm, dtype=np.float32)
         self.filled[level, cs] = True
         self.count[cs] += 1
         self.row_lo[level, cs] = r0
         self.row_hi[level, cs] = r1
-        self._pending.append(Write(level, fm, image01[fr, fc], r0, r1, cs))
-        if self.tasks is not None:  # applied by the band processes at the end of add
-            self._specs.append([level, fr0, fc.start, r0, r1, cs.start, cs.stop])
-        elif len(self._pending) >= self.defer_writes:
-            self._apply_pending()
+        self._queue_write(level, focus, image01, fr0, fc, r0, r1, cs)
         self.end_u = max(self.end_u, v1)
+
+    def _queue_write(self, level: int, focus: np.ndarray | None, image01: np.ndarray | None,
+                     fr0: int, fc: slice, r0: int, r1: int, cs: slice) -> None:
+        """Hold the write of ``focus[fr0:fr0 + r1 - r0, fc]`` into state rows [r0, r1) and
+        ring slots ``cs`` (applied once ``defer_writes`` are held)."""
+        assert focus is not None and image01 is not None
+        fr = slice(fr0, fr0 + (r1 - r0))
+        fm = focus[fr, fc]
+        if fm.strides[1] != 4:
+            fm = np.ascontiguousarray(fm, dtype=np.float32)
+        self._pending.append(Write(level, fm, image01[fr, fc], r0, r1, cs))
+        if len(self._pending) >= self.defer_writes:
+            self._apply_pending()
 
     def _apply_pending(self) -> None:
         """Apply the writes deferred since the last reduction
         (:func:`sffscan.stages.accumulate.apply_writes`)."""
-        if self._pending and self.tasks is not None:
-            self.tasks.run_task("accumulate", {
-                "writes": self._specs, "shape": list(self._frame_shape),
-                "cache_bytes": self.cache_bytes, "low": self.track_low}, self._bands)
-            self._pending.clear()
-            self._specs.clear()
-        elif self._pending:
+        if self._pending:
             if isinstance(self.workers, BandWorkers) and len(self._bands) > 1:
                 pending = self._pending
                 self.workers.run(lambda a, b: apply_writes(
@@ -513,10 +433,7 @@ class FocusVolume:
         assert self.y0 is not None
         self._apply_pending()
         complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
-        if self.tasks is not None:
-            depth, conf, sums, low, bias = self._depth_by_tasks(u0, u1, complete)
-        else:
-            depth, conf, sums, low, bias = self._depth(u0, u1, complete)
+        depth, conf, sums, low, bias = self._depth(u0, u1, complete)
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
@@ -529,21 +446,7 @@ class FocusVolume:
             # invalid pixels (curves that lack levels) take the block's mean depth, so
             # that their values do not count as scatter of their valid neighbours
             fill = float(depth[valid].mean()) if valid.any() else 0.0
-            if self.tasks is not None:
-                shape = depth.shape
-                filled = scratch(self.tasks.arrays, "b_filled", shape)
-                np.copyto(filled, np.where(valid, depth, fill))
-                self.tasks.run_task("uncertainty", {
-                    "rows": shape[0], "width": shape[1], "n_levels": self.n,
-                    "window": self.spread_size, "bias": bias}, self._bands)
-                unc = scratch(self.tasks.arrays, "b_unc", shape).copy()
-            else:
-                filled = np.where(valid, depth, fill)
-                us = self._by_bands(lambda r0, r1: blocks.block_uncertainty(
-                    filled, sums, low, (r0, r1), n_levels=self.n,
-                    focus_heights_um=self.heights, window=self.spread_size,
-                    bias_levels=bias))
-                unc = us[0] if len(us) == 1 else np.concatenate(us)
+            unc = self._uncertainty(depth, valid, fill, sums, low, bias)
             np.copyto(unc, np.nan, where=invalid)
         conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
         tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
@@ -554,28 +457,6 @@ class FocusVolume:
             unc = None if unc is None else unc[:, ::-1]
         x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
-
-    def _depth_by_tasks(self, u0: int, u1: int, complete: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """:meth:`_depth` by the band processes (:func:`sffscan.stages.volume_tasks.depth`):
-        depth, confidence, sums and minima in their scratch arrays, and SPC's bias."""
-        assert self.tasks is not None
-        a0 = max(u0 - self.halo, self.first_u)
-        a1 = min(u1 + self.halo, self.end_u)
-        method, bias = self.method, 0.0
-        own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
-        if self.fv is not None and method in blocks.BLOCK_CHOICES:
-            src = self._gather(self.fv, u0, u1)
-            argmax = self._gather(self.argmax, u0, u1)
-            method, bias = blocks.block_choice(src, argmax, complete, method=method)
-        self.tasks.run_task("depth", {
-            "u0": u0, "u1": u1, "a0": a0, "a1": a1, "ring": self.ring, "rows": self.rows,
-            "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
-            "median_size": self.median_size, "spread_size": self.spread_size,
-            "uncertainty": self.uncertainty}, self._bands)
-        a, shape = self.tasks.arrays, (self.rows, u1 - u0)
-        return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
-                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 
     def _depth(self, u0: int, u1: int, complete: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -612,6 +493,16 @@ class FocusVolume:
         depth = parts[0][0] if len(parts) == 1 else np.concatenate([d for d, _ in parts])
         conf = parts[0][1] if len(parts) == 1 else np.concatenate([c for _, c in parts])
         return depth, conf, sums, low, bias
+
+    def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
+                     sums: np.ndarray, low: np.ndarray, bias: float) -> np.ndarray:
+        """The block's height uncertainty, µm (a new array), its invalid pixels' depth
+        taken as ``fill``."""
+        filled = np.where(valid, depth, fill)
+        us = self._by_bands(lambda r0, r1: blocks.block_uncertainty(
+            filled, sums, low, (r0, r1), n_levels=self.n, focus_heights_um=self.heights,
+            window=self.spread_size, bias_levels=bias))
+        return us[0] if len(us) == 1 else np.concatenate(us)
 
     def _by_bands(self, fn: Callable[[int, int], T]) -> list[T]:
         """``fn`` on each band of rows (one band, all rows, without band workers)."""

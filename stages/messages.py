@@ -9,6 +9,7 @@ raw bytes (on the wire), never pickled.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -85,6 +86,20 @@ class FocusFrame:
     image01: np.ndarray
     focus: np.ndarray
     col0: int = 0
+
+
+@dataclass(slots=True)
+class RawColumns:
+    """A placed frame whose focus measure the depth stage's band processes compute
+    (:meth:`sffscan.stages.depth_stage.DepthStage.process`): the frame columns [c0, c1)
+    measured and [a0, a1) read, and the measure's ``operator``, ``window`` and
+    ``max_value`` (:func:`sffscan.stages.focus_measure.focus_measure_raw`). Passed from
+    the focus measure stage to the depth stage in one process, never sent between
+    processes."""
+
+    placed: PlacedFrame
+    columns: tuple[int, int, int, int]
+    measure: dict[str, Any]
 
 
 @dataclass(slots=True)

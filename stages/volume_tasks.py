@@ -34,7 +34,8 @@ Layout = dict[str, tuple[tuple[int, ...], str]]
 
 
 def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int, int],
-                  block_columns: int, n_sums: int, levels: bool, low: bool) -> Layout:
+                  block_columns: int, n_sums: int, levels: bool, low: bool,
+                  raw_dtype: str = "<u2") -> Layout:
     """The arrays a focus volume with band processes keeps in shared memory.
 
     Parameters
@@ -49,6 +50,8 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
         Planes of running sums (0 for the methods that store every level).
     levels, low : bool, keyword-only
         Whether the N-level ring is kept; whether a running minimum is.
+    raw_dtype : str, keyword-only
+        The raw frames' dtype (``raw``: the columns a frame's focus measure reads).
     """
     amax = "|u1" if n_levels <= 256 else "<u2"
     plane = (rows, ring)
@@ -58,6 +61,7 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
         "level_buf": ((rows, frame_shape[1]), amax),
         "coef": ((max(n_sums, 1), n_levels), "<f8"), "heights": ((n_levels,), "<f8"),
         "focus": (frame_shape, "<f4"), "image01": (frame_shape, "<f4"),
+        "raw": (frame_shape, np.dtype(raw_dtype).str),
     }
     if levels:
         out["fv"] = ((n_levels, *plane), "<f4")
@@ -113,6 +117,40 @@ def accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int
         apply_writes(state, [w], cache_bytes=p["cache_bytes"], rows=rows)
 
 
+def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
+                       rows: tuple[int, int]) -> None:
+    """The focus measure of the frame's raw columns (``raw``, shape ``p["shape"]``) on the
+    focus rows the writes map to ``rows`` (with the operator's reach: bit-identical to the
+    whole frame's for GLVM and TENV), its columns ``p["cols"]`` (mirrored where
+    ``p["flip"]``), then :func:`accumulate`'s writes from it. Nothing is gathered: each
+    band measures what it writes."""
+    from sffscan.stages.focus_measure import focus_measure_raw  # it imports the volume
+
+    specs = p["writes"]
+    if not specs:
+        return
+    _, fr0, _, r0, r1, _, _ = specs[0]  # one frame: every write covers the same rows
+    s0, s1 = max(rows[0], r0), min(rows[1], r1)
+    if s1 <= s0:
+        return
+    h, w = p["shape"]
+    c0, c1 = p["cols"]
+    f0 = fr0 + s0 - r0
+    image01, fm = focus_measure_raw(arrays["raw"][:h, :w], max_value=p["max_value"],
+                                    operator=p["operator"], window=p["window"],
+                                    rows=(f0, f0 + s1 - s0))
+    image01, fm = image01[:, c0:c1], fm[:, c0:c1]
+    if p["flip"]:  # OpenCV takes positive strides only
+        image01 = np.ascontiguousarray(image01[:, ::-1])
+        fm = np.ascontiguousarray(fm[:, ::-1])
+    state = _state(arrays, p)
+    for level, _, fc0, _, _, cs0, cs1 in specs:
+        n = cs1 - cs0
+        w_ = Write(level, fm[:, fc0:fc0 + n], image01[:, fc0:fc0 + n], s0, s1,
+                   slice(cs0, cs1))
+        apply_writes(state, [w_], cache_bytes=p["cache_bytes"], rows=rows)
+
+
 def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]) -> None:
     """A block's depth and confidence (``b_depth``, ``b_conf``) and its curves' sums and
     minima (``b_sums``, ``b_low``), rows [r0, r1): what the volume's band closure does
@@ -155,7 +193,8 @@ def uncertainty(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[in
 
 
 TASKS: dict[str, Callable[[dict[str, np.ndarray], dict[str, Any], tuple[int, int]], None]] = {
-    "accumulate": accumulate, "depth": depth, "uncertainty": uncertainty}
+    "accumulate": accumulate, "measure_accumulate": measure_accumulate, "depth": depth,
+    "uncertainty": uncertainty}
 """The tasks a band process runs, by name."""
 
 
@@ -167,3 +206,4 @@ def run_task(arrays: dict[str, np.ndarray], task: str, params: dict[str, Any],
     except KeyError:
         raise ValueError(f"unknown band task {task!r}; known: {sorted(TASKS)}") from None
     fn(arrays, params, rows)
+

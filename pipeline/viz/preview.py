@@ -17,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 from sffscan.pipeline.stats import StatsSnapshot
-from sffscan.stages.messages import DepthBlock, FocusFrame
+from sffscan.stages.messages import DepthBlock, FocusFrame, RawColumns
 from sffscan.stages.protocol import Tapped
 
 MIN_WEIGHT = 1e-3  # as stages.mosaic: weight of a valid contribution = max(confidence, this)
@@ -178,7 +178,7 @@ def logged_items(frame_step: int) -> Callable[[Any], bool]:
         ff = item.item if isinstance(item, Tapped) else item
         if isinstance(ff, FocusFrame):
             return ff.placed.header.frame_id % frame_step == 0 and ff.focus.size > 0
-        return True
+        return not isinstance(ff, RawColumns)  # measured by the band processes: no image
 
     return keep
 

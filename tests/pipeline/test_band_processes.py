@@ -9,10 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sffscan.pipeline.band_processes import BandProcesses, BandProcessFailed
+from sffscan.pipeline.band_processes import (
+    BandProcesses,
+    BandProcessFailed,
+    LazyBandProcesses,
+)
+from sffscan.stages.depth_stage import DepthStage
+from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import FocusVolume
+from sffscan.stages.messages import FrameError, FrameHeader, PlacedFrame
+from sffscan.stages.shared_volume import SharedFocusVolume
 
-from tests.stages.test_focus_volume import HEIGHTS, H, N, W, _frame, _wobbly_scan
+from tests.stages.test_focus_volume import HEIGHTS, H, N, W, _frame
 
 # what _wobbly_scan builds its volume with
 VOLUME = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
@@ -30,8 +38,12 @@ def _passes(method: str, direction: int, workers: BandProcesses | None) -> list:
     first's ring (as the depth stage does), the first pass from a new volume."""
     out, vol = [], None
     for _ in range(2):
-        vol = FocusVolume(direction=direction, method=method, reuse=vol, workers=workers,
-                          **VOLUME)  # type: ignore[arg-type]
+        if workers is None:
+            vol = FocusVolume(direction=direction, method=method, reuse=vol,
+                              **VOLUME)  # type: ignore[arg-type]
+        else:
+            vol = SharedFocusVolume(direction=direction, method=method, reuse=vol,
+                                    workers=workers, **VOLUME)
         for k in range(70):
             if k == 25:
                 continue
@@ -64,7 +76,7 @@ def test_blocks_are_bit_identical_in_band_processes(method: str, direction: int)
     the streaming sums and the N-level ring."""
     alone = _passes(method, direction, None)
     assert sum(b.complete for b in alone) > 200
-    layout = FocusVolume.shared_layout(method=method, **VOLUME)
+    layout = SharedFocusVolume.shared_layout(method=method, **VOLUME)
     with BandProcesses(3, layout, name="test-band") as pool:
         _same(alone, _passes(method, direction, pool))
         assert pool.helpers_cpu_s() > 0
@@ -75,7 +87,7 @@ def test_blocks_are_bit_identical_in_band_processes(method: str, direction: int)
 
 
 def test_a_failing_band_process_names_itself_and_the_rows() -> None:
-    layout = FocusVolume.shared_layout(method="spc", **VOLUME)
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
     with BandProcesses(2, layout, name="test-fail") as pool:
         assert not _segments()  # unlinked once the helper mapped it
         # level 99 of 12: only the helper's band has rows to write
@@ -87,17 +99,83 @@ def test_a_failing_band_process_names_itself_and_the_rows() -> None:
         with pytest.raises(ValueError, match="unknown band task 'nonsense'"):
             pool.run_task("nonsense", {}, [(0, 5), (5, 10)])  # the caller's own band first
         # still answers after an error
-        _same(_wobbly_scan("spc", 1), _wobbly_scan("spc", 1, workers=pool))
+        _same(_passes("spc", 1, None), _passes("spc", 1, pool))
         os.kill(pool._procs[0].pid, signal.SIGKILL)
         pool._procs[0].join(10)
         with pytest.raises(BandProcessFailed, match="sffscan-test-fail-1 .* died"):
-            _wobbly_scan("spc", 1, workers=pool)
+            _passes("spc", 1, pool)
     pool.close()  # idempotent
     assert not pool._procs
 
 
 def test_a_volume_refuses_arrays_laid_out_for_another() -> None:
-    layout = FocusVolume.shared_layout(method="spc", **VOLUME)
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
     with BandProcesses(1, layout) as pool, pytest.raises(ValueError, match="laid out for"):
-        FocusVolume(method="gauss3", workers=pool, **VOLUME)  # type: ignore[arg-type]
-    assert np.prod(layout["fv"][0]) if "fv" in layout else True
+        SharedFocusVolume(method="gauss3", workers=pool, **VOLUME)
+    assert "fv" not in layout  # SPC keeps sums, no N-level ring
+
+
+def _raw_scan(n: int = 48) -> list[PlacedFrame]:
+    """Two passes (+x, then -x) of random 10-bit frames that wobble across the motion."""
+    rng = np.random.default_rng(7)
+    out = []
+    for k in range(2 * n):
+        p, j = divmod(k, n)
+        x = 100 + 4 * j if p == 0 else 100 + 4 * (n - j)
+        y = 10 + (k * 7) % 5 - 2
+        hdr = FrameHeader(frame_id=k, timestamp_ns=k, focus_index=k % N, pass_index=p)
+        img = rng.integers(0, 1024, (H, W), dtype=np.uint16)
+        out.append(PlacedFrame(hdr, img, (float(x), float(y)), (x, y)))
+    return out
+
+
+@pytest.mark.parametrize("method", ["shape_select", "spc"])
+def test_band_processes_measure_what_they_add(method: str) -> None:
+    """Each band process measuring the focus of its own rows (the focus measure stage
+    passing RawColumns on, SharedFocusVolume.add_raw: one task a frame) gives the blocks of
+    the focus measure and depth stages in one process, bit for bit, both directions."""
+    frames = _raw_scan()
+    kw = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+              method=method, median_size=3, block_columns=16, slack_px=3, spread_size=3,
+              directions=(1, -1))
+
+    def focus(band_processes: bool = False) -> FocusMeasureStage:
+        return FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
+                                 directions=(1, -1), band_processes=band_processes)
+
+    fm, depth = focus(), DepthStage(**kw)  # type: ignore[arg-type]
+    ref = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
+    ref += list(depth.finish())
+    assert sum(b.header.complete_columns for b in ref) > 200
+    layout = SharedFocusVolume.shared_layout(**{**kw, "row_slack": 3, "col_slack": 3})
+    for k in (1, 3):
+        pool = LazyBandProcesses(k, layout, name="test-raw")
+        fm, depth = focus(True), DepthStage(band_tasks=pool, **kw)  # type: ignore[arg-type]
+        depth.prepare()
+        try:
+            got = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
+            got += list(depth.finish())
+        finally:
+            depth.close(failed=False)
+        assert len(got) == len(ref)
+        for a, b in zip(ref, got, strict=True):
+            assert a.header == b.header
+            for u, v in ((a.height_um, b.height_um), (a.texture, b.texture),
+                         (a.confidence, b.confidence), (a.uncertainty_um, b.uncertainty_um)):
+                assert u.tobytes() == v.tobytes()
+        with pytest.raises(BandProcessFailed, match="used after they were closed"):
+            pool.run_task("depth", {}, [(0, 1)])
+    assert not _segments()
+
+
+def test_a_frame_to_measure_needs_band_processes() -> None:
+    fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
+                           band_processes=True)
+    depth = DepthStage(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                       median_size=3, block_columns=16, slack_px=3, spread_size=3)
+    item = next(iter(fm.process(_raw_scan(2)[0])))
+    with pytest.raises(FrameError, match="frame_id 0: a frame to measure .* needs the depth "
+                       "stage's band processes"):
+        list(depth.process(item))
+    with pytest.raises(ValueError, match="OpenCV backend only"):
+        FocusMeasureStage(margin=3, backend="torch", band_processes=True)

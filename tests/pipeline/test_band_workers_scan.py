@@ -1,8 +1,10 @@
-"""Band workers in a whole scan (issue 28): ``processing.workers`` changes how the focus
-measure and the depth stage split each frame, never the mosaic."""
+"""Band workers in a whole scan (issue 28): ``processing.workers`` and ``processing.bands``
+(threads or band processes) change how the focus measure and the depth stage split each
+frame, never the mosaic."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,17 +20,23 @@ ARRAYS = ("height", "texture", "weight", "confidence", "uncertainty")
 def test_mosaic_is_bit_identical_for_any_number_of_band_workers(tmp_path: Path) -> None:
     motion = {"x_end_mm": 6.0, "wobble_along_px": 1.0, "wobble_across_px": 1.0}
     frames = list(simulate_frames(small_config(motion=motion)))
-    out: dict[tuple[str, int], dict[str, np.ndarray]] = {}
-    for mode, k in (("threads", 1), ("threads", 3), ("processes", 2)):
-        cfg = small_config(motion=motion, processing={"execution": mode, "workers": k})
-        path = tmp_path / f"{mode}-{k}.zarr"
+    out: dict[tuple[str, int, str], dict[str, np.ndarray]] = {}
+    for mode, k, bands in (("threads", 1, "threads"), ("threads", 3, "threads"),
+                           ("processes", 2, "threads"), ("threads", 2, "processes"),
+                           ("processes", 3, "processes")):
+        cfg = small_config(motion=motion, processing={"execution": mode, "workers": k,
+                                                      "bands": bands})
+        path = tmp_path / f"{mode}-{k}-{bands}.zarr"
         rep = run_scan(cfg, frames=iter(frames), output=path, progress=False)
         assert rep.frames == len(frames) and rep.result.dropped == 0
         group = zarr.open_group(str(path), mode="r")
         assert group.attrs["status"] == "complete"
-        out[(mode, k)] = {a: np.asarray(zarr.open_array(str(path / a), mode="r")[...])
+        if bands == "processes":  # its band processes measured the focus, then stopped
+            assert not [p for p in Path("/dev/shm").glob("sffscan-*-band-*")
+                        if re.fullmatch(r"sffscan-\d+-band-[0-9a-f]{8}", p.name)]
+        out[(mode, k, bands)] = {a: np.asarray(zarr.open_array(str(path / a), mode="r")[...])
                           for a in ARRAYS}
-    ref = out[("threads", 1)]
+    ref = out[("threads", 1, "threads")]
     assert np.isfinite(ref["height"]).sum() > 1000
     for key, arrays in out.items():
         for name, a in arrays.items():

@@ -1,0 +1,215 @@
+"""The focus volume with its rows split among band *processes* that share its state.
+
+:class:`SharedFocusVolume` is a :class:`~sffscan.stages.focus_volume.FocusVolume` whose
+per-pixel state lives in the named arrays of a :class:`~sffscan.stages.bands.BandTasks`
+(one shared-memory segment, :class:`sffscan.pipeline.band_processes.BandProcesses`),
+laid out by :meth:`SharedFocusVolume.shared_layout`. The bookkeeping (which columns and
+levels are stored, when a block is final) stays in the volume's process; the work on the
+pixels goes to the bands as tasks (:mod:`sffscan.stages.volume_tasks`): each frame's
+writes, each block's depth and uncertainty. A frame comes either as its focus measure
+(:meth:`~SharedFocusVolume.add`, copied into the shared arrays: 0.6 ms a full-size frame on
+the 2-core VM) or as its raw columns (:meth:`~SharedFocusVolume.add_raw`), whose focus
+measure each band computes for the rows it writes, so that it is never gathered. The
+blocks are bit-identical to :class:`~sffscan.stages.focus_volume.FocusVolume`'s for any
+number of bands (``tests/pipeline/test_band_processes.py``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sffscan.stages import block_depth as blocks
+from sffscan.stages.bands import BandTasks, row_bands
+from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
+from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
+from sffscan.stages.volume_tasks import Layout, scratch, volume_layout
+
+__all__ = ["SharedFocusVolume"]
+
+
+class SharedFocusVolume(FocusVolume):
+    """A focus volume whose state and work are shared with band processes.
+
+    Parameters
+    ----------
+    workers : BandTasks, keyword-only
+        The band processes; their arrays must be laid out by :meth:`shared_layout` with
+        the same parameters.
+    **kwargs
+        :class:`~sffscan.stages.focus_volume.FocusVolume`'s other parameters
+        (``defer_writes`` is not used: each frame's writes are one task).
+    """
+
+    def __init__(self, *, workers: BandTasks, **kwargs: Any) -> None:
+        self.tasks = workers
+        self._specs: list[list[int]] = []  # the frame's writes, as the tasks take them
+        self._frame_shape = (0, 0)  # add's focus measure in the shared arrays
+        self._measure: dict[str, object] | None = None  # add_raw's frame, being added
+        super().__init__(**kwargs)
+        self.workers = None  # the base class's band threads: none
+        self._bands = row_bands(0, self.rows, workers.k)
+
+    @classmethod
+    def shared_layout(cls, *, n_levels: int, frame_shape: tuple[int, int],
+                      method: str = "spc", median_size: int = 11, spread_size: int = 9,
+                      block_columns: int = 64, row_slack: int = 8, col_slack: int = 8,
+                      uncertainty: bool = True, raw_dtype: str = "<u2",
+                      **_other: object) -> Layout:
+        """The arrays band processes share with a volume of these parameters
+        (:func:`sffscan.stages.volume_tasks.volume_layout`; ``raw_dtype``: the raw
+        frames' for :meth:`add_raw`); the constructor's other parameters are ignored."""
+        _halo, rows, ring = volume_geometry(
+            frame_shape, method=method, median_size=median_size, spread_size=spread_size,
+            block_columns=block_columns, row_slack=row_slack, col_slack=col_slack)
+        streaming = method in STREAMING_METHODS
+        return volume_layout(n_levels=n_levels, rows=rows, ring=ring,
+                             frame_shape=frame_shape, block_columns=block_columns,
+                             n_sums=(4 if method == "centroid" else 3) if streaming else 0,
+                             levels=not streaming, low=uncertainty and streaming,
+                             raw_dtype=raw_dtype)
+
+    def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
+        """The state in the band processes' arrays, set as a new volume's would be (the
+        N-level ring taken over from ``reuse`` as it is: its stale values are never read)."""
+        a = self.tasks.arrays
+        want = self.shared_layout(
+            n_levels=self.n, frame_shape=(self.h, self.w), method=self.method,
+            median_size=self.median_size, spread_size=self.spread_size,
+            block_columns=self.block, row_slack=self.row_slack, col_slack=self.col_slack,
+            uncertainty=self.uncertainty, raw_dtype=a["raw"].dtype.str if "raw" in a else "")
+        if {k: (v.shape, v.dtype.str) for k, v in a.items()} != want:
+            raise ValueError("the band processes' arrays were laid out for another focus "
+                             "volume (SharedFocusVolume.shared_layout of these parameters)")
+        if reuse is not None:
+            reuse._apply_pending()
+        self.fv = a.get("fv")
+        if reuse is None and self.fv is not None:  # as a new ring is (FocusVolume)
+            self.fv.fill(0.0)
+        self.argmax = a["argmax"]
+        self.argmax.fill(0)
+        self._level_buf = a["level_buf"]
+        self.sums = a["sums"]
+        self.sums.fill(0.0)
+        self.coef = a["coef"]
+        self.coef[:len(self.sums)] = harmonic_table(self.n)[[0, 2, 3, 1][:len(self.sums)]]
+        a["heights"][:] = self.heights
+        self.best = a["best"]
+        self.best.fill(-1.0)
+        self.low = a["low"]
+        self.low.fill(np.inf)
+        self.tex = a["tex"]
+        self.tex.fill(0.0)
+        self._init_bookkeeping()
+
+    # -- frames in -------------------------------------------------------------------------
+    def add(self, focus: np.ndarray, image01: np.ndarray, *, x: int, y: int,
+            level: int, col0: int = 0) -> list[BlockResult]:
+        """:meth:`FocusVolume.add <sffscan.stages.focus_volume.FocusVolume.add>`, the
+        frame's focus measure copied into the shared arrays first."""
+        if self.direction == -1:
+            focus, image01 = focus[:, ::-1], image01[:, ::-1]
+            col0 = self.w - (col0 + focus.shape[1])
+        self._apply_pending()  # before the copy overwrites what they read
+        h, w = focus.shape
+        if image01.shape != focus.shape or h > self.h or w > self.w:
+            raise ValueError(f"focus {focus.shape} and image01 {image01.shape} must have "
+                             f"one shape within the frame's {(self.h, self.w)}")
+        a = self.tasks.arrays
+        np.copyto(a["focus"][:h, :w], focus, casting="same_kind")
+        np.copyto(a["image01"][:h, :w], image01, casting="same_kind")
+        self._frame_shape = (h, w)
+        done = self._add(None, None, w, x=x, y=y, level=level, col0=col0)
+        self._apply_pending()
+        return done
+
+    def add_raw(self, raw: np.ndarray, *, cols: tuple[int, int], measure: dict[str, object],
+                x: int, y: int, level: int, col0: int) -> list[BlockResult]:
+        """:meth:`add` of a frame's raw columns, their focus measure computed by the band
+        processes (each its band of rows, with the operator's reach: bit-identical to the
+        whole frame's for GLVM and TENV) and applied at once, never gathered.
+
+        Parameters
+        ----------
+        raw : (H, w) ndarray of uint8 or uint16
+            The frame's columns that the focus measure reads (copied into the shared
+            arrays: 0.13 ms a full-size frame).
+        cols : (int, int)
+            The columns of ``raw`` whose focus measure is added (frame columns ``col0``
+            to ``col0 + cols[1] - cols[0]``).
+        measure : dict, keyword-only
+            :func:`~sffscan.stages.focus_measure.focus_measure_raw`'s ``max_value``,
+            ``operator`` and ``window``.
+        x, y, level, col0 : int, keyword-only
+            As for :meth:`add`.
+        """
+        self._apply_pending()
+        h, w = raw.shape
+        dst = self.tasks.arrays["raw"]
+        if h != self.h or w > self.w or raw.dtype != dst.dtype:
+            raise ValueError(f"raw {raw.shape} {raw.dtype} must be (height {self.h}, width "
+                             f"<= {self.w}) of {dst.dtype}")
+        np.copyto(dst[:h, :w], raw, casting="no")
+        width = cols[1] - cols[0]
+        if self.direction == -1:
+            col0 = self.w - (col0 + width)
+        self._measure = {**measure, "shape": [h, w], "cols": list(cols),
+                         "flip": self.direction == -1}
+        try:
+            done = self._add(None, None, width, x=x, y=y, level=level, col0=col0)
+            self._apply_pending()
+        finally:
+            self._measure = None
+        return done
+
+    def _queue_write(self, level: int, focus: np.ndarray | None, image01: np.ndarray | None,
+                     fr0: int, fc: slice, r0: int, r1: int, cs: slice) -> None:
+        self._specs.append([level, fr0, fc.start, r0, r1, cs.start, cs.stop])
+
+    def _apply_pending(self) -> None:
+        """The frame's writes, by the band processes (one task for all of them)."""
+        if not self._specs:
+            return
+        params = {"writes": self._specs, "cache_bytes": self.cache_bytes,
+                  "low": self.track_low}
+        if self._measure is not None:
+            self.tasks.run_task("measure_accumulate", {**self._measure, **params},
+                                self._bands)
+        else:
+            self.tasks.run_task("accumulate", {**params, "shape": list(self._frame_shape)},
+                                self._bands)
+        self._specs.clear()
+
+    # -- blocks out ------------------------------------------------------------------------
+    def _depth(self, u0: int, u1: int, complete: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """The block's depth, confidence, sums and minima by the band processes (views of
+        their scratch arrays, :func:`sffscan.stages.volume_tasks.depth`), and SPC's bias
+        (the block's choice of method made here, on the shared levels)."""
+        a0 = max(u0 - self.halo, self.first_u)
+        a1 = min(u1 + self.halo, self.end_u)
+        method, bias = self.method, 0.0
+        own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
+        if self.fv is not None and method in blocks.BLOCK_CHOICES:
+            method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
+                                               self._gather(self.argmax, u0, u1), complete,
+                                               method=method)
+        self.tasks.run_task("depth", {
+            "u0": u0, "u1": u1, "a0": a0, "a1": a1, "ring": self.ring, "rows": self.rows,
+            "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
+            "median_size": self.median_size, "spread_size": self.spread_size,
+            "uncertainty": self.uncertainty}, self._bands)
+        a, shape = self.tasks.arrays, (self.rows, u1 - u0)
+        return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
+                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
+
+    def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
+                     sums: np.ndarray, low: np.ndarray, bias: float) -> np.ndarray:
+        """The block's height uncertainty by the band processes
+        (:func:`sffscan.stages.volume_tasks.uncertainty`), copied out of their scratch."""
+        a, shape = self.tasks.arrays, depth.shape
+        np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
+        self.tasks.run_task("uncertainty", {
+            "rows": shape[0], "width": shape[1], "n_levels": self.n,
+            "window": self.spread_size, "bias": bias}, self._bands)
+        return scratch(a, "b_unc", shape).copy()
