@@ -22,8 +22,9 @@ Cases:
 
 ``--workers 1,2`` runs every case with each number of band workers
 (``processing.workers``), interleaved; ``--bands threads,processes`` with each kind of
-band worker (``processing.bands``; the band processes' CPU counted in process mode). ``--one-thread on,off`` runs every processes case
-with each worker process's stages in one thread (on) and in a thread each (off),
+band worker (``processing.bands``; the band processes' CPU counted in process mode).
+``--one-thread on,off`` runs every processes case with each worker process's stages in
+one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
 (:func:`sffscan.pipeline.cores.one_thread_per_process`). ``--outputs DIR,DIR`` runs
 every case once per folder given for what the run writes (the mosaic, and the recording

@@ -206,8 +206,12 @@ class BandProcesses:
         try:
             reply: dict[str, Any] = json.loads(conn.recv_bytes())
         except (EOFError, OSError) as err:
+            proc.join(1.0)  # its end of the pipe closes as it dies
+            if not proc.is_alive():
+                raise BandProcessFailed(f"band process {proc.name} ({what}) died, exit code "
+                                        f"{proc.exitcode}") from None
             raise BandProcessFailed(f"band process {proc.name} ({what}) closed its pipe: "
-                                    f"{err}") from None
+                                    f"{err!r}") from None
         if "error" in reply:
             raise BandProcessFailed(f"band process {proc.name} ({what}): {reply['error']}\n"
                                     f"{reply.get('traceback', '')}")

@@ -238,12 +238,12 @@ class Execution(ConfigModel):
         "the CPU of these stages (bench/results/bands.md), which the other stages need")
 
     bands: Literal["threads", "processes"] = Field(
-        "threads", description="Where the band workers run: 'threads' of the focus measure "
-        "and depth stages, or 'processes' that share the depth stage's state, each "
-        "measuring the focus of the rows it accumulates (OpenCV backend; no GIL shared: "
-        "on 2 cores N = 2 costs 1.12-1.20x the CPU of these stages against 1.23-1.45x in "
-        "threads, bench/results/band_processes.md); with 'processes' the live view shows "
-        "no focus frames")
+        "threads", description="Where the band workers (workers > 1) run: 'threads' of the "
+        "focus measure and depth stages, or 'processes' that share the depth stage's state, "
+        "each measuring the focus of the rows it accumulates (OpenCV backend; no GIL "
+        "shared, for machines with a core per band: on 2 cores N = 2 took 1.31x the CPU of "
+        "one band against 1.23x in threads, bench/results/band_processes.md); with "
+        "'processes' the live view shows no focus frames")
 
     def band_workers(self) -> int:
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""

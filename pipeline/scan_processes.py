@@ -170,7 +170,8 @@ def process_placement(cfg: ScanConfig, stages: list[Stage], *,
         groups.append(WorkerGroup("registration", registration_group, {"cfg": cj},
                                   ("registration",)))
     groups.append(WorkerGroup("focus", focus_group, {"cfg": cj}, ("focus_measure", "depth"),
-                              spawns=cfg.processing.bands == "processes"))
+                              spawns=cfg.processing.bands == "processes"
+                              and cfg.processing.band_workers() > 1))
     hosted: list[HostedSink] = []
     local: list[Sink] = []
     for k in sinks:

@@ -179,3 +179,37 @@ def test_a_frame_to_measure_needs_band_processes() -> None:
         list(depth.process(item))
     with pytest.raises(ValueError, match="OpenCV backend only"):
         FocusMeasureStage(margin=3, backend="torch", band_processes=True)
+
+
+def test_band_processes_are_chosen_by_the_configuration(tmp_path: Path) -> None:
+    """processing.bands = 'processes' builds both stages on one set of band processes
+    (for more than one band only), refuses the torch backend, and the live view never
+    asks for a frame the band processes measure."""
+    from sffscan.pipeline.config import ConfigError, ScanConfig, load_config
+    from sffscan.pipeline.measuring import measure_stages
+    from sffscan.pipeline.viz.preview import logged_items
+
+    from tests.scan_helpers import small_config
+
+    fm, depth = measure_stages(small_config(processing={"workers": 2, "bands": "processes"}),
+                               only=("focus_measure", "depth"))
+    assert isinstance(fm, FocusMeasureStage) and fm.band_processes
+    assert isinstance(depth, DepthStage) and isinstance(depth.band_tasks, LazyBandProcesses)
+    assert depth.band_tasks.k == 2
+    for cfg in (small_config(processing={"workers": 1, "bands": "processes"}),
+                small_config(processing={"workers": 2, "bands": "threads"})):
+        fm, depth = measure_stages(cfg, only=("focus_measure", "depth"))
+        assert not fm.band_processes and depth.band_tasks is None  # type: ignore[attr-defined]
+    fm, = measure_stages(small_config(processing={"workers": 2, "bands": "processes"}),
+                         only=("focus_measure",))
+    assert not fm.band_processes  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="bands = 'processes' measures the focus with the "
+                       "OpenCV backend; backend is 'torch'"):
+        ScanConfig.model_validate({"processing": {"bands": "processes", "backend": "torch"}})
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[processing]\nbands = "processes"\nbackend = "torch"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match="processing.*OpenCV backend"):
+        load_config(bad)
+    item = next(iter(FocusMeasureStage(margin=3, band_processes=True, max_value=1023.0)
+                     .process(_raw_scan(2)[0])))
+    assert not logged_items(1)(item)
