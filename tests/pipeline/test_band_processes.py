@@ -20,7 +20,14 @@ from sffscan.stages.focus_volume import FocusVolume
 from sffscan.stages.messages import FrameError, FrameHeader, PlacedFrame
 from sffscan.stages.shared_volume import SharedFocusVolume
 
-from tests.stages.test_focus_volume import HEIGHTS, H, N, W, _frame
+from tests.stages.test_focus_volume import (
+    HEIGHTS,
+    H,
+    N,
+    W,
+    assert_same_blocks,
+    wobbly_frames_into,
+)
 
 # what _wobbly_scan builds its volume with
 VOLUME = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
@@ -44,26 +51,8 @@ def _passes(method: str, direction: int, workers: BandProcesses | None) -> list:
         else:
             vol = SharedFocusVolume(direction=direction, method=method, reuse=vol,
                                     workers=workers, **VOLUME)
-        for k in range(70):
-            if k == 25:
-                continue
-            x, y = 100 + direction * 4 * k, 10 + (k * 7) % 5 - 2
-            fm, img = _frame(x, y, k % N)
-            fm = (np.round(fm * 4) / 4).astype(np.float32)
-            c0 = 3 + (k % 3) * 10
-            out += vol.add(fm[:, c0:], img[:, c0:], x=x, y=y, level=k % N, col0=c0)
-        out += vol.finish()
+        out += wobbly_frames_into(vol, direction)
     return out
-
-
-def _same(a: list, b: list) -> None:
-    assert len(a) == len(b)
-    for u, v in zip(a, b, strict=True):
-        assert (u.x0, u.y0, u.complete) == (v.x0, v.y0, v.complete)
-        for p, q in zip(u[2:5] + (u.uncertainty_um,), v[2:5] + (v.uncertainty_um,),
-                        strict=True):
-            assert p.dtype == q.dtype and p.shape == q.shape
-            assert p.tobytes() == q.tobytes()
 
 
 @pytest.mark.parametrize(("method", "direction"), [
@@ -78,11 +67,11 @@ def test_blocks_are_bit_identical_in_band_processes(method: str, direction: int)
     assert sum(b.complete for b in alone) > 200
     layout = SharedFocusVolume.shared_layout(method=method, **VOLUME)
     with BandProcesses(3, layout, name="test-band") as pool:
-        _same(alone, _passes(method, direction, pool))
+        assert_same_blocks(alone, _passes(method, direction, pool))
         assert pool.helpers_cpu_s() > 0
-        _same(alone, _passes(method, direction, pool))  # the arrays used before
+        assert_same_blocks(alone, _passes(method, direction, pool))  # the arrays used before
     with BandProcesses(1, layout) as one:
-        _same(alone, _passes(method, direction, one))
+        assert_same_blocks(alone, _passes(method, direction, one))
     assert not _segments()
 
 
@@ -99,7 +88,7 @@ def test_a_failing_band_process_names_itself_and_the_rows() -> None:
         with pytest.raises(ValueError, match="unknown band task 'nonsense'"):
             pool.run_task("nonsense", {}, [(0, 5), (5, 10)])  # the caller's own band first
         # still answers after an error
-        _same(_passes("spc", 1, None), _passes("spc", 1, pool))
+        assert_same_blocks(_passes("spc", 1, None), _passes("spc", 1, pool))
         os.kill(pool._procs[0].pid, signal.SIGKILL)
         pool._procs[0].join(10)
         with pytest.raises(BandProcessFailed, match="sffscan-test-fail-1 .* died"):

@@ -10,7 +10,7 @@ from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.messages import FrameHeader, PlacedFrame
 
-from tests.stages.test_focus_volume import _wobbly_scan
+from tests.stages.test_focus_volume import _wobbly_scan, assert_same_blocks
 
 
 def test_row_bands_cover_the_rows_once_in_order() -> None:
@@ -67,13 +67,7 @@ def test_focus_volume_blocks_are_bit_identical_for_any_number_of_bands(method: s
     with BandWorkers(k) as pool:
         banded = _wobbly_scan(method, 1, workers=pool)
     assert sum(b.complete for b in one) > 100
-    assert len(banded) == len(one)
-    for a, b in zip(one, banded, strict=True):
-        assert (a.x0, a.y0, a.complete) == (b.x0, b.y0, b.complete)
-        for u, v in zip(a[2:5] + (a.uncertainty_um,), b[2:5] + (b.uncertainty_um,),
-                        strict=True):
-            assert u.dtype == v.dtype and u.shape == v.shape
-            assert u.tobytes() == v.tobytes()
+    assert_same_blocks(one, banded)
 
 
 def _placed(k: int, image: np.ndarray) -> PlacedFrame:

@@ -260,6 +260,11 @@ def _wobbly_scan(method: str, direction: int, **kwargs) -> list:  # noqa: ANN003
     vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
                       direction=direction, method=method, median_size=3, block_columns=16,
                       row_slack=3, spread_size=3, **kwargs)
+    return wobbly_frames_into(vol, direction)
+
+
+def wobbly_frames_into(vol: FocusVolume, direction: int) -> list:
+    """:func:`_wobbly_scan`'s frames added to ``vol``, and its blocks (finished)."""
     blocks = []
     for k in range(70):
         if k == 25:
@@ -270,6 +275,17 @@ def _wobbly_scan(method: str, direction: int, **kwargs) -> list:  # noqa: ANN003
         c0 = 3 + (k % 3) * 10  # the columns the focus stage measured
         blocks += vol.add(fm[:, c0:], img[:, c0:], x=x, y=y, level=k % N, col0=c0)
     return blocks + vol.finish()
+
+
+def assert_same_blocks(a: list, b: list) -> None:
+    """Blocks equal bit for bit: position, complete columns and every array."""
+    assert len(a) == len(b)
+    for u, v in zip(a, b, strict=True):
+        assert (u.x0, u.y0, u.complete) == (v.x0, v.y0, v.complete)
+        for p, q in zip(u[2:5] + (u.uncertainty_um,), v[2:5] + (v.uncertainty_um,),
+                        strict=True):
+            assert p.dtype == q.dtype and p.shape == q.shape
+            assert p.tobytes() == q.tobytes()
 
 
 @pytest.mark.parametrize("method", ["spc", "centroid", "adaptive", "gauss3"])
