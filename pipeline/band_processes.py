@@ -34,6 +34,7 @@ from multiprocessing import shared_memory
 from typing import Any
 
 import numpy as np
+from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,
     WAIT_S,
@@ -88,6 +89,7 @@ def _helper_main(conn: Any, segment: str, layout: dict[str, Any], parent: int,
                  opencv_threads: int | None) -> None:
     """A band process: map the segment, then run the tasks that come down ``conn``."""
     helper_start(parent)
+    keep_freed_memory()  # a band's arrays of each frame: no fresh pages every frame
     import cv2
     from threadpoolctl import threadpool_limits
 
