@@ -48,6 +48,7 @@ __all__ = ["BandProcessFailed", "BandProcesses", "LazyBandProcesses", "map_array
            "segment_bytes"]
 
 _ALIGN = 64  # bytes: each array starts on a cache line
+SHM_DIR = "/dev/shm"  # where Linux keeps POSIX shared memory
 _MADV_POPULATE_WRITE = 23  # linux/mman.h; not in Python 3.11's mmap module
 
 
@@ -77,6 +78,21 @@ def map_arrays(buf: Any, layout: Layout) -> tuple[np.ndarray, dict[str, np.ndarr
     return base, {name: base[off[name]:off[name] + int(np.prod(shape)) * np.dtype(dtype)
                              .itemsize].view(np.dtype(dtype)).reshape(shape)
                   for name, (shape, dtype) in layout.items()}
+
+
+def _check_room(size: int, folder: str = SHM_DIR) -> None:
+    """Refuse a segment that the shared-memory file system cannot hold (its pages are
+    touched at once: past the room a write would kill the process with SIGBUS)."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:  # no such folder (not Linux): the platform's own error, if any
+        return
+    free = st.f_bavail * st.f_frsize
+    if size > free:
+        raise BandProcessFailed(
+            f"band processes need {size / 2**20:.0f} MiB of shared memory, {folder} has "
+            f"{free / 2**20:.0f} MiB free (a container's /dev/shm: docker run --shm-size); "
+            f"or set processing.bands = 'threads'")
 
 
 def _close_segment(shm: shared_memory.SharedMemory) -> None:
@@ -161,6 +177,7 @@ class BandProcesses:
         self._cpu = [0.0] * (k - 1)
         self._cpu0 = [0.0] * (k - 1)
         self.arrays: dict[str, np.ndarray] = {}
+        _check_room(segment_bytes(layout))
         self._shm = shared_memory.SharedMemory(
             name=f"sffscan-{os.getpid()}-{name}-{secrets.token_hex(4)}", create=True,
             size=segment_bytes(layout))

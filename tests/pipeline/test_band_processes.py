@@ -202,3 +202,18 @@ def test_band_processes_are_chosen_by_the_configuration(tmp_path: Path) -> None:
     item = next(iter(FocusMeasureStage(margin=3, band_processes=True, max_value=1023.0)
                      .process(_raw_scan(2)[0])))
     assert not logged_items(1)(item)
+
+
+def test_band_processes_refuse_a_segment_the_shared_memory_cannot_hold(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from sffscan.pipeline import band_processes as bp
+
+    class Small:
+        f_bavail, f_frsize = 10, 4096  # 40 KiB free
+
+    monkeypatch.setattr(bp.os, "statvfs", lambda _folder: Small())
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
+    with pytest.raises(BandProcessFailed, match=r"need \d+ MiB of shared memory, /dev/shm has "
+                       r"0 MiB free .*processing.bands = 'threads'"):
+        BandProcesses(2, layout)
+    assert not _segments()
