@@ -1,8 +1,9 @@
 """A block of the focus volume reduced to depth, a band of rows at a time.
 
-:meth:`sffscan.stages.focus_volume.FocusVolume.reduce` gathers a block's state (the
-curves' sums or levels, the running argmax and minimum) and hands each band of rows to
-:func:`depth_rows`, then the uncertainty to :func:`block_uncertainty`. Each reads its rows
+:meth:`sffscan.stages.focus_volume.FocusVolume.reduce` hands each band of rows of a
+block to :func:`depth_rows`, then to :func:`block_uncertainty`, as band tasks
+(:mod:`sffscan.stages.volume_tasks`, which gather the block's state: the curves' sums or
+levels, the running argmax and minimum). Each reads its rows
 widened by the filters' reach and returns its own rows only, so the block is bit-identical
 whatever the bands (:mod:`sffscan.stages.bands`; tested in ``tests/stages/test_bands.py``).
 """

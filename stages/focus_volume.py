@@ -46,7 +46,7 @@ from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
-from sffscan.stages.volume_tasks import gather, pieces
+from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
 T = TypeVar("T")
 
@@ -249,6 +249,11 @@ class FocusVolume:
         # the running minimum of every curve (its floor, for the curve's width)
         self.low = np.full(plane if self.track_low else (0, 0), np.inf, np.float32)
         self.tex = np.zeros((self.rows, self.ring), np.float32)
+        #: the arrays the band tasks read and write (sffscan.stages.volume_tasks)
+        self.arrays = {"best": self.best, "argmax": self.argmax, "tex": self.tex,
+                       "sums": self.sums, "low": self.low, "heights": self.heights,
+                       **({} if self.fv is None else {"fv": self.fv}),
+                       **scratch_arrays(self.rows, self.block)}
 
     def _init_bookkeeping(self) -> None:
         """Which (column, level) pairs are stored, and the rows each covers."""
@@ -433,7 +438,7 @@ class FocusVolume:
         assert self.y0 is not None
         self._apply_pending()
         complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
-        depth, conf, sums, low, bias = self._depth(u0, u1, complete)
+        depth, conf, _, _, bias = self._depth(u0, u1, complete)
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
@@ -446,7 +451,7 @@ class FocusVolume:
             # invalid pixels (curves that lack levels) take the block's mean depth, so
             # that their values do not count as scatter of their valid neighbours
             fill = float(depth[valid].mean()) if valid.any() else 0.0
-            unc = self._uncertainty(depth, valid, fill, sums, low, bias)
+            unc = self._uncertainty(depth, valid, fill, bias)
             np.copyto(unc, np.nan, where=invalid)
         conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
         tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
@@ -461,48 +466,42 @@ class FocusVolume:
     def _depth(self, u0: int, u1: int, complete: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Depth (levels) and confidence of columns [u0, u1), their curves' sums (H_0,
-        Re H_1, Im H_1) and minima, and SPC's bias (levels, 0.0 unless the block took it)."""
-        a0 = max(u0 - self.halo, self.first_u)
-        a1 = min(u1 + self.halo, self.end_u)
-        inner = slice(u0 - a0, u1 - a0)  # the halo serves the filters only
-        width = u1 - u0
-        sums = np.empty((3, self.rows, width), np.float32)  # H_0, Re H_1, Im H_1
-        low = np.empty((self.rows, width), np.float32)  # each curve's minimum
-        argmax = self._gather(self.argmax, a0, a1)
-        method, low_src, bias = self.method, None, 0.0
-        if self.fv is None:
-            src = self._gather(self.sums, a0, a1)  # H_0, Re, Im[, sum k y]
-            low_src = self._gather(self.low, u0, u1) if self.uncertainty else None
-        else:  # the block's own levels (one copy where the ring wraps), or the halo's too
-            own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
-            src = self._gather(self.fv, u0 if own else a0, u1 if own else a1)
-            if method in blocks.BLOCK_CHOICES:  # one choice for the block, whatever its bands
-                method, bias = blocks.block_choice(src, argmax[:, inner], complete,
-                                                   method=method)
-
-        def band(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
-            # rows [r0, r1) from rows widened by the filters' reach (the columns' halo)
-            ra0, ra1 = max(r0 - self.halo, 0), min(r1 + self.halo, self.rows)
-            return blocks.depth_rows(src, argmax[ra0:ra1], low_src, (r0, r1),
-                              slice(r0 - ra0, r1 - ra0), inner, sums[:, r0:r1], low[r0:r1],
-                              method=method, n_levels=self.n,
-                              median_size=self.median_size, spread_size=self.spread_size,
-                              streaming=self.fv is None, keep_low=self.uncertainty)
-
-        parts = self._by_bands(band)
-        depth = parts[0][0] if len(parts) == 1 else np.concatenate([d for d, _ in parts])
-        conf = parts[0][1] if len(parts) == 1 else np.concatenate([c for _, c in parts])
-        return depth, conf, sums, low, bias
+        Re H_1, Im H_1) and minima (views of the block's scratch arrays), and SPC's bias
+        (levels, 0.0 unless the block took it): the method chosen once for the block,
+        then :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
+        method, bias = self.method, 0.0
+        own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
+        if self.fv is not None and method in blocks.BLOCK_CHOICES:
+            # one choice for the block, whatever its bands
+            method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
+                                               self._gather(self.argmax, u0, u1), complete,
+                                               method=method)
+        self._run_task("depth", {
+            "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
+            "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,
+            "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
+            "median_size": self.median_size, "spread_size": self.spread_size,
+            "uncertainty": self.uncertainty})
+        a, shape = self.arrays, (self.rows, u1 - u0)
+        return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
+                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 
     def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
-                     sums: np.ndarray, low: np.ndarray, bias: float) -> np.ndarray:
+                     bias: float) -> np.ndarray:
         """The block's height uncertainty, µm (a new array), its invalid pixels' depth
-        taken as ``fill``."""
-        filled = np.where(valid, depth, fill)
-        us = self._by_bands(lambda r0, r1: blocks.block_uncertainty(
-            filled, sums, low, (r0, r1), n_levels=self.n, focus_heights_um=self.heights,
-            window=self.spread_size, bias_levels=bias))
-        return us[0] if len(us) == 1 else np.concatenate(us)
+        taken as ``fill`` (:func:`sffscan.stages.volume_tasks.uncertainty` on each band,
+        from the block's scratch arrays that :meth:`_depth` filled)."""
+        a, shape = self.arrays, depth.shape
+        np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
+        self._run_task("uncertainty", {
+            "rows": shape[0], "width": shape[1], "n_levels": self.n,
+            "window": self.spread_size, "bias": bias})
+        return scratch(a, "b_unc", shape).copy()
+
+    def _run_task(self, task: str, params: dict[str, object]) -> None:
+        """Band task ``task`` (:mod:`sffscan.stages.volume_tasks`) on :attr:`arrays`, by the
+        band threads where there are some."""
+        self._by_bands(lambda r0, r1: run_task(self.arrays, task, params, (r0, r1)))
 
     def _by_bands(self, fn: Callable[[int, int], T]) -> list[T]:
         """``fn`` on each band of rows (one band, all rows, without band workers)."""

@@ -19,11 +19,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from sffscan.stages import block_depth as blocks
 from sffscan.stages.bands import BandTasks, row_bands
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
-from sffscan.stages.volume_tasks import Layout, scratch, volume_layout
+from sffscan.stages.volume_tasks import Layout, volume_layout
 
 __all__ = ["SharedFocusVolume"]
 
@@ -72,7 +71,7 @@ class SharedFocusVolume(FocusVolume):
     def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
         """The state in the band processes' arrays, set as a new volume's would be (the
         N-level ring taken over from ``reuse`` as it is: its stale values are never read)."""
-        a = self.tasks.arrays
+        a = self.arrays = self.tasks.arrays
         want = self.shared_layout(
             n_levels=self.n, frame_shape=(self.h, self.w), method=self.method,
             median_size=self.median_size, spread_size=self.spread_size,
@@ -181,35 +180,6 @@ class SharedFocusVolume(FocusVolume):
         self._specs.clear()
 
     # -- blocks out ------------------------------------------------------------------------
-    def _depth(self, u0: int, u1: int, complete: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """The block's depth, confidence, sums and minima by the band processes (views of
-        their scratch arrays, :func:`sffscan.stages.volume_tasks.depth`), and SPC's bias
-        (the block's choice of method made here, on the shared levels)."""
-        a0 = max(u0 - self.halo, self.first_u)
-        a1 = min(u1 + self.halo, self.end_u)
-        method, bias = self.method, 0.0
-        own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
-        if self.fv is not None and method in blocks.BLOCK_CHOICES:
-            method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
-                                               self._gather(self.argmax, u0, u1), complete,
-                                               method=method)
-        self.tasks.run_task("depth", {
-            "u0": u0, "u1": u1, "a0": a0, "a1": a1, "ring": self.ring, "rows": self.rows,
-            "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
-            "median_size": self.median_size, "spread_size": self.spread_size,
-            "uncertainty": self.uncertainty}, self._bands)
-        a, shape = self.tasks.arrays, (self.rows, u1 - u0)
-        return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
-                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
-
-    def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
-                     sums: np.ndarray, low: np.ndarray, bias: float) -> np.ndarray:
-        """The block's height uncertainty by the band processes
-        (:func:`sffscan.stages.volume_tasks.uncertainty`), copied out of their scratch."""
-        a, shape = self.tasks.arrays, depth.shape
-        np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
-        self.tasks.run_task("uncertainty", {
-            "rows": shape[0], "width": shape[1], "n_levels": self.n,
-            "window": self.spread_size, "bias": bias}, self._bands)
-        return scratch(a, "b_unc", shape).copy()
+    def _run_task(self, task: str, params: dict[str, object]) -> None:
+        """Band task ``task`` by the band processes, on their shared arrays."""
+        self.tasks.run_task(task, params, self._bands)

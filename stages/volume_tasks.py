@@ -27,7 +27,8 @@ import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 
-__all__ = ["TASKS", "gather", "pieces", "run_task", "scratch", "volume_layout"]
+__all__ = ["TASKS", "gather", "pieces", "run_task", "scratch", "scratch_arrays",
+           "volume_layout"]
 
 Layout = dict[str, tuple[tuple[int, ...], str]]
 """Array name -> (shape, dtype string)."""
@@ -65,11 +66,20 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
     }
     if levels:
         out["fv"] = ((n_levels, *plane), "<f4")
-    flat = (rows * block_columns,)
-    for name, planes in (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1),
-                         ("b_filled", 1), ("b_unc", 1)):
-        out[name] = ((planes * flat[0],), "<f4")
+    out.update({name: ((planes * rows * block_columns,), "<f4") for name, planes in _SCRATCH})
     return out
+
+
+_SCRATCH = (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1), ("b_filled", 1),
+            ("b_unc", 1))
+"""A block's scratch arrays and their planes (flat float32)."""
+
+
+def scratch_arrays(rows: int, block_columns: int) -> dict[str, np.ndarray]:
+    """A block's scratch arrays (``b_*``, flat float32; :func:`scratch` cuts them to a
+    block's shape) for a volume of ``rows`` rows and blocks of ``block_columns``."""
+    return {name: np.empty(planes * rows * block_columns, np.float32)
+            for name, planes in _SCRATCH}
 
 
 def scratch(arrays: dict[str, np.ndarray], name: str, shape: tuple[int, ...]) -> np.ndarray:
