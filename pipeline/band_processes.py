@@ -6,7 +6,7 @@ Python code takes turns on the GIL, so K threads cost more CPU per frame than on
 runs the same work in K - 1 helper processes and the caller's own, each on its band of
 rows. The focus volume's per-pixel state, the frame being added and a block's scratch are
 named arrays in one shared-memory segment (laid out by
-:meth:`sffscan.stages.focus_volume.FocusVolume.shared_layout`); a task is a name and
+:meth:`sffscan.stages.shared_volume.SharedFocusVolume.shared_layout`); a task is a name and
 JSON parameters (:mod:`sffscan.stages.volume_tasks`), sent down a pipe to each helper,
 its answer an acknowledgement (with the helper's CPU time) or the error it raised. Each
 band reads its rows widened by the filters' reach, as with threads, so the blocks are
@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.pipeline.heap import keep_freed_memory
+from sffscan.pipeline.shm_ring import aligned, map_now
 from sffscan.pipeline.spawn import (
     START_TIMEOUT_S,
     WAIT_S,
@@ -47,9 +48,7 @@ from sffscan.stages.volume_tasks import Layout, run_task
 __all__ = ["BandProcessFailed", "BandProcesses", "LazyBandProcesses", "map_arrays",
            "segment_bytes"]
 
-_ALIGN = 64  # bytes: each array starts on a cache line
 SHM_DIR = "/dev/shm"  # where Linux keeps POSIX shared memory
-_MADV_POPULATE_WRITE = 23  # linux/mman.h; not in Python 3.11's mmap module
 
 
 class BandProcessFailed(RuntimeError):
@@ -61,7 +60,7 @@ def _offsets(layout: Layout) -> tuple[dict[str, int], int]:
     for name, (shape, dtype) in layout.items():
         off[name] = pos
         n = int(np.prod(shape)) * np.dtype(dtype).itemsize
-        pos += (n + _ALIGN - 1) // _ALIGN * _ALIGN
+        pos += aligned(n)  # each array starts on a cache line
     return off, pos
 
 
@@ -112,8 +111,7 @@ def _helper_main(conn: Any, segment: str, layout: dict[str, Any], parent: int,
     if opencv_threads is not None:
         cv2.setNumThreads(opencv_threads)
     shm = shared_memory.SharedMemory(name=segment)
-    with contextlib.suppress(OSError, ValueError, AttributeError):  # map every page now
-        shm._mmap.madvise(_MADV_POPULATE_WRITE)  # type: ignore[attr-defined]
+    map_now(shm, write=True)  # it writes its rows
     lay: Layout = {k: (tuple(v[0]), v[1]) for k, v in layout.items()}
     base, arrays = map_arrays(shm.buf, lay)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -150,7 +148,7 @@ class BandProcesses:
         Band workers, >= 1 (1: no helper, the tasks run in the caller on the shared arrays).
     layout : dict
         The arrays, name -> (shape, dtype string)
-        (:meth:`sffscan.stages.focus_volume.FocusVolume.shared_layout`); zero-filled.
+        (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.shared_layout`); zero-filled.
     timeout_s : float, keyword-only
         The longest a band's task may take before the call fails.
     name : str, keyword-only
@@ -183,8 +181,7 @@ class BandProcesses:
             size=segment_bytes(layout))
         self._unlinked = False
         try:
-            with contextlib.suppress(OSError, ValueError, AttributeError):  # map it now
-                self._shm._mmap.madvise(_MADV_POPULATE_WRITE)  # type: ignore[attr-defined]
+            map_now(self._shm, write=True)
             base, self.arrays = map_arrays(self._shm.buf, layout)
             # unmapped when the last array is gone, the volume's views included
             weakref.finalize(base, _close_segment, self._shm)

@@ -51,6 +51,15 @@ class PoolStopped(Exception):
     """Raised in a wait for a free slot when the pipeline is stopping."""
 
 
+def map_now(shm: shared_memory.SharedMemory, *, write: bool) -> None:
+    """Map every page of ``shm`` now (Linux >= 5.14; elsewhere nothing), not at each
+    page's first use while streaming: a page fault per 4 KiB of a frame costs about as much
+    as copying the frame. ``write``: the pages are written here (the creator)."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        shm._mmap.madvise(_MADV_POPULATE_WRITE if write  # type: ignore[attr-defined]
+                          else _MADV_POPULATE_READ)
+
+
 def aligned(n: int) -> int:
     return (n + ALIGN - 1) // ALIGN * ALIGN
 
@@ -113,11 +122,7 @@ class SlotPool:
         self.shm = shared_memory.SharedMemory(name=spec.name, create=create,
                                               size=spec.total_bytes if create else 0)
         self._unlinked = not create
-        # map every page now (Linux >= 5.14), not at each slot's first use while streaming:
-        # a page fault per 4 KiB of a frame costs about as much as copying the frame
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            self.shm._mmap.madvise(_MADV_POPULATE_WRITE if create  # type: ignore[attr-defined]
-                                   else _MADV_POPULATE_READ)
+        map_now(self.shm, write=create)
         self.refs = np.ndarray((spec.slots,), np.int32, buffer=self.shm.buf)
         if create:
             self.refs[:] = 0

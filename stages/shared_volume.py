@@ -114,7 +114,7 @@ class SharedFocusVolume(FocusVolume):
         if image01.shape != focus.shape or h > self.h or w > self.w:
             raise ValueError(f"focus {focus.shape} and image01 {image01.shape} must have "
                              f"one shape within the frame's {(self.h, self.w)}")
-        a = self.tasks.arrays
+        a = self.arrays
         np.copyto(a["focus"][:h, :w], focus, casting="same_kind")
         np.copyto(a["image01"][:h, :w], image01, casting="same_kind")
         self._frame_shape = (h, w)
@@ -144,7 +144,7 @@ class SharedFocusVolume(FocusVolume):
         """
         self._apply_pending()
         h, w = raw.shape
-        dst = self.tasks.arrays["raw"]
+        dst = self.arrays["raw"]
         if h != self.h or w > self.w or raw.dtype != dst.dtype:
             raise ValueError(f"raw {raw.shape} {raw.dtype} must be (height {self.h}, width "
                              f"<= {self.w}) of {dst.dtype}")
@@ -172,11 +172,9 @@ class SharedFocusVolume(FocusVolume):
         params = {"writes": self._specs, "cache_bytes": self.cache_bytes,
                   "low": self.track_low}
         if self._measure is not None:
-            self.tasks.run_task("measure_accumulate", {**self._measure, **params},
-                                self._bands)
+            self._run_task("measure_accumulate", {**self._measure, **params})
         else:
-            self.tasks.run_task("accumulate", {**params, "shape": list(self._frame_shape)},
-                                self._bands)
+            self._run_task("accumulate", {**params, "shape": list(self._frame_shape)})
         self._specs.clear()
 
     # -- blocks out ------------------------------------------------------------------------

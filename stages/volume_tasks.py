@@ -1,10 +1,12 @@
-"""The focus volume's band work as tasks on named arrays, for band *processes*.
+"""The focus volume's band work as tasks on named arrays.
 
-Band threads (:class:`sffscan.stages.bands.BandWorkers`) run closures over the focus
-volume's arrays. A band process shares no interpreter with the volume: it maps the same
-arrays (one shared-memory segment, :mod:`sffscan.pipeline.band_processes`) and receives
-what to do as a task, a name and JSON-able parameters. :func:`run_task` runs one on
-rows [r0, r1) of those arrays; the volume's own process runs the first band the same way.
+A task is a name and JSON-able parameters; :func:`run_task` runs one on rows [r0, r1) of
+a volume's arrays. The volume reduces its blocks with them, each band in its own thread
+where there are band threads (:class:`sffscan.stages.bands.BandWorkers`). A band
+*process* shares no interpreter with the volume: it maps the same arrays (one
+shared-memory segment, :mod:`sffscan.pipeline.band_processes`) and receives the tasks
+down a pipe, the frames' writes too (:class:`sffscan.stages.shared_volume.SharedFocusVolume`);
+the volume's own process runs the first band the same way.
 Each task calls the functions the threads call (:func:`~sffscan.stages.accumulate.apply_writes`,
 :func:`~sffscan.stages.block_depth.depth_rows`,
 :func:`~sffscan.stages.block_depth.block_uncertainty`) on the same values, so the blocks
@@ -110,21 +112,42 @@ def _state(arrays: dict[str, np.ndarray], p: dict[str, Any]) -> AccumulatorState
                             arrays.get("fv"), arrays["level_buf"])
 
 
+def _band_of_frame(p: dict[str, Any], rows: tuple[int, int]) -> tuple[int, int, int] | None:
+    """The state rows [s0, s1) of ``rows`` that the frame's writes cover, and the focus
+    measure's row of s0; None where they cover none."""
+    if not p["writes"]:
+        return None
+    _, fr0, _, r0, r1, _, _ = p["writes"][0]  # one frame: every write covers the same rows
+    s0, s1 = max(rows[0], r0), min(rows[1], r1)
+    return None if s1 <= s0 else (s0, s1, fr0 + s0 - r0)
+
+
+def _apply_frame(arrays: dict[str, np.ndarray], p: dict[str, Any], focus: np.ndarray,
+                 image01: np.ndarray, s0: int, s1: int, rows: tuple[int, int]) -> None:
+    """The frame's writes from ``focus`` and ``image01`` (state rows [s0, s1), the frame's
+    columns), each on its own (strips sized for one frame's values: see
+    :func:`~sffscan.stages.accumulate.apply_writes`), as the volume without band
+    processes applies them."""
+    state = _state(arrays, p)
+    for level, _, fc0, _, _, cs0, cs1 in p["writes"]:
+        n = cs1 - cs0
+        apply_writes(state, [Write(level, focus[:, fc0:fc0 + n], image01[:, fc0:fc0 + n],
+                                   s0, s1, slice(cs0, cs1))],
+                     cache_bytes=p["cache_bytes"], rows=rows)
+
+
 def accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]
                ) -> None:
     """The frame's writes (``p["writes"]``: level, the focus measure's first row and
     column, rows r0, r1 and ring slots s0, s1 of the state) applied to ``rows``, the
-    frame's focus measure of shape ``p["shape"]`` in ``arrays["focus"]``; each write on
-    its own (strips sized for one frame's values: see
-    :func:`~sffscan.stages.accumulate.apply_writes`)."""
-    h, w = p["shape"]
-    focus, image01 = arrays["focus"][:h, :w], arrays["image01"][:h, :w]
-    writes = [Write(level, focus[fr0:fr0 + (r1 - r0), fc0:fc0 + (s1 - s0)],
-                    image01[fr0:fr0 + (r1 - r0), fc0:fc0 + (s1 - s0)], r0, r1, slice(s0, s1))
-              for level, fr0, fc0, r0, r1, s0, s1 in p["writes"]]
-    state = _state(arrays, p)
-    for w in writes:  # one at a time, as the volume without band processes does
-        apply_writes(state, [w], cache_bytes=p["cache_bytes"], rows=rows)
+    frame's focus measure of shape ``p["shape"]`` in ``arrays["focus"]``."""
+    band = _band_of_frame(p, rows)
+    if band is None:
+        return
+    s0, s1, f0 = band
+    w = p["shape"][1]
+    _apply_frame(arrays, p, arrays["focus"][f0:f0 + s1 - s0, :w],
+                 arrays["image01"][f0:f0 + s1 - s0, :w], s0, s1, rows)
 
 
 def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
@@ -136,16 +159,12 @@ def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
     band measures what it writes."""
     from sffscan.stages.focus_measure import focus_measure_raw  # it imports the volume
 
-    specs = p["writes"]
-    if not specs:
+    band = _band_of_frame(p, rows)
+    if band is None:
         return
-    _, fr0, _, r0, r1, _, _ = specs[0]  # one frame: every write covers the same rows
-    s0, s1 = max(rows[0], r0), min(rows[1], r1)
-    if s1 <= s0:
-        return
+    s0, s1, f0 = band
     h, w = p["shape"]
     c0, c1 = p["cols"]
-    f0 = fr0 + s0 - r0
     image01, fm = focus_measure_raw(arrays["raw"][:h, :w], max_value=p["max_value"],
                                     operator=p["operator"], window=p["window"],
                                     rows=(f0, f0 + s1 - s0))
@@ -153,17 +172,12 @@ def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
     if p["flip"]:  # OpenCV takes positive strides only
         image01 = np.ascontiguousarray(image01[:, ::-1])
         fm = np.ascontiguousarray(fm[:, ::-1])
-    state = _state(arrays, p)
-    for level, _, fc0, _, _, cs0, cs1 in specs:
-        n = cs1 - cs0
-        w_ = Write(level, fm[:, fc0:fc0 + n], image01[:, fc0:fc0 + n], s0, s1,
-                   slice(cs0, cs1))
-        apply_writes(state, [w_], cache_bytes=p["cache_bytes"], rows=rows)
+    _apply_frame(arrays, p, fm, image01, s0, s1, rows)
 
 
 def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]) -> None:
     """A block's depth and confidence (``b_depth``, ``b_conf``) and its curves' sums and
-    minima (``b_sums``, ``b_low``), rows [r0, r1): what the volume's band closure does
+    minima (``b_sums``, ``b_low``), rows [r0, r1)
     (:meth:`sffscan.stages.focus_volume.FocusVolume.reduce`)."""
     r0, r1 = rows
     u0, u1, a0, a1, ring = p["u0"], p["u1"], p["a0"], p["a1"], p["ring"]
