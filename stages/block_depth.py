@@ -49,13 +49,13 @@ its pixels outside the range SPC holds in
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
-                 complete: np.ndarray | None = None, *, method: str = "shape_select") -> str:
+                 valid: np.ndarray | None = None, *, method: str = "shape_select") -> str:
     """The method a block takes: :func:`block_choice`'s first element."""
-    return block_choice(levels, argmax, complete, method=method)[0]
+    return block_choice(levels, argmax, valid, method=method)[0]
 
 
 def block_choice(levels: np.ndarray, argmax: np.ndarray,
-                 complete: np.ndarray | None = None, *, method: str = "shape_select"
+                 valid: np.ndarray | None = None, *, method: str = "shape_select"
                  ) -> tuple[str, float]:
     """The method a block takes, and SPC's bias where it takes SPC (levels: the departure
     ``|d|`` of :func:`sffscan.stages.depth_choice.spc_departure`, which the height
@@ -79,15 +79,16 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         The block's curves.
     argmax : (rows, block) ndarray of int
         Their argmax.
-    complete : (block,) ndarray of bool, optional
-        The columns seen at every level; the others are left out, and so are the curves
-        without data (flat: the rows beyond the frames, kept for wobble). A block with no
-        such curve takes ``"adaptive"``.
+    valid : ndarray of bool broadcastable to (rows, block), optional
+        The curves seen at every level (a (block,) mask of the columns seen at every level,
+        or a (rows, block) one, each pixel's); the others are left out, whatever the ring
+        holds there, and so are the curves without data (flat: the rows beyond the frames,
+        kept for wobble). A block with no such curve takes ``"adaptive"``.
     method : {"shape_select", "adaptive_centroid"}, keyword-only
     """
     if method not in BLOCK_CHOICES:
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
-    sample = sampled_curves(levels, argmax, complete)
+    sample = sampled_curves(levels, argmax, valid)
     if sample is None:
         return "adaptive", 0.0
     vol, am, seen = sample
@@ -189,19 +190,23 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
 
 def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
                       rows: tuple[int, int], *, n_levels: int, focus_heights_um: np.ndarray,
-                      window: int, bias_levels: float = 0.0) -> np.ndarray:
+                      window: int, bias_levels: float = 0.0,
+                      valid: np.ndarray | None = None) -> np.ndarray:
     """:func:`~sffscan.stages.depth_uncertainty.height_uncertainty_um` of rows [r0, r1)
     of a block, from the rows within its filters' reach (a 5 x 5 median, then ranges and
     means over ``2 window + 1`` px: 2 + ``window`` rows; one more is read).
 
     ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
     every row of the block; ``bias_levels``: the block's SPC bias (:func:`block_choice`);
-    returns float32 (r1 - r0, block), µm.
+    ``valid``: the block's pixels whose curves are whole (the others' sums and minima, left
+    from earlier columns in the ring, are not read for their neighbours); returns float32
+    (r1 - r0, block), µm.
     """
     r0, r1 = rows
     reach = 3 + window
     a0, a1 = max(r0 - reach, 0), min(r1 + reach, depth.shape[0])
     u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], n_levels=n_levels,
                               focus_heights_um=focus_heights_um, window=window,
-                              bias_levels=bias_levels)
+                              bias_levels=bias_levels,
+                              valid=None if valid is None else valid[a0:a1])
     return u[r0 - a0:r1 - a0]

@@ -85,7 +85,7 @@ curve would cost a scan's block more than its reduction (bench/results:
 bench_depth_default.py)."""
 
 def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
-                   complete: np.ndarray | None = None
+                   valid: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The curves of :data:`SHAPE_SAMPLE_STEP` a shape is judged on: (N, r, c) float32
     levels, their argmax and the mask of those with data, or None where none has.
@@ -96,15 +96,17 @@ def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
         The curves (a block of a scan, or a whole stack).
     argmax : (rows, columns) ndarray of int
         Their argmax.
-    complete : (columns,) ndarray of bool, optional
-        The columns seen at every level; the others are left out, and so are the curves
+    valid : ndarray of bool broadcastable to (rows, columns), optional
+        The curves seen at every level (a (columns,) mask: the columns seen at every level;
+        a (rows, columns) one: each pixel's); the others are left out, whatever their
+        levels hold (a scan's ring keeps earlier columns' values), and so are the curves
         without data (flat: the rows beyond the frames, kept for wobble).
     """
     rs, cs = SHAPE_SAMPLE_STEP
     vol = np.ascontiguousarray(levels[:, ::rs, ::cs], dtype=np.float32)
     seen = vol.max(axis=0) > vol.min(axis=0)
-    if complete is not None:
-        seen &= np.asarray(complete, bool)[::cs][None, :]
+    if valid is not None:
+        seen &= np.broadcast_to(np.asarray(valid, bool), argmax.shape)[::rs, ::cs]
     if not seen.any():
         return None
     return vol, np.asarray(argmax)[::rs, ::cs], seen

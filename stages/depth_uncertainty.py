@@ -190,7 +190,7 @@ def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarra
 
 
 def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels: np.ndarray,
-                 *, window: int = 9) -> np.ndarray:
+                 *, window: int = 9, valid: np.ndarray | None = None) -> np.ndarray:
     """How much wider each curve is than the curves about it, levels, noise-discounted,
     at most half the depth's range about it.
 
@@ -208,6 +208,10 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels
         heights ``D`` apart widens a curve by at most ``D / 2``.
     window : int, keyword-only
         The focus measure's window, px.
+    valid : (H, W) ndarray of bool, optional, keyword-only
+        The pixels whose curves count: the mean width is taken over these only (a curve
+        that lacks levels, whatever its sums hold, widens nobody's reference); where a
+        square holds none, the pixel's own width. Default: every pixel.
 
     Returns
     -------
@@ -215,7 +219,7 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels
     """
     w = np.ascontiguousarray(width_levels, dtype=np.float32)
     k = 2 * int(window) + 1
-    mean = cv2.blur(w, (k, k), borderType=cv2.BORDER_REPLICATE)
+    mean = _mean_width(w, k, valid)
     ex = np.asarray(cv2.subtract(cv2.multiply(w, w), cv2.multiply(mean, mean)), np.float32)
     np.maximum(ex, np.float32(0.0), out=ex)
     np.sqrt(ex, out=ex)
@@ -226,6 +230,21 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels
     np.maximum(f, np.float32(0.0), out=f)
     ex *= f
     return ex
+
+
+def _mean_width(w: np.ndarray, k: int, valid: np.ndarray | None) -> np.ndarray:
+    """Mean of ``w`` over k x k px (replicated borders), over the ``valid`` pixels only."""
+    if valid is None:
+        return np.asarray(cv2.blur(w, (k, k), borderType=cv2.BORDER_REPLICATE), np.float32)
+    box = (k, k)
+    # the invalid pixels' widths as 0.0 (whatever they hold: NaN too), then / the share
+    num = cv2.blur(np.where(valid, w, np.float32(0.0)), box, borderType=cv2.BORDER_REPLICATE)
+    den = cv2.blur(np.asarray(valid, np.float32), box, borderType=cv2.BORDER_REPLICATE)
+    # a box mean of 0/1 is a multiple of 1 / k^2 up to round-off: below half of it, none
+    some = den > np.float32(0.5 / (k * k))
+    np.divide(num, den, out=num, where=some)
+    np.copyto(num, w, where=~some)
+    return np.asarray(num, np.float32)
 
 
 def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
@@ -286,7 +305,8 @@ def uncertainty_um(sigma_levels: np.ndarray, depth_levels: np.ndarray, *,
 
 def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: np.ndarray,
                           *, n_levels: int, focus_heights_um: np.ndarray, window: int = 9,
-                          bias_levels: float = 0.0) -> np.ndarray:
+                          bias_levels: float = 0.0, valid: np.ndarray | None = None
+                          ) -> np.ndarray:
     """The height uncertainty, µm, one sigma, from a depth map and its curves' sums.
 
     What the streaming depth stage computes per block (and a whole-field stack per field):
@@ -311,6 +331,9 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
         The focus measure's window, px (the scatter's window).
     bias_levels : float, keyword-only
         SPC's bias where the map is SPC's, levels (:func:`depth_uncertainty`); default 0.
+    valid : (H, W) ndarray of bool, optional, keyword-only
+        The pixels whose curves are whole (:func:`width_excess`): the others' sums and
+        minima are not read for their neighbours. Default: every pixel.
 
     Returns
     -------
@@ -331,7 +354,8 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     w *= np.float32(-(n_levels / math.pi) ** 2 / 2.0)  # width^2, levels^2
     np.sqrt(w, out=w)
     med = cv2.medianBlur(d, 5)
-    x = width_excess(w, floor_share(h0, low, n_levels), _range(med, window), window=window)
+    x = width_excess(w, floor_share(h0, low, n_levels), _range(med, window), window=window,
+                     valid=valid)
     sigma = _combine(_scatter(d, med, window), x, SCATTER_SCALE, FLOOR_LEVELS, bias_levels)
     table = np.asarray(focus_heights_um, dtype=np.float64)
     step = np.abs(np.diff(table)).astype(np.float32)

@@ -438,11 +438,11 @@ class FocusVolume:
         assert self.y0 is not None
         self._apply_pending()
         complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
-        depth, conf, _, _, bias = self._depth(u0, u1, complete)
         lo = self._gather(self.row_lo, u0, u1).max(axis=0)
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
         valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
+        depth, conf, _, _, bias = self._depth(u0, u1, valid)
         invalid = ~valid
         height = levels_to_height(depth, focus_heights_um=self.heights)  # float32, new
         np.copyto(height, np.float32(np.nan), where=invalid)
@@ -463,18 +463,19 @@ class FocusVolume:
         x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
 
-    def _depth(self, u0: int, u1: int, complete: np.ndarray
+    def _depth(self, u0: int, u1: int, valid: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Depth (levels) and confidence of columns [u0, u1), their curves' sums (H_0,
         Re H_1, Im H_1) and minima (views of the block's scratch arrays), and SPC's bias
-        (levels, 0.0 unless the block took it): the method chosen once for the block,
-        then :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
+        (levels, 0.0 unless the block took it): the method chosen once for the block on
+        its ``valid`` pixels' curves (rows, u1 - u0), then
+        :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
         method, bias = self.method, 0.0
         own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
         if self.fv is not None and method in blocks.BLOCK_CHOICES:
             # one choice for the block, whatever its bands
             method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
-                                               self._gather(self.argmax, u0, u1), complete,
+                                               self._gather(self.argmax, u0, u1), valid,
                                                method=method)
         self._run_task("depth", {
             "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
@@ -493,6 +494,7 @@ class FocusVolume:
         from the block's scratch arrays that :meth:`_depth` filled)."""
         a, shape = self.arrays, depth.shape
         np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
+        np.copyto(scratch(a, "b_valid", shape), valid)
         self._run_task("uncertainty", {
             "rows": shape[0], "width": shape[1], "n_levels": self.n,
             "window": self.spread_size, "bias": bias})

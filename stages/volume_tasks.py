@@ -73,7 +73,7 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
 
 
 _SCRATCH = (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1), ("b_filled", 1),
-            ("b_unc", 1))
+            ("b_valid", 1), ("b_unc", 1))
 """A block's scratch arrays and their planes (flat float32)."""
 
 
@@ -205,14 +205,16 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
 def uncertainty(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]
                 ) -> None:
     """A block's height uncertainty (``b_unc``), rows [r0, r1), from its filled depth
-    (``b_filled``), sums and minima (:func:`sffscan.stages.block_depth.block_uncertainty`)."""
+    (``b_filled``), sums and minima of its valid pixels (``b_valid``, 1.0 or 0.0)
+    (:func:`sffscan.stages.block_depth.block_uncertainty`)."""
     r0, r1 = rows
     shape = (p["rows"], p["width"])
     u = blocks.block_uncertainty(scratch(arrays, "b_filled", shape),
                                  scratch(arrays, "b_sums", (3, *shape)),
                                  scratch(arrays, "b_low", shape), (r0, r1),
                                  n_levels=p["n_levels"], focus_heights_um=arrays["heights"],
-                                 window=p["window"], bias_levels=p["bias"])
+                                 window=p["window"], bias_levels=p["bias"],
+                                 valid=scratch(arrays, "b_valid", shape) > 0.5)
     scratch(arrays, "b_unc", shape)[r0:r1] = u
 
 
