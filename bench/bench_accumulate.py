@@ -38,6 +38,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, cast
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from against import load_module  # noqa: E402
 from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_frames  # noqa: E402
@@ -100,6 +102,34 @@ class Timer:
 
         timed._timed = True  # type: ignore[attr-defined]
         setattr(cls, name, timed)
+
+
+def differences(a: list[Any], b: list[Any]) -> dict[str, tuple[int, int, float]] | None:
+    """Per array of two trees' blocks: pixels that differ (NaN equal to NaN, one NaN
+    against a number counts), pixels, the largest finite difference; None where the blocks
+    themselves differ (count, position or a missing array)."""
+    if len(a) != len(b) or any(x.header != y.header for x, y in zip(a, b, strict=True)):
+        return None
+    out: dict[str, tuple[int, int, float]] = {}
+    for name in ("height_um", "texture", "confidence", "uncertainty_um"):
+        n = total = 0
+        big = 0.0
+        for x, y in zip(a, b, strict=True):
+            u, v = getattr(x, name), getattr(y, name)
+            if u is None or v is None:
+                if (u is None) != (v is None):
+                    return None
+                continue
+            if u.dtype != v.dtype or u.shape != v.shape:
+                return None
+            same = (u == v) | (np.isnan(u) & np.isnan(v))
+            n += int((~same).sum())
+            total += u.size
+            both = ~same & np.isfinite(u) & np.isfinite(v)
+            if both.any():
+                big = max(big, float(np.abs(u[both] - v[both]).max()))
+        out[name] = (n, total, big)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -173,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
 
     times: dict[str, dict[str, list[float]]] = {k: {} for k in trees}
     identical: list[bool] = []
+    differ: dict[str, tuple[int, int, float]] = {}
     # OpenCV's own threads as the scan's focus worker has them (one where the cores are no
     # more than the process placement's three processes; before 2026-12-04 this benchmark
     # left OpenCV's default, a thread per core, which the worker does not run with)
@@ -187,15 +218,10 @@ def main(argv: list[str] | None = None) -> int:
                     times[k].setdefault(name, []).append(v)
             if args.against is not None:
                 a, b = outs.values()
-                identical.append(len(a) == len(b) and all(
-                    x.header == y.header and all(
-                        (u is None and v is None) or (u is not None and v is not None
-                                                      and u.dtype == v.dtype
-                                                      and u.tobytes() == v.tobytes())
-                        for u, v in ((x.height_um, y.height_um), (x.texture, y.texture),
-                                     (x.confidence, y.confidence),
-                                     (x.uncertainty_um, y.uncertainty_um)))
-                    for x, y in zip(a, b, strict=True)))
+                diff = differences(a, b)
+                identical.append(diff is not None and not any(n for n, _, _ in diff.values()))
+                if diff is not None:
+                    differ = diff
     method = kwargs["method"]
     command = "python bench/bench_accumulate.py " + " ".join(sys.argv[1:] if argv is None
                                                              else argv)
@@ -212,6 +238,10 @@ def main(argv: list[str] | None = None) -> int:
     if identical:
         lines += ["", f"blocks bit-identical to the other tree in {sum(identical)} of "
                   f"{len(identical)} rounds"]
+        if differ and not all(identical):
+            lines += ["", "where they differ (the last round; the same frames every round): "
+                      + "; ".join(f"{name} {n} of {total} px (largest difference {big:.4g})"
+                                  for name, (n, total, big) in differ.items())]
     text = "\n".join(lines)
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

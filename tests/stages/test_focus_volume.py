@@ -291,6 +291,24 @@ def assert_same_blocks(a: list, b: list) -> None:
             assert p.tobytes() == q.tobytes()
 
 
+@pytest.mark.parametrize("method", ["shape_select", "gauss3"])
+def test_blocks_do_not_depend_on_what_the_scratch_arrays_held(method: str) -> None:
+    """A block's scratch arrays (``b_*``) are new, unset memory (and, cut to each block's
+    shape, hold the last block's values elsewhere); the reduction writes every pixel it
+    reads for a valid pixel. Filled with NaN or with large numbers beforehand, the blocks
+    are the same bit for bit."""
+    out = []
+    for junk in (np.nan, 1e30):
+        vol = FocusVolume(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                          direction=1, method=method, median_size=3, block_columns=16,
+                          row_slack=3, spread_size=3)
+        for name, arr in vol.arrays.items():
+            if name.startswith("b_"):
+                arr.fill(junk)
+        out.append(wobbly_frames_into(vol, 1))
+    assert_same_blocks(*out)
+
+
 def test_the_uncertainty_of_valid_pixels_ignores_the_invalid_ones_curves() -> None:
     """block_uncertainty with a validity mask: whatever sums and minima the invalid pixels
     hold, the valid pixels' uncertainty is the same; without the mask it is not."""
