@@ -52,27 +52,42 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: the depth modules, in an order in which each one's imports come before it
 MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_uncertainty",
-           "depth_candidates", "depth_choice", "depth", "accumulate", "focus_volume", "depth_stage")
+           "depth_candidates", "depth_choice", "depth", "accumulate", "block_depth",
+           "volume_tasks", "focus_volume", "depth_stage")
+"""The depth modules loaded from the other tree, each after those it imports (until
+2026-12-04 ``block_depth`` and ``volume_tasks`` were missing: the other tree's volume ran
+this tree's block reduction)."""
 
 
 def load_tree(root: Path) -> ModuleType:
     """The ``depth_stage`` module of another tree, with that tree's depth modules: each is
     loaded under its package name (so their imports of one another resolve to the same
     tree), then this tree's modules are put back."""
+    import sffscan.stages as package
+
     names = [f"sffscan.stages.{m}" for m in MODULES]
     saved = {n: sys.modules.get(n) for n in names}
+    # ``from sffscan.stages import block_depth`` takes the package's attribute first
+    attrs = {m: getattr(package, m, None) for m in MODULES}
     loaded: dict[str, ModuleType] = {}
     try:
         for n, m in zip(names, MODULES, strict=True):
             path = root / "stages" / f"{m}.py"
             if path.exists():
                 loaded[m] = load_module(n, path)
+                setattr(package, m, loaded[m])
     finally:
         for n, mod in saved.items():
             if mod is None:
                 sys.modules.pop(n, None)
             else:
                 sys.modules[n] = mod
+        for m, mod in attrs.items():
+            if mod is None:
+                if hasattr(package, m):
+                    delattr(package, m)
+            else:
+                setattr(package, m, mod)
     return loaded["depth_stage"]
 
 
