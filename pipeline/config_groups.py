@@ -243,7 +243,13 @@ class Execution(ConfigModel):
         "each measuring the focus of the rows it accumulates (OpenCV backend; no GIL "
         "shared, for machines with a core per band: on 2 cores N = 2 took 1.31x the CPU of "
         "one band against 1.23x in threads, bench/results/band_processes.md); with "
-        "'processes' the live view shows no focus frames")
+        "'processes' the live view measures the focus of the frames it shows itself")
+
+    def band_processes(self) -> bool:
+        """Whether the depth stage's band processes measure the focus (``bands =
+        'processes'`` with more than one band worker): the focus measure stage then passes
+        the frames on unmeasured (:class:`~sffscan.stages.messages.RawColumns`)."""
+        return self.bands == "processes" and self.band_workers() > 1
 
     def band_workers(self) -> int:
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""

@@ -55,7 +55,7 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
 
     wanted = {"focus_measure", "depth"} if only is None else set(only)
     bands = None
-    if p.bands == "processes" and p.band_workers() > 1 and {"focus_measure", "depth"} <= wanted:
+    if p.band_processes() and {"focus_measure", "depth"} <= wanted:
         # the depth stage's band processes, started where the stages run
         # (sffscan.pipeline.band_processes); they measure the focus too (one band: none)
         bands = LazyBandProcesses(p.band_workers(), SharedFocusVolume.shared_layout(

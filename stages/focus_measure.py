@@ -252,8 +252,8 @@ class FocusMeasureStage(Stage):
         the rows it accumulates, never gathered
         (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`). The stage then
         passes on, instead of each focus frame, the frame and its columns
-        (:class:`~sffscan.stages.messages.RawColumns`): a sink that taps it (the live
-        view) gets no focus frames.
+        (:class:`~sffscan.stages.messages.RawColumns`): a sink that taps it gets no focus
+        frames (the live view measures the frames it shows itself).
     """
 
     name = "focus_measure"

@@ -15,7 +15,9 @@ Entity paths (timelines ``frame`` = frame_id and ``device_time`` = exposure time
 
 - ``scan/camera/image``: camera frames, every ``frame_step``-th frame_id, reduced by
   ``frame_scale``, JPEG; ``scan/focus/measure``: the focus measure of the same frames
-  (the columns that were measured, sqrt-scaled grey, JPEG);
+  (the columns that were measured, sqrt-scaled grey, JPEG; where the depth stage's band
+  processes measure the focus, which no focus frame then carries, the view measures the
+  whole frame itself, :meth:`VizSink._measure`);
 - ``scan/depth/height``, ``scan/depth/confidence`` and ``scan/depth/uncertainty`` (the
   height's one-sigma uncertainty, µm): each completed depth block, reduced;
 - ``scan/mosaic/height/tile_NNNN`` (µm, colour-mapped, 0 where invalid) and
@@ -60,6 +62,7 @@ from sffscan.pipeline.viz.preview import (
     surface_points,
     to_u8,
 )
+from sffscan.stages.focus_measure import focus_measure_raw
 from sffscan.stages.messages import DepthBlock, FocusFrame, PlacedFrame
 from sffscan.stages.protocol import FullPolicy, Sink, Tapped
 
@@ -134,6 +137,9 @@ class VizSink(Sink):
         self.taps = (placed, "focus_measure", "depth")
         o = cfg.optics
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
+        #: no focus frames come (the band processes measure the focus): the view measures
+        #: the frames it shows (one in ``frame_step``, in the view's own thread)
+        self.measures_focus = cfg.processing.band_processes()
         #: what the view uses, selected where the stages run (process mode)
         self.relay_keep = (logged_items, {"frame_step": self.frame_step})
         #: the depth blocks (a lost one leaves a hole in the mosaic) and the statistics are
@@ -225,6 +231,16 @@ class VizSink(Sink):
             mins=[(p.offset_px[0] - ox) / f, (p.offset_px[1] - oy) / f], sizes=[w / f, h / f],
             labels=f"frame {hdr.frame_id}, level {hdr.focus_index}", colors=(255, 64, 64)))
         self.frames_logged += 1
+        if self.measures_focus:
+            self._measure(p)
+
+    def _measure(self, p: PlacedFrame) -> None:
+        """The focus measure of a whole frame, as the focus stage measures it
+        (:func:`~sffscan.stages.focus_measure.focus_measure_raw`), logged as a focus frame."""
+        c = self.cfg.processing
+        image01, fm = focus_measure_raw(p.image, max_value=self.cfg.optics.max_value,
+                                        operator=c.focus_operator, window=c.window)
+        self._focus(FocusFrame(p, image01, fm, 0))
 
     def _focus(self, ff: FocusFrame) -> None:
         hdr = ff.placed.header

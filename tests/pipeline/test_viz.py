@@ -493,3 +493,43 @@ def test_blueprint_shows_the_views_own_drops_apart() -> None:
     assert len(own) == 1 and str(own[0].origin) == "stats/dropped/viewer"
     others = [v for v in views if str(v.origin) == "stats/dropped"]
     assert len(others) == 1 and "- stats/dropped/viewer" in others[0].contents
+
+
+@pytest.mark.parametrize("bands", ["threads", "processes"])
+def test_band_processes_view_measures_the_frames_it_shows(tmp_path: Path, bands: str) -> None:
+    """Where the depth stage's band processes measure the focus, no focus frame reaches the
+    view: it measures the frames it shows itself (the whole frame, the focus stage's
+    measure); with band threads it waits for the focus frames, as before."""
+    import cv2
+    import rerun as rr
+    from sffscan.pipeline.viz.preview import to_u8
+    from sffscan.stages.focus_measure import focus_measure_raw
+    from sffscan.stages.messages import PlacedFrame
+    from sffscan.stages.protocol import Tapped
+
+    cfg = small_config(processing={"workers": 2, "bands": bands})
+    rec = rr.RecordingStream("sffscan-test")
+    rec.save(str(tmp_path / "b.rrd"))
+    sink = VizSink(cfg, rec)
+    assert sink.measures_focus == (bands == "processes")
+    frame = next(iter(simulate_frames(cfg)))
+    assert frame.header.frame_id % sink.frame_step == 0
+    sink.process(Tapped("registration", PlacedFrame(frame.header, frame.image, (0.0, 0.0),
+                                                    (0, 0))))
+    sink.close(failed=False)
+    rec.flush()
+    rows, _, _ = read_rrd(tmp_path / "b.rrd")
+    if bands == "threads":
+        assert "/scan/focus/measure" not in rows
+        return
+    (row,) = rows["/scan/focus/measure"]
+    got = cv2.imdecode(np.frombuffer(bytes(row["EncodedImage:blob"][0]), np.uint8),
+                       cv2.IMREAD_UNCHANGED)
+    _, fm = focus_measure_raw(frame.image, max_value=cfg.optics.max_value,
+                              operator=cfg.processing.focus_operator, window=cfg.processing.window)
+    root = np.sqrt(np.maximum(fm, 0.0))
+    want = to_u8(root, scale=255.0 / float(root.max()), reduce=sink.opt.frame_scale)
+    assert got.shape == want.shape
+    # the same image up to JPEG's loss (quality 80: ~2 grey levels on average)
+    assert np.abs(got.astype(float) - want).mean() < 0.05 * want.mean()
+    assert np.corrcoef(got.ravel(), want.ravel())[0, 1] > 0.98
