@@ -34,8 +34,11 @@ Measured:
    T: total CPU per frame, transport included; G: CPU per frame of the busiest group of
    stages that cannot be split (one process). Today's placement (main: source, speed
    shift, mosaic; worker 1: registration; worker 2: focus measure + depth) and a K-band
-   placement of focus measure + accumulation + depth (NOT BUILT: predicted only), with
-   registration in one worker or its per-pair work farmed out.
+   placement of focus measure + accumulation + depth (predicted; built in another form,
+   ``processing.bands = "processes"``: band processes that the focus worker hands each
+   frame's rows), with registration's pairs in one thread or farmed out to threads of
+   their own (built: ``processing.workers``; their share measured by
+   ``bench_registration_pairs.py``, whose results this reads).
 
 Writes ``bench/results/scaling.md`` and ``.json`` (command, machine, date, load average).
 Not a test: nothing here asserts.
@@ -57,6 +60,7 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
 sys.path.insert(0, str(ROOT / "bench"))
 # bench_pipeline (torch with it) is imported inside functions: the workers of a run in
 # processes start by importing this script again (multiprocessing's spawn)
@@ -243,8 +247,20 @@ def measured_groups(proc: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     return res
 
 
+def pairs_ratio(path: Path = RESULTS / "registration_pairs.json") -> float | None:
+    """The registration stage's time a frame with each pair in a thread of its own, against
+    one thread (``bench_registration_pairs.py``'s results: the stage's own part, a band's
+    downsampling and its slowest pair, over all of it in one thread); None where it has
+    not run."""
+    if not path.is_file():
+        return None
+    r = json.loads(path.read_text())
+    return float(r["critical_ms"]) / float(r["one_thread_ms"])
+
+
 def model(stages: dict[str, float], transport: dict[str, float],
-          ov_focus: dict[str, float], ov_depth: dict[str, float]) -> dict[str, Any]:
+          ov_focus: dict[str, float], ov_depth: dict[str, float],
+          farm_ratio: float | None = None) -> dict[str, Any]:
     """Predicted frames/s for each core count, today's placement and K-band placements.
 
     ``stages``: CPU ms per frame of each stage; ``transport``: ms per
@@ -252,6 +268,9 @@ def model(stages: dict[str, float], transport: dict[str, float],
     K bands / CPU of the whole frame, of the focus measure and of accumulation + depth.
     One message end (a receive or a send of a frame) costs ``x``: half the registration
     worker's transport (it receives and sends each frame and does nothing else).
+    ``farm_ratio``: the registration stage's time with its pairs farmed out, against
+    one thread (:func:`pairs_ratio`); None: the placements with the pairs farmed out are
+    left out.
     """
     reg = sum(stages.get(s, 0.0) for s in GROUP_STAGES[REG])
     fm, dp = stages.get("focus_measure", 0.0), stages.get("depth", 0.0)
@@ -265,11 +284,13 @@ def model(stages: dict[str, float], transport: dict[str, float],
         band = fm * ov_focus[str(k)] + dp * ov_depth[str(k)]  # all K bands together
         # each band worker receives every frame (x) and has 1/K of the rest of the focus
         # worker's transport (its blocks, its threads); the registration worker sends each
-        # frame K times; farmed out, registration's stage CPU is spread over K workers
-        # (no overhead assumed: not measured)
+        # frame K times; farmed out, the registration's pairs run in threads of their own
+        # (processing.workers): its time a frame is its own part plus its slowest pair
+        # (farm_ratio, measured), its CPU the same (T unchanged)
         t = total + band - fd + 2 * (k - 1) * x
         groups = {MAIN: main + xm,
-                  REG: (reg / k if farmed else reg) + xr + (k - 1) * x,
+                  REG: (reg * farm_ratio if farmed and farm_ratio else reg) + xr
+                  + (k - 1) * x,
                   f"{FOCUS} band (1 of {k})": band / k + x + (xf - x) / k}
         busiest = max(groups, key=lambda g: groups[g])
         fps = {c: min(c / t, 1.0 / groups[busiest]) * 1e3 for c in CORES}
@@ -278,9 +299,10 @@ def model(stages: dict[str, float], transport: dict[str, float],
                 "cores_to_cap": t / groups[busiest]}
 
     cases = [placement(1, False)]
-    cases += [placement(k, f) for f in (False, True) for k in BANDS[1:]]
+    cases += [placement(k, f) for f in (False, True) for k in BANDS[1:]
+              if not f or farm_ratio is not None]
     return {"stage_groups_ms": {MAIN: main, REG: reg, FOCUS: fd}, "total_ms": total,
-            "message_end_ms": x, "placements": cases}
+            "message_end_ms": x, "placements": cases, "farm_ratio": farm_ratio}
 
 
 def fmt_groups(p: dict[str, Any]) -> str:
@@ -385,7 +407,9 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"{m['total_ms']:.2f}.", "",
               "- **Today's placement** (built): main, registration worker, focus + depth "
               "worker.",
-              "- **K-band placement** (NOT BUILT, predicted only): K workers each own a band "
+              "- **K-band placement** (predicted; the band processes built since "
+              "(`processing.bands`) are the focus worker's helpers, not workers that each "
+              "receive every frame): K workers each own a band "
               "of rows for focus measure + accumulation + depth; their CPU is the focus + "
               "depth CPU times the overhead used for K (step 2, applied to the whole group; "
               "the median's halo in the reduction is not measured), / K; each band worker "
@@ -393,9 +417,16 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"x = {m['message_end_ms']:.2f} ms: half the registration worker's transport, "
               "which receives and sends each frame) and has 1 / K of the rest of today's "
               "focus worker's transport; the registration worker sends each frame K times. "
-              "Registration stays one worker, or its per-pair work is farmed out over K "
-              "(its stage CPU / K, no overhead assumed: not measured; the solve and the "
-              "sends stay in one process).", "",
+              "Registration runs its pairs in one thread, or farmed out (built: "
+              "`processing.workers` > 1 gives the registration a thread a pair, at most "
+              "one a lag, and the downsampling in as many bands): its time a frame is then "
+              "its own part (the shared spectrum, the solve), a band's downsampling and its "
+              "slowest pair, "
+              + (f"{m['farm_ratio']:.3f}x its one-thread time "
+                 "(bench/results/registration_pairs.md, measured with one worker)"
+                 if m.get("farm_ratio") else "not measured here (run "
+                 "bench_registration_pairs.py first)")
+              + "; its CPU is the same, and the sends stay in its process.", "",
               "| placement | T ms/frame | groups ms/frame | busiest | "
               + " | ".join(f"{c} cores" for c in CORES) + " |",
               "|---|---:|---|---|" + "---:|" * len(CORES)]
@@ -509,18 +540,19 @@ def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores:
     transport = {g: v["transport_ms"] for g, v in groups.items()}
     ov, halo = bands["overhead"], bands["halo_rows_share"]
     ov_safe = {k: max(ov[k], bands["overhead_user"][k], halo[k]) for k in ov}
-    mdl = model(stages_p, transport, ov_safe, ov_safe)
+    farm = pairs_ratio()
+    mdl = model(stages_p, transport, ov_safe, ov_safe, farm)
     variants = {
         "stages and transport in their processes, a thread a stage (the rule on more cores "
-        "than processes)": model(stages_pt, transport_pt, ov_safe, ov_safe),
+        "than processes)": model(stages_pt, transport_pt, ov_safe, ov_safe, farm),
         "stages as measured in the thread placement": model(stages, transport, ov_safe,
-                                                            ov_safe),
+                                                            ov_safe, farm),
         "least CPU of the thread placement's rounds": model(stages_min, transport, ov_safe,
-                                                            ov_safe),
+                                                            ov_safe, farm),
         "measured band ratio for the focus measure only": model(stages_p, transport, ov,
-                                                                 ov_safe),
+                                                                 ov_safe, farm),
         "measured band ratio for focus measure + accumulation + depth": model(
-            stages_p, transport, ov, ov),
+            stages_p, transport, ov, ov, farm),
     }
     pred = mdl["placements"][0]["fps"].get(cores) or min(
         cores / mdl["total_ms"], 1.0 / max(mdl["placements"][0]["groups_ms"].values())) * 1e3

@@ -233,9 +233,11 @@ class Execution(ConfigModel):
     workers: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = Field(
         1, description="Band workers of the focus measure and of the depth stage: each "
         "frame's rows split among that many threads of each stage, results bit-identical "
-        "for any number; 'auto' = the cores available less 2 (the registration and the "
-        "main process), at least 1, at most 8. 1 by default: on 2 cores N = 2 costs 1.19x "
-        "the CPU of these stages (bench/results/bands.md), which the other stages need")
+        "for any number; the registration measures a frame's pairs (one a lag) in as many "
+        "threads, at most one a pair; 'auto' = the cores available less 2 (the "
+        "registration and the main process), at least 1, at most 8. 1 by default: on 2 "
+        "cores N = 2 costs 1.19x the CPU of these stages (bench/results/bands.md), which the "
+        "other stages need")
 
     bands: Literal["threads", "processes"] = Field(
         "threads", description="Where the band workers (workers > 1) run: 'threads' of the "

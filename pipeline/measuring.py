@@ -63,7 +63,8 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
             raw_dtype=np.dtype(o.dtype).str), name="band")
     build: dict[str, Callable[[], Stage]] = {
         "registration": lambda: RegistrationStage(n_levels=o.n_levels,
-                                                  scale=p.registration_scale),
+                                                  scale=p.registration_scale,
+                                                  workers=p.band_workers()),
         "focus_measure": lambda: FocusMeasureStage(
             operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
             max_value=o.max_value, margin=p.focus_reach_px, directions=directions,

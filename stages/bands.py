@@ -17,7 +17,7 @@ copies. What still holds the GIL (the calls' Python overhead) limits the gain;
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
@@ -31,6 +31,7 @@ its band processes, other than the stage's own, used while streaming; the proces
 runs the stage counts it with its own CPU."""
 
 T = TypeVar("T")
+A = TypeVar("A")
 
 
 def row_bands(start: int, stop: int, k: int) -> list[tuple[int, int]]:
@@ -111,20 +112,28 @@ class BandWorkers:
 
     def run(self, fn: Callable[[int, int], T], bands: list[tuple[int, int]]) -> list[T]:
         """``[fn(r0, r1) for (r0, r1) in bands]``, the bands after the first in the pool."""
-        if self._pool is None or len(bands) < 2:
-            return [fn(a, b) for a, b in bands]
-        futures = [self._pool.submit(fn, a, b) for a, b in bands[1:]]
+        return self.map(lambda band: fn(*band), bands,
+                        name=lambda band: f"band worker for rows {band[0]}..{band[1]}")
+
+    def map(self, fn: Callable[[A], T], items: Sequence[A], *,
+            name: Callable[[A], str] = lambda item: f"worker for {item!r}") -> list[T]:
+        """``[fn(item) for item in items]``, the items after the first in the pool, the
+        first in the caller's thread; returns once every item is done, in their order.
+        ``name(item)`` names an item that takes longer than :attr:`timeout_s`."""
+        if self._pool is None or len(items) < 2:
+            return [fn(item) for item in items]
+        futures = [self._pool.submit(fn, item) for item in items[1:]]
         try:
-            first = fn(*bands[0])
+            first = fn(items[0])
         finally:
-            # every band finishes (or times out) before the caller goes on: they write
+            # every item finishes (or times out) before the caller goes on: they write
             # into arrays the caller owns
             rest = []
-            for (a, b), f in zip(bands[1:], futures, strict=True):
+            for item, f in zip(items[1:], futures, strict=True):
                 try:
                     rest.append(f.result(timeout=self.timeout_s))
                 except TimeoutError as err:
-                    raise TimeoutError(f"band worker for rows {a}..{b} took more than "
+                    raise TimeoutError(f"{name(item)} took more than "
                                        f"{self.timeout_s:g} s") from err
         return [first, *rest]
 

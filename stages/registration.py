@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.messages import PlacedFrame
 from sffscan.stages.phase_correlation import (
     correlate_spectra,
@@ -240,18 +241,29 @@ class RegistrationStage(Stage):
         prediction (the solve's zero-mean prior).
     shared_spectra : bool
         Short-lag pairs use the new frame's one central-crop spectrum.
+    workers : int
+        Pair workers: a frame's pairs (one per lag) measured at once in that many threads
+        (:class:`sffscan.stages.bands.BandWorkers`; the caller's thread takes the first),
+        at most one per pair, and an integer frame downsampled in as many bands of rows;
+        the new frame's shared spectrum and the solve stay in the stage's thread. Results
+        bit-identical for any number.
     """
 
     name = "registration"
 
     def __init__(self, *, n_levels: int, scale: int = 4, lags: tuple[int, ...] = (1, 2),
-                 false_alarm: float = 1e-3, shared_spectra: bool = True) -> None:
+                 false_alarm: float = 1e-3, shared_spectra: bool = True,
+                 workers: int = 1) -> None:
         self.n_levels = n_levels
         self.shared_spectra = shared_spectra
         self.scale = scale
         self.lags = tuple(lag for lag in lags if lag < n_levels) + (n_levels,)
         self.false_alarm = false_alarm  # per pair: unrelated crops measured (none kept)
         self.window = 2 * n_levels + 8
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.workers = min(workers, len(self.lags))
+        self._workers: BandWorkers | None = None  # made at the first frame
         self._reset()
         self.pairs_measured = 0
         self.pairs_rejected = 0
@@ -269,36 +281,67 @@ class RegistrationStage(Stage):
         self._pair_arr = np.empty((0, 5))  # (i, j, dx, dy, weight) of the window, float64
         self._emitted: dict[int, tuple[float, float]] = {}
 
-    def _measure(self, old: _Entry, new: _Entry, fixed: dict[str, np.ndarray]) -> None:
+    def _crop(self, old: _Entry, new: _Entry) -> tuple[int, int, int, int, int, int] | None:
+        """The fixed crop of a short-lag pair, (bx, by, cw, ch, ix, iy): the new frame's
+        central box and the predicted shift at the reduced scale; None where the pair is
+        measured on its overlap instead (:func:`measure_shift`)."""
+        pa, pb = old.placed.predicted_px, new.placed.predicted_px
+        h, w = new.reduced.shape
+        ix, iy = int(round((pb[0] - pa[0]) / self.scale)), int(round((pb[1] - pa[1]) / self.scale))
+        mx, my = w // 10, 0  # shift the fixed crop allows (none across: y is constant)
+        if not (self.shared_spectra and abs(ix) <= mx and abs(iy) <= my):
+            return None
+        ch, cw = _dft_size_at_most(min(h - 2 * my, 256)), _dft_size_at_most(min(w - 2 * mx, 256))
+        return (w - cw) // 2, (h - ch) // 2, cw, ch, ix, iy
+
+    def _pair(self, old: _Entry, new: _Entry, fixed: np.ndarray | None
+              ) -> tuple[float, float, float] | None:
+        """One pair's measured shift (x, y, peak; full-resolution px), None where the
+        correlation is not significant. ``fixed``: the new frame's windowed central-crop
+        spectrum where the pair shares it (:meth:`_crop`). Reads the two entries only: the
+        pairs of a frame may run at once (:attr:`workers`)."""
         pa, pb = old.placed.predicted_px, new.placed.predicted_px
         pred = (pb[0] - pa[0], pb[1] - pa[1])
-        h, w = new.reduced.shape
-        ix, iy = int(round(pred[0] / self.scale)), int(round(pred[1] / self.scale))
-        mx, my = w // 10, 0  # shift the fixed crop allows (none across: y is constant)
-        got: tuple[float, float, float] | None
-        if self.shared_spectra and abs(ix) <= mx and abs(iy) <= my:
-            # the new frame's crop is fixed (its spectrum computed once, for all its short
-            # lags); the old frame's crop is the same world area by the prediction
-            ch, cw = _dft_size_at_most(min(h - 2 * my, 256)), _dft_size_at_most(
-                min(w - 2 * mx, 256))
-            bx, by = (w - cw) // 2, (h - ch) // 2
-            if "b" not in fixed:
-                fixed["b"] = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
-            ax, ay = bx + ix, by + iy
-            fa = windowed_spectrum(old.reduced[ay:ay + ch, ax:ax + cw])
-            c = correlate_spectra(fa, fixed["b"], (ch, cw))
-            got = ((ix - c.sx) * self.scale, (iy - c.sy) * self.scale, c.peak)
-            self.pairs_shared += 1
-            if not is_significant(c, (ch, cw), false_alarm=self.false_alarm):
-                got = None
+        crop = self._crop(old, new)
+        if crop is None:
+            return measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
+                                 false_alarm=self.false_alarm)
+        # the new frame's crop is fixed (its spectrum computed once, for all its short
+        # lags); the old frame's crop is the same world area by the prediction
+        assert fixed is not None
+        bx, by, cw, ch, ix, iy = crop
+        ax, ay = bx + ix, by + iy
+        fa = windowed_spectrum(old.reduced[ay:ay + ch, ax:ax + cw])
+        c = correlate_spectra(fa, fixed, (ch, cw))
+        if not is_significant(c, (ch, cw), false_alarm=self.false_alarm):
+            return None
+        return (ix - c.sx) * self.scale, (iy - c.sy) * self.scale, c.peak
+
+    def _measure(self, olds: list[_Entry], new: _Entry) -> None:
+        """Measure the pairs (each of ``olds`` with ``new``), at once where there are
+        pair workers, and keep the significant ones in the order of ``olds``."""
+        crops = [self._crop(old, new) for old in olds]
+        fixed = None
+        shared = next((c for c in crops if c is not None), None)
+        if shared is not None:
+            bx, by, cw, ch, _, _ = shared
+            fixed = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
+        if self._workers is None:
+            got = [self._pair(old, new, fixed) for old in olds]
         else:
-            got = measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
-                                false_alarm=self.false_alarm)
-        if got is None:
-            self.pairs_rejected += 1
-            return
-        self.pairs_measured += 1
-        self._pairs.append((old.index, new.index, got[0] - pred[0], got[1] - pred[1], 1.0))
+            got = self._workers.map(lambda old: self._pair(old, new, fixed), olds,
+                                    name=lambda old: f"registration pair worker for frames "
+                                    f"{old.placed.header.frame_id} and "
+                                    f"{new.placed.header.frame_id}")
+        for old, crop, g in zip(olds, crops, got, strict=True):
+            self.pairs_shared += crop is not None
+            if g is None:
+                self.pairs_rejected += 1
+                continue
+            self.pairs_measured += 1
+            pa, pb = old.placed.predicted_px, new.placed.predicted_px
+            self._pairs.append((old.index, new.index, g[0] - (pb[0] - pa[0]),
+                                g[1] - (pb[1] - pa[1]), 1.0))
 
     def _emit_oldest(self) -> PlacedFrame:
         entry = self._pending.popleft()
@@ -331,15 +374,15 @@ class RegistrationStage(Stage):
             yield from self.finish()
             self._reset()
         self._pass = item.header.pass_index
-        entry = _Entry(self._count, item, downsample(item.image, factor=self.scale))
+        if self.workers > 1 and self._workers is None:
+            self._workers = BandWorkers(self.workers, name="registration-pair")
+        entry = _Entry(self._count, item, self._reduce(item.image))
         self._count += 1
-        fixed: dict[str, np.ndarray] = {}  # the new frame's spectrum, shared by its pairs
-        for lag in self.lags:
-            if len(self._recent) >= lag:
-                old = self._recent[-lag]
-                if lag < self.n_levels or (
-                        old.placed.header.focus_index == item.header.focus_index):
-                    self._measure(old, entry, fixed)
+        olds = [self._recent[-lag] for lag in self.lags if len(self._recent) >= lag and (
+            lag < self.n_levels
+            or self._recent[-lag].placed.header.focus_index == item.header.focus_index)]
+        if olds:
+            self._measure(olds, entry)
         self._recent.append(entry)
         self._pending.append(entry)
         while len(self._pending) > self.n_levels + 1:
@@ -348,6 +391,23 @@ class RegistrationStage(Stage):
     def finish(self) -> Iterator[PlacedFrame]:
         while self._pending:
             yield self._emit_oldest()
+
+    def _reduce(self, image: np.ndarray) -> np.ndarray:
+        """:func:`downsample` of a frame; with pair workers, an integer frame whose sides
+        divide by the scale in bands of rows at once (exact integer sums: the same values
+        for any band; the frame's first read from memory, most of the downsampling's time,
+        is then shared too)."""
+        f, (h, w) = self.scale, image.shape
+        if self._workers is None or h % f or w % f or image.dtype.kind != "u":
+            return downsample(image, factor=f)
+        bands = [(a * f, b * f) for a, b in row_bands(0, h // f, self.workers)]
+        return np.concatenate(self._workers.run(
+            lambda r0, r1: downsample(image[r0:r1], factor=f), bands))
+
+    def close(self, *, failed: bool) -> None:
+        if self._workers is not None:
+            self._workers.close()
+            self._workers = None
 
     def extra_stats(self) -> dict[str, float]:
         n = max(self._emitted_total, 1)

@@ -143,6 +143,59 @@ def test_stage_removes_wobble_with_and_without_shared_spectra(shared: bool) -> N
     assert (stats["pairs_shared_spectrum"] > 100) == shared
 
 
+@pytest.mark.parametrize("workers", [2, 3, 5])
+def test_pair_workers_give_the_same_frames(workers: int) -> None:
+    """A frame's pairs measured at once in pair workers (issue 28: registration's per-pair
+    work farmed out): every corrected frame and statistic as in one thread, bit for bit,
+    over a pass change, featureless frames whose pairs are rejected and pairs that do
+    and do not share the new frame's spectrum."""
+    frames = [pf for pf, _ in _frames_with_wobble(60, step=9.3, amp=3.0)]
+    for k in (20, 21, 22):  # featureless: their pairs are not significant
+        frames[k] = PlacedFrame(frames[k].header, np.full_like(frames[k].image, 90),
+                                frames[k].predicted_px, frames[k].offset_px)
+    for k in range(40, 60):  # a second pass
+        pf = frames[k]
+        frames[k] = PlacedFrame(pf.header.model_copy(update={"pass_index": 1}), pf.image,
+                                pf.predicted_px, pf.offset_px)
+
+    def run(w: int) -> tuple[list[PlacedFrame], dict[str, float]]:
+        stage = RegistrationStage(n_levels=8, lags=(1, 2, 3, 30), workers=w)
+        out = [o for pf in frames for o in stage.process(pf)] + list(stage.finish())
+        stage.close(failed=False)
+        return out, stage.extra_stats()
+
+    one, stats = run(1)
+    got, stats_k = run(workers)
+    assert stats_k == stats
+    assert stats["pairs_rejected"] > 0 and stats["pairs_shared_spectrum"] > 0
+    assert stats["pairs_measured"] > stats["pairs_shared_spectrum"]  # the period's pairs
+    assert [(o.header, o.offset_px, o.correction_px) for o in got] == [
+        (o.header, o.offset_px, o.correction_px) for o in one]
+    with pytest.raises(ValueError, match="workers"):
+        RegistrationStage(n_levels=8, workers=0)
+
+
+@pytest.mark.parametrize("shape", [(1024, 1280), (1022, 1280), (64, 36)])
+def test_a_frame_downsampled_in_bands_is_the_whole_frame_downsampled(
+        shape: tuple[int, int]) -> None:
+    """With pair workers an integer frame is downsampled in bands of rows: the same
+    values, where one band's sums could saturate 16 bits (its exact 32-bit path) and the
+    others' not, and for sides that do not divide by the scale (not split)."""
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 1024, shape, dtype=np.uint16)
+    img[: shape[0] // 4] = 65535 - rng.integers(0, 10, (shape[0] // 4, shape[1]), np.uint16)
+    stage = RegistrationStage(n_levels=8, workers=3)
+    hdr = FrameHeader(frame_id=0, timestamp_ns=0, focus_index=0, stage_x_um=0.0,
+                      stage_y_um=0.0)
+    list(stage.process(PlacedFrame(hdr, img, (0.0, 0.0), (0, 0))))  # the workers started
+    try:
+        want = downsample(img, factor=4)
+        got = stage._reduce(img)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    finally:
+        stage.close(failed=False)
+
+
 def test_correlate_spectra_is_phase_correlate() -> None:
     world = _texture(300, 300, seed=4)
     a, b = world[20:148, 30:190], world[23:151, 28:188]
