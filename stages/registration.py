@@ -294,15 +294,15 @@ class RegistrationStage(Stage):
         ch, cw = _dft_size_at_most(min(h - 2 * my, 256)), _dft_size_at_most(min(w - 2 * mx, 256))
         return (w - cw) // 2, (h - ch) // 2, cw, ch, ix, iy
 
-    def _pair(self, old: _Entry, new: _Entry, fixed: np.ndarray | None
-              ) -> tuple[float, float, float] | None:
+    def _pair(self, old: _Entry, new: _Entry, crop: tuple[int, int, int, int, int, int] | None,
+              fixed: np.ndarray | None) -> tuple[float, float, float] | None:
         """One pair's measured shift (x, y, peak; full-resolution px), None where the
-        correlation is not significant. ``fixed``: the new frame's windowed central-crop
-        spectrum where the pair shares it (:meth:`_crop`). Reads the two entries only: the
-        pairs of a frame may run at once (:attr:`workers`)."""
+        correlation is not significant. ``crop``: the pair's fixed crop (:meth:`_crop`);
+        ``fixed``: the new frame's windowed central-crop spectrum, which such pairs share.
+        Reads the two entries only: the pairs of a frame may run at once
+        (:attr:`workers`)."""
         pa, pb = old.placed.predicted_px, new.placed.predicted_px
         pred = (pb[0] - pa[0], pb[1] - pa[1])
-        crop = self._crop(old, new)
         if crop is None:
             return measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
                                  false_alarm=self.false_alarm)
@@ -326,14 +326,15 @@ class RegistrationStage(Stage):
         if shared is not None:
             bx, by, cw, ch, _, _ = shared
             fixed = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
+        pairs = list(zip(olds, crops, strict=True))
         if self._workers is None:
-            got = [self._pair(old, new, fixed) for old in olds]
+            got = [self._pair(old, new, crop, fixed) for old, crop in pairs]
         else:
-            got = self._workers.map(lambda old: self._pair(old, new, fixed), olds,
-                                    name=lambda old: f"registration pair worker for frames "
-                                    f"{old.placed.header.frame_id} and "
-                                    f"{new.placed.header.frame_id}")
-        for old, crop, g in zip(olds, crops, got, strict=True):
+            got = self._workers.map(
+                lambda oc: self._pair(oc[0], new, oc[1], fixed), pairs,
+                name=lambda oc: f"registration pair worker for frames "
+                f"{oc[0].placed.header.frame_id} and {new.placed.header.frame_id}")
+        for (old, crop), g in zip(pairs, got, strict=True):
             self.pairs_shared += crop is not None
             if g is None:
                 self.pairs_rejected += 1
