@@ -501,6 +501,7 @@ def main(argv: list[str] | None = None) -> int:
     bank = frame_bank(args.cache, max(args.frames, args.band_frames))
     cores = min(args.cores, len(os.sched_getaffinity(0)))
     outputs = args.outputs or args.cache
+    made = not outputs.exists()
     outputs.mkdir(parents=True, exist_ok=True)
     keep = outputs / f"runs-{os.getpid()}"
     keep.mkdir()
@@ -508,6 +509,8 @@ def main(argv: list[str] | None = None) -> int:
         return measure(args, argv, bank, cores, outputs, keep, t0, load_before)
     finally:
         shutil.rmtree(keep, ignore_errors=True)
+        if made and not any(outputs.iterdir()):  # a folder it made for this run (/dev/shm)
+            outputs.rmdir()
 
 
 def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores: int,
