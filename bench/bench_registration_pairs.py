@@ -52,10 +52,10 @@ class TimedStage(RegistrationStage):
         finally:
             self.pair_s[0] += time.thread_time() - t  # 0: the downsampling
 
-    def _pair(self, old: Any, new: Any, crop: Any, fixed: Any) -> Any:
+    def _pair(self, old: Any, new: Any, pred: Any, crop: Any, fixed: Any) -> Any:
         t = time.thread_time()
         try:
-            return super()._pair(old, new, crop, fixed)
+            return super()._pair(old, new, pred, crop, fixed)
         finally:
             lag = new.index - old.index
             self.pair_s[lag] += time.thread_time() - t

@@ -281,28 +281,27 @@ class RegistrationStage(Stage):
         self._pair_arr = np.empty((0, 5))  # (i, j, dx, dy, weight) of the window, float64
         self._emitted: dict[int, tuple[float, float]] = {}
 
-    def _crop(self, old: _Entry, new: _Entry) -> tuple[int, int, int, int, int, int] | None:
-        """The fixed crop of a short-lag pair, (bx, by, cw, ch, ix, iy): the new frame's
-        central box and the predicted shift at the reduced scale; None where the pair is
-        measured on its overlap instead (:func:`measure_shift`)."""
-        pa, pb = old.placed.predicted_px, new.placed.predicted_px
+    def _crop(self, new: _Entry, pred: tuple[float, float]
+              ) -> tuple[int, int, int, int, int, int] | None:
+        """The fixed crop of a short-lag pair predicted ``pred`` px apart, (bx, by, cw, ch,
+        ix, iy): the new frame's central box and the predicted shift at the reduced scale;
+        None where the pair is measured on its overlap instead (:func:`measure_shift`)."""
         h, w = new.reduced.shape
-        ix, iy = int(round((pb[0] - pa[0]) / self.scale)), int(round((pb[1] - pa[1]) / self.scale))
+        ix, iy = int(round(pred[0] / self.scale)), int(round(pred[1] / self.scale))
         mx, my = w // 10, 0  # shift the fixed crop allows (none across: y is constant)
         if not (self.shared_spectra and abs(ix) <= mx and abs(iy) <= my):
             return None
         ch, cw = _dft_size_at_most(min(h - 2 * my, 256)), _dft_size_at_most(min(w - 2 * mx, 256))
         return (w - cw) // 2, (h - ch) // 2, cw, ch, ix, iy
 
-    def _pair(self, old: _Entry, new: _Entry, crop: tuple[int, int, int, int, int, int] | None,
-              fixed: np.ndarray | None) -> tuple[float, float, float] | None:
+    def _pair(self, old: _Entry, new: _Entry, pred: tuple[float, float],
+              crop: tuple[int, int, int, int, int, int] | None, fixed: np.ndarray | None
+              ) -> tuple[float, float, float] | None:
         """One pair's measured shift (x, y, peak; full-resolution px), None where the
-        correlation is not significant. ``crop``: the pair's fixed crop (:meth:`_crop`);
-        ``fixed``: the new frame's windowed central-crop spectrum, which such pairs share.
-        Reads the two entries only: the pairs of a frame may run at once
-        (:attr:`workers`)."""
-        pa, pb = old.placed.predicted_px, new.placed.predicted_px
-        pred = (pb[0] - pa[0], pb[1] - pa[1])
+        correlation is not significant. ``pred``: the predicted shift, px; ``crop``: the
+        pair's fixed crop (:meth:`_crop`); ``fixed``: the new frame's windowed central-crop
+        spectrum, which such pairs share. Reads the two entries only: the pairs of a frame
+        may run at once (:attr:`workers`)."""
         if crop is None:
             return measure_shift(old.reduced, new.reduced, predicted_px=pred, scale=self.scale,
                                  false_alarm=self.false_alarm)
@@ -320,29 +319,30 @@ class RegistrationStage(Stage):
     def _measure(self, olds: list[_Entry], new: _Entry) -> None:
         """Measure the pairs (each of ``olds`` with ``new``), at once where there are
         pair workers, and keep the significant ones in the order of ``olds``."""
-        crops = [self._crop(old, new) for old in olds]
+        pb = new.placed.predicted_px
+        preds = [(pb[0] - o.placed.predicted_px[0], pb[1] - o.placed.predicted_px[1])
+                 for o in olds]
+        crops = [self._crop(new, pred) for pred in preds]
         fixed = None
         shared = next((c for c in crops if c is not None), None)
         if shared is not None:
             bx, by, cw, ch, _, _ = shared
             fixed = windowed_spectrum(new.reduced[by:by + ch, bx:bx + cw])
-        pairs = list(zip(olds, crops, strict=True))
+        pairs = list(zip(olds, preds, crops, strict=True))
         if self._workers is None:
-            got = [self._pair(old, new, crop, fixed) for old, crop in pairs]
+            got = [self._pair(old, new, pred, crop, fixed) for old, pred, crop in pairs]
         else:
             got = self._workers.map(
-                lambda oc: self._pair(oc[0], new, oc[1], fixed), pairs,
-                name=lambda oc: f"registration pair worker for frames "
-                f"{oc[0].placed.header.frame_id} and {new.placed.header.frame_id}")
-        for (old, crop), g in zip(pairs, got, strict=True):
+                lambda opc: self._pair(opc[0], new, opc[1], opc[2], fixed), pairs,
+                name=lambda opc: f"registration pair worker for frames "
+                f"{opc[0].placed.header.frame_id} and {new.placed.header.frame_id}")
+        for (old, pred, crop), g in zip(pairs, got, strict=True):
             self.pairs_shared += crop is not None
             if g is None:
                 self.pairs_rejected += 1
                 continue
             self.pairs_measured += 1
-            pa, pb = old.placed.predicted_px, new.placed.predicted_px
-            self._pairs.append((old.index, new.index, g[0] - (pb[0] - pa[0]),
-                                g[1] - (pb[1] - pa[1]), 1.0))
+            self._pairs.append((old.index, new.index, g[0] - pred[0], g[1] - pred[1], 1.0))
 
     def _emit_oldest(self) -> PlacedFrame:
         entry = self._pending.popleft()
