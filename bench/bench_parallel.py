@@ -20,9 +20,11 @@ Cases:
   processes;
 - the thesis-style torch conv2d GLVM on whole frames (the baseline), in the same run.
 
-``--workers 1,2`` runs every case with each number of band workers
-(``processing.workers``), interleaved; ``--bands threads,processes`` with each kind of
-band worker (``processing.bands``; the band processes' CPU counted in process mode).
+``--sources memory`` runs only the frames-from-memory cases (of ``memory, recorder,
+replay``); ``--modes processes`` only that placement (of ``threads, processes``).
+``--workers 1,2,auto`` runs every case with each number of band workers
+(``processing.workers``; 'auto' resolved under the case's pinning), interleaved;
+``--bands threads,processes`` with each kind of band worker (``processing.bands``; the band processes' CPU counted in process mode).
 ``--one-thread on,off`` runs every processes case with each worker process's stages in
 one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
@@ -260,8 +262,10 @@ def label(c: dict[str, Any]) -> str:
             ", recorder on") if c["record"] else "")
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
-    bands = f", {c['workers']} band workers" if c.get("workers", 1) != 1 else ""
-    if c.get("bands", "threads") == "processes":
+    k = c.get("workers", 1)
+    n = max(1, min(8, c["cores"] - 2)) if k == "auto" else k  # as band_workers resolves it
+    bands = f", {'auto = ' if k == 'auto' else ''}{n} band workers" if k != 1 else ""
+    if c.get("bands", "threads") == "processes" and n > 1:
         bands += " in band processes"
     one = {"on": ", one thread a worker", "off": ", a thread a stage"}.get(
         c.get("one_thread", "auto"), "")
@@ -335,7 +339,15 @@ def main(argv: list[str] | None = None) -> int:
                          "the --cache folder")
     ap.add_argument("--workers", default="1",
                     help="comma-separated processing.workers (band threads of the focus "
-                         "measure and depth) to run every case with, interleaved; default 1")
+                         "measure and depth; a number or 'auto') to run every case with, "
+                         "interleaved; default 1")
+    ap.add_argument("--sources", default="memory,recorder,replay",
+                    help="comma-separated cases to run: frames from memory on each core "
+                         "count, the recorder on and the replay of a recording on the "
+                         "largest (default all three)")
+    ap.add_argument("--modes", default="threads,processes",
+                    help="comma-separated processing.execution placements of the cases "
+                         "(threads, processes; default both)")
     ap.add_argument("--bands", default="threads",
                     help="comma-separated processing.bands (threads, processes: the band "
                          "workers' kind), each case run with each")
@@ -369,15 +381,25 @@ def main(argv: list[str] | None = None) -> int:
               "method": method}
     if args.scaling:
         return scaling(common, min(cores), max(cores), args.scaling)
+    modes = [v for v in args.modes.split(",") if v]
+    if not modes or any(v not in ("threads", "processes") for v in modes):
+        ap.error(f"--modes takes threads, processes; got {args.modes!r}")
     cases = [{**common, "source": "memory", "mode": m, "record": False, "cores": c}
-             for c in cores for m in ("threads", "processes")]
+             for c in cores for m in modes]
+    sources = [v for v in args.sources.split(",") if v]
+    if not sources or any(v not in ("memory", "recorder", "replay") for v in sources):
+        ap.error(f"--sources takes memory, recorder, replay; got {args.sources!r}")
+    if "memory" not in sources:
+        cases = []
     if not args.quick:
-        rec = make_recording(args.cache, bank, args.frames)
         top = max(cores)
-        cases += [{**common, "source": "memory", "mode": m, "record": True, "cores": top}
-                  for m in ("threads", "processes")]
-        cases += [{**common, "source": "replay", "mode": m, "record": False, "cores": top,
-                   "recording": str(rec)} for m in ("threads", "processes")]
+        if "recorder" in sources:
+            cases += [{**common, "source": "memory", "mode": m, "record": True, "cores": top}
+                      for m in modes]
+        if "replay" in sources:
+            rec = make_recording(args.cache, bank, args.frames)
+            cases += [{**common, "source": "replay", "mode": m, "record": False,
+                       "cores": top, "recording": str(rec)} for m in modes]
     else:
         top = max(cores)
         cases = [c for c in cases if c["cores"] == top]
@@ -386,7 +408,10 @@ def main(argv: list[str] | None = None) -> int:
         Path(d).mkdir(parents=True, exist_ok=True)
     if outputs:
         cases = [{**c, "outputs": d} for c in cases for d in outputs]
-    cases = [{**c, "workers": int(k)} for c in cases for k in args.workers.split(",")]
+    ks = [v for v in args.workers.split(",") if v]
+    if not ks or any(v != "auto" and not v.isdigit() for v in ks):
+        ap.error(f"--workers takes numbers or auto; got {args.workers!r}")
+    cases = [{**c, "workers": k if k == "auto" else int(k)} for c in cases for k in ks]
     kinds = [v for v in args.bands.split(",") if v]
     if not kinds or any(v not in ("threads", "processes") for v in kinds):
         ap.error(f"--bands takes threads, processes; got {args.bands!r}")

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# The one prepared run for a lent GPU machine with many cores (issue 28, items 3 and 4), in
+# one device call: the GPU placement of the focus measure and the accumulation
+# (bench_gpu.py), then the process placement measured on 2, 4, 8 and 16 of its cores with 1,
+# 4 and 'auto' band workers in band processes (bench_parallel.py), then the scaling model's
+# inputs measured there on 8 cores (bench_scaling.py), so that its 8-core prediction can be
+# set beside the 8-core measurement. Each part runs under its own time limit and writes its
+# results as it goes: a part cut short or failing leaves the others' results.
+#
+#   bash bench/gpu_wheels.sh           # here, once: the packages the machine lacks (.whl/)
+#   # one device call, carry [".whl"], timeout_s 600:
+#   bash bench/lent_machine.sh          # writes into $OUT (8 files at most come back)
+#
+# Smoke run on any machine (CPU torch, small sizes; the wheels not installed):
+#   OUT=/tmp/lent SMOKE=1 bash bench/lent_machine.sh
+set -u
+out=${OUT:?OUT: the folder the results are written to}
+mkdir -p "$out"
+py=${PYTHON:-python3}
+log="$out/log.txt"
+if [ -z "${SMOKE:-}" ]; then
+  "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+    .whl/*.whl || { echo "installing .whl/ failed" >&2; exit 2; }
+  export PYTHONPATH=/tmp/site
+  gpu=(--out "$out" --frames 300 --rounds 2)
+  par=(--frames 500 --rounds 2 --cores 2,4,8,16 --workers 1,4,auto)
+  sca=(--frames 300 --rounds 2 --cores 8)
+  limits=(200 230 130)
+else
+  gpu=(--out "$out" --device cpu --quick --frames 40)
+  par=(--frames 60 --rounds 1 --cores 1,2 --workers 1,auto)
+  sca=(--frames 40 --rounds 1 --cores 2 --band-frames 8 --band-rounds 1)
+  limits=(300 300 300)
+fi
+export PYTHONUNBUFFERED=1
+{
+  echo "== machine"; date -u; nproc; uname -r
+  grep -m1 "model name" /proc/cpuinfo; free -g | head -2
+  nvidia-smi -L 2>&1 | head -2
+  df -hT /tmp /dev/shm 2>&1
+  "$py" -c 'import sys, numpy, cv2, torch; print(sys.version.split()[0], "numpy",
+numpy.__version__, "opencv", cv2.__version__, "torch", torch.__version__,
+"cuda", torch.cuda.is_available())'
+} > "$out/machine.txt" 2>&1
+cat "$out/machine.txt"
+part() {  # part NAME SECONDS COMMAND...: one bench under its limit, its output in the log
+  local name=$1 limit=$2; shift 2
+  local t0=$SECONDS
+  echo "== $name (limit $limit s)" | tee -a "$log"
+  timeout --kill-after=10 "$limit" "$@" >>"$log" 2>&1
+  echo "== $name: exit $? after $((SECONDS - t0)) s" | tee -a "$log"
+}
+part gpu "${limits[0]}" "$py" bench/bench_gpu.py "${gpu[@]}"
+part cores "${limits[1]}" "$py" bench/bench_parallel.py "${par[@]}" --modes processes \
+  --bands processes --sources memory --method default --outputs /tmp/sffscan-out \
+  --out "$out/parallel_cores.md"
+part model "${limits[2]}" "$py" bench/bench_scaling.py "${sca[@]}" --outputs /tmp/sffscan-out \
+  --out "$out/scaling_cores.md"
+tail -c 6000 "$log"
