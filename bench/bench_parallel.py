@@ -24,7 +24,8 @@ Cases:
 replay``); ``--modes processes`` only that placement (of ``threads, processes``).
 ``--workers 1,2,auto`` runs every case with each number of band workers
 (``processing.workers``; 'auto' resolved under the case's pinning), interleaved;
-``--bands threads,processes`` with each kind of band worker (``processing.bands``; the band processes' CPU counted in process mode).
+``--bands threads,processes`` with each kind of band worker (``processing.bands``; the
+band processes' CPU counted in process mode).
 ``--one-thread on,off`` runs every processes case with each worker process's stages in
 one thread (on) and in a thread each (off),
 interleaved; by default the placement's own rule decides
