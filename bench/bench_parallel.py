@@ -274,6 +274,17 @@ def label(c: dict[str, Any]) -> str:
             f"{bands}{one}{where}")
 
 
+def busiest(runs: list[dict[str, Any]]) -> str:
+    """The stage with the most wall time per frame (median over ``runs``), that time and
+    its share of the frame period; empty for runs from before the figure was kept."""
+    if not all("busy" in x for x in runs):
+        return ""
+    busy = {name: statistics.median(x["busy"][name] for x in runs) for name in runs[0]["busy"]}
+    name = max(busy, key=busy.__getitem__)
+    period = 1e3 / statistics.median(x["fps"] for x in runs)
+    return f"{name} {busy[name]:.2f} / {period:.2f} ms"
+
+
 def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) -> None:
     base = meta["baseline_fps"]
     lines = [f"# sffscan process-execution benchmark ({time.strftime('%Y-%m-%d %H:%M')})", "",
@@ -285,8 +296,9 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
              f" 1280 x 1024 uint16, N = 50, k = 9, GLVM, {meta['method']}, registration on.",
              "",
              "| case | frames/s (median) | runs | vs baseline | with start-up | start-up s |"
-             " CPU ms/frame (all processes) | recorded and equal |",
-             "|---|---:|---|---:|---:|---:|---:|---|"]
+             " CPU ms/frame (all processes) | busiest stage: wall ms/frame / frame period |"
+             " recorded and equal |",
+             "|---|---:|---|---:|---:|---:|---:|---|---|"]
     for r in rows:
         fps = [x["fps"] for x in r["runs"]]
         med = statistics.median(fps)
@@ -300,8 +312,13 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
             f"{med / base:.1f}x | "
             f"{statistics.median(x['fps_with_startup'] for x in r['runs']):.1f} | "
             f"{statistics.median(x['startup_s'] for x in r['runs']):.1f} | "
-            f"{statistics.median(x['cpu_ms_per_frame'] for x in r['runs']):.2f} | {rec} |")
-    lines += ["", f"Baseline (thesis-style torch conv2d GLVM, whole frames, best of 3): "
+            f"{statistics.median(x['cpu_ms_per_frame'] for x in r['runs']):.2f} | "
+            f"{busiest(r['runs'])} | {rec} |")
+    lines += ["", "Busiest stage: the stage with the most wall time inside its own code per "
+              "frame (median over the runs; a stage that waits for its band processes counts "
+              "the wait), against the frame period (1000 / frames/s): near 1, that stage sets "
+              "the pace.", "",
+              f"Baseline (thesis-style torch conv2d GLVM, whole frames, best of 3): "
               f"{base:.1f} frames/s.", "",
               f"- Each run's outputs (mosaic, recording) deleted "
               f"{meta.get('outputs_deleted', 'after each run')}."]
@@ -449,6 +466,11 @@ def run_rounds(args: argparse.Namespace, argv: list[str] | None,
     rows: list[dict[str, Any]] = [{"case": c, "runs": []} for c in cases]
     creates = {d: [file_create_ms(d)] for d in outputs}
     base = baseline_fps(bank, 12)
+    meta = {"machine": machine(), "load_before": load_before, "file_create_ms": creates,
+            "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
+            "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,
+            "method": method, "outputs_deleted": "after each run" if args.delete_each
+            else "at the end of the bench"}
     for r in range(args.rounds):
         for row in rows:
             got = spawn_case(row["case"])
@@ -456,15 +478,14 @@ def run_rounds(args: argparse.Namespace, argv: list[str] | None,
             print(f"round {r + 1}: {label(row['case'])}: {got['fps']:.1f} frames/s "
                   f"(start-up {got['startup_s']:.1f} s, {got['cpu_ms_per_frame']:.2f} CPU "
                   f"ms/frame)", file=sys.stderr, flush=True)
+        if r + 1 < args.rounds:  # a bench cut short keeps the rounds it finished
+            write_report(args.out, {**meta, "rounds": r + 1, "load_after": "(cut short)",
+                                    "run_s": time.perf_counter() - t_run}, [
+                {**row, "runs": row["runs"][:r + 1]} for row in rows])
     for d in outputs:
         creates[d].append(file_create_ms(d))
-    meta = {"machine": machine(), "load_before": load_before, "file_create_ms": creates,
-            "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
-            "command": "python bench/bench_parallel.py " + " ".join(argv or sys.argv[1:]),
-            "frames": args.frames, "rounds": args.rounds, "baseline_fps": base,
-            "method": method, "outputs_deleted": "after each run" if args.delete_each
-            else "at the end of the bench",
-            "run_s": time.perf_counter() - t_run}
+    meta.update(load_after=" ".join(f"{v:.2f}" for v in os.getloadavg()),
+                run_s=time.perf_counter() - t_run)
     write_report(args.out, meta, rows)
     print(args.out.read_text(encoding="utf-8"))
     return 0

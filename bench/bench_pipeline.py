@@ -207,14 +207,18 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
 
 def scan_figures(rep: Any, cpu_s: float) -> dict[str, Any]:
     """A :func:`run_scan` report's frames, frames/s, CPU per frame (ms: every process's CPU
-    while streaming where the placement counts it, else ``cpu_s``), drops, and each
-    stage's own CPU per frame (ms)."""
+    while streaming where the placement counts it, else ``cpu_s``), drops, each stage's
+    own CPU per frame (ms), its wall time inside its own code per frame (``busy``, ms: the
+    stage whose busy time is nearest the frame period is the one that sets it) and each
+    queue's mean fill at a put (a full queue's consumer is behind)."""
     r = rep.result
     cpu = r.extras.get("processes", {}).get("cpu_s") or cpu_s
+    n = max(1, rep.frames)
     return {"frames": rep.frames, "fps": rep.frames / r.wall_s,
             "cpu_ms_per_frame": 1e3 * cpu / rep.frames, "dropped": r.dropped,
-            "stages": {s.name: round(1e3 * s.cpu_s / max(1, rep.frames), 2)
-                       for s in r.stages}}
+            "stages": {s.name: round(1e3 * s.cpu_s / n, 2) for s in r.stages},
+            "busy": {s.name: round(1e3 * s.busy_s / n, 2) for s in r.stages},
+            "queues": {q.name: [round(q.mean_fill, 2), q.capacity] for q in r.queues}}
 
 
 def spawn_case(case: dict[str, Any]) -> dict[str, Any]:

@@ -23,7 +23,7 @@ if [ -z "${SMOKE:-}" ]; then
     .whl/*.whl || { echo "installing .whl/ failed" >&2; exit 2; }
   export PYTHONPATH=/tmp/site
   gpu=(--out "$out" --frames 300 --rounds 2)
-  par=(--frames 500 --rounds 2 --cores 2,4,8,16 --workers 1,4,auto)
+  par=(--frames 400 --rounds 2 --cores 2,4,8,16 --workers 1,4,auto)  # ~110 s a round there
   sca=(--frames 300 --rounds 2 --cores 8)
   limits=(200 230 130)
 else

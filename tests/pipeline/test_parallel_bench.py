@@ -1,0 +1,31 @@
+"""bench/bench_parallel.py's case labels and the busiest stage it reports (the figures a
+lent many-core machine's run is read by)."""
+
+from __future__ import annotations
+
+from tests.bench_modules import load_bench
+
+
+def _case(**kw: object) -> dict[str, object]:
+    return {"source": "memory", "mode": "processes", "record": False, "cores": 8, **kw}
+
+
+def test_auto_workers_are_labelled_as_resolved_under_the_pinning() -> None:
+    label = load_bench("bench_parallel").label
+    assert "auto = 6 band workers in band processes" in label(
+        _case(workers="auto", bands="processes"))
+    # 'auto' on 2 cores is one band: no band processes, whatever the kind asked for
+    two = label(_case(cores=2, workers="auto", bands="processes"))
+    assert "auto = 1 band workers" in two and "band processes" not in two
+    assert "band" not in label(_case(workers=1, bands="processes"))
+    assert "4 band workers in band processes" in label(_case(workers=4, bands="processes"))
+
+
+def test_busiest_stage_is_the_one_with_most_wall_time_a_frame() -> None:
+    busiest = load_bench("bench_parallel").busiest
+    runs = [{"fps": 100.0, "busy": {"registration": 4.0, "depth": 9.0}},
+            {"fps": 125.0, "busy": {"registration": 5.0, "depth": 7.0}},
+            {"fps": 80.0, "busy": {"registration": 6.0, "depth": 8.0}}]
+    # medians: depth 8.0, registration 5.0; the period 1000 / 100 frames/s
+    assert busiest(runs) == "depth 8.00 / 10.00 ms"
+    assert busiest([{"fps": 100.0}]) == ""  # runs from before the figure was kept
