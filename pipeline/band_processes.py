@@ -8,7 +8,9 @@ rows. The focus volume's per-pixel state, the frame being added and a block's sc
 named arrays in one shared-memory segment (laid out by
 :meth:`sffscan.stages.shared_volume.SharedFocusVolume.shared_layout`); a task is a name and
 JSON parameters (:mod:`sffscan.stages.volume_tasks`), sent down a pipe to each helper,
-its answer an acknowledgement (with the helper's CPU time) or the error it raised. Each
+its answer an acknowledgement (with the helper's CPU time) or the error it raised; a
+task may be submitted without waiting for the answers (:meth:`BandProcesses.submit_task`,
+each helper runs its tasks in the order they came) and waited for later. Each
 band reads its rows widened by the filters' reach, as with threads, so the blocks are
 bit-identical for any K (``tests/pipeline/test_band_processes.py``).
 
@@ -22,6 +24,7 @@ died or took longer than ``timeout_s`` fails the call with its name and rows.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import os
@@ -173,6 +176,10 @@ class BandProcesses:
         self._conns: list[Any] = []
         self._lock = threading.Lock()  # one task at a time (the stages' threads share it)
         self._cpu = [0.0] * (k - 1)
+        self._ticket = 0  # tasks submitted
+        # each helper's tasks not yet answered: (ticket, what), in the order sent
+        self._pending: list[collections.deque[tuple[int, str]]] = [
+            collections.deque() for _ in range(k - 1)]
         self._cpu0 = [0.0] * (k - 1)
         self.arrays: dict[str, np.ndarray] = {}
         _check_room(segment_bytes(layout))
@@ -238,7 +245,8 @@ class BandProcesses:
     def run_task(self, task: str, params: dict[str, Any],
                  bands: list[tuple[int, int]]) -> None:
         """Run ``task`` (:data:`sffscan.stages.volume_tasks.TASKS`) with ``params`` on every
-        band, the first in this process; return when every band is done.
+        band, the first in this process; return when every band is done (and every task
+        submitted before it: each helper runs its tasks in the order they came).
 
         Raises
         ------
@@ -246,22 +254,39 @@ class BandProcesses:
             A helper raised (its error and traceback), died or took more than
             ``timeout_s``; the other bands are still waited for.
         """
+        with self._lock:
+            self._wait(self._submit(task, params, bands))
+
+    def submit_task(self, task: str, params: dict[str, Any],
+                    bands: list[tuple[int, int]]) -> int:
+        """Start ``task`` on every band and return once the first band, this process's, is
+        done, without waiting for the helpers: they run it after the tasks submitted before
+        (in order, each on its own rows), while this process goes on. Returns the task's
+        ticket for :meth:`wait_tasks`. Whatever the task reads in the shared arrays must
+        not change, and what it writes must not be read here, until its ticket has been
+        waited for. An error in a helper's band is raised by the wait that reaches it."""
+        with self._lock:
+            return self._submit(task, params, bands)
+
+    def wait_tasks(self, ticket: int | None = None) -> None:
+        """Wait until every helper has run the task of ``ticket`` (None: every task
+        submitted); raise the first error one of them reported on the way."""
+        with self._lock:
+            self._wait(self._ticket if ticket is None else ticket)
+
+    def _submit(self, task: str, params: dict[str, Any], bands: list[tuple[int, int]]) -> int:
         if len(bands) > self.k:
             raise ValueError(f"{len(bands)} bands for {self.k} band workers")
         if not self._conns and self.k > 1:
             raise BandProcessFailed(f"band processes '{self.name}' are closed")
-        with self._lock:
-            self._run(task, params, bands)
-
-    def _run(self, task: str, params: dict[str, Any], bands: list[tuple[int, int]]) -> None:
         body = json.dumps(params, separators=(",", ":"))
         failure: BaseException | None = None
-        sent = []
+        self._ticket += 1
         for i, (a, b) in enumerate(bands[1:], start=1):
             try:
                 self._conns[i - 1].send_bytes(
                     f'{{"task":"{task}","rows":[{a},{b}],"params":{body}}}'.encode())
-                sent.append((i, a, b))
+                self._pending[i - 1].append((self._ticket, f"{task}, rows {a}..{b}"))
             except OSError as err:  # its end of the pipe is closed: it died
                 proc = self._procs[i - 1]
                 proc.join(1.0)
@@ -273,11 +298,23 @@ class BandProcesses:
                 run_task(self.arrays, task, params, bands[0])
             except BaseException as err:  # the helpers write into the same arrays: wait
                 failure = err
-        for i, a, b in sent:
-            try:
-                self._receive(i, self.timeout_s, f"{task}, rows {a}..{b}")
-            except BandProcessFailed as err:
-                failure = failure or err
+        if failure is not None:
+            with contextlib.suppress(BandProcessFailed):
+                self._wait(self._ticket)
+            raise failure
+        return self._ticket
+
+    def _wait(self, ticket: int) -> None:
+        failure: BandProcessFailed | None = None
+        for i, pending in enumerate(self._pending, start=1):
+            while pending and pending[0][0] <= ticket:
+                _, what = pending.popleft()
+                try:
+                    self._receive(i, self.timeout_s, what)
+                except BandProcessFailed as err:
+                    failure = failure or err
+                    if not self._procs[i - 1].is_alive():
+                        pending.clear()  # nothing more comes from it
         if failure is not None:
             raise failure
 
@@ -293,7 +330,12 @@ class BandProcesses:
                 self._shm.unlink()
 
     def close(self) -> None:
-        """Stop and join the helpers, release the segment (idempotent)."""
+        """Stop and join the helpers, release the segment (idempotent; the tasks still
+        running are waited for, their errors not raised)."""
+        with contextlib.suppress(BandProcessFailed):
+            self._wait(self._ticket)
+        for pending in self._pending:
+            pending.clear()
         for i, conn in enumerate(self._conns, start=1):
             with contextlib.suppress(OSError, BandProcessFailed):
                 conn.send_bytes(b'{"task":"stop"}')
@@ -348,6 +390,14 @@ class LazyBandProcesses:
     def run_task(self, task: str, params: dict[str, Any],
                  bands: list[tuple[int, int]]) -> None:
         self._started().run_task(task, params, bands)
+
+    def submit_task(self, task: str, params: dict[str, Any],
+                    bands: list[tuple[int, int]]) -> int:
+        return self._started().submit_task(task, params, bands)
+
+    def wait_tasks(self, ticket: int | None = None) -> None:
+        if self._pool is not None:
+            self._pool.wait_tasks(ticket)
 
     def helpers_cpu_s(self) -> float:
         """:meth:`BandProcesses.helpers_cpu_s` (kept once closed)."""

@@ -74,8 +74,18 @@ class BandTasks(Protocol):
 
     def run_task(self, task: str, params: dict[str, Any],
                  bands: list[tuple[int, int]]) -> None:
-        """Run ``task`` with ``params`` on every band at once; return when all are done
-        (raise, naming the band, where one failed)."""
+        """Run ``task`` with ``params`` on every band at once; return when all are done,
+        and every task submitted before it (raise, naming the band, where one failed)."""
+
+    def submit_task(self, task: str, params: dict[str, Any],
+                    bands: list[tuple[int, int]]) -> int:
+        """Start ``task`` on every band, the caller's own band done before it returns, the
+        others run in order after the tasks submitted before; returns a ticket for
+        :meth:`wait_tasks` (what the task reads must not change, what it writes must not be
+        read, until then)."""
+
+    def wait_tasks(self, ticket: int | None = None) -> None:
+        """Wait until the task of ``ticket`` (None: every task) is done on every band."""
 
     def helpers_cpu_s(self) -> float:
         """CPU seconds the other processes have used on the tasks."""

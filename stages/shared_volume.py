@@ -22,7 +22,7 @@ import numpy as np
 from sffscan.stages.bands import BandTasks, row_bands
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
-from sffscan.stages.volume_tasks import Layout, volume_layout
+from sffscan.stages.volume_tasks import RAW_SLOTS, Layout, volume_layout
 
 __all__ = ["SharedFocusVolume"]
 
@@ -45,6 +45,9 @@ class SharedFocusVolume(FocusVolume):
         self._specs: list[list[int]] = []  # the frame's writes, as the tasks take them
         self._frame_shape = (0, 0)  # add's focus measure in the shared arrays
         self._measure: dict[str, object] | None = None  # add_raw's frame, being added
+        # the raw slot add_raw fills next, and the ticket of the last task that read each
+        self._slot = self._measure_slot = 0
+        self._slot_ticket = [0] * RAW_SLOTS
         super().__init__(**kwargs)
         self.workers = None  # the base class's band threads: none
         self._bands = row_bands(0, self.rows, workers.k)
@@ -71,6 +74,7 @@ class SharedFocusVolume(FocusVolume):
     def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
         """The state in the band processes' arrays, set as a new volume's would be (the
         N-level ring taken over from ``reuse`` as it is: its stale values are never read)."""
+        self.tasks.wait_tasks()  # nothing of another volume's still running on them
         a = self.arrays = self.tasks.arrays
         want = self.shared_layout(
             n_levels=self.n, frame_shape=(self.h, self.w), method=self.method,
@@ -119,7 +123,7 @@ class SharedFocusVolume(FocusVolume):
         np.copyto(a["image01"][:h, :w], image01, casting="same_kind")
         self._frame_shape = (h, w)
         done = self._add(None, None, w, x=x, y=y, level=level, col0=col0)
-        self._apply_pending()
+        self._submit_pending()  # waited for by the next frame's copy, or a block
         return done
 
     def add_raw(self, raw: np.ndarray, *, cols: tuple[int, int], measure: dict[str, object],
@@ -142,21 +146,27 @@ class SharedFocusVolume(FocusVolume):
         x, y, level, col0 : int, keyword-only
             As for :meth:`add`.
         """
-        self._apply_pending()
+        self._submit_pending()
         h, w = raw.shape
-        dst = self.arrays["raw"]
+        slot = self._slot
+        dst = self.arrays["raw"][slot]
         if h != self.h or w > self.w or raw.dtype != dst.dtype:
             raise ValueError(f"raw {raw.shape} {raw.dtype} must be (height {self.h}, width "
                              f"<= {self.w}) of {dst.dtype}")
+        self.tasks.wait_tasks(self._slot_ticket[slot])  # the slot's last frame is measured
         np.copyto(dst[:h, :w], raw, casting="no")
+        self._slot = (slot + 1) % RAW_SLOTS
         width = cols[1] - cols[0]
         if self.direction == -1:
             col0 = self.w - (col0 + width)
         self._measure = {**measure, "shape": [h, w], "cols": list(cols),
-                         "flip": self.direction == -1}
+                         "flip": self.direction == -1, "slot": slot}
+        self._measure_slot = slot
         try:
+            # the frame's writes go to the bands without waiting for them (a block reduced
+            # on the way waits, as does the next use of this slot)
             done = self._add(None, None, width, x=x, y=y, level=level, col0=col0)
-            self._apply_pending()
+            self._submit_pending()
         finally:
             self._measure = None
         return done
@@ -166,15 +176,25 @@ class SharedFocusVolume(FocusVolume):
         self._specs.append([level, fr0, fc.start, r0, r1, cs.start, cs.stop])
 
     def _apply_pending(self) -> None:
-        """The frame's writes, by the band processes (one task for all of them)."""
+        """The frame's writes, by the band processes (one task for all of them), and every
+        task before them, done: the state may be read and written here after it."""
+        self._submit_pending()
+        self.tasks.wait_tasks()
+
+    def _submit_pending(self) -> None:
+        """The frame's writes submitted to the band processes (one task for all of them),
+        not waited for: each band applies them in order, before any later task of its."""
         if not self._specs:
             return
         params = {"writes": self._specs, "cache_bytes": self.cache_bytes,
                   "low": self.track_low}
         if self._measure is not None:
-            self._run_task("measure_accumulate", {**self._measure, **params})
+            ticket = self.tasks.submit_task("measure_accumulate", {**self._measure, **params},
+                                            self._bands)
+            self._slot_ticket[self._measure_slot] = ticket
         else:
-            self._run_task("accumulate", {**params, "shape": list(self._frame_shape)})
+            self.tasks.submit_task("accumulate", {**params, "shape": list(self._frame_shape)},
+                                   self._bands)
         self._specs.clear()
 
     # -- blocks out ------------------------------------------------------------------------

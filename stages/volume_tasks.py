@@ -29,8 +29,8 @@ import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 
-__all__ = ["TASKS", "gather", "pieces", "run_task", "scratch", "scratch_arrays",
-           "volume_layout"]
+__all__ = ["RAW_SLOTS", "TASKS", "gather", "pieces", "run_task", "scratch",
+           "scratch_arrays", "volume_layout"]
 
 Layout = dict[str, tuple[tuple[int, ...], str]]
 """Array name -> (shape, dtype string)."""
@@ -54,7 +54,8 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
     levels, low : bool, keyword-only
         Whether the N-level ring is kept; whether a running minimum is.
     raw_dtype : str, keyword-only
-        The raw frames' dtype (``raw``: the columns a frame's focus measure reads).
+        The raw frames' dtype (``raw``: :data:`RAW_SLOTS` slots of the columns a frame's
+        focus measure reads).
     """
     amax = "|u1" if n_levels <= 256 else "<u2"
     plane = (rows, ring)
@@ -64,13 +65,18 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
         "level_buf": ((rows, frame_shape[1]), amax),
         "coef": ((max(n_sums, 1), n_levels), "<f8"), "heights": ((n_levels,), "<f8"),
         "focus": (frame_shape, "<f4"), "image01": (frame_shape, "<f4"),
-        "raw": (frame_shape, np.dtype(raw_dtype).str),
+        "raw": ((RAW_SLOTS, *frame_shape), np.dtype(raw_dtype).str),
     }
     if levels:
         out["fv"] = ((n_levels, *plane), "<f4")
     out.update({name: ((planes * rows * block_columns,), "<f4") for name, planes in _SCRATCH})
     return out
 
+
+RAW_SLOTS = 3
+"""Slots of raw columns in the shared arrays: the band processes may measure a frame while
+the next ones are copied in (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`:
+the helpers lag the caller by up to this many frames less one)."""
 
 _SCRATCH = (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1), ("b_filled", 1),
             ("b_valid", 1), ("b_unc", 1))
@@ -152,7 +158,8 @@ def accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int
 
 def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
                        rows: tuple[int, int]) -> None:
-    """The focus measure of the frame's raw columns (``raw``, shape ``p["shape"]``) on the
+    """The focus measure of the frame's raw columns (``raw`` slot ``p["slot"]``, shape
+    ``p["shape"]``) on the
     focus rows the writes map to ``rows`` (with the operator's reach: bit-identical to the
     whole frame's for GLVM and TENV), its columns ``p["cols"]`` (mirrored where
     ``p["flip"]``), then :func:`accumulate`'s writes from it. Nothing is gathered: each
@@ -165,7 +172,7 @@ def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
     s0, s1, f0 = band
     h, w = p["shape"]
     c0, c1 = p["cols"]
-    image01, fm = focus_measure_raw(arrays["raw"][:h, :w], max_value=p["max_value"],
+    image01, fm = focus_measure_raw(arrays["raw"][p["slot"], :h, :w], max_value=p["max_value"],
                                     operator=p["operator"], window=p["window"],
                                     rows=(f0, f0 + s1 - s0))
     image01, fm = image01[:, c0:c1], fm[:, c0:c1]

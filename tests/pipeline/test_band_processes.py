@@ -3,6 +3,7 @@ state; blocks bit-identical to one band, failures named, nothing left behind."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 from pathlib import Path
@@ -19,6 +20,7 @@ from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import FocusVolume
 from sffscan.stages.messages import FrameError, FrameHeader, PlacedFrame
 from sffscan.stages.shared_volume import SharedFocusVolume
+from sffscan.stages.volume_tasks import RAW_SLOTS, run_task
 
 from tests.stages.test_focus_volume import (
     HEIGHTS,
@@ -97,6 +99,25 @@ def test_a_failing_band_process_names_itself_and_the_rows() -> None:
     assert not pool._procs
 
 
+def test_a_submitted_task_that_fails_is_raised_by_the_wait_that_reaches_it() -> None:
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
+    bad = {"writes": [[99, 0, 0, 0, 10, 0, 4]], "shape": [10, 4], "cache_bytes": 1 << 19,
+           "low": False}
+    good = {**bad, "writes": [[1, 0, 0, 0, 10, 0, 4]]}
+    with BandProcesses(2, layout, name="test-async") as pool:
+        first = pool.submit_task("accumulate", good, [(0, 0), (5, 10)])
+        second = pool.submit_task("accumulate", bad, [(0, 0), (5, 10)])  # returns at once
+        assert second == first + 1
+        pool.wait_tasks(first)  # the good one
+        with pytest.raises(BandProcessFailed, match=r"sffscan-test-async-1 \(accumulate, "
+                           r"rows 5\.\.10\): IndexError"):
+            pool.wait_tasks()
+        pool.wait_tasks()  # nothing left to wait for
+        pool.submit_task("accumulate", bad, [(0, 0), (5, 10)])
+    # closed with a failed task outstanding: waited for, not raised, nothing left behind
+    assert not pool._procs and not _segments()
+
+
 def test_a_volume_refuses_arrays_laid_out_for_another() -> None:
     layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
     with BandProcesses(1, layout) as pool, pytest.raises(ValueError, match="laid out for"):
@@ -155,6 +176,72 @@ def test_band_processes_measure_what_they_add(method: str) -> None:
         with pytest.raises(BandProcessFailed, match="used after they were closed"):
             pool.run_task("depth", {}, [(0, 1)])
     assert not _segments()
+
+
+class DeferredBands:
+    """Band tasks whose helpers run as late as they may: the caller's band at once, the
+    others only when their ticket is waited for (in order). A volume that read or
+    overwrote the shared arrays before waiting would get other blocks."""
+
+    def __init__(self, k: int, layout: dict) -> None:
+        self.k = k
+        self.arrays = {name: np.zeros(shape, dtype) for name, (shape, dtype) in layout.items()}
+        self.queue: list[tuple[int, str, dict, list[tuple[int, int]]]] = []
+        self.ticket = self.most_behind = 0
+
+    def submit_task(self, task: str, params: dict, bands: list[tuple[int, int]]) -> int:
+        self.ticket += 1
+        params = json.loads(json.dumps(params))  # as sent down a pipe: a copy
+        run_task(self.arrays, task, params, bands[0])
+        self.queue.append((self.ticket, task, params, bands[1:]))
+        self.most_behind = max(self.most_behind, len(self.queue))
+        return self.ticket
+
+    def wait_tasks(self, ticket: int | None = None) -> None:
+        while self.queue and (ticket is None or self.queue[0][0] <= ticket):
+            _, task, params, rest = self.queue.pop(0)
+            for rows in rest:
+                run_task(self.arrays, task, params, rows)
+
+    def run_task(self, task: str, params: dict, bands: list[tuple[int, int]]) -> None:
+        self.wait_tasks(self.submit_task(task, params, bands))
+
+    def helpers_cpu_s(self) -> float:
+        return 0.0
+
+    def close(self) -> None:
+        self.wait_tasks()
+
+
+@pytest.mark.parametrize("method", ["shape_select", "spc"])
+def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
+    """add_raw submits each frame's task and goes on (the bands up to RAW_SLOTS - 1 frames
+    behind), waiting only before a block or before a raw slot is used again: with helpers
+    that run as late as that allows, the blocks are still those of one process, bit for
+    bit, both directions."""
+    frames = _raw_scan()
+    kw = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+              method=method, median_size=3, block_columns=16, slack_px=3, spread_size=3,
+              directions=(1, -1))
+
+    def run(bands: DeferredBands | None) -> list:
+        fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
+                               directions=(1, -1), band_processes=bands is not None)
+        depth = DepthStage(band_tasks=bands, **kw)  # type: ignore[arg-type]
+        out = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
+        return out + list(depth.finish())
+
+    ref = run(None)
+    layout = SharedFocusVolume.shared_layout(**{**kw, "row_slack": 3, "col_slack": 3})
+    bands = DeferredBands(3, layout)
+    got = run(bands)
+    assert bands.most_behind == RAW_SLOTS  # frames were measured behind the caller
+    assert len(got) == len(ref)
+    for a, b in zip(ref, got, strict=True):
+        assert a.header == b.header
+        for u, v in ((a.height_um, b.height_um), (a.texture, b.texture),
+                     (a.confidence, b.confidence), (a.uncertainty_um, b.uncertainty_um)):
+            assert u.tobytes() == v.tobytes()
 
 
 def test_a_frame_to_measure_needs_band_processes() -> None:
