@@ -70,6 +70,8 @@ RUSAGE_THREAD = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)  # Linu
 CORES = (2, 4, 8, 16)
 COLUMNS = slice(300, 920)  # the focus stage's columns of a frame at 15 mm/s (48 %)
 MAIN, REG, FOCUS = "main", "registration", "focus"
+#: processes of today's placement (main, registration worker, focus worker)
+PROCESSES = 3
 PER_STAGE = "processes, a thread a stage"  # the process placement with one_thread forced off
 GROUP_STAGES = {REG: ("registration",), FOCUS: ("focus_measure", "depth")}
 
@@ -258,9 +260,26 @@ def pairs_ratio(path: Path = RESULTS / "registration_pairs.json") -> float | Non
     return float(r["critical_ms"]) / float(r["one_thread_ms"])
 
 
+def today_groups(stages: dict[str, float], transport: dict[str, float], *,
+                 overlap: bool) -> dict[str, float]:
+    """Today's placement's groups (main, registration worker, focus worker), CPU ms a frame
+    each: a process's stages one after another (``overlap`` False: one thread a worker
+    process, :func:`sffscan.pipeline.cores.one_thread_per_process`, where the cores are no
+    more than the processes), or in a thread each, which overlap, so that its slowest stage
+    sets its pace (``overlap`` True: the rule on more cores); its transport added."""
+    reg = [stages.get(s, 0.0) for s in GROUP_STAGES[REG]]
+    fd = [stages.get(s, 0.0) for s in GROUP_STAGES[FOCUS]]
+    main = [v for s, v in stages.items() if s not in GROUP_STAGES[REG] + GROUP_STAGES[FOCUS]]
+    join = max if overlap else sum
+    return {MAIN: join(main) + transport[MAIN], REG: join(reg) + transport[REG],
+            FOCUS: join(fd) + transport[FOCUS]}
+
+
 def model(stages: dict[str, float], transport: dict[str, float],
           ov_focus: dict[str, float], ov_depth: dict[str, float],
-          farm_ratio: float | None = None) -> dict[str, Any]:
+          farm_ratio: float | None = None,
+          overlapped: tuple[dict[str, float], dict[str, float]] | None = None
+          ) -> dict[str, Any]:
     """Predicted frames/s for each core count, today's placement and K-band placements.
 
     ``stages``: CPU ms per frame of each stage; ``transport``: ms per
@@ -270,7 +289,11 @@ def model(stages: dict[str, float], transport: dict[str, float],
     worker's transport (it receives and sends each frame and does nothing else).
     ``farm_ratio``: the registration stage's time with its pairs farmed out, against
     one thread (:func:`pairs_ratio`); None: the placements with the pairs farmed out are
-    left out.
+    left out. ``overlapped``: the stages' and transport's figures with a thread a stage;
+    given, today's placement on more cores than its 3 processes takes them, its groups
+    paced by their slowest stage (:func:`today_groups`), and on fewer the figures above
+    with each process's stages in turn; None: the latter on every core count (the model
+    before 2026-12-04, which a lent 8-core machine measured 1.39x faster than predicted).
     """
     reg = sum(stages.get(s, 0.0) for s in GROUP_STAGES[REG])
     fm, dp = stages.get("focus_measure", 0.0), stages.get("depth", 0.0)
@@ -298,7 +321,15 @@ def model(stages: dict[str, float], transport: dict[str, float],
                 "groups_ms": groups, "busiest": busiest, "fps": fps,
                 "cores_to_cap": t / groups[busiest]}
 
-    cases = [placement(1, False)]
+    today = placement(1, False)
+    if overlapped is not None:  # more cores than processes: a thread a stage
+        ovl = today_groups(*overlapped, overlap=True)
+        t_ovl = sum(overlapped[0].values()) + sum(overlapped[1].values())
+        today["fps"] = {c: min(c / t_ovl, 1.0 / max(ovl.values())) * 1e3
+                        if c > PROCESSES else fps for c, fps in today["fps"].items()}
+        today["groups_ms_overlapped"] = ovl
+        today["busiest_overlapped"] = max(ovl, key=lambda g: ovl[g])
+    cases = [today]
     cases += [placement(k, f) for f in (False, True) for k in BANDS[1:]
               if not f or farm_ratio is not None]
     return {"stage_groups_ms": {MAIN: main, REG: reg, FOCUS: fd}, "total_ms": total,
@@ -324,7 +355,8 @@ def write(out: Path, res: dict[str, Any]) -> str:
              f"median; whole run {res['run_s']:.0f} s). Scan: 1280 x 1024 uint16, N = 50, "
              f"GLVM k = 9, depth method `{res['depth_method']}` (the default), registration "
              f"on, Zarr mosaic (written in {res.get('outputs', 'the cache folder')}), frames "
-             "from memory.", "",
+             "from memory." + (f" Report: {res['recomputed']}." if res.get("recomputed")
+                               else ""), "",
              "## 1. CPU per frame of each stage and of the transport", "",
              "Stage: its thread's CPU inside its own code (`StageStats.cpu_s`) / frames, "
              "in the thread placement (every stage a thread of one process) and in the "
@@ -399,14 +431,18 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"(ms/frame): stages of the main process (source, speed shift, mosaic) "
               f"{sg[MAIN]:.2f}, registration {sg[REG]:.2f}, focus measure + depth "
               f"(accumulation and reduction) {sg[FOCUS]:.2f}, as measured in their "
-              "processes (where the cores are no more than the processes, as here, each "
-              "worker runs its stages in one thread, "
-              "`sffscan.pipeline.cores.one_thread_per_process`; on more cores each stage "
-              "has a thread, whose contention for the interpreter is not in these figures); "
+              f"processes on {res['cores']} cores (each worker runs its stages in one "
+              "thread where the cores are no more than its 3 processes, else a thread a "
+              "stage: `sffscan.pipeline.cores.one_thread_per_process`); "
               "each process's transport as measured above; T = "
               f"{m['total_ms']:.2f}.", "",
               "- **Today's placement** (built): main, registration worker, focus + depth "
-              "worker.",
+              "worker; up to 3 cores each process's stages one after another, on more "
+              "(4, 8, 16) a thread a stage, so that a process goes at the pace of its "
+              "slowest stage plus its transport, from the runs with a thread a stage "
+              + (f"(groups {', '.join(f'{g} {v:.2f}' for g, v in ovl.items())} ms a frame)"
+                 if (ovl := today.get("groups_ms_overlapped")) else "(not measured)")
+              + ".",
               "- **K-band placement** (predicted; the band processes built since "
               "(`processing.bands`) are the focus worker's helpers, not workers that each "
               "receive every frame): K workers each own a band "
@@ -442,7 +478,8 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"(K = {best8['bands']}, registration "
               f"{'farmed out' if best8['registration_farmed'] else 'one worker'}; "
               f"busiest group: {best8['busiest']}); today's placement: "
-              f"{today['fps'][8]:.0f} frames/s (capped by {today['busiest']}). Bar: >= 300, "
+              f"{today['fps'][8]:.0f} frames/s (capped by "
+              f"{today.get('busiest_overlapped', today['busiest'])}). Bar: >= 300, "
               "which needs T <= 26.7 ms (8 cores / 300 frames/s) and every group <= 3.33 ms "
               "of CPU per frame.",
               "", "The same model with other inputs (frames/s on 2 / 4 / 8 / 16 cores; best: "
@@ -459,8 +496,8 @@ def write(out: Path, res: dict[str, Any]) -> str:
               f"{chk['measured_fps']:.1f} frames/s (runs "
               f"{', '.join(f'{v:.1f}' for v in chk['runs_fps'])}), ratio "
               f"{chk['ratio']:.2f}. The measured run used {chk['cores_busy']:.2f} cores' "
-              "worth of CPU (frames/s x its CPU per frame): on a machine this loaded the "
-              "pipeline gets only a share of the 2 cores, so the measured frames/s is a "
+              "worth of CPU (frames/s x its CPU per frame): on a loaded machine the "
+              "pipeline gets only a share of the cores, so the measured frames/s is a "
               "floor, and the check holds only on a quiet machine.",
               f"- The same stages in the thread placement: {s_thr:.2f} ms of CPU a frame "
               f"against {s_prc:.2f} in their processes (ratio {s_thr / s_prc:.3f}): there "
@@ -489,11 +526,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder the runs write their mosaics in (default: --cache); on the "
                          "dev VM's journal-less ext4 a new file costs up to ~1 ms of kernel "
                          "CPU after deletions, on tmpfs ~0.05 (bench_parallel.py --outputs)")
+    ap.add_argument("--from-json", type=Path, metavar="RESULTS",
+                    help="measure nothing: the model computed again from the measurements "
+                         "kept in a results JSON this bench wrote (on this machine or "
+                         "another), the report written to --out")
     ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.case:
         print(json.dumps(run_case(json.loads(args.case))))
         return 0
+    if args.from_json:
+        return recompute(args.from_json, args.out)
     from bench_pipeline import frame_bank
 
     t0 = time.perf_counter()
@@ -532,7 +575,48 @@ def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores:
                   file=sys.stderr, flush=True)
     bands = band_overhead(bank, args.band_frames, args.band_rounds)
     print(f"bands: {bands['overhead']}", file=sys.stderr, flush=True)
-    thr, prc, per = runs["threads"], runs["processes"], runs[PER_STAGE]
+    meta = {
+        "command": "python bench/bench_scaling.py " + " ".join(
+            sys.argv[1:] if argv is None else argv),
+        "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M"),
+        "load_before": load_before,
+        "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
+        "frames": args.frames, "rounds": args.rounds, "cores": cores,
+        "outputs": f"{outputs} ({file_system(outputs)}; kept until the bench ends)",
+        "run_s": time.perf_counter() - t0}
+    print(write(args.out, analyse(meta, runs["threads"], runs["processes"], runs[PER_STAGE],
+                                  bands)))
+    return 0
+
+
+META = ("command", "machine", "date", "load_before", "load_after", "frames", "rounds",
+        "cores", "outputs", "run_s")
+
+
+def recompute(results: Path, out: Path) -> int:
+    """:func:`analyse` again on the runs kept in ``results`` (the model as it is now, the
+    measurements as they were); the report says so."""
+    try:
+        res = json.loads(results.read_text(encoding="utf-8"))
+        meta = {k: res[k] for k in META}
+        runs = [res[k] for k in ("threads", "processes", "processes_thread_a_stage")]
+        bands = res["bands"]
+    except (OSError, ValueError, KeyError) as err:
+        print(f"--from-json {results}: not a bench_scaling results file ({err!r})",
+              file=sys.stderr)
+        return 2
+    meta["recomputed"] = (f"the model computed again on {time.strftime('%Y-%m-%d %H:%M')} "
+                          f"from the measurements in {results.name}")
+    print(write(out, analyse(meta, runs[0], runs[1], runs[2], bands)))
+    return 0
+
+
+def analyse(meta: dict[str, Any], thr: list[dict[str, Any]], prc: list[dict[str, Any]],
+            per: list[dict[str, Any]], bands: dict[str, Any]) -> dict[str, Any]:
+    """The measured runs (threads, processes, processes with a thread a stage) and band
+    overheads, summarised, and the model and its variants computed from them (the report's
+    contents; ``meta``: command, machine, date, load, frames, rounds, cores, outputs)."""
+    cores = meta["cores"]
     names = list(thr[0]["stages_ms"])
     stages = {s: statistics.median(r["stages_ms"].get(s, 0.0) for r in thr) for s in names}
     stages_min = {s: min(r["stages_ms"].get(s, 0.0) for r in thr) for s in names}
@@ -544,7 +628,7 @@ def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores:
     ov, halo = bands["overhead"], bands["halo_rows_share"]
     ov_safe = {k: max(ov[k], bands["overhead_user"][k], halo[k]) for k in ov}
     farm = pairs_ratio()
-    mdl = model(stages_p, transport, ov_safe, ov_safe, farm)
+    mdl = model(stages_p, transport, ov_safe, ov_safe, farm, (stages_pt, transport_pt))
     variants = {
         "stages and transport in their processes, a thread a stage (the rule on more cores "
         "than processes)": model(stages_pt, transport_pt, ov_safe, ov_safe, farm),
@@ -560,14 +644,8 @@ def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores:
     pred = mdl["placements"][0]["fps"].get(cores) or min(
         cores / mdl["total_ms"], 1.0 / max(mdl["placements"][0]["groups_ms"].values())) * 1e3
     meas = med_of(prc, "fps")
-    res = {
-        "command": "python bench/bench_scaling.py " + " ".join(
-            sys.argv[1:] if argv is None else argv),
-        "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M"),
-        "load_before": load_before,
-        "load_after": " ".join(f"{v:.2f}" for v in os.getloadavg()),
-        "frames": args.frames, "rounds": args.rounds, "cores": cores,
-        "outputs": f"{outputs} ({file_system(outputs)}; kept until the bench ends)",
+    return {
+        **meta,
         "depth_method": thr[0]["depth_method"], "threads": thr, "processes": prc,
         "processes_thread_a_stage": per,
         "stages_ms": stages, "stages_ms_min": stages_min, "stages_ms_processes": stages_p,
@@ -578,10 +656,7 @@ def measure(args: argparse.Namespace, argv: list[str] | None, bank: Path, cores:
         "check": {"cores": cores, "predicted_fps": pred, "measured_fps": meas,
                   "runs_fps": [r["fps"] for r in prc], "ratio": meas / pred,
                   "cores_busy": meas * med_of(prc, "total_ms") / 1e3},
-        "run_s": time.perf_counter() - t0,
     }
-    print(write(args.out, res))
-    return 0
 
 
 if __name__ == "__main__":
