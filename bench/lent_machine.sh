@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The one prepared run for a lent GPU machine with many cores (issue 28, items 3 and 4), in
 # one device call: the GPU placement of the focus measure and the accumulation
-# (bench_gpu.py), then the process placement measured on 2, 4, 8 and 16 of its cores with 1,
+# (bench_gpu.py), the torch operators' tests on the GPU (pytest --device cuda), then the
+# process placement measured on 2, 4, 8 and 16 of its cores with 1,
 # 4 and 'auto' band workers in band processes (bench_parallel.py), then the scaling model's
 # inputs measured there on 8 cores (bench_scaling.py), so that its 8-core prediction can be
 # set beside the 8-core measurement. Each part runs under its own time limit and writes its
@@ -25,12 +26,12 @@ if [ -z "${SMOKE:-}" ]; then
   gpu=(--out "$out" --frames 300 --rounds 2)
   par=(--frames 400 --rounds 2 --cores 2,4,8,16 --workers 1,4,auto)  # ~110 s a round there
   sca=(--frames 300 --rounds 2 --cores 8)
-  limits=(200 230 130)
+  limits=(150 200 100 90)  # seconds; 2026-12-04 there: gpu 61 s, model 84 s
 else
   gpu=(--out "$out" --device cpu --quick --frames 40)
   par=(--frames 60 --rounds 1 --cores 1,2 --workers 1,auto)
   sca=(--frames 40 --rounds 1 --cores 2 --band-frames 8 --band-rounds 1)
-  limits=(300 300 300)
+  limits=(300 300 300 300)
 fi
 export PYTHONUNBUFFERED=1
 {
@@ -51,6 +52,10 @@ part() {  # part NAME SECONDS COMMAND...: one bench under its limit, its output 
   echo "== $name: exit $? after $((SECONDS - t0)) s" | tee -a "$log"
 }
 part gpu "${limits[0]}" "$py" bench/bench_gpu.py "${gpu[@]}"
+dev=cuda; [ -n "${SMOKE:-}" ] && dev=cpu
+part cuda-tests "${limits[3]}" "$py" -m pytest -q -o addopts= -p no:cacheprovider \
+  --device "$dev" tests/stages/test_cuda.py tests/stages/test_focus_measure.py \
+  tests/stages/test_focus_operators.py
 part cores "${limits[1]}" "$py" bench/bench_parallel.py "${par[@]}" --modes processes \
   --bands processes --sources memory --method default --outputs /tmp/sffscan-out \
   --out "$out/parallel_cores.md"
