@@ -139,15 +139,29 @@ def _raw_scan(n: int = 48) -> list[PlacedFrame]:
     return out
 
 
+# the depth stage of _raw_scan's frames
+RAW_DEPTH = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
+                 median_size=3, block_columns=16, slack_px=3, spread_size=3,
+                 directions=(1, -1))
+
+
+def assert_same_depth_blocks(ref: list, got: list) -> None:
+    """The depth stage's blocks, header and every array, bit for bit."""
+    assert len(got) == len(ref)
+    for a, b in zip(ref, got, strict=True):
+        assert a.header == b.header
+        for u, v in ((a.height_um, b.height_um), (a.texture, b.texture),
+                     (a.confidence, b.confidence), (a.uncertainty_um, b.uncertainty_um)):
+            assert u.tobytes() == v.tobytes()
+
+
 @pytest.mark.parametrize("method", ["shape_select", "spc"])
 def test_band_processes_measure_what_they_add(method: str) -> None:
     """Each band process measuring the focus of its own rows (the focus measure stage
     passing RawColumns on, SharedFocusVolume.add_raw: one task a frame) gives the blocks of
     the focus measure and depth stages in one process, bit for bit, both directions."""
     frames = _raw_scan()
-    kw = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
-              method=method, median_size=3, block_columns=16, slack_px=3, spread_size=3,
-              directions=(1, -1))
+    kw = {**RAW_DEPTH, "method": method}
 
     def focus(band_processes: bool = False) -> FocusMeasureStage:
         return FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
@@ -167,12 +181,7 @@ def test_band_processes_measure_what_they_add(method: str) -> None:
             got += list(depth.finish())
         finally:
             depth.close(failed=False)
-        assert len(got) == len(ref)
-        for a, b in zip(ref, got, strict=True):
-            assert a.header == b.header
-            for u, v in ((a.height_um, b.height_um), (a.texture, b.texture),
-                         (a.confidence, b.confidence), (a.uncertainty_um, b.uncertainty_um)):
-                assert u.tobytes() == v.tobytes()
+        assert_same_depth_blocks(ref, got)
         with pytest.raises(BandProcessFailed, match="used after they were closed"):
             pool.run_task("depth", {}, [(0, 1)])
     assert not _segments()
@@ -220,9 +229,7 @@ def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
     that run as late as that allows, the blocks are still those of one process, bit for
     bit, both directions."""
     frames = _raw_scan()
-    kw = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
-              method=method, median_size=3, block_columns=16, slack_px=3, spread_size=3,
-              directions=(1, -1))
+    kw = {**RAW_DEPTH, "method": method}
 
     def run(bands: DeferredBands | None) -> list:
         fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
@@ -236,12 +243,7 @@ def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
     bands = DeferredBands(3, layout)
     got = run(bands)
     assert bands.most_behind == RAW_SLOTS  # frames were measured behind the caller
-    assert len(got) == len(ref)
-    for a, b in zip(ref, got, strict=True):
-        assert a.header == b.header
-        for u, v in ((a.height_um, b.height_um), (a.texture, b.texture),
-                     (a.confidence, b.confidence), (a.uncertainty_um, b.uncertainty_um)):
-            assert u.tobytes() == v.tobytes()
+    assert_same_depth_blocks(ref, got)
 
 
 def test_a_frame_to_measure_needs_band_processes() -> None:
