@@ -237,7 +237,8 @@ class Execution(ConfigModel):
         "threads, at most one a pair; 'auto' = the cores available less 2 (the "
         "registration and the main process), at least 1, at most 8. 1 by default: on 2 "
         "cores N = 2 costs 1.19x the CPU of these stages (bench/results/bands.md), which the "
-        "other stages need")
+        "other stages need; on 8 cores of a 16-core Xeon 'auto' with bands = 'processes' "
+        "ran 141-146 frames/s against 88-107 with 1 (bench/results/parallel_cores_h200.md)")
 
     bands: Literal["threads", "processes"] = Field(
         "threads", description="Where the band workers (workers > 1) run: 'threads' of the "
