@@ -58,6 +58,11 @@ class BandProcessFailed(RuntimeError):
     """A band process raised, died or did not answer in time."""
 
 
+class _Silent(BandProcessFailed):
+    """A band process that died or did not answer: nothing more is waited for from it (one
+    that raised goes on answering its tasks in turn)."""
+
+
 def _offsets(layout: Layout) -> tuple[dict[str, int], int]:
     off, pos = {}, 0
     for name, (shape, dtype) in layout.items():
@@ -221,20 +226,20 @@ class BandProcesses:
         deadline = time.monotonic() + timeout_s
         while not conn.poll(min(WAIT_S, max(0.0, deadline - time.monotonic()))):
             if not proc.is_alive():
-                raise BandProcessFailed(f"band process {proc.name} ({what}) died, exit code "
-                                        f"{proc.exitcode}")
+                raise _Silent(f"band process {proc.name} ({what}) died, exit code "
+                              f"{proc.exitcode}")
             if time.monotonic() >= deadline:
-                raise BandProcessFailed(f"band process {proc.name} ({what}) did not answer "
-                                        f"within {timeout_s:g} s")
+                raise _Silent(f"band process {proc.name} ({what}) did not answer "
+                              f"within {timeout_s:g} s")
         try:
             reply: dict[str, Any] = json.loads(conn.recv_bytes())
         except (EOFError, OSError) as err:
             proc.join(1.0)  # its end of the pipe closes as it dies
             if not proc.is_alive():
-                raise BandProcessFailed(f"band process {proc.name} ({what}) died, exit code "
-                                        f"{proc.exitcode}") from None
-            raise BandProcessFailed(f"band process {proc.name} ({what}) closed its pipe: "
-                                    f"{err!r}") from None
+                raise _Silent(f"band process {proc.name} ({what}) died, exit code "
+                              f"{proc.exitcode}") from None
+            raise _Silent(f"band process {proc.name} ({what}) closed its pipe: "
+                          f"{err!r}") from None
         if "error" in reply:
             raise BandProcessFailed(f"band process {proc.name} ({what}): {reply['error']}\n"
                                     f"{reply.get('traceback', '')}")
@@ -313,8 +318,8 @@ class BandProcesses:
                     self._receive(i, self.timeout_s, what)
                 except BandProcessFailed as err:
                     failure = failure or err
-                    if not self._procs[i - 1].is_alive():
-                        pending.clear()  # nothing more comes from it
+                    if isinstance(err, _Silent):
+                        pending.clear()  # not one timeout a task it still had
         if failure is not None:
             raise failure
 

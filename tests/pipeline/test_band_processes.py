@@ -118,6 +118,37 @@ def test_a_submitted_task_that_fails_is_raised_by_the_wait_that_reaches_it() -> 
     assert not pool._procs and not _segments()
 
 
+def test_a_helper_that_does_not_answer_is_waited_for_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three tasks outstanding on a stopped helper: one timeout fails the wait (not one a
+    task), and the pool still closes."""
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
+    good = {"writes": [[1, 0, 0, 0, 10, 0, 4]], "shape": [10, 4], "cache_bytes": 1 << 19,
+            "low": False}
+    pool = BandProcesses(2, layout, name="test-stopped", timeout_s=0.5)
+    waits: list[str] = []
+    receive = pool._receive
+
+    def counted(i: int, timeout_s: float, what: str) -> dict:
+        waits.append(what)
+        return receive(i, timeout_s, what)
+
+    monkeypatch.setattr(pool, "_receive", counted)
+    helper = pool._procs[0]
+    os.kill(helper.pid, signal.SIGSTOP)
+    try:
+        for _ in range(3):
+            pool.submit_task("accumulate", good, [(0, 0), (5, 10)])
+        with pytest.raises(BandProcessFailed, match=r"sffscan-test-stopped-1 \(accumulate, "
+                           r"rows 5\.\.10\) did not answer within 0\.5 s"):
+            pool.wait_tasks()
+        assert len(waits) == 1
+    finally:
+        os.kill(helper.pid, signal.SIGCONT)
+        pool.close()
+    assert not pool._procs and not _segments()
+
+
 def test_a_volume_refuses_arrays_laid_out_for_another() -> None:
     layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
     with BandProcesses(1, layout) as pool, pytest.raises(ValueError, match="laid out for"):
