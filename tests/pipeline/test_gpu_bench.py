@@ -6,6 +6,7 @@ is written; it refuses a CUDA device it cannot see."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from types import ModuleType
 
@@ -58,3 +59,19 @@ def test_main_writes_the_agreement_report_and_refuses_a_missing_cuda(tmp_path: P
         b.main(["--device", "cpu", "--sections", "agreement,nonsense", "--out", str(tmp_path)])
     if not torch.cuda.is_available():
         assert b.main(["--device", "cuda", "--out", str(tmp_path)]) == 2
+
+
+def test_the_workers_environment_is_set_for_one_case_and_restored(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Section 3's third case sets OMP_NUM_THREADS for the scan's workers only."""
+    env = _bench().worker_env
+    monkeypatch.delenv("SFFSCAN_TEST_ENV", raising=False)
+    with env("SFFSCAN_TEST_ENV", "1"):
+        assert os.environ["SFFSCAN_TEST_ENV"] == "1"
+    assert "SFFSCAN_TEST_ENV" not in os.environ
+    monkeypatch.setenv("SFFSCAN_TEST_ENV", "4")
+    with env("SFFSCAN_TEST_ENV", "1"):
+        assert os.environ["SFFSCAN_TEST_ENV"] == "1"
+    assert os.environ["SFFSCAN_TEST_ENV"] == "4"
+    with env("SFFSCAN_TEST_ENV", None):  # left as it is
+        assert os.environ["SFFSCAN_TEST_ENV"] == "4"
