@@ -40,6 +40,18 @@ def focus_heights_um(cfg: ScanConfig) -> list[float]:
     return cfg.optics.focus_heights_um()
 
 
+TORCH_THREADS = 1
+"""torch's intra-op threads where the torch backend's focus measure runs in a scan. The
+stages already run in parallel (threads or processes), as for BLAS (limited to one thread
+while a pipeline runs, :meth:`sffscan.pipeline.runtime.Pipeline.run`), and the pool's idle
+threads spin after each call. Measured: on the 2-core VM with the CPU device (processes,
+300 frames, 3 rounds interleaved, 2026-12-04) 60.7 -> 77.0 frames/s and 27.65 -> 18.92 ms
+of CPU a frame (``OMP_NUM_THREADS=1`` in the workers: 73.2, 19.26); on a lent H200 with
+the CUDA device the torch scan used 74.8 ms of CPU a frame, 25.0 with ``OMP_NUM_THREADS=1``
+for the whole run (bench/results/gpu_cuda.md, gpu_cuda_omp1.md; this setting itself not
+measured there)."""
+
+
 def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> list[Stage]:
     """The stages from a placed frame to a depth block (registration when on, focus
     measure, depth), or only those named in ``only``: built alike for a thread and for
@@ -68,7 +80,8 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
         "focus_measure": lambda: FocusMeasureStage(
             operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
             max_value=o.max_value, margin=p.focus_reach_px, directions=directions,
-            workers=p.band_workers(), band_processes=bands is not None),
+            workers=p.band_workers(), band_processes=bands is not None,
+            torch_threads=TORCH_THREADS),
         "depth": lambda: DepthStage(
             directions=directions, slack_px=slack, workers=p.band_workers(),
             band_tasks=bands, **depth_kw()),

@@ -254,6 +254,11 @@ class FocusMeasureStage(Stage):
         passes on, instead of each focus frame, the frame and its columns
         (:class:`~sffscan.stages.messages.RawColumns`): a sink that taps it gets no focus
         frames (the live view measures the frames it shows itself).
+    torch_threads : int or None
+        With the torch backend: torch's intra-op threads in the process that runs the stage,
+        set at its first frame and restored when it closes (None: torch's own setting).
+        Where the stages already run in parallel the pool's idle threads only spin after
+        each call (see :mod:`sffscan.pipeline.measuring`).
     """
 
     name = "focus_measure"
@@ -261,7 +266,7 @@ class FocusMeasureStage(Stage):
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
                  device: str = "cpu", max_value: float = 255.0, margin: int,
                  directions: Sequence[int] = (1,), workers: int = 1,
-                 band_processes: bool = False) -> None:
+                 band_processes: bool = False, torch_threads: int | None = None) -> None:
         self.operator = check_operator(operator)
         self.window = check_window(window)
         self.backend = backend
@@ -279,6 +284,10 @@ class FocusMeasureStage(Stage):
             raise ValueError("band processes measure the focus with the OpenCV backend "
                              f"only, not {backend!r}")
         self.band_processes = band_processes
+        if torch_threads is not None and torch_threads < 1:
+            raise ValueError(f"torch_threads must be >= 1 or None, got {torch_threads}")
+        self.torch_threads = torch_threads
+        self._torch_threads_before: int | None = None  # torch's, to restore at close
         self.columns_measured = 0
         self.columns_total = 0
 
@@ -316,6 +325,7 @@ class FocusMeasureStage(Stage):
             if self._device_focus is None:
                 from sffscan.stages.focus_torch import DeviceFocus  # torch: first use
 
+                self._limit_torch_threads()
                 self._device_focus = DeviceFocus(device=self.device, operator=self.operator,
                                                  window=self.window, max_value=self.max_value)
             t01, tfm = self._device_focus.measure(item.image[:, a0:a1])
@@ -334,10 +344,23 @@ class FocusMeasureStage(Stage):
         return (np.concatenate([p[0] for p in parts]),
                 np.concatenate([p[1] for p in parts]))
 
+    def _limit_torch_threads(self) -> None:
+        if self.torch_threads is None:
+            return
+        import torch
+
+        self._torch_threads_before = torch.get_num_threads()
+        torch.set_num_threads(self.torch_threads)
+
     def close(self, *, failed: bool) -> None:
         if self._bands is not None:
             self._bands.close()
             self._bands = None
+        if self._torch_threads_before is not None:
+            import torch
+
+            torch.set_num_threads(self._torch_threads_before)
+            self._torch_threads_before = None
 
 
     def extra_stats(self) -> dict[str, float]:

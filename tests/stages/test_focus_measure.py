@@ -346,3 +346,35 @@ def test_band_of_a_torch_operator() -> None:
     whole = focus_measure_raw(frame, max_value=255, operator="lapm")[1]
     band = focus_measure_raw(frame, max_value=255, operator="lapm", rows=(20, 31))[1]
     np.testing.assert_allclose(band, whole[20:31], rtol=1e-6, atol=1e-7 * whole.max())
+
+
+def test_torch_stage_limits_torch_threads_while_it_runs() -> None:
+    """The torch backend's stage sets torch's intra-op threads at its first frame (the
+    scan passes 1: sffscan.pipeline.measuring.TORCH_THREADS) and restores them when it
+    closes; the OpenCV backend and None leave them alone."""
+    from sffscan.pipeline.config import demo_config
+    from sffscan.pipeline.measuring import TORCH_THREADS, measure_stages
+    from sffscan.stages.focus_measure import FocusMeasureStage
+    from sffscan.stages.messages import FrameHeader, PlacedFrame
+
+    hdr = FrameHeader(frame_id=0, timestamp_ns=0, focus_index=0, pass_index=0)
+    raw = (np.arange(40 * 48).reshape(40, 48) % 1024).astype(np.uint16)
+    frame = PlacedFrame(hdr, raw, (0.0, 0.0), (0, 0))
+    before = torch.get_num_threads()
+    try:
+        for threads, expect in ((before + 1, before + 1), (None, before)):
+            stage = FocusMeasureStage(backend="torch", max_value=1023.0, margin=4,
+                                      torch_threads=threads)
+            assert torch.get_num_threads() == before  # not before its first frame
+            (out,) = stage.process(frame)
+            assert torch.get_num_threads() == expect and out.focus.shape[0] == 40
+            stage.close(failed=False)
+            assert torch.get_num_threads() == before
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="torch_threads must be >= 1"):
+        FocusMeasureStage(backend="torch", margin=4, torch_threads=0)
+    cfg = demo_config()
+    fm, = measure_stages(cfg.model_copy(update={"processing": cfg.processing.model_copy(
+        update={"backend": "torch"})}), only=("focus_measure",))
+    assert TORCH_THREADS == 1 and fm.torch_threads == 1  # type: ignore[attr-defined]
