@@ -23,7 +23,9 @@ a run cut short keeps what it measured):
    configuration, processes placement) with ``processing.backend = "opencv"`` and with
    ``"torch"`` on the device, alternating for ``--rounds`` rounds: frames/s, CPU per frame,
    and the two mosaics' height difference (RMS and largest, µm, over the pixels valid in
-   both; pixels valid in one only are counted). The torch backend measures each frame on
+   both; pixels valid in one only are counted); and the torch one again with
+   ``OMP_NUM_THREADS=1`` in the scan's worker processes (its CPU cost's cause, 2026-12-04).
+   The torch backend measures each frame on
    the device and copies the focus measure back: the accumulation stays on the CPU in the
    scan, so section 2 is the device's bound and section 3 what the scan gets today.
 
