@@ -31,7 +31,7 @@ a run cut short keeps what it measured):
 
 Writes ``gpu_<device>.json`` and ``.md`` into ``--out`` (default ``bench/results``). Not a
 test: nothing here asserts. On the lent machine the packages the image lacks are carried as
-wheels: ``bash bench/gpu_wheels.sh`` here first (docs/performance.md, "A lent GPU").
+wheels: ``bash bench/gpu_wheels.sh`` here first (docs/performance.md, "A lent GPU machine").
 """
 
 from __future__ import annotations
