@@ -264,7 +264,7 @@ def label(c: dict[str, Any]) -> str:
     where = (f", outputs on {file_system(c['outputs'])} ({c['outputs']})"
              if c.get("outputs") else "")
     k = c.get("workers", 1)
-    n = max(1, min(8, c["cores"] - 2)) if k == "auto" else k  # as band_workers resolves it
+    n = band_workers(c)
     bands = f", {'auto = ' if k == 'auto' else ''}{n} band workers" if k != 1 else ""
     if c.get("bands", "threads") == "processes" and n > 1:
         bands += " in band processes"
@@ -272,6 +272,28 @@ def label(c: dict[str, Any]) -> str:
         c.get("one_thread", "auto"), "")
     return (f"{src}{rec}, {c['mode']}, {c['cores']} core{'s' if c['cores'] > 1 else ''}"
             f"{bands}{one}{where}")
+
+
+def band_workers(case: dict[str, Any]) -> int:
+    """The case's band workers, 'auto' resolved as ``ProcessingConfig.band_workers`` does
+    under the case's pinning."""
+    k = case.get("workers", 1)
+    return max(1, min(8, case["cores"] - 2)) if k == "auto" else int(k)
+
+
+def unique_cases(cases: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``cases`` without repeats, in order: with one band worker the kind of band workers
+    makes no difference (it is set to threads), and 'auto' that resolves to a number also
+    given is that number's case."""
+    out, seen = [], set()
+    for c in cases:
+        n = band_workers(c)
+        c = {**c, "bands": c.get("bands", "threads") if n > 1 else "threads"}
+        key = json.dumps({**c, "workers": n}, sort_keys=True)
+        if key not in seen:
+            seen.add(key)
+            out.append(c)
+    return out
 
 
 def busiest(runs: list[dict[str, Any]]) -> str:
@@ -433,7 +455,7 @@ def main(argv: list[str] | None = None) -> int:
     kinds = [v for v in args.bands.split(",") if v]
     if not kinds or any(v not in ("threads", "processes") for v in kinds):
         ap.error(f"--bands takes threads, processes; got {args.bands!r}")
-    cases = [{**c, "bands": v} for c in cases for v in kinds]
+    cases = unique_cases([{**c, "bands": v} for c in cases for v in kinds])
     ios = [v for v in args.recorder_io.split(",") if v]
     if not ios or any(v not in ("unbuffered", "page-cache") for v in ios):
         ap.error(f"--recorder-io takes unbuffered, page-cache; got {args.recorder_io!r}")

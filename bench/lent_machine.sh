@@ -24,8 +24,8 @@ if [ -z "${SMOKE:-}" ]; then
     .whl/*.whl || { echo "installing .whl/ failed" >&2; exit 2; }
   export PYTHONPATH=/tmp/site
   gpu=(--out "$out" --frames 300 --rounds 2)
-  # 18 cases, ~160 s a round there: the first round fits its limit (the report is written
-  # after every round); band threads against band processes, for the default's choice
+  # 13 cases (repeats left out), ~120 s a round there: the first round fits its limit (the
+  # report is written after every round); band threads against band processes
   par=(--frames 400 --rounds 2 --cores 2,8,16 --workers 1,4,auto --bands threads,processes)
   sca=(--frames 300 --rounds 2 --cores 8)
   limits=(150 200 100 90)  # seconds; 2026-12-04 there: gpu 61 s, model 84 s

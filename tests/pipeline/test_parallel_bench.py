@@ -29,3 +29,16 @@ def test_busiest_stage_is_the_one_with_most_wall_time_a_frame() -> None:
     # medians: depth 8.0, registration 5.0; the period 1000 / 100 frames/s
     assert busiest(runs) == "depth 8.00 / 10.00 ms"
     assert busiest([{"fps": 100.0}]) == ""  # runs from before the figure was kept
+
+
+def test_cases_that_run_the_same_placement_run_once() -> None:
+    unique = load_bench("bench_parallel").unique_cases
+    cases = [_case(cores=c, workers=k, bands=b) for c in (2, 8) for k in (1, 4, "auto")
+             for b in ("threads", "processes")]
+    got = unique(cases)
+    # 2 cores: 1 and auto (= 1) one case, 4 in threads and in processes; 8 cores: 1 once,
+    # 4 and auto (= 6) each in threads and processes
+    assert [(g["cores"], g["workers"], g["bands"]) for g in got] == [
+        (2, 1, "threads"), (2, 4, "threads"), (2, 4, "processes"),
+        (8, 1, "threads"), (8, 4, "threads"), (8, 4, "processes"),
+        (8, "auto", "threads"), (8, "auto", "processes")]
