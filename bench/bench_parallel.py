@@ -277,8 +277,10 @@ def label(c: dict[str, Any]) -> str:
 def band_workers(case: dict[str, Any]) -> int:
     """The case's band workers, 'auto' resolved as ``ProcessingConfig.band_workers`` does
     under the case's pinning."""
+    from sffscan.pipeline.cores import auto_band_workers
+
     k = case.get("workers", 1)
-    return max(1, min(8, case["cores"] - 2)) if k == "auto" else int(k)
+    return auto_band_workers(case["cores"]) if k == "auto" else int(k)
 
 
 def unique_cases(cases: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -258,9 +258,9 @@ class Execution(ConfigModel):
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""
         if isinstance(self.workers, int):
             return self.workers
-        from sffscan.pipeline.cores import cores_available
+        from sffscan.pipeline.cores import auto_band_workers, cores_available
 
-        return max(1, min(8, cores_available() - 2))
+        return auto_band_workers(cores_available())
 
 
 class Output(ConfigModel):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["cores_available", "one_thread_per_process"]
+__all__ = ["auto_band_workers", "cores_available", "one_thread_per_process"]
 
 
 def cores_available() -> int:
@@ -18,6 +18,12 @@ def cores_available() -> int:
     if hasattr(os, "sched_getaffinity"):
         return max(1, len(os.sched_getaffinity(0)))
     return os.cpu_count() or 1
+
+
+def auto_band_workers(cores: int) -> int:
+    """``processing.workers = "auto"`` on ``cores`` cores: the cores less 2 (the
+    registration and the main process), at least 1, at most 8."""
+    return max(1, min(8, cores - 2))
 
 
 def one_thread_per_process(processes: int) -> bool:

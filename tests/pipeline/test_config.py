@@ -220,3 +220,16 @@ def test_a_written_file_marks_the_groups_and_loads_back() -> None:
     assert optics[optics.index("# -- the simulator's own parameters --") + 1] == "psf_s0_px = 0.6"
     assert "[output]\npath = " in text  # a table of one group: no comment
     assert config_from_dict(tomllib.loads(text)) == demo_config()
+
+
+def test_auto_band_workers_are_the_cores_less_two_from_one_to_eight(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from sffscan.pipeline import cores
+    from sffscan.pipeline.cores import auto_band_workers
+
+    assert [auto_band_workers(c) for c in (1, 2, 3, 4, 8, 10, 16, 64)] == [
+        1, 1, 1, 2, 6, 8, 8, 8]
+    monkeypatch.setattr(cores, "cores_available", lambda: 16)
+    cfg = ScanConfig.model_validate({"processing": {"workers": "auto"}})
+    assert cfg.processing.band_workers() == 8
+    assert ScanConfig.model_validate({"processing": {"workers": 3}}).processing.band_workers() == 3
