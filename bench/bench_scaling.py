@@ -260,19 +260,18 @@ def pairs_ratio(path: Path = RESULTS / "registration_pairs.json") -> float | Non
     return float(r["critical_ms"]) / float(r["one_thread_ms"])
 
 
-def today_groups(stages: dict[str, float], transport: dict[str, float], *,
-                 overlap: bool) -> dict[str, float]:
+def overlapped_groups(stages: dict[str, float], transport: dict[str, float]
+                      ) -> dict[str, float]:
     """Today's placement's groups (main, registration worker, focus worker), CPU ms a frame
-    each: a process's stages one after another (``overlap`` False: one thread a worker
-    process, :func:`sffscan.pipeline.cores.one_thread_per_process`, where the cores are no
-    more than the processes), or in a thread each, which overlap, so that its slowest stage
-    sets its pace (``overlap`` True: the rule on more cores); its transport added."""
+    each, with a thread a stage (on more cores than processes,
+    :func:`sffscan.pipeline.cores.one_thread_per_process`): a process's stages overlap, so
+    that its slowest stage sets its pace; its transport added. (With one thread a process
+    its stages add up: :func:`model`'s one-band placement.)"""
     reg = [stages.get(s, 0.0) for s in GROUP_STAGES[REG]]
     fd = [stages.get(s, 0.0) for s in GROUP_STAGES[FOCUS]]
     main = [v for s, v in stages.items() if s not in GROUP_STAGES[REG] + GROUP_STAGES[FOCUS]]
-    join = max if overlap else sum
-    return {MAIN: join(main) + transport[MAIN], REG: join(reg) + transport[REG],
-            FOCUS: join(fd) + transport[FOCUS]}
+    return {MAIN: max(main) + transport[MAIN], REG: max(reg) + transport[REG],
+            FOCUS: max(fd) + transport[FOCUS]}
 
 
 def model(stages: dict[str, float], transport: dict[str, float],
@@ -291,7 +290,7 @@ def model(stages: dict[str, float], transport: dict[str, float],
     one thread (:func:`pairs_ratio`); None: the placements with the pairs farmed out are
     left out. ``overlapped``: the stages' and transport's figures with a thread a stage;
     given, today's placement on more cores than its 3 processes takes them, its groups
-    paced by their slowest stage (:func:`today_groups`), and on fewer the figures above
+    paced by their slowest stage (:func:`overlapped_groups`), and on fewer the figures above
     with each process's stages in turn; None: the latter on every core count (the model
     before 2026-12-04, which a lent 8-core machine measured 1.39x faster than predicted).
     """
@@ -323,7 +322,7 @@ def model(stages: dict[str, float], transport: dict[str, float],
 
     today = placement(1, False)
     if overlapped is not None:  # more cores than processes: a thread a stage
-        ovl = today_groups(*overlapped, overlap=True)
+        ovl = overlapped_groups(*overlapped)
         t_ovl = sum(overlapped[0].values()) + sum(overlapped[1].values())
         today["fps"] = {c: min(c / t_ovl, 1.0 / max(ovl.values())) * 1e3
                         if c > PROCESSES else fps for c, fps in today["fps"].items()}
