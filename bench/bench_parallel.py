@@ -346,10 +346,11 @@ def write_report(out: Path, meta: dict[str, Any], rows: list[dict[str, Any]]) ->
               f"{base:.1f} frames/s.", "",
               f"- Each run's outputs (mosaic, recording) deleted "
               f"{meta.get('outputs_deleted', 'after each run')}."]
-    for d, (before, after) in meta.get("file_create_ms", {}).items():
+    for d, times in meta.get("file_create_ms", {}).items():
+        after = f", {times[1]:.3f} after" if len(times) > 1 else ""  # none: cut short
         lines.append(f"- Creating a 64 kB file as the chunk writer does, in {d} "
-                     f"({file_system(d)}): {before:.3f} ms of CPU before the runs, "
-                     f"{after:.3f} after (median of 3 bursts of 300, each deleted after).")
+                     f"({file_system(d)}): {times[0]:.3f} ms of CPU before the runs{after} "
+                     "(median of 3 bursts of 300, each deleted after).")
     by = {label(r["case"]): statistics.median(x["fps"] for x in r["runs"]) for r in rows}
     for mode in ("threads", "processes"):
         one, two = (by.get(f"from memory, {mode}, 1 core"),

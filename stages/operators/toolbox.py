@@ -219,7 +219,14 @@ def eigv(x: torch.Tensor, k: int) -> torch.Tensor:
     for img in x:
         win = _normalised_windows(img, k)
         cov = win @ win.transpose(-2, -1) / (k * k - 1)
-        ev = torch.linalg.eigvalsh(cov)  # ascending
+        if cov.is_cuda:
+            # cuSOLVER's batched eigensolver failed on an H200 (torch 2.11+cu130,
+            # 2026-12-04: CUSOLVER_STATUS_INTERNAL_ERROR in cusolverDnXsyevBatched for 65,536
+            # 9 x 9 float64 matrices): the small matrices go to LAPACK on the CPU, the
+            # eigenvalues come back to the input's device
+            ev = torch.linalg.eigvalsh(cov.cpu()).to(cov.device)
+        else:
+            ev = torch.linalg.eigvalsh(cov)  # ascending
         out.append(ev[..., -3:].sum(dim=-1).reshape(img.shape))
     return box(torch.stack(out), k)
 

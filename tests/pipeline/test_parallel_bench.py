@@ -42,3 +42,22 @@ def test_cases_that_run_the_same_placement_run_once() -> None:
         (2, 1, "threads"), (2, 4, "threads"), (2, 4, "processes"),
         (8, 1, "threads"), (8, 4, "threads"), (8, 4, "processes"),
         (8, "auto", "threads"), (8, "auto", "processes")]
+
+
+def test_a_report_cut_short_is_written(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # a lent machine's run, cut short after its first round, lost its report: the file
+    # creation times had only their 'before' figure then
+    bench = load_bench("bench_parallel")
+    run = {"fps": 100.0, "fps_with_startup": 90.0, "startup_s": 1.0, "cpu_ms_per_frame": 20.0,
+           "busy": {"depth": 8.0}}
+    meta = {"machine": "m", "load_before": "1", "load_after": "(cut short)", "command": "c",
+            "frames": 10, "rounds": 1, "run_s": 5.0, "baseline_fps": 10.0, "method": "x",
+            "file_create_ms": {str(tmp_path): [0.25]}}
+    out = tmp_path / "r.md"
+    bench.write_report(out, meta, [{"case": _case(), "runs": [run]}])
+    text = out.read_text(encoding="utf-8")
+    assert "0.250 ms of CPU before the runs (median" in text
+    assert "| 100.0 |" in text and "depth 8.00 / 10.00 ms" in text
+    meta["file_create_ms"] = {str(tmp_path): [0.25, 0.5]}
+    bench.write_report(out, meta, [{"case": _case(), "runs": [run]}])
+    assert "before the runs, 0.500 after" in out.read_text(encoding="utf-8")
