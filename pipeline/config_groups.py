@@ -237,8 +237,9 @@ class Execution(ConfigModel):
         "threads, at most one a pair; 'auto' = the cores available less 2 (the "
         "registration and the main process), at least 1, at most 8. 1 by default: on 2 "
         "cores N = 2 costs 1.19x the CPU of these stages (bench/results/bands.md), which the "
-        "other stages need; on 8 cores of a 16-core Xeon 'auto' with bands = 'processes' "
-        "ran 141-146 frames/s against 88-107 with 1 (bench/results/parallel_cores_h200.md)")
+        "other stages need; with bands = 'processes' on a 16-core Xeon, 4 ran 152-161 "
+        "frames/s on 8 cores against 99-101 with 1, and 'auto' (8) 179-184 on 16 cores "
+        "(bench/results/parallel_async_h200.md)")
 
     bands: Literal["threads", "processes"] = Field(
         "threads", description="Where the band workers (workers > 1) run: 'threads' of the "
