@@ -112,7 +112,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
     Parameters
     ----------
     src : ndarray of float32
-        Every row of the block: for the accumulating methods (``streaming``) the sums
+        Rows of the block, every row or those of ``argmax`` (``rows`` index it): for the
+        accumulating methods (``streaming``) the sums
         (S, rows, halo + block + halo columns); for wcentroid, adaptive, adaptive_centroid
         and the :data:`SPC_BLOCKS` the levels of the block's columns (N, rows, block); for
         the other methods the levels of the block and its halo (N, rows, halo + block +
@@ -120,9 +121,9 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
     argmax : ndarray of int, (R, halo + block + halo)
         The running argmax of rows [r0, r1) widened by the filters' reach (R rows).
     low_src : ndarray of float32 or None
-        The accumulating methods' running minimum of every row, (rows, block), or None.
+        The accumulating methods' running minimum of ``src``'s rows, (rows, block), or None.
     rows : (int, int)
-        The band [r0, r1), block rows.
+        The band [r0, r1), rows of ``src``.
     own : slice
         Rows [r0, r1) within ``argmax``'s R rows.
     inner : slice

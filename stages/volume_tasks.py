@@ -190,17 +190,23 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
     u0, u1, a0, a1, ring = p["u0"], p["u1"], p["a0"], p["a1"], p["ring"]
     n_rows, width, halo = p["rows"], u1 - u0, p["halo"]
     streaming = "fv" not in arrays
-    if streaming:
-        src = gather(arrays["sums"], a0, a1, ring)
-        low_src = gather(arrays["low"], u0, u1, ring) if p["uncertainty"] else None
-    else:
-        src = gather(arrays["fv"], u0 if p["own"] else a0, u1 if p["own"] else a1, ring)
-        low_src = None
+    # only the band's rows and their halo are read: gathered from the whole state, a
+    # block that wraps the ring was copied whole by every band (all N levels of every
+    # row with the default method), K times the copy with K bands
     ra0, ra1 = max(r0 - halo, 0), min(r1 + halo, n_rows)
-    argmax = gather(arrays["argmax"][ra0:ra1], a0, a1, ring)
+    band = slice(ra0, ra1)
+    if streaming:
+        src = gather(arrays["sums"][:, band], a0, a1, ring)
+        low_src = gather(arrays["low"][band], u0, u1, ring) if p["uncertainty"] else None
+    else:
+        src = gather(arrays["fv"][:, band], u0 if p["own"] else a0,
+                     u1 if p["own"] else a1, ring)
+        low_src = None
+    argmax = gather(arrays["argmax"][band], a0, a1, ring)
     sums = scratch(arrays, "b_sums", (3, n_rows, width))
     low = scratch(arrays, "b_low", (n_rows, width))
-    d, c = blocks.depth_rows(src, argmax, low_src, (r0, r1), slice(r0 - ra0, r1 - ra0),
+    d, c = blocks.depth_rows(src, argmax, low_src, (r0 - ra0, r1 - ra0),
+                             slice(r0 - ra0, r1 - ra0),
                              slice(u0 - a0, u1 - a0), sums[:, r0:r1], low[r0:r1],
                              method=p["method"], n_levels=p["n_levels"],
                              median_size=p["median_size"], spread_size=p["spread_size"],
