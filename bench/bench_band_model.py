@@ -26,7 +26,10 @@ stage):
 
 and frames/s(C) = min(C / T, 1 / slowest group). With K = 1 (no band processes) the same
 groups with the focus worker paced by its slower stage (today's placement,
-``bench_scaling.overlapped_groups``). Not a test: nothing here asserts.
+``bench_scaling.overlapped_groups``); on no more cores than processes (3), where each
+process runs its stages in one thread, today's placement with each process's stages added
+up, from the runs in that placement; band processes there (sharing cores) are not
+modelled. Not a test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -44,12 +47,24 @@ from bench_scaling import (  # noqa: E402
     FOCUS,
     GROUP_STAGES,
     MAIN,
+    PROCESSES,
     REG,
     RESULTS,
     measured_groups,
     overlapped_groups,
     pairs_ratio,
 )
+
+
+def serial_groups(stages: dict[str, float], transport: dict[str, float]) -> dict[str, Any]:
+    """Today's placement with each process's stages in one thread (on no more cores than
+    processes): a process's stages add up, its transport added."""
+    own = {g: sum(stages.get(s, 0.0) for s in names) for g, names in GROUP_STAGES.items()}
+    groups = {MAIN: sum(stages.values()) - sum(own.values()) + transport[MAIN],
+              REG: own[REG] + transport[REG], FOCUS: own[FOCUS] + transport[FOCUS]}
+    return {"bands": 1, "groups_ms": groups,
+            "total_ms": sum(stages.values()) + sum(transport.values()),
+            "busiest": max(groups, key=lambda g: groups[g])}
 
 
 def band_groups(stages: dict[str, float], transport: dict[str, float], k: int,
@@ -134,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         stages = sc["stages_ms_processes_thread_a_stage"]
         transport = {g: v["transport_ms"]
                      for g, v in measured_groups(sc["processes_thread_a_stage"]).items()}
+        stages_one = sc["stages_ms_processes"]  # one thread a process (<= 3 cores)
+        transport_one = {g: v["transport_ms"] for g, v in sc["groups_measured"].items()}
         bands = json.loads(args.bands.read_text(encoding="utf-8"))
         figs = band_figures(bands)
         scans = json.loads(args.scans.read_text(encoding="utf-8"))
@@ -144,11 +161,12 @@ def main(argv: list[str] | None = None) -> int:
     farm = pairs_ratio()
     rows = []
     for m in measured:
-        k = m["bands"]
-        if k > 1 and k not in figs:
-            continue  # no bench_bands figure for that K
+        k, few = m["bands"], m["cores"] <= PROCESSES
+        if k > 1 and (few or k not in figs):
+            continue  # band processes sharing cores; no bench_bands figure for that K
         wall, cpu = figs.get(k, (None, None))
-        p = band_groups(stages, transport, k, wall, cpu, farm)
+        p = (serial_groups(stages_one, transport_one) if few
+             else band_groups(stages, transport, k, wall, cpu, farm))
         pred = fps(p, m["cores"])
         rows.append({**m, **p, "predicted_fps": pred, "ratio": m["fps"] / pred})
     write(args, sc, bands, scans, farm, stages, transport, rows)

@@ -7,7 +7,8 @@
 # inputs measured there on 8 cores (bench_scaling.py), so that its 8-core prediction can be
 # set beside the 8-core measurement, then the focus measure and depth stage alone with 1, 2,
 # 4 and 8 band processes (bench_bands.py: does their CPU a frame grow with K where each
-# band has a core of its own?). Each part runs under its own time limit and writes its
+# band has a core of its own?), and the band processes' model checked against those scans
+# (bench_band_model.py). Each part runs under its own time limit and writes its
 # results as it goes: a part cut short or failing leaves the others' results.
 #
 #   bash bench/gpu_wheels.sh           # here, once: the packages the machine lacks (.whl/)
@@ -18,7 +19,8 @@
 #
 # Smoke run on any machine (CPU torch, small sizes; the wheels not installed):
 #   OUT=/tmp/lent SMOKE=1 bash bench/lent_machine.sh
-# PARTS="cuda-tests cores" (names from: gpu cuda-tests cores model bands) runs only those;
+# PARTS="cuda-tests cores" (names from: gpu cuda-tests cores model bands band-model)
+# runs only those;
 # PAR_ARGS and BANDS_ARGS replace the cores and bands parts' options (cases, rounds).
 set -u
 out=${OUT:?OUT: the folder the results are written to}
@@ -63,7 +65,7 @@ numpy.__version__, "opencv", cv2.__version__, "torch", torch.__version__,
 cat "$out/machine.txt"
 [ -n "${PAR_ARGS:-}" ] && read -r -a par <<< "$PAR_ARGS"
 [ -n "${BANDS_ARGS:-}" ] && read -r -a bnd <<< "$BANDS_ARGS"
-parts=" ${PARTS:-gpu cuda-tests cores model bands} "
+parts=" ${PARTS:-gpu cuda-tests cores model bands band-model} "
 part() {  # part NAME SECONDS COMMAND...: one bench under its limit, its output in the log
   local name=$1 limit=$2; shift 2
   [[ $parts == *" $name "* ]] || return 0
@@ -84,4 +86,10 @@ part cores "${limits[1]}" "$py" bench/bench_parallel.py "${par[@]}" --modes proc
 part model "${limits[2]}" "$py" bench/bench_scaling.py "${sca[@]}" --outputs /tmp/sffscan-out \
   --out "$res/scaling_cores.md"
 part bands "${limits[4]}" "$py" bench/bench_bands.py "${bnd[@]}" --out "$res/bands_cores"
+if [ -f "$res/scaling_cores.json" ] && [ -f "$res/bands_cores.json" ] \
+   && [ -f "$res/parallel_cores.json" ]; then  # measures nothing: the three results above
+  part band-model 60 "$py" bench/bench_band_model.py --scaling "$res/scaling_cores.json" \
+    --bands "$res/bands_cores.json" --scans "$res/parallel_cores.json" \
+    --out "$res/band_model.md"
+fi
 tail -c 6000 "$log"

@@ -31,6 +31,12 @@ def test_groups_with_and_without_band_processes() -> None:
     assert bench.fps(four, 2) == pytest.approx(2e3 / 24.55)  # the cores cap it
     with pytest.raises(ValueError, match="K = 4"):
         bench.band_groups(STAGES, TRANSPORT, 4, None, None, 0.5)
+    # on no more cores than processes each process's stages add up
+    few = bench.serial_groups(STAGES, TRANSPORT)
+    assert few["groups_ms"] == pytest.approx({"main": 4.55, "registration": 5.0,
+                                              "focus": 13.0})
+    assert few["total_ms"] == pytest.approx(22.55) and few["busiest"] == "focus"
+    assert bench.fps(few, 2) == pytest.approx(1e3 / 13.0)  # the focus worker caps it
 
 
 def test_only_scans_with_band_processes_or_none_are_checked() -> None:
