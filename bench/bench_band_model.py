@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_parallel import band_workers  # noqa: E402
 from bench_scaling import (  # noqa: E402
     FOCUS,
     GROUP_STAGES,
@@ -120,11 +121,7 @@ def measured_scans(scans: dict[str, Any]) -> list[dict[str, Any]]:
         case, runs = row["case"], row["runs"]
         if case["mode"] != "processes" or case["source"] != "memory" or case["record"]:
             continue
-        k = case.get("workers", 1)
-        if k == "auto":
-            from sffscan.pipeline.cores import auto_band_workers
-
-            k = auto_band_workers(case["cores"])
+        k = band_workers(case)
         if k > 1 and case.get("bands") != "processes":
             continue  # band threads: not this model's
         out.append({"cores": case["cores"], "bands": k,
