@@ -121,11 +121,13 @@ def correlate(x: torch.Tensor, kernel: np.ndarray, *, conv: bool = False,
     oy, ox = (kh + 1) // 2 - 1, (kw + 1) // 2 - 1
     p = pad(x, oy, kh - 1 - oy, ox, kw - 1 - ox, mode=mode)
     if p.is_cuda and p.dtype == torch.float32:
-        # cuDNN runs float32 convolutions in TF32 unless told otherwise (torch's default for
-        # convolutions: 10 bits of mantissa): on an H200 DCTM, DCTR, GDER, LAPD, LAPM and SFIL
-        # then differed from the float64 definitions by up to 2e-3 of their largest value
-        # (2026-12-04, bench/lent_machine.sh). These are measurements: the convolution runs
-        # in float64 and comes back in float32, without touching torch's global flags.
+        # cuDNN may run float32 convolutions in TF32 (torch's default for convolutions: 10
+        # bits of mantissa): on an H200 DCTM, DCTR, GDER, LAPD, LAPM and SFIL differed in
+        # float32 from the float64 definitions by up to 2e-3 of their largest value
+        # (2026-12-04, bench/lent_machine.sh; TF32 the likely cause, GLVM and TENV, without
+        # a convolution, agreed). These are measurements: the convolution runs in float64
+        # and comes back in float32, without touching torch's global flags (not yet run on
+        # a GPU).
         weight = torch.as_tensor(k.copy(), dtype=torch.float64, device=p.device)[None, None]
         return F.conv2d(p.unsqueeze(1).double(), weight)[:, 0].float()
     weight = torch.as_tensor(k.copy(), dtype=x.dtype, device=x.device)[None, None]
