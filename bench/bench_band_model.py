@@ -141,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="bench_parallel.py results JSON (the scans the model is checked on)")
     ap.add_argument("--out", type=Path, required=True, help="the report (.md; .json beside)")
     args = ap.parse_args(argv)
+    what = "--scaling"
     try:
         sc = json.loads(args.scaling.read_text(encoding="utf-8"))
         stages = sc["stages_ms_processes_thread_a_stage"]
@@ -148,12 +149,15 @@ def main(argv: list[str] | None = None) -> int:
                      for g, v in measured_groups(sc["processes_thread_a_stage"]).items()}
         stages_one = sc["stages_ms_processes"]  # one thread a process (<= 3 cores)
         transport_one = {g: v["transport_ms"] for g, v in sc["groups_measured"].items()}
+        what = "--bands"
         bands = json.loads(args.bands.read_text(encoding="utf-8"))
         figs = band_figures(bands)
+        what = "--scans"
         scans = json.loads(args.scans.read_text(encoding="utf-8"))
         measured = measured_scans(scans)
     except (OSError, ValueError, KeyError) as err:
-        print(f"bench_band_model: a results file could not be read ({err!r})", file=sys.stderr)
+        print(f"bench_band_model: {what} {getattr(args, what[2:])}: not a results file of "
+              f"its bench ({err!r})", file=sys.stderr)
         return 2
     farm = pairs_ratio()
     rows = []

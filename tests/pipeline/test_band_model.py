@@ -56,7 +56,8 @@ def test_only_scans_with_band_processes_or_none_are_checked() -> None:
                               ) == {4: (4.0, 13.0)}
 
 
-def test_the_lent_machine_report(tmp_path: Path) -> None:
+def test_the_lent_machine_report(tmp_path: Path,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
     bench = load_bench("bench_band_model")
     res = bench.RESULTS
     out = tmp_path / "m.md"
@@ -70,3 +71,8 @@ def test_the_lent_machine_report(tmp_path: Path) -> None:
     assert all(0.8 < r["ratio"] < 1.1 for r in rows)
     assert bench.main(["--scaling", str(tmp_path / "none.json"), "--bands", "x", "--scans",
                        "y", "--out", str(out)]) == 2
+    assert "--scaling" in capsys.readouterr().err
+    # a good scaling file and a bad bands file: the message names the bands file
+    assert bench.main(["--scaling", str(res / "scaling_h200_overlapped.json"), "--bands",
+                       str(tmp_path / "none.json"), "--scans", "y", "--out", str(out)]) == 2
+    assert f"--bands {tmp_path / 'none.json'}:" in capsys.readouterr().err
