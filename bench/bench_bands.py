@@ -3,6 +3,7 @@ stage with K = 1, 2, 4 band workers, interleaved in one run, blocks compared bit
 
     python bench/bench_bands.py                  # 150 frames, 5 rounds, K = 1 2 4
     python bench/bench_bands.py --workers 1 2 4 8
+    python bench/bench_bands.py --task-threads --serial --processes
 
 The default configuration (1280 x 1024, N = 50, k = 9, GLVM, the default depth method),
 over the distinct simulated frames of ``bench_pipeline.py``'s frame bank (read into memory
@@ -21,6 +22,10 @@ thread (``BandWorkers.run`` swapped for a loop, here only): what splitting the r
 itself (the halos, each band's calls) against what running the bands in threads adds (the
 hand-overs, the GIL between the bands' Python code): the share that band *processes*,
 which share no interpreter, would not pay.
+``--task-threads`` adds every K with the depth stage's bands as tasks in threads
+(:class:`~sffscan.stages.bands.BandTaskThreads`, what a scan's band threads are with the
+OpenCV backend), which measure the focus of the rows they accumulate; with ``--serial``
+also each K > 1 of them one band after another.
 ``--processes`` adds every K with the depth stage's bands in processes
 (:mod:`sffscan.pipeline.band_processes`), which measure the focus of the rows they
 accumulate; their CPU is counted with this process's.
@@ -51,10 +56,11 @@ from bench_pipeline import bench_config, frame_bank, load_bank, machine, placed_
 from sffscan.pipeline.band_processes import LazyBandProcesses  # noqa: E402
 from sffscan.pipeline.heap import keep_freed_memory  # noqa: E402
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads  # noqa: E402
-from sffscan.stages.bands import BandWorkers  # noqa: E402
+from sffscan.stages.bands import BandTaskThreads, BandWorkers  # noqa: E402
 from sffscan.stages.depth_stage import DepthStage  # noqa: E402
 from sffscan.stages.focus_measure import FocusMeasureStage  # noqa: E402
 from sffscan.stages.shared_volume import SharedFocusVolume  # noqa: E402
+from sffscan.stages.volume_tasks import run_task  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,17 +97,25 @@ def bands_in_turn(on: bool) -> Iterator[None]:
     if not on:
         yield
         return
-    threaded = BandWorkers.run
+    threaded, submit = BandWorkers.run, BandTaskThreads.submit_task
 
     def serial(self: BandWorkers, fn: Callable[[int, int], Any],
                bands: list[tuple[int, int]]) -> list[Any]:
         return [fn(a, b) for a, b in bands]
 
+    def serial_tasks(self: BandTaskThreads, task: str, params: dict[str, Any],
+                     bands: list[tuple[int, int]]) -> int:
+        for rows in bands:
+            run_task(self.arrays, task, params, rows)
+        return 0
+
     BandWorkers.run = serial  # type: ignore[method-assign]
+    BandTaskThreads.submit_task = serial_tasks  # type: ignore[method-assign]
     try:
         yield
     finally:
         BandWorkers.run = threaded  # type: ignore[method-assign]
+        BandTaskThreads.submit_task = submit  # type: ignore[method-assign]
 
 
 def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthStage, k: int,
@@ -115,14 +129,16 @@ def run_stages(placed: list[Any], fm_ref: FocusMeasureStage, depth_ref: DepthSta
     kw = dict(depth_ref.kwargs)
     kw["slack_px"] = kw.pop("row_slack")
     del kw["col_slack"]
-    pool = None
+    pool: LazyBandProcesses | BandTaskThreads | None = None
     if kind != "threads":
-        pool = LazyBandProcesses(k, SharedFocusVolume.shared_layout(
-            **depth_ref.kwargs, raw_dtype=placed[0].image.dtype.str))  # type: ignore[arg-type]
+        layout = SharedFocusVolume.shared_layout(
+            **depth_ref.kwargs, raw_dtype=placed[0].image.dtype.str)  # type: ignore[arg-type]
+        pool = (LazyBandProcesses(k, layout) if kind == "processes"
+                else BandTaskThreads(k, layout))
     fm = FocusMeasureStage(operator=fm_ref.operator, window=fm_ref.window,
                            max_value=fm_ref.max_value, margin=fm_ref.margin,
                            directions=fm_ref.directions, workers=k,
-                           band_processes=pool is not None)
+                           bands_measure=pool is not None)
     depth = DepthStage(directions=depth_ref.directions, workers=k, band_tasks=pool,
                        **kw)  # type: ignore[arg-type]
     depth.prepare()
@@ -228,7 +244,8 @@ def rounds(n: int, configs: list[str],
             with bands_in_turn(name.endswith("in turn")), \
                     (twin.beside() if twin is not None and name.endswith("twin")
                      else nullcontext()):
-                kind = "processes" if name.endswith("processes") else "threads"
+                kind = ("processes" if "processes" in name else "task threads"
+                        if "task threads" in name else "threads")
                 c, w, outs[name] = run(int(name.split()[0]), kind)
             cpu[name].append(c)
             wall[name].append(w)
@@ -253,6 +270,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--processes", action="store_true",
                     help="also each K with the focus measure's and depth stage's bands in "
                          "processes (sffscan.pipeline.band_processes)")
+    ap.add_argument("--task-threads", action="store_true",
+                    help="also each K with the depth stage's bands as tasks in threads "
+                         "(sffscan.stages.bands.BandTaskThreads), each measuring the focus "
+                         "of the rows it accumulates")
     ap.add_argument("--twin", action="store_true",
                     help="also K = 1 while another process does the same work (every core "
                          "busy: what this machine's shared caches and memory cost)")
@@ -267,6 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     configs = [str(k) for k in args.workers] + (
         [f"{k} in turn" for k in args.workers if k > 1] if args.serial else []) + (
         [f"{k} processes" for k in args.workers] if args.processes else []) + (
+        [f"{k} task threads" for k in args.workers] if args.task_threads else []) + (
+        [f"{k} task threads in turn" for k in args.workers if k > 1]
+        if args.task_threads and args.serial else []) + (
         ["1 beside a twin"] if args.twin else [])
     ref = configs[0]
     cpu: dict[str, list[float]] = {c: [] for c in configs}
@@ -304,6 +328,18 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", "`K in turn`: the same K bands, one after another in one thread (the "
                   "split's own cost: halos, each band's calls); K against `K in turn`: what "
                   "the threads add (hand-overs, the GIL shared by the bands' Python code)."]
+    lines += ["", "`K`: the focus measure stage's and the focus volume's own band threads "
+              "(`BandWorkers`; the focus measure joined from its bands, then split again "
+              "for the accumulation): a scan's band threads before 2026-12-04 night, and "
+              "still with the torch backend."]
+    if args.task_threads:
+        lines += ["", "`K task threads`: K bands as tasks in threads "
+                  "(`sffscan.stages.bands.BandTaskThreads`), the same tasks on the same "
+                  "arrays as band processes, each band measuring the focus of the rows it "
+                  "accumulates (one task a frame): a scan's `processing.bands = \"threads\"` "
+                  "with the OpenCV backend since 2026-12-04 night."
+                  + (" `K task threads in turn`: the same tasks one band after another in "
+                     "the caller's thread." if args.serial else "")]
     if args.processes:
         lines += ["", "`K processes`: K bands in K processes sharing the depth stage's "
                   "state (`sffscan.pipeline.band_processes`: the caller's and K - 1 "

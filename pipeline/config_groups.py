@@ -232,28 +232,32 @@ class Execution(ConfigModel):
         "pixels on a machine with 2 or more cores")
     workers: Annotated[int, Field(ge=1, le=64)] | Literal["auto"] = Field(
         1, description="Band workers of the focus measure and of the depth stage: each "
-        "frame's rows split among that many threads of each stage, results bit-identical "
-        "for any number; the registration measures a frame's pairs (one a lag) in as many "
-        "threads, at most one a pair; 'auto' = the cores available less 2 (the "
-        "registration and the main process), at least 1, at most 8. 1 by default: on 2 "
-        "cores N = 2 costs 1.19x the CPU of these stages (bench/results/bands.md), which the "
-        "other stages need; with bands = 'processes' on a 16-core Xeon, 4 ran 152-161 "
+        "frame's rows split among that many workers (see bands), each measuring the focus "
+        "of the rows it accumulates (OpenCV backend; with torch the depth stage's rows "
+        "only), results bit-identical for any number; the registration measures a frame's "
+        "pairs (one a lag) in as many threads, at most one a pair; 'auto' = the cores "
+        "available less 2 (the registration and the main process), at least 1, at most 8. "
+        "1 by default: on 2 cores N = 2 costs 1.09-1.27x the CPU of these stages in threads "
+        "(bench/results/band_task_threads.md), which the other stages need; with bands = "
+        "'processes' on a 16-core Xeon, 4 ran 152-161 "
         "frames/s on 8 cores against 99-101 with 1, and 'auto' (8) 179-184 on 16 cores "
         "(bench/results/parallel_async_h200.md)")
 
     bands: Literal["threads", "processes"] = Field(
         "threads", description="Where the band workers (workers > 1) run: 'threads' of the "
-        "focus measure and depth stages, or 'processes' that share the depth stage's state, "
-        "each measuring the focus of the rows it accumulates (OpenCV backend; no GIL "
-        "shared, for machines with a core per band: on 2 cores N = 2 took 1.31x the CPU of "
-        "one band against 1.23x in threads, bench/results/band_processes.md); with "
-        "'processes' the live view measures the focus of the frames it shows itself")
+        "depth stage's process, or 'processes' (OpenCV backend; no GIL shared, for "
+        "machines with a core per band), both running the same tasks on the depth stage's "
+        "state, each band measuring the focus of the rows it accumulates (on 2 cores N = 2 "
+        "took 1.23x the CPU of one band in processes, 1.27x in threads, "
+        "bench/results/band_task_threads.md); the live view then measures the focus of the "
+        "frames it shows itself")
 
-    def band_processes(self) -> bool:
-        """Whether the depth stage's band processes measure the focus (``bands =
-        'processes'`` with more than one band worker): the focus measure stage then passes
-        the frames on unmeasured (:class:`~sffscan.stages.messages.RawColumns`)."""
-        return self.bands == "processes" and self.band_workers() > 1
+    def bands_measure(self) -> bool:
+        """Whether the depth stage's band workers measure the focus of the rows they
+        accumulate (more than one band worker with the OpenCV backend: band processes, or
+        band threads running the same tasks): the focus measure stage then passes the
+        frames on unmeasured (:class:`~sffscan.stages.messages.RawColumns`)."""
+        return self.backend == "opencv" and self.band_workers() > 1
 
     def band_workers(self) -> int:
         """The number of band workers: :attr:`workers`, 'auto' resolved on this machine."""

@@ -17,6 +17,7 @@ import numpy as np
 from sffscan.pipeline.band_processes import LazyBandProcesses
 from sffscan.pipeline.config import ScanConfig
 from sffscan.pipeline.plan import pass_direction
+from sffscan.stages.bands import BandTaskThreads
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.protocol import Stage
@@ -66,13 +67,16 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
                     block_columns=p.block_columns)
 
     wanted = {"focus_measure", "depth"} if only is None else set(only)
-    bands = None
-    if p.band_processes() and {"focus_measure", "depth"} <= wanted:
-        # the depth stage's band processes, started where the stages run
-        # (sffscan.pipeline.band_processes); they measure the focus too (one band: none)
-        bands = LazyBandProcesses(p.band_workers(), SharedFocusVolume.shared_layout(
-            **depth_kw(), row_slack=slack, col_slack=slack,
-            raw_dtype=np.dtype(o.dtype).str), name="band")
+    bands: LazyBandProcesses | BandTaskThreads | None = None
+    if p.bands_measure() and {"focus_measure", "depth"} <= wanted:
+        # the depth stage's band workers, which measure the focus too (one band: none):
+        # processes started where the stages run (sffscan.pipeline.band_processes), or
+        # threads running the same tasks (sffscan.stages.bands.BandTaskThreads)
+        layout = SharedFocusVolume.shared_layout(
+            **depth_kw(), row_slack=slack, col_slack=slack, raw_dtype=np.dtype(o.dtype).str)
+        bands = (LazyBandProcesses(p.band_workers(), layout, name="band")
+                 if p.bands == "processes"
+                 else BandTaskThreads(p.band_workers(), layout, name="depth-band"))
     build: dict[str, Callable[[], Stage]] = {
         "registration": lambda: RegistrationStage(n_levels=o.n_levels,
                                                   scale=p.registration_scale,
@@ -80,7 +84,7 @@ def measure_stages(cfg: ScanConfig, *, only: Collection[str] | None = None) -> l
         "focus_measure": lambda: FocusMeasureStage(
             operator=p.focus_operator, window=p.window, backend=p.backend, device=p.device,
             max_value=o.max_value, margin=p.focus_reach_px, directions=directions,
-            workers=p.band_workers(), band_processes=bands is not None,
+            workers=p.band_workers(), bands_measure=bands is not None,
             torch_threads=TORCH_THREADS),
         "depth": lambda: DepthStage(
             directions=directions, slack_px=slack, workers=p.band_workers(),

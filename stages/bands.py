@@ -11,19 +11,25 @@ rows, so the result is bit-identical for every K (tested in
 Threads: the work inside a band is OpenCV and numpy on arrays of a few hundred rows,
 which release the GIL, and the bands share the frame and the focus volume's state without
 copies. What still holds the GIL (the calls' Python overhead) limits the gain;
-``bench/bench_bands.py`` measures it. The focus volume's bands can also run in processes
-(:class:`BandTasks`, :mod:`sffscan.pipeline.band_processes`), which share no GIL.
+``bench/bench_bands.py`` measures it. The focus volume's bands can also run as named tasks
+(:class:`BandTasks`, :mod:`sffscan.stages.volume_tasks`) on arrays of their own, each band
+measuring the focus of the rows it accumulates: in processes, which share no GIL
+(:mod:`sffscan.pipeline.band_processes`), or in threads (:class:`BandTaskThreads`, a
+scan's band threads with the OpenCV backend), which pay no frame-sized focus measure
+joined from the bands and split again (bench/results/band_task_threads.md).
 """
 
 from __future__ import annotations
 
+import collections
+import contextlib
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
-__all__ = ["BAND_CPU_KEY", "BandTasks", "BandWorkers", "row_bands"]
+__all__ = ["BAND_CPU_KEY", "BandTaskThreads", "BandTasks", "BandWorkers", "row_bands"]
 
 BAND_CPU_KEY = "band_processes_cpu_s"
 """A stage's statistic (:meth:`~sffscan.stages.protocol.Stage.extra_stats`): CPU seconds
@@ -154,6 +160,120 @@ class BandWorkers:
             self._pool = None
 
     def __enter__(self) -> BandWorkers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class BandTaskThreads:
+    """:class:`BandTasks` in threads of this process: the layout's arrays in this process's
+    memory, one thread a band after the first, the caller's thread the first.
+
+    The same tasks (:mod:`sffscan.stages.volume_tasks`) on the same arrays as band
+    processes, so the blocks are bit-identical to theirs and to one band; each band
+    measures the focus of the rows it accumulates (no frame-sized focus measure gathered
+    from the bands) and a frame is one task a band. What the bands' Python code holds of
+    the GIL is shared, as for :class:`BandWorkers`.
+
+    Parameters
+    ----------
+    k : int
+        Bands, >= 1 (``k - 1`` threads).
+    layout : dict
+        Array name -> (shape, dtype string)
+        (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.shared_layout`).
+    timeout_s : float, keyword-only
+        The longest a wait for a band's task may take; past it the wait raises
+        ``TimeoutError`` naming the task and rows.
+    name : str, keyword-only
+        The threads' name prefix.
+
+    Notes
+    -----
+    Each band thread runs its tasks in the order they were submitted. A task's
+    ``params`` are read when the band runs it: the caller must not change them after
+    :meth:`submit_task`.
+    """
+
+    def __init__(self, k: int, layout: dict[str, tuple[tuple[int, ...], str]], *,
+                 timeout_s: float = 120.0, name: str = "band") -> None:
+        if k < 1:
+            raise ValueError(f"k (band workers) must be >= 1, got {k}")
+        self.k = k
+        self.timeout_s = timeout_s
+        self._arrays = {n: np.zeros(shape, np.dtype(dtype)) for n, (shape, dtype)
+                        in layout.items()}
+        self._pools = [ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{name}-{i}")
+                       for i in range(1, k)]
+        self._pending: list[collections.deque[tuple[int, Future[None], str]]] = [
+            collections.deque() for _ in self._pools]
+        self._ticket = 0
+        self._closed = False
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays, by name."""
+        return self._arrays
+
+    def run_task(self, task: str, params: dict[str, Any],
+                 bands: list[tuple[int, int]]) -> None:
+        """:meth:`BandTasks.run_task`."""
+        self.wait_tasks(self.submit_task(task, params, bands))
+
+    def submit_task(self, task: str, params: dict[str, Any],
+                    bands: list[tuple[int, int]]) -> int:
+        """:meth:`BandTasks.submit_task`."""
+        from sffscan.stages.volume_tasks import run_task  # the tasks need this module
+
+        if len(bands) > self.k:
+            raise ValueError(f"{len(bands)} bands for {self.k} band workers")
+        if self._closed:
+            raise RuntimeError("band task threads used after they were closed")
+        self._ticket += 1
+        for (a, b), pool, pending in zip(bands[1:], self._pools, self._pending, strict=False):
+            f = pool.submit(run_task, self._arrays, task, params, (a, b))
+            pending.append((self._ticket, f, f"{task}, rows {a}..{b}"))
+        if bands:
+            try:
+                run_task(self._arrays, task, params, bands[0])
+            except BaseException:  # the other bands write into the same arrays: wait
+                with contextlib.suppress(Exception):
+                    self.wait_tasks(self._ticket)
+                raise
+        return self._ticket
+
+    def wait_tasks(self, ticket: int | None = None) -> None:
+        """:meth:`BandTasks.wait_tasks`: the first error a band raised on the way is raised
+        (the others' tasks still waited for)."""
+        upto = self._ticket if ticket is None else ticket
+        failure: BaseException | None = None
+        for pending in self._pending:
+            while pending and pending[0][0] <= upto:
+                _, f, what = pending.popleft()
+                try:
+                    f.result(timeout=self.timeout_s)
+                except TimeoutError as err:
+                    failure = failure or TimeoutError(
+                        f"band thread ({what}) took more than {self.timeout_s:g} s")
+                    failure.__cause__ = err
+                except Exception as err:
+                    failure = failure or err
+        if failure is not None:
+            raise failure
+
+    def helpers_cpu_s(self) -> float:
+        """0: the threads' CPU is this process's own."""
+        return 0.0
+
+    def close(self) -> None:
+        """Join the threads (idempotent; tasks not started are dropped)."""
+        self._closed = True
+        for pool in self._pools:
+            pool.shutdown(wait=True, cancel_futures=True)
+        self._pools = []
+
+    def __enter__(self) -> BandTaskThreads:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -31,12 +31,16 @@ class DepthStage(Stage):
 
     ``workers`` > 1 splits each frame's accumulation and each block's reduction by rows
     among that many band workers (:mod:`sffscan.stages.bands`); the blocks are
-    bit-identical for every number. They are threads, or with ``band_tasks`` processes
-    (:class:`sffscan.pipeline.band_processes.BandProcesses`, their arrays laid out by
+    bit-identical for every number. They are threads of the volume
+    (:class:`~sffscan.stages.bands.BandWorkers`), or with ``band_tasks`` workers that run
+    the volume's band tasks on arrays of their own and measure the focus of their rows
+    (:class:`~sffscan.stages.messages.RawColumns` in): processes
+    (:class:`sffscan.pipeline.band_processes.BandProcesses`, started by :meth:`prepare` in
+    the process that runs the stage) or threads
+    (:class:`~sffscan.stages.bands.BandTaskThreads`), their arrays laid out by
     :meth:`SharedFocusVolume.shared_layout
     <sffscan.stages.shared_volume.SharedFocusVolume.shared_layout>` of the same
-    parameters; ``workers`` is then unused), started by :meth:`prepare` in the process
-    that runs the stage. The other parameters are
+    parameters; ``workers`` is then unused. The other parameters are
     :class:`~sffscan.stages.focus_volume.FocusVolume`'s.
     """
 
@@ -112,11 +116,11 @@ class DepthStage(Stage):
         yield from self._blocks(results)
 
     def _add_raw(self, item: RawColumns) -> list[BlockResult]:
-        """A frame whose focus the band processes measure
+        """A frame whose focus the band workers measure
         (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`)."""
         if not isinstance(self.volume, SharedFocusVolume):
             raise ValueError("a frame to measure (RawColumns) needs the depth stage's band "
-                             "processes (band_tasks)")
+                             "workers (band_tasks)")
         c0, c1, a0, a1 = item.columns
         x, y = item.placed.offset_px
         return self.volume.add_raw(item.placed.image[:, a0:a1], cols=(c0 - a0, c1 - a0),
@@ -135,7 +139,7 @@ class DepthStage(Stage):
 
     def _new_volume(self, direction: int, reuse: FocusVolume | None,
                     workers: BandWorkers | BandTasks | None) -> FocusVolume:
-        """A pass's volume: in the band processes' arrays where there are some."""
+        """A pass's volume: in the band tasks' arrays where there are some."""
         if self.band_tasks is not None:
             return SharedFocusVolume(direction=direction, reuse=reuse, workers=self.band_tasks,
                                      **self.kwargs)

@@ -247,11 +247,11 @@ class FocusMeasureStage(Stage):
         Band workers (:mod:`sffscan.stages.bands`): with the OpenCV backend, each frame's
         rows are measured in that many bands at once (:func:`focus_measure_raw`'s
         ``rows``), then joined: bit-identical for GLVM and TENV. 1: one call per frame.
-    band_processes : bool
-        The depth stage's band processes measure the focus (the OpenCV backend): each
-        the rows it accumulates, never gathered
-        (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`). The stage then
-        passes on, instead of each focus frame, the frame and its columns
+    bands_measure : bool
+        The depth stage's band workers (:class:`~sffscan.stages.bands.BandTasks`: processes
+        or threads) measure the focus (the OpenCV backend): each the rows it accumulates,
+        never gathered (:meth:`sffscan.stages.shared_volume.SharedFocusVolume.add_raw`).
+        The stage then passes on, instead of each focus frame, the frame and its columns
         (:class:`~sffscan.stages.messages.RawColumns`): a sink that taps it gets no focus
         frames (the live view measures the frames it shows itself).
     torch_threads : int or None
@@ -266,7 +266,7 @@ class FocusMeasureStage(Stage):
     def __init__(self, *, operator: str = "glvm", window: int = 9, backend: str = "opencv",
                  device: str = "cpu", max_value: float = 255.0, margin: int,
                  directions: Sequence[int] = (1,), workers: int = 1,
-                 band_processes: bool = False, torch_threads: int | None = None) -> None:
+                 bands_measure: bool = False, torch_threads: int | None = None) -> None:
         self.operator = check_operator(operator)
         self.window = check_window(window)
         self.backend = backend
@@ -280,10 +280,10 @@ class FocusMeasureStage(Stage):
         self._device_focus: DeviceFocus | None = None
         self.workers = workers
         self._bands: BandWorkers | None = None  # made at the first frame
-        if band_processes and backend != "opencv":
-            raise ValueError("band processes measure the focus with the OpenCV backend "
+        if bands_measure and backend != "opencv":
+            raise ValueError("band workers measure the focus with the OpenCV backend "
                              f"only, not {backend!r}")
-        self.band_processes = band_processes
+        self.bands_measure = bands_measure
         if torch_threads is not None and torch_threads < 1:
             raise ValueError(f"torch_threads must be >= 1 or None, got {torch_threads}")
         self.torch_threads = torch_threads
@@ -311,7 +311,7 @@ class FocusMeasureStage(Stage):
 
     def process(self, item: PlacedFrame) -> Iterator[FocusFrame | RawColumns]:
         c0, c1, a0, a1 = self.columns(item)
-        if self.band_processes:  # measured by the depth stage's band processes
+        if self.bands_measure:  # measured by the depth stage's band workers
             yield RawColumns(item, (c0, c1, a0, a1), {
                 "operator": self.operator, "window": self.window,
                 "max_value": self.max_value})

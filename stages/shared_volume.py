@@ -1,8 +1,9 @@
-"""The focus volume with its rows split among band *processes* that share its state.
+"""The focus volume with its rows split among band workers that run tasks on its state.
 
 :class:`SharedFocusVolume` is a :class:`~sffscan.stages.focus_volume.FocusVolume` whose
 per-pixel state lives in the named arrays of a :class:`~sffscan.stages.bands.BandTasks`
-(one shared-memory segment, :class:`sffscan.pipeline.band_processes.BandProcesses`),
+(one shared-memory segment, :class:`sffscan.pipeline.band_processes.BandProcesses`, or
+this process's memory, :class:`~sffscan.stages.bands.BandTaskThreads`),
 laid out by :meth:`SharedFocusVolume.shared_layout`. The bookkeeping (which columns and
 levels are stored, when a block is final) stays in the volume's process; the work on the
 pixels goes to the bands as tasks (:mod:`sffscan.stages.volume_tasks`): each frame's
@@ -195,7 +196,7 @@ class SharedFocusVolume(FocusVolume):
         else:
             self.tasks.submit_task("accumulate", {**params, "shape": list(self._frame_shape)},
                                    self._bands)
-        self._specs.clear()
+        self._specs = []  # a new list: band threads read the one submitted later
 
     # -- blocks out ------------------------------------------------------------------------
     def _run_task(self, task: str, params: dict[str, object]) -> None:

@@ -137,9 +137,9 @@ class VizSink(Sink):
         self.taps = (placed, "focus_measure", "depth")
         o = cfg.optics
         self.frame_step = max(1, round(o.fps / self.opt.frame_hz))
-        #: no focus frames come (the band processes measure the focus): the view measures
-        #: the frames it shows (one in ``frame_step``, in the view's own thread)
-        self.measures_focus = cfg.processing.band_processes()
+        #: no focus frames come (the depth stage's band workers measure the focus): the view
+        #: measures the frames it shows (one in ``frame_step``, in the view's own thread)
+        self.measures_focus = cfg.processing.bands_measure()
         #: what the view uses, selected where the stages run (process mode)
         self.relay_keep = (logged_items, {"frame_step": self.frame_step})
         #: the depth blocks (a lost one leaves a hole in the mosaic) and the statistics are

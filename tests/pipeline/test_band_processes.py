@@ -15,6 +15,7 @@ from sffscan.pipeline.band_processes import (
     BandProcessFailed,
     LazyBandProcesses,
 )
+from sffscan.stages.bands import BandTaskThreads
 from sffscan.stages.depth_stage import DepthStage
 from sffscan.stages.focus_measure import FocusMeasureStage
 from sffscan.stages.focus_volume import FocusVolume
@@ -196,7 +197,7 @@ def test_band_processes_measure_what_they_add(method: str) -> None:
 
     def focus(band_processes: bool = False) -> FocusMeasureStage:
         return FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
-                                 directions=(1, -1), band_processes=band_processes)
+                                 directions=(1, -1), bands_measure=band_processes)
 
     fm, depth = focus(), DepthStage(**kw)  # type: ignore[arg-type]
     ref = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
@@ -264,7 +265,7 @@ def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
 
     def run(bands: DeferredBands | None) -> list:
         fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
-                               directions=(1, -1), band_processes=bands is not None)
+                               directions=(1, -1), bands_measure=bands is not None)
         depth = DepthStage(band_tasks=bands, **kw)  # type: ignore[arg-type]
         out = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
         return out + list(depth.finish())
@@ -279,21 +280,23 @@ def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
 
 def test_a_frame_to_measure_needs_band_processes() -> None:
     fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
-                           band_processes=True)
+                           bands_measure=True)
     depth = DepthStage(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margin=3,
                        median_size=3, block_columns=16, slack_px=3, spread_size=3)
     item = next(iter(fm.process(_raw_scan(2)[0])))
     with pytest.raises(FrameError, match="frame_id 0: a frame to measure .* needs the depth "
-                       "stage's band processes"):
+                       "stage's band workers"):
         list(depth.process(item))
     with pytest.raises(ValueError, match="OpenCV backend only"):
-        FocusMeasureStage(margin=3, backend="torch", band_processes=True)
+        FocusMeasureStage(margin=3, backend="torch", bands_measure=True)
 
 
-def test_band_processes_are_chosen_by_the_configuration(tmp_path: Path) -> None:
-    """processing.bands = 'processes' builds both stages on one set of band processes
-    (for more than one band only), refuses the torch backend, and the live view never
-    asks for a frame the band processes measure."""
+def test_band_workers_are_chosen_by_the_configuration(tmp_path: Path) -> None:
+    """processing.bands = 'processes' builds both stages on one set of band processes,
+    'threads' on band task threads (for more than one band only, the OpenCV backend: with
+    torch the focus measure's own threads and the volume's band threads); 'processes'
+    refuses the torch backend, and the live view never asks for a frame the bands
+    measure."""
     from sffscan.pipeline.config import ConfigError, ScanConfig, load_config
     from sffscan.pipeline.measuring import measure_stages
     from sffscan.pipeline.viz.preview import logged_items
@@ -302,16 +305,22 @@ def test_band_processes_are_chosen_by_the_configuration(tmp_path: Path) -> None:
 
     fm, depth = measure_stages(small_config(processing={"workers": 2, "bands": "processes"}),
                                only=("focus_measure", "depth"))
-    assert isinstance(fm, FocusMeasureStage) and fm.band_processes
+    assert isinstance(fm, FocusMeasureStage) and fm.bands_measure
     assert isinstance(depth, DepthStage) and isinstance(depth.band_tasks, LazyBandProcesses)
     assert depth.band_tasks.k == 2
+    fm, depth = measure_stages(small_config(processing={"workers": 3, "bands": "threads"}),
+                               only=("focus_measure", "depth"))
+    assert isinstance(fm, FocusMeasureStage) and fm.bands_measure
+    assert isinstance(depth, DepthStage) and isinstance(depth.band_tasks, BandTaskThreads)
+    assert depth.band_tasks.k == 3
+    depth.close(failed=False)
     for cfg in (small_config(processing={"workers": 1, "bands": "processes"}),
-                small_config(processing={"workers": 2, "bands": "threads"})):
+                small_config(processing={"workers": 2, "backend": "torch"})):
         fm, depth = measure_stages(cfg, only=("focus_measure", "depth"))
-        assert not fm.band_processes and depth.band_tasks is None  # type: ignore[attr-defined]
+        assert not fm.bands_measure and depth.band_tasks is None  # type: ignore[attr-defined]
     fm, = measure_stages(small_config(processing={"workers": 2, "bands": "processes"}),
                          only=("focus_measure",))
-    assert not fm.band_processes  # type: ignore[attr-defined]
+    assert not fm.bands_measure  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="bands = 'processes' measures the focus with the "
                        "OpenCV backend; backend is 'torch'"):
         ScanConfig.model_validate({"processing": {"bands": "processes", "backend": "torch"}})
@@ -319,7 +328,7 @@ def test_band_processes_are_chosen_by_the_configuration(tmp_path: Path) -> None:
     bad.write_text('[processing]\nbands = "processes"\nbackend = "torch"\n', encoding="utf-8")
     with pytest.raises(ConfigError, match="processing.*OpenCV backend"):
         load_config(bad)
-    item = next(iter(FocusMeasureStage(margin=3, band_processes=True, max_value=1023.0)
+    item = next(iter(FocusMeasureStage(margin=3, bands_measure=True, max_value=1023.0)
                      .process(_raw_scan(2)[0])))
     assert not logged_items(1)(item)
 
@@ -337,3 +346,82 @@ def test_band_processes_refuse_a_segment_the_shared_memory_cannot_hold(
                        r"0 MiB free .*processing.bands = 'threads'"):
         BandProcesses(2, layout)
     assert not _segments()
+
+
+# -- the same tasks in threads (processing.bands = "threads") --------------------------------
+
+@pytest.mark.parametrize(("method", "direction"), [
+    ("shape_select", 1), ("shape_select", -1), ("spc", 1), ("gauss3", -1)])
+def test_blocks_are_bit_identical_in_band_task_threads(method: str, direction: int) -> None:
+    """Three band task threads give every block of two passes (the second taking over the
+    first's ring) bit for bit as the volume alone, as band processes do."""
+    alone = _passes(method, direction, None)
+    layout = SharedFocusVolume.shared_layout(method=method, **VOLUME)
+    with BandTaskThreads(3, layout, name="test-band") as pool:
+        assert_same_blocks(alone, _passes(method, direction, pool))  # type: ignore[arg-type]
+        assert pool.helpers_cpu_s() == 0.0  # counted with the process's own
+    with pytest.raises(RuntimeError, match="used after they were closed"):
+        pool.run_task("depth", {}, [(0, 1)])
+
+
+@pytest.mark.parametrize("method", ["shape_select", "spc"])
+def test_band_task_threads_measure_what_they_add(method: str) -> None:
+    """The focus measure stage passing RawColumns to band task threads that measure their
+    own rows gives the blocks of one band, bit for bit, both directions, for 2 and 4."""
+    frames = _raw_scan()
+    kw = {**RAW_DEPTH, "method": method}
+
+    def run(bands: BandTaskThreads | None) -> list:
+        fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
+                               directions=(1, -1), bands_measure=bands is not None)
+        depth = DepthStage(band_tasks=bands, **kw)  # type: ignore[arg-type]
+        depth.prepare()
+        try:
+            out = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
+            return out + list(depth.finish())
+        finally:
+            depth.close(failed=False)
+
+    ref = run(None)
+    assert sum(b.header.complete_columns for b in ref) > 200
+    layout = SharedFocusVolume.shared_layout(**{**kw, "row_slack": 3, "col_slack": 3})
+    for k in (2, 4):
+        assert_same_depth_blocks(ref, run(BandTaskThreads(k, layout)))
+
+
+def test_a_failing_band_task_thread_is_raised_by_the_wait_that_reaches_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A task that raises in a band thread is raised, once, by the first wait that reaches
+    its ticket; one that raises in the caller's band is raised at once; a band that takes
+    too long is named with its task and rows."""
+    import threading
+
+    from sffscan.stages import volume_tasks
+
+    def fail_in_band_7(arrays: dict, params: dict, rows: tuple[int, int]) -> None:
+        if rows[0] == 7:
+            raise ArithmeticError(f"failed in rows {rows[0]}..{rows[1]}")
+
+    release = threading.Event()
+    monkeypatch.setitem(volume_tasks.TASKS, "fail7", fail_in_band_7)
+    monkeypatch.setitem(volume_tasks.TASKS, "block",
+                        lambda a, p, r: release.wait(5.0) if r[0] == 7 else None)
+    layout = SharedFocusVolume.shared_layout(method="spc", **VOLUME)
+    with BandTaskThreads(2, layout, timeout_s=0.2) as pool:
+        ticket = pool.submit_task("fail7", {}, [(0, 7), (7, 9)])  # the caller's band passes
+        with pytest.raises(ArithmeticError, match="failed in rows 7..9"):
+            pool.wait_tasks(ticket)
+        pool.wait_tasks()  # raised once
+        with pytest.raises(ArithmeticError, match="failed in rows 7..7"):
+            pool.submit_task("fail7", {}, [(7, 7), (0, 7)])
+        with pytest.raises(ValueError, match="unknown band task 'nope'"):
+            pool.run_task("nope", {}, [(0, 1), (1, 2)])
+        with pytest.raises(ValueError, match="3 bands for 2 band workers"):
+            pool.submit_task("depth", {}, [(0, 1), (1, 2), (2, 3)])
+        try:
+            pool.submit_task("block", {}, [(0, 0), (7, 9)])
+            with pytest.raises(TimeoutError, match=r"band thread \(block, rows 7\.\.9\) took "
+                               r"more than 0\.2 s"):
+                pool.wait_tasks()
+        finally:
+            release.set()

@@ -495,11 +495,15 @@ def test_blueprint_shows_the_views_own_drops_apart() -> None:
     assert len(others) == 1 and "- stats/dropped/viewer" in others[0].contents
 
 
-@pytest.mark.parametrize("bands", ["threads", "processes"])
-def test_band_processes_view_measures_the_frames_it_shows(tmp_path: Path, bands: str) -> None:
-    """Where the depth stage's band processes measure the focus, no focus frame reaches the
-    view: it measures the frames it shows itself (the whole frame, the focus stage's
-    measure); with band threads it waits for the focus frames, as before."""
+@pytest.mark.parametrize(("processing", "measures"), [
+    ({"workers": 2, "bands": "threads"}, True), ({"workers": 2, "bands": "processes"}, True),
+    ({"workers": 1}, False), ({"workers": 2, "backend": "torch"}, False)])
+def test_band_workers_view_measures_the_frames_it_shows(tmp_path: Path, processing: dict,
+                                                       measures: bool) -> None:
+    """Where the depth stage's band workers measure the focus (more than one, in threads or
+    processes, the OpenCV backend), no focus frame reaches the view: it measures the frames
+    it shows itself (the whole frame, the focus stage's measure); otherwise it waits for the
+    focus frames."""
     import cv2
     import rerun as rr
     from sffscan.pipeline.viz.preview import to_u8
@@ -507,11 +511,11 @@ def test_band_processes_view_measures_the_frames_it_shows(tmp_path: Path, bands:
     from sffscan.stages.messages import PlacedFrame
     from sffscan.stages.protocol import Tapped
 
-    cfg = small_config(processing={"workers": 2, "bands": bands})
+    cfg = small_config(processing=processing)
     rec = rr.RecordingStream("sffscan-test")
     rec.save(str(tmp_path / "b.rrd"))
     sink = VizSink(cfg, rec)
-    assert sink.measures_focus == (bands == "processes")
+    assert sink.measures_focus == measures
     frame = next(iter(simulate_frames(cfg)))
     assert frame.header.frame_id % sink.frame_step == 0
     sink.process(Tapped("registration", PlacedFrame(frame.header, frame.image, (0.0, 0.0),
@@ -519,7 +523,7 @@ def test_band_processes_view_measures_the_frames_it_shows(tmp_path: Path, bands:
     sink.close(failed=False)
     rec.flush()
     rows, _, _ = read_rrd(tmp_path / "b.rrd")
-    if bands == "threads":
+    if not measures:
         assert "/scan/focus/measure" not in rows
         return
     (row,) = rows["/scan/focus/measure"]
