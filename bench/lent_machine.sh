@@ -3,11 +3,12 @@
 # one device call: the GPU placement of the focus measure and the accumulation
 # (bench_gpu.py), the torch operators' tests on the GPU (pytest --device cuda), then the
 # process placement measured on 2, 8 and 16 of its cores with 1, 4 and 'auto' band workers,
-# in band threads and band processes (bench_parallel.py), then the scaling model's
+# in band threads (since 2026-12-04 night: the band processes' tasks in threads) and band
+# processes (bench_parallel.py), then the scaling model's
 # inputs measured there on 8 cores (bench_scaling.py), so that its 8-core prediction can be
 # set beside the 8-core measurement, then the focus measure and depth stage alone with 1, 2,
-# 4 and 8 band processes (bench_bands.py: does their CPU a frame grow with K where each
-# band has a core of its own?), and the band processes' model checked against those scans
+# 4 and 8 band processes and band task threads (bench_bands.py: does their CPU a frame grow
+# with K where each band has a core of its own?), and the band processes' model checked against those scans
 # (bench_band_model.py). Each part runs under its own time limit and writes its
 # results as it goes: a part cut short or failing leaves the others' results.
 #
@@ -41,15 +42,16 @@ if [ -z "${SMOKE:-}" ]; then
   # report is written after every round); band threads against band processes
   par=(--frames 400 --rounds 2 --cores 2,8,16 --workers 1,4,auto --bands threads,processes)
   sca=(--frames 300 --rounds 2 --cores 8)
-  bnd=(--workers 1 2 4 8 --processes --rounds 2)
+  bnd=(--workers 1 2 4 8 --processes --task-threads --rounds 2)
   # seconds (gpu, cores, model, cuda-tests, bands); 2026-12-04 there: gpu 61-90 s, cores
-  # 173 s (one round), model 69-84 s, the CUDA tests 17 s
-  limits=(120 200 90 60 130)
+  # 173 s (one round), model 69-84 s, the CUDA tests 17 s, bands (without task threads)
+  # ~90 s
+  limits=(120 200 90 60 160)
 else
   gpu=(--out "$res" --device cpu --quick --frames 40)
   par=(--frames 60 --rounds 1 --cores 1,2 --workers 1,auto --bands processes)
   sca=(--frames 40 --rounds 1 --cores 2 --band-frames 8 --band-rounds 1)
-  bnd=(--workers 1 2 --processes --rounds 1)
+  bnd=(--workers 1 2 --processes --task-threads --rounds 1)
   limits=(300 300 300 300 300)
 fi
 export PYTHONUNBUFFERED=1
