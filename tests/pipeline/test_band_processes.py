@@ -7,6 +7,7 @@ import json
 import os
 import signal
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -177,6 +178,20 @@ RAW_DEPTH = dict(n_levels=N, frame_shape=(H, W), focus_heights_um=HEIGHTS, margi
                  directions=(1, -1))
 
 
+def _raw_blocks(method: str, bands: Any = None) -> list:
+    """The focus measure and depth stages' blocks of _raw_scan's frames; with ``bands``
+    (band tasks) those measure the focus (RawColumns), and are closed after."""
+    fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
+                           directions=(1, -1), bands_measure=bands is not None)
+    depth = DepthStage(band_tasks=bands, **{**RAW_DEPTH, "method": method})  # type: ignore[arg-type]
+    depth.prepare()
+    try:
+        out = [b for q in _raw_scan() for f in fm.process(q) for b in depth.process(f)]
+        return out + list(depth.finish())
+    finally:
+        depth.close(failed=False)
+
+
 def assert_same_depth_blocks(ref: list, got: list) -> None:
     """The depth stage's blocks, header and every array, bit for bit."""
     assert len(got) == len(ref)
@@ -260,20 +275,11 @@ def test_frames_go_to_the_bands_without_waiting_for_them(method: str) -> None:
     behind), waiting only before a block or before a raw slot is used again: with helpers
     that run as late as that allows, the blocks are still those of one process, bit for
     bit, both directions."""
-    frames = _raw_scan()
-    kw = {**RAW_DEPTH, "method": method}
-
-    def run(bands: DeferredBands | None) -> list:
-        fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
-                               directions=(1, -1), bands_measure=bands is not None)
-        depth = DepthStage(band_tasks=bands, **kw)  # type: ignore[arg-type]
-        out = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
-        return out + list(depth.finish())
-
-    ref = run(None)
-    layout = SharedFocusVolume.shared_layout(**{**kw, "row_slack": 3, "col_slack": 3})
+    ref = _raw_blocks(method)
+    layout = SharedFocusVolume.shared_layout(**{**RAW_DEPTH, "method": method,
+                                                "row_slack": 3, "col_slack": 3})
     bands = DeferredBands(3, layout)
-    got = run(bands)
+    got = _raw_blocks(method, bands)
     assert bands.most_behind == RAW_SLOTS  # frames were measured behind the caller
     assert_same_depth_blocks(ref, got)
 
@@ -368,25 +374,12 @@ def test_blocks_are_bit_identical_in_band_task_threads(method: str, direction: i
 def test_band_task_threads_measure_what_they_add(method: str) -> None:
     """The focus measure stage passing RawColumns to band task threads that measure their
     own rows gives the blocks of one band, bit for bit, both directions, for 2 and 4."""
-    frames = _raw_scan()
-    kw = {**RAW_DEPTH, "method": method}
-
-    def run(bands: BandTaskThreads | None) -> list:
-        fm = FocusMeasureStage(operator="glvm", window=5, max_value=1023.0, margin=3,
-                               directions=(1, -1), bands_measure=bands is not None)
-        depth = DepthStage(band_tasks=bands, **kw)  # type: ignore[arg-type]
-        depth.prepare()
-        try:
-            out = [b for q in frames for f in fm.process(q) for b in depth.process(f)]
-            return out + list(depth.finish())
-        finally:
-            depth.close(failed=False)
-
-    ref = run(None)
+    ref = _raw_blocks(method)
     assert sum(b.header.complete_columns for b in ref) > 200
-    layout = SharedFocusVolume.shared_layout(**{**kw, "row_slack": 3, "col_slack": 3})
+    layout = SharedFocusVolume.shared_layout(**{**RAW_DEPTH, "method": method,
+                                                "row_slack": 3, "col_slack": 3})
     for k in (2, 4):
-        assert_same_depth_blocks(ref, run(BandTaskThreads(k, layout)))
+        assert_same_depth_blocks(ref, _raw_blocks(method, BandTaskThreads(k, layout)))
 
 
 def test_a_failing_band_task_thread_is_raised_by_the_wait_that_reaches_it(
