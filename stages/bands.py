@@ -224,7 +224,8 @@ class BandTaskThreads:
     def submit_task(self, task: str, params: dict[str, Any],
                     bands: list[tuple[int, int]]) -> int:
         """:meth:`BandTasks.submit_task`."""
-        from sffscan.stages.volume_tasks import run_task  # the tasks need this module
+        # imported at use: the tasks' modules (the depth estimators) are not this one's
+        from sffscan.stages.volume_tasks import run_task
 
         if len(bands) > self.k:
             raise ValueError(f"{len(bands)} bands for {self.k} band workers")
@@ -254,9 +255,10 @@ class BandTaskThreads:
                 try:
                     f.result(timeout=self.timeout_s)
                 except TimeoutError as err:
-                    failure = failure or TimeoutError(
-                        f"band thread ({what}) took more than {self.timeout_s:g} s")
-                    failure.__cause__ = err
+                    if failure is None:
+                        failure = TimeoutError(
+                            f"band thread ({what}) took more than {self.timeout_s:g} s")
+                        failure.__cause__ = err
                 except Exception as err:
                     failure = failure or err
         if failure is not None:
