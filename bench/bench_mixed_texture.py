@@ -12,8 +12,9 @@ twice the contrast by a smooth random map of ~10 px patches; the variant was fix
 2026-12-03, before anything was scored, and no number here is tuned). For each, the
 pooled RMSE (levels) of every selectable method (:data:`sffscan.stages.depth.DEPTH_METHODS`),
 the default's ratio to the best of them, and the share of pixels whose error is within
-2 sigma of the shipped height uncertainty (constants ``SCATTER_SCALE``, ``FLOOR_LEVELS``
-of :mod:`sffscan.stages.depth_uncertainty`; the issue's band is 90-98 %).
+2 sigma of the shipped height uncertainty (constants ``SCATTER_SCALE``,
+``RELIEF_SCALE``, ``FLOOR_LEVELS`` of :mod:`sffscan.stages.depth_uncertainty`; the issue's
+band is 90-98 %).
 
 64 px stacks, GLVM 9, the focus window's reach left out of the scored pixels, as the
 study scores them. Not a test: nothing here asserts.
@@ -31,9 +32,9 @@ from pathlib import Path
 
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_study import DEFAULT_METHOD, score_volume
-from sffscan.stages.depth_uncertainty import FLOOR_LEVELS, SCATTER_SCALE
+from sffscan.stages.depth_uncertainty import FLOOR_LEVELS, RELIEF_SCALE, SCATTER_SCALE
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, Family
-from sffscan.stages.uncertainty_fit import uncertainty_coverage
+from sffscan.stages.uncertainty_fit import UncertaintyConstants, uncertainty_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "mixed_texture.md"
@@ -54,7 +55,8 @@ def score_family(fam: Family, seeds: range) -> tuple[dict[str, float], float]:
         count += s.count
         scores.append(s)
     rmse = {m: math.sqrt(v / count) for m, v in sse.items()}
-    return rmse, uncertainty_coverage(scores, SCATTER_SCALE, FLOOR_LEVELS)
+    shipped = UncertaintyConstants(SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS)
+    return rmse, uncertainty_coverage(scores, shipped)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -69,20 +69,22 @@ focus levels over the pixels of all held-out seeds of a family; in brackets the 
 best fixed method of the row. pertuz-simu02 (a third-party stack with ground truth) is
 scored with the candidate tuned on all families.
 
-The height uncertainty (`sffscan.stages.depth_uncertainty`, one sigma, levels):
-`sigma^2 = (a scatter)^2 + (excess / 2)^2 + b^2 + c^2`, the scatter the depth's RMS about its 5 x 5
-median over the focus window, the excess how much wider the pixel's focus curve is than the
-mean over 2k + 1 px about it (a window that sees two heights), at most half the range of the
-depth's 5 x 5 median over that square (a mix of heights D apart widens a curve by at most
-D / 2, and both heights show beside it: without the cap a textured continuous surface's
-random width scatter counted as mixes), discounted where the curve's
+The height uncertainty (`sffscan.stages.depth_uncertainty`, one sigma, levels): `sigma^2 =
+(a scatter)^2 + (r relief)^2 + (excess / 2)^2 + b^2 + c^2`, the scatter the depth's RMS
+about its 5 x 5 median over the focus window, the relief its RMS about its own box mean over
+the focus window (zero on a plane; since 2026-12-04, night: errors smooth over a few pixels
+follow the median and hide from the scatter), the excess how much wider the pixel's focus
+curve is than the mean over 2k + 1 px about it (a window that sees two heights), at most
+half the range of the depth's 5 x 5 median over that square (a mix of heights D apart widens
+a curve by at most D / 2, and both heights show beside it: without the cap a textured
+continuous surface's random width scatter counted as mixes), discounted where the curve's
 floor holds much of its mass (noise), `b` SPC's departure from the fallback's peaks where
 the stack takes SPC (a bias its scatter cannot show; 0 elsewhere; since 2026-12-04, as it
-is); the 1/2 is the geometry of a two-height mix, `a` and
-`c` are fitted (0.94 quantile of abs(error) / 2 sigma, families weighted equally) on the
-training seeds of the other families for each held-out one, and on all families' training
-seeds for the shipped constants and the third-party set. The bar: 90 .. 98 % of the
-held-out pixels with abs(error) <= 2 sigma on every held-out family.
+is); the 1/2 is the geometry of a two-height mix, `a`, `r` and `c` are fitted (0.94 quantile
+of abs(error) / 2 sigma, families weighted equally) on the training seeds of the other
+families for each held-out one, and on all families' training seeds for the shipped
+constants and the third-party set. The bar: 90 .. 98 % of the held-out pixels with
+abs(error) <= 2 sigma on every held-out family.
 
 Exports (`sffscan export`, `sffscan.pipeline.formats.exports`): PLY carries the uncertainty
 as the vertex property `float uncertainty_um` (µm, NaN where not known). ISO 25178-72 (x3p)
@@ -203,8 +205,9 @@ clean-coarse go from 1.00x to 1.70x on seeds {seeds}..{held_last}, whose flat-to
 make the 3-point peak, not SPC, the biased one. Nor was the noise test's tuned ratio
 replaced by the two depth maps' own scatter (SPC where its map's RMS about its 5 x 5 median
 is at most the fallback's; no constant): even-noisy 1.25x -> 1.26x here, steps 1.00x ->
-1.10x on seeds {seeds}..{held_last}. The uncertainty is in band on 11 of the 21 sets here
-(12 above).
+1.10x on seeds {seeds}..{held_last}. The uncertainty is in band on 17 of the 21 sets here
+(13 above); before the relief joined it (2026-12-04, night) 11 here and 12 above, and
+under the band (the side that misleads) on 6 sets here, 3 now.
 
 """
 

@@ -42,13 +42,18 @@ from sffscan.stages.depth_study_grid import (
 from sffscan.stages.depth_uncertainty import (
     curve_width,
     depth_range,
+    depth_relief,
     depth_scatter,
     floor_share,
     width_excess,
 )
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack
-from sffscan.stages.uncertainty_fit import fit_uncertainty, uncertainty_coverage
+from sffscan.stages.uncertainty_fit import (
+    UncertaintyConstants,
+    fit_uncertainty,
+    uncertainty_coverage,
+)
 
 __all__ = ["HeldOutTable", "format_coverage", "format_table", "leave_one_family_out",
            "score_volume", "uncertainty_sample"]
@@ -57,13 +62,14 @@ __all__ = ["HeldOutTable", "format_coverage", "format_table", "leave_one_family_
 @dataclass
 class _Scores:
     """Sum of squared errors (levels^2) and pixel count per method, one stack; the default
-    method's errors, depth scatter and the curves' excess widths of the scored pixels
-    (levels, :mod:`sffscan.stages.depth_uncertainty`)."""
+    method's errors, depth scatter and relief and the curves' excess widths of the scored
+    pixels (levels, :mod:`sffscan.stages.depth_uncertainty`)."""
 
     sse: dict[str, float]
     count: int
     error: np.ndarray
     scatter: np.ndarray
+    relief: np.ndarray
     excess: np.ndarray
     bias: np.ndarray
 
@@ -98,8 +104,9 @@ def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
     # SPC's bias where the default took SPC for the stack (depth_uncertainty's b)
     bias = stack_choice(volume, argmax, width).bias if DEFAULT_METHOD == "shape_select" else 0.0
     count = int(mask.sum())
-    return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], excess[mask],
-                   np.full(count, bias, np.float32))
+    relief = depth_relief(depth, window=window)
+    return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], relief[mask],
+                   excess[mask], np.full(count, bias, np.float32))
 
 
 def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
@@ -126,7 +133,7 @@ class HeldOutTable:
     stacks is the smallest, ``worst_ratio`` that ratio per method; ``coverage[family]``:
     share of the held-out pixels whose default-method error is within 2 sigma of the
     uncertainty fitted without the family (``uncertainty_fit[family]``: the constants
-    (a, c); ``"all"``: fitted on the training seeds of every family, used for the
+    (a, r, c); ``"all"``: fitted on the training seeds of every family, used for the
     third-party sets, whose coverage is keyed by name).
     """
 
@@ -137,7 +144,7 @@ class HeldOutTable:
     worst_ratio: dict[str, float]
     methods: tuple[str, ...]
     coverage: dict[str, float]
-    uncertainty_fit: dict[str, tuple[float, float]]
+    uncertainty_fit: dict[str, UncertaintyConstants]
 
 
 def _stack_scores(stack: SimStack, *, operator: str, window: int,
@@ -205,7 +212,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     rmse: dict[str, dict[str, float]] = {}
     tuned: dict[str, dict[str, Setting]] = {}
     coverage: dict[str, float] = {}
-    fits: dict[str, tuple[float, float]] = {}
+    fits: dict[str, UncertaintyConstants] = {}
 
     def train_groups(fams: list[str]) -> list[list[_Scores]]:
         return [[scores[g, s] for s in range(seeds)] for g in fams]
@@ -218,7 +225,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         row.update({c: _rmse(held, score_key(c, v)) for c, v in t.items()})
         rmse[f] = row
         fits[f] = fit_uncertainty(train_groups([g for g in names if g != f]))
-        coverage[f] = uncertainty_coverage(held, *fits[f])
+        coverage[f] = uncertainty_coverage(held, fits[f])
     fits["all"] = fit_uncertainty(train_groups(names))
     extra: dict[str, dict[str, float]] = {}
     if third_party:
@@ -229,7 +236,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
             row = {m: _rmse([sc], m) for m in methods}
             row.update({c: _rmse([sc], score_key(c, v)) for c, v in t_all.items()})
             extra[name] = row
-            coverage[name] = uncertainty_coverage([sc], *fits["all"])
+            coverage[name] = uncertainty_coverage([sc], fits["all"])
     all_methods = (*methods, *CANDIDATES)
     worst = {m: max(r[m] / min(r[k] for k in methods) for r in (*rmse.values(),
                                                                  *extra.values()))
@@ -264,11 +271,12 @@ def format_table(table: HeldOutTable) -> str:
 def format_coverage(table: HeldOutTable) -> str:
     """The uncertainty's held-out coverage as Markdown (share of |error| <= 2 sigma)."""
     lines = ["| held out | share of abs(error) <= 2 sigma | in 0.90 .. 0.98 | a (scatter) "
-             "| c (floor, levels) |", "|---|---:|:---:|---:|---:|"]
+             "| r (relief) | c (floor, levels) |", "|---|---:|:---:|---:|---:|---:|"]
     for name, cov in table.coverage.items():
-        a, c = table.uncertainty_fit.get(name, table.uncertainty_fit["all"])
+        a, r, c = table.uncertainty_fit.get(name, table.uncertainty_fit["all"])
         ok = "yes" if 0.90 <= cov <= 0.98 else "**no**"
-        lines.append(f"| {name} | {cov:.3f} | {ok} | {a:.3f} | {c:.4f} |")
-    a, c = table.uncertainty_fit["all"]
-    lines.append(f"| (fit on every family's training seeds) | | | {a:.3f} | {c:.4f} |")
+        lines.append(f"| {name} | {cov:.3f} | {ok} | {a:.3f} | {r:.3f} | {c:.4f} |")
+    a, r, c = table.uncertainty_fit["all"]
+    lines.append(f"| (fit on every family's training seeds) | | | {a:.3f} | {r:.3f} | "
+                 f"{c:.4f} |")
     return "\n".join(lines)

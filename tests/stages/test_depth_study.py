@@ -218,8 +218,9 @@ def test_protocol_reports_the_uncertainty_coverage() -> None:
     assert all(0.0 <= c <= 1.0 for c in t.coverage.values())
     from sffscan.stages.depth_study import format_coverage
 
-    for a, c in t.uncertainty_fit.values():
+    for a, r, c in t.uncertainty_fit.values():
         assert 0.1 - 1e-9 <= a <= 100.0 + 1e-9 and 1e-4 - 1e-9 <= c <= 10.0 + 1e-9
+        assert 1e-3 - 1e-9 <= r <= 100.0 + 1e-9
     assert format_coverage(t).count("\n") == len(fams) + 2
 
 
@@ -227,6 +228,7 @@ def test_depth_uncertainty_known_answers() -> None:
     from sffscan.stages.depth_uncertainty import (
         MIX_SCALE,
         depth_range,
+        depth_relief,
         depth_scatter,
         depth_uncertainty,
         floor_share,
@@ -236,14 +238,26 @@ def test_depth_uncertainty_known_answers() -> None:
 
     smooth = np.add.outer(np.arange(40.0), np.arange(40.0)) * 0.1  # a plane: no scatter
     assert float(depth_scatter(smooth)[6:-6, 6:-6].max()) < 1e-5  # borders: replicated
+    assert float(depth_relief(smooth)[8:-8, 8:-8].max()) < 1e-5  # nor relief
     rng = np.random.default_rng(1)
     noisy = smooth + rng.normal(0.0, 0.5, smooth.shape)
     s = depth_scatter(noisy)
     assert 0.3 < float(np.median(s)) < 0.7  # about the noise (the median takes a little)
+    q = depth_relief(noisy)
+    # white noise about its 9 x 9 mean: sigma sqrt(1 - 1/81), RMS over 81 px
+    assert float(np.median(q)) == pytest.approx(0.5 * math.sqrt(80 / 81), rel=0.1)
     width = np.full(smooth.shape, 4.0)
     clean = np.zeros(smooth.shape)  # curves on a zero floor
-    sig = depth_uncertainty(noisy, width, clean, scatter_scale=2.0, floor_levels=0.1)
-    np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + 0.1**2), rtol=1e-5)
+    sig = depth_uncertainty(noisy, width, clean, scatter_scale=2.0, relief_scale=0.5,
+                            floor_levels=0.1)
+    np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + (0.5 * q) ** 2 + 0.1**2),
+                               rtol=1e-5)
+    # a bump of the window's size: the 5 x 5 median follows it (little scatter), the 9 x 9
+    # mean does not (its relief); a sinusoid of 9 px period, amplitude 1: RMS about the
+    # box mean 1 / sqrt 2 (the box of 9 px averages a whole period to 0 along x)
+    bump = np.sin(2 * np.pi * np.arange(40) / 9.0)[None, :] * np.ones((40, 1))
+    np.testing.assert_allclose(depth_relief(bump)[10:-10, 10:-10], math.sqrt(0.5), rtol=1e-4)
+    assert float(depth_scatter(bump)[10:-10, 10:-10].max()) < 0.6 * math.sqrt(0.5)
     # the depth's range over 19 x 19 px: a step of 6 levels within 9 px, 0 beyond; an
     # isolated stray maximum does not count (the 5 x 5 median)
     step = np.where(np.arange(40) < 20, 0.0, 6.0)[None, :] * np.ones((40, 1))
@@ -263,7 +277,8 @@ def test_depth_uncertainty_known_answers() -> None:
     cap = width_excess(wide, clean, np.full(smooth.shape, 2.0), window=9)
     assert cap[20, 20] == pytest.approx(1.0) and cap.max() == pytest.approx(1.0)
     # the depth map beside it: a plane rising 0.1 level per px (range 3.6 levels)
-    sig = depth_uncertainty(smooth, wide, clean, scatter_scale=2.0, floor_levels=0.0)
+    sig = depth_uncertainty(smooth, wide, clean, scatter_scale=2.0, relief_scale=1.0,
+                            floor_levels=0.0)
     assert sig[20, 20] == pytest.approx(MIX_SCALE * min(x[20, 20], 1.8), rel=1e-4)
     # half the mass in the floor: the width tells the noise, no excess counted
     assert width_excess(wide, np.full(smooth.shape, 0.5), far, window=9).max() == 0.0
@@ -309,10 +324,10 @@ def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
 
     train = [[sample(f, seed) for seed in (0, 1)]
              for f in ("even-gauss", "lens-gauss", "pillbox", "ends")]
-    a, c = fit_uncertainty(train)
+    fit = fit_uncertainty(train)
     held = [sample("steps", seed) for seed in (3, 4, 5)]
-    share = uncertainty_coverage(held, a, c)
-    print(f"fit without steps: a={a:.3f} c={c:.4f}; steps seeds 3-5: {share:.3f}")
+    share = uncertainty_coverage(held, fit)
+    print(f"fit without steps: {fit}; steps seeds 3-5: {share:.3f}")
     assert 0.90 <= share <= 0.98
 
 
