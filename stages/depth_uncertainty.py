@@ -62,8 +62,7 @@ import numpy as np
 
 __all__ = ["FLOOR_LEVELS", "MIX_SCALE", "RELIEF_SCALE", "SCATTER_SCALE", "curve_width",
            "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty", "floor_share",
-           "height_uncertainty_um",
-           "uncertainty_um", "width_excess", "width_from_sums"]
+           "height_uncertainty_um", "uncertainty_um", "width_excess", "width_from_sums"]
 
 SCATTER_SCALE = 1.569
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
