@@ -160,10 +160,9 @@ def depth_relief(depth_levels: np.ndarray, *, window: int = 9) -> np.ndarray:
 
 
 def _relief(d: np.ndarray, window: int) -> np.ndarray:
-    box = (window, window)
-    r = d - cv2.blur(d, box, borderType=cv2.BORDER_REPLICATE)
-    mean = cv2.blur(r * r, box, borderType=cv2.BORDER_REPLICATE)
-    return np.sqrt(np.maximum(mean, 0.0)).astype(np.float32)
+    # the scatter's RMS over the window, about the box mean instead of the 5 x 5 median
+    mean = cv2.blur(d, (window, window), borderType=cv2.BORDER_REPLICATE)
+    return _scatter(d, mean, window)
 
 
 def _scatter(d: np.ndarray, median: np.ndarray, window: int) -> np.ndarray:
