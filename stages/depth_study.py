@@ -55,8 +55,8 @@ from sffscan.stages.uncertainty_fit import (
     uncertainty_coverage,
 )
 
-__all__ = ["HeldOutTable", "format_coverage", "format_table", "leave_one_family_out",
-           "score_volume", "uncertainty_sample"]
+__all__ = ["HeldOutTable", "StackSpread", "format_coverage", "format_spread", "format_table",
+           "leave_one_family_out", "score_volume", "stack_spread", "uncertainty_sample"]
 
 
 @dataclass
@@ -122,6 +122,51 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
 
 
 @dataclass(frozen=True)
+class StackSpread:
+    """How much a held-out family's figures rest on its few stacks: a percentile interval
+    over resamples of the stacks (with replacement; :func:`stack_spread`)."""
+
+    stacks: int
+    """Held-out stacks of the family."""
+    ratio: tuple[float, float]
+    """The default method's RMSE over the best fixed method's, its interval."""
+    coverage: tuple[float, float]
+    """The uncertainty's coverage (share of |error| <= 2 sigma), its interval."""
+
+
+def stack_spread(held: Sequence[_Scores], *, methods: Sequence[str],
+                 constants: UncertaintyConstants, default: str = DEFAULT_METHOD,
+                 level: float = 0.90, resamples: int = 2000, seed: int = 0) -> StackSpread:
+    """The ``level`` percentile interval of a family's held-out figures over its stacks: the
+    stacks resampled with replacement ``resamples`` times (a fixed ``seed``: the same
+    interval every run), each resample's pixels pooled as the table pools them (the
+    default method's RMSE over the least RMSE of ``methods``; the share of pixels with
+    |error| <= 2 sigma for ``constants``).
+
+    Three stacks a family move the default's ratio by up to 0.2 between two sets of seeds
+    (docs/depth-study.md): the interval says how far a row's figure can be read. It is the
+    spread of *these* stacks, not of the family: with few stacks it is too narrow.
+    """
+    n = len(held)
+    if n == 0:
+        raise ValueError("no held-out stack")
+    count = np.array([x.count for x in held], float)
+    sse = np.array([[x.sse[m] for m in (default, *methods)] for x in held])  # (stacks, 1+M)
+    covered = np.array([uncertainty_coverage([x], constants) * x.count for x in held])
+    pick = np.random.default_rng(seed).integers(0, n, size=(resamples, n))
+    weights = np.zeros((resamples, n))
+    np.add.at(weights, (np.arange(resamples)[:, None], pick), 1.0)
+    total = weights @ count
+    rmse = np.sqrt((weights @ sse) / total[:, None])
+    ratio = rmse[:, 0] / np.maximum(rmse[:, 1:].min(axis=1), 1e-12)
+    share = (weights @ covered) / total
+    q = (0.5 - level / 2, 0.5 + level / 2)
+    lo_r, hi_r = np.quantile(ratio, q)
+    lo_c, hi_c = np.quantile(share, q)
+    return StackSpread(n, (float(lo_r), float(hi_r)), (float(lo_c), float(hi_c)))
+
+
+@dataclass(frozen=True)
 class HeldOutTable:
     """The protocol's result.
 
@@ -145,6 +190,7 @@ class HeldOutTable:
     methods: tuple[str, ...]
     coverage: dict[str, float]
     uncertainty_fit: dict[str, UncertaintyConstants]
+    spread: dict[str, StackSpread]
 
 
 def _stack_scores(stack: SimStack, *, operator: str, window: int,
@@ -213,6 +259,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     tuned: dict[str, dict[str, Setting]] = {}
     coverage: dict[str, float] = {}
     fits: dict[str, UncertaintyConstants] = {}
+    spread: dict[str, StackSpread] = {}
 
     def train_groups(fams: list[str]) -> list[list[_Scores]]:
         return [[scores[g, s] for s in range(seeds)] for g in fams]
@@ -226,6 +273,8 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
         rmse[f] = row
         fits[f] = fit_uncertainty(train_groups([g for g in names if g != f]))
         coverage[f] = uncertainty_coverage(held, fits[f])
+        if DEFAULT_METHOD in methods:  # the default's errors are kept only then
+            spread[f] = stack_spread(held, methods=methods, constants=fits[f])
     fits["all"] = fit_uncertainty(train_groups(names))
     extra: dict[str, dict[str, float]] = {}
     if third_party:
@@ -242,7 +291,7 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
                                                                  *extra.values()))
              for m in all_methods}
     chosen = min(all_methods, key=worst.__getitem__)
-    return HeldOutTable(rmse, tuned, extra, chosen, worst, all_methods, coverage, fits)
+    return HeldOutTable(rmse, tuned, extra, chosen, worst, all_methods, coverage, fits, spread)
 
 
 def format_table(table: HeldOutTable) -> str:
@@ -279,4 +328,18 @@ def format_coverage(table: HeldOutTable) -> str:
     a, r, c = table.uncertainty_fit["all"]
     lines.append(f"| (fit on every family's training seeds) | | | {a:.3f} | {r:.3f} | "
                  f"{c:.4f} |")
+    return "\n".join(lines)
+
+
+def format_spread(table: HeldOutTable) -> str:
+    """The default's held-out ratio and the uncertainty's coverage of each family, with their
+    90 % intervals over the family's stacks (:func:`stack_spread`), as Markdown."""
+    lines = [f"| held out | stacks | {DEFAULT_METHOD} / best | 90 % over stacks | coverage "
+             "| 90 % over stacks |", "|---|---:|---:|---|---:|---|"]
+    for f, sp in table.spread.items():
+        r = table.rmse[f]
+        best = min(r[m] for m in table.methods if m in DEPTH_METHODS)
+        lines.append(f"| {f} | {sp.stacks} | {r[DEFAULT_METHOD] / best:.2f} | "
+                     f"{sp.ratio[0]:.2f} .. {sp.ratio[1]:.2f} | {table.coverage[f]:.3f} | "
+                     f"{sp.coverage[0]:.3f} .. {sp.coverage[1]:.3f} |")
     return "\n".join(lines)

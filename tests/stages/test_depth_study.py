@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
-from sffscan.stages.depth_study import format_table, leave_one_family_out
+from sffscan.stages.depth_study import _Scores, format_table, leave_one_family_out
 from sffscan.stages.depth_study_grid import CANDIDATES, THRESHOLDS, width_switch
 from sffscan.stages.depth_uncertainty import (
     curve_width,
@@ -161,12 +161,14 @@ def test_study_families_command(tmp_path: Path, capsys: pytest.CaptureFixture[st
                  "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| held out |" in text and "chosen by the held-out results" in text
+    assert "90 % over stacks" in text  # each row's spread over its stacks
     with (out / "held_out.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 * (len(DEPTH_METHODS) + len(CANDIDATES))
     assert {r["set"] for r in rows} == {"even-gauss", "slopes"}
     assert min(float(r["ratio_to_best"]) for r in rows if r["method"] in DEPTH_METHODS) == 1.0
     assert (out / "held_out.md").read_text().startswith("| held out |")
+    assert "90 % over stacks" in (out / "held_out.md").read_text()
     assert main(["study", "--families", "--family", "even-gauss,nope", "-o", str(out)]) == 2
     assert "nope" in capsys.readouterr().err
     assert main(["study", "--families", "--seeds", "0", "-o", str(out)]) == 2
@@ -435,3 +437,50 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     la = first_argmax(lv)
     assert stack_choice(lv, la) == (False, 0.0, *pull_statistics(lv, la))
     assert block_choice(lv, la)[1] == 0.0
+
+
+def _stack(sse: dict[str, float], count: int, errors: np.ndarray) -> _Scores:
+    z = np.zeros(count, np.float32)
+    return _Scores(sse, count, errors.astype(np.float32), z, z, z, z)
+
+
+def test_stack_spread_known_answers() -> None:
+    from sffscan.stages.depth import DEFAULT_METHOD
+    from sffscan.stages.depth_study import stack_spread
+    from sffscan.stages.uncertainty_fit import UncertaintyConstants
+
+    methods = ("gauss3", DEFAULT_METHOD)
+    c = UncertaintyConstants(1.0, 1.0, 0.5)  # sigma 0.5 everywhere: |error| <= 1 covered
+    # identical stacks: every resample is the same pool, the interval a point
+    same = [_stack({"gauss3": 4.0, DEFAULT_METHOD: 9.0}, 4, np.array([0.5, 2, 0.1, 3]))] * 3
+    sp = stack_spread(same, methods=methods, constants=c)
+    assert sp.stacks == 3
+    assert sp.ratio == pytest.approx((1.5, 1.5)) and sp.coverage == pytest.approx((0.5, 0.5))
+    # two stacks: the default best on one, twice the best's RMSE on the other; the pools
+    # are {A, A}, {A, B}, {B, B} (1/4, 1/2, 1/4): the 90 % interval spans the extremes
+    a = _stack({"gauss3": 4.0, DEFAULT_METHOD: 4.0}, 4, np.array([0.0, 0, 0, 0]))
+    b = _stack({"gauss3": 1.0, DEFAULT_METHOD: 4.0}, 4, np.array([5.0, 5, 5, 5]))
+    sp = stack_spread([a, b], methods=methods, constants=c, resamples=4000)
+    assert sp.ratio == pytest.approx((1.0, 2.0)) and sp.coverage == pytest.approx((0.0, 1.0))
+    # the same seed, the same interval
+    assert stack_spread([a, b], methods=methods, constants=c) == stack_spread(
+        [a, b], methods=methods, constants=c)
+    with pytest.raises(ValueError, match="no held-out stack"):
+        stack_spread([], methods=methods, constants=c)
+
+
+def test_protocol_reports_each_familys_spread_over_stacks() -> None:
+    from sffscan.stages.depth_study import format_spread
+
+    fams = ["even-gauss", "steps"]
+    t = leave_one_family_out(families=fams, seeds=2, size_px=32)
+    assert set(t.spread) == set(fams)
+    for f, sp in t.spread.items():
+        best = min(t.rmse[f][m] for m in DEPTH_METHODS)
+        from sffscan.stages.depth import DEFAULT_METHOD
+
+        point = t.rmse[f][DEFAULT_METHOD] / best
+        assert sp.stacks == 2 and sp.ratio[0] - 1e-9 <= point <= sp.ratio[1] + 1e-9
+        assert sp.coverage[0] - 1e-9 <= t.coverage[f] <= sp.coverage[1] + 1e-9
+    md = format_spread(t)
+    assert md.count("\n") == len(fams) + 1 and "90 % over stacks" in md
