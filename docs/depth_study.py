@@ -86,6 +86,14 @@ families for each held-out one, and on all families' training seeds for the ship
 constants and the third-party set. The bar: 90 .. 98 % of the held-out pixels with
 abs(error) <= 2 sigma on every held-out family.
 
+How far a row rests on its few stacks (since 2026-12-04, late night; `sffscan.stages.
+depth_study.stack_spread`): each coverage table is followed by the default's ratio and the
+coverage again, with the 5th and 95th percentiles over 2000 resamples of the family's
+held-out stacks (drawn with replacement, pooled as the row pools them). It is the spread of
+these stacks, not of the family: with three stacks it can only be too narrow. A miss whose
+whole interval lies outside the bar is shared by the stacks; one whose interval reaches the
+bar rests on one or two of them.
+
 Exports (`sffscan export`, `sffscan.pipeline.formats.exports`): PLY carries the uncertainty
 as the vertex property `float uncertainty_um` (µm, NaN where not known). ISO 25178-72 (x3p)
 has no per-point uncertainty field (its data matrix holds heights; extra layers would read as
@@ -208,6 +216,15 @@ is at most the fallback's; no constant): even-noisy 1.25x -> 1.26x here, steps 1
 1.10x on seeds {seeds}..{held_last}. The uncertainty is in band on 17 of the 21 sets here
 (13 above); before the relief joined it (2026-12-04, night) 11 here and 12 above, and
 under the band (the side that misleads) on 6 sets here, 3 now.
+
+Read with the intervals over stacks (the last table): even-noisy's 1.21x spans 1.00 ..
+1.38, and it is one stack's: seed 7 (N = 91), whose curves' width ratio (8.75) is over the
+shape test's limit, so it keeps the fallback, 3.34 levels RMSE against SPC's 2.32; without
+it the default would be 0.80 levels against SPC's 0.93 over the other five (a script over
+these stacks, not kept). slopes-lens-pillbox (1.08x, 1.04 .. 1.15) is a miss every
+resample shares (`wcentroid` the better centroid on thin-lens slopes), as, all but at its
+edge, is steps-lens-noisy's coverage (0.865, 0.824 .. 0.900; 0.884, 0.852 .. 0.917 above);
+clean-coarse's 0.897 spans 0.881 .. 0.913.
 
 """
 
