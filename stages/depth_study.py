@@ -209,6 +209,7 @@ def _rmse(scores: Iterable[_Scores], key: str) -> float:
 
 
 def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 3,
+                         held_out_from: int | None = None,
                          size_px: int = 64, operator: str = "glvm", window: int = 9,
                          methods: Sequence[str] = DEPTH_METHODS,
                          third_party: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -222,6 +223,9 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     seeds : int, keyword-only
         Seeds per family for training (0 .. seeds-1) and as many held out
         (seeds .. 2 seeds - 1).
+    held_out_from : int, optional, keyword-only
+        The first held-out seed (default ``seeds``): held out are ``held_out_from ..
+        held_out_from + seeds - 1``, a set no earlier run has seen; at least ``seeds``.
     size_px, operator, window : keyword-only
         Image size, focus measure operator and window.
     methods : sequence of str, keyword-only
@@ -236,8 +240,16 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     names = list(families) if families else [f.name for f in FAMILIES]
     if len(names) < 2:
         raise ValueError("leave-one-family-out needs at least 2 families")
-    scores = {(f, s): _stack_scores(family_stack(f, s, size_px=size_px), operator=operator,
-                                    window=window, methods=methods)
+    first = seeds if held_out_from is None else held_out_from
+    if first < seeds:
+        raise ValueError(f"held-out seeds from {first} would overlap the training seeds "
+                         f"0 .. {seeds - 1}")
+
+    def seed(k: int) -> int:  # the k-th seed: training below ``seeds``, held out after
+        return k if k < seeds else first + k - seeds
+
+    scores = {(f, s): _stack_scores(family_stack(f, seed(s), size_px=size_px),
+                                    operator=operator, window=window, methods=methods)
               for f in names for s in range(2 * seeds)}
     def tune(train: list[str]) -> dict[str, Setting]:
         """Each candidate's setting: the least sum over the training families of

@@ -36,7 +36,7 @@ scored with the candidates tuned on all families. Prints the method x family tab
 RMSE (levels) and the held-out coverage of the height uncertainty
 (:mod:`sffscan.stages.depth_uncertainty`: share of pixels with |error| <= 2 sigma, its
 constants fitted without the family), and writes ``held_out.csv`` and ``held_out.md`` (no
-figure, no matplotlib).
+figure, no matplotlib). ``--held-out-from SEED`` holds out seeds no earlier run has scored.
 """
 
 from __future__ import annotations
@@ -295,8 +295,12 @@ def families_study(args: argparse.Namespace) -> int:
             third[st.name] = (vol, truth, st.mask)
         if args.seeds < 1:
             raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+        if args.held_out_from is not None and args.held_out_from < args.seeds:
+            raise ValueError(f"--held-out-from {args.held_out_from}: the held-out seeds "
+                             f"would overlap the training seeds 0 .. {args.seeds - 1}")
         table = leave_one_family_out(families=names, seeds=args.seeds, operator=operator,
-                                     window=window, third_party=third)
+                                     window=window, third_party=third,
+                                     held_out_from=args.held_out_from)
     except (ValueError, FileNotFoundError) as err:
         print(f"sffscan study: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -314,7 +318,10 @@ def families_study(args: argparse.Namespace) -> int:
     md = format_table(table)
     summary = (f"chosen by the held-out results: {table.chosen} (worst ratio to the best "
                f"method {table.worst_ratio[table.chosen]:.2f}; {operator.upper()} "
-               f"k={window}, {args.seeds} training + {args.seeds} held-out seeds per family)")
+               f"k={window}, {args.seeds} training + {args.seeds} held-out seeds per family"
+               + ("" if args.held_out_from is None else
+                  f", held out {args.held_out_from} .. {args.held_out_from + args.seeds - 1}")
+               + ")")
     cov = ("height uncertainty of the default method, held out:\n\n"
            + format_coverage(table))
     spread = ("how far each family's figures rest on its few held-out stacks (the stacks "
@@ -440,5 +447,8 @@ def register(sub: Any) -> None:
                    help="--families: training seeds per family, as many held out (default 3; "
                         "a family's ratios move by up to 0.4 between sets of 3 held-out "
                         "seeds: take 6 or more to read a bar of a few per cent)")
+    p.add_argument("--held-out-from", type=int, metavar="SEED",
+                   help="--families: the first held-out seed (default: --seeds): hold out "
+                        "SEED .. SEED + seeds - 1, seeds no earlier run has scored")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")
     p.set_defaults(func=cmd_study)

@@ -484,3 +484,32 @@ def test_protocol_reports_each_familys_spread_over_stacks() -> None:
         assert sp.coverage[0] - 1e-9 <= t.coverage[f] <= sp.coverage[1] + 1e-9
     md = format_spread(t)
     assert md.count("\n") == len(fams) + 1 and "90 % over stacks" in md
+
+
+def test_held_out_seeds_can_start_anywhere_after_the_training_seeds(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import sffscan.stages.depth_study as ds
+
+    fams = ["even-gauss", "steps"]
+    seen: list[int] = []
+    real = ds.family_stack
+
+    def spy(name: str, seed: int, **kw: object) -> object:
+        seen.append(seed)
+        return real(name, seed, **kw)  # type: ignore[arg-type]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ds, "family_stack", spy)
+        t = ds.leave_one_family_out(families=fams, seeds=1, size_px=32, held_out_from=5)
+    assert sorted(set(seen)) == [0, 5]  # training seed 0, held-out seed 5 (not 1)
+    plain = ds.leave_one_family_out(families=fams, seeds=1, size_px=32)
+    assert t.rmse != plain.rmse
+    with pytest.raises(ValueError, match="overlap the training seeds"):
+        ds.leave_one_family_out(families=fams, seeds=2, held_out_from=1)
+    out = tmp_path / "st"
+    assert main(["study", "--families", "--family", "even-gauss,steps", "--seeds", "1",
+                 "--held-out-from", "5", "-o", str(out)]) == 0
+    assert "held out 5 .. 5" in capsys.readouterr().out
+    assert main(["study", "--families", "--family", "even-gauss,steps", "--seeds", "2",
+                 "--held-out-from", "1", "-o", str(out)]) == 2
+    assert "--held-out-from 1" in capsys.readouterr().err
