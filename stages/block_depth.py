@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_choice import (
+    fallback_bias,
     pull_statistics,
     sampled_curves,
     shape_statistics,
@@ -31,7 +32,7 @@ from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
-           "block_method", "block_uncertainty", "depth_rows"]
+           "block_method", "block_peak_bias", "block_uncertainty", "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
@@ -57,9 +58,10 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
 def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  valid: np.ndarray | None = None, *, method: str = "shape_select"
                  ) -> tuple[str, float]:
-    """The method a block takes, and SPC's bias where it takes SPC (levels: the departure
-    ``|d|`` of :func:`sffscan.stages.depth_choice.spc_departure`, which the height
-    uncertainty adds in quadrature; 0.0 for the other methods), judged on the curves of
+    """The method a block takes, and the bias the height uncertainty adds in quadrature
+    (levels: where it takes SPC, the departure ``|d|`` of
+    :func:`sffscan.stages.depth_choice.spc_departure`; where it takes a peak, the
+    :func:`sffscan.stages.depth_choice.fallback_bias` of its curves), judged on the curves of
     :data:`sffscan.stages.depth_choice.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_choice.sampled_curves`).
 
@@ -99,7 +101,18 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         bias = spc_bias(vol, am, stats, pull, noise, seen)
         if bias is not None:
             return ("spc+centroid" if centroid else "spc+gauss3"), bias
-    return ("adaptive_centroid" if centroid else "adaptive"), 0.0
+    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)
+
+
+def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,
+                    valid: np.ndarray | None = None) -> float:
+    """The height uncertainty's bias of a block reconstructed by ``"adaptive"`` (levels):
+    :func:`sffscan.stages.depth_choice.fallback_bias` of the curves :func:`block_choice`
+    judges (0.0 where none has data). Parameters as :func:`block_choice`'s."""
+    sample = sampled_curves(levels, argmax, valid)
+    if sample is None:
+        return 0.0
+    return fallback_bias(pull_statistics(*sample)[0])
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,

@@ -103,6 +103,10 @@ class BlockResult(NamedTuple):
     confidence: np.ndarray
     complete: int
     uncertainty_um: np.ndarray | None
+    bias_levels: float = 0.0
+    """The bias the block's uncertainty holds (levels, ``b`` of
+    :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`: SPC's departure or a peak's
+    centroid pull, one value for the block)."""
 
 
 class FocusVolume:
@@ -461,14 +465,16 @@ class FocusVolume:
             height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
             unc = None if unc is None else unc[:, ::-1]
         x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
-        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc)
+        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc, bias)
 
     def _depth(self, u0: int, u1: int, valid: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Depth (levels) and confidence of columns [u0, u1), their curves' sums (H_0,
-        Re H_1, Im H_1) and minima (views of the block's scratch arrays), and SPC's bias
-        (levels, 0.0 unless the block took it): the method chosen once for the block on
-        its ``valid`` pixels' curves (rows, u1 - u0), then
+        Re H_1, Im H_1) and minima (views of the block's scratch arrays), and the bias the
+        uncertainty adds (levels: SPC's where the block took it, a peak method's
+        :func:`~sffscan.stages.block_depth.block_choice` or
+        :func:`~sffscan.stages.block_depth.block_peak_bias`; else 0.0): the method chosen
+        once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
         :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
         method, bias = self.method, 0.0
         own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
@@ -477,6 +483,9 @@ class FocusVolume:
             method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
                                                self._gather(self.argmax, u0, u1), valid,
                                                method=method)
+        elif self.fv is not None and method == "adaptive" and self.uncertainty:
+            bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
+                                          self._gather(self.argmax, u0, u1), valid)
         self._run_task("depth", {
             "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
             "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,

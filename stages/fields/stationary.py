@@ -358,13 +358,12 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
     from sffscan.stages.depth import first_argmax, focus_sums
-    from sffscan.stages.depth_choice import stack_choice
+    from sffscan.stages.depth_choice import method_bias
     from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
-    # SPC's bias where the default took SPC for this stack (depth_uncertainty's b)
-    bias = (stack_choice(vol, first_argmax(vol)).bias if settings.method == "shape_select"
-            else 0.0)
+    # the bias of the method's depth its scatter cannot show (depth_uncertainty's b)
+    bias = method_bias(vol, first_argmax(vol), settings.method)
     unc = height_uncertainty_um(levels, focus_sums(vol), vol.min(axis=0),
                                 n_levels=vol.shape[0], focus_heights_um=heights,
                                 window=settings.window, bias_levels=bias)

@@ -398,7 +398,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     """depth_uncertainty's ``b``: sigma^2 grows by exactly b^2 (levels; in µm times the
     focus step), nothing else changes; a stack that takes SPC carries its departure |d| as
     b (stack_choice), a scan block of it the same (block_choice), and a stack or block that
-    does not take SPC carries 0."""
+    takes a peak (the fallback, or a peak method by name) the size of its curves' centroid
+    pull (fallback_bias)."""
     from sffscan.stages.block_depth import SPC_BLOCKS, block_choice
     from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import (
@@ -435,8 +436,23 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     lopsided = family_stack("lens-pillbox-noisy", 0, size_px=48, n_levels=30)
     lv = focus_measure(lopsided.images, window=9)
     la = first_argmax(lv)
-    assert stack_choice(lv, la) == (False, 0.0, *pull_statistics(lv, la))
-    assert block_choice(lv, la)[1] == 0.0
+    pull, noise = pull_statistics(lv, la)
+    # the fallback's bias: the size of its curves' centroid pull (fallback_bias)
+    assert stack_choice(lv, la) == (False, abs(pull), pull, noise) and abs(pull) > 0
+    from sffscan.stages.block_depth import block_peak_bias
+    from sffscan.stages.depth_choice import fallback_bias, method_bias, sampled_curves
+
+    sample = sampled_curves(lv, la)
+    assert sample is not None
+    block_pull = abs(pull_statistics(*sample)[0])
+    method, bias = block_choice(lv, la)
+    assert method not in SPC_BLOCKS and bias == pytest.approx(block_pull) and bias > 0
+    assert block_choice(lv, la, method="adaptive_centroid")[1] == pytest.approx(block_pull)
+    assert block_peak_bias(lv, la) == pytest.approx(block_pull)
+    assert method_bias(lv, la, "adaptive") == pytest.approx(abs(pull))
+    assert method_bias(lv, la, "shape_select") == pytest.approx(abs(pull))
+    assert method_bias(lv, la, "spc") == 0.0  # no bias term for the other methods
+    assert fallback_bias(-0.3) == 0.3 and fallback_bias(float("nan")) == 0.0
 
 
 def _stack(sse: dict[str, float], count: int, errors: np.ndarray) -> _Scores:

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sffscan.stages.depth import depth_from_focus, focus_sums
+from sffscan.stages.depth import depth_from_focus, first_argmax, focus_sums
+from sffscan.stages.depth_choice import method_bias
 from sffscan.stages.depth_uncertainty import height_uncertainty_um
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import STEP_UM, Family, family_stack
@@ -43,8 +44,9 @@ def test_uncertainty_follows_the_error_on_a_textured_flat(family: Family) -> Non
     s = family_stack(family, 0, size_px=96, n_levels=30)
     vol = focus_measure(s.images, window=9)
     d = depth_from_focus(vol, method="adaptive")[0]
+    bias = method_bias(vol, first_argmax(vol), "adaptive")  # as a stack or scan adds it
     sigma = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
-                                  focus_heights_um=s.focus_um) / STEP_UM  # levels
+                                  focus_heights_um=s.focus_um, bias_levels=bias) / STEP_UM
     inner = (slice(4, -4), slice(4, -4))
     err = np.abs(d - s.truth_um / STEP_UM)[inner]
     sig = sigma[inner]
