@@ -19,7 +19,10 @@ Models (each stated before it was scored; add one as a function of the pixels' t
 
 - ``shipped``: ``sqrt((a scatter)^2 + (r relief)^2 + (excess / 2)^2 + b^2 + c^2)``, one
   (a, r, c) (:mod:`sffscan.stages.depth_uncertainty`); the table must reproduce
-  docs/depth-study.md (with the relief since 2026-12-04, night: the ``relief`` model below);
+  docs/depth-study.md (with the relief since 2026-12-04, night: the ``relief`` model below;
+  ``b``, in every model here, SPC's departure where the stack took SPC and, since later
+  that night, the size of the curves' centroid pull where it took the fallback:
+  :func:`sffscan.stages.depth_choice.fallback_bias`);
 - ``scatter only``: the shipped model before the relief joined it,
   ``sqrt((a scatter)^2 + (excess / 2)^2 + b^2 + c^2)``, one (a, c);
 - ``per estimator``: the shipped model, its constants fitted apart on the pixels whose depth
