@@ -543,16 +543,7 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str) -> float:
     """The bias (levels) the height uncertainty of a whole stack reconstructed with
     ``method`` adds: ``"shape_select"``'s :attr:`StackChoice.bias`, a peak method's
     :func:`fallback_bias` on :func:`stack_sample`'s curves, 0.0 for the other methods.
-
-    Parameters
-    ----------
-    volume : (N, H, W) ndarray of float
-        The focus curves.
-    argmax : (H, W) ndarray of int
-        Their argmax.
-    method : str
-        The depth method.
-    """
+    ``volume`` and ``argmax`` as :func:`stack_choice`'s; ``method`` the depth method."""
     if method == "shape_select":
         return stack_choice(volume, argmax).bias
     if method in PEAK_METHODS:
