@@ -25,8 +25,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["GAUSS_FIT_HALF_WINDOW", "WINDOW_PC_FACTOR", "gauss_window_fit", "half_height_run",
-           "plane_residual", "window_pc"]
+__all__ = ["GAUSS_FIT_HALF_WINDOW", "WINDOW_PC_FACTOR", "gauss_window_fit",
+           "half_height_count", "half_height_run", "plane_residual", "window_pc"]
 
 GAUSS_FIT_HALF_WINDOW = 3
 """Half window h of ``"gauss_window_fit"`` by name: the study's setting tuned on the training
@@ -106,6 +106,30 @@ def half_height_run(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15) 
     before = (~above & (j < at))[::-1]
     start = np.where(before.any(axis=0), 2 * reach - before.argmax(axis=0), -1)
     return (end - start - 1).astype(np.int64)
+
+
+def half_height_count(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15
+                      ) -> np.ndarray:
+    """Levels above half the curve's height (over its minimum) within ``reach`` levels of
+    ``centre``, wherever they lie, at least 1 (the maximum itself: a flat curve has no level
+    above its half height); (H, W) int. The same as :func:`half_height_run` on a
+    curve with one peak and no noise; on a noisy one a level dipping under half height
+    inside the peak cuts the run but not the count (the width ratio of
+    :func:`sffscan.stages.depth_choice.shape_statistics` reads this one).
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        Focus curves.
+    centre : (H, W) ndarray of int
+        Window centres, levels.
+    reach : int, keyword-only
+        Half width of the window read, levels.
+    """
+    vals, inside, _ = _window(volume, centre, reach)
+    peak = np.where(inside, vals, -np.inf).max(axis=0)
+    half = 0.5 * (peak + np.asarray(volume, np.float64).min(axis=0))
+    return np.maximum((inside & (vals > half[None])).sum(axis=0), 1).astype(np.int64)
 
 
 def window_pc(volume: np.ndarray, centre: np.ndarray, *, factor: float) -> np.ndarray:

@@ -29,7 +29,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from sffscan.stages.depth_candidates import half_height_run
+from sffscan.stages.depth_candidates import half_height_count
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
@@ -368,12 +368,22 @@ def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
                      mask: np.ndarray | None = None) -> tuple[float, float]:
     """The two numbers :func:`shape_select` decides by, over the ``mask`` pixels (all when
     None): ``abs(median skewness)`` (:func:`curve_skew` about each curve's argmax ``peak``)
-    and the median ratio of the harmonic width ``width`` to the sigma of the run above half
-    height (:func:`half_height_run` / 2.355, a Gaussian's FWHM / sigma)."""
+    and the median ratio of the harmonic width ``width`` to the sigma of the levels above
+    half height (:func:`~sffscan.stages.depth_candidates.half_height_count` / 2.355, a
+    Gaussian's FWHM / sigma).
+
+    Counted, not the contiguous run through the maximum
+    (:func:`~sffscan.stages.depth_candidates.half_height_run`, until 2026-12-05): on noisy
+    even curves a level dipping under half height cuts the run, the ratio rises past the
+    limit of 6 and SPC, the better method there, is refused. Measured with the study
+    (twenty crossed families, docs/depth-method-log.md): the default's ratio to the best
+    single method on even-noisy 1.21x -> 1.07x on seeds 6..11 (where the cut runs were
+    found) and 1.38x -> 1.28x on seeds 24..29 (scored after the change was fixed), every
+    other family the same on seeds 3..5, 12..17, 18..23 and 24..29."""
     sel = np.ones(np.shape(peak), bool) if mask is None else np.asarray(mask, bool)
     skew = curve_skew(volume, peak, width)
-    run = half_height_run(volume, peak).astype(np.float64)
-    ratio = np.asarray(width, np.float64) / (run / 2.355)
+    above = half_height_count(volume, peak).astype(np.float64)
+    ratio = np.asarray(width, np.float64) / (above / 2.355)
     return abs(float(np.median(skew[sel]))), float(np.median(ratio[sel]))
 
 

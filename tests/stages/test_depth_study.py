@@ -394,6 +394,25 @@ def test_candidate_estimators_known_answers() -> None:
     assert gauss_window_fit(flat, np.array([[7]]), np.array([[3.5]]), half_window=3)[0, 0] == 3.5
 
 
+def test_half_height_count_is_not_cut_by_a_dip_where_the_run_is() -> None:
+    """A curve whose levels 18..22 lie above half height (peak 1 at level 20 over a floor
+    of 0), level 21 dipping to 0.4: the run through the maximum stops at the dip (18..20,
+    3 levels), the count does not (4); without the dip both are 5. Levels beyond ``reach``
+    are not counted."""
+    from sffscan.stages.depth_candidates import half_height_count, half_height_run
+
+    vol = np.zeros((40, 1, 2))
+    vol[18:23, 0, :] = [[0.7, 0.7], [0.9, 0.9], [1.0, 1.0], [0.4, 0.95], [0.6, 0.6]]
+    vol[35, 0, :] = 0.8  # above half height, 15 levels from the centre: beyond reach 14
+    centre = np.full((1, 2), 20)
+    assert half_height_run(vol, centre, reach=14).tolist() == [[3, 5]]
+    assert half_height_count(vol, centre, reach=14).tolist() == [[4, 5]]
+    assert half_height_count(vol, centre, reach=15).tolist() == [[5, 6]]
+    flat = np.ones((40, 1, 1))  # no level above half height: the maximum alone, as the run
+    assert half_height_count(flat, np.full((1, 1), 20)).tolist() == [[1]]
+    assert half_height_run(flat, np.full((1, 1), 20)).tolist() == [[1]]
+
+
 def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     """depth_uncertainty's ``b``: sigma^2 grows by exactly b^2 (levels; in µm times the
     focus step), nothing else changes; a stack that takes SPC carries its departure |d| as
