@@ -378,7 +378,7 @@ def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
     limit of 6 and SPC, the better method there, is refused. Measured with the study
     (twenty crossed families, docs/depth-method-log.md): the default's ratio to the best
     single method on even-noisy 1.21x -> 1.07x on seeds 6..11 (where the cut runs were
-    found) and 1.38x -> 1.28x on seeds 24..29 (scored after the change was fixed), every
+    found) and 1.38x -> 1.27x on seeds 24..29 (scored after the change was fixed), every
     other family the same on seeds 3..5, 12..17, 18..23 and 24..29."""
     sel = np.ones(np.shape(peak), bool) if mask is None else np.asarray(mask, bool)
     skew = curve_skew(volume, peak, width)
