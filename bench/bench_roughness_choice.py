@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.stages import depth_choice as dc
+from sffscan.stages import depth_statistics as ds
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_uncertainty import curve_width
@@ -106,7 +107,7 @@ def choices(vol: np.ndarray, mask: np.ndarray) -> tuple[dict[str, np.ndarray], d
     a = first_argmax(np.ascontiguousarray(vol, np.float32))
     width = curve_width(vol)
     ch = dc.stack_choice(vol, a, width)
-    sample, peak, _ = dc.stack_sample(vol, a, width)
+    sample, peak, _ = ds.stack_sample(vol, a, width)
     b5, b9 = peak_biases(sample, peak)
     centroid = dc.takes_centroid(ch.pull, noise=ch.noise)
     dep = dc.spc_departure(sample, peak, centroid=False)[0]

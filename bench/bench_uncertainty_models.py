@@ -49,7 +49,7 @@ joined the shipped model), ``b`` fitted with ``a`` and ``c``:
   looks at follows a slope, not a bump or an edge. (a, c) fitted as shipped (stated
   2026-12-03, before its first run: no new constant; an ``a`` near 1 was the hope).
 - ``pull floor``: the shipped terms and ``b |pull|`` in quadrature, ``pull`` the stack's
-  centroid pull (:func:`sffscan.stages.depth_choice.pull_statistics`, levels; 0 where no
+  centroid pull (:func:`sffscan.stages.depth_statistics.pull_statistics`, levels; 0 where no
   curve is judged): a lopsided curve (a thin lens' blur) biases every centroid-like
   estimate toward its longer tail by about the pull, a bias no scatter shows, and the
   floor ``c`` alone must then cover the lopsided stacks and over-cover the even ones.
@@ -90,7 +90,7 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 from sffscan.stages.depth import DEFAULT_METHOD, depth_from_focus
-from sffscan.stages.depth_choice import pull_statistics
+from sffscan.stages.depth_statistics import pull_statistics
 from sffscan.stages.depth_study import uncertainty_sample
 from sffscan.stages.depth_uncertainty import MIX_SCALE
 from sffscan.stages.sim.families import family_names

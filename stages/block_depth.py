@@ -12,15 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_choice import (
-    fallback_bias,
-    pull_statistics,
-    sampled_curves,
-    shape_statistics,
-    spc_bias,
-    spc_in_range,
-    takes_centroid,
-)
+from sffscan.stages.depth_choice import fallback_bias, spc_bias, spc_in_range, takes_centroid
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
     depth_from_harmonics,
@@ -29,6 +21,7 @@ from sffscan.stages.depth_harmonics import (
 )
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
+from sffscan.stages.depth_statistics import pull_statistics, sampled_curves, shape_statistics
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
@@ -62,8 +55,8 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     (levels: where it takes SPC, the departure ``|d|`` of
     :func:`sffscan.stages.depth_choice.spc_departure`; where it takes a peak, the
     :func:`sffscan.stages.depth_choice.fallback_bias` of its curves), judged on the curves of
-    :data:`sffscan.stages.depth_choice.SHAPE_SAMPLE_STEP`
-    (:func:`sffscan.stages.depth_choice.sampled_curves`).
+    :data:`sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`
+    (:func:`sffscan.stages.depth_statistics.sampled_curves`).
 
     ``"shape_select"``: SPC where its curves are even and clean
     (:func:`sffscan.stages.depth_choice.shape_select`'s rule at its tuned limits, the
@@ -72,7 +65,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     else what ``"adaptive_centroid"`` takes.
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
     more than their 3-point Gaussians' noise
-    (:func:`sffscan.stages.depth_choice.pull_statistics`,
+    (:func:`sffscan.stages.depth_statistics.pull_statistics`,
     :func:`~sffscan.stages.depth_choice.takes_centroid`), else ``"adaptive"``.
 
     Parameters

@@ -40,13 +40,7 @@ from sffscan.stages.depth_candidates import (
     gauss_window_fit,
     window_pc,
 )
-from sffscan.stages.depth_choice import (
-    pull_statistics,
-    spc_in_range,
-    stack_choice,
-    stack_sample,
-    takes_centroid,
-)
+from sffscan.stages.depth_choice import spc_in_range, stack_choice, takes_centroid
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
     confidence_from_sums,
@@ -77,6 +71,7 @@ from sffscan.stages.depth_peak import (
     three_point_offset,
     windowed_centroid,
 )
+from sffscan.stages.depth_statistics import pull_statistics, stack_sample
 from sffscan.stages.depth_uncertainty import width_from_sums
 
 __all__ = [
@@ -276,7 +271,7 @@ def depth_from_focus(
             argmax within the larger of
             :data:`~sffscan.stages.depth_choice.CENTROID_PULL_LIMIT` and the
             differences' robust spread:
-            :func:`~sffscan.stages.depth_choice.pull_statistics`). Five levels, not
+            :func:`~sffscan.stages.depth_statistics.pull_statistics`). Five levels, not
             three: less noise. On clean lopsided curves (a thin lens' blur) it is
             ``"adaptive"``. The streaming depth stage judges each block of columns.
         ``"wcentroid"``
@@ -315,7 +310,7 @@ def depth_from_focus(
             there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per
             block of columns (judged on a grid of its curves); a volume of 4 x 16384 or more
             curves is judged on an even grid of at least 16384
-            (:func:`~sffscan.stages.depth_choice.stack_sample`), and so is
+            (:func:`~sffscan.stages.depth_statistics.stack_sample`), and so is
             ``"adaptive_centroid"``'s pull.
         ``"gauss_window_fit"``, ``"window_pc"`` (:data:`CANDIDATE_METHODS`)
             The candidates of the leave-one-family-out study

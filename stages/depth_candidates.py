@@ -115,7 +115,7 @@ def half_height_count(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15
     above its half height); (H, W) int. The same as :func:`half_height_run` on a
     curve with one peak and no noise; on a noisy one a level dipping under half height
     inside the peak cuts the run but not the count (the width ratio of
-    :func:`sffscan.stages.depth_choice.shape_statistics` reads this one).
+    :func:`sffscan.stages.depth_statistics.shape_statistics` reads this one).
 
     Parameters
     ----------

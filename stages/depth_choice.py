@@ -2,22 +2,22 @@
 per scan block (SFF_NOTES.md section 3; docs/depth-method.md):
 
 * :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
-  :func:`curve_skew` near 0: blur even in z) and clean (the curves' width from their first
-  harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their
-  run above half height gives: a noisy floor widens the first, not the second) and whose
-  :func:`centroid_pull` is small, whose SPC is not much noisier than the fallback
-  (:func:`spc_noise`) and does not depart from the curves' peaks by more than their spread
-  (:func:`spc_departure`), else ``adaptive_centroid``; SPC's depth only where it
+  :func:`~sffscan.stages.depth_statistics.curve_skew` near 0: blur even in z) and clean (the curves'
+  width from their first harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the
+  width their run above half height gives: a noisy floor widens the first, not the second) and whose
+  :func:`~sffscan.stages.depth_statistics.centroid_pull` is small, whose SPC is not much noisier
+  than the fallback (:func:`spc_noise`) and does not depart from the curves' peaks by more than
+  their spread (:func:`spc_departure`), else ``adaptive_centroid``; SPC's depth only where it
   lies a reach of curve widths from the range's ends (:func:`spc_in_range`). SPC reads the
   whole curve, so it holds where wide or ringing curves (pillbox PSFs, coarse textures)
   move the 3-point peak; but it is biased by a lopsided curve (a thin lens' blur, even in
   1/z), by a noisy floor under a narrow peak and by a curve cut by an end of the range.
   The default of scan, replay and stack since 2026-12-02.
-* ``adaptive_centroid``'s statistic, :func:`centroid_pull`: how far the 5-level centroid
-  about each curve's argmax lies from its 3-point Gaussian, the median over the curves;
-  :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
+* ``adaptive_centroid``'s statistic, :func:`~sffscan.stages.depth_statistics.centroid_pull`: how far
+  the 5-level centroid about each curve's argmax lies from its 3-point Gaussian, the median over the
+  curves; :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
 
-A scan's block is judged on its :func:`sampled_curves`
+A scan's block is judged on its :func:`~sffscan.stages.depth_statistics.sampled_curves`
 (:func:`sffscan.stages.block_depth.block_method`). The thresholds are the
 leave-one-family-out protocol's (:mod:`sffscan.stages.depth_study`); the estimators the
 study tried beside them are in :mod:`sffscan.stages.depth_candidates`.
@@ -29,22 +29,28 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from sffscan.stages.depth_candidates import half_height_count
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
+from sffscan.stages.depth_statistics import (
+    judged_curves,
+    median_spread,
+    pull_statistics,
+    row_median,
+    shape_statistics,
+    stack_sample,
+)
 from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
 
-__all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SAMPLE_STEP", "SHAPE_SELECT_LIMITS",
-           "SHAPE_STACK_CURVES", "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
-           "StackChoice", "centroid_pull", "curve_skew", "fallback_bias", "method_bias",
-           "pull_statistics", "sampled_curves", "shape_select", "shape_statistics", "spc_bias",
-           "spc_departure", "spc_in_range", "spc_noise", "stack_choice", "stack_sample",
-           "takes_centroid", "takes_spc"]
+__all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
+           "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "fallback_bias", "method_bias",
+           "shape_select", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
+           "stack_choice", "takes_centroid", "takes_spc"]
 
 CENTROID_PULL_LIMIT = 0.03
-"""Largest :func:`centroid_pull` (levels) for which ``"adaptive_centroid"`` takes the
-5-level centroid, tuned by the study on the training seeds of all its families (as
-:data:`~sffscan.stages.depth_candidates.GAUSS_FIT_HALF_WINDOW`; docs/depth-study.md)."""
+"""Largest :func:`~sffscan.stages.depth_statistics.centroid_pull` (levels) for which
+``"adaptive_centroid"`` takes the 5-level centroid, tuned by the study on the training seeds of all
+its families (as :data:`~sffscan.stages.depth_candidates.GAUSS_FIT_HALF_WINDOW`;
+docs/depth-study.md)."""
 
 SHAPE_SELECT_LIMITS = (0.2, 6.0)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
@@ -62,152 +68,36 @@ for ``"shape_select"`` to keep it (:func:`spc_in_range`), tuned as
 :data:`CENTROID_PULL_LIMIT` (candidate ``spc-reach``)."""
 
 SPC_PULL_LIMIT = 0.05
-"""Largest :func:`centroid_pull` (levels) of curves ``"shape_select"`` gives to SPC: the
-skewness of :func:`shape_statistics` is a noisy judge of evenness (heavy additive noise
-brings a lopsided stack's median skewness under its limit: measured 0.076 at noise 0.1,
-where SPC's error was 2.35 x adaptive's), the pull of a centroid a steady one (> 0.15
-levels on the same curves). Tuned as :data:`CENTROID_PULL_LIMIT` (candidate
-``spc-pull``; limits that tie on the training seeds go to the smallest)."""
+"""Largest :func:`~sffscan.stages.depth_statistics.centroid_pull` (levels) of curves
+``"shape_select"`` gives to SPC: the skewness of
+:func:`~sffscan.stages.depth_statistics.shape_statistics` is a noisy judge of evenness (heavy
+additive noise brings a lopsided stack's median skewness under its limit: measured 0.076 at noise
+0.1, where SPC's error was 2.35 x adaptive's), the pull of a centroid a steady one (> 0.15 levels on
+the same curves). Tuned as :data:`CENTROID_PULL_LIMIT` (candidate ``spc-pull``; limits that tie on
+the training seeds go to the smallest)."""
 
 SPC_NOISE_RATIO = math.inf
 """Largest ratio of SPC's predicted noise to the pull's noise (:func:`spc_noise` over
-:func:`pull_statistics`' second number) of curves ``"shape_select"`` gives to SPC; inf:
-no such test. Tuned by the protocol over all twenty families of ``sffscan study
---families --crossed`` (candidate ``spc-noise``): 1.19 in 19 of 20 leave-one-out folds
-until 2026-12-04, when the departure test started to weigh SPC's predicted noise itself
+:func:`~sffscan.stages.depth_statistics.pull_statistics`' second number) of curves
+``"shape_select"`` gives to SPC; inf: no such test. Tuned by the protocol over all twenty families
+of ``sffscan study --families --crossed`` (candidate ``spc-noise``): 1.19 in 19 of 20 leave-one-out
+folds until 2026-12-04, when the departure test started to weigh SPC's predicted noise itself
 (:func:`takes_spc`); since then no training stack tells the settings apart in any fold and
 the tie goes to inf (docs/depth-study.md). Noisy, even-looking curves (noisy slopes: SPC's
 error 1.7-2.1x the fallback's) are refused by the departure test now."""
 
-SHAPE_SAMPLE_STEP = (16, 8)
-"""The curves' shape is judged on every 16th row and 8th column (:func:`sampled_curves`):
-a 1040-row block of 64 columns gives 520 curves, enough to place two medians; judging every
-curve would cost a scan's block more than its reduction (bench/results:
-bench_depth_default.py)."""
-
-def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
-                   valid: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The curves of :data:`SHAPE_SAMPLE_STEP` a shape is judged on: (N, r, c) float32
-    levels, their argmax and the mask of those with data, or None where none has.
-
-    Parameters
-    ----------
-    levels : (N, rows, columns) ndarray of float
-        The curves (a block of a scan, or a whole stack).
-    argmax : (rows, columns) ndarray of int
-        Their argmax.
-    valid : ndarray of bool broadcastable to (rows, columns), optional
-        The curves seen at every level (a (columns,) mask: the columns seen at every level;
-        a (rows, columns) one: each pixel's); the others are left out, whatever their
-        levels hold (a scan's ring keeps earlier columns' values), and so are the curves
-        without data (flat: the rows beyond the frames, kept for wobble).
-    """
-    rs, cs = SHAPE_SAMPLE_STEP
-    vol = np.ascontiguousarray(levels[:, ::rs, ::cs], dtype=np.float32)
-    seen = vol.max(axis=0) > vol.min(axis=0)
-    if valid is not None:
-        seen &= np.broadcast_to(np.asarray(valid, bool), argmax.shape)[::rs, ::cs]
-    if not seen.any():
-        return None
-    return vol, np.asarray(argmax)[::rs, ::cs], seen
-
-SHAPE_STACK_CURVES = 16384
-"""A whole stack is judged on an even grid of at least this many of its curves
-(:func:`stack_sample`: every s-th row and column, ``s = floor(sqrt(curves / 16384))``),
-as a scan's block is on :func:`sampled_curves`: the medians the choice takes are then
-those of the whole stack within about 1 % of the curves' spread (a median of n values
-has a standard error of about 1.25 sigma / sqrt n). Judging every curve had made
-``shape_select`` 4.3-5.6x slower on 512 x 512 stacks, for the same maps
-(docs/depth-method-log.md). Stacks of fewer than 4 x 16384 curves (the study's 64 x 64 px
-among them) are judged on every curve."""
 
 
-def stack_sample(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The curves of a whole stack its shape is judged on (:data:`SHAPE_STACK_CURVES`).
-
-    Parameters
-    ----------
-    volume : (N, H, W) ndarray of float
-        The stack's focus curves.
-    argmax : (H, W) ndarray of int
-        Their argmax.
-    width : (H, W) ndarray of float, optional
-        Their widths (:func:`sffscan.stages.depth_uncertainty.curve_width`).
-
-    Returns
-    -------
-    volume, argmax, width
-        Every s-th row and column of each (the inputs themselves where s = 1; the volume a
-        contiguous copy otherwise; width None where not given).
-    """
-    h, w = np.shape(argmax)
-    s = max(1, math.isqrt(h * w // SHAPE_STACK_CURVES))
-    if s == 1:
-        return volume, argmax, width
-    return (np.ascontiguousarray(volume[:, ::s, ::s]), np.asarray(argmax)[::s, ::s],
-            None if width is None else np.asarray(width)[::s, ::s])
 
 
-def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
-                    ) -> tuple[float, float]:
-    """How far a centroid is pulled from the curves' maximum, and how noisy that comparison
-    is: over the ``mask`` curves (all when None), the baseline-free centroid of the 5 levels
-    about each curve's argmax minus its 3-point Gaussian (levels; curves whose argmax lies
-    within 2 levels of an end of the range left out), and of those differences the median
-    (the *pull*) and the robust standard deviation (1.4826 x their median absolute
-    deviation about it: the *noise*). NaN, NaN where no curve is left, which
-    :func:`takes_centroid` refuses.
-
-    The pull is about 0 on even curves, whatever their noise (the median of many curves);
-    positive where the curves' tails run to higher levels (a thin lens' blur, even in 1/z):
-    measured 0.14 on pertuz-simu02, 0.22 on Gaussians whose upper flank is twice as wide.
-    The noise is mostly the 3-point Gaussian's (three samples against the centroid's five).
-
-    Parameters
-    ----------
-    levels : (N, H, W) ndarray of float
-        The curves.
-    argmax : (H, W) ndarray of int
-        Their argmax.
-    mask : (H, W) ndarray of bool, optional
-        The curves judged.
-    """
-    am, ok = _judged(argmax, levels.shape[0], mask)
-    if not ok.any():
-        return math.nan, math.nan
-    vol = np.ascontiguousarray(levels, dtype=np.float32)
-    diff = (windowed_centroid(vol, am, half_window=2)
-            - (am + three_point_offset(vol, am, log=True)))[ok]
-    return _median_spread(diff)
 
 
-def _judged(argmax: np.ndarray, n: int, mask: np.ndarray | None
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """The argmax as intp, and the curves judged: the ``mask`` ones (all when None) whose
-    argmax lies 2 levels or more from both ends of the N levels."""
-    am = np.asarray(argmax).astype(np.intp)
-    ok = (am >= 2) & (am <= n - 3)
-    if mask is not None:
-        ok &= np.asarray(mask, bool)
-    return am, ok
 
 
-def _median_spread(diff: np.ndarray) -> tuple[float, float]:
-    """The median of ``diff`` and 1.4826 x its median absolute deviation about it."""
-    m = float(np.median(diff))
-    return m, 1.4826 * float(np.median(np.abs(diff - m)))
 
 
-def _row_median(x: np.ndarray) -> np.ndarray:
-    """Median of each row of a 2-D array (np.median's with axis=1), by one partition: 6x
-    faster than np.median on a block's (520, 48) second differences (0.06 against 0.37 ms,
-    measured), whose time was that of the rest of the block's choice."""
-    m = x.shape[1]
-    h = m // 2
-    part = np.partition(x, [h - 1, h] if m % 2 == 0 else [h], axis=1)
-    return part[:, h] if m % 2 else 0.5 * (part[:, h - 1] + part[:, h])
+
+
 
 
 def _curve_noise(cur: np.ndarray) -> np.ndarray:
@@ -215,8 +105,8 @@ def _curve_noise(cur: np.ndarray) -> np.ndarray:
     second differences: ``1.4826 MAD / sqrt 6``, robust to the few levels of the peak, whose
     curvature is signal."""
     d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]
-    d2 -= _row_median(d2)[:, None]
-    return np.float32(1.4826 / math.sqrt(6.0)) * _row_median(np.abs(d2))
+    d2 -= row_median(d2)[:, None]
+    return np.float32(1.4826 / math.sqrt(6.0)) * row_median(np.abs(d2))
 
 
 def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -283,7 +173,7 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
         The curves judged.
     """
     n = levels.shape[0]
-    am, ok = _judged(argmax, n, mask)
+    am, ok = judged_curves(argmax, n, mask)
     if not ok.any():
         return math.nan, math.nan
     cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
@@ -298,20 +188,16 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
         peak = windowed_centroid(cur[:, None, :], a[None, :], half_window=2)[0]
     else:
         peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
-    return _median_spread((spc - peak)[keep])
+    return median_spread((spc - peak)[keep])
 
 
-def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
-                  ) -> float:
-    """The pull of :func:`pull_statistics` alone (levels; NaN where no curve is judged)."""
-    return pull_statistics(levels, argmax, mask)[0]
 
 
 def takes_centroid(pull: float, *, noise: float = 0.0,
                    limit: float = CENTROID_PULL_LIMIT) -> bool:
     """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this pull and
-    noise (:func:`pull_statistics`): ``abs(pull) < max(limit, noise)`` (``limit`` default
-    :data:`CENTROID_PULL_LIMIT`); not for a NaN pull (no curve judged).
+    noise (:func:`~sffscan.stages.depth_statistics.pull_statistics`): ``abs(pull) < max(limit,
+    noise)`` (``limit`` default :data:`CENTROID_PULL_LIMIT`); not for a NaN pull (no curve judged).
 
     The noise term is a bias-variance comparison, no tuned constant: at a curve's peak the
     centroid's error is about the pull (a bias) and the 3-point Gaussian's about its own
@@ -326,65 +212,8 @@ def takes_centroid(pull: float, *, noise: float = 0.0,
     """
     return bool(abs(pull) < max(limit, 0.0 if math.isnan(noise) else noise))
 
-def curve_skew(volume: np.ndarray, peak: np.ndarray, width: np.ndarray) -> np.ndarray:
-    """Skewness of each focus curve: the third standardised moment of its values above its
-    minimum over the levels within ``max(3, ceil(2.5 width))`` of ``peak``.
-
-    Parameters
-    ----------
-    volume : (N, H, W) ndarray of float
-        Focus volume.
-    peak : (H, W) ndarray of int
-        Each curve's argmax, levels (where the window is centred).
-    width : (H, W) ndarray of float
-        Curve width, levels (:func:`sffscan.stages.depth_uncertainty.curve_width`).
-
-    Returns
-    -------
-    (H, W) ndarray of float64
-        About 0 for an even curve; positive when the curve's tail runs to higher levels.
-    """
-    vol = np.asarray(volume, np.float64)
-    n = vol.shape[0]
-    v = vol - vol.min(axis=0)
-    reach = np.clip(np.ceil(2.5 * np.maximum(width, 1.0)), 3, n)
-    d = np.arange(n, dtype=np.float64)[:, None, None] - np.asarray(peak, np.float64)[None]
-    w = np.where(np.abs(d) <= reach[None], v, 0.0)
-    # the moments about the peak, then about their mean: one product per power (the
-    # two-pass form took 3x the time; d spans a few tens of levels, no cancellation)
-    m0 = w.sum(axis=0) + 1e-300
-    w *= d
-    m1 = w.sum(axis=0) / m0
-    w *= d
-    m2 = w.sum(axis=0) / m0
-    w *= d
-    m3 = w.sum(axis=0) / m0
-    var = m2 - m1 * m1
-    third = m3 - 3.0 * m1 * m2 + 2.0 * m1**3
-    return third / np.maximum(var, 1e-12) ** 1.5
 
 
-def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
-                     mask: np.ndarray | None = None) -> tuple[float, float]:
-    """The two numbers :func:`shape_select` decides by, over the ``mask`` pixels (all when
-    None): ``abs(median skewness)`` (:func:`curve_skew` about each curve's argmax ``peak``)
-    and the median ratio of the harmonic width ``width`` to the sigma of the levels above
-    half height (:func:`~sffscan.stages.depth_candidates.half_height_count` / 2.355, a
-    Gaussian's FWHM / sigma).
-
-    Counted, not the contiguous run through the maximum
-    (:func:`~sffscan.stages.depth_candidates.half_height_run`, until 2026-12-05): on noisy
-    even curves a level dipping under half height cuts the run, the ratio rises past the
-    limit of 6 and SPC, the better method there, is refused. Measured with the study
-    (twenty crossed families, docs/depth-method-log.md): the default's ratio to the best
-    single method on even-noisy 1.21x -> 1.07x on seeds 6..11 (where the cut runs were
-    found) and 1.38x -> 1.27x on seeds 24..29 (scored after the change was fixed), every
-    other family the same on seeds 3..5, 12..17, 18..23 and 24..29."""
-    sel = np.ones(np.shape(peak), bool) if mask is None else np.asarray(mask, bool)
-    skew = curve_skew(volume, peak, width)
-    above = half_height_count(volume, peak).astype(np.float64)
-    ratio = np.asarray(width, np.float64) / (above / 2.355)
-    return abs(float(np.median(skew[sel]))), float(np.median(ratio[sel]))
 
 
 def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT_LIMITS[0],
@@ -392,17 +221,17 @@ def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT
               max_pull: float = SPC_PULL_LIMIT, noise: tuple[float, float] | None = None,
               max_noise_ratio: float = SPC_NOISE_RATIO,
               departure: tuple[float, float] | None = None) -> bool:
-    """Whether curves with these :func:`shape_statistics` are even and clean enough for SPC:
-    both below their limits (default :data:`SHAPE_SELECT_LIMITS`), and, where their
-    :func:`centroid_pull` is given, its size below ``max_pull`` (not for NaN: no curve
-    judged), and where ``noise`` is given (SPC's predicted noise, :func:`spc_noise`, and
-    the pull's noise, :func:`pull_statistics`), the first at most ``max_noise_ratio``
-    times the second or under :data:`CENTROID_PULL_LIMIT` (an error the study's choices
-    treat as negligible: noise-free curves' second differences are their shape, not
-    noise), and where ``departure`` is given (:func:`spc_departure`, ``(d, s)``), SPC's
-    mean squared error predicted no larger than the fallback's:
-    ``d^2 + 2 sigma^2 <= max(CENTROID_PULL_LIMIT, s)^2``, ``sigma`` SPC's predicted noise
-    (``noise``'s first number; 0 where ``noise`` is None or it is under
+    """Whether curves with these :func:`~sffscan.stages.depth_statistics.shape_statistics` are even
+    and clean enough for SPC: both below their limits (default :data:`SHAPE_SELECT_LIMITS`), and,
+    where their :func:`~sffscan.stages.depth_statistics.centroid_pull` is given, its size below
+    ``max_pull`` (not for NaN: no curve judged), and where ``noise`` is given (SPC's predicted
+    noise, :func:`spc_noise`, and the pull's noise,
+    :func:`~sffscan.stages.depth_statistics.pull_statistics`), the first at most ``max_noise_ratio``
+    times the second or under :data:`CENTROID_PULL_LIMIT` (an error the study's choices treat as
+    negligible: noise-free curves' second differences are their shape, not noise), and where
+    ``departure`` is given (:func:`spc_departure`, ``(d, s)``), SPC's mean squared error predicted
+    no larger than the fallback's: ``d^2 + 2 sigma^2 <= max(CENTROID_PULL_LIMIT, s)^2``, ``sigma``
+    SPC's predicted noise (``noise``'s first number; 0 where ``noise`` is None or it is under
     :data:`CENTROID_PULL_LIMIT`, which leaves ``|d| <= s``); not for NaN.
 
     The departure test is a bias-variance comparison with no tuned constant, as
@@ -493,16 +322,18 @@ class StackChoice(NamedTuple):
     from the fallback's peaks, ``|d|`` of :func:`spc_departure`, where the stack takes SPC;
     elsewhere the fallback's own, :func:`fallback_bias`."""
     pull: float
-    """The curves' centroid pull (:func:`pull_statistics`), levels."""
+    """The curves' centroid pull (:func:`~sffscan.stages.depth_statistics.pull_statistics`),
+    levels."""
     noise: float
-    """The pull's noise (:func:`pull_statistics`), levels."""
+    """The pull's noise (:func:`~sffscan.stages.depth_statistics.pull_statistics`), levels."""
 
 
 def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None
                  ) -> StackChoice:
-    """``"shape_select"``'s choice for a whole stack, judged on :func:`stack_sample`'s curves
-    as :func:`sffscan.stages.depth.depth_from_focus` judges it (a scan's block is judged
-    by :func:`sffscan.stages.block_depth.block_choice`).
+    """``"shape_select"``'s choice for a whole stack, judged on
+    :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves as
+    :func:`sffscan.stages.depth.depth_from_focus` judges it (a scan's block is judged by
+    :func:`sffscan.stages.block_depth.block_choice`).
 
     Parameters
     ----------
@@ -532,9 +363,9 @@ uncertainty adds their :func:`fallback_bias`."""
 
 def fallback_bias(pull: float) -> float:
     """The bias of a peak method's depth the height uncertainty adds in quadrature (levels):
-    the size of the curves' centroid pull (:func:`pull_statistics`: the median over the
-    curves of the 5-level centroid minus the 3-point Gaussian about each argmax); 0.0 where
-    no curve was judged (NaN).
+    the size of the curves' centroid pull (:func:`~sffscan.stages.depth_statistics.pull_statistics`:
+    the median over the curves of the 5-level centroid minus the 3-point Gaussian about each
+    argmax); 0.0 where no curve was judged (NaN).
 
     Two peak estimators that agree on even curves disagree by that much, the same way on
     every curve, where the curves are lopsided or flat-topped (a thin lens, a pillbox): a
@@ -552,8 +383,9 @@ def fallback_bias(pull: float) -> float:
 def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str) -> float:
     """The bias (levels) the height uncertainty of a whole stack reconstructed with
     ``method`` adds: ``"shape_select"``'s :attr:`StackChoice.bias`, a peak method's
-    :func:`fallback_bias` on :func:`stack_sample`'s curves, 0.0 for the other methods.
-    ``volume`` and ``argmax`` as :func:`stack_choice`'s; ``method`` the depth method."""
+    :func:`fallback_bias` on :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, 0.0 for
+    the other methods. ``volume`` and ``argmax`` as :func:`stack_choice`'s; ``method`` the depth
+    method."""
     if method == "shape_select":
         return stack_choice(volume, argmax).bias
     if method in PEAK_METHODS:
@@ -564,12 +396,13 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str) -> float:
 
 def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
              pull: float, noise: float, mask: np.ndarray | None = None) -> float | None:
-    """``"shape_select"``'s tests on curves of these :func:`shape_statistics` and
-    :func:`pull_statistics`: SPC's departure ``|d|`` (:func:`spc_departure` against the
-    peak the fallback takes; levels) where they take SPC, None where they do not. SPC's
-    noise and departure are measured only for curves that pass the rest (they cost about
-    as much as the rest). One home for the choice of a stack (:func:`stack_choice`) and of
-    a scan block (:func:`sffscan.stages.block_depth.block_choice`).
+    """``"shape_select"``'s tests on curves of these
+    :func:`~sffscan.stages.depth_statistics.shape_statistics` and
+    :func:`~sffscan.stages.depth_statistics.pull_statistics`: SPC's departure ``|d|``
+    (:func:`spc_departure` against the peak the fallback takes; levels) where they take SPC, None
+    where they do not. SPC's noise and departure are measured only for curves that pass the rest
+    (they cost about as much as the rest). One home for the choice of a stack (:func:`stack_choice`)
+    and of a scan block (:func:`sffscan.stages.block_depth.block_choice`).
 
     Parameters
     ----------
@@ -578,9 +411,9 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, fl
     argmax : (H, W) ndarray of int
         Their argmax.
     statistics : (float, float)
-        Their :func:`shape_statistics`.
+        Their :func:`~sffscan.stages.depth_statistics.shape_statistics`.
     pull, noise : float
-        Their :func:`pull_statistics`.
+        Their :func:`~sffscan.stages.depth_statistics.pull_statistics`.
     mask : (H, W) ndarray of bool, optional
         The curves judged (all when None).
     """

@@ -9,7 +9,7 @@
   ``adaptive_centroid``, takes the centroid of the 5 levels about the filtered peak instead
   of the 3-point Gaussian (``peak="centroid"``) where the stack's or block's curves do not
   pull a centroid from their maxima
-  (:func:`sffscan.stages.depth_choice.centroid_pull`).
+  (:func:`sffscan.stages.depth_statistics.centroid_pull`).
 
 The streaming depth stage (:mod:`sffscan.stages.focus_volume`) keeps the N focus levels of
 the columns in view in a ring of ``(N, rows, ring)`` float32 planes and reduces a block of

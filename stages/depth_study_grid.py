@@ -21,15 +21,14 @@ from sffscan.stages.depth import (
 from sffscan.stages.depth_candidates import gauss_window_fit, plane_residual, window_pc
 from sffscan.stages.depth_choice import (
     SHAPE_SELECT_LIMITS,
-    pull_statistics,
     shape_select,
-    shape_statistics,
     spc_departure,
     spc_in_range,
     spc_noise,
     takes_centroid,
     takes_spc,
 )
+from sffscan.stages.depth_statistics import pull_statistics, shape_statistics
 from sffscan.stages.depth_uncertainty import depth_scatter
 
 __all__ = ["CANDIDATES", "SHAPE_GRID", "THRESHOLDS", "Setting", "candidate_errors",
@@ -55,7 +54,7 @@ WINDOW_PC_FACTORS = (3.0, 4.0, 5.0)
 
 PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``centroid-pull`` limits (levels) the protocol tunes over: the largest
-:func:`sffscan.stages.depth_choice.centroid_pull` for which a stack takes the 5-level
+:func:`sffscan.stages.depth_statistics.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always), or the pull's noise where that is
 larger (:func:`sffscan.stages.depth_choice.takes_centroid`)."""
 
@@ -99,7 +98,7 @@ rule with the 5-level centroid at its peak pixels, the span limit and a centroid
 
 NOISE_WCENTROID = (math.inf, 0.5, 0.3, 0.2, 0.15, 0.1, 0.05)
 """``noise-wcentroid`` settings the protocol tunes over: the pull's noise
-(:func:`sffscan.stages.depth_choice.pull_statistics`, levels) above which a stack that does
+(:func:`sffscan.stages.depth_statistics.pull_statistics`, levels) above which a stack that does
 not take SPC (``shape_select`` at its shipped limits) takes ``wcentroid`` (the whole curve's
 weighted centroid) instead of ``shape_select``'s depth (inf: never; first: ties go to it).
 Prompted by the crossed family slopes-lens-noisy, where ``wcentroid`` is best."""
@@ -108,7 +107,7 @@ LOPSIDED_WCENTROID = tuple((t, p) for t in (math.inf, 0.3, 0.2, 0.15, 0.1)
                            for p in (0.0, 0.05, 0.1, 0.2))
 """``lopsided-wcentroid`` settings the protocol tunes over: ``noise-wcentroid``'s rule, and
 only for a stack whose curves pull a centroid toward their longer tail by more than the
-second value (:func:`sffscan.stages.depth_choice.pull_statistics`' pull, levels: about 0 on
+second value (:func:`sffscan.stages.depth_statistics.pull_statistics`' pull, levels: about 0 on
 even curves, positive on a thin lens' lopsided ones); (inf, 0) first: never."""
 
 Setting = float | tuple[float, ...]

@@ -222,9 +222,10 @@ def test_adaptive_centroid_takes_the_centroid_where_its_pull_is_under_the_noise(
     gives adaptive_centroid's depth on both: these noisy curves are not clean enough for
     SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is under its limit, but
     their centroid pull is not (SPC there: 1.29 levels of error against 0.55)."""
-    from sffscan.stages.depth_choice import pull_statistics, takes_centroid
+    from sffscan.stages.depth_choice import takes_centroid
     from sffscan.stages.depth_levels import level_spread, median_filter_levels
     from sffscan.stages.depth_peak import adaptive_peak
+    from sffscan.stages.depth_statistics import pull_statistics
 
     rng = np.random.default_rng(0)
     n = 40
@@ -261,7 +262,8 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
     """Curves that cannot be judged (every argmax within 2 levels of an end of the range:
     here N = 4) give no pull (NaN), and the default keeps the 3-point Gaussian: adaptive's
     depth bit for bit."""
-    from sffscan.stages.depth_choice import centroid_pull, takes_centroid
+    from sffscan.stages.depth_choice import takes_centroid
+    from sffscan.stages.depth_statistics import centroid_pull
 
     rng = np.random.default_rng(3)
     vol = rng.random((4, 20, 30), dtype=np.float32) + 0.1
@@ -466,7 +468,7 @@ def _takes_the_fallback(vol: np.ndarray, truth: np.ndarray, inner: tuple[slice, 
                                    (1024, 1280)])
 def test_stack_sample_judges_at_least_its_count_of_curves_on_an_even_grid(
         shape: tuple[int, int]) -> None:
-    from sffscan.stages.depth_choice import SHAPE_STACK_CURVES, stack_sample
+    from sffscan.stages.depth_statistics import SHAPE_STACK_CURVES, stack_sample
 
     h, w = shape
     vol = np.zeros((3, h, w), np.float32)
@@ -487,14 +489,8 @@ def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
     """The statistics shape_select and adaptive_centroid take on a 300 x 300 stack's sample
     (every 2nd row and column) are those of all its curves within their noise, and so are
     the choices they make."""
-    from sffscan.stages.depth_choice import (
-        pull_statistics,
-        shape_statistics,
-        spc_noise,
-        stack_sample,
-        takes_centroid,
-        takes_spc,
-    )
+    from sffscan.stages.depth_choice import spc_noise, takes_centroid, takes_spc
+    from sffscan.stages.depth_statistics import pull_statistics, shape_statistics, stack_sample
     from sffscan.stages.depth_uncertainty import curve_width
 
     rng = np.random.default_rng(3)

@@ -149,9 +149,9 @@ def test_every_method_is_selectable_by_name() -> None:
         SHAPE_SELECT_LIMITS,
         SPC_END_REACH,
         shape_select,
-        shape_statistics,
         spc_in_range,
     )
+    from sffscan.stages.depth_statistics import shape_statistics
     from sffscan.stages.depth_uncertainty import curve_width
 
     assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
@@ -204,7 +204,8 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
     flank is twice as wide as its lower one skews positive (measured 0.18 at least, beyond
     the 0.08 that ``shape_select`` allows); a narrow peak on a noisy floor widens the
     harmonic width, not the run above half height."""
-    from sffscan.stages.depth_choice import curve_skew, shape_select, shape_statistics
+    from sffscan.stages.depth_choice import shape_select
+    from sffscan.stages.depth_statistics import curve_skew, shape_statistics
     from sffscan.stages.depth_uncertainty import curve_width
 
     n, sigma = 60, 3.0

@@ -421,12 +421,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     pull (fallback_bias)."""
     from sffscan.stages.block_depth import SPC_BLOCKS, block_choice
     from sffscan.stages.depth import first_argmax, focus_sums
-    from sffscan.stages.depth_choice import (
-        pull_statistics,
-        spc_departure,
-        stack_choice,
-        takes_centroid,
-    )
+    from sffscan.stages.depth_choice import spc_departure, stack_choice, takes_centroid
+    from sffscan.stages.depth_statistics import pull_statistics
 
     s = family_stack("even-gauss", 0, size_px=48, n_levels=30)
     vol = focus_measure(s.images, window=9)
@@ -459,7 +455,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     # the fallback's bias: the size of its curves' centroid pull (fallback_bias)
     assert stack_choice(lv, la) == (False, abs(pull), pull, noise) and abs(pull) > 0
     from sffscan.stages.block_depth import block_peak_bias
-    from sffscan.stages.depth_choice import fallback_bias, method_bias, sampled_curves
+    from sffscan.stages.depth_choice import fallback_bias, method_bias
+    from sffscan.stages.depth_statistics import sampled_curves
 
     sample = sampled_curves(lv, la)
     assert sample is not None

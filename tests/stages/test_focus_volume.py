@@ -477,7 +477,7 @@ def test_adaptive_centroid_takes_the_centroid_on_even_blocks_only(lopsided: bool
     levels (another depth than adaptive's 3-point Gaussian there, within 0.08 levels of the
     truth on these clean curves, as the offline method: tests/stages/test_depth.py)."""
     from sffscan.stages.block_depth import block_method
-    from sffscan.stages.depth_choice import centroid_pull
+    from sffscan.stages.depth_statistics import centroid_pull
 
     chosen = _shaped_scan("adaptive_centroid", lopsided)
     adaptive = _shaped_scan("adaptive", lopsided)
