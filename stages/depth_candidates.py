@@ -89,14 +89,20 @@ def gauss_window_fit(volume: np.ndarray, centre: np.ndarray, fallback: np.ndarra
     return np.where(ok, np.asarray(centre) + off, fallback).astype(np.float32)
 
 
+def _above_half(volume: np.ndarray, centre: np.ndarray, reach: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The levels within ``reach`` of ``centre`` above half the curve's height over its
+    minimum ((2 reach + 1, H, W) bool), and the window's values (-inf outside the range)."""
+    vals, inside, _ = _window(volume, centre, reach)
+    top = np.where(inside, vals, -np.inf)
+    half = 0.5 * (top.max(axis=0) + np.asarray(volume, np.float64).min(axis=0))
+    return inside & (vals > half[None]), top
+
+
 def half_height_run(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15) -> np.ndarray:
     """Levels in the run above half the curve's height (over its minimum) through the
     window's maximum, within ``reach`` levels of ``centre``; (H, W) int."""
-    vals, inside, _ = _window(volume, centre, reach)
-    top = np.where(inside, vals, -np.inf)
-    peak = top.max(axis=0)
-    half = 0.5 * (peak + np.asarray(volume, np.float64).min(axis=0))
-    above = inside & (vals > half[None])
+    above, top = _above_half(volume, centre, reach)
     at = top.argmax(axis=0)
     # the run ends at the first level below half height on either side of the maximum
     # (or the window's end): one search per side over the window's 2 reach + 1 levels
@@ -126,10 +132,7 @@ def half_height_count(volume: np.ndarray, centre: np.ndarray, *, reach: int = 15
     reach : int, keyword-only
         Half width of the window read, levels.
     """
-    vals, inside, _ = _window(volume, centre, reach)
-    peak = np.where(inside, vals, -np.inf).max(axis=0)
-    half = 0.5 * (peak + np.asarray(volume, np.float64).min(axis=0))
-    return np.maximum((inside & (vals > half[None])).sum(axis=0), 1).astype(np.int64)
+    return np.maximum(_above_half(volume, centre, reach)[0].sum(axis=0), 1).astype(np.int64)
 
 
 def window_pc(volume: np.ndarray, centre: np.ndarray, *, factor: float) -> np.ndarray:
