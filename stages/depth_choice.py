@@ -2,20 +2,23 @@
 per scan block (SFF_NOTES.md section 3; docs/depth-method.md):
 
 * :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
-  :func:`~sffscan.stages.depth_statistics.curve_skew` near 0: blur even in z) and clean (the curves'
-  width from their first harmonic, :func:`sffscan.stages.depth_uncertainty.curve_width`, near the
-  width their run above half height gives: a noisy floor widens the first, not the second) and whose
-  :func:`~sffscan.stages.depth_statistics.centroid_pull` is small, whose SPC is not much noisier
-  than the fallback (:func:`spc_noise`) and does not depart from the curves' peaks by more than
-  their spread (:func:`spc_departure`), else ``adaptive_centroid``; SPC's depth only where it
-  lies a reach of curve widths from the range's ends (:func:`spc_in_range`). SPC reads the
-  whole curve, so it holds where wide or ringing curves (pillbox PSFs, coarse textures)
-  move the 3-point peak; but it is biased by a lopsided curve (a thin lens' blur, even in
-  1/z), by a noisy floor under a narrow peak and by a curve cut by an end of the range.
-  The default of scan, replay and stack since 2026-12-02.
-* ``adaptive_centroid``'s statistic, :func:`~sffscan.stages.depth_statistics.centroid_pull`: how far
-  the 5-level centroid about each curve's argmax lies from its 3-point Gaussian, the median over the
-  curves; :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
+  :func:`~sffscan.stages.depth_statistics.curve_skew` near 0: blur even in z) and clean
+  (the curves' width from their first harmonic,
+  :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their levels above
+  half height give: a noisy floor widens the first, not the second) and whose
+  :func:`~sffscan.stages.depth_statistics.centroid_pull` is small, whose SPC is not much
+  noisier than the fallback (:func:`spc_noise`) and does not depart from the curves' peaks
+  by more than their spread (:func:`spc_departure`), else ``adaptive_centroid``; SPC's
+  depth only where it lies a reach of curve widths from the range's ends
+  (:func:`spc_in_range`). SPC reads the whole curve, so it holds where wide or ringing
+  curves (pillbox PSFs, coarse textures) move the 3-point peak; but it is biased by a
+  lopsided curve (a thin lens' blur, even in 1/z), by a noisy floor under a narrow peak
+  and by a curve cut by an end of the range. The default of scan, replay and stack since
+  2026-12-02.
+* ``adaptive_centroid``'s statistic,
+  :func:`~sffscan.stages.depth_statistics.centroid_pull`: how far the 5-level centroid
+  about each curve's argmax lies from its 3-point Gaussian, the median over the curves;
+  :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
 
 A scan's block is judged on its :func:`~sffscan.stages.depth_statistics.sampled_curves`
 (:func:`sffscan.stages.block_depth.block_method`). The thresholds are the
