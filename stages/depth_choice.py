@@ -1,5 +1,6 @@
-"""The statistics by which the default depth method chooses its estimator, per stack or
-per scan block (SFF_NOTES.md section 3; docs/depth-method.md):
+"""How the default depth method chooses its estimator, per stack or per scan block, from
+the curves' statistics (:mod:`sffscan.stages.depth_statistics`; SFF_NOTES.md section 3;
+docs/depth-method.md):
 
 * :func:`shape_select`: SPC for a stack whose focus curves are even (median skewness
   :func:`~sffscan.stages.depth_statistics.curve_skew` near 0: blur even in z) and clean
