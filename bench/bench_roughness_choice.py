@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -128,13 +127,11 @@ def choices(vol: np.ndarray, mask: np.ndarray) -> tuple[dict[str, np.ndarray], d
     out = dict(maps)
     for v in VARIANTS[1:]:
         out[v] = cand[took[v]]
-    out["shape_select"] = maps["shape_select"]
     return out, took
 
 
 def run(seeds: range) -> tuple[dict[str, dict[str, float]], list[str]]:
     """Each family's ratio of each variant's pooled RMSE to the best fixed method's."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     from study_stacks import family_volume  # the bench folder's own helper
 
     table: dict[str, dict[str, float]] = {}
