@@ -111,8 +111,8 @@ def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
                rows: tuple[int, int], own: slice, inner: slice, sums: np.ndarray,
                low: np.ndarray, *, method: str, n_levels: int, median_size: int,
-               spread_size: int, streaming: bool, keep_low: bool
-               ) -> tuple[np.ndarray, np.ndarray]:
+               spread_size: int, streaming: bool, keep_low: bool,
+               wide_peak: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth (levels) and confidence of rows [r0, r1) of a block.
 
     Parameters
@@ -144,12 +144,21 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
     streaming, keep_low : bool, keyword-only
         Whether ``src`` holds sums; whether the minimum is wanted.
 
+    wide_peak : ndarray of float32, (r1 - r0, block), optional, keyword-only
+        For ``"adaptive"`` and ``"adaptive_centroid"`` blocks: receives the peak
+        estimator's depth where they took the wide centroid, NaN elsewhere
+        (:func:`~sffscan.stages.depth_peak.adaptive_block`'s ``wide_peak_out``, for
+        :func:`~sffscan.stages.depth_choice.wide_choice` over the whole block); NaN
+        everywhere for the other methods.
+
     Returns
     -------
     depth, confidence : ndarray of float32, (r1 - r0, block)
     """
     r0, r1 = rows
     wide = slice(r0 - own.start, r1 + (argmax.shape[0] - own.stop))  # argmax's rows
+    if wide_peak is not None:
+        wide_peak.fill(np.nan)  # adaptive_block overwrites it where it is asked to
     if streaming:
         planes = src[:, wide]
         full = np.zeros((4, *planes.shape[1:]), np.float32)
@@ -177,7 +186,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
             "centroid" if method == "adaptive_centroid" else "gauss3")
         depth, conf = adaptive_block(levels, centre[own, inner], spread[own, inner],
                                      peak=peak, sums_out=sums,
-                                     min_out=low if keep_low or spc_block else None)
+                                     min_out=low if keep_low or spc_block else None,
+                                     wide_peak_out=None if spc_block else wide_peak)
         if not spc_block:
             return depth, conf
         # SPC from that pass's float32 sums (the block's own columns) and filtered argmax,

@@ -40,7 +40,7 @@ from sffscan.stages.depth_candidates import (
     gauss_window_fit,
     window_pc,
 )
-from sffscan.stages.depth_choice import spc_in_range, stack_choice, takes_centroid
+from sffscan.stages.depth_choice import spc_in_range, stack_choice, takes_centroid, wide_choice
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
     confidence_from_sums,
@@ -67,11 +67,12 @@ from sffscan.stages.depth_peak import (
     ADAPTIVE_HALF_WINDOW,
     ADAPTIVE_MAX_SPREAD,
     WCENTROID_HALF_WINDOW,
+    adaptive_block,
     adaptive_peak,
     three_point_offset,
     windowed_centroid,
 )
-from sffscan.stages.depth_statistics import pull_statistics, stack_sample
+from sffscan.stages.depth_statistics import pull_statistics, sample_step, stack_sample
 from sffscan.stages.depth_uncertainty import width_from_sums
 
 __all__ = [
@@ -159,15 +160,22 @@ def _adaptive(c: FocusCurves) -> np.ndarray:
                          level_spread(centre, c.spread_size, c.volume.shape[0]))
 
 
-def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None
-                       ) -> np.ndarray:
+def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None, *,
+                       wide_test: bool = True) -> np.ndarray:
     assert c.argmax is not None
     centre = c.centre()
     pull, noise = pull_statistics(*stack_sample(c.volume, c.argmax)[:2]) if stats is None \
         else stats
     peak = "centroid" if takes_centroid(pull, noise=noise) else "gauss3"
-    return adaptive_peak(c.volume, centre,
-                         level_spread(centre, c.spread_size, c.volume.shape[0]), peak=peak)
+    spread = level_spread(centre, c.spread_size, c.volume.shape[0])
+    if not wide_test:
+        return adaptive_peak(c.volume, centre, spread, peak=peak)
+    # the wide centroid judged on the grid the stack's other statistics take (stack_sample)
+    wide_peak = np.empty(spread.shape, np.float32)
+    depth = adaptive_block(c.volume, centre, spread, peak=peak, wide_peak_out=wide_peak)[0]
+    s = sample_step(depth.shape)
+    wide_choice(depth, wide_peak, step=(s, s))
+    return depth
 
 
 def _gauss_window_fit(c: FocusCurves) -> np.ndarray:
@@ -188,7 +196,9 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
                             c.volume.shape[0])
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
     choice = stack_choice(c.volume, c.argmax, width)
-    other = _adaptive_centroid(c, (choice.pull, choice.noise))
+    # a stack that takes SPC keeps the fallback's wide centroid untested, as a scan's SPC
+    # block does (the fallback is then read only beyond SPC's range)
+    other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc)
     if not choice.spc:
         return other  # SPC's map only where the stack takes it
     spc = _from_sums(c, method="spc")

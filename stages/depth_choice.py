@@ -19,7 +19,11 @@ docs/depth-method.md):
 * ``adaptive_centroid``'s statistic,
   :func:`~sffscan.stages.depth_statistics.centroid_pull`: how far the 5-level centroid
   about each curve's argmax lies from its 3-point Gaussian, the median over the curves;
-  :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise.
+  :func:`takes_centroid` below :data:`CENTROID_PULL_LIMIT` or the pull's own noise;
+  and where the focus window sees several heights, the 11-level centroid that ``adaptive``
+  takes there only where it does not depart from the peak estimator by more than their
+  differences' spread (:func:`takes_wide_centroid`,
+  :func:`~sffscan.stages.depth_statistics.wide_departure`).
 
 A scan's block is judged on its :func:`~sffscan.stages.depth_statistics.sampled_curves`
 (:func:`sffscan.stages.block_depth.block_method`). The thresholds are the
@@ -42,13 +46,14 @@ from sffscan.stages.depth_statistics import (
     row_median,
     shape_statistics,
     stack_sample,
+    wide_departure,
 )
 from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
 
 __all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
            "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "fallback_bias", "method_bias",
            "shape_select", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
-           "stack_choice", "takes_centroid", "takes_spc"]
+           "stack_choice", "takes_centroid", "takes_spc", "takes_wide_centroid", "wide_choice"]
 
 CENTROID_PULL_LIMIT = 0.03
 """Largest :func:`~sffscan.stages.depth_statistics.centroid_pull` (levels) for which
@@ -218,6 +223,69 @@ def takes_centroid(pull: float, *, noise: float = 0.0,
 
 
 
+
+
+def takes_wide_centroid(departure: tuple[float, float]) -> bool:
+    """Whether ``adaptive_centroid`` (and ``"shape_select"``'s fallback) keeps the wide
+    centroid where the focus window sees several heights, given its
+    :func:`~sffscan.stages.depth_statistics.wide_departure` ``(d, s)``: ``|d| <= s``; also
+    for NaN (no such pixel judged). Else the peak estimator (:func:`takes_centroid`'s) is
+    taken at every pixel.
+
+    ``"adaptive"`` takes, where the filtered peaks in the focus window span more than
+    :data:`~sffscan.stages.depth_peak.ADAPTIVE_MAX_SPREAD` levels (a slope, an edge, a
+    rough or noisy surface), the baseline-free centroid of 11 levels: the middle of a blend
+    of peaks, and less noisy than a peak where noise moved the argmax. On a smooth slope the
+    blend is even about the pixel's own height, so its peak is not biased, while the
+    11-level window reaches into the curves' tails and the centroid is pulled (by a median
+    +0.18 levels against the 3-point Gaussian on the study's ``slopes`` family, whose
+    differences spread 0.14). The test is a bias-variance comparison with no tuned
+    constant, as :func:`takes_spc`'s departure test: a departure larger than the spread is
+    a bias of the wide centroid larger than the noise it saves.
+    Measured with the leave-one-family-out protocol (the twenty families; docs/depth-study.md,
+    docs/depth-method-log.md), the default's ratio to the best single method on ``slopes``
+    1.04x -> 1.00x (held out, seeds 3..5), 1.10x -> 1.00x (6..11), 1.24x -> 1.00x (24..29),
+    ``slopes-lens-pillbox`` 1.05-1.08x -> 1.00-1.05x; the other families within 1 %.
+    """
+    d, s = departure
+    return not abs(d) > s
+
+
+def wide_choice(depth: np.ndarray, wide_peak: np.ndarray, *, step: tuple[int, int],
+                valid: np.ndarray | None = None) -> bool:
+    """``adaptive_centroid``'s choice of the wide centroid for a stack or a block, in place:
+    where :func:`takes_wide_centroid` refuses it, ``depth`` takes ``wide_peak`` at every
+    pixel where that is finite.
+
+    Parameters
+    ----------
+    depth : (H, W) ndarray of float32
+        The fallback's depth (:func:`sffscan.stages.depth_peak.adaptive_block`), levels;
+        changed in place.
+    wide_peak : (H, W) ndarray of float32
+        The peak estimator's depth where the wide centroid was taken, NaN elsewhere
+        (``adaptive_block``'s ``wide_peak_out``).
+    step : (int, int), keyword-only
+        The grid the pixels are judged on, every ``step[0]``-th row and ``step[1]``-th
+        column (:func:`~sffscan.stages.depth_statistics.sample_step` for a stack,
+        :data:`~sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP` for a scan's block).
+    valid : (H, W) ndarray of bool, optional, keyword-only
+        The pixels judged (a block's whole curves); all when None.
+
+    Returns
+    -------
+    bool
+        True where the peak estimator was taken.
+    """
+    rs, cs = step
+    w = wide_peak[::rs, ::cs]
+    judged = np.isfinite(w)
+    if valid is not None:
+        judged &= np.asarray(valid, bool)[::rs, ::cs]
+    if takes_wide_centroid(wide_departure(depth[::rs, ::cs][judged], w[judged])):
+        return False
+    np.copyto(depth, wide_peak, where=np.isfinite(wide_peak))
+    return True
 
 
 def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT_LIMITS[0],

@@ -202,7 +202,8 @@ def _outside(c: np.ndarray, half_window: int, n: int, vals: np.ndarray, fill: fl
 def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                    half_window: int = ADAPTIVE_HALF_WINDOW,
                    max_spread: int = ADAPTIVE_MAX_SPREAD, peak: str = "gauss3",
-                   sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None
+                   sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None,
+                   wide_peak_out: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
 
@@ -237,6 +238,11 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         width, :func:`sffscan.stages.depth_uncertainty.width_from_sums`, needs them).
     min_out : (H, W) ndarray of float32, optional, keyword-only
         Receives every curve's smallest value (from the same strips, while in cache).
+    wide_peak_out : (H, W) ndarray of float32, optional, keyword-only
+        Receives, where the spread exceeds ``max_spread``, what ``peak`` gives there (the
+        depth with every pixel taken as a peak pixel, bit for bit: from the 5 middle levels
+        of the wide window), NaN elsewhere
+        (:func:`sffscan.stages.depth_choice.wide_choice`).
 
     Returns
     -------
@@ -296,10 +302,21 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         else:
             _outside(cp, 2, n, top, -1.0)
             depth[at_peak] = _gaussian_top(list(top), cp, n)
+    alt = None if wide_peak_out is None else np.full(c.shape, np.nan, np.float32)
     if n_peak < c.size:
         cw = c[~at_peak]
+        if alt is not None:  # the levels c - 2 .. c + 2, before the fill below
+            mid = wide[h - 2:h + 3].copy()
+            if peak_centroid:
+                masks = _outside(cw, 2, n, mid, np.inf)
+                alt[~at_peak] = (cw + _centroid_offset(list(mid), masks)).astype(np.float32)
+            else:
+                _outside(cw, 2, n, mid, -1.0)
+                alt[~at_peak] = _gaussian_top(list(mid), cw, n)
         masks = _outside(cw, h, n, wide, np.inf)
         depth[~at_peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
+    if wide_peak_out is not None and alt is not None:
+        wide_peak_out[...] = alt.reshape(height, width)
     h0, re, im = sums
     if sums_out is not None:
         sums_out[...] = sums

@@ -8,6 +8,8 @@ method chooses its estimator (the choices are :mod:`sffscan.stages.depth_choice`
 * the centroid pull and its noise, :func:`pull_statistics` (:func:`centroid_pull`);
 * the curves' shape, :func:`shape_statistics`: their skewness (:func:`curve_skew`) and the
   ratio of their harmonic width to their extent above half height;
+* how far the fallback's wide centroid departs from its peak estimator where the focus
+  window sees several heights, :func:`wide_departure` (on :func:`sample_step`'s lattice);
 * robust medians and spreads: :func:`median_spread`, :func:`row_median`.
 """
 
@@ -21,7 +23,8 @@ from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
 __all__ = ["SHAPE_SAMPLE_STEP", "SHAPE_STACK_CURVES", "centroid_pull", "curve_skew",
            "judged_curves", "median_spread", "pull_statistics", "row_median",
-           "sampled_curves", "shape_statistics", "stack_sample"]
+           "sample_step", "sampled_curves", "shape_statistics", "stack_sample",
+           "wide_departure"]
 
 
 SHAPE_SAMPLE_STEP = (16, 8)
@@ -89,12 +92,43 @@ def stack_sample(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
         Every s-th row and column of each (the inputs themselves where s = 1; the volume a
         contiguous copy otherwise; width None where not given).
     """
-    h, w = np.shape(argmax)
-    s = max(1, math.isqrt(h * w // SHAPE_STACK_CURVES))
+    s = sample_step(np.shape(argmax))
     if s == 1:
         return volume, argmax, width
     return (np.ascontiguousarray(volume[:, ::s, ::s]), np.asarray(argmax)[::s, ::s],
             None if width is None else np.asarray(width)[::s, ::s])
+
+
+def sample_step(shape: tuple[int, ...]) -> int:
+    """The step s of :func:`stack_sample`'s grid for a stack of ``(H, W)`` pixels:
+    ``floor(sqrt(H W / SHAPE_STACK_CURVES))``, at least 1."""
+    h, w = shape
+    return max(1, math.isqrt(h * w // SHAPE_STACK_CURVES))
+
+
+def wide_departure(wide_depth: np.ndarray, peak_depth: np.ndarray) -> tuple[float, float]:
+    """How far the wide centroid departs from the peak estimator, and how noisy that
+    comparison is: over the judged pixels (those where the focus window sees several
+    heights, on a sample's grid), the median of ``wide_depth - peak_depth`` (the
+    *departure*) and its robust spread (:func:`median_spread`); NaN, NaN where no pixel is
+    judged, which :func:`~sffscan.stages.depth_choice.takes_wide_centroid` takes as no
+    departure.
+
+    Parameters
+    ----------
+    wide_depth : ndarray of float
+        Depth of the judged pixels by the baseline-free centroid of the 11 levels about the
+        filtered argmax (what ``"adaptive"`` takes where the spread of the filtered peaks
+        in the focus window exceeds :data:`~sffscan.stages.depth_peak.ADAPTIVE_MAX_SPREAD`),
+        levels.
+    peak_depth : ndarray of float
+        Depth of the same pixels by the peak estimator (the 3-point Gaussian or the 5-level
+        centroid at the filtered argmax), levels; same shape.
+    """
+    diff = np.asarray(wide_depth, np.float64) - np.asarray(peak_depth, np.float64)
+    if diff.size == 0:
+        return math.nan, math.nan
+    return median_spread(diff.reshape(-1))
 
 
 def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None

@@ -44,8 +44,10 @@ from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
+from sffscan.stages.depth_choice import wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
+from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
 T = TypeVar("T")
@@ -486,13 +488,19 @@ class FocusVolume:
         elif self.fv is not None and method == "adaptive" and self.uncertainty:
             bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
                                           self._gather(self.argmax, u0, u1), valid)
+        # the fallback's wide centroid judged on the whole block, whatever its bands
+        wide_test = (self.fv is not None and self.method in blocks.BLOCK_CHOICES
+                     and method not in blocks.SPC_BLOCKS)
         self._run_task("depth", {
             "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
             "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,
             "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
             "median_size": self.median_size, "spread_size": self.spread_size,
-            "uncertainty": self.uncertainty})
+            "uncertainty": self.uncertainty, "wide_test": wide_test})
         a, shape = self.arrays, (self.rows, u1 - u0)
+        if wide_test:
+            wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),
+                        step=SHAPE_SAMPLE_STEP, valid=valid)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 
