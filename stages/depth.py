@@ -283,7 +283,11 @@ def depth_from_focus(
             differences' robust spread:
             :func:`~sffscan.stages.depth_statistics.pull_statistics`). Five levels, not
             three: less noise. On clean lopsided curves (a thin lens' blur) it is
-            ``"adaptive"``. The streaming depth stage judges each block of columns.
+            ``"adaptive"``. Where ``a_med`` spans more, the 11-level centroid only if it
+            does not depart from that peak estimator by more than their differences'
+            spread over those pixels (:func:`~sffscan.stages.depth_choice.takes_wide_centroid`;
+            else the peak estimator at every pixel: a smooth slope). The streaming depth
+            stage judges each block of columns.
         ``"wcentroid"``
             Windowed centroid about the filtered peak: the argmax, median filtered over
             ``median_size`` x ``median_size`` pixels as for SPC (``a_med``), is the centre of
