@@ -143,7 +143,6 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         N, the SPC median's size and adaptive's spread window, px.
     streaming, keep_low : bool, keyword-only
         Whether ``src`` holds sums; whether the minimum is wanted.
-
     wide_peak : ndarray of float32, (r1 - r0, block), optional, keyword-only
         For ``"adaptive"`` and ``"adaptive_centroid"`` blocks: receives the peak
         estimator's depth where they took the wide centroid, NaN elsewhere

@@ -278,7 +278,7 @@ def wide_choice(depth: np.ndarray, wide_peak: np.ndarray, *, step: tuple[int, in
     Returns
     -------
     bool
-        True where the peak estimator was taken.
+        True if the peak estimator was taken.
     """
     rs, cs = step
     w = wide_peak[::rs, ::cs]
