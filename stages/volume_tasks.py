@@ -213,7 +213,7 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
                              median_size=p["median_size"], spread_size=p["spread_size"],
                              streaming=streaming, keep_low=p["uncertainty"],
                              wide_peak=scratch(arrays, "b_peak", (n_rows, width))[r0:r1]
-                             if p.get("wide_test") else None)
+                             if p["wide_test"] else None)
     scratch(arrays, "b_depth", (n_rows, width))[r0:r1] = d
     scratch(arrays, "b_conf", (n_rows, width))[r0:r1] = c
 
