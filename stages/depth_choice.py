@@ -103,19 +103,6 @@ the tie goes to inf (docs/depth-study.md). Noisy, even-looking curves (noisy slo
 error 1.7-2.1x the fallback's) are refused by the departure test now."""
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
 def _curve_noise(cur: np.ndarray) -> np.ndarray:
     """Each curve's noise sigma (rows of ``cur``, (curves, N) float32, N >= 5) from its
     second differences: ``1.4826 MAD / sqrt 6``, robust to the few levels of the peak, whose
@@ -207,8 +194,6 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     return median_spread((spc - peak)[keep])
 
 
-
-
 def takes_centroid(pull: float, *, noise: float = 0.0,
                    limit: float = CENTROID_PULL_LIMIT) -> bool:
     """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this pull and
@@ -227,9 +212,6 @@ def takes_centroid(pull: float, *, noise: float = 0.0,
     0.127, the other eight unchanged.
     """
     return bool(abs(pull) < max(limit, 0.0 if math.isnan(noise) else noise))
-
-
-
 
 
 def takes_wide_centroid(departure: tuple[float, float]) -> bool:

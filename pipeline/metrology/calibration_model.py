@@ -234,8 +234,6 @@ def pixel_positions_um(depth_levels: np.ndarray, *, lateral: LateralScale,
     return u[None, :] * sx, v[:, None] * sy
 
 
-
-
 def calibrated_focus_heights(cal: Calibration, n_levels: int) -> np.ndarray:
     """Height in focus at each level 0..n_levels-1 by the z response, (N,) float64 µm.
 
