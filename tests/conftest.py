@@ -55,9 +55,9 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     the command line), so two workers used 165-175 % of a 2-core machine's 200 %: five whole
     runs one after the other on the 2-core AMD VM (2026-12-05), two workers 319.6 and 302.8 s
     (165 and 175 % CPU), three 296.0 and 293.8 s (185 and 186 %), four 295.1 s (188 %)."""
-    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-             else os.cpu_count() or 1)  # no affinity call on macOS
-    return cores + 1
+    from sffscan.pipeline.cores import cores_available
+
+    return cores_available() + 1
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
