@@ -7,8 +7,8 @@ family, with pertuz-simu02 (../shared/datasets/pertuz-simu02, read in place, BSD
 see its license.txt) as the third-party set, and writes the tables with the command and the
 date; then the same with the ten crossed families (``--crossed``), the twenty again
 with twice the seeds, and twice more on held-out seeds no run had scored
-(``--held-out-from``, seeds 12..17, 24..29, 30..35 and 36..41). Takes about eight minutes
-on the 2-core VM.
+(``--held-out-from``, seeds 12..17, 24..29, 30..35, 36..41 and 42..47). Takes about ten
+minutes on the 2-core VM.
 """
 
 from __future__ import annotations
@@ -112,7 +112,9 @@ The issue's bar is: the default <= 1.05 x the best single method on every held-o
 and on pertuz-simu02. `shape_select` meets it on these sets (the last row: 1.00x since
 2026-12-05, when its fallback began to test the wide centroid, 1.04x on slopes before; the
 line below the table names the method with the smallest worst ratio over the held-out
-sets), but not on other seeds of the same families (the last sections: up to 2.03x).
+sets), but not on other seeds of the same families (the last sections: up to 1.50x;
+2.03x until 2026-12-05, when SPC's departure began to be measured about the filtered
+argmax).
 `shape_select` (the column `shape_select` at its shipped limits, `shape-select` the
 same rule tuned without the row's family; the best fixed method of a row is taken over
 every column left of `width-switch`, `shape_select` included) is the default of scan, replay
@@ -261,12 +263,15 @@ on seeds {first}..{last} (command: `sffscan study --families --crossed --seeds {
 --held-out-from {first} --imdata {pertuz}`; added 2026-12-04, late night, before any rule
 or constant was looked at on these seeds). Every rule and constant of the default was
 chosen with the seeds of the tables above in view; these are the first seeds it has not
-seen. The default's worst ratio is 2.03x (slopes-lens-noisy: one stack of six, seed 12,
-takes SPC with a departure of 1.56 levels from the fallback's peaks, which the departure
-test lets through because the spread of the differences, 1.67, is wide: SPC's own scatter
-there, 1.14 levels about its bias, is four times its predicted noise (0.28: noise
-correlated along the levels), and the test reads it as the fallback's; SPC's RMSE there
-1.93 levels, the fallback's 0.84) and
+seen. The default's worst ratio was 2.03x until 2026-12-05 (slopes-lens-noisy: one stack
+of six, seed 12, took SPC with a departure of 1.56 levels from the peaks about each curve's
+own argmax, which the departure test let through because the spread of the differences
+about those argmax, 1.67, was wide: noise had moved many argmax to stray maxima, where the
+peaks are off by levels, while the fallback takes its peak about the median-filtered argmax;
+SPC's RMSE there 1.93 levels, the fallback's 0.84). Measured about the filtered argmax the
+spread is 1.25 and that stack takes the fallback: slopes-lens-noisy 1.10x in this section's
+table (and 1.00x on the seeds set aside for that change: the last section). The worst row
+now is
 1.50x on flat-lens-12bit (1.49x until the wide centroid's test, 2026-12-05; no stack takes SPC, and
 `wcentroid`, the whole curve's centroid, is better on all six; the uncertainty's coverage
 there 0.717 until the fallback's pull joined its bias `b`, 0.945 since: that term was
@@ -338,6 +343,23 @@ are even-noisy (1.32x) and steps (1.09x).
 """
 
 
+CLEAN_DEPARTURE = """
+
+## Seeds set aside for the departure about the filtered argmax
+
+Trained on seeds 0..{last_train}, held out on seeds {first}..{last} (command: `sffscan
+study --families --crossed --seeds {more} --held-out-from {first} --imdata {pertuz}`), set
+aside on 2026-12-05 before any rule was scored on them, and first scored once with the
+departure test about each curve's argmax (shipped until then) and once about the
+median-filtered argmax (shipped since): slopes-lens-noisy 1.358x -> 1.000x, every other row
+the same (the default's worst row here 1.358x -> 1.073x, steps), the uncertainty in band on
+16 of 21 with either (docs/depth-method-log.md). The default's worst ratio here, 1.07x, is
+under the 1.10x issue 24 sets for sets we do not have and over its 1.05x for the
+families.
+
+"""
+
+
 def run(seeds: int, *, crossed: bool = False, held_out_from: int | None = None) -> str:
     with tempfile.TemporaryDirectory() as tmp:
         args = ["study", "--families", "--seeds", str(seeds), "-o", tmp]
@@ -376,8 +398,11 @@ def cli() -> None:
     clean_again = CLEAN_AGAIN.format(more=more, pertuz=pertuz, first=6 * more,
                                      last=7 * more - 1, last_train=more - 1)
     clean_again += run(more, crossed=True, held_out_from=6 * more)
+    departure = CLEAN_DEPARTURE.format(more=more, pertuz=pertuz, first=7 * more,
+                                       last=8 * more - 1, last_train=more - 1)
+    departure += run(more, crossed=True, held_out_from=7 * more)
     (ROOT / "docs" / "depth-study.md").write_text(head + body + crossed + more_seeds + fresh
-                                                  + again + clean + clean_again)
+                                                  + again + clean + clean_again + departure)
     print(f"wrote {ROOT / 'docs' / 'depth-study.md'}")
 
 

@@ -19,9 +19,18 @@ from sffscan.stages.depth_harmonics import (
     focus_sums,
     spc_depth,
 )
-from sffscan.stages.depth_levels import level_spread, median_filter_levels
+from sffscan.stages.depth_levels import (
+    level_spread,
+    median_filter_levels,
+    median_filter_levels_at,
+)
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
-from sffscan.stages.depth_statistics import pull_statistics, sampled_curves, shape_statistics
+from sffscan.stages.depth_statistics import (
+    SHAPE_SAMPLE_STEP,
+    pull_statistics,
+    sampled_curves,
+    shape_statistics,
+)
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
@@ -43,13 +52,15 @@ its pixels outside the range SPC holds in
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
-                 valid: np.ndarray | None = None, *, method: str = "shape_select") -> str:
+                 valid: np.ndarray | None = None, *, method: str = "shape_select",
+                 median_size: int = 11) -> str:
     """The method a block takes: :func:`block_choice`'s first element."""
-    return block_choice(levels, argmax, valid, method=method)[0]
+    return block_choice(levels, argmax, valid, method=method, median_size=median_size)[0]
 
 
 def block_choice(levels: np.ndarray, argmax: np.ndarray,
-                 valid: np.ndarray | None = None, *, method: str = "shape_select"
+                 valid: np.ndarray | None = None, *, method: str = "shape_select",
+                 median_size: int = 11, centre: np.ndarray | None = None
                  ) -> tuple[str, float]:
     """The method a block takes, and the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
@@ -80,6 +91,16 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         holds there, and so are the curves without data (flat: the rows beyond the frames,
         kept for wobble). A block with no such curve takes ``"adaptive"``.
     method : {"shape_select", "adaptive_centroid"}, keyword-only
+    median_size : int, keyword-only
+        The argmax's median filter, px (odd), as the block's depth takes it.
+    centre : ndarray of int, optional, keyword-only
+        The filtered argmax the block's depth is taken about, at the judged grid's pixels
+        (every ``SHAPE_SAMPLE_STEP[0]``-th row and ``[1]``-th column: the shape of
+        :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax), which SPC's
+        departure is measured about (:func:`sffscan.stages.depth_choice.spc_departure`): a
+        scan's block passes the one filtered with its halo's columns
+        (:func:`~sffscan.stages.depth_levels.median_filter_levels_at`); when None,
+        ``argmax`` filtered over ``median_size`` px within the block.
     """
     if method not in BLOCK_CHOICES:
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
@@ -90,8 +111,16 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
+        if centre is None:
+            rs, cs = SHAPE_SAMPLE_STEP
+            h, w = np.shape(argmax)
+            centre = median_filter_levels_at(argmax, median_size, np.arange(0, h, rs),
+                                             np.arange(0, w, cs))
+        if np.shape(centre) != am.shape:
+            raise ValueError(f"centre must hold the judged grid's {am.shape} pixels, got "
+                             f"shape {np.shape(centre)}")
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        bias = spc_bias(vol, am, stats, pull, noise, seen)
+        bias = spc_bias(vol, am, stats, pull, noise, seen, centre=centre)
         if bias is not None:
             return ("spc+centroid" if centroid else "spc+gauss3"), bias
     return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)

@@ -195,7 +195,7 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     width = width_from_sums(h0, np.hypot(re, im), c.volume.min(axis=0),
                             c.volume.shape[0])
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
-    choice = stack_choice(c.volume, c.argmax, width)
+    choice = stack_choice(c.volume, c.argmax, width, median_size=c.median_size)
     # a stack that takes SPC keeps the fallback's wide centroid untested, as a scan's SPC
     # block does (the fallback is then read only beyond SPC's range)
     other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc)

@@ -38,12 +38,14 @@ from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
+from sffscan.stages.depth_levels import median_filter_levels
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     judged_curves,
     median_spread,
     pull_statistics,
     row_median,
+    sample_step,
     shape_statistics,
     stack_sample,
     wide_departure,
@@ -148,17 +150,25 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(np.median(sigma))
 
 
-def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None,
+def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None = None,
                   *, centroid: bool = False) -> tuple[float, float]:
     """How far SPC lies from the curves' own peaks: over the ``mask`` curves (all when
-    None), SPC's depth (each curve's first-harmonic phase, wrapped about its argmax) minus
-    the fallback's peak about its argmax (the 3-point Gaussian; with ``centroid`` the
+    None), SPC's depth (each curve's first-harmonic phase, wrapped about ``centre``) minus
+    the fallback's peak about ``centre`` (the 3-point Gaussian; with ``centroid`` the
     baseline-free centroid of the 5 levels about it, what ``"adaptive_centroid"`` takes
     where :func:`takes_centroid`), levels; of those differences the median (SPC's
     *departure*) and the robust spread (1.4826 x their median absolute deviation). Curves
-    whose argmax lies within 2 levels of an end, or whose SPC lies out of its range
+    whose centre lies within 2 levels of an end, or whose SPC lies out of its range
     (:func:`spc_in_range`: those pixels take the other method anyway), are left out;
     NaN, NaN where none is left.
+
+    ``centre`` is the argmax median filtered as both methods take it (``a_med``,
+    :func:`sffscan.stages.depth_levels.median_filter_levels`): the spread then holds the
+    noise of the peak the fallback takes. About each curve's own argmax (until 2026-12-05)
+    noise that moved the argmax to a stray maximum made the peaks there far noisier than the
+    fallback's, the spread large and a biased SPC pass: ``slopes-lens-noisy`` seed 12, SPC's
+    departure 1.56 levels against a spread of 1.67 about the argmax and 1.25 about ``a_med``,
+    where SPC's error was 2.3 times the fallback's (docs/depth-method-log.md).
 
     SPC reads the whole curve, the 3-point Gaussian the three levels at its peak. On even
     curves both find the peak and the departure is about 0 whatever the noise (the median
@@ -170,13 +180,13 @@ def spc_departure(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | Non
     ----------
     levels : (N, H, W) ndarray of float
         The curves (N >= 5).
-    argmax : (H, W) ndarray of int
-        Their argmax.
+    centre : (H, W) ndarray of int
+        The levels SPC is wrapped about and the peaks taken about: the filtered argmax.
     mask : (H, W) ndarray of bool, optional
         The curves judged.
     """
     n = levels.shape[0]
-    am, ok = judged_curves(argmax, n, mask)
+    am, ok = judged_curves(centre, n, mask)
     if not ok.any():
         return math.nan, math.nan
     cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
@@ -392,8 +402,8 @@ class StackChoice(NamedTuple):
     """The pull's noise (:func:`~sffscan.stages.depth_statistics.pull_statistics`), levels."""
 
 
-def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None
-                 ) -> StackChoice:
+def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None,
+                 *, median_size: int = 11) -> StackChoice:
     """``"shape_select"``'s choice for a whole stack, judged on
     :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves as
     :func:`sffscan.stages.depth.depth_from_focus` judges it (a scan's block is judged by
@@ -408,13 +418,19 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     width : (H, W) ndarray of float, optional
         Their widths (:func:`sffscan.stages.depth_uncertainty.curve_width`; computed when
         None).
+    median_size : int, keyword-only
+        The argmax's median filter, px (odd), as the depth's: SPC's departure is measured
+        about the filtered argmax (:func:`spc_departure`).
     """
     if width is None:
         width = curve_width(volume)
+    centre = median_filter_levels(np.asarray(argmax), median_size, volume.shape[0])
     vol, peak, wid = stack_sample(volume, argmax, width)
     assert wid is not None
+    s = sample_step(np.shape(argmax))
     pull, noise = pull_statistics(vol, peak)
-    bias = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise)
+    bias = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise,
+                    centre=centre[::s, ::s])
     return StackChoice(bias is not None, fallback_bias(pull) if bias is None else bias, pull,
                        noise)
 
@@ -444,14 +460,15 @@ def fallback_bias(pull: float) -> float:
     return abs(pull) if math.isfinite(pull) else 0.0
 
 
-def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str) -> float:
+def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
+                median_size: int = 11) -> float:
     """The bias (levels) the height uncertainty of a whole stack reconstructed with
     ``method`` adds: ``"shape_select"``'s :attr:`StackChoice.bias`, a peak method's
     :func:`fallback_bias` on :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, 0.0 for
-    the other methods. ``volume`` and ``argmax`` as :func:`stack_choice`'s; ``method`` the depth
-    method."""
+    the other methods. ``volume``, ``argmax`` and ``median_size`` as :func:`stack_choice`'s;
+    ``method`` the depth method."""
     if method == "shape_select":
-        return stack_choice(volume, argmax).bias
+        return stack_choice(volume, argmax, median_size=median_size).bias
     if method in PEAK_METHODS:
         vol, peak, _ = stack_sample(volume, argmax)
         return fallback_bias(pull_statistics(vol, peak)[0])
@@ -459,7 +476,8 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str) -> float:
 
 
 def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
-             pull: float, noise: float, mask: np.ndarray | None = None) -> float | None:
+             pull: float, noise: float, mask: np.ndarray | None = None, *,
+             centre: np.ndarray) -> float | None:
     """``"shape_select"``'s tests on curves of these
     :func:`~sffscan.stages.depth_statistics.shape_statistics` and
     :func:`~sffscan.stages.depth_statistics.pull_statistics`: SPC's departure ``|d|``
@@ -480,13 +498,16 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, fl
         Their :func:`~sffscan.stages.depth_statistics.pull_statistics`.
     mask : (H, W) ndarray of bool, optional
         The curves judged (all when None).
+    centre : (H, W) ndarray of int, keyword-only
+        Their argmax median filtered as the depth takes it, on the same grid: what SPC's
+        departure is measured about (:func:`spc_departure`).
     """
     if not takes_spc(statistics, pull=pull):
         return None
     noises = (spc_noise(levels, mask), noise)
     if not takes_spc(statistics, pull=pull, noise=noises):
         return None
-    departure = spc_departure(levels, argmax, mask, centroid=takes_centroid(pull, noise=noise))
+    departure = spc_departure(levels, centre, mask, centroid=takes_centroid(pull, noise=noise))
     if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
         return None
     return abs(departure[0])

@@ -22,6 +22,7 @@ __all__ = [
     "levels_from_heights",
     "levels_to_height",
     "median_filter_levels",
+    "median_filter_levels_at",
     "raise_not_finite",
 ]
 
@@ -97,6 +98,39 @@ def median_filter_levels(levels: np.ndarray, size: int, n_levels: int) -> np.nda
         block = windows[i : i + rows].reshape(*windows[i : i + rows].shape[:2], -1)
         out[i : i + rows] = np.median(block, axis=-1).astype(np.intp)
     return out
+
+
+def median_filter_levels_at(levels: np.ndarray, size: int, rows: np.ndarray,
+                            columns: np.ndarray) -> np.ndarray:
+    """:func:`median_filter_levels` at the pixels of a grid only: ``(len(rows),
+    len(columns))`` intp, equal to ``median_filter_levels(levels, size, n)[np.ix_(rows,
+    columns)]``.
+
+    A scan block's choice of method reads the filtered argmax at one curve in 128
+    (:data:`~sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`): ``cv2.medianBlur`` of the
+    whole block with its halo (~1100 x 80 px, 11 x 11) took 3.0 ms, these windows' medians
+    0.49 ms (measured, 2-core AMD VM).
+
+    Parameters
+    ----------
+    levels : (H, W) ndarray of int
+        Level indices.
+    size : int
+        Odd window, px; edges replicated, as :func:`median_filter_levels`.
+    rows, columns : 1-D ndarray of int
+        The grid's rows and columns, within ``levels``.
+    """
+    r = size // 2
+    rows = np.asarray(rows, np.intp)
+    columns = np.asarray(columns, np.intp)
+    offsets = np.arange(-r, r + 1)
+    h, w = np.shape(levels)
+    ri = np.clip(rows[:, None] + offsets[None, :], 0, h - 1)  # (R, size): replicated edges
+    ci = np.clip(columns[:, None] + offsets[None, :], 0, w - 1)  # (C, size)
+    windows = np.asarray(levels)[ri[:, None, :, None], ci[None, :, None, :]]
+    flat = windows.reshape(len(rows), len(columns), size * size)
+    mid = size * size // 2
+    return np.partition(flat, mid, axis=-1)[..., mid].astype(np.intp)
 
 
 def level_spread(centre: np.ndarray, size: int, n_levels: int) -> np.ndarray:

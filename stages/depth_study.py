@@ -91,18 +91,20 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse.update(candidate_errors(volume, truth_levels, mask, depth=depth, argmax=a, width=width,
                                 median_size=median_size, spread_size=spread_size))
     return _uncertainty_terms(volume, depth[DEFAULT_METHOD], width, truth_levels, mask, sse=sse,
-                              window=spread_size, argmax=a)
+                              window=spread_size, argmax=a, median_size=median_size)
 
 
 def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
-                       sse: dict[str, float], window: int, argmax: np.ndarray) -> _Scores:
+                       sse: dict[str, float], window: int, argmax: np.ndarray,
+                       median_size: int) -> _Scores:
     scatter = depth_scatter(depth, window=window)
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
     excess = width_excess(width, share, depth_range(depth, window=window), window=window)
     # SPC's bias where the default took SPC for the stack (depth_uncertainty's b)
-    bias = stack_choice(volume, argmax, width).bias if DEFAULT_METHOD == "shape_select" else 0.0
+    bias = (stack_choice(volume, argmax, width, median_size=median_size).bias
+            if DEFAULT_METHOD == "shape_select" else 0.0)
     count = int(mask.sum())
     relief = depth_relief(depth, window=window)
     return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], relief[mask],
@@ -118,7 +120,7 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     d = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
                          spread_size=spread_size, argmax=a)[0]
     return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
-                              window=spread_size, argmax=a)
+                              window=spread_size, argmax=a, median_size=median_size)
 
 
 @dataclass(frozen=True)

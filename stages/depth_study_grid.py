@@ -207,7 +207,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     # noise and its departure tested as the default tests them (docs/depth-method-log.md,
     # 2026-12-04: before, shape-select, spc-reach and spc-pull left the last two out)
     noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, argmax, centroid=takes_centroid(pull, noise=noise))
+    departure = spc_departure(volume, centre, centroid=takes_centroid(pull, noise=noise))
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1], in_range=in_range, pull=pull, noise=noises,

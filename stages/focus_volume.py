@@ -46,7 +46,7 @@ from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_choice import wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
-from sffscan.stages.depth_levels import levels_to_height
+from sffscan.stages.depth_levels import levels_to_height, median_filter_levels_at
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
@@ -484,7 +484,7 @@ class FocusVolume:
             # one choice for the block, whatever its bands
             method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
                                                self._gather(self.argmax, u0, u1), valid,
-                                               method=method)
+                                               method=method, centre=self._centre(u0, u1))
         elif self.fv is not None and method == "adaptive" and self.uncertainty:
             bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
                                           self._gather(self.argmax, u0, u1), valid)
@@ -503,6 +503,16 @@ class FocusVolume:
                         step=SHAPE_SAMPLE_STEP, valid=valid)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
+
+    def _centre(self, u0: int, u1: int) -> np.ndarray:
+        """The filtered argmax of columns [u0, u1) as the depth task takes it (the median
+        over ``median_size`` px of the argmax with the halo's columns), at the pixels the
+        block's choice judges (every ``SHAPE_SAMPLE_STEP``-th row and column)."""
+        a0, a1 = max(u0 - self.halo, self.first_u), min(u1 + self.halo, self.end_u)
+        rs, cs = SHAPE_SAMPLE_STEP
+        return median_filter_levels_at(self._gather(self.argmax, a0, a1), self.median_size,
+                                       np.arange(0, self.rows, rs),
+                                       np.arange(u0 - a0, u1 - a0, cs))
 
     def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
                      bias: float) -> np.ndarray:

@@ -363,7 +363,8 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     # the bias of the method's depth its scatter cannot show (depth_uncertainty's b)
-    bias = method_bias(vol, first_argmax(vol), settings.method)
+    bias = method_bias(vol, first_argmax(vol), settings.method,
+                       median_size=settings.median_size)
     unc = height_uncertainty_um(levels, focus_sums(vol), vol.min(axis=0),
                                 n_levels=vol.shape[0], focus_heights_um=heights,
                                 window=settings.window, bias_levels=bias)

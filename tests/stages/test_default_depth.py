@@ -529,6 +529,7 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     peaks by more than their spread, and errs over 1.5x as much as adaptive_centroid; the
     stack and a scan block of it take the fallback."""
     from sffscan.stages.depth_choice import spc_departure
+    from sffscan.stages.depth_levels import median_filter_levels
     from sffscan.stages.fields.align import align_stack
     from sffscan.stages.fields.aperture import stack_noise_floor
     from sffscan.stages.sim.families import family_stack
@@ -538,10 +539,40 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     floor = stack_noise_floor(real.images, al, max_value=1.0)[0].astype(np.float32)
     vol = np.maximum(focus_measure(aligned, window=9) - floor[:, None, None], np.float32(0))
     a = first_argmax(vol)
-    dep, spread = spc_departure(vol, a)
+    dep, spread = spc_departure(vol, median_filter_levels(a, 11, 21))
     assert dep > spread > 0.0
     truth = real.truth_um / 10.0  # 10 µm a level
     _takes_the_fallback(vol, truth, (slice(20, -20), slice(20, -20)), spc_over=1.5)
+
+
+def test_spc_departure_is_measured_about_the_argmax_the_methods_filter() -> None:
+    """A noisy thin-lens slope (``slopes-lens-noisy`` seed 12, 46 levels): noise moves many
+    curves' argmax to a stray maximum, so the peaks about each curve's own argmax scatter
+    far more than the fallback's, taken about the median-filtered argmax. About the
+    argmax, SPC's departure (1.56 levels) passed the bias-variance test against that
+    scatter (1.67); about the filtered argmax the spread is the fallback's (1.25) and the
+    test refuses SPC, whose error is over twice the fallback's; the stack and a scan block
+    of it take the fallback."""
+    from sffscan.stages.depth_choice import spc_departure, spc_noise, takes_centroid
+    from sffscan.stages.depth_levels import median_filter_levels
+    from sffscan.stages.depth_statistics import pull_statistics
+    from sffscan.stages.sim.families import family_stack
+
+    st = family_stack("slopes-lens-noisy", 12, size_px=64)
+    vol = focus_measure(st.images, operator="glvm", window=9)
+    n = vol.shape[0]
+    a = first_argmax(vol)
+    pull, noise = pull_statistics(vol, a)
+    centroid = takes_centroid(pull, noise=noise)
+    sigma = spc_noise(vol)
+
+    def passes(dep: tuple[float, float]) -> bool:  # takes_spc's departure test
+        return dep[0] ** 2 + 2.0 * sigma ** 2 <= dep[1] ** 2
+
+    assert passes(spc_departure(vol, a, centroid=centroid))
+    assert not passes(spc_departure(vol, median_filter_levels(a, 11, n), centroid=centroid))
+    truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
+    _takes_the_fallback(vol, truth, (slice(4, -4), slice(4, -4)), spc_over=2.0)
 
 
 def _takes_the_fallback(vol: np.ndarray, truth: np.ndarray, inner: tuple[slice, slice], *,

@@ -384,6 +384,21 @@ def test_median_filter_paths_agree() -> None:
     np.testing.assert_array_equal(median_filter_levels(levels, 11, 300), expected)  # numpy
 
 
+@pytest.mark.parametrize("size", [1, 5, 11])
+def test_median_filter_at_a_grid_is_the_filtered_map_there(size: int) -> None:
+    """median_filter_levels_at (a scan block's choice reads the filtered argmax at its
+    sampled curves): scipy's median filter with replicated edges, at the grid's pixels,
+    the first and last rows and columns included."""
+    from sffscan.stages.depth_levels import median_filter_levels_at
+
+    levels = np.random.default_rng(7).integers(0, 60, (45, 23))
+    expected = ndimage.median_filter(levels, size=size, mode="nearest")
+    rows, cols = np.arange(0, 45, 16), np.array([0, 3, 11, 22])
+    got = median_filter_levels_at(levels, size, rows, cols)
+    assert got.dtype == np.intp and got.shape == (3, 4)
+    np.testing.assert_array_equal(got, expected[np.ix_(rows, cols)])
+
+
 def test_levels_to_height() -> None:
     table = np.array([100.0, 110.0, 130.0, 160.0])
     levels = np.array([[0.0, 1.5, 2.25, 3.0], [-1.0, 4.0, np.nan, 1.0]])

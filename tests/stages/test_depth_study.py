@@ -422,6 +422,7 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     from sffscan.stages.block_depth import SPC_BLOCKS, block_choice
     from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import spc_departure, stack_choice, takes_centroid
+    from sffscan.stages.depth_levels import median_filter_levels
     from sffscan.stages.depth_statistics import pull_statistics
 
     s = family_stack("even-gauss", 0, size_px=48, n_levels=30)
@@ -442,7 +443,10 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
                                um0.astype(np.float64) ** 2 + (0.4 * step) ** 2, rtol=1e-4)
     choice = stack_choice(vol, a)  # even, clean curves: SPC
     pull, noise = pull_statistics(vol, a)
-    dep = spc_departure(vol, a, centroid=takes_centroid(pull, noise=noise))
+    # the departure about the argmax filtered as the depth takes it (11 px by default)
+    dep = spc_departure(vol, median_filter_levels(a, 11, 30),
+                        centroid=takes_centroid(pull, noise=noise))
+    assert dep != spc_departure(vol, a, centroid=takes_centroid(pull, noise=noise))
     assert choice.spc and choice.bias == pytest.approx(abs(dep[0])) and choice.bias > 0
     big = focus_measure(family_stack("even-gauss", 0, size_px=160, n_levels=30).images,
                         window=9)  # a block judges every 16th row and 8th column
