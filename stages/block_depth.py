@@ -10,9 +10,17 @@ whatever the bands (:mod:`sffscan.stages.bands`; tested in ``tests/stages/test_b
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_choice import fallback_bias, spc_bias, spc_in_range, takes_centroid
+from sffscan.stages.depth_choice import (
+    fallback_bias,
+    spc_bias,
+    spc_in_range,
+    takes_centroid,
+    takes_spc,
+)
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
     depth_from_harmonics,
@@ -60,7 +68,8 @@ def block_method(levels: np.ndarray, argmax: np.ndarray,
 
 def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  valid: np.ndarray | None = None, *, method: str = "shape_select",
-                 median_size: int = 11, centre: np.ndarray | None = None
+                 median_size: int = 11,
+                 centre: Callable[[], np.ndarray] | None = None
                  ) -> tuple[str, float]:
     """The method a block takes, and the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
@@ -93,12 +102,13 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     method : {"shape_select", "adaptive_centroid"}, keyword-only
     median_size : int, keyword-only
         The argmax's median filter, px (odd), as the block's depth takes it.
-    centre : ndarray of int, optional, keyword-only
-        The filtered argmax the block's depth is taken about, at the judged grid's pixels
-        (every ``SHAPE_SAMPLE_STEP[0]``-th row and ``[1]``-th column: the shape of
+    centre : callable, optional, keyword-only
+        Gives the filtered argmax the block's depth is taken about, at the judged grid's
+        pixels (every ``SHAPE_SAMPLE_STEP[0]``-th row and ``[1]``-th column: the shape of
         :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax), which SPC's
-        departure is measured about (:func:`sffscan.stages.depth_choice.spc_departure`): a
-        scan's block passes the one filtered with its halo's columns
+        departure is measured about (:func:`sffscan.stages.depth_choice.spc_departure`);
+        called only where the curves pass SPC's other tests. A scan's block passes one
+        that filters with its halo's columns
         (:func:`~sffscan.stages.depth_levels.median_filter_levels_at`); when None,
         ``argmax`` filtered over ``median_size`` px within the block.
     """
@@ -111,19 +121,27 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
-        if centre is None:
-            rs, cs = SHAPE_SAMPLE_STEP
-            h, w = np.shape(argmax)
-            centre = median_filter_levels_at(argmax, median_size, np.arange(0, h, rs),
-                                             np.arange(0, w, cs))
-        if np.shape(centre) != am.shape:
-            raise ValueError(f"centre must hold the judged grid's {am.shape} pixels, got "
-                             f"shape {np.shape(centre)}")
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        bias = spc_bias(vol, am, stats, pull, noise, seen, centre=centre)
-        if bias is not None:
-            return ("spc+centroid" if centroid else "spc+gauss3"), bias
+        # SPC's departure is measured about the filtered argmax, computed only for curves
+        # that pass the other tests
+        if takes_spc(stats, pull=pull):
+            grid = _judged_centre(argmax, median_size) if centre is None else centre()
+            if np.shape(grid) != am.shape:
+                raise ValueError(f"centre must give the judged grid's {am.shape} pixels, "
+                                 f"got shape {np.shape(grid)}")
+            bias = spc_bias(vol, am, stats, pull, noise, seen, centre=grid)
+            if bias is not None:
+                return ("spc+centroid" if centroid else "spc+gauss3"), bias
     return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)
+
+
+def _judged_centre(argmax: np.ndarray, median_size: int) -> np.ndarray:
+    """``argmax`` median filtered over ``median_size`` px at the pixels
+    :func:`~sffscan.stages.depth_statistics.sampled_curves` judges."""
+    rs, cs = SHAPE_SAMPLE_STEP
+    h, w = np.shape(argmax)
+    return median_filter_levels_at(argmax, median_size, np.arange(0, h, rs),
+                                   np.arange(0, w, cs))
 
 
 def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,

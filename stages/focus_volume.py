@@ -484,7 +484,8 @@ class FocusVolume:
             # one choice for the block, whatever its bands
             method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
                                                self._gather(self.argmax, u0, u1), valid,
-                                               method=method, centre=self._centre(u0, u1))
+                                               method=method,
+                                               centre=lambda: self._centre(u0, u1))
         elif self.fv is not None and method == "adaptive" and self.uncertainty:
             bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
                                           self._gather(self.argmax, u0, u1), valid)
