@@ -452,6 +452,9 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
                         window=9)  # a block judges every 16th row and 8th column
     method, bias = block_choice(big, first_argmax(big))
     assert method in SPC_BLOCKS and bias > 0
+    # a scan's block gives its filtered argmax at the judged grid (10 x 20 curves here)
+    with pytest.raises(ValueError, match=r"judged grid's \(10, 20\) pixels"):
+        block_choice(big, first_argmax(big), centre=lambda: np.zeros((1, 1), np.intp))
     lopsided = family_stack("lens-pillbox-noisy", 0, size_px=48, n_levels=30)
     lv = focus_measure(lopsided.images, window=9)
     la = first_argmax(lv)
