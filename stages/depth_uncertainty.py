@@ -69,7 +69,7 @@ __all__ = ["FLOOR_LEVELS", "MIX_SCALE", "RELIEF_SCALE", "SCATTER_SCALE", "curve_
            "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty", "floor_share",
            "height_uncertainty_um", "uncertainty_um", "width_excess", "width_from_sums"]
 
-SCATTER_SCALE = 1.605
+SCATTER_SCALE = 1.606
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
 :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study --families``, the row
 "fit on every family's training seeds"; docs/depth-study.md), to the errors of the default
@@ -80,12 +80,13 @@ to 0.2, 2026-12-04: 3.892 and 0.0303 before; and when SPC's bias joined the mode
 same day: 3.833 and 0.0321 before; and when the relief joined it, that night: 3.799 and
 0.0334 before; and when a peak method's pull joined ``b``, later that night: 1.569, 1.147
 and 0.0477 before; and when ``adaptive_centroid`` began to test its wide centroid,
-2026-12-05: 1.598, 1.138 and 0.0402 before)."""
+2026-12-05: 1.598, 1.138 and 0.0402 before; and when SPC's departure began to be measured
+about the filtered argmax, the same day: 1.605, 1.136 and 0.0402 before)."""
 
 RELIEF_SCALE = 1.136
 """``r``: fitted with :data:`SCATTER_SCALE`."""
 
-FLOOR_LEVELS = 0.0402
+FLOOR_LEVELS = 0.0401
 """``c``, levels: fitted with :data:`SCATTER_SCALE`."""
 
 MIX_SCALE = 0.5
