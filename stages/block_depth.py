@@ -19,7 +19,6 @@ from sffscan.stages.depth_choice import (
     spc_bias,
     spc_in_range,
     takes_centroid,
-    takes_spc,
 )
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
@@ -122,16 +121,11 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        # SPC's departure is measured about the filtered argmax, computed only for curves
-        # that pass the other tests
-        if takes_spc(stats, pull=pull):
-            grid = _judged_centre(argmax, median_size) if centre is None else centre()
-            if np.shape(grid) != am.shape:
-                raise ValueError(f"centre must give the judged grid's {am.shape} pixels, "
-                                 f"got shape {np.shape(grid)}")
-            bias = spc_bias(vol, am, stats, pull, noise, seen, centre=grid)
-            if bias is not None:
-                return ("spc+centroid" if centroid else "spc+gauss3"), bias
+        bias = spc_bias(vol, am, stats, pull, noise, seen,
+                        centre=(lambda: _judged_centre(argmax, median_size)) if centre is None
+                        else centre)
+        if bias is not None:
+            return ("spc+centroid" if centroid else "spc+gauss3"), bias
     return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)
 
 

@@ -34,11 +34,12 @@ study tried beside them are in :mod:`sffscan.stages.depth_candidates`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
-from sffscan.stages.depth_levels import median_filter_levels
+from sffscan.stages.depth_levels import median_filter_levels_at
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     judged_curves,
@@ -424,13 +425,15 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     """
     if width is None:
         width = curve_width(volume)
-    centre = median_filter_levels(np.asarray(argmax), median_size, volume.shape[0])
     vol, peak, wid = stack_sample(volume, argmax, width)
     assert wid is not None
     s = sample_step(np.shape(argmax))
+    h, w = np.shape(argmax)
     pull, noise = pull_statistics(vol, peak)
     bias = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise,
-                    centre=centre[::s, ::s])
+                    centre=lambda: median_filter_levels_at(argmax, median_size,
+                                                           np.arange(0, h, s),
+                                                           np.arange(0, w, s)))
     return StackChoice(bias is not None, fallback_bias(pull) if bias is None else bias, pull,
                        noise)
 
@@ -477,7 +480,7 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
 
 def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
              pull: float, noise: float, mask: np.ndarray | None = None, *,
-             centre: np.ndarray) -> float | None:
+             centre: Callable[[], np.ndarray]) -> float | None:
     """``"shape_select"``'s tests on curves of these
     :func:`~sffscan.stages.depth_statistics.shape_statistics` and
     :func:`~sffscan.stages.depth_statistics.pull_statistics`: SPC's departure ``|d|``
@@ -498,16 +501,21 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, fl
         Their :func:`~sffscan.stages.depth_statistics.pull_statistics`.
     mask : (H, W) ndarray of bool, optional
         The curves judged (all when None).
-    centre : (H, W) ndarray of int, keyword-only
-        Their argmax median filtered as the depth takes it, on the same grid: what SPC's
-        departure is measured about (:func:`spc_departure`).
+    centre : callable, keyword-only
+        Gives their argmax median filtered as the depth takes it, (H, W) on the same grid:
+        what SPC's departure is measured about (:func:`spc_departure`); called only where
+        the curves pass the other tests.
     """
     if not takes_spc(statistics, pull=pull):
         return None
+    grid = centre()
+    if np.shape(grid) != np.shape(argmax):
+        raise ValueError(f"centre must give the judged curves' {np.shape(argmax)} pixels, "
+                         f"got shape {np.shape(grid)}")
     noises = (spc_noise(levels, mask), noise)
     if not takes_spc(statistics, pull=pull, noise=noises):
         return None
-    departure = spc_departure(levels, centre, mask, centroid=takes_centroid(pull, noise=noise))
+    departure = spc_departure(levels, grid, mask, centroid=takes_centroid(pull, noise=noise))
     if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
         return None
     return abs(departure[0])

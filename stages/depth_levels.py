@@ -106,10 +106,10 @@ def median_filter_levels_at(levels: np.ndarray, size: int, rows: np.ndarray,
     len(columns))`` intp, equal to ``median_filter_levels(levels, size, n)[np.ix_(rows,
     columns)]``.
 
-    A scan block's choice of method reads the filtered argmax at one curve in 128
-    (:data:`~sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`): ``cv2.medianBlur`` of the
-    whole block with its halo (~1100 x 80 px, 11 x 11) took 3.0 ms, these windows' medians
-    0.21 ms (measured, 2-core AMD VM).
+    The choice of depth method reads the filtered argmax only at the curves it judges (a
+    scan block's one in 128, :data:`~sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`):
+    ``cv2.medianBlur`` of the whole block with its halo (~1100 x 80 px, 11 x 11) took 3.0 ms,
+    these windows' medians 0.21 ms (measured, 2-core AMD VM).
 
     Parameters
     ----------
@@ -127,9 +127,9 @@ def median_filter_levels_at(levels: np.ndarray, size: int, rows: np.ndarray,
     h, w = np.shape(levels)
     ri = np.clip(rows[:, None] + offsets[None, :], 0, h - 1).ravel()  # replicated edges
     ci = np.clip(columns[:, None] + offsets[None, :], 0, w - 1).ravel()
-    # the windows' rows, then their columns (int32: the column take ran 6x faster than on
+    # the windows' rows, then their columns (in int32: that take ran 6x faster than on
     # intp, measured), as (rows, columns, size * size)
-    picked = np.asarray(levels).astype(np.int32).take(ri, axis=0).take(ci, axis=1)
+    picked = np.asarray(levels).take(ri, axis=0).astype(np.int32).take(ci, axis=1)
     windows = picked.reshape(len(rows), size, len(columns), size).transpose(0, 2, 1, 3)
     flat = windows.reshape(len(rows), len(columns), size * size)
     mid = size * size // 2

@@ -453,7 +453,7 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     method, bias = block_choice(big, first_argmax(big))
     assert method in SPC_BLOCKS and bias > 0
     # a scan's block gives its filtered argmax at the judged grid (10 x 20 curves here)
-    with pytest.raises(ValueError, match=r"judged grid's \(10, 20\) pixels"):
+    with pytest.raises(ValueError, match=r"judged curves' \(10, 20\) pixels"):
         block_choice(big, first_argmax(big), centre=lambda: np.zeros((1, 1), np.intp))
     lopsided = family_stack("lens-pillbox-noisy", 0, size_px=48, n_levels=30)
     lv = focus_measure(lopsided.images, window=9)
