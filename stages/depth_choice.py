@@ -464,14 +464,16 @@ def fallback_bias(pull: float) -> float:
 
 
 def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
-                median_size: int = 11) -> float:
+                median_size: int = 11, width: np.ndarray | None = None) -> float:
     """The bias (levels) the height uncertainty of a whole stack reconstructed with
     ``method`` adds: ``"shape_select"``'s :attr:`StackChoice.bias`, a peak method's
     :func:`fallback_bias` on :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, 0.0 for
-    the other methods. ``volume``, ``argmax`` and ``median_size`` as :func:`stack_choice`'s;
-    ``method`` the depth method."""
+    the other methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
+    :func:`stack_choice`'s (``width`` from the curves' sums, as the depth's choice takes it,
+    saves its float64 :func:`~sffscan.stages.depth_uncertainty.curve_width`); ``method`` the
+    depth method."""
     if method == "shape_select":
-        return stack_choice(volume, argmax, median_size=median_size).bias
+        return stack_choice(volume, argmax, width, median_size=median_size).bias
     if method in PEAK_METHODS:
         vol, peak, _ = stack_sample(volume, argmax)
         return fallback_bias(pull_statistics(vol, peak)[0])

@@ -359,15 +359,18 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
         height[confidence < settings.min_confidence] = np.nan
     from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import method_bias
-    from sffscan.stages.depth_uncertainty import height_uncertainty_um
+    from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
-    # the bias of the method's depth its scatter cannot show (depth_uncertainty's b)
+    sums, low = focus_sums(vol), vol.min(axis=0)
+    # the bias of the method's depth its scatter cannot show (depth_uncertainty's b); the
+    # curves' widths from their sums, as the depth's own choice takes them
+    width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
     bias = method_bias(vol, first_argmax(vol), settings.method,
-                       median_size=settings.median_size)
-    unc = height_uncertainty_um(levels, focus_sums(vol), vol.min(axis=0),
-                                n_levels=vol.shape[0], focus_heights_um=heights,
-                                window=settings.window, bias_levels=bias)
+                       median_size=settings.median_size, width=width)
+    unc = height_uncertainty_um(levels, sums, low, n_levels=vol.shape[0],
+                                focus_heights_um=heights, window=settings.window,
+                                bias_levels=bias)
     unc[~np.isfinite(height)] = np.nan
     return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
                        confidence=confidence, settings=settings, uncertainty_um=unc)
