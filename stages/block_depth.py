@@ -14,12 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_choice import (
-    fallback_bias,
-    spc_bias,
-    spc_in_range,
-    takes_centroid,
-)
+from sffscan.stages.depth_choice import fallback_bias, spc_bias, spc_in_range, takes_centroid
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
     depth_from_harmonics,
@@ -41,6 +36,7 @@ from sffscan.stages.depth_statistics import (
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
+           "judged_centre",
            "block_method", "block_peak_bias", "block_uncertainty", "depth_rows"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
@@ -107,8 +103,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax), which SPC's
         departure is measured about (:func:`sffscan.stages.depth_choice.spc_departure`);
         called only where the curves pass SPC's other tests. A scan's block passes one
-        that filters with its halo's columns
-        (:func:`~sffscan.stages.depth_levels.median_filter_levels_at`); when None,
+        that filters with its halo's columns (:func:`judged_centre`); when None,
         ``argmax`` filtered over ``median_size`` px within the block.
     """
     if method not in BLOCK_CHOICES:
@@ -122,20 +117,25 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
         bias = spc_bias(vol, am, stats, pull, noise, seen,
-                        centre=(lambda: _judged_centre(argmax, median_size)) if centre is None
+                        centre=(lambda: judged_centre(argmax, median_size)) if centre is None
                         else centre)
         if bias is not None:
             return ("spc+centroid" if centroid else "spc+gauss3"), bias
     return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)
 
 
-def _judged_centre(argmax: np.ndarray, median_size: int) -> np.ndarray:
+def judged_centre(argmax: np.ndarray, median_size: int, *,
+                  block: tuple[int, int] | None = None) -> np.ndarray:
     """``argmax`` median filtered over ``median_size`` px at the pixels
-    :func:`~sffscan.stages.depth_statistics.sampled_curves` judges."""
+    :func:`~sffscan.stages.depth_statistics.sampled_curves` judges: every
+    ``SHAPE_SAMPLE_STEP[0]``-th row and ``[1]``-th column of the block, which is the
+    columns ``block`` = (first, end) of ``argmax`` (a scan's block with its halo's columns
+    about it) or all of them when None."""
     rs, cs = SHAPE_SAMPLE_STEP
     h, w = np.shape(argmax)
+    c0, c1 = (0, w) if block is None else block
     return median_filter_levels_at(argmax, median_size, np.arange(0, h, rs),
-                                   np.arange(0, w, cs))
+                                   np.arange(c0, c1, cs))
 
 
 def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,

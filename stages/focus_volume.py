@@ -46,7 +46,7 @@ from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_choice import wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
-from sffscan.stages.depth_levels import levels_to_height, median_filter_levels_at
+from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
@@ -510,10 +510,8 @@ class FocusVolume:
         over ``median_size`` px of the argmax with the halo's columns), at the pixels the
         block's choice judges (every ``SHAPE_SAMPLE_STEP``-th row and column)."""
         a0, a1 = max(u0 - self.halo, self.first_u), min(u1 + self.halo, self.end_u)
-        rs, cs = SHAPE_SAMPLE_STEP
-        return median_filter_levels_at(self._gather(self.argmax, a0, a1), self.median_size,
-                                       np.arange(0, self.rows, rs),
-                                       np.arange(u0 - a0, u1 - a0, cs))
+        return blocks.judged_centre(self._gather(self.argmax, a0, a1), self.median_size,
+                                    block=(u0 - a0, u1 - a0))
 
     def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
                      bias: float) -> np.ndarray:

@@ -399,6 +399,18 @@ def test_median_filter_at_a_grid_is_the_filtered_map_there(size: int) -> None:
     np.testing.assert_array_equal(got, expected[np.ix_(rows, cols)])
 
 
+def test_a_blocks_judged_centre_is_filtered_with_the_columns_about_it() -> None:
+    """judged_centre: the argmax filtered with the halo's columns, at every 16th row and
+    8th column of the block's own columns (what a scan's block choice reads)."""
+    from sffscan.stages.block_depth import judged_centre
+
+    levels = np.random.default_rng(8).integers(0, 60, (70, 90))
+    expected = ndimage.median_filter(levels, size=11, mode="nearest")
+    np.testing.assert_array_equal(judged_centre(levels, 11, block=(13, 77)),
+                                  expected[::16, 13:77:8])
+    np.testing.assert_array_equal(judged_centre(levels, 11), expected[::16, ::8])
+
+
 def test_levels_to_height() -> None:
     table = np.array([100.0, 110.0, 130.0, 160.0])
     levels = np.array([[0.0, 1.5, 2.25, 3.0], [-1.0, 4.0, np.nan, 1.0]])
