@@ -17,14 +17,15 @@ twenty.
 
 Models (each stated before it was scored; add one as a function of the pixels' terms):
 
-- ``shipped``: ``sqrt((a scatter)^2 + (r relief)^2 + (excess / 2)^2 + b^2 + c^2)``, one
+- ``shipped``: ``sqrt((a scatter)^2 + (r relief)^2 + (m excess)^2 + b^2 + c^2)``, one
   (a, r, c) (:mod:`sffscan.stages.depth_uncertainty`); the table must reproduce
   docs/depth-study.md (with the relief since 2026-12-04, night: the ``relief`` model below;
   ``b``, in every model here, SPC's departure where the stack took SPC and, since later
   that night, the size of the curves' centroid pull where it took the fallback:
   :func:`sffscan.stages.depth_choice.fallback_bias`);
 - ``scatter only``: the shipped model before the relief joined it,
-  ``sqrt((a scatter)^2 + (excess / 2)^2 + b^2 + c^2)``, one (a, c);
+  ``sqrt((a scatter)^2 + (m excess)^2 + b^2 + c^2)``, one (a, c) (``m``:
+  :data:`~sffscan.stages.depth_uncertainty.MIX_SCALE`, 1/2 until 2026-12-05, 1 since);
 - ``per estimator``: the shipped model, its constants fitted apart on the pixels whose depth
   is SPC's (``shape_select`` gave their stack SPC) and on the others: ``c`` is the
   estimator's sub-level bias (2026-12-03: not kept, 9 of 21 sets in band against 14).

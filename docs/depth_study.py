@@ -72,7 +72,9 @@ best fixed method of the row. pertuz-simu02 (a third-party stack with ground tru
 scored with the candidate tuned on all families.
 
 The height uncertainty (`sffscan.stages.depth_uncertainty`, one sigma, levels): `sigma^2 =
-(a scatter)^2 + (r relief)^2 + (excess / 2)^2 + b^2 + c^2`, the scatter the depth's RMS
+(a scatter)^2 + (r relief)^2 + excess^2 + b^2 + c^2` (`excess / 2` until 2026-12-05: the
+peak of a window that sees two heights takes either one, an error of SD the excess itself),
+the scatter the depth's RMS
 about its 5 x 5 median over the focus window, the relief its RMS about its own box mean over
 the focus window (zero on a plane; since 2026-12-04, night: errors smooth over a few pixels
 follow the median and hide from the scatter), the excess how much wider the pixel's focus
@@ -82,8 +84,8 @@ a curve by at most D / 2, and both heights show beside it: without the cap a tex
 continuous surface's random width scatter counted as mixes), discounted where the curve's
 floor holds much of its mass (noise), `b` SPC's departure from the fallback's peaks where
 the stack takes SPC and the size of the curves' centroid pull where it takes the fallback
-(biases its scatter cannot show; since 2026-12-04 and that night, as they are); the 1/2 is
-the geometry of a two-height mix, `a`, `r` and `c` are fitted (0.94 quantile
+(biases its scatter cannot show; since 2026-12-04 and that night, as they are); the excess's
+scale 1 is the geometry of a two-height mix, `a`, `r` and `c` are fitted (0.94 quantile
 of abs(error) / 2 sigma, families weighted equally) on the training seeds of the other
 families for each held-out one, and on all families' training seeds for the shipped
 constants and the third-party set. The bar: 90 .. 98 % of the held-out pixels with

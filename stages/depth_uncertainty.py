@@ -2,7 +2,7 @@
 
 Five terms, added in quadrature (levels; times the local focus step for µm):
 
-``sigma^2 = (a * scatter)^2 + (r * relief)^2 + (excess / 2)^2 + b^2 + c^2``
+``sigma^2 = (a * scatter)^2 + (r * relief)^2 + excess^2 + b^2 + c^2``
 
 * ``scatter``: the depth's RMS about its 5 x 5 median over the focus window (k x k px,
   :func:`depth_scatter`). Noise of the focus curves, stray maxima and a peak fit that locks
@@ -20,11 +20,17 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
 * ``excess``: how much wider the pixel's focus curve is than the curves about it
   (:func:`width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``, levels), at most half the range
   of the depth map about it. A focus window that sees two heights (an edge, a step) has a
-  curve with two modes; their variance adds to the curve's, and the estimate may lie
-  anywhere between the two: a mix of two heights ``D`` apart widens the curve by at most
-  ``D / 2`` in quadrature (``D sqrt(p (1 - p))`` for shares ``p``, ``1 - p``), and puts the
-  estimate up to ``D / 2`` from the height of the pixel's own side, so ``excess / 2`` is one
-  sigma (the factor 1/2 is this geometry, not a fitted constant). The two heights are
+  curve with two modes; their variance adds to the curve's: a mix of two heights ``D``
+  apart in shares ``p``, ``1 - p`` widens the curve by ``D sqrt(p (1 - p))`` in quadrature
+  (at most ``D / 2``). The peak the estimator takes is one mode or the other, and the
+  other one (an error of the whole step) about as often as that mode's share: an error of
+  standard deviation ``D sqrt(p (1 - p))``, the excess itself, so ``excess`` is one sigma
+  (this geometry, not a fitted constant). Until 2026-12-05 the estimate was taken to lie
+  anywhere between the two heights, at most ``D / 2`` from its own side, and ``excess / 2``
+  was one sigma; the pixels it left uncovered were step pixels whose peak had taken the
+  other side (steps-lens-noisy, seeds 3..5: every uncovered pixel within 9 px of a true
+  step, their median error 8.9 levels against half the local range 8.4;
+  docs/depth-method-log.md). The two heights are
   measured beside the mix, within ``2k + 1`` px: ``D`` is at most the range (max - min) of
   the depth's 5 x 5 median over that square, so the excess is capped at half that range.
   Without the cap a textured continuous surface, whose curves' widths scatter from pixel to
@@ -69,7 +75,7 @@ __all__ = ["FLOOR_LEVELS", "MIX_SCALE", "RELIEF_SCALE", "SCATTER_SCALE", "curve_
            "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty", "floor_share",
            "height_uncertainty_um", "uncertainty_um", "width_excess", "width_from_sums"]
 
-SCATTER_SCALE = 1.606
+SCATTER_SCALE = 1.634
 """``a``: fitted on the training seeds (0, 1, 2) of all families by
 :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study --families``, the row
 "fit on every family's training seeds"; docs/depth-study.md), to the errors of the default
@@ -81,17 +87,18 @@ same day: 3.833 and 0.0321 before; and when the relief joined it, that night: 3.
 0.0334 before; and when a peak method's pull joined ``b``, later that night: 1.569, 1.147
 and 0.0477 before; and when ``adaptive_centroid`` began to test its wide centroid,
 2026-12-05: 1.598, 1.138 and 0.0402 before; and when SPC's departure began to be measured
-about the filtered argmax, the same day: 1.605, 1.136 and 0.0402 before)."""
+about the filtered argmax, the same day: 1.605, 1.136 and 0.0402 before; and when the excess
+became one sigma, not a half, that session: 1.606, 1.136 and 0.0401 before)."""
 
-RELIEF_SCALE = 1.136
+RELIEF_SCALE = 1.116
 """``r``: fitted with :data:`SCATTER_SCALE`."""
 
-FLOOR_LEVELS = 0.0401
+FLOOR_LEVELS = 0.0406
 """``c``, levels: fitted with :data:`SCATTER_SCALE`."""
 
-MIX_SCALE = 0.5
-"""The excess width's share of sigma: half, from the geometry of a two-height mix (not
-fitted)."""
+MIX_SCALE = 1.0
+"""The excess width's share of sigma: all of it, from the geometry of a two-height mix whose
+peak is taken on either height (not fitted; 0.5 until 2026-12-05)."""
 
 
 def curve_width(volume: np.ndarray) -> np.ndarray:
@@ -319,7 +326,7 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
     Returns
     -------
     (H, W) ndarray of float32
-        ``sqrt((a scatter)^2 + (r relief)^2 + (excess / 2)^2 + c^2 + b^2)``, levels.
+        ``sqrt((a scatter)^2 + (r relief)^2 + excess^2 + c^2 + b^2)``, levels.
     """
     d = np.ascontiguousarray(depth_levels, dtype=np.float32)
     med = cv2.medianBlur(d, 5)

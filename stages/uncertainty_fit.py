@@ -3,7 +3,7 @@ errors are known (the synthetic families' training and held-out seeds,
 :func:`sffscan.stages.depth_study.leave_one_family_out`).
 
 The uncertainty (:mod:`sffscan.stages.depth_uncertainty`) is
-``sigma = sqrt((a scatter)^2 + (r relief)^2 + (excess / 2)^2 + b^2 + c^2)`` levels (``b``
+``sigma = sqrt((a scatter)^2 + (r relief)^2 + excess^2 + b^2 + c^2)`` levels (``b``
 SPC's bias where the stack took SPC, not fitted); :func:`fit_uncertainty` chooses ``a``,
 ``r`` and ``c`` by a quantile fit, :func:`uncertainty_coverage` is the bar's
 measure: the share of pixels with ``|error| <= 2 sigma`` (the bar: 0.90 .. 0.98 on every

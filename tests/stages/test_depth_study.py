@@ -309,10 +309,14 @@ def test_height_uncertainty_from_sums_matches_the_volume_path() -> None:
 
 def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
     """Leave one family out at a small scale: the constants fitted on the training seeds of
-    four families give 90 .. 98 % of |error| <= 2 sigma on held-out seeds of a fifth: steps,
-    whose large errors are at the terraces' edges, where the depth map shows no scatter
-    (the scatter and width model of 681dca9 fitted without steps covered 0.79 .. 0.90;
-    the protocol's figure with 3 + 3 seeds of 64 px: docs/depth-study.md)."""
+    four families, held-out seeds of a fifth. Steps, whose large errors are at the terraces'
+    edges, where the depth map shows no scatter (the scatter and width model of 681dca9
+    fitted without steps covered 0.79 .. 0.90), are never under the band (the side that
+    misleads); since the excess width is one sigma, not a half (2026-12-05), they are over
+    it on these seeds (0.990; 0.965 before), as in the protocol's table. Noisy steps under a
+    thin lens, whose peak takes the other side of a step, were under it with half the
+    excess (0.876) and are in it now (0.916): docs/depth-study.md,
+    docs/depth-method-log.md."""
     from sffscan.stages.depth_study import uncertainty_sample
     from sffscan.stages.focus_measure import focus_measure
     from sffscan.stages.uncertainty_fit import fit_uncertainty, uncertainty_coverage
@@ -327,10 +331,11 @@ def test_uncertainty_fitted_without_a_family_covers_its_errors() -> None:
     train = [[sample(f, seed) for seed in (0, 1)]
              for f in ("even-gauss", "lens-gauss", "pillbox", "ends")]
     fit = fit_uncertainty(train)
-    held = [sample("steps", seed) for seed in (3, 4, 5)]
-    share = uncertainty_coverage(held, fit)
-    print(f"fit without steps: {fit}; steps seeds 3-5: {share:.3f}")
-    assert 0.90 <= share <= 0.98
+    steps = uncertainty_coverage([sample("steps", seed) for seed in (3, 4, 5)], fit)
+    noisy = uncertainty_coverage([sample("steps-lens-noisy", seed) for seed in (3, 4, 5)], fit)
+    print(f"fit without them: {fit}; seeds 3-5: steps {steps:.3f}, steps-lens-noisy {noisy:.3f}")
+    assert steps >= 0.90
+    assert 0.90 <= noisy <= 0.98
 
 
 def test_uncertainty_covers_held_out_errors_of_a_noisy_family() -> None:
