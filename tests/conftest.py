@@ -36,12 +36,25 @@ SLOW_FIRST = ("test_optics_bars_fields.py", "test_scan_pipeline.py", "test_paral
               "test_replay.py", "test_transport_auth.py")
 
 
+#: thread pools of the test processes' libraries, one thread each unless the caller's
+#: environment says otherwise: the xdist workers (one more than the cores) and the
+#: processes the tests start already share the cores, and OpenBLAS's and OpenMP's pools of
+#: a thread per core on top of them oversubscribe it. Whole suite on the 2-core AMD VM
+#: (2026-12-05, runs alternated): 294.5 / 307.2 s and 465 / 487 s of user CPU with the
+#: libraries' defaults, 278.7 / 297.7 s and 443 / 448 s with one thread. The sffscan
+#: processes the tests start set their own (the workers' BLAS limit, OpenCV's threads).
+ONE_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Under CI (``CI`` set, as ``.ci/run``'s callers do) Hypothesis draws the same examples
     every run (``derandomize``, no example database): a gating run must not fail on one draw
     and pass on the next. Runs elsewhere keep drawing fresh examples, which is how a
     property's counter-example is found (the wire header test's transposed shape, found
-    2026-12-05, is kept as an ``@example``)."""
+    2026-12-05, is kept as an ``@example``). :data:`ONE_THREAD_ENV` is set here, before
+    pytest-xdist starts its workers (they and the processes tests start inherit it)."""
+    for name in ONE_THREAD_ENV:
+        os.environ.setdefault(name, "1")
     from hypothesis import settings
 
     settings.register_profile("ci", derandomize=True, database=None)
