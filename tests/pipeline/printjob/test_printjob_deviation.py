@@ -89,6 +89,35 @@ def test_low_confidence_and_uncertainty_are_unknown_never_pass() -> None:
     assert v.objects[0].verdict == "unknown"
 
 
+def test_a_defect_cut_by_uncertain_pixels_is_one_blob_of_its_out_pixels() -> None:
+    """A defect's slopes are steps whose uncertainty exceeds the tolerance: those pixels are
+    unknown, never out, but they do not cut the defect into blobs under the fail area (the
+    print-job bench's layer-4 blob, 2026-12-05, was `warn` in pieces of 0.43 mm² and less)."""
+    exp = _two_squares()
+    meas = _noisy(exp)
+    meas[50:70, 140:160] += 300.0  # 1 x 1 mm, +300 µm on object b
+    unc = np.full(GRID.shape, 5.0, np.float32)
+    unc[50:70, 149:151] = 500.0  # a ridge across it too uncertain to judge
+    unc[59:61, 140:160] = 500.0
+    tol = Tolerances(fail_area_mm2=0.5)
+    _, v = compare_layer(meas, exp, grid=GRID, objects=["a", "b"], layer=1, z_mm=0.4,
+                         uncertainty_um=unc, tolerances=tol)
+    b = v.objects[1]
+    assert b.verdict == "fail"
+    # the out pixels only: 400 less the 76 under the ridge, 0.81 mm² in one blob
+    assert b.excess_mm2 == pytest.approx(324 * 0.0025)
+    assert b.defect_area_mm2 == pytest.approx(324 * 0.0025)
+    assert b.unknown_fraction == pytest.approx(76 / 54**2)  # the square off its edge band
+    assert b.defect_xy_um == pytest.approx((7475.0, 2975.0), abs=30)
+    # not measured at all (NaN) does not join: two halves of 0.4 mm² each warn
+    half = meas.copy()
+    half[50:70, 149:151] = np.nan
+    _, v = compare_layer(half, exp, grid=GRID, objects=["a", "b"], layer=1, z_mm=0.4,
+                         tolerances=tol)
+    assert v.objects[1].verdict == "warn"
+    assert v.objects[1].defect_area_mm2 == pytest.approx(180 * 0.0025)
+
+
 def test_a_failed_scan_is_unknown_and_worst_orders_verdicts() -> None:
     v = failed_layer_verdict(3, 0.8, ["a", "b"], reason="the scan timed out")
     assert v.verdict == "unknown" and {o.verdict for o in v.objects} == {"unknown"}
