@@ -383,7 +383,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             # pairs: 45.8-49.2 against 47.4-54.0 ms of CPU a frame)
             keep_freed_memory()
 
-        with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)):
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS thread, as the scan's runtime and its workers run: sffscan's matrix
+        # products are per frame and small (a 640 x 512 frame's resampling 2.4 ms on both
+        # of the 2-core VM's cores, 2.8 ms on one), and OpenBLAS's threads spin for each
+        # other: with the other core busy the same resampling took 73-123 ms a frame
+        # (`sffscan stopgo --realistic --calibration`: 8.5 s against 6.0-6.9 s)
+        with cli_logging(level_for(quiet=args.quiet, verbose=args.verbose)), \
+                threadpool_limits(limits=1, user_api="blas"):
             try:
                 code = int(args.func(args))
             except BrokenPipeError:

@@ -309,3 +309,26 @@ def test_every_seed_is_a_non_negative_integer_or_a_usage_error(
             main([*argv, "--seed", bad])
         assert info.value.code == 2
         assert f"argument --seed: {words}" in capsys.readouterr().err
+
+
+def test_a_command_runs_with_one_blas_thread_and_gives_the_callers_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # OpenBLAS's threads spin for each other: with the other core busy a frame's resampling
+    # took 73-123 ms against 5 ms on one thread (pipeline/cli/main.py); a command runs as
+    # the scan's runtime does, and a caller's own setting is back after main() returns
+    import sffscan.pipeline.config as config
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    seen: list[int] = []
+    original = config.demo_config
+
+    def recording(**kwargs: object) -> object:
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+        return original(**kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(config, "demo_config", recording)
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert main(["-q", "config", "-o", str(tmp_path / "c.toml")]) == 0
+        after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert seen and set(seen) == {1}
+    assert set(after) == {2}
