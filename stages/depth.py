@@ -74,6 +74,7 @@ from sffscan.stages.depth_peak import (
 )
 from sffscan.stages.depth_statistics import pull_statistics, sample_step, stack_sample
 from sffscan.stages.depth_uncertainty import width_from_sums
+from sffscan.stages.depth_warp import lens_asymmetry, unwarp_levels, warp_volume
 
 __all__ = [
     "ADAPTIVE_HALF_WINDOW",
@@ -206,6 +207,16 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     return np.where(in_range, spc, other).astype(np.float32, copy=False)
 
 
+def _warped_select(c: FocusCurves) -> np.ndarray:
+    warp = lens_asymmetry(c.volume)
+    if not warp.applied:
+        return _shape_select(c)
+    warped = warp_volume(c.volume, warp.c)
+    depth = depth_from_focus(warped, method="shape_select", median_size=c.median_size,
+                             spread_size=c.spread_size)[0]
+    return unwarp_levels(depth, warp.c, c.volume.shape[0])
+
+
 ESTIMATORS: dict[str, Estimator] = {
     "argmax": Estimator(partial(_from_sums, method="argmax")),
     "gauss3": Estimator(partial(_three_point, log=True)),
@@ -219,6 +230,7 @@ ESTIMATORS: dict[str, Estimator] = {
     "shape_select": Estimator(_shape_select),
     "gauss_window_fit": Estimator(_gauss_window_fit, candidate=True),
     "window_pc": Estimator(_window_pc, candidate=True),
+    "warped_select": Estimator(_warped_select, candidate=True),
 }
 """Every depth method by name: the one list the others (and a configuration's choices)
 derive from. Documented in :func:`depth_from_focus`."""
@@ -333,6 +345,12 @@ def depth_from_focus(
             2h + 1 = 7 levels about ``a_med`` (``adaptive`` where the fit fails), and phase
             correlation over a window of 3 x the curve's width about ``a_med``. Not methods
             of scan, replay or stack.
+        ``"warped_select"`` (:data:`CANDIDATE_METHODS`)
+            ``"shape_select"`` on the volume resampled onto levels evenly spaced in
+            ``g(k) = k / (1 + s k)``, where a thin lens' lopsided curves are even, the
+            depth mapped back (:mod:`sffscan.stages.depth_warp`), where the curves' half-height
+            crossings give a warp clearly away from none; else ``"shape_select"``. Stacks
+            only (``stack --method``): a scan's blocks are not warped yet.
     median_size : int, keyword-only
         Odd median-filter size for ``"spc"``, ``"wcentroid"`` and ``"adaptive"`` (1 = no
         filtering).

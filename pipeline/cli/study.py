@@ -58,10 +58,13 @@ from sffscan.pipeline.cli.common import (
     EXIT_OK,
     OPERATOR_CHOICES,
 )
+from sffscan.stages.depth import CANDIDATE_METHODS
 
 log = logging.getLogger(__name__)
 
 METHODS = DEPTH_METHOD_CHOICES
+"""The methods a study scores unless ``--methods`` says otherwise; the study's candidates
+(:data:`~sffscan.stages.depth.CANDIDATE_METHODS`) are accepted by name too."""
 DEFAULT_OPERATORS = "glvm,tenv,lapm,teng,lape,sfrq"
 DEFAULT_WINDOWS = [3, 5, 7, 9, 11, 13]
 
@@ -353,11 +356,11 @@ def cmd_study(args: argparse.Namespace) -> int:
     operators = [v.strip().lower() for v in args.operators.split(",") if v.strip()]
     methods = [v.strip().lower() for v in args.methods.split(",") if v.strip()]
     bad = [o for o in operators if o not in OPERATOR_CHOICES]
-    bad += [m for m in methods if m not in METHODS]
+    bad += [m for m in methods if m not in (*METHODS, *CANDIDATE_METHODS)]
     if bad or not operators or not methods:
         print(f"sffscan study: unknown operator or method {', '.join(bad) or '(none given)'}; "
-              f"operators: {', '.join(OPERATOR_CHOICES)}; methods: {', '.join(METHODS)}",
-              file=sys.stderr)
+              f"operators: {', '.join(OPERATOR_CHOICES)}; methods: {', '.join(METHODS)} "
+              f"(candidates: {', '.join(CANDIDATE_METHODS)})", file=sys.stderr)
         return EXIT_BAD_INPUT
     if any(k < 3 or k % 2 == 0 for k in args.windows):
         print(f"sffscan study: --windows must be odd integers >= 3, got {args.windows}",
@@ -429,7 +432,8 @@ def register(sub: Any) -> None:
     p.add_argument("--windows", type=_int_list, default=None,
                    help="comma-separated odd window sizes (default 3,5,7,9,11,13)")
     p.add_argument("--methods", default=",".join(METHODS),
-                   help=f"comma-separated depth methods (default {','.join(METHODS)})")
+                   help=f"comma-separated depth methods (default {','.join(METHODS)}); "
+                        f"also the candidates {', '.join(CANDIDATE_METHODS)}")
     p.add_argument("--median-size", type=int, default=11,
                    help="median filter of SPC, wcentroid and adaptive, odd, px (default 11)")
     p.add_argument("--top", type=int, default=10,

@@ -155,7 +155,7 @@ def test_every_method_is_selectable_by_name() -> None:
     from sffscan.stages.depth_uncertainty import curve_width
 
     assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
-    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc")
+    assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc", "warped_select")
     assert DEPTH_METHODS[-3:] == ("adaptive", "adaptive_centroid", "shape_select")
     choices = typing.get_args(ProcessingConfig.model_fields["depth_method"].annotation)
     assert choices == DEPTH_METHODS
@@ -174,6 +174,7 @@ def test_every_method_is_selectable_by_name() -> None:
                 "shape_select": shape_select(
                     spc, depth_from_focus(vol, method="adaptive_centroid")[0], stats,
                     max_skew=0.2, max_ratio=6.0, in_range=in_range)}
+    expected["warped_select"] = expected["shape_select"]  # even curves: no warp
     for method in (*CANDIDATE_METHODS, "shape_select"):
         depth, confidence = depth_from_focus(vol, method=method)
         np.testing.assert_array_equal(depth, expected[method])
@@ -190,9 +191,10 @@ def test_candidates_recover_gaussian_peak(method: str, n: int, sigma: float) -> 
     peaks = np.broadcast_to(cols, (13, cols.size)) + np.linspace(0, 0.05, 13)[:, None]
     vol = gaussian_volume(peaks, n, sigma)
     depth, _ = depth_from_focus(vol, method=method)
-    if method == "shape_select":  # even, clean curves: SPC's depth, within SPC's tolerance
+    if method in ("shape_select", "warped_select"):  # even, clean curves (no warp): SPC's
+        # depth, within SPC's tolerance
         np.testing.assert_array_equal(depth, depth_from_focus(vol, method="spc")[0])
-    tol = PEAK_TOL["spc"] if method == "shape_select" else 1e-4
+    tol = PEAK_TOL["spc"] if method in ("shape_select", "warped_select") else 1e-4
     assert depth.dtype == np.float32 and np.abs(depth - peaks).max() <= tol
 
 

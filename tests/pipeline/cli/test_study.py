@@ -32,6 +32,22 @@ def test_study_on_pertuz(pertuz_dir: Path, tmp_path: Path, capsys: pytest.Captur
     assert "best: " in capsys.readouterr().out
 
 
+def test_study_scores_a_candidate_by_name(pertuz_dir: Path, tmp_path: Path,
+                                         capsys: pytest.CaptureFixture) -> None:
+    # the study's candidates are accepted by name beside the default (docs/depth-method.md)
+    out = tmp_path / "study"
+    assert main(["study", "-q", "--imdata", str(pertuz_dir / "imdata.mat"), "--operators",
+                 "glvm", "--windows", "9", "--methods", "shape_select,warped_select",
+                 "-o", str(out)]) == 0
+    with (out / "study.csv").open() as f:
+        rmse = {r["method"]: float(r["rmse_um"]) for r in csv.DictReader(f)}
+    # pertuz-simu02's curves are lopsided (c = 4.5): the warped axis 12.80 mm, 13.52 unwarped
+    assert rmse["shape_select"] == pytest.approx(13.52e3, rel=0.01)
+    assert rmse["warped_select"] == pytest.approx(12.80e3, rel=0.01)
+    assert main(["study", "--chapter3", "--methods", "warped", "-o", str(tmp_path)]) == 2
+    assert "candidates: gauss_window_fit, window_pc, warped_select" in capsys.readouterr().err
+
+
 def test_study_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["study", "--chapter3", "--operators", "wavc", "-o", str(tmp_path)]) == 2
     assert "wavc" in capsys.readouterr().err
