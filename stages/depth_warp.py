@@ -13,7 +13,8 @@ peak ``f`` (a 3-point Gaussian) then satisfy ``g(z_l) + g(z_r) = 2 g(f)``:
 :func:`lens_asymmetry` finds the ``c`` at which the median over the volume's curves of the
 normalised asymmetry ``(g(z_l) + g(z_r) - 2 g(f)) / (g(z_r) - g(z_l))`` crosses zero, and
 its standard error by resampling the curves. :func:`warp_volume` resamples the volume onto
-N levels evenly spaced in ``g`` (linear interpolation along the levels), and
+N levels evenly spaced in ``g`` (each the curve's mean over the original levels it stands
+for), and
 :func:`unwarp_levels` maps a depth on that grid back to the original levels.
 
 This is the study's candidate ``"warped_select"``
@@ -174,16 +175,36 @@ def warp_volume(volume: np.ndarray, c: float) -> np.ndarray:
     Returns
     -------
     (N, H, W) ndarray of float32
-        Level j holds the curve at original level ``k_j = g_j / (1 - s g_j)``,
-        ``g_j = j / (1 + c)``, linear between the two levels about it.
+        Level j: the mean of the curve (linear between levels) over the original levels
+        that warped level j stands for, ``k(g_j - dg / 2) .. k(g_j + dg / 2)`` with
+        ``g_j = j / (1 + c)`` and ``k(g) = g / (1 - s g)`` (cut at the range's ends; the
+        value at ``k(g_j)`` where the cut leaves no width). Where the warped levels are
+        coarser than the original ones (the far end for ``c > 0``) this averages the
+        levels in between instead of skipping them, as a point sample would (an aliased
+        pillbox curve's ringing took SPC off: training seeds 0..2, slopes-lens-pillbox
+        1.31x -> 1.25x the best selectable method, pertuz-simu02 0.95x -> 0.72x); where they
+        are finer it is the linear interpolation to within the curve's curvature.
     """
     n = volume.shape[0]
     s = c / (n - 1)
     g = np.linspace(0.0, (n - 1) / (1 + c), n)
+    dg = g[1] - g[0]
+    edges = np.concatenate([[g[0] - dg / 2], (g[:-1] + g[1:]) / 2, [g[-1] + dg / 2]])
+    ke = np.clip(edges / (1 - s * edges), 0, n - 1)
+    v = volume.astype(np.float64)
+    # the curve's integral from level 0: trapezoids up to each level, then the part of the
+    # next trapezoid up to the edge (the curve linear between levels)
+    cum = np.concatenate([np.zeros((1, *v.shape[1:])), np.cumsum((v[1:] + v[:-1]) / 2, 0)])
+    i0 = np.clip(np.floor(ke).astype(np.intp), 0, n - 2)
+    t = (ke - i0)[:, None, None]
+    integral = cum[i0] + t * v[i0] + 0.5 * t * t * (v[i0 + 1] - v[i0])
+    width = np.diff(ke)[:, None, None]
+    mean = (integral[1:] - integral[:-1]) / np.where(width > 0, width, 1.0)
     k = np.clip(g / (1 - s * g), 0, n - 1)
-    i0 = np.clip(np.floor(k).astype(np.intp), 0, n - 2)
-    t = (k - i0)[:, None, None]
-    return ((1 - t) * volume[i0] + t * volume[i0 + 1]).astype(np.float32)
+    j0 = np.clip(np.floor(k).astype(np.intp), 0, n - 2)
+    u = (k - j0)[:, None, None]
+    point = (1 - u) * v[j0] + u * v[j0 + 1]
+    return np.where(width > 1e-9, mean, point).astype(np.float32)
 
 
 def unwarp_levels(depth: np.ndarray, c: float, n_levels: int) -> np.ndarray:

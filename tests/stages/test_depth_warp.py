@@ -75,12 +75,17 @@ def test_even_curves_are_not_warped_and_warped_select_is_the_default() -> None:
     np.testing.assert_array_equal(a, b)
 
 
-def test_warp_and_unwarp_are_inverse() -> None:
+def test_warped_levels_are_the_curves_means_over_their_original_levels() -> None:
     n, c = 41, 1.3
     k = np.arange(n, dtype=np.float32)[:, None, None] * np.ones((n, 2, 3), np.float32)
-    warped = warp_volume(k, c)  # a volume equal to its level: interpolation is exact
-    j = np.arange(n, dtype=np.float64)
-    np.testing.assert_allclose(warped[:, 0, 0], unwarp_levels(j, c, n), atol=1e-4)
+    warped = warp_volume(k, c)  # a curve equal to its level: a level's mean is the middle
+    j = np.arange(n, dtype=np.float64)  # of the original levels it stands for
+    lo = np.clip(unwarp_levels(j - 0.5, c, n), 0, n - 1)
+    hi = np.clip(unwarp_levels(j + 0.5, c, n), 0, n - 1)
+    np.testing.assert_allclose(warped[:, 0, 0], (lo + hi) / 2, atol=1e-4)
+    assert np.all(np.diff((hi - lo)[1:-1]) > 0)  # the far end's stand for more levels
+    np.testing.assert_array_equal(warp_volume(np.full((n, 2, 2), 0.25, np.float32), c), 0.25)
+    # unwarp: the warped grid's ends are the range's, beyond the lens' focal point NaN
     assert unwarp_levels(np.array([0.0, n - 1.0]), c, n) == pytest.approx([0.0, n - 1.0])
     assert np.isnan(unwarp_levels(np.array([(n - 1) * (1 + c) / c + 1]), c, n)[0])
 
