@@ -22,11 +22,12 @@ This is the study's candidate ``"warped_select"``
 where the warp is clearly needed (``|c| >= WARP_MIN_C`` and ``|c| >= WARP_MIN_Z`` standard
 errors), else ``"shape_select"`` itself. Both thresholds were fixed on the training seeds
 (0..2) of the synthetic families and not changed after held-out seeds were scored
-(docs/depth-method-log.md, 2026-12-05; bench/results/level_warp.md). Its known weakness is
-the default's, made larger: where a stack takes SPC a curve whose tail the range cuts pulls
-SPC's phase, and the warp packs the range's far end into fewer, wider levels (seeds 60..65,
-slopes-lens-pillbox: SPC taken on the warped volume of four stacks, 0.42-0.69 levels RMSE
-against its fallback's 0.26-0.29). Not a method of scan or replay yet: the streaming
+(docs/depth-method-log.md, 2026-12-05; bench/results/level_warp.md). Where it loses: SPC,
+taken on the evened curves, errs on thin-lens pillbox slopes (seeds 60..65, with point
+samples for the warped levels: 0.42-0.69 levels RMSE on four stacks against the fallback's
+0.26-0.29); and a noisy or quantised floor can make even curves look lopsided (on seeds
+54..71 every stack warped without a thin lens had c of -0.54 .. -0.86; one 8-bit flat 1.53x
+the best method). Not a method of scan or replay yet: the streaming
 depth stage would have to warp each block's stored levels.
 """
 
