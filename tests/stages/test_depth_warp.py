@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from sffscan.stages.depth import CANDIDATE_METHODS, DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_warp import (
+    MAX_CURVES,
     half_height_crossings,
     lens_asymmetry,
     unwarp_levels,
@@ -115,3 +116,11 @@ def test_warped_select_on_a_thin_lens_flat_training_seed() -> None:
     assert "warped_select" in CANDIDATE_METHODS and "warped_select" not in DEPTH_METHODS
     assert lens_asymmetry(vol).applied
     assert rmse("warped_select") <= 0.7 * rmse("shape_select")
+
+
+def test_a_large_volume_is_judged_on_a_bounded_sample_of_its_curves() -> None:
+    vol, _ = _volume(30, 1.0, sigma=3.0)
+    big = np.tile(vol, (1, 13, 13))  # 624 x 624 px: 97,344 curves at every second pixel
+    warp = lens_asymmetry(big)
+    assert 0 < warp.curves <= MAX_CURVES
+    assert warp.c == pytest.approx(lens_asymmetry(vol).c, abs=0.1)
