@@ -52,6 +52,9 @@ BOOTSTRAPS = 30
 SAMPLE_STEP = 2
 """Every ``SAMPLE_STEP``-th row and column's curve is read (more apart where that would be
 more than :data:`MAX_CURVES`)."""
+WARP_BAND_VALUES = 1 << 21
+""":func:`warp_volume` works on bands of rows of about this many values (levels x rows x
+columns; float64 work arrays of 16 MiB each)."""
 MAX_CURVES = 16384
 """At most about this many curves are read: a 768 x 1024 x 50 volume's 196,608 at every
 second pixel took 8.9 s (the 139 medians of every resample), a 256 x 256 stack's 16,384 about
@@ -199,20 +202,27 @@ def warp_volume(volume: np.ndarray, c: float) -> np.ndarray:
     dg = g[1] - g[0]
     edges = np.concatenate([[g[0] - dg / 2], (g[:-1] + g[1:]) / 2, [g[-1] + dg / 2]])
     ke = np.clip(edges / (1 - s * edges), 0, n - 1)
-    v = volume.astype(np.float64)
-    # the curve's integral from level 0: trapezoids up to each level, then the part of the
-    # next trapezoid up to the edge (the curve linear between levels)
-    cum = np.concatenate([np.zeros((1, *v.shape[1:])), np.cumsum((v[1:] + v[:-1]) / 2, 0)])
     i0 = np.clip(np.floor(ke).astype(np.intp), 0, n - 2)
     t = (ke - i0)[:, None, None]
-    integral = cum[i0] + t * v[i0] + 0.5 * t * t * (v[i0 + 1] - v[i0])
     width = np.diff(ke)[:, None, None]
-    mean = (integral[1:] - integral[:-1]) / np.where(width > 0, width, 1.0)
     k = np.clip(g / (1 - s * g), 0, n - 1)
     j0 = np.clip(np.floor(k).astype(np.intp), 0, n - 2)
     u = (k - j0)[:, None, None]
-    point = (1 - u) * v[j0] + u * v[j0 + 1]
-    return np.where(width > 1e-9, mean, point).astype(np.float32)
+    out = np.empty(volume.shape, np.float32)
+    # in bands of rows: the float64 work arrays of a whole stack (a camera's 2048 x 1536 x
+    # 50) would be several GB
+    rows = max(1, WARP_BAND_VALUES // max(1, n * volume.shape[2]))
+    for r0 in range(0, volume.shape[1], rows):
+        v = volume[:, r0:r0 + rows].astype(np.float64)
+        # the curve's integral from level 0: trapezoids up to each level, then the part of
+        # the next trapezoid up to the edge (the curve linear between levels)
+        cum = np.concatenate([np.zeros((1, *v.shape[1:])),
+                              np.cumsum((v[1:] + v[:-1]) / 2, 0)])
+        integral = cum[i0] + t * v[i0] + 0.5 * t * t * (v[i0 + 1] - v[i0])
+        mean = (integral[1:] - integral[:-1]) / np.where(width > 0, width, 1.0)
+        point = (1 - u) * v[j0] + u * v[j0 + 1]
+        out[:, r0:r0 + rows] = np.where(width > 1e-9, mean, point)
+    return out
 
 
 def unwarp_levels(depth: np.ndarray, c: float, n_levels: int) -> np.ndarray:

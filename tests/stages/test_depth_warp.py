@@ -124,3 +124,12 @@ def test_a_large_volume_is_judged_on_a_bounded_sample_of_its_curves() -> None:
     warp = lens_asymmetry(big)
     assert 0 < warp.curves <= MAX_CURVES
     assert warp.c == pytest.approx(lens_asymmetry(vol).c, abs=0.1)
+
+
+def test_the_warp_in_bands_of_rows_equals_one_band(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sffscan.stages.depth_warp as depth_warp
+
+    vol, _ = _volume(37, 1.2, sigma=2.0, noise=0.02)
+    whole = warp_volume(vol, 1.2)
+    monkeypatch.setattr(depth_warp, "WARP_BAND_VALUES", 37 * 48 * 5)  # bands of 5 rows
+    np.testing.assert_array_equal(warp_volume(vol, 1.2), whole)
