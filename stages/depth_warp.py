@@ -37,6 +37,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from sffscan.stages.depth_peak import three_point_offset
 
 __all__ = ["MAX_CURVES", "WARP_GRID", "WARP_MIN_C", "WARP_MIN_Z", "LevelWarp",
            "half_height_crossings", "lens_asymmetry", "unwarp_levels", "warp_volume"]
@@ -97,7 +98,7 @@ def half_height_crossings(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     f, z_l, z_r : (m,) ndarray of float64, levels
         For the curves whose first maximum ``p`` is not an end and that fall under half
         height (above their minimum) on both sides: the 3-point Gaussian peak about ``p``
-        (``p`` where the log values are not concave) and the crossings of half height
+        (:func:`~sffscan.stages.depth_peak.three_point_offset`) and the crossings of half height
         nearest ``p`` on each side, linear between levels.
     """
     y = np.asarray(curves, dtype=np.float64)
@@ -118,10 +119,7 @@ def half_height_crossings(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     zl = il + (half - a) / np.where(b == a, 1.0, b - a)
     a, b = y[r, ir - 1], y[r, ir]
     zr = ir - 1 + (a - half) / np.where(a == b, 1.0, a - b)
-    pc = np.clip(p, 1, n - 2)
-    y0, y1, y2 = (np.log(np.maximum(y[r, pc + o], 1e-30)) for o in (-1, 0, 1))
-    den = y0 - 2 * y1 + y2
-    f = pc + np.where(den < 0, 0.5 * (y0 - y2) / np.where(den == 0, -1.0, den), 0.0)
+    f = p + three_point_offset(np.ascontiguousarray(y.T), p, log=True)
     return f[ok], zl[ok], zr[ok]
 
 

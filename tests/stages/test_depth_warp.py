@@ -38,7 +38,8 @@ def test_crossings_of_a_gaussian() -> None:
     curve = np.exp(-0.5 * ((k - 10.3) / 2.0) ** 2)
     f, zl, zr = half_height_crossings(curve[None])
     hwhm = 2.0 * np.sqrt(2 * np.log(2))  # minimum ~0: half height at +-1.1774 sigma
-    assert f[0] == pytest.approx(10.3, abs=1e-9)  # a 3-point Gaussian is exact on one
+    # a 3-point Gaussian is exact on one (to the float32 of depth_peak.three_point_offset)
+    assert f[0] == pytest.approx(10.3, abs=1e-6)
     assert zl[0] == pytest.approx(10.3 - hwhm, abs=0.05)  # linear between levels
     assert zr[0] == pytest.approx(10.3 + hwhm, abs=0.05)
 
