@@ -103,6 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{CANDIDATE} / best | c per stack (0: not warped) |")
     lines = [head, "|" + "---|" * (len(methods) + 5)]
     worst = {DEFAULT_METHOD: (0.0, ""), CANDIDATE: (0.0, "")}
+    over = {DEFAULT_METHOD: 0, CANDIDATE: 0}
     for name in [*names, "pertuz-simu02"]:
         if name not in rows:
             continue
@@ -114,12 +115,10 @@ def main(argv: list[str] | None = None) -> int:
         for m in ratio:
             if ratio[m] > worst[m][0]:
                 worst[m] = (ratio[m], name)
+            over[m] += round(ratio[m], 2) > 1.05
         cs = " ".join(f"{r[3]:+.2f}" if r[3] else "0" for r in group)
         lines.append(f"| {name} | {len(group)} | " + " | ".join(f"{rmse[m]:.3f}" for m in methods)
                      + f" | {ratio[DEFAULT_METHOD]:.2f} | {ratio[CANDIDATE]:.2f} | {cs} |")
-    over = {m: sum(1 for line in lines[2:] if float(line.split("|")[-4 if m == DEFAULT_METHOD
-                                                                     else -3]) > 1.05)
-            for m in (DEFAULT_METHOD, CANDIDATE)}
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, " \
               f"Python {platform.python_version()}"
     text = "\n".join([
