@@ -153,7 +153,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
                rows: tuple[int, int], own: slice, inner: slice, sums: np.ndarray,
                low: np.ndarray, *, method: str, n_levels: int, median_size: int,
                spread_size: int, streaming: bool, keep_low: bool,
-               wide_peak: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               wide_peak: np.ndarray | None = None,
+               window_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth (levels) and confidence of rows [r0, r1) of a block.
 
     Parameters
@@ -190,6 +191,11 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         (:func:`~sffscan.stages.depth_peak.adaptive_block`'s ``wide_peak_out``, for
         :func:`~sffscan.stages.depth_choice.wide_choice` over the whole block); NaN
         everywhere for the other methods.
+    window_out : ndarray of float32, (r1 - r0, block), optional, keyword-only
+        For ``"adaptive"`` and ``"adaptive_centroid"`` blocks of ``"shape_select"``:
+        receives the 9-level centroid about the same filtered argmax
+        (:func:`~sffscan.stages.depth_peak.windowed_centroid`, for
+        :func:`sffscan.stages.depth_window.window_choice` over the whole block).
 
     Returns
     -------
@@ -229,6 +235,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
                                      min_out=low if keep_low or spc_block else None,
                                      wide_peak_out=None if spc_block else wide_peak)
         if not spc_block:
+            if window_out is not None:
+                window_out[:] = windowed_centroid(levels, centre[own, inner])
             return depth, conf
         # SPC from that pass's float32 sums (the block's own columns) and filtered argmax,
         # not depth_from_focus's float64 sums over the halo's columns too and its own

@@ -75,6 +75,7 @@ from sffscan.stages.depth_peak import (
 from sffscan.stages.depth_statistics import pull_statistics, sample_step, stack_sample
 from sffscan.stages.depth_uncertainty import width_from_sums
 from sffscan.stages.depth_warp import lens_asymmetry, unwarp_levels, warp_volume
+from sffscan.stages.depth_window import window_choice
 
 __all__ = [
     "ADAPTIVE_HALF_WINDOW",
@@ -201,6 +202,9 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     # block does (the fallback is then read only beyond SPC's range)
     other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc)
     if not choice.spc:
+        # the 9-level centroid where its scatter and departure say it errs less
+        window_choice(other, windowed_centroid(c.volume, c.centre()),
+                      margin=c.spread_size // 2)
         return other  # SPC's map only where the stack takes it
     spc = _from_sums(c, method="spc")
     in_range = spc_in_range(spc, width, c.volume.shape[0])

@@ -48,6 +48,7 @@ from sffscan.stages.depth_choice import wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
+from sffscan.stages.depth_window import window_choice
 from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
 T = TypeVar("T")
@@ -492,16 +493,22 @@ class FocusVolume:
         # the fallback's wide centroid judged on the whole block, whatever its bands
         wide_test = (self.fv is not None and self.method in blocks.BLOCK_CHOICES
                      and method not in blocks.SPC_BLOCKS)
+        # and the default's 9-level centroid (depth_window), as a stack's
+        window_test = wide_test and self.method == "shape_select"
         self._run_task("depth", {
             "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
             "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,
             "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
             "median_size": self.median_size, "spread_size": self.spread_size,
-            "uncertainty": self.uncertainty, "wide_test": wide_test})
+            "uncertainty": self.uncertainty, "wide_test": wide_test,
+            "window_test": window_test})
         a, shape = self.arrays, (self.rows, u1 - u0)
         if wide_test:
             wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),
                         step=SHAPE_SAMPLE_STEP, valid=valid)
+        if window_test:
+            window_choice(scratch(a, "b_depth", shape), scratch(a, "b_window", shape),
+                          valid=valid)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 

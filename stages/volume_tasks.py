@@ -79,7 +79,7 @@ the next ones are copied in (:meth:`sffscan.stages.shared_volume.SharedFocusVolu
 the helpers lag the caller by up to this many frames less one)."""
 
 _SCRATCH = (("b_sums", 3), ("b_low", 1), ("b_depth", 1), ("b_conf", 1), ("b_filled", 1),
-            ("b_valid", 1), ("b_unc", 1), ("b_peak", 1))
+            ("b_valid", 1), ("b_unc", 1), ("b_peak", 1), ("b_window", 1))
 """A block's scratch arrays and their planes (flat float32)."""
 
 
@@ -185,7 +185,8 @@ def measure_accumulate(arrays: dict[str, np.ndarray], p: dict[str, Any],
 def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int]) -> None:
     """A block's depth and confidence (``b_depth``, ``b_conf``), its curves' sums and
     minima (``b_sums``, ``b_low``) and, with ``wide_test``, the peak estimator's depth where
-    the wide centroid was taken (``b_peak``), rows [r0, r1)
+    the wide centroid was taken (``b_peak``), with ``window_test`` the 9-level centroid
+    (``b_window``), rows [r0, r1)
     (:meth:`sffscan.stages.focus_volume.FocusVolume.reduce`)."""
     r0, r1 = rows
     u0, u1, a0, a1, ring = p["u0"], p["u1"], p["a0"], p["a1"], p["ring"]
@@ -213,7 +214,9 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
                              median_size=p["median_size"], spread_size=p["spread_size"],
                              streaming=streaming, keep_low=p["uncertainty"],
                              wide_peak=scratch(arrays, "b_peak", (n_rows, width))[r0:r1]
-                             if p["wide_test"] else None)
+                             if p["wide_test"] else None,
+                             window_out=scratch(arrays, "b_window", (n_rows, width))[r0:r1]
+                             if p["window_test"] else None)
     scratch(arrays, "b_depth", (n_rows, width))[r0:r1] = d
     scratch(arrays, "b_conf", (n_rows, width))[r0:r1] = c
 
