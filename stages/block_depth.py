@@ -233,10 +233,9 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         depth, conf = adaptive_block(levels, centre[own, inner], spread[own, inner],
                                      peak=peak, sums_out=sums,
                                      min_out=low if keep_low or spc_block else None,
-                                     wide_peak_out=None if spc_block else wide_peak)
+                                     wide_peak_out=None if spc_block else wide_peak,
+                                     window_out=None if spc_block else window_out)
         if not spc_block:
-            if window_out is not None:
-                window_out[:] = windowed_centroid(levels, centre[own, inner])
             return depth, conf
         # SPC from that pass's float32 sums (the block's own columns) and filtered argmax,
         # not depth_from_focus's float64 sums over the halo's columns too and its own

@@ -203,7 +203,8 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
                    half_window: int = ADAPTIVE_HALF_WINDOW,
                    max_spread: int = ADAPTIVE_MAX_SPREAD, peak: str = "gauss3",
                    sums_out: np.ndarray | None = None, min_out: np.ndarray | None = None,
-                   wide_peak_out: np.ndarray | None = None
+                   wide_peak_out: np.ndarray | None = None,
+                   window_out: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (``"adaptive"``) and confidence of a block of the focus volume, in one pass.
 
@@ -243,6 +244,11 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         depth with every pixel taken as a peak pixel, bit for bit: from the 5 middle levels
         of the wide window), NaN elsewhere
         (:func:`sffscan.stages.depth_choice.wide_choice`).
+    window_out : (H, W) ndarray of float32, optional, keyword-only
+        Receives :func:`windowed_centroid`'s depth about ``centre`` (the 9 levels of
+        :data:`WCENTROID_HALF_WINDOW`) at every pixel, bit for bit, from the levels this
+        pass gathers anyway (``half_window`` >= 4); for
+        :func:`sffscan.stages.depth_window.window_choice`.
 
     Returns
     -------
@@ -255,13 +261,20 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         raise ValueError(f"half_window must be >= 2, got {half_window}")
     if peak not in PEAK_ESTIMATORS:
         raise ValueError(f"peak must be one of {PEAK_ESTIMATORS}, got {peak!r}")
+    if window_out is not None and half_window < WCENTROID_HALF_WINDOW:
+        raise ValueError(f"window_out needs half_window >= {WCENTROID_HALF_WINDOW}, "
+                         f"got {half_window}")
     peak_centroid = peak == "centroid"
     n, height, width = vol.shape
     c = np.asarray(centre).astype(np.intp, copy=False).reshape(-1)
     at_peak = np.asarray(spread).reshape(-1) <= max_spread
     n_peak = int(np.count_nonzero(at_peak))
     h = half_window
-    top = np.empty((5, n_peak), np.float32)  # levels c - 2 .. c + 2 of the peak pixels
+    # levels c - 2 .. c + 2 of the peak pixels (c - 4 .. c + 4 where the 9-level centroid
+    # is wanted too: one gather, in cache, instead of a second pass over the block)
+    hw = WCENTROID_HALF_WINDOW
+    hp = 2 if window_out is None else hw
+    top = np.empty((2 * hp + 1, n_peak), np.float32)
     wide = np.empty((2 * h + 1, c.size - n_peak), np.float32)  # c - h .. c + h, the others
 
     table = harmonic_table(n)[[0, 2, 3]].astype(np.float32)
@@ -285,7 +298,7 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         local = np.flatnonzero(sel)
         if local.size:
             local += p0
-            _gather(flat, at[local], st0, 2, top[:, done_peak:done_peak + local.size])
+            _gather(flat, at[local], st0, hp, top[:, done_peak:done_peak + local.size])
             done_peak += local.size
         if local.size < p1 - p0:
             others = np.flatnonzero(~sel)
@@ -294,14 +307,20 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
             done_wide += others.size
 
     depth = np.empty(c.shape, np.float32)
+    win = None if window_out is None else np.empty(c.shape, np.float32)
     if n_peak:
         cp = c[at_peak]
+        five = top[hp - 2:hp + 3]
+        if win is not None:  # the 9-level centroid first: it overwrites what it reads
+            five = five.copy()
+            masks = _outside(cp, hw, n, top, np.inf)
+            win[at_peak] = (cp + _centroid_offset(list(top), masks)).astype(np.float32)
         if peak_centroid:
-            masks = _outside(cp, 2, n, top, np.inf)
-            depth[at_peak] = (cp + _centroid_offset(list(top), masks)).astype(np.float32)
+            masks = _outside(cp, 2, n, five, np.inf)
+            depth[at_peak] = (cp + _centroid_offset(list(five), masks)).astype(np.float32)
         else:
-            _outside(cp, 2, n, top, -1.0)
-            depth[at_peak] = _gaussian_top(list(top), cp, n)
+            _outside(cp, 2, n, five, -1.0)
+            depth[at_peak] = _gaussian_top(list(five), cp, n)
     alt = None if wide_peak_out is None else np.full(c.shape, np.nan, np.float32)
     if n_peak < c.size:
         cw = c[~at_peak]
@@ -313,10 +332,16 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
             else:
                 _outside(cw, 2, n, mid, -1.0)
                 alt[~at_peak] = _gaussian_top(list(mid), cw, n)
+        if win is not None:
+            nine = wide[h - hw:h + hw + 1].copy()
+            masks = _outside(cw, hw, n, nine, np.inf)
+            win[~at_peak] = (cw + _centroid_offset(list(nine), masks)).astype(np.float32)
         masks = _outside(cw, h, n, wide, np.inf)
         depth[~at_peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
     if wide_peak_out is not None and alt is not None:
         wide_peak_out[...] = alt.reshape(height, width)
+    if window_out is not None and win is not None:
+        window_out[...] = win.reshape(height, width)
     h0, re, im = sums
     if sums_out is not None:
         sums_out[...] = sums

@@ -30,30 +30,63 @@ import math
 
 import cv2
 import numpy as np
-from sffscan.stages.depth_statistics import median_spread
 
-__all__ = ["map_scatter", "takes_window_centroid", "window_choice"]
+__all__ = ["WINDOW_STRIPS", "map_scatter", "takes_window_centroid", "window_choice"]
+
+WINDOW_STRIPS = (16, 64)
+"""A scan block is judged on strips of 16 rows out of every 64 (rows ``r`` with
+``r % 64 < 16``): a quarter of its pixels, in runs long enough for the 5 x 5 median (its 2
+rows of context beyond each strip read too). Judging every row cost the depth stage 1.3x
+``adaptive_centroid``'s CPU a frame (bench_depth_default.py); a stack, judged once, takes
+every row."""
 
 
-def map_scatter(depth: np.ndarray, judged: np.ndarray) -> float:
+def _strips(height: int, strips: tuple[int, int] | None) -> list[tuple[int, int]]:
+    if strips is None:
+        return [(0, height)]
+    run, every = strips
+    return [(r0, min(r0 + run, height)) for r0 in range(0, height, every)]
+
+
+def map_scatter(depth: np.ndarray, judged: np.ndarray, *, valid: np.ndarray | None = None,
+                strips: tuple[int, int] | None = None) -> float:
     """RMS (levels) of a depth map about its own 5 x 5 median over the ``judged`` pixels;
     NaN where none is judged.
 
     Parameters
     ----------
     depth : (H, W) ndarray of float
-        Depth map, levels; the pixels not judged are set to the judged ones' median before
-        the median filter, so their values do not count as their neighbours' scatter.
+        Depth map, levels.
     judged : (H, W) ndarray of bool
         The pixels the RMS is taken over.
+    valid : (H, W) ndarray of bool, optional, keyword-only
+        The pixels whose depth means something (a scan block's whole curves); the others
+        are set to the valid ones' median (of the strip) before the median filter, so that
+        their values do not count as their neighbours' scatter. All when None.
+    strips : (int, int), optional, keyword-only
+        Only the rows of strips of ``strips[0]`` rows every ``strips[1]`` rows
+        (:data:`WINDOW_STRIPS`) and 2 rows beyond each are read; every row when None.
     """
     judged = np.asarray(judged, bool)
-    if not judged.any():
-        return math.nan
     d = np.ascontiguousarray(depth, np.float32)
-    if not judged.all():
-        d = np.where(judged, d, np.float32(np.median(d[judged]))).astype(np.float32)
-    r = (d - cv2.medianBlur(d, 5))[judged].astype(np.float64)
+    ok = None if valid is None else np.asarray(valid, bool)
+    parts = []
+    height = d.shape[0]
+    for r0, r1 in _strips(height, strips):
+        lo, hi = max(r0 - 2, 0), min(r1 + 2, height)
+        own = judged[r0:r1]
+        if not own.any():
+            continue
+        piece = d[lo:hi]
+        if ok is not None and not ok[lo:hi].all():
+            good = ok[lo:hi]
+            piece = np.where(good, piece, np.float32(np.median(piece[good]))
+                             ).astype(np.float32)
+        r = piece[r0 - lo:r1 - lo] - cv2.medianBlur(piece, 5)[r0 - lo:r1 - lo]
+        parts.append(r[own])
+    if not parts:
+        return math.nan
+    r = np.concatenate(parts).astype(np.float64)
     return math.sqrt(float(np.mean(r * r)))
 
 
@@ -65,8 +98,8 @@ def takes_window_centroid(scatter: tuple[float, float], departure: float) -> boo
     return bool(s_w * s_w + departure * departure < s_f * s_f)
 
 
-def window_choice(depth: np.ndarray, wide: np.ndarray, *,
-                  valid: np.ndarray | None = None, margin: int = 0) -> float | None:
+def window_choice(depth: np.ndarray, wide: np.ndarray, *, valid: np.ndarray | None = None,
+                  margin: int = 0, strips: tuple[int, int] | None = None) -> float | None:
     """The fallback's choice of the 9-level centroid for a stack or a scan's block, in place:
     where :func:`takes_window_centroid` takes it, ``depth`` becomes ``wide``.
 
@@ -81,25 +114,34 @@ def window_choice(depth: np.ndarray, wide: np.ndarray, *,
         The pixels judged (a block's whole curves); all when None.
     margin : int, keyword-only
         Pixels left out at each edge of the map (a stack's: the focus window's reach, where
-        its focus measure reads reflected texture); 0 keeps them.
+        its focus measure reads reflected texture), as the invalid ones; 0 keeps them.
+    strips : (int, int), optional, keyword-only
+        Judge the rows of these strips only (:data:`WINDOW_STRIPS`, a scan's block); every
+        row when None.
 
     Returns
     -------
     float or None
         The departure ``d`` (levels) where the centroid was taken, else None.
     """
-    judged = np.isfinite(depth) & np.isfinite(wide)
+    # the pixels whose depth means something: the others take the median before the
+    # median filter (map_scatter); of those, the strips' are judged
+    ok = np.isfinite(depth) & np.isfinite(wide)
     if valid is not None:
-        judged &= np.asarray(valid, bool)
+        ok &= np.asarray(valid, bool)
     if margin > 0:
-        inner = np.zeros_like(judged)
+        inner = np.zeros_like(ok)
         inner[margin:-margin, margin:-margin] = True
-        judged &= inner
+        ok &= inner
+    judged = ok.copy()
+    if strips is not None:
+        run, every = strips
+        judged &= (np.arange(judged.shape[0]) % every < run)[:, None]
     if not judged.any():
         return None
-    scatter = (map_scatter(depth, judged), map_scatter(wide, judged))
-    departure = median_spread((np.asarray(wide, np.float64)
-                               - np.asarray(depth, np.float64))[judged])[0]
+    scatter = (map_scatter(depth, judged, valid=ok, strips=strips),
+               map_scatter(wide, judged, valid=ok, strips=strips))
+    departure = float(np.median(np.subtract(wide, depth, dtype=np.float32)[judged]))
     if not takes_window_centroid(scatter, departure):
         return None
     np.copyto(depth, wide)

@@ -48,7 +48,7 @@ from sffscan.stages.depth_choice import wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
-from sffscan.stages.depth_window import window_choice
+from sffscan.stages.depth_window import WINDOW_STRIPS, window_choice
 from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
 
 T = TypeVar("T")
@@ -508,7 +508,7 @@ class FocusVolume:
                         step=SHAPE_SAMPLE_STEP, valid=valid)
         if window_test:
             window_choice(scratch(a, "b_depth", shape), scratch(a, "b_window", shape),
-                          valid=valid)
+                          valid=valid, strips=WINDOW_STRIPS)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 
