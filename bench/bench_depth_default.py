@@ -14,7 +14,8 @@ keeps per pass. The focus values are random (gamma distributed), so the depth me
 data-dependent paths (adaptive's peak fit or centroid) take their share of a textured
 surface's pixels, not a flat plate's. A method written ``NAME/no-unc`` runs without the
 per-pixel height uncertainty (the depth stage before it had one): the cost of the
-uncertainty is ``NAME`` over ``NAME/no-unc``. This mode writes its table to
+uncertainty is ``NAME`` over ``NAME/no-unc``; ``shape_select/no-window`` is the default
+without its 9-level centroid test (stages/depth_window.py). This mode writes its table to
 ``bench/depth_default_results.md`` (and ``.json``).
 
 ``--e2e``: the whole pipeline over a recording (``sffscan demo --record``), frames read
@@ -72,6 +73,8 @@ def run(spec: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.nda
                       margin=p.focus_reach_px, method=method, median_size=p.median_size,
                       spread_size=p.window, block_columns=p.block_columns,
                       uncertainty=flag != "no-unc")
+    if flag == "no-window":  # shape_select as before its 9-level centroid test
+        vol.window_test = False
     t0 = time.perf_counter()  # after the volume's start-up (its pages are touched there)
     c0_cpu = time.process_time()
     for i, (x, y, level, c0, c1) in enumerate(plan):
@@ -203,7 +206,7 @@ def main() -> int:
     keep_freed_memory()  # the heap setting of the scan's focus worker (pipeline/heap.py)
     methods = [m for m in args.methods.split(",") if m]
     bad = [m for m in methods if m.partition("/")[0] not in DEPTH_METHODS
-           or m.partition("/")[2] not in ("", "no-unc")]
+           or m.partition("/")[2] not in ("", "no-unc", "no-window")]
     if bad:
         ap.error(f"unknown methods {bad}; choose from {DEPTH_METHODS}")
     if args.accuracy:

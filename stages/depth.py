@@ -337,7 +337,11 @@ def depth_from_focus(
             whose SPC depth lies within
             :data:`~sffscan.stages.depth_choice.SPC_END_REACH` curve widths of an end
             of the range (:func:`~sffscan.stages.depth_choice.spc_in_range`); else, and
-            there, ``"adaptive_centroid"``. The streaming depth stage makes the choice per
+            there, ``"adaptive_centroid"``, which a volume that does not take SPC trades for
+            ``"wcentroid"`` where that map's scatter about its 5 x 5 median plus its
+            departure from the fallback is under the fallback's scatter
+            (:func:`sffscan.stages.depth_window.window_choice`, since 2026-12-05). The
+            streaming depth stage makes the choice per
             block of columns (judged on a grid of its curves); a volume of 4 x 16384 or more
             curves is judged on an even grid of at least 16384
             (:func:`~sffscan.stages.depth_statistics.stack_sample`), and so is

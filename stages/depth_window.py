@@ -33,12 +33,13 @@ import numpy as np
 
 __all__ = ["WINDOW_STRIPS", "map_scatter", "takes_window_centroid", "window_choice"]
 
-WINDOW_STRIPS = (16, 64)
-"""A scan block is judged on strips of 16 rows out of every 64 (rows ``r`` with
-``r % 64 < 16``): a quarter of its pixels, in runs long enough for the 5 x 5 median (its 2
-rows of context beyond each strip read too). Judging every row cost the depth stage 1.3x
-``adaptive_centroid``'s CPU a frame (bench_depth_default.py); a stack, judged once, takes
-every row."""
+WINDOW_STRIPS = (16, 128)
+"""A scan block is judged on strips of 16 rows out of every 128 (rows ``r`` with
+``r % 128 < 16``): an eighth of its pixels (a 1040-row block of 64 columns: 9 strips, 9216
+pixels), in runs long enough for the 5 x 5 median (its 2 rows of context beyond each strip
+read too). Judging every row cost the depth stage 1.3x ``adaptive_centroid``'s CPU a frame,
+a quarter of them 1.04-1.14x (bench_depth_default.py, best of the rounds and their median
+ratio); a stack, judged once, takes every row."""
 
 
 def _strips(height: int, strips: tuple[int, int] | None) -> list[tuple[int, int]]:

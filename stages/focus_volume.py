@@ -197,6 +197,11 @@ class FocusVolume:
         self.method = method
         self.uncertainty = uncertainty
         self.streaming = method in STREAMING_METHODS
+        self.window_test = method == "shape_select"
+        """Whether a block that does not take SPC is offered the 9-level centroid
+        (:func:`sffscan.stages.depth_window.window_choice`): the default's rule since
+        2026-12-05; False gives the rule before it (bench_depth_default.py's
+        ``shape_select/no-window``)."""
         # the curves' minima: kept as frames arrive where no N-level ring holds the curves
         # (the ring's methods take them from the levels at the reduction)
         self.track_low = uncertainty and self.streaming
@@ -494,7 +499,7 @@ class FocusVolume:
         wide_test = (self.fv is not None and self.method in blocks.BLOCK_CHOICES
                      and method not in blocks.SPC_BLOCKS)
         # and the default's 9-level centroid (depth_window), as a stack's
-        window_test = wide_test and self.method == "shape_select"
+        window_test = wide_test and self.window_test
         self._run_task("depth", {
             "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
             "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,
