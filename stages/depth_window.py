@@ -39,7 +39,7 @@ WINDOW_STRIPS = (16, 128)
 pixels), in runs long enough for the 5 x 5 median (its 2 rows of context beyond each strip
 read too). Judging every row cost the depth stage 1.3x ``adaptive_centroid``'s CPU a frame,
 a quarter of them 1.04-1.14x (bench_depth_default.py, best of the rounds and their median
-ratio); a stack, judged once, takes every row."""
+ratio); a stack, judged once, and a block of fewer than 512 rows take every row."""
 
 
 def _strips(height: int, strips: tuple[int, int] | None) -> list[tuple[int, int]]:
@@ -118,7 +118,7 @@ def window_choice(depth: np.ndarray, wide: np.ndarray, *, valid: np.ndarray | No
         its focus measure reads reflected texture), as the invalid ones; 0 keeps them.
     strips : (int, int), optional, keyword-only
         Judge the rows of these strips only (:data:`WINDOW_STRIPS`, a scan's block); every
-        row when None.
+        row when None or when the map has fewer than 4 strips' periods of rows.
 
     Returns
     -------
@@ -135,6 +135,8 @@ def window_choice(depth: np.ndarray, wide: np.ndarray, *, valid: np.ndarray | No
         inner[margin:-margin, margin:-margin] = True
         ok &= inner
     judged = ok.copy()
+    if strips is not None and judged.shape[0] < 4 * strips[1]:
+        strips = None  # a short block: every row (a few strips would judge it on little)
     if strips is not None:
         run, every = strips
         judged &= (np.arange(judged.shape[0]) % every < run)[:, None]

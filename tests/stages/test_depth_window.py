@@ -105,3 +105,18 @@ def test_the_default_takes_the_wider_centroid_on_a_thin_lens_flat() -> None:
     default, fallback, wide = rmse("shape_select"), rmse("adaptive_centroid"), rmse("wcentroid")
     assert default == wide
     assert wide < 0.8 * fallback
+
+
+def test_a_tall_block_is_judged_on_its_strips_a_short_one_on_every_row() -> None:
+    rng = np.random.default_rng(8)
+    rows = 4 * WINDOW_STRIPS[1]  # the shortest map judged on strips
+    rough = (20.0 + rng.normal(0.0, 0.3, (rows, 64))).astype(np.float32)
+    smooth = (20.0 + rng.normal(0.0, 0.1, (rows, 64))).astype(np.float32)
+    between = (np.arange(rows) % WINDOW_STRIPS[1] >= WINDOW_STRIPS[0] + 8)[:, None]
+    wide = np.where(between, rng.normal(20.0, 5.0, (rows, 64)), smooth).astype(np.float32)
+    # only the strips (and 2 rows about them) are read: the rows between do not count
+    assert window_choice(rough.copy(), wide, strips=WINDOW_STRIPS) is not None
+    assert window_choice(rough.copy(), wide) is None
+    # fewer rows than 4 strips' periods: every row judged, strips or not
+    short = slice(0, rows - 1)
+    assert window_choice(rough[short].copy(), wide[short], strips=WINDOW_STRIPS) is None
