@@ -43,7 +43,6 @@ from sffscan.stages.depth_levels import median_filter_levels_at
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     judged_curves,
-    median_spread,
     pull_statistics,
     row_median,
     sample_step,
@@ -64,7 +63,7 @@ CENTROID_PULL_LIMIT = 0.03
 its families (as :data:`~sffscan.stages.depth_candidates.GAUSS_FIT_HALF_WINDOW`;
 docs/depth-study.md)."""
 
-SHAPE_SELECT_LIMITS = (0.2, 6.0)
+SHAPE_SELECT_LIMITS = (0.2, math.inf)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
 tuned as :data:`CENTROID_PULL_LIMIT` (candidate ``shape-select``, the rule with its other
 tests as shipped): (0.2, 6) in 9 of the 10 leave-one-family-out folds (0.08 without
@@ -72,7 +71,11 @@ lens-gauss) and in 20 of 20 over the twenty families; 0.2 is the grid's largest 
 and no limit at all (inf) makes the same choice on every stack of seeds 0..11. (0.08, 6)
 until 2026-12-04, when the departure test started to weigh SPC's noise: it measures SPC's
 bias on lopsided curves directly, and the skewness, a noisier sign of it, refused thin-lens
-stacks where SPC errs less (docs/depth-method-log.md)."""
+stacks where SPC errs less (docs/depth-method-log.md). (0.2, 6) until 2026-12-05, when
+SPC's noise and the departures' spread became mean squares (:func:`spc_noise`,
+:func:`spc_departure`): the width ratio had stood in for the few curves whose phase wanders
+(the thesis' chapter 3 with noise, ratio 8.05), and it refused even, noisy stacks just over
+6 where SPC errs less (even-noisy, 6.4-7.0); no width limit since."""
 
 SPC_END_REACH = 1.5
 """How many of its widths (sigma, levels) SPC's depth must lie from both ends of the range
@@ -116,15 +119,20 @@ def _curve_noise(cur: np.ndarray) -> np.ndarray:
 
 
 def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """SPC's predicted noise (levels, one sigma), the median over the ``mask`` curves (all
-    when None); NaN where none is judged.
+    """SPC's predicted noise (levels, one sigma), the root mean square over the ``mask``
+    curves (all when None) of each curve's, which is at most ``N / sqrt 12`` (a phase
+    anywhere on the circle); NaN where none is judged.
 
     SPC reads the phase of the curve's first harmonic H_1: white noise of sigma s on each
     of the N levels gives its real and imaginary parts a variance of s^2 N / 2 each, so the
     phase a sigma of about ``s sqrt(N / 2) / |H_1|`` radians and the depth
     ``N / (2 pi)`` times that. The curve's s is taken from its second differences
     (``1.4826 MAD / sqrt 6``: robust to the few levels of the peak, whose curvature is
-    signal). A number to weigh against the other estimator's noise, not a calibrated
+    signal). Over the curves, the mean square, not the median (until 2026-12-05): the
+    comparison it enters (:func:`takes_spc`) is one of mean squared errors, which the few
+    curves whose first harmonic is weak, and whose phase wanders, dominate (the thesis'
+    chapter 3 with noise: median 0.56, RMS 1.12 levels; SPC's RMSE there 1.43 levels against
+    the fallback's 0.74). A number to weigh against the other estimator's noise, not a calibrated
     uncertainty (that is :mod:`sffscan.stages.depth_uncertainty`'s). It assumes noise
     independent from level to level: noise correlated along the levels (a texture's focus
     measure changing smoothly through focus) moves the first harmonic more than its second
@@ -148,7 +156,9 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     re, im = (cur @ harmonic_table(n)[2:].T.astype(np.float32)).T
     h1 = np.hypot(re, im)
     sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
-    return float(np.median(sigma))
+    # a phase error is at most a uniform one on the circle: N / sqrt(12) levels
+    sigma = np.minimum(sigma, np.float32(n / math.sqrt(12.0))).astype(np.float64)
+    return math.sqrt(float(np.mean(sigma * sigma)))
 
 
 def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None = None,
@@ -158,7 +168,9 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
     the fallback's peak about ``centre`` (the 3-point Gaussian; with ``centroid`` the
     baseline-free centroid of the 5 levels about it, what ``"adaptive_centroid"`` takes
     where :func:`takes_centroid`), levels; of those differences the median (SPC's
-    *departure*) and the robust spread (1.4826 x their median absolute deviation). Curves
+    *departure*) and their root mean square about it (the spread: the robust 1.4826 x
+    median absolute deviation until 2026-12-05, which a mean squared error's comparison
+    understates where a few curves' differences are large; :func:`spc_noise`). Curves
     whose centre lies within 2 levels of an end, or whose SPC lies out of its range
     (:func:`spc_in_range`: those pixels take the other method anyway), are left out;
     NaN, NaN where none is left.
@@ -202,7 +214,9 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
         peak = windowed_centroid(cur[:, None, :], a[None, :], half_window=2)[0]
     else:
         peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
-    return median_spread((spc - peak)[keep])
+    diff = (spc - peak)[keep].astype(np.float64)
+    d = float(np.median(diff))
+    return d, math.sqrt(float(np.mean((diff - d) ** 2)))
 
 
 def takes_centroid(pull: float, *, noise: float = 0.0,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -166,14 +167,14 @@ def test_every_method_is_selectable_by_name() -> None:
     adaptive, _ = depth_from_focus(vol, method="adaptive")
     spc, _ = depth_from_focus(vol, method="spc")
     stats = shape_statistics(vol, first_argmax(vol), curve_width(vol))
-    assert SHAPE_SELECT_LIMITS == (0.2, 6.0) and SPC_END_REACH == 1.5
+    assert SHAPE_SELECT_LIMITS == (0.2, math.inf) and SPC_END_REACH == 1.5
     in_range = spc_in_range(spc, curve_width(vol), 30, reach=1.5)
     assert 0 < in_range.mean() < 1  # peaks at levels 4 .. 26 of 30: some near the ends
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
                 "window_pc": window_pc(vol, centre, factor=3.0),
                 "shape_select": shape_select(
                     spc, depth_from_focus(vol, method="adaptive_centroid")[0], stats,
-                    max_skew=0.2, max_ratio=6.0, in_range=in_range)}
+                    max_skew=0.2, max_ratio=math.inf, in_range=in_range)}
     expected["warped_select"] = expected["shape_select"]  # even curves: no warp
     for method in (*CANDIDATE_METHODS, "shape_select"):
         depth, confidence = depth_from_focus(vol, method=method)
