@@ -28,6 +28,7 @@ All functions are pure and vectorised (no Python loops over pixels).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -101,6 +102,7 @@ __all__ = [
     "levels_from_heights",
     "levels_to_height",
     "median_filter_levels",
+    "shape_select_bias",
     "volume_strips",
     "windowed_centroid",
 ]
@@ -190,6 +192,11 @@ def _window_pc(c: FocusCurves) -> np.ndarray:
 
 
 def _shape_select(c: FocusCurves) -> np.ndarray:
+    return _shape_select_parts(c)[0]
+
+
+def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
+    """``"shape_select"``'s depth and the bias its height uncertainty adds (levels)."""
     assert c.argmax is not None
     # curve_width's formula from the sums the estimators share: no float64 copy of the
     # volume (4x less time on a 50-level stack; equal to float64 round-off)
@@ -203,12 +210,27 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc)
     if not choice.spc:
         # the 9-level centroid where its scatter and departure say it errs less
-        window_choice(other, windowed_centroid(c.volume, c.centre()),
-                      margin=c.spread_size // 2)
-        return other  # SPC's map only where the stack takes it
+        hidden = window_choice(other, windowed_centroid(c.volume, c.centre()),
+                               margin=c.spread_size // 2)
+        # SPC's map only where the stack takes it
+        return other, choice.bias if hidden is None else math.hypot(choice.bias, hidden)
     spc = _from_sums(c, method="spc")
     in_range = spc_in_range(spc, width, c.volume.shape[0])
-    return np.where(in_range, spc, other).astype(np.float32, copy=False)
+    return np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias
+
+
+def shape_select_bias(volume: np.ndarray, argmax: np.ndarray | None = None, *,
+                      median_size: int = 11, spread_size: int = 9) -> float:
+    """The bias (levels) the height uncertainty of a stack reconstructed with
+    ``"shape_select"`` adds in quadrature (:mod:`sffscan.stages.depth_uncertainty`'s b):
+    :attr:`sffscan.stages.depth_choice.StackChoice.bias`, and where the stack takes the
+    9-level centroid, that centroid's (:func:`sffscan.stages.depth_window.window_choice`)
+    beside it. ``volume``, ``argmax``, ``median_size`` and ``spread_size`` as
+    :func:`depth_from_focus`'s; the depth is taken again (its choice needs the maps)."""
+    vol = check_volume(volume)
+    a = first_argmax(vol) if argmax is None else np.asarray(argmax).astype(np.intp, copy=False)
+    curves = FocusCurves(vol, curve_moments(vol), a, median_size, spread_size)
+    return _shape_select_parts(curves)[1]
 
 
 def _warped_select(c: FocusCurves) -> np.ndarray:

@@ -30,8 +30,8 @@ from sffscan.stages.depth import (
     depth_from_focus,
     first_argmax,
     focus_sums,
+    shape_select_bias,
 )
-from sffscan.stages.depth_choice import stack_choice
 from sffscan.stages.depth_study_grid import (
     CANDIDATES,
     Setting,
@@ -102,8 +102,8 @@ def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
     excess = width_excess(width, share, depth_range(depth, window=window), window=window)
-    # SPC's bias where the default took SPC for the stack (depth_uncertainty's b)
-    bias = (stack_choice(volume, argmax, width, median_size=median_size).bias
+    # the bias of the default's choice for the stack (depth_uncertainty's b)
+    bias = (shape_select_bias(volume, argmax, median_size=median_size, spread_size=window)
             if DEFAULT_METHOD == "shape_select" else 0.0)
     count = int(mask.sum())
     relief = depth_relief(depth, window=window)

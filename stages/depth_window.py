@@ -123,7 +123,12 @@ def window_choice(depth: np.ndarray, wide: np.ndarray, *, valid: np.ndarray | No
     Returns
     -------
     float or None
-        The departure ``d`` (levels) where the centroid was taken, else None.
+        Where the centroid was taken, the bias (levels) the height uncertainty adds in
+        quadrature: ``sqrt(d^2 + s_f^2 - s_w^2)``, its departure and the scatter the
+        fallback's map showed that the centroid's does not (a map pulled towards the
+        filtered argmax scatters less without erring less: on held-out seeds 78..83 the
+        thin-lens 12-bit flat's coverage fell under the band, 0.884, with the departure
+        alone); else None.
     """
     # the pixels whose depth means something: the others take the median before the
     # median filter (map_scatter); of those, the strips' are judged
@@ -148,4 +153,4 @@ def window_choice(depth: np.ndarray, wide: np.ndarray, *, valid: np.ndarray | No
     if not takes_window_centroid(scatter, departure):
         return None
     np.copyto(depth, wide)
-    return departure
+    return math.sqrt(departure * departure + max(scatter[0] ** 2 - scatter[1] ** 2, 0.0))

@@ -36,6 +36,7 @@ always complete in increasing order.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple, TypeVar
 
@@ -512,8 +513,10 @@ class FocusVolume:
             wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),
                         step=SHAPE_SAMPLE_STEP, valid=valid)
         if window_test:
-            window_choice(scratch(a, "b_depth", shape), scratch(a, "b_window", shape),
-                          valid=valid, strips=WINDOW_STRIPS)
+            hidden = window_choice(scratch(a, "b_depth", shape), scratch(a, "b_window", shape),
+                                   valid=valid, strips=WINDOW_STRIPS)
+            if hidden is not None:  # the centroid's bias, beside the fallback's
+                bias = math.hypot(bias, hidden)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
 

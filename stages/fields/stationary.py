@@ -357,7 +357,7 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
-    from sffscan.stages.depth import first_argmax, focus_sums
+    from sffscan.stages.depth import first_argmax, focus_sums, shape_select_bias
     from sffscan.stages.depth_choice import method_bias
     from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
 
@@ -366,8 +366,12 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     # the bias of the method's depth its scatter cannot show (depth_uncertainty's b); the
     # curves' widths from their sums, as the depth's own choice takes them
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
-    bias = method_bias(vol, first_argmax(vol), settings.method,
-                       median_size=settings.median_size, width=width)
+    if settings.method == "shape_select":  # its choice of estimator included
+        bias = shape_select_bias(vol, median_size=settings.median_size,
+                                 spread_size=settings.window)
+    else:
+        bias = method_bias(vol, first_argmax(vol), settings.method,
+                           median_size=settings.median_size, width=width)
     unc = height_uncertainty_um(levels, sums, low, n_levels=vol.shape[0],
                                 focus_heights_um=heights, window=settings.window,
                                 bias_levels=bias)
