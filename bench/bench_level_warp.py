@@ -24,53 +24,29 @@ import datetime as dt
 import math
 import os
 import platform
-import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from family_scores import NAMES, score_stacks
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_warp import lens_asymmetry
-from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "level_warp.md"
 CANDIDATE = "warped_select"
-WINDOW = 9
 
 
-def _score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
-           ) -> tuple[dict[str, float], int, float]:
+def score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
+          ) -> tuple[dict[str, float], int, float]:
     """Sum of squared errors (levels^2) per method, pixels scored, the warp applied (0: none)."""
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
     sse = {}
     for m in (*DEPTH_METHODS, CANDIDATE):
-        d = depth_from_focus(volume, method=m, median_size=11, spread_size=WINDOW, argmax=a)[0]
+        d = depth_from_focus(volume, method=m, median_size=11, spread_size=9, argmax=a)[0]
         sse[m] = float(np.sum((d - truth)[mask] ** 2))
     w = lens_asymmetry(volume)
     return sse, int(mask.sum()), (w.c if w.applied else 0.0)
-
-
-def family_job(name: str, seed: int) -> tuple[str, int, dict[str, float], int, float]:
-    st = family_stack(name, seed)
-    vol = focus_measure(st.images, operator="glvm", window=WINDOW)
-    m = WINDOW // 2
-    mask = np.zeros(st.truth_um.shape, bool)
-    mask[m:-m, m:-m] = True
-    truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-    return (name, seed, *_score(vol, truth, mask))
-
-
-def pertuz_job(path: str) -> tuple[str, int, dict[str, float], int, float]:
-    from sffscan.pipeline.cli.study import read_imdata
-
-    st = read_imdata(Path(path))
-    vol = focus_measure(st.images, operator="glvm", window=WINDOW)
-    step = float(st.focus_um[1] - st.focus_um[0])
-    truth = (st.truth_um - st.focus_um[0]) / step
-    return ("pertuz-simu02", 0, *_score(vol, truth, st.mask & np.isfinite(truth)))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,19 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes")
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
-    names = [f.name for f in (*FAMILIES, *CROSSED_FAMILIES)]
+    names = NAMES
     seeds = range(*args.seeds)
     t0 = time.perf_counter()
-    rows: dict[str, list[tuple[int, dict[str, float], int, float]]] = {}
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futures = [pool.submit(family_job, n, s) for n in names for s in seeds]
-        if args.imdata:
-            futures.append(pool.submit(pertuz_job, args.imdata))
-        for i, fut in enumerate(futures, 1):
-            name, seed, sse, count, c = fut.result()
-            rows.setdefault(name, []).append((seed, sse, count, c))
-            print(f"\r{i}/{len(futures)} stacks", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+    rows = {name: [(seed, *result) for seed, result in got]
+            for name, got in score_stacks(score, seeds, imdata=args.imdata,
+                                          jobs=args.jobs).items()}
     wall = time.perf_counter() - t0
 
     methods = (*DEPTH_METHODS, CANDIDATE)

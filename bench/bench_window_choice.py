@@ -26,31 +26,25 @@ import datetime as dt
 import math
 import os
 import platform
-import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from family_scores import NAMES, score_stacks
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_choice import stack_choice
-from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_stack
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "window_choice.md"
 BEFORE = "before"
-WINDOW = 9
-
-Row = tuple[str, int, dict[str, float], int, str]
 
 
-def _score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
-           ) -> tuple[dict[str, float], int, str]:
+def score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
+          ) -> tuple[dict[str, float], int, str]:
     """Sum of squared errors (levels^2) per method and before, pixels scored, what was taken."""
     vol = np.ascontiguousarray(volume, np.float32)
     a = first_argmax(vol)
-    depth = {m: depth_from_focus(vol, method=m, median_size=11, spread_size=WINDOW,
+    depth = {m: depth_from_focus(vol, method=m, median_size=11, spread_size=9,
                                  argmax=a)[0] for m in DEPTH_METHODS}
     spc = stack_choice(vol, a, median_size=11).spc
     depth[BEFORE] = depth[DEFAULT_METHOD] if spc else depth["adaptive_centroid"]
@@ -58,26 +52,6 @@ def _score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
                             else "W")
     sse = {m: float(np.sum((d - truth)[mask] ** 2)) for m, d in depth.items()}
     return sse, int(mask.sum()), took
-
-
-def family_job(name: str, seed: int) -> Row:
-    st = family_stack(name, seed)
-    vol = focus_measure(st.images, operator="glvm", window=WINDOW)
-    m = WINDOW // 2
-    mask = np.zeros(st.truth_um.shape, bool)
-    mask[m:-m, m:-m] = True
-    truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-    return (name, seed, *_score(vol, truth, mask))
-
-
-def pertuz_job(path: str) -> Row:
-    from sffscan.pipeline.cli.study import read_imdata
-
-    st = read_imdata(Path(path))
-    vol = focus_measure(st.images, operator="glvm", window=WINDOW)
-    step = float(st.focus_um[1] - st.focus_um[0])
-    truth = (st.truth_um - st.focus_um[0]) / step
-    return ("pertuz-simu02", 0, *_score(vol, truth, st.mask & np.isfinite(truth)))
 
 
 def _ratios(group: list[tuple[int, dict[str, float], int, str]]
@@ -106,19 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.seeds[1] <= args.seeds[0] or args.set_size < 0:
         p.error("--seeds FROM TO needs FROM < TO, --set-size >= 0")
-    names = [f.name for f in (*FAMILIES, *CROSSED_FAMILIES)]
+    names = NAMES
     seeds = range(*args.seeds)
     t0 = time.perf_counter()
-    rows: dict[str, list[tuple[int, dict[str, float], int, str]]] = {}
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futures = [pool.submit(family_job, n, s) for n in names for s in seeds]
-        if args.imdata:
-            futures.append(pool.submit(pertuz_job, args.imdata))
-        for i, fut in enumerate(futures, 1):
-            name, seed, sse, count, took = fut.result()
-            rows.setdefault(name, []).append((seed, sse, count, took))
-            print(f"\r{i}/{len(futures)} stacks", end="", file=sys.stderr, flush=True)
-    print(file=sys.stderr)
+    rows = {name: [(seed, *result) for seed, result in got]
+            for name, got in score_stacks(score, seeds, imdata=args.imdata,
+                                          jobs=args.jobs).items()}
     wall = time.perf_counter() - t0
 
     head = ("| family | stacks | " + " | ".join(DEPTH_METHODS) + " | before / best | "

@@ -103,6 +103,7 @@ __all__ = [
     "levels_to_height",
     "median_filter_levels",
     "shape_select_bias",
+    "shape_select_with_bias",
     "volume_strips",
     "windowed_centroid",
 ]
@@ -226,11 +227,23 @@ def shape_select_bias(volume: np.ndarray, argmax: np.ndarray | None = None, *,
     :attr:`sffscan.stages.depth_choice.StackChoice.bias`, and where the stack takes the
     9-level centroid, that centroid's (:func:`sffscan.stages.depth_window.window_choice`)
     beside it. ``volume``, ``argmax``, ``median_size`` and ``spread_size`` as
-    :func:`depth_from_focus`'s; the depth is taken again (its choice needs the maps)."""
-    vol = check_volume(volume)
-    a = first_argmax(vol) if argmax is None else np.asarray(argmax).astype(np.intp, copy=False)
-    curves = FocusCurves(vol, curve_moments(vol), a, median_size, spread_size)
-    return _shape_select_parts(curves)[1]
+    :func:`depth_from_focus`'s; the depth is taken again (its choice needs the maps:
+    :func:`shape_select_with_bias` gives both from one pass)."""
+    return shape_select_with_bias(volume, argmax=argmax, median_size=median_size,
+                                  spread_size=spread_size)[2]
+
+
+def shape_select_with_bias(volume: np.ndarray, *, median_size: int = 11,
+                           argmax: np.ndarray | None = None, spread_size: int = 9
+                           ) -> tuple[np.ndarray, np.ndarray, float]:
+    """``depth_from_focus(volume, method="shape_select", ...)``'s depth and confidence, and
+    :func:`shape_select_bias`'s bias (levels), from one pass: what a stack's height and its
+    uncertainty need (:func:`sffscan.stages.fields.stationary.reconstruct_field`)."""
+    curves = _checked_curves(volume, method="shape_select", median_size=median_size,
+                             argmax=argmax, spread_size=spread_size)
+    depth, bias = _shape_select_parts(curves)
+    h0, _, re, im = curves.moments
+    return depth, confidence_from_sums(h0, re, im), bias
 
 
 def _warped_select(c: FocusCurves) -> np.ndarray:
@@ -409,6 +422,14 @@ def depth_from_focus(
         names the first such level), or ``method`` / ``median_size`` is invalid.
     """
 
+    curves = _checked_curves(volume, method=method, median_size=median_size, argmax=argmax,
+                             spread_size=spread_size)
+    h0, _, re, im = curves.moments
+    return ESTIMATORS[method].depth(curves), confidence_from_sums(h0, re, im)
+
+def _checked_curves(volume: np.ndarray, *, method: str, median_size: int,
+                    argmax: np.ndarray | None, spread_size: int) -> FocusCurves:
+    """:func:`depth_from_focus`'s arguments checked, as the estimator reads them."""
     estimator = ESTIMATORS.get(method)
     if estimator is None:
         raise ValueError(f"method must be one of {DEPTH_METHODS} or a candidate "
@@ -428,6 +449,5 @@ def depth_from_focus(
         a = a.astype(np.intp, copy=False)
     elif estimator.uses_argmax:
         a = first_argmax(vol)
-    h0, _, re, im = moments
-    curves = FocusCurves(vol, moments, a, median_size, spread_size)
-    return estimator.depth(curves), confidence_from_sums(h0, re, im)
+    return FocusCurves(vol, moments, a, median_size, spread_size)
+

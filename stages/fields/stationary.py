@@ -36,6 +36,7 @@ from sffscan.stages.depth import (
     check_odd_size,
     depth_from_focus,
     levels_to_height,
+    shape_select_with_bias,
 )
 
 __all__ = [
@@ -349,15 +350,20 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
             raise ValueError(f"noise_floor must hold {volume.shape[0]} finite values, one per "
                              f"image, got {floor.size}")
         volume = np.maximum(volume - floor[:, None, None], np.float32(0.0))
-    levels, confidence = depth_from_focus(volume, method=settings.method,
-                                          median_size=settings.median_size,
-                                          spread_size=settings.window)
+    bias: float | None = None  # the default's, from its own pass (its choice included)
+    if settings.method == "shape_select":
+        levels, confidence, bias = shape_select_with_bias(
+            volume, median_size=settings.median_size, spread_size=settings.window)
+    else:
+        levels, confidence = depth_from_focus(volume, method=settings.method,
+                                              median_size=settings.median_size,
+                                              spread_size=settings.window)
     raw = levels_to_height(levels, focus_heights_um=heights)
     texture = all_in_focus(images, volume)
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
-    from sffscan.stages.depth import first_argmax, focus_sums, shape_select_bias
+    from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import method_bias
     from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
 
@@ -366,10 +372,7 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     # the bias of the method's depth its scatter cannot show (depth_uncertainty's b); the
     # curves' widths from their sums, as the depth's own choice takes them
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
-    if settings.method == "shape_select":  # its choice of estimator included
-        bias = shape_select_bias(vol, median_size=settings.median_size,
-                                 spread_size=settings.window)
-    else:
+    if bias is None:
         bias = method_bias(vol, first_argmax(vol), settings.method,
                            median_size=settings.median_size, width=width)
     unc = height_uncertainty_um(levels, sums, low, n_levels=vol.shape[0],
