@@ -19,20 +19,15 @@ scores them. Not a test: nothing here asserts.
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import math
-import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
-from family_scores import NAMES, score_stacks
+from family_scores import NAMES, ROOT, bench_parser, machine, score_stacks, write_table
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_warp import lens_asymmetry
 
-ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "level_warp.md"
 CANDIDATE = "warped_select"
 
@@ -50,14 +45,7 @@ def score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--seeds", nargs=2, type=int, metavar=("FROM", "TO"), default=(54, 60),
-                   help="held-out seeds FROM .. TO - 1 (default 54 60)")
-    p.add_argument("--imdata", default=str(ROOT.parent / "shared" / "datasets"
-                                           / "pertuz-simu02" / "imdata.mat"),
-                   help="pertuz-simu02's imdata.mat ('' to leave it out)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes")
-    p.add_argument("--out", type=Path, default=OUT)
+    p = bench_parser(__doc__ or "", seeds=(54, 60), out=OUT)
     args = p.parse_args(argv)
     names = NAMES
     seeds = range(*args.seeds)
@@ -88,13 +76,11 @@ def main(argv: list[str] | None = None) -> int:
         cs = " ".join(f"{r[3]:+.2f}" if r[3] else "0" for r in group)
         lines.append(f"| {name} | {len(group)} | " + " | ".join(f"{rmse[m]:.3f}" for m in methods)
                      + f" | {ratio[DEFAULT_METHOD]:.2f} | {ratio[CANDIDATE]:.2f} | {cs} |")
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, " \
-              f"Python {platform.python_version()}"
     text = "\n".join([
         "# A warped level axis (`warped_select`) against the default, held-out seeds",
         "",
         f"`python bench/bench_level_warp.py --seeds {args.seeds[0]} {args.seeds[1]}` "
-        f"({dt.datetime.now():%Y-%m-%d %H:%M}; {machine}; {wall:.0f} s). Seeds "
+        f"({dt.datetime.now():%Y-%m-%d %H:%M}; {machine()}; {wall:.0f} s). Seeds "
         f"{seeds.start}..{seeds.stop - 1} of the twenty families, 64 px stacks, GLVM 9; "
         "pertuz-simu02 in its ROI. RMSE in levels, pooled over a family's stacks; best: the "
         "best selectable method (`DEPTH_METHODS`, the default among them).",
@@ -107,9 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{over[DEFAULT_METHOD]} and {over[CANDIDATE]} of {len(lines) - 2}.",
         "",
     ])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    print(text)
+    write_table(args.out, text)
     return 0
 
 

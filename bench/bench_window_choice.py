@@ -21,20 +21,15 @@ scores them. Not a test: nothing here asserts.
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import math
-import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
-from family_scores import NAMES, score_stacks
+from family_scores import NAMES, ROOT, bench_parser, machine, score_stacks, write_table
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_choice import stack_choice
 
-ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "window_choice.md"
 BEFORE = "before"
 
@@ -67,16 +62,9 @@ def _ratios(group: list[tuple[int, dict[str, float], int, str]]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--seeds", nargs=2, type=int, metavar=("FROM", "TO"), default=(72, 78),
-                   help="seeds FROM .. TO - 1 (default 72 78)")
+    p = bench_parser(__doc__ or "", seeds=(72, 78), out=OUT)
     p.add_argument("--set-size", type=int, default=0,
                    help="also the worst ratios per set of this many seeds (0: none)")
-    p.add_argument("--imdata", default=str(ROOT.parent / "shared" / "datasets"
-                                           / "pertuz-simu02" / "imdata.mat"),
-                   help="pertuz-simu02's imdata.mat ('' to leave it out)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes")
-    p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     if args.seeds[1] <= args.seeds[0] or args.set_size < 0:
         p.error("--seeds FROM TO needs FROM < TO, --set-size >= 0")
@@ -120,14 +108,12 @@ def main(argv: list[str] | None = None) -> int:
                         f"-> {ratios[wa][1]:.2f}x ({wa}); "
                         f"{sum(round(r[0], 2) > 1.05 for r in ratios.values())} -> "
                         f"{sum(round(r[1], 2) > 1.05 for r in ratios.values())} of {len(names)}")
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, " \
-              f"Python {platform.python_version()}"
     text = "\n".join([
         "# The default's 9-level centroid test against the rule before it",
         "",
         f"`python bench/bench_window_choice.py --seeds {args.seeds[0]} {args.seeds[1]}"
         + (f" --set-size {args.set_size}" if args.set_size else "")
-        + f"` ({dt.datetime.now():%Y-%m-%d %H:%M}; {machine}; {wall:.0f} s). Seeds "
+        + f"` ({dt.datetime.now():%Y-%m-%d %H:%M}; {machine()}; {wall:.0f} s). Seeds "
         f"{seeds.start}..{seeds.stop - 1} of the twenty families, 64 px stacks, GLVM 9; "
         "pertuz-simu02 in its ROI. RMSE in levels, pooled over a family's stacks; before: "
         "`shape_select` without the test; each ratio to the best selectable method "
@@ -143,9 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         *sets,
         "",
     ])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text, encoding="utf-8")
-    print(text)
+    write_table(args.out, text)
     return 0
 
 

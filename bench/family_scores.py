@@ -8,6 +8,9 @@ in levels and the pixels scored, and a process pool that scores them all.
 
 from __future__ import annotations
 
+import argparse
+import os
+import platform
 import sys
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -25,6 +28,8 @@ NAMES = [f.name for f in (*FAMILIES, *CROSSED_FAMILIES)]
 """The twenty families, in the study's order."""
 
 PERTUZ = "pertuz-simu02"
+
+ROOT = Path(__file__).resolve().parents[1]
 
 Volume = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -75,3 +80,29 @@ def score_stacks(score: Callable[[np.ndarray, np.ndarray, np.ndarray], Any],
             print(f"\r{i}/{len(futures)} stacks", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     return rows
+
+
+def bench_parser(doc: str, *, seeds: tuple[int, int], out: Path) -> argparse.ArgumentParser:
+    """The benches' common options: ``--seeds FROM TO``, ``--imdata``, ``--jobs``, ``--out``."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    p.add_argument("--seeds", nargs=2, type=int, metavar=("FROM", "TO"), default=seeds,
+                   help=f"seeds FROM .. TO - 1 (default {seeds[0]} {seeds[1]})")
+    p.add_argument("--imdata", default=str(ROOT.parent / "shared" / "datasets"
+                                           / "pertuz-simu02" / "imdata.mat"),
+                   help="pertuz-simu02's imdata.mat ('' to leave it out)")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes")
+    p.add_argument("--out", type=Path, default=out, help=f"the table (default {out})")
+    return p
+
+
+def machine() -> str:
+    """This machine in a few words, for a table's header."""
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"Python {platform.python_version()}")
+
+
+def write_table(path: Path, text: str) -> None:
+    """Write a bench's table (its folder made) and print it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    print(text)
