@@ -102,7 +102,6 @@ __all__ = [
     "levels_from_heights",
     "levels_to_height",
     "median_filter_levels",
-    "shape_select_bias",
     "shape_select_with_bias",
     "volume_strips",
     "windowed_centroid",
@@ -220,25 +219,16 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
     return np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias
 
 
-def shape_select_bias(volume: np.ndarray, argmax: np.ndarray | None = None, *,
-                      median_size: int = 11, spread_size: int = 9) -> float:
-    """The bias (levels) the height uncertainty of a stack reconstructed with
-    ``"shape_select"`` adds in quadrature (:mod:`sffscan.stages.depth_uncertainty`'s b):
-    :attr:`sffscan.stages.depth_choice.StackChoice.bias`, and where the stack takes the
-    9-level centroid, that centroid's (:func:`sffscan.stages.depth_window.window_choice`)
-    beside it. ``volume``, ``argmax``, ``median_size`` and ``spread_size`` as
-    :func:`depth_from_focus`'s; the depth is taken again (its choice needs the maps:
-    :func:`shape_select_with_bias` gives both from one pass)."""
-    return shape_select_with_bias(volume, argmax=argmax, median_size=median_size,
-                                  spread_size=spread_size)[2]
-
-
 def shape_select_with_bias(volume: np.ndarray, *, median_size: int = 11,
                            argmax: np.ndarray | None = None, spread_size: int = 9
                            ) -> tuple[np.ndarray, np.ndarray, float]:
     """``depth_from_focus(volume, method="shape_select", ...)``'s depth and confidence, and
-    :func:`shape_select_bias`'s bias (levels), from one pass: what a stack's height and its
-    uncertainty need (:func:`sffscan.stages.fields.stationary.reconstruct_field`)."""
+    the bias (levels) the height uncertainty of a stack so reconstructed adds in quadrature
+    (:mod:`sffscan.stages.depth_uncertainty`'s b): :attr:`sffscan.stages.depth_choice.
+    StackChoice.bias`, and where the stack takes the 9-level centroid, that centroid's
+    (:func:`sffscan.stages.depth_window.window_choice`) beside it. From one pass: what a
+    stack's height and its uncertainty need
+    (:func:`sffscan.stages.fields.stationary.reconstruct_field`, the depth study)."""
     curves = _checked_curves(volume, method="shape_select", median_size=median_size,
                              argmax=argmax, spread_size=spread_size)
     depth, bias = _shape_select_parts(curves)

@@ -30,7 +30,7 @@ from sffscan.stages.depth import (
     depth_from_focus,
     first_argmax,
     focus_sums,
-    shape_select_bias,
+    shape_select_with_bias,
 )
 from sffscan.stages.depth_study_grid import (
     CANDIDATES,
@@ -79,32 +79,42 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
                  spread_size: int = 9) -> _Scores:
     """Squared errors of every method and of the candidate at every threshold."""
     sse: dict[str, float] = {}
-    depth: dict[str, np.ndarray] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
+    default, bias = _default_depth(volume, a, median_size=median_size, spread_size=spread_size)
+    depth = {DEFAULT_METHOD: default}
     for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select",
                             "wcentroid", DEFAULT_METHOD)):
-        depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
-                                    spread_size=spread_size, argmax=a)[0]
+        if m not in depth:
+            depth[m] = depth_from_focus(volume, method=m, median_size=median_size,
+                                        spread_size=spread_size, argmax=a)[0]
         if m in methods:
             sse[m] = float(np.sum((depth[m] - truth_levels)[mask] ** 2))
     width = curve_width(volume)
     sse.update(candidate_errors(volume, truth_levels, mask, depth=depth, argmax=a, width=width,
                                 median_size=median_size, spread_size=spread_size))
-    return _uncertainty_terms(volume, depth[DEFAULT_METHOD], width, truth_levels, mask, sse=sse,
-                              window=spread_size, argmax=a, median_size=median_size)
+    return _uncertainty_terms(volume, default, width, truth_levels, mask, sse=sse,
+                              window=spread_size, bias=bias)
+
+
+def _default_depth(volume: np.ndarray, argmax: np.ndarray, *, median_size: int,
+                   spread_size: int) -> tuple[np.ndarray, float]:
+    """The default method's depth (levels) and the bias its height uncertainty adds
+    (depth_uncertainty's b; ``"shape_select"``'s choice for the stack, from the same pass)."""
+    if DEFAULT_METHOD == "shape_select":
+        depth, _, bias = shape_select_with_bias(volume, argmax=argmax, median_size=median_size,
+                                                spread_size=spread_size)
+        return depth, bias
+    return depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
+                            spread_size=spread_size, argmax=argmax)[0], 0.0
 
 
 def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
-                       sse: dict[str, float], window: int, argmax: np.ndarray,
-                       median_size: int) -> _Scores:
+                       sse: dict[str, float], window: int, bias: float) -> _Scores:
     scatter = depth_scatter(depth, window=window)
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
     excess = width_excess(width, share, depth_range(depth, window=window), window=window)
-    # the bias of the default's choice for the stack (depth_uncertainty's b)
-    bias = (shape_select_bias(volume, argmax, median_size=median_size, spread_size=window)
-            if DEFAULT_METHOD == "shape_select" else 0.0)
     count = int(mask.sum())
     relief = depth_relief(depth, window=window)
     return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], relief[mask],
@@ -117,10 +127,9 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     one focus volume (levels), for :mod:`sffscan.stages.uncertainty_fit`
     without scoring every method."""
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    d = depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
-                         spread_size=spread_size, argmax=a)[0]
+    d, bias = _default_depth(volume, a, median_size=median_size, spread_size=spread_size)
     return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
-                              window=spread_size, argmax=a, median_size=median_size)
+                              window=spread_size, bias=bias)
 
 
 @dataclass(frozen=True)
