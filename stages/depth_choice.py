@@ -485,7 +485,10 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
     the other methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
     :func:`stack_choice`'s (``width`` from the curves' sums, as the depth's choice takes it,
     saves its float64 :func:`~sffscan.stages.depth_uncertainty.curve_width`); ``method`` the
-    depth method."""
+    depth method. For ``"shape_select"`` this is its choice's bias before the fallback's
+    9-level centroid is weighed (that needs the depth maps):
+    :func:`sffscan.stages.depth.shape_select_with_bias` gives the whole of it with the
+    depth, and is what a stack's reconstruction takes."""
     if method == "shape_select":
         return stack_choice(volume, argmax, width, median_size=median_size).bias
     if method in PEAK_METHODS:
