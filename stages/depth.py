@@ -165,7 +165,9 @@ def _adaptive(c: FocusCurves) -> np.ndarray:
 
 
 def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None, *,
-                       wide_test: bool = True) -> np.ndarray:
+                       wide_test: bool = True,
+                       window_out: np.ndarray | None = None) -> np.ndarray:
+    # window_out (with wide_test): the 9-level centroid, from the same gather of the levels
     assert c.argmax is not None
     centre = c.centre()
     pull, noise = pull_statistics(*stack_sample(c.volume, c.argmax)[:2]) if stats is None \
@@ -176,7 +178,8 @@ def _adaptive_centroid(c: FocusCurves, stats: tuple[float, float] | None = None,
         return adaptive_peak(c.volume, centre, spread, peak=peak)
     # the wide centroid judged on the grid the stack's other statistics take (stack_sample)
     wide_peak = np.empty(spread.shape, np.float32)
-    depth = adaptive_block(c.volume, centre, spread, peak=peak, wide_peak_out=wide_peak)[0]
+    depth = adaptive_block(c.volume, centre, spread, peak=peak, wide_peak_out=wide_peak,
+                           window_out=window_out)[0]
     s = sample_step(depth.shape)
     wide_choice(depth, wide_peak, step=(s, s))
     return depth
@@ -207,11 +210,13 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
     choice = stack_choice(c.volume, c.argmax, width, median_size=c.median_size)
     # a stack that takes SPC keeps the fallback's wide centroid untested, as a scan's SPC
     # block does (the fallback is then read only beyond SPC's range)
-    other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc)
-    if not choice.spc:
-        # the 9-level centroid where its scatter and departure say it errs less
-        hidden = window_choice(other, windowed_centroid(c.volume, c.centre()),
-                               margin=c.spread_size // 2)
+    wide = None if choice.spc else np.empty(c.volume.shape[1:], np.float32)
+    other = _adaptive_centroid(c, (choice.pull, choice.noise), wide_test=not choice.spc,
+                               window_out=wide)
+    if wide is not None:
+        # the 9-level centroid (adaptive_block's gather, as a scan block's) where its
+        # scatter and departure say it errs less
+        hidden = window_choice(other, wide, margin=c.spread_size // 2)
         # SPC's map only where the stack takes it
         return other, choice.bias if hidden is None else math.hypot(choice.bias, hidden)
     spc = _from_sums(c, method="spc")
