@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_choice import fallback_bias, spc_bias, spc_in_range, takes_centroid
+from sffscan.stages.depth_floor import GuardFloor, guard_width
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
     depth_from_harmonics,
@@ -33,7 +34,7 @@ from sffscan.stages.depth_statistics import (
     sampled_curves,
     shape_statistics,
 )
-from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um, width_from_sums
+from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
            "judged_centre",
@@ -65,11 +66,14 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  valid: np.ndarray | None = None, *, method: str = "shape_select",
                  median_size: int = 11,
                  centre: Callable[[], np.ndarray] | None = None
-                 ) -> tuple[str, float]:
-    """The method a block takes, and the bias the height uncertainty adds in quadrature
+                 ) -> tuple[str, float, GuardFloor | None]:
+    """The method a block takes, the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
     :func:`sffscan.stages.depth_choice.spc_departure`; where it takes a peak, the
-    :func:`sffscan.stages.depth_choice.fallback_bias` of its curves), judged on the curves of
+    :func:`sffscan.stages.depth_choice.fallback_bias` of its curves) and, where it takes
+    SPC, what SPC's range guard takes from its curves
+    (:func:`sffscan.stages.depth_floor.guard_floor`; None elsewhere: :func:`depth_rows`'
+    ``floor``), judged on the curves of
     :data:`sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_statistics.sampled_curves`).
 
@@ -110,18 +114,18 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
     sample = sampled_curves(levels, argmax, valid)
     if sample is None:
-        return "adaptive", 0.0
+        return "adaptive", 0.0, None
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
     if method == "shape_select":
         stats = shape_statistics(vol, am, curve_width(vol), seen)
-        bias = spc_bias(vol, am, stats, pull, noise, seen,
-                        centre=(lambda: judged_centre(argmax, median_size)) if centre is None
-                        else centre)
-        if bias is not None:
-            return ("spc+centroid" if centroid else "spc+gauss3"), bias
-    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull)
+        taken = spc_bias(vol, am, stats, pull, noise, seen,
+                         centre=(lambda: judged_centre(argmax, median_size)) if centre is None
+                         else centre)
+        if taken is not None:
+            return ("spc+centroid" if centroid else "spc+gauss3"), taken[0], taken[1]
+    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull), None
 
 
 def judged_centre(argmax: np.ndarray, median_size: int, *,
@@ -154,7 +158,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
                low: np.ndarray, *, method: str, n_levels: int, median_size: int,
                spread_size: int, streaming: bool, keep_low: bool,
                wide_peak: np.ndarray | None = None,
-               window_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               window_out: np.ndarray | None = None,
+               floor: GuardFloor | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth (levels) and confidence of rows [r0, r1) of a block.
 
     Parameters
@@ -196,6 +201,11 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         receives the 9-level centroid about the same filtered argmax
         (:func:`~sffscan.stages.depth_peak.windowed_centroid`, for
         :func:`sffscan.stages.depth_window.window_choice` over the whole block).
+    floor : GuardFloor, optional, keyword-only
+        For the :data:`SPC_BLOCKS`: what SPC's range guard takes from the block's judged
+        curves (:func:`block_choice`'s third element, for
+        :func:`sffscan.stages.depth_floor.guard_width`; one for the whole block, whatever
+        its bands); None: the curves' minima as their floor.
 
     Returns
     -------
@@ -242,7 +252,7 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         # median (the depths differ by float32 round-off); adaptive_centroid's depth
         # stands where SPC is out of its range
         spc = spc_depth(sums[1], sums[2], centre[own, inner], n_levels=n_levels)
-        width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, n_levels)
+        width = guard_width(sums[0], np.hypot(sums[1], sums[2]), low, n_levels, floor)
         keep = spc_in_range(spc, width, n_levels)
         return np.where(keep, spc, depth).astype(np.float32, copy=False), conf
     vol = src[:, wide]

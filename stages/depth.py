@@ -42,6 +42,7 @@ from sffscan.stages.depth_candidates import (
     window_pc,
 )
 from sffscan.stages.depth_choice import spc_in_range, stack_choice, takes_centroid, wide_choice
+from sffscan.stages.depth_floor import guard_width
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
     confidence_from_sums,
@@ -204,8 +205,8 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
     # curve_width's formula from the sums the estimators share: no float64 copy of the
     # volume (4x less time on a 50-level stack; equal to float64 round-off)
     h0, _, re, im = c.moments
-    width = width_from_sums(h0, np.hypot(re, im), c.volume.min(axis=0),
-                            c.volume.shape[0])
+    h1, low, n = np.hypot(re, im), c.volume.min(axis=0), c.volume.shape[0]
+    width = width_from_sums(h0, h1, low, n)
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
     choice = stack_choice(c.volume, c.argmax, width, median_size=c.median_size)
     # a stack that takes SPC keeps the fallback's wide centroid untested, as a scan's SPC
@@ -220,7 +221,8 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
         # SPC's map only where the stack takes it
         return other, choice.bias if hidden is None else math.hypot(choice.bias, hidden)
     spc = _from_sums(c, method="spc")
-    in_range = spc_in_range(spc, width, c.volume.shape[0])
+    # the range guard's width from a floor the noise does not lower (depth_floor)
+    in_range = spc_in_range(spc, guard_width(h0, h1, low, n, choice.floor), n)
     return np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias
 
 

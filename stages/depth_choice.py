@@ -38,19 +38,19 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+from sffscan.stages.depth_floor import GuardFloor, curve_noise, guard_floor, guard_width
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
 from sffscan.stages.depth_levels import median_filter_levels_at
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     judged_curves,
     pull_statistics,
-    row_median,
     sample_step,
     shape_statistics,
     stack_sample,
     wide_departure,
 )
-from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
+from sffscan.stages.depth_uncertainty import curve_width
 
 __all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
            "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "fallback_bias", "method_bias",
@@ -109,15 +109,6 @@ the tie goes to inf (docs/depth-study.md). Noisy, even-looking curves (noisy slo
 error 1.7-2.1x the fallback's) are refused by the departure test now."""
 
 
-def _curve_noise(cur: np.ndarray) -> np.ndarray:
-    """Each curve's noise sigma (rows of ``cur``, (curves, N) float32, N >= 5) from its
-    second differences: ``1.4826 MAD / sqrt 6``, robust to the few levels of the peak, whose
-    curvature is signal."""
-    d2 = cur[:, :-2] - 2.0 * cur[:, 1:-1] + cur[:, 2:]
-    d2 -= row_median(d2)[:, None]
-    return np.float32(1.4826 / math.sqrt(6.0)) * row_median(np.abs(d2))
-
-
 def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     """SPC's predicted noise (levels, one sigma), the root mean square over the ``mask``
     curves (all when None) of each curve's, which is at most ``N / sqrt 12`` (a phase
@@ -152,7 +143,7 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     if curves.shape[1] == 0 or n < 5:  # under 3 second differences: no spread to take
         return math.nan
     cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
-    s = _curve_noise(cur)
+    s = curve_noise(cur)
     re, im = (cur @ harmonic_table(n)[2:].T.astype(np.float32)).T
     h1 = np.hypot(re, im)
     sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
@@ -162,7 +153,8 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None = None,
-                  *, centroid: bool = False) -> tuple[float, float]:
+                  *, centroid: bool = False, floor: GuardFloor | None = None
+                  ) -> tuple[float, float]:
     """How far SPC lies from the curves' own peaks: over the ``mask`` curves (all when
     None), SPC's depth (each curve's first-harmonic phase, wrapped about ``centre``) minus
     the fallback's peak about ``centre`` (the 3-point Gaussian; with ``centroid`` the
@@ -172,8 +164,9 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
     median absolute deviation until 2026-12-05, which a mean squared error's comparison
     understates where a few curves' differences are large; :func:`spc_noise`). Curves
     whose centre lies within 2 levels of an end, or whose SPC lies out of its range
-    (:func:`spc_in_range`: those pixels take the other method anyway), are left out;
-    NaN, NaN where none is left.
+    (:func:`spc_in_range` with the :func:`~sffscan.stages.depth_floor.guard_width` of the
+    curves' ``floor``: those pixels take the other method anyway), are left out; NaN, NaN
+    where none is left.
 
     ``centre`` is the argmax median filtered as both methods take it (``a_med``,
     :func:`sffscan.stages.depth_levels.median_filter_levels`): the spread then holds the
@@ -197,6 +190,11 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
         The levels SPC is wrapped about and the peaks taken about: the filtered argmax.
     mask : (H, W) ndarray of bool, optional
         The curves judged.
+    centroid : bool, keyword-only
+        The fallback's peak is the 5-level centroid, not the 3-point Gaussian.
+    floor : GuardFloor, optional, keyword-only
+        What the range guard's widths take (:func:`~sffscan.stages.depth_floor.guard_floor`
+        of the same curves); None: the curves' minima as their floor.
     """
     n = levels.shape[0]
     am, ok = judged_curves(centre, n, mask)
@@ -206,7 +204,7 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
     a = am[ok]
     h0, _, re, im = harmonic_table(n).astype(np.float32) @ cur
     spc = spc_depth(re, im, a, n_levels=n)
-    width = width_from_sums(h0, np.hypot(re, im), cur.min(axis=0), n)
+    width = guard_width(h0, np.hypot(re, im), cur.min(axis=0), n, floor)
     keep = spc_in_range(spc, width, n)
     if not keep.any():
         return math.nan, math.nan
@@ -362,8 +360,9 @@ def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT
 def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
                  reach: float = SPC_END_REACH) -> np.ndarray:
     """Where SPC's depth (levels) lies at least ``reach`` of the curve's widths (sigma,
-    levels: :func:`sffscan.stages.depth_uncertainty.curve_width`) from both ends of the
-    range, 0 and N - 1.
+    levels: :func:`sffscan.stages.depth_floor.guard_width`, the width from a floor that
+    noise does not lower, since 2026-12-05; :func:`sffscan.stages.depth_uncertainty.
+    curve_width`'s before) from both ends of the range, 0 and N - 1.
 
     SPC reads the phase of the curve's first harmonic over the whole range, as if the
     curve were periodic: a curve whose peak lies within about its width of an end has its
@@ -371,9 +370,12 @@ def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
     pulled towards the middle. Measured on the repository's plate scan (its base 2-4 levels
     above the range's start): SPC +86 um off where the default is within 6 um, while SPC is
     the better of the two on the relief (levels 8-30). NaN widths or depths are out of
-    range.
+    range; an infinite width is, but for ``reach`` 0 (everywhere).
     """
-    margin = reach * np.asarray(width, np.float32)
+    if reach == 0.0:
+        margin = np.zeros(np.shape(width), np.float32)
+    else:
+        margin = reach * np.asarray(width, np.float32)
     return (spc >= margin) & (spc <= np.float32(n_levels - 1) - margin)
 
 
@@ -415,6 +417,10 @@ class StackChoice(NamedTuple):
     levels."""
     noise: float
     """The pull's noise (:func:`~sffscan.stages.depth_statistics.pull_statistics`), levels."""
+    floor: GuardFloor | None = None
+    """Where the stack takes SPC, what its range guard's widths take from the judged curves
+    (:func:`~sffscan.stages.depth_floor.guard_floor`, for
+    :func:`~sffscan.stages.depth_floor.guard_width`); None elsewhere."""
 
 
 def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None,
@@ -444,12 +450,13 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     s = sample_step(np.shape(argmax))
     h, w = np.shape(argmax)
     pull, noise = pull_statistics(vol, peak)
-    bias = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise,
-                    centre=lambda: median_filter_levels_at(argmax, median_size,
-                                                           np.arange(0, h, s),
-                                                           np.arange(0, w, s)))
-    return StackChoice(bias is not None, fallback_bias(pull) if bias is None else bias, pull,
-                       noise)
+    taken = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise,
+                     centre=lambda: median_filter_levels_at(argmax, median_size,
+                                                            np.arange(0, h, s),
+                                                            np.arange(0, w, s)))
+    if taken is None:
+        return StackChoice(False, fallback_bias(pull), pull, noise)
+    return StackChoice(True, taken[0], pull, noise, taken[1])
 
 
 PEAK_METHODS = ("adaptive", "adaptive_centroid")
@@ -499,14 +506,16 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
 
 def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
              pull: float, noise: float, mask: np.ndarray | None = None, *,
-             centre: Callable[[], np.ndarray]) -> float | None:
+             centre: Callable[[], np.ndarray]) -> tuple[float, GuardFloor] | None:
     """``"shape_select"``'s tests on curves of these
     :func:`~sffscan.stages.depth_statistics.shape_statistics` and
-    :func:`~sffscan.stages.depth_statistics.pull_statistics`: SPC's departure ``|d|``
-    (:func:`spc_departure` against the peak the fallback takes; levels) where they take SPC, None
-    where they do not. SPC's noise and departure are measured only for curves that pass the rest
-    (they cost about as much as the rest). One home for the choice of a stack (:func:`stack_choice`)
-    and of a scan block (:func:`sffscan.stages.block_depth.block_choice`).
+    :func:`~sffscan.stages.depth_statistics.pull_statistics`: where they take SPC, SPC's
+    departure ``|d|`` (:func:`spc_departure` against the peak the fallback takes; levels) and
+    what its range guard takes from them (:func:`~sffscan.stages.depth_floor.guard_floor`);
+    None where they do not. SPC's noise and departure are
+    measured only for curves that pass the rest (they cost about as much as the rest). One
+    home for the choice of a stack (:func:`stack_choice`) and of a scan block
+    (:func:`sffscan.stages.block_depth.block_choice`).
 
     Parameters
     ----------
@@ -534,7 +543,9 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, fl
     noises = (spc_noise(levels, mask), noise)
     if not takes_spc(statistics, pull=pull, noise=noises):
         return None
-    departure = spc_departure(levels, grid, mask, centroid=takes_centroid(pull, noise=noise))
+    floor = guard_floor(levels, grid, mask)
+    departure = spc_departure(levels, grid, mask, centroid=takes_centroid(pull, noise=noise),
+                              floor=floor)
     if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
         return None
-    return abs(departure[0])
+    return abs(departure[0]), floor

@@ -28,6 +28,8 @@ from sffscan.stages.depth_choice import (
     takes_centroid,
     takes_spc,
 )
+from sffscan.stages.depth_floor import guard_floor, guard_width
+from sffscan.stages.depth_harmonics import curve_moments
 from sffscan.stages.depth_statistics import pull_statistics, shape_statistics
 from sffscan.stages.depth_uncertainty import depth_scatter
 
@@ -200,14 +202,20 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
         sse[score_key("window-pc", g)] = float(np.sum((d - truth_levels)[mask] ** 2))
     stats = shape_statistics(volume, argmax, width, mask)
     n = volume.shape[0]
-    in_range = spc_in_range(depth["spc"], width, n)
+    # SPC's range guard as the default takes it: widths from a floor the noise does not
+    # lower, the noise of the curves judged (depth_floor)
+    floor = guard_floor(volume, centre)
+    h0, _, re, im = curve_moments(volume)
+    guard = guard_width(h0, np.hypot(re, im), volume.min(axis=0), n, floor)
+    in_range = spc_in_range(depth["spc"], guard, n)
     pull, noise = pull_statistics(volume, argmax)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, n)
     # every candidate below is the shipped rule with one setting varied: the pull, SPC's
     # noise and its departure tested as the default tests them (docs/depth-method-log.md,
     # 2026-12-04: before, shape-select, spc-reach and spc-pull left the last two out)
     noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, centre, centroid=takes_centroid(pull, noise=noise))
+    departure = spc_departure(volume, centre, centroid=takes_centroid(pull, noise=noise),
+                              floor=floor)
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1], in_range=in_range, pull=pull, noise=noises,
@@ -217,7 +225,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     spc, other = depth["spc"], depth["adaptive_centroid"]
     for k in SPC_REACHES:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
-                         in_range=spc_in_range(spc, width, n, reach=k), pull=pull,
+                         in_range=spc_in_range(spc, guard, n, reach=k), pull=pull,
                          noise=noises, departure=departure)
         sse[score_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for t in SPC_PULLS:

@@ -485,14 +485,14 @@ class FocusVolume:
         :func:`~sffscan.stages.block_depth.block_peak_bias`; else 0.0): the method chosen
         once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
         :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
-        method, bias = self.method, 0.0
+        method, bias, floor = self.method, 0.0, None
         own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
         if self.fv is not None and method in blocks.BLOCK_CHOICES:
             # one choice for the block, whatever its bands
-            method, bias = blocks.block_choice(self._gather(self.fv, u0, u1),
-                                               self._gather(self.argmax, u0, u1), valid,
-                                               method=method,
-                                               centre=lambda: self._centre(u0, u1))
+            method, bias, floor = blocks.block_choice(self._gather(self.fv, u0, u1),
+                                                      self._gather(self.argmax, u0, u1),
+                                                      valid, method=method,
+                                                      centre=lambda: self._centre(u0, u1))
         elif self.fv is not None and method == "adaptive" and self.uncertainty:
             bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
                                           self._gather(self.argmax, u0, u1), valid)
@@ -507,7 +507,10 @@ class FocusVolume:
             "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
             "median_size": self.median_size, "spread_size": self.spread_size,
             "uncertainty": self.uncertainty, "wide_test": wide_test,
-            "window_test": window_test})
+            "window_test": window_test,
+            # SPC's range guard (depth_floor): a list of two floats or None, as JSON takes
+            # it to band processes (NaN written as null)
+            "floor": None if floor is None else [None if math.isnan(v) else v for v in floor]})
         a, shape = self.arrays, (self.rows, u1 - u0)
         if wide_test:
             wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),

@@ -22,12 +22,14 @@ the block's shape by :func:`scratch`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
+from sffscan.stages.depth_floor import GuardFloor
 
 __all__ = ["RAW_SLOTS", "TASKS", "gather", "pieces", "run_task", "scratch",
            "scratch_arrays", "volume_layout"]
@@ -216,7 +218,10 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
                              wide_peak=scratch(arrays, "b_peak", (n_rows, width))[r0:r1]
                              if p["wide_test"] else None,
                              window_out=scratch(arrays, "b_window", (n_rows, width))[r0:r1]
-                             if p["window_test"] else None)
+                             if p["window_test"] else None,
+                             floor=None if p.get("floor") is None
+                             else GuardFloor(*(math.nan if v is None else float(v)
+                                               for v in p["floor"])))
     scratch(arrays, "b_depth", (n_rows, width))[r0:r1] = d
     scratch(arrays, "b_conf", (n_rows, width))[r0:r1] = c
 

@@ -151,7 +151,10 @@ def test_every_method_is_selectable_by_name() -> None:
         SPC_END_REACH,
         shape_select,
         spc_in_range,
+        stack_choice,
     )
+    from sffscan.stages.depth_floor import guard_width
+    from sffscan.stages.depth_harmonics import curve_moments
     from sffscan.stages.depth_statistics import shape_statistics
     from sffscan.stages.depth_uncertainty import curve_width
 
@@ -161,15 +164,20 @@ def test_every_method_is_selectable_by_name() -> None:
     choices = typing.get_args(ProcessingConfig.model_fields["depth_method"].annotation)
     assert choices == DEPTH_METHODS
     rng = np.random.default_rng(11)
-    vol = gaussian_volume(rng.uniform(4, 26, (24, 30)), 30, 2.5)
+    vol = gaussian_volume(rng.uniform(2, 28, (24, 30)), 30, 2.5)
     vol += 0.02 * rng.random(vol.shape, dtype=np.float32)
     centre = median_filter_levels(first_argmax(vol), 11, 30)
     adaptive, _ = depth_from_focus(vol, method="adaptive")
     spc, _ = depth_from_focus(vol, method="spc")
     stats = shape_statistics(vol, first_argmax(vol), curve_width(vol))
     assert SHAPE_SELECT_LIMITS == (0.2, math.inf) and SPC_END_REACH == 1.5
-    in_range = spc_in_range(spc, curve_width(vol), 30, reach=1.5)
-    assert 0 < in_range.mean() < 1  # peaks at levels 4 .. 26 of 30: some near the ends
+    # the range guard's widths from the floor raised by the curves' noise (depth_floor)
+    choice = stack_choice(vol, first_argmax(vol))
+    assert choice.spc and choice.floor is not None and choice.floor.noise > 0
+    h0, _, re, im = curve_moments(vol)
+    guard = guard_width(h0, np.hypot(re, im), vol.min(axis=0), 30, choice.floor)
+    in_range = spc_in_range(spc, guard, 30, reach=1.5)
+    assert 0 < in_range.mean() < 1  # peaks at levels 2 .. 28 of 30: some near the ends
     expected = {"gauss_window_fit": gauss_window_fit(vol, centre, adaptive, half_window=3),
                 "window_pc": window_pc(vol, centre, factor=3.0),
                 "shape_select": shape_select(

@@ -455,8 +455,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     assert choice.spc and choice.bias == pytest.approx(abs(dep[0])) and choice.bias > 0
     big = focus_measure(family_stack("even-gauss", 0, size_px=160, n_levels=30).images,
                         window=9)  # a block judges every 16th row and 8th column
-    method, bias = block_choice(big, first_argmax(big))
-    assert method in SPC_BLOCKS and bias > 0
+    method, bias, floor = block_choice(big, first_argmax(big))
+    assert method in SPC_BLOCKS and bias > 0 and floor is not None and floor.width > 0
     # a scan's block gives its filtered argmax at the judged grid (10 x 20 curves here)
     with pytest.raises(ValueError, match=r"judged curves' \(10, 20\) pixels"):
         block_choice(big, first_argmax(big), centre=lambda: np.zeros((1, 1), np.intp))
@@ -465,7 +465,9 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     la = first_argmax(lv)
     pull, noise = pull_statistics(lv, la)
     # the fallback's bias: the size of its curves' centroid pull (fallback_bias)
-    assert stack_choice(lv, la) == (False, abs(pull), pull, noise) and abs(pull) > 0
+    refused = stack_choice(lv, la)
+    assert refused[:4] == (False, abs(pull), pull, noise) and abs(pull) > 0
+    assert refused.floor is None
     from sffscan.stages.block_depth import block_peak_bias
     from sffscan.stages.depth_choice import fallback_bias, method_bias
     from sffscan.stages.depth_statistics import sampled_curves
@@ -473,8 +475,9 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     sample = sampled_curves(lv, la)
     assert sample is not None
     block_pull = abs(pull_statistics(*sample)[0])
-    method, bias = block_choice(lv, la)
+    method, bias, floor = block_choice(lv, la)
     assert method not in SPC_BLOCKS and bias == pytest.approx(block_pull) and bias > 0
+    assert floor is None  # the guard's floor only where the block takes SPC
     assert block_choice(lv, la, method="adaptive_centroid")[1] == pytest.approx(block_pull)
     assert block_peak_bias(lv, la) == pytest.approx(block_pull)
     assert method_bias(lv, la, "adaptive") == pytest.approx(abs(pull))

@@ -41,9 +41,11 @@ def test_study_scores_a_candidate_by_name(pertuz_dir: Path, tmp_path: Path,
                  "-o", str(out)]) == 0
     with (out / "study.csv").open() as f:
         rmse = {r["method"]: float(r["rmse_um"]) for r in csv.DictReader(f)}
-    # pertuz-simu02's curves are lopsided (c = 4.5): the warped axis 9.72 mm, 13.52 unwarped
+    # pertuz-simu02's curves are lopsided (c = 4.5): the warped axis 10.04 mm, 13.52
+    # unwarped (9.72 mm until SPC's range guard took its widths from a floor the noise does
+    # not lower, 2026-12-05: the warped stack keeps SPC at more pixels; stages/depth_floor.py)
     assert rmse["shape_select"] == pytest.approx(13.52e3, rel=0.01)
-    assert rmse["warped_select"] == pytest.approx(9.72e3, rel=0.01)
+    assert rmse["warped_select"] == pytest.approx(10.04e3, rel=0.01)
     assert main(["study", "--chapter3", "--methods", "warped", "-o", str(tmp_path)]) == 2
     assert "candidates: gauss_window_fit, window_pc, warped_select" in capsys.readouterr().err
 
