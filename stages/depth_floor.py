@@ -29,6 +29,7 @@ from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
+from sffscan.stages.depth_harmonics import harmonic_table
 from sffscan.stages.depth_statistics import judged_curves, row_median
 from sffscan.stages.depth_uncertainty import width_from_sums
 
@@ -65,13 +66,24 @@ def level_noise(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None 
     mask : (H, W) ndarray of bool, optional
         The curves judged (all when None).
     """
+    cur = _judged(levels, centre, mask)
+    return math.nan if cur is None else _floor_noise(cur)
+
+
+def _judged(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None
+            ) -> np.ndarray | None:
+    """The judged curves, (curves, N) float32; None where none is judged or N < 5."""
     n = levels.shape[0]
     if n < 5:
-        return math.nan
+        return None
     _, ok = judged_curves(centre, n, mask)
     if not ok.any():
-        return math.nan
-    cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok].T)  # (curves, N)
+        return None
+    return np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok].T)
+
+
+def _floor_noise(cur: np.ndarray) -> float:
+    """:func:`level_noise` of the curves ``cur`` (curves, N)."""
     # the floor judged from levels k - 2 and k + 2, which the second difference at k does
     # not read: judged from level k itself it kept the levels whose own noise was low, and
     # read the noise 16-19 % low (measured)
@@ -128,15 +140,13 @@ def guard_floor(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None 
     levels, centre, mask
         As :func:`level_noise`'s.
     """
-    noise = level_noise(levels, centre, mask)
-    n = levels.shape[0]
-    _, ok = judged_curves(centre, n, mask) if n >= 5 else (None, np.zeros(0, bool))
-    if not ok.any():
-        return GuardFloor(noise, math.nan)
-    cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok], np.float64)
-    k = np.arange(n) * (2.0 * math.pi / n)
-    h0, h1 = cur.sum(axis=0), np.hypot(np.cos(k) @ cur, np.sin(k) @ cur)
-    low = cur.min(axis=0)
+    cur = _judged(levels, centre, mask)
+    if cur is None:
+        return GuardFloor(math.nan, math.nan)
+    noise = _floor_noise(cur)
+    n = cur.shape[1]
+    h0, _, re, im = harmonic_table(n) @ cur.T  # float64 sums of the float32 curves
+    h1, low = np.hypot(re, im), cur.min(axis=1)
     width, defined = _raised(h0, h1, low, n, _lift(n, noise))
     if defined.any():
         return GuardFloor(noise, float(np.median(width[defined])))
