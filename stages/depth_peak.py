@@ -232,7 +232,7 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         centroid of the 5 levels ``centre - 2 .. centre + 2`` (``adaptive_centroid`` on
         even curves: two more levels than the 3-point fit, so less noise; but pulled into
         the tail of a lopsided curve, and on a clean Gaussian of sigma 2-3 levels up to
-        0.08 levels towards ``centre`` by the window's minimum, where the 3-point Gaussian
+        0.08 levels away from ``centre`` by the window's minimum, where the 3-point Gaussian
         is exact: tests/stages/test_depth.py).
     sums_out : (3, H, W) ndarray of float32, optional, keyword-only
         Receives H_0, Re H_1 and Im H_1 of every curve (the confidence's sums; the curve's

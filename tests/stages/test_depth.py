@@ -39,15 +39,15 @@ PEAK_TOL = {
     "pc": 1e-3,
     "spc": 1e-3,
     # the 9-level window about the filtered argmax cuts a Gaussian off-centre, and its
-    # minimum is subtracted: a bias towards the window's centre, measured 0.015 (sigma 2) /
-    # 0.029 (sigma 3) levels
+    # minimum is subtracted: a bias away from the window's centre (its far end zeroed),
+    # measured 0.015 (sigma 2) / 0.029 (sigma 3) levels
     "wcentroid": 0.04,
     # the Gaussian 3-point fit where the filtered peaks span <= 2 levels over 9 x 9 px
     # (exact: 1.2e-6); where this ramp spans 3 (sigma 3), the 11-level centroid: 0.0068
     "adaptive": 0.01,
     # even curves: the 5-level centroid where the filtered peaks span <= 2 levels; the
-    # window's minimum subtracted pulls towards its centre: measured 0.067 (sigma 2) /
-    # 0.077 (sigma 3) levels
+    # window's minimum subtracted pushes away from its centre (its far end zeroed):
+    # measured 0.067 (sigma 2) / 0.077 (sigma 3) levels
     "adaptive_centroid": 0.08,
     # even, clean curves: SPC's depth (test_candidates_recover_gaussian_peak asserts it)
     "shape_select": 1e-3,
