@@ -14,7 +14,14 @@ from collections.abc import Callable
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_choice import fallback_bias, spc_bias, spc_in_range, takes_centroid
+from sffscan.stages.depth_choice import (
+    fallback_bias,
+    judged_width,
+    peak_locking,
+    spc_bias,
+    spc_in_range,
+    takes_centroid,
+)
 from sffscan.stages.depth_floor import GuardFloor, guard_width
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
@@ -118,14 +125,16 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
+    width = curve_width(vol)
     if method == "shape_select":
-        stats = shape_statistics(vol, am, curve_width(vol), seen)
+        stats = shape_statistics(vol, am, width, seen)
         taken = spc_bias(vol, am, stats, pull, noise, seen,
                          centre=(lambda: judged_centre(argmax, median_size)) if centre is None
                          else centre)
         if taken is not None:
             return ("spc+centroid" if centroid else "spc+gauss3"), taken[0], taken[1]
-    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull), None
+    locking = peak_locking(pull, noise, judged_width(width, am, vol.shape[0], seen))
+    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull, locking), None
 
 
 def judged_centre(argmax: np.ndarray, median_size: int, *,
@@ -263,15 +272,17 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
 
 
 def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
-                      rows: tuple[int, int], *, n_levels: int, focus_heights_um: np.ndarray,
-                      window: int, bias_levels: float = 0.0,
+                      rows: tuple[int, int], *, method: str, n_levels: int,
+                      focus_heights_um: np.ndarray, window: int, bias_levels: float = 0.0,
                       valid: np.ndarray | None = None) -> np.ndarray:
     """:func:`~sffscan.stages.depth_uncertainty.height_uncertainty_um` of rows [r0, r1)
     of a block, from the rows within its filters' reach (a 5 x 5 median, then ranges and
     means over ``2 window + 1`` px: 2 + ``window`` rows; one more is read).
 
     ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
-    every row of the block; ``bias_levels``: the block's SPC bias (:func:`block_choice`);
+    every row of the block; ``method``: the scan's depth method (its constants:
+    :func:`~sffscan.stages.depth_uncertainty.uncertainty_constants`); ``bias_levels``: the
+    block's bias (:func:`block_choice`);
     ``valid``: the block's pixels whose curves are whole (the others' sums and minima, left
     from earlier columns in the ring, are not read for their neighbours); returns float32
     (r1 - r0, block), µm.
@@ -279,7 +290,8 @@ def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
     r0, r1 = rows
     reach = 3 + window
     a0, a1 = max(r0 - reach, 0), min(r1 + reach, depth.shape[0])
-    u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], n_levels=n_levels,
+    u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], method=method,
+                              n_levels=n_levels,
                               focus_heights_um=focus_heights_um, window=window,
                               bias_levels=bias_levels,
                               valid=None if valid is None else valid[a0:a1])

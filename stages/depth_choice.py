@@ -53,7 +53,8 @@ from sffscan.stages.depth_statistics import (
 from sffscan.stages.depth_uncertainty import curve_width
 
 __all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
-           "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "fallback_bias", "method_bias",
+           "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "centroid_locking",
+           "fallback_bias", "judged_width", "method_bias", "peak_locking",
            "shape_select", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
            "stack_choice", "takes_centroid", "takes_spc", "takes_wide_centroid", "wide_choice"]
 
@@ -455,7 +456,8 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
                                                             np.arange(0, h, s),
                                                             np.arange(0, w, s)))
     if taken is None:
-        return StackChoice(False, fallback_bias(pull), pull, noise)
+        locking = peak_locking(pull, noise, judged_width(wid, peak, volume.shape[0]))
+        return StackChoice(False, fallback_bias(pull, locking), pull, noise)
     return StackChoice(True, taken[0], pull, noise, taken[1])
 
 
@@ -465,7 +467,56 @@ Gaussian or the 5-level centroid), as ``"shape_select"``'s fallback's is: the he
 uncertainty adds their :func:`fallback_bias`."""
 
 
-def fallback_bias(pull: float) -> float:
+def centroid_locking(width: float, *, half_window: int = 2, fractions: int = 64) -> float:
+    """The peak locking of the baseline-free centroid over ``2 half_window + 1`` levels
+    (:func:`~sffscan.stages.depth_peak.windowed_centroid`) on noise-free Gaussian curves of
+    sigma ``width`` levels: the RMS of its error over the true peak's fraction of a level
+    (``fractions`` evenly spaced fractions in -0.5 .. 0.5), levels; 0.0 for a NaN width (no
+    curve judged).
+
+    The centroid subtracts its window's minimum, the far end's level, so its weights are
+    lopsided wherever the peak lies off a level: it errs away from the level, by a sine of
+    the fraction (measured against the estimator itself, docs/depth-method-log.md: RMS
+    0.018 / 0.039 / 0.049 / 0.056 / 0.062 levels at sigma 1 / 1.5 / 2 / 3 / 10 with 5 levels).
+    Not a noise and the same on every curve of one width and fraction: a flat surface whose
+    curves share one fraction errs by it everywhere, which neither the scatter nor the relief
+    shows. The geometry of the estimator; no fitted constant.
+    """
+    if not math.isfinite(width):
+        return 0.0
+    t = (np.arange(fractions) + 0.5) / fractions - 0.5
+    j = np.arange(-half_window, half_window + 1, dtype=np.float64)
+    w = max(float(width), 1e-3)
+    f = np.exp(-((j[None, :] - t[:, None]) ** 2) / (2.0 * w * w))
+    f -= f.min(axis=1, keepdims=True)
+    s0 = f.sum(axis=1)
+    offset = np.divide(f @ j, s0, out=np.zeros_like(s0), where=s0 > 0)
+    return float(np.sqrt(np.mean((offset - t) ** 2)))
+
+
+def judged_width(width: np.ndarray, argmax: np.ndarray, n: int,
+                 mask: np.ndarray | None = None) -> float:
+    """The median width (levels) of the curves :func:`~sffscan.stages.depth_statistics.
+    pull_statistics` judges (the ``mask`` ones whose argmax lies 2 levels or more from both
+    ends of the N levels; finite widths); NaN where none is left."""
+    _, ok = judged_curves(argmax, n, mask)
+    w = np.asarray(width)[ok]
+    w = w[np.isfinite(w)]
+    return float(np.median(w)) if w.size else math.nan
+
+
+def peak_locking(pull: float, noise: float, width: float) -> float:
+    """The locking (levels) of the peak a peak method takes for curves of this pull and noise
+    (:func:`~sffscan.stages.depth_statistics.pull_statistics`) and median ``width``
+    (levels): :func:`centroid_locking` where it takes the 5-level centroid
+    (:func:`takes_centroid`), else 0.0 (the 3-point Gaussian is exact on a Gaussian
+    curve)."""
+    if math.isnan(pull) or not takes_centroid(pull, noise=noise):
+        return 0.0
+    return centroid_locking(width)
+
+
+def fallback_bias(pull: float, locking: float = 0.0) -> float:
     """The bias of a peak method's depth the height uncertainty adds in quadrature (levels):
     the size of the curves' centroid pull (:func:`~sffscan.stages.depth_statistics.pull_statistics`:
     the median over the curves of the 5-level centroid minus the 3-point Gaussian about each
@@ -481,7 +532,7 @@ def fallback_bias(pull: float) -> float:
     3..5), 3 -> 2 of 21 (crossed families), 3 -> 2 (seeds 6..11), 3 -> 1 (seeds 12..17),
     3 -> 2 (seeds 18..23, scored once, after the others); pertuz-simu02 0.836 -> 0.991, over
     the band (docs/depth-method-log.md)."""
-    return abs(pull) if math.isfinite(pull) else 0.0
+    return math.hypot(abs(pull) if math.isfinite(pull) else 0.0, locking)
 
 
 def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
@@ -500,7 +551,13 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
         return stack_choice(volume, argmax, width, median_size=median_size).bias
     if method in PEAK_METHODS:
         vol, peak, _ = stack_sample(volume, argmax)
-        return fallback_bias(pull_statistics(vol, peak)[0])
+        pull, noise = pull_statistics(vol, peak)
+        if method == "adaptive":  # the 3-point Gaussian, no centroid
+            return fallback_bias(pull)
+        wid = curve_width(vol) if width is None else stack_sample(volume, argmax, width)[2]
+        assert wid is not None
+        return fallback_bias(pull, peak_locking(pull, noise,
+                                                judged_width(wid, peak, volume.shape[0])))
     return 0.0
 
 

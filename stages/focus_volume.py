@@ -540,7 +540,7 @@ class FocusVolume:
         np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
         np.copyto(scratch(a, "b_valid", shape), valid)
         self._run_task("uncertainty", {
-            "rows": shape[0], "width": shape[1], "n_levels": self.n,
+            "rows": shape[0], "width": shape[1], "n_levels": self.n, "method": self.method,
             "window": self.spread_size, "bias": bias})
         return scratch(a, "b_unc", shape).copy()
 

@@ -236,7 +236,8 @@ def uncertainty(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[in
     u = blocks.block_uncertainty(scratch(arrays, "b_filled", shape),
                                  scratch(arrays, "b_sums", (3, *shape)),
                                  scratch(arrays, "b_low", shape), (r0, r1),
-                                 n_levels=p["n_levels"], focus_heights_um=arrays["heights"],
+                                 method=p["method"], n_levels=p["n_levels"],
+                                 focus_heights_um=arrays["heights"],
                                  window=p["window"], bias_levels=p["bias"],
                                  valid=scratch(arrays, "b_valid", shape) > 0.5)
     scratch(arrays, "b_unc", shape)[r0:r1] = u

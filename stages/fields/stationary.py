@@ -375,9 +375,9 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     if bias is None:
         bias = method_bias(vol, first_argmax(vol), settings.method,
                            median_size=settings.median_size, width=width)
-    unc = height_uncertainty_um(levels, sums, low, n_levels=vol.shape[0],
-                                focus_heights_um=heights, window=settings.window,
-                                bias_levels=bias)
+    unc = height_uncertainty_um(levels, sums, low, method=settings.method,
+                                n_levels=vol.shape[0], focus_heights_um=heights,
+                                window=settings.window, bias_levels=bias)
     unc[~np.isfinite(height)] = np.nan
     return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
                        confidence=confidence, settings=settings, uncertainty_um=unc)

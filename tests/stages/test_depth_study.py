@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
-from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus
+from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_study import _Scores, format_table, leave_one_family_out
 from sffscan.stages.depth_study_grid import CANDIDATES, THRESHOLDS, width_switch
 from sffscan.stages.depth_uncertainty import (
@@ -302,7 +302,8 @@ def test_height_uncertainty_from_sums_matches_the_volume_path() -> None:
     d = depth_from_focus(vol, method="adaptive")[0]
     sums = focus_sums(vol)
     want = depth_uncertainty(d, curve_width(vol), floor_share(sums[0], vol.min(axis=0), 30))
-    got = height_uncertainty_um(d, sums, vol.min(axis=0), n_levels=30,
+    # depth_uncertainty's constants are the default method's
+    got = height_uncertainty_um(d, sums, vol.min(axis=0), method=DEFAULT_METHOD, n_levels=30,
                                 focus_heights_um=s.focus_um)
     np.testing.assert_allclose(got, want * 10.0, rtol=2e-3, atol=1e-3)
 
@@ -350,7 +351,7 @@ def test_uncertainty_covers_held_out_errors_of_a_noisy_family() -> None:
         s = family_stack("even-noisy", seed)
         vol = focus_measure(s.images, window=9)
         d = depth_from_focus(vol, method="adaptive")[0]
-        sig = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0),
+        sig = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), method="adaptive",
                                     n_levels=vol.shape[0], focus_heights_um=s.focus_um)
         err = np.abs(d * 10.0 - s.truth_um)[4:-4, 4:-4]
         inside.append(err <= 2 * sig[4:-4, 4:-4])
@@ -440,10 +441,10 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     biased = depth_uncertainty(d, w, share, bias_levels=0.4).astype(np.float64)
     np.testing.assert_allclose(biased ** 2, plain ** 2 + 0.16, rtol=1e-5)
     step = float(s.focus_um[1] - s.focus_um[0])
-    um = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
-                               focus_heights_um=s.focus_um, bias_levels=0.4)
-    um0 = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
-                                focus_heights_um=s.focus_um)
+    um = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), method="shape_select",
+                               n_levels=30, focus_heights_um=s.focus_um, bias_levels=0.4)
+    um0 = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), method="shape_select",
+                                n_levels=30, focus_heights_um=s.focus_um)
     np.testing.assert_allclose(um.astype(np.float64) ** 2,
                                um0.astype(np.float64) ** 2 + (0.4 * step) ** 2, rtol=1e-4)
     choice = stack_choice(vol, a)  # even, clean curves: SPC
@@ -464,26 +465,40 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     lv = focus_measure(lopsided.images, window=9)
     la = first_argmax(lv)
     pull, noise = pull_statistics(lv, la)
-    # the fallback's bias: the size of its curves' centroid pull (fallback_bias)
-    refused = stack_choice(lv, la)
-    assert refused[:4] == (False, abs(pull), pull, noise) and abs(pull) > 0
-    assert refused.floor is None
     from sffscan.stages.block_depth import block_peak_bias
-    from sffscan.stages.depth_choice import fallback_bias, method_bias
+    from sffscan.stages.depth_choice import centroid_locking, fallback_bias, method_bias
     from sffscan.stages.depth_statistics import sampled_curves
 
+    # the fallback's bias: the size of its curves' centroid pull (fallback_bias) and, where
+    # it takes the 5-level centroid (as here), that centroid's locking at the judged curves'
+    # median width, in quadrature
+    assert takes_centroid(pull, noise=noise)
+    locking = centroid_locking(float(np.median(curve_width(lv)[(la >= 2) & (la <= 27)])))
+    assert 0.01 < locking < 0.07
+    refused = stack_choice(lv, la)
+    assert refused[0] is False and refused[2:4] == (pull, noise) and abs(pull) > 0
+    assert refused.bias == pytest.approx(math.hypot(pull, locking), rel=1e-6)
+    assert refused.floor is None
     sample = sampled_curves(lv, la)
     assert sample is not None
-    block_pull = abs(pull_statistics(*sample)[0])
+    block_pull, block_noise = pull_statistics(*sample)
+    assert takes_centroid(block_pull, noise=block_noise)
+    judged = (sample[1] >= 2) & (sample[1] <= 27) & np.broadcast_to(sample[2], sample[1].shape)
+    block_bias = math.hypot(block_pull, centroid_locking(
+        float(np.median(curve_width(sample[0])[judged]))))
     method, bias, floor = block_choice(lv, la)
-    assert method not in SPC_BLOCKS and bias == pytest.approx(block_pull) and bias > 0
+    assert method not in SPC_BLOCKS and bias == pytest.approx(block_bias) and bias > 0
     assert floor is None  # the guard's floor only where the block takes SPC
-    assert block_choice(lv, la, method="adaptive_centroid")[1] == pytest.approx(block_pull)
-    assert block_peak_bias(lv, la) == pytest.approx(block_pull)
+    assert block_choice(lv, la, method="adaptive_centroid")[1] == pytest.approx(block_bias)
+    # "adaptive" takes the 3-point Gaussian: no locking (exact on a Gaussian curve)
+    assert block_peak_bias(lv, la) == pytest.approx(abs(block_pull))
     assert method_bias(lv, la, "adaptive") == pytest.approx(abs(pull))
-    assert method_bias(lv, la, "shape_select") == pytest.approx(abs(pull))
+    assert method_bias(lv, la, "adaptive_centroid") == pytest.approx(math.hypot(pull, locking),
+                                                                     rel=1e-6)
+    assert method_bias(lv, la, "shape_select") == pytest.approx(refused.bias)
     assert method_bias(lv, la, "spc") == 0.0  # no bias term for the other methods
     assert fallback_bias(-0.3) == 0.3 and fallback_bias(float("nan")) == 0.0
+    assert fallback_bias(-0.3, 0.4) == pytest.approx(0.5)
 
 
 def _stack(sse: dict[str, float], count: int, errors: np.ndarray) -> _Scores:

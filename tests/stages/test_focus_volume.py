@@ -242,7 +242,7 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     ref = np.nan_to_num(ref[:, 3:-3])
     depth = (got_h[3:-3] / 100.0).astype(np.float32)  # the streamed depth, levels
     want = height_uncertainty_um(np.where(complete, depth, 0.0), focus_sums(ref),
-                                 ref.min(axis=0), n_levels=N,
+                                 ref.min(axis=0), method=method, n_levels=N,
                                  focus_heights_um=np.asarray(HEIGHTS),
                                  window=3)
     edge = np.concatenate([np.arange(b.height_um.shape[1]) for b in blocks])
@@ -337,7 +337,8 @@ def test_the_uncertainty_of_valid_pixels_ignores_the_invalid_ones_curves() -> No
     stale_low[~valid] = 0.0
 
     def unc(s: np.ndarray, m: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-        return block_uncertainty(depth, s, m, (0, rows), n_levels=n,
+        return block_uncertainty(depth, s, m, (0, rows), method="shape_select",
+                                 n_levels=n,
                                  focus_heights_um=np.arange(n) * 2.0, window=3, valid=mask)
 
     clean, stale = unc(sums, low, valid), unc(stale_sums, stale_low, valid)

@@ -45,7 +45,8 @@ def test_uncertainty_follows_the_error_on_a_textured_flat(family: Family) -> Non
     vol = focus_measure(s.images, window=9)
     d = depth_from_focus(vol, method="adaptive")[0]
     bias = method_bias(vol, first_argmax(vol), "adaptive")  # as a stack or scan adds it
-    sigma = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), n_levels=30,
+    sigma = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), method="adaptive",
+                                  n_levels=30,
                                   focus_heights_um=s.focus_um, bias_levels=bias) / STEP_UM
     inner = (slice(4, -4), slice(4, -4))
     err = np.abs(d - s.truth_um / STEP_UM)[inner]

@@ -1,0 +1,74 @@
+"""The 5-level centroid's peak locking (depth_choice.centroid_locking), against the
+estimator itself: the height uncertainty's term for it is the estimator's own error on
+noise-free Gaussian curves, not a fitted constant."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from sffscan.stages.depth_choice import centroid_locking, peak_locking, takes_centroid
+from sffscan.stages.depth_peak import windowed_centroid
+
+
+def _gaussians(width: float, fractions: np.ndarray, n: int = 21) -> np.ndarray:
+    """(n, 1, F) noise-free Gaussian curves of sigma ``width`` levels peaking at level
+    n // 2 + fraction."""
+    z = np.arange(n, dtype=np.float64)[:, None, None]
+    return np.exp(-((z - (n // 2 + fractions[None, None, :])) ** 2)
+                  / (2.0 * width * width)).astype(np.float32)
+
+
+@pytest.mark.parametrize("width", [0.6, 1.0, 1.5, 2.0, 3.0, 6.0])
+def test_locking_is_the_centroids_own_rms_error(width: float) -> None:
+    """RMS over the true fraction of windowed_centroid's error (the estimator the fallback
+    runs, float32) equals centroid_locking to float32 round-off."""
+    t = (np.arange(400) + 0.5) / 400 - 0.5
+    vol = _gaussians(width, t)
+    centre = np.full((1, t.size), 10, np.intp)
+    err = windowed_centroid(vol, centre, half_window=2)[0].astype(np.float64) - (10 + t)
+    assert math.sqrt(float(np.mean(err ** 2))) == pytest.approx(centroid_locking(width),
+                                                                abs=2e-5)
+
+
+def test_locking_pushes_away_from_the_level_and_has_known_values() -> None:
+    """The window's minimum is its far end: a peak just above a level reads higher still
+    (the error has the fraction's sign); RMS 0.018 / 0.039 / 0.049 / 0.062 levels at
+    sigma 1 / 1.5 / 2 / 10, none for a NaN width."""
+    t = np.array([0.1, 0.2, 0.3])
+    got = windowed_centroid(_gaussians(2.0, t), np.full((1, 3), 10, np.intp))[0] - (10 + t)
+    assert (got > 0).all()
+    for w, want in ((1.0, 0.018), (1.5, 0.039), (2.0, 0.049), (10.0, 0.062)):
+        assert centroid_locking(w) == pytest.approx(want, abs=1e-3)
+    assert centroid_locking(float("nan")) == 0.0
+
+
+def test_peak_locking_only_where_the_centroid_is_taken() -> None:
+    """The 3-point Gaussian (taken where the pull exceeds the limit and the noise) is exact
+    on a Gaussian curve: no locking; the centroid's where it is taken; none for NaN."""
+    assert takes_centroid(0.0, noise=0.01)
+    assert peak_locking(0.0, 0.01, 2.0) == centroid_locking(2.0)
+    assert not takes_centroid(0.5, noise=0.01)
+    assert peak_locking(0.5, 0.01, 2.0) == 0.0
+    assert peak_locking(float("nan"), float("nan"), 2.0) == 0.0
+
+
+def test_the_default_method_has_its_own_constants() -> None:
+    """The fitted constants are the default method's; every other method keeps the ones
+    fitted before the locking term (depth_uncertainty.OTHER_METHODS_CONSTANTS)."""
+    from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
+    from sffscan.stages.depth_uncertainty import (
+        DEFAULT_CONSTANTS_METHOD,
+        FLOOR_LEVELS,
+        OTHER_METHODS_CONSTANTS,
+        RELIEF_SCALE,
+        SCATTER_SCALE,
+        uncertainty_constants,
+    )
+
+    assert DEFAULT_CONSTANTS_METHOD == DEFAULT_METHOD
+    assert uncertainty_constants(DEFAULT_METHOD) == (SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS)
+    for m in DEPTH_METHODS:
+        if m != DEFAULT_METHOD:
+            assert uncertainty_constants(m) == OTHER_METHODS_CONSTANTS
