@@ -32,6 +32,7 @@ from sffscan.stages.depth import (
     focus_sums,
     shape_select_with_bias,
 )
+from sffscan.stages.depth_choice import method_bias
 from sffscan.stages.depth_study_grid import (
     CANDIDATES,
     Setting,
@@ -122,12 +123,22 @@ def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
 
 
 def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
-                       median_size: int = 11, spread_size: int = 9) -> _Scores:
-    """The default method's errors and the uncertainty's terms on the ``mask`` pixels of
-    one focus volume (levels), for :mod:`sffscan.stages.uncertainty_fit`
-    without scoring every method."""
+                       median_size: int = 11, spread_size: int = 9,
+                       method: str = DEFAULT_METHOD) -> _Scores:
+    """A method's errors (the default's unless ``method``) and the uncertainty's terms on
+    the ``mask`` pixels of one focus volume (levels), for
+    :mod:`sffscan.stages.uncertainty_fit` without scoring every method; ``b`` as a stack
+    reconstructed with that method adds it
+    (:func:`sffscan.stages.depth.shape_select_with_bias`,
+    :func:`sffscan.stages.depth_choice.method_bias`)."""
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    d, bias = _default_depth(volume, a, median_size=median_size, spread_size=spread_size)
+    if method == "shape_select":
+        d, _, bias = shape_select_with_bias(volume, argmax=a, median_size=median_size,
+                                            spread_size=spread_size)
+    else:
+        d = depth_from_focus(volume, method=method, median_size=median_size,
+                             spread_size=spread_size, argmax=a)[0]
+        bias = method_bias(volume, a, method, median_size=median_size)
     return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
                               window=spread_size, bias=bias)
 

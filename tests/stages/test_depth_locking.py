@@ -54,13 +54,15 @@ def test_peak_locking_only_where_the_centroid_is_taken() -> None:
     assert peak_locking(float("nan"), float("nan"), 2.0) == 0.0
 
 
-def test_the_default_method_has_its_own_constants() -> None:
-    """The fitted constants are the default method's; every other method keeps the ones
-    fitted before the locking term (depth_uncertainty.OTHER_METHODS_CONSTANTS)."""
+def test_each_method_has_its_constants() -> None:
+    """The fitted constants are the default method's; a method with its own fit
+    (depth_uncertainty.METHOD_CONSTANTS) takes it, every other method the ones fitted on
+    the default's errors before the locking term (OTHER_METHODS_CONSTANTS)."""
     from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
     from sffscan.stages.depth_uncertainty import (
         DEFAULT_CONSTANTS_METHOD,
         FLOOR_LEVELS,
+        METHOD_CONSTANTS,
         OTHER_METHODS_CONSTANTS,
         RELIEF_SCALE,
         SCATTER_SCALE,
@@ -69,6 +71,33 @@ def test_the_default_method_has_its_own_constants() -> None:
 
     assert DEFAULT_CONSTANTS_METHOD == DEFAULT_METHOD
     assert uncertainty_constants(DEFAULT_METHOD) == (SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS)
+    assert set(METHOD_CONSTANTS) < set(DEPTH_METHODS) - {DEFAULT_METHOD}
     for m in DEPTH_METHODS:
         if m != DEFAULT_METHOD:
-            assert uncertainty_constants(m) == OTHER_METHODS_CONSTANTS
+            assert uncertainty_constants(m) == METHOD_CONSTANTS.get(m, OTHER_METHODS_CONSTANTS)
+
+
+@pytest.mark.parametrize("method", ["shape_select", "gauss3"])
+def test_shipped_constants_are_the_fit_on_the_training_seeds(method: str) -> None:
+    """The shipped constants are what the quantile fit gives on the ten study families'
+    training seeds 0, 1, 2 with the method's own errors (a drift test: a change to the
+    depth or to a term of the uncertainty must refit them)."""
+    from sffscan.stages.depth_study import uncertainty_sample
+    from sffscan.stages.depth_uncertainty import uncertainty_constants
+    from sffscan.stages.focus_measure import focus_measure
+    from sffscan.stages.sim.families import family_names, family_stack
+    from sffscan.stages.uncertainty_fit import fit_uncertainty
+
+    groups = []
+    for f in family_names():
+        group = []
+        for seed in (0, 1, 2):
+            st = family_stack(f, seed, size_px=64)
+            vol = focus_measure(st.images, operator="glvm", window=9)
+            mask = np.zeros(st.truth_um.shape, bool)
+            mask[4:-4, 4:-4] = True
+            truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
+            group.append(uncertainty_sample(vol, truth, mask, spread_size=9, method=method))
+        groups.append(group)
+    fitted = fit_uncertainty(groups)
+    np.testing.assert_allclose(fitted, uncertainty_constants(method), rtol=2e-3)
