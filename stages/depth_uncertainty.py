@@ -127,12 +127,15 @@ METHOD_CONSTANTS: dict[str, tuple[float, float, float]] = {
 }
 """``(a, r, c)`` fitted on each method's own errors, as the default's are on its own (the
 ten families' training seeds 0, 1, 2; ``python bench/bench_method_constants.py``,
-bench/results/method_constants.md), for the methods whose own constants (refitted without
+bench/results/method_constants_before.md), for the methods whose own constants (refitted without
 each family in turn) put at least as many held-out (seed set, family) rows in the 90-98 %
 band and no more under it than :data:`OTHER_METHODS_CONSTANTS`, on seeds 6..47 (the rule
-stated after that table, 2026-12-05 evening; the clean check on seeds 102..107:
-bench/results/method_constants_102.md). ``"centroid"``'s fit lies on the bounds of r and c:
-its errors, the whole curve's floor pulling the centroid, are scatter and little else."""
+stated after that table, 2026-12-05 evening; on the clean seeds 102..107, in / under /
+over of 20: argmax 1 / 4 / 15 -> 17 / 0 / 3, gauss3 6 / 1 / 13 -> 19 / 1 / 0, quadratic3
+4 / 3 / 13 -> 17 / 1 / 2, centroid 4 / 16 / 0 -> 4 / 4 / 12, adaptive_centroid 13 / 0 / 7
+-> 12 / 0 / 8; bench/results/method_constants_102.md, docs/depth-method-log.md).
+``"centroid"``'s fit lies on the bounds of r and c: its errors, the whole curve's floor
+pulling the centroid, are scatter and little else."""
 
 
 def uncertainty_constants(method: str) -> tuple[float, float, float]:
