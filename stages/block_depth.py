@@ -73,14 +73,16 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  valid: np.ndarray | None = None, *, method: str = "shape_select",
                  median_size: int = 11,
                  centre: Callable[[], np.ndarray] | None = None
-                 ) -> tuple[str, float, GuardFloor | None]:
+                 ) -> tuple[str, float, GuardFloor | None, float]:
     """The method a block takes, the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
     :func:`sffscan.stages.depth_choice.spc_departure`; where it takes a peak, the
     :func:`sffscan.stages.depth_choice.fallback_bias` of its curves) and, where it takes
     SPC, what SPC's range guard takes from its curves
     (:func:`sffscan.stages.depth_floor.guard_floor`; None elsewhere: :func:`depth_rows`'
-    ``floor``), judged on the curves of
+    ``floor``) and, where it takes the 5-level centroid, that centroid's peak locking at
+    the judged curves' median width (:func:`sffscan.stages.depth_choice.peak_locking`,
+    levels; 0.0 elsewhere), judged on the curves of
     :data:`sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_statistics.sampled_curves`).
 
@@ -121,7 +123,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
     sample = sampled_curves(levels, argmax, valid)
     if sample is None:
-        return "adaptive", 0.0, None
+        return "adaptive", 0.0, None, 0.0
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
@@ -132,9 +134,9 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
                          centre=(lambda: judged_centre(argmax, median_size)) if centre is None
                          else centre)
         if taken is not None:
-            return ("spc+centroid" if centroid else "spc+gauss3"), taken[0], taken[1]
+            return ("spc+centroid" if centroid else "spc+gauss3"), taken[0], taken[1], 0.0
     locking = peak_locking(pull, noise, judged_width(width, am, vol.shape[0], seen))
-    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull, locking), None
+    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull), None, locking
 
 
 def judged_centre(argmax: np.ndarray, median_size: int, *,
@@ -274,6 +276,7 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
 def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
                       rows: tuple[int, int], *, method: str, n_levels: int,
                       focus_heights_um: np.ndarray, window: int, bias_levels: float = 0.0,
+                      locking_levels: float = 0.0,
                       valid: np.ndarray | None = None) -> np.ndarray:
     """:func:`~sffscan.stages.depth_uncertainty.height_uncertainty_um` of rows [r0, r1)
     of a block, from the rows within its filters' reach (a 5 x 5 median, then ranges and
@@ -282,7 +285,7 @@ def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
     ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
     every row of the block; ``method``: the scan's depth method (its constants:
     :func:`~sffscan.stages.depth_uncertainty.uncertainty_constants`); ``bias_levels``: the
-    block's bias (:func:`block_choice`);
+    block's bias and ``locking_levels`` its locking (:func:`block_choice`);
     ``valid``: the block's pixels whose curves are whole (the others' sums and minima, left
     from earlier columns in the ring, are not read for their neighbours); returns float32
     (r1 - r0, block), µm.
@@ -293,6 +296,6 @@ def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
     u = height_uncertainty_um(depth[a0:a1], sums[:, a0:a1], low[a0:a1], method=method,
                               n_levels=n_levels,
                               focus_heights_um=focus_heights_um, window=window,
-                              bias_levels=bias_levels,
+                              bias_levels=bias_levels, locking_levels=locking_levels,
                               valid=None if valid is None else valid[a0:a1])
     return u[r0 - a0:r1 - a0]

@@ -199,8 +199,9 @@ def _shape_select(c: FocusCurves) -> np.ndarray:
     return _shape_select_parts(c)[0]
 
 
-def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
-    """``"shape_select"``'s depth and the bias its height uncertainty adds (levels)."""
+def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float, float]:
+    """``"shape_select"``'s depth, the bias its height uncertainty adds and the locking it
+    adds where the scatter cannot show it (levels)."""
     assert c.argmax is not None
     # curve_width's formula from the sums the estimators share: no float64 copy of the
     # volume (4x less time on a 50-level stack; equal to float64 round-off)
@@ -219,28 +220,32 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float]:
         # scatter and departure say it errs less
         hidden = window_choice(other, wide, margin=c.spread_size // 2)
         # SPC's map only where the stack takes it
-        return other, choice.bias if hidden is None else math.hypot(choice.bias, hidden)
+        return (other, choice.bias if hidden is None else math.hypot(choice.bias, hidden),
+                choice.locking)
     spc = _from_sums(c, method="spc")
     # the range guard's width from a floor the noise does not lower (depth_floor)
     in_range = spc_in_range(spc, guard_width(h0, h1, low, n, choice.floor), n)
-    return np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias
+    return (np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias,
+            choice.locking)
 
 
 def shape_select_with_bias(volume: np.ndarray, *, median_size: int = 11,
                            argmax: np.ndarray | None = None, spread_size: int = 9
-                           ) -> tuple[np.ndarray, np.ndarray, float]:
-    """``depth_from_focus(volume, method="shape_select", ...)``'s depth and confidence, and
-    the bias (levels) the height uncertainty of a stack so reconstructed adds in quadrature
+                           ) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """``depth_from_focus(volume, method="shape_select", ...)``'s depth and confidence, the
+    bias (levels) the height uncertainty of a stack so reconstructed adds in quadrature
     (:mod:`sffscan.stages.depth_uncertainty`'s b): :attr:`sffscan.stages.depth_choice.
     StackChoice.bias`, and where the stack takes the 9-level centroid, that centroid's
-    (:func:`sffscan.stages.depth_window.window_choice`) beside it. From one pass: what a
-    stack's height and its uncertainty need
+    (:func:`sffscan.stages.depth_window.window_choice`) beside it; and the locking it adds
+    where the scatter cannot show it (:attr:`sffscan.stages.depth_choice.StackChoice.
+    locking`, ``L`` of :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`). From one
+    pass: what a stack's height and its uncertainty need
     (:func:`sffscan.stages.fields.stationary.reconstruct_field`, the depth study)."""
     curves = _checked_curves(volume, method="shape_select", median_size=median_size,
                              argmax=argmax, spread_size=spread_size)
-    depth, bias = _shape_select_parts(curves)
+    depth, bias, locking = _shape_select_parts(curves)
     h0, _, re, im = curves.moments
-    return depth, confidence_from_sums(h0, re, im), bias
+    return depth, confidence_from_sums(h0, re, im), bias, locking
 
 
 def _warped_select(c: FocusCurves) -> np.ndarray:

@@ -54,7 +54,7 @@ from sffscan.stages.depth_uncertainty import curve_width
 
 __all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
            "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "centroid_locking",
-           "fallback_bias", "judged_width", "method_bias", "peak_locking",
+           "fallback_bias", "judged_width", "method_bias", "method_locking", "peak_locking",
            "shape_select", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
            "stack_choice", "takes_centroid", "takes_spc", "takes_wide_centroid", "wide_choice"]
 
@@ -422,6 +422,11 @@ class StackChoice(NamedTuple):
     """Where the stack takes SPC, what its range guard's widths take from the judged curves
     (:func:`~sffscan.stages.depth_floor.guard_floor`, for
     :func:`~sffscan.stages.depth_floor.guard_width`); None elsewhere."""
+    locking: float = 0.0
+    """Where the fallback takes the 5-level centroid, its peak locking at the judged curves'
+    median width (:func:`peak_locking`, levels), which the height uncertainty adds where the
+    scatter cannot show it (:func:`sffscan.stages.depth_uncertainty.locking_visibility`);
+    0.0 elsewhere."""
 
 
 def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None,
@@ -457,7 +462,7 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
                                                             np.arange(0, w, s)))
     if taken is None:
         locking = peak_locking(pull, noise, judged_width(wid, peak, volume.shape[0]))
-        return StackChoice(False, fallback_bias(pull, locking), pull, noise)
+        return StackChoice(False, fallback_bias(pull), pull, noise, None, locking)
     return StackChoice(True, taken[0], pull, noise, taken[1])
 
 
@@ -516,7 +521,7 @@ def peak_locking(pull: float, noise: float, width: float) -> float:
     return centroid_locking(width)
 
 
-def fallback_bias(pull: float, locking: float = 0.0) -> float:
+def fallback_bias(pull: float) -> float:
     """The bias of a peak method's depth the height uncertainty adds in quadrature (levels):
     the size of the curves' centroid pull (:func:`~sffscan.stages.depth_statistics.pull_statistics`:
     the median over the curves of the 5-level centroid minus the 3-point Gaussian about each
@@ -532,7 +537,7 @@ def fallback_bias(pull: float, locking: float = 0.0) -> float:
     3..5), 3 -> 2 of 21 (crossed families), 3 -> 2 (seeds 6..11), 3 -> 1 (seeds 12..17),
     3 -> 2 (seeds 18..23, scored once, after the others); pertuz-simu02 0.836 -> 0.991, over
     the band (docs/depth-method-log.md)."""
-    return math.hypot(abs(pull) if math.isfinite(pull) else 0.0, locking)
+    return abs(pull) if math.isfinite(pull) else 0.0
 
 
 def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
@@ -543,21 +548,35 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
     the other methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
     :func:`stack_choice`'s (``width`` from the curves' sums, as the depth's choice takes it,
     saves its float64 :func:`~sffscan.stages.depth_uncertainty.curve_width`); ``method`` the
-    depth method. For ``"shape_select"`` this is its choice's bias before the fallback's
-    9-level centroid is weighed (that needs the depth maps):
+    depth method. For ``"shape_select"`` this is its choice's bias before the
+    fallback's 9-level centroid is weighed (that needs the depth maps):
     :func:`sffscan.stages.depth.shape_select_with_bias` gives the whole of it with the
     depth, and is what a stack's reconstruction takes."""
     if method == "shape_select":
         return stack_choice(volume, argmax, width, median_size=median_size).bias
     if method in PEAK_METHODS:
         vol, peak, _ = stack_sample(volume, argmax)
+        return fallback_bias(pull_statistics(vol, peak)[0])
+    return 0.0
+
+
+def method_locking(volume: np.ndarray, argmax: np.ndarray, method: str, *,
+                   median_size: int = 11, width: np.ndarray | None = None) -> float:
+    """The peak locking (levels) of a whole stack reconstructed with ``method``, which the
+    height uncertainty adds where its scatter cannot show it
+    (:func:`sffscan.stages.depth_uncertainty.locking_visibility`): ``"shape_select"``'s
+    :attr:`StackChoice.locking`, ``"adaptive_centroid"``'s :func:`peak_locking` on
+    :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, 0.0 for the other
+    methods (``"adaptive"``'s 3-point Gaussian is exact on a Gaussian curve). ``width``: the
+    curves' widths from their sums, as the depth's choice takes them (computed when None)."""
+    if method == "shape_select":
+        return stack_choice(volume, argmax, width, median_size=median_size).locking
+    if method == "adaptive_centroid":
+        vol, peak, wid = stack_sample(volume, argmax, width)
+        if wid is None:
+            wid = curve_width(vol)
         pull, noise = pull_statistics(vol, peak)
-        if method == "adaptive":  # the 3-point Gaussian, no centroid
-            return fallback_bias(pull)
-        wid = curve_width(vol) if width is None else stack_sample(volume, argmax, width)[2]
-        assert wid is not None
-        return fallback_bias(pull, peak_locking(pull, noise,
-                                                judged_width(wid, peak, volume.shape[0])))
+        return peak_locking(pull, noise, judged_width(wid, peak, volume.shape[0]))
     return 0.0
 
 

@@ -23,6 +23,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from sffscan.stages.depth import (
     DEFAULT_METHOD,
@@ -32,7 +33,7 @@ from sffscan.stages.depth import (
     focus_sums,
     shape_select_with_bias,
 )
-from sffscan.stages.depth_choice import method_bias
+from sffscan.stages.depth_choice import method_bias, method_locking
 from sffscan.stages.depth_study_grid import (
     CANDIDATES,
     Setting,
@@ -46,6 +47,7 @@ from sffscan.stages.depth_uncertainty import (
     depth_relief,
     depth_scatter,
     floor_share,
+    locking_visibility,
     width_excess,
 )
 from sffscan.stages.focus_measure import focus_measure
@@ -81,7 +83,8 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     """Squared errors of every method and of the candidate at every threshold."""
     sse: dict[str, float] = {}
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
-    default, bias = _default_depth(volume, a, median_size=median_size, spread_size=spread_size)
+    default, bias, locking = _default_depth(volume, a, median_size=median_size,
+                                            spread_size=spread_size)
     depth = {DEFAULT_METHOD: default}
     for m in dict.fromkeys((*methods, "spc", "adaptive", "adaptive_centroid", "shape_select",
                             "wcentroid", DEFAULT_METHOD)):
@@ -94,32 +97,38 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     sse.update(candidate_errors(volume, truth_levels, mask, depth=depth, argmax=a, width=width,
                                 median_size=median_size, spread_size=spread_size))
     return _uncertainty_terms(volume, default, width, truth_levels, mask, sse=sse,
-                              window=spread_size, bias=bias)
+                              window=spread_size, bias=bias, locking=locking)
 
 
 def _default_depth(volume: np.ndarray, argmax: np.ndarray, *, median_size: int,
-                   spread_size: int) -> tuple[np.ndarray, float]:
-    """The default method's depth (levels) and the bias its height uncertainty adds
-    (depth_uncertainty's b; ``"shape_select"``'s choice for the stack, from the same pass)."""
+                   spread_size: int) -> tuple[np.ndarray, float, float]:
+    """The default method's depth (levels), the bias its height uncertainty adds
+    (depth_uncertainty's b; ``"shape_select"``'s choice for the stack, from the same pass)
+    and its locking (depth_uncertainty's L)."""
     if DEFAULT_METHOD == "shape_select":
-        depth, _, bias = shape_select_with_bias(volume, argmax=argmax, median_size=median_size,
-                                                spread_size=spread_size)
-        return depth, bias
+        depth, _, bias, locking = shape_select_with_bias(
+            volume, argmax=argmax, median_size=median_size, spread_size=spread_size)
+        return depth, bias, locking
     return depth_from_focus(volume, method=DEFAULT_METHOD, median_size=median_size,
-                            spread_size=spread_size, argmax=argmax)[0], 0.0
+                            spread_size=spread_size, argmax=argmax)[0], 0.0, 0.0
 
 
 def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
-                       sse: dict[str, float], window: int, bias: float) -> _Scores:
+                       sse: dict[str, float], window: int, bias: float,
+                       locking: float) -> _Scores:
     scatter = depth_scatter(depth, window=window)
     sums = focus_sums(np.ascontiguousarray(volume, np.float32))
     share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
     excess = width_excess(width, share, depth_range(depth, window=window), window=window)
     count = int(mask.sum())
     relief = depth_relief(depth, window=window)
+    # b in quadrature with the locking the scatter cannot show, per pixel (depth_uncertainty)
+    seen = locking_visibility(cv2.medianBlur(np.ascontiguousarray(depth, np.float32), 5),
+                              window=window)[mask]
+    b = np.sqrt(np.float32(bias * bias) + (np.float32(locking) * seen) ** 2)
     return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], relief[mask],
-                   excess[mask], np.full(count, bias, np.float32))
+                   excess[mask], b.astype(np.float32, copy=False))
 
 
 def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray, *,
@@ -132,15 +141,17 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     (:func:`sffscan.stages.depth.shape_select_with_bias`,
     :func:`sffscan.stages.depth_choice.method_bias`)."""
     a = first_argmax(np.ascontiguousarray(volume, np.float32))
+    width = curve_width(volume)
     if method == "shape_select":
-        d, _, bias = shape_select_with_bias(volume, argmax=a, median_size=median_size,
-                                            spread_size=spread_size)
+        d, _, bias, locking = shape_select_with_bias(volume, argmax=a, median_size=median_size,
+                                                     spread_size=spread_size)
     else:
         d = depth_from_focus(volume, method=method, median_size=median_size,
                              spread_size=spread_size, argmax=a)[0]
         bias = method_bias(volume, a, method, median_size=median_size)
-    return _uncertainty_terms(volume, d, curve_width(volume), truth_levels, mask, sse={},
-                              window=spread_size, bias=bias)
+        locking = method_locking(volume, a, method, median_size=median_size, width=width)
+    return _uncertainty_terms(volume, d, width, truth_levels, mask, sse={},
+                              window=spread_size, bias=bias, locking=locking)
 
 
 @dataclass(frozen=True)

@@ -74,12 +74,12 @@ import cv2
 import numpy as np
 
 __all__ = ["DEFAULT_CONSTANTS_METHOD", "FLOOR_LEVELS", "METHOD_CONSTANTS", "MIX_SCALE",
-           "OTHER_METHODS_CONSTANTS",
-           "RELIEF_SCALE", "SCATTER_SCALE", "curve_width", "depth_range", "depth_relief",
-           "depth_scatter", "depth_uncertainty", "floor_share", "height_uncertainty_um",
-           "uncertainty_constants", "uncertainty_um", "width_excess", "width_from_sums"]
+           "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE", "SCATTER_SCALE", "curve_width",
+           "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty", "floor_share",
+           "height_uncertainty_um", "locking_visibility", "uncertainty_constants",
+           "uncertainty_um", "width_excess", "width_from_sums"]
 
-SCATTER_SCALE = 1.5163
+SCATTER_SCALE = 1.5462
 """``a`` of the default depth method (``"shape_select"``): fitted on the training seeds (0, 1,
 2) of all families by :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study
 --families``, the row "fit on every family's training seeds"; docs/depth-study.md), to the
@@ -96,12 +96,13 @@ became one sigma, not a half, that session: 1.606, 1.136 and 0.0401 before; and 
 centroid's peak locking joined ``b``
 (:func:`sffscan.stages.depth_choice.centroid_locking`), 2026-12-05 evening: 1.634, 1.116 and
 0.0406 before, which the methods without constants of their own keep:
-:data:`OTHER_METHODS_CONSTANTS`)."""
+:data:`OTHER_METHODS_CONSTANTS`; and when the locking was added only where the relief cannot
+see it, :func:`locking_visibility`, the same evening: 1.5163, 1.1285 and 0.005432 before)."""
 
-RELIEF_SCALE = 1.1285
+RELIEF_SCALE = 1.1334
 """``r`` of the default depth method: fitted with :data:`SCATTER_SCALE`."""
 
-FLOOR_LEVELS = 0.005432
+FLOOR_LEVELS = 0.005369
 """``c`` of the default depth method, levels: fitted with :data:`SCATTER_SCALE`."""
 
 DEFAULT_CONSTANTS_METHOD = "shape_select"
@@ -123,7 +124,7 @@ METHOD_CONSTANTS: dict[str, tuple[float, float, float]] = {
     "gauss3": (0.9689, 0.9202, 0.075),
     "quadratic3": (0.7191, 0.9607, 0.0979),
     "centroid": (20.63, 0.001, 0.0001),
-    "adaptive_centroid": (2.191, 1.083, 0.0001),
+    "adaptive_centroid": (2.172, 1.101, 0.0001),
 }
 """``(a, r, c)`` fitted on each method's own errors, as the default's are on its own (the
 ten families' training seeds 0, 1, 2; ``python bench/bench_method_constants.py``,
@@ -133,7 +134,9 @@ band and no more under it than :data:`OTHER_METHODS_CONSTANTS`, on seeds 6..47 (
 stated after that table, 2026-12-05 evening; on the clean seeds 102..107, in / under /
 over of 20: argmax 1 / 4 / 15 -> 17 / 0 / 3, gauss3 6 / 1 / 13 -> 19 / 1 / 0, quadratic3
 4 / 3 / 13 -> 17 / 1 / 2, centroid 4 / 16 / 0 -> 4 / 4 / 12, adaptive_centroid 13 / 0 / 7
--> 12 / 0 / 8; bench/results/method_constants_102.md, docs/depth-method-log.md).
+-> 12 / 0 / 8; bench/results/method_constants_102.md, docs/depth-method-log.md;
+``"adaptive_centroid"``'s refitted, 2.191, 1.083 and 0.0001 before, when its locking was
+added only where the relief cannot see it: :func:`locking_visibility`).
 ``"centroid"``'s fit lies on the bounds of r and c: its errors, the whole curve's floor
 pulling the centroid, are scatter and little else."""
 
@@ -266,6 +269,39 @@ def _range(median: np.ndarray, window: int) -> np.ndarray:
     return np.asarray(cv2.subtract(hi, lo), np.float32)
 
 
+def locking_visibility(median_levels: np.ndarray, *, window: int = 9) -> np.ndarray:
+    """The share of a peak estimator's locking that the scatter and relief do not show:
+    ``|sinc(k |grad m|)|`` (``sinc(x) = sin(pi x) / (pi x)``), ``m`` the depth's 5 x 5 median
+    (levels), its gradient in levels a px (central differences), ``k`` the focus window, px.
+
+    The locking is a function of the true height's fraction of a level, periodic in it: on
+    a surface whose height runs through a level every ``P`` px it is a ripple of that period,
+    whose mean over the k-px box that the relief subtracts keeps ``sinc(k / P)`` of its
+    amplitude, the part the relief cannot see (a flat part: all of it; a slope through a
+    level every k px or faster: next to none). The geometry of the box filter; no fitted
+    constant. Added 2026-12-05 evening (docs/depth-method-log.md).
+
+    Parameters
+    ----------
+    median_levels : (H, W) ndarray of float32
+        The depth's 5 x 5 median, levels.
+    window : int, keyword-only
+        The focus measure's window, px (the relief's box).
+
+    Returns
+    -------
+    (H, W) ndarray of float32
+        0 .. 1.
+    """
+    m = np.asarray(median_levels, np.float32)
+    if min(m.shape) < 2:
+        return np.ones(m.shape, np.float32)
+    gy, gx = np.gradient(m)
+    g = np.hypot(gx, gy)
+    g *= np.float32(window)
+    return np.abs(np.sinc(g)).astype(np.float32, copy=False)
+
+
 def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarray:
     """Share of each focus curve's mass that is its floor: ``N min / H_0`` (0 .. 1).
 
@@ -352,8 +388,8 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
                       share: np.ndarray, *, window: int = 9,
                       scatter_scale: float = SCATTER_SCALE,
                       relief_scale: float = RELIEF_SCALE,
-                      floor_levels: float = FLOOR_LEVELS, bias_levels: float = 0.0
-                      ) -> np.ndarray:
+                      floor_levels: float = FLOOR_LEVELS, bias_levels: float = 0.0,
+                      locking_levels: float = 0.0) -> np.ndarray:
     """One-sigma uncertainty of a depth map, in levels.
 
     Parameters
@@ -373,21 +409,36 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
         ``b``: a bias of the whole map that its scatter does not show, levels (SPC's
         departure where ``"shape_select"`` took SPC, a peak method's centroid pull:
         :func:`sffscan.stages.depth_choice.method_bias`); default 0.
+    locking_levels : float, keyword-only
+        ``L``: the peak estimator's locking, levels
+        (:func:`sffscan.stages.depth_choice.peak_locking`), added in quadrature at each
+        pixel times :func:`locking_visibility`; default 0.
 
     Returns
     -------
     (H, W) ndarray of float32
-        ``sqrt((a scatter)^2 + (r relief)^2 + excess^2 + c^2 + b^2)``, levels.
+        ``sqrt((a scatter)^2 + (r relief)^2 + excess^2 + c^2 + b^2 + (L v)^2)``, levels.
     """
     d = np.ascontiguousarray(depth_levels, dtype=np.float32)
     med = cv2.medianBlur(d, 5)
     x = width_excess(width_levels, share, _range(med, window), window=window)
     return _combine(_scatter(d, med, window), _relief(d, window), x, scatter_scale,
-                    relief_scale, floor_levels, bias_levels)
+                    relief_scale, floor_levels, bias_levels,
+                    _locking(med, window, locking_levels))
+
+
+def _locking(median: np.ndarray, window: int, locking: float) -> np.ndarray | None:
+    """``L v`` at each pixel (levels), None where ``L`` is 0."""
+    if not locking:
+        return None
+    v = locking_visibility(median, window=window)
+    v *= np.float32(locking)
+    return v
 
 
 def _combine(scatter: np.ndarray, relief: np.ndarray, excess: np.ndarray, a: float,
-             r: float, c: float, bias: float = 0.0) -> np.ndarray:
+             r: float, c: float, bias: float = 0.0,
+             locking: np.ndarray | None = None) -> np.ndarray:
     var = scatter * scatter
     var *= np.float32(a * a)
     q = relief * relief
@@ -396,6 +447,8 @@ def _combine(scatter: np.ndarray, relief: np.ndarray, excess: np.ndarray, a: flo
     x = excess * np.float32(MIX_SCALE)
     var += x * x
     var += np.float32(c * c + bias * bias)
+    if locking is not None:
+        var += locking * locking
     return np.sqrt(var).astype(np.float32, copy=False)
 
 
@@ -412,7 +465,8 @@ def uncertainty_um(sigma_levels: np.ndarray, depth_levels: np.ndarray, *,
 def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: np.ndarray,
                           *, method: str, n_levels: int, focus_heights_um: np.ndarray,
                           window: int = 9, bias_levels: float = 0.0,
-                          valid: np.ndarray | None = None) -> np.ndarray:
+                          locking_levels: float = 0.0, valid: np.ndarray | None = None
+                          ) -> np.ndarray:
     """The height uncertainty, µm, one sigma, from a depth map and its curves' sums.
 
     What the streaming depth stage computes per block (and a whole-field stack per field):
@@ -440,6 +494,8 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
         The focus measure's window, px (the scatter's window).
     bias_levels : float, keyword-only
         ``b`` of :func:`depth_uncertainty`, levels; default 0.
+    locking_levels : float, keyword-only
+        ``L`` of :func:`depth_uncertainty`, levels; default 0.
     valid : (H, W) ndarray of bool, optional, keyword-only
         The pixels whose curves are whole (:func:`width_excess`): the others' sums and
         minima are not read for their neighbours. Default: every pixel.
@@ -466,7 +522,8 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     x = width_excess(w, floor_share(h0, low, n_levels), _range(med, window), window=window,
                      valid=valid)
     sigma = _combine(_scatter(d, med, window), _relief(d, window), x,
-                     *uncertainty_constants(method), bias_levels)
+                     *uncertainty_constants(method), bias_levels,
+                     _locking(med, window, locking_levels))
     table = np.asarray(focus_heights_um, dtype=np.float64)
     step = np.abs(np.diff(table)).astype(np.float32)
     if np.all(step == step[0]):

@@ -455,7 +455,7 @@ class FocusVolume:
         hi = self._gather(self.row_hi, u0, u1).min(axis=0)
         rows = np.arange(self.rows)[:, None]
         valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
-        depth, conf, _, _, bias = self._depth(u0, u1, valid)
+        depth, conf, _, _, bias, locking = self._depth(u0, u1, valid)
         invalid = ~valid
         height = levels_to_height(depth, focus_heights_um=self.heights)  # float32, new
         np.copyto(height, np.float32(np.nan), where=invalid)
@@ -464,7 +464,7 @@ class FocusVolume:
             # invalid pixels (curves that lack levels) take the block's mean depth, so
             # that their values do not count as scatter of their valid neighbours
             fill = float(depth[valid].mean()) if valid.any() else 0.0
-            unc = self._uncertainty(depth, valid, fill, bias)
+            unc = self._uncertainty(depth, valid, fill, bias, locking)
             np.copyto(unc, np.nan, where=invalid)
         conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
         tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
@@ -477,22 +477,23 @@ class FocusVolume:
         return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc, bias)
 
     def _depth(self, u0: int, u1: int, valid: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
         """Depth (levels) and confidence of columns [u0, u1), their curves' sums (H_0,
         Re H_1, Im H_1) and minima (views of the block's scratch arrays), and the bias the
         uncertainty adds (levels: SPC's where the block took it, a peak method's
         :func:`~sffscan.stages.block_depth.block_choice` or
-        :func:`~sffscan.stages.block_depth.block_peak_bias`; else 0.0): the method chosen
+        :func:`~sffscan.stages.block_depth.block_peak_bias`; else 0.0) and the locking it adds
+        where the scatter cannot show it (:func:`~sffscan.stages.block_depth.block_choice`'s;
+        else 0.0): the method chosen
         once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
         :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
-        method, bias, floor = self.method, 0.0, None
+        method, bias, floor, locking = self.method, 0.0, None, 0.0
         own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
         if self.fv is not None and method in blocks.BLOCK_CHOICES:
             # one choice for the block, whatever its bands
-            method, bias, floor = blocks.block_choice(self._gather(self.fv, u0, u1),
-                                                      self._gather(self.argmax, u0, u1),
-                                                      valid, method=method,
-                                                      centre=lambda: self._centre(u0, u1))
+            method, bias, floor, locking = blocks.block_choice(
+                self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1), valid,
+                method=method, centre=lambda: self._centre(u0, u1))
         elif self.fv is not None and method == "adaptive" and self.uncertainty:
             bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
                                           self._gather(self.argmax, u0, u1), valid)
@@ -521,7 +522,7 @@ class FocusVolume:
             if hidden is not None:  # the centroid's bias, beside the fallback's
                 bias = math.hypot(bias, hidden)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
-                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias)
+                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias, locking)
 
     def _centre(self, u0: int, u1: int) -> np.ndarray:
         """The filtered argmax of columns [u0, u1) as the depth task takes it (the median
@@ -532,7 +533,7 @@ class FocusVolume:
                                     block=(u0 - a0, u1 - a0))
 
     def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
-                     bias: float) -> np.ndarray:
+                     bias: float, locking: float) -> np.ndarray:
         """The block's height uncertainty, µm (a new array), its invalid pixels' depth
         taken as ``fill`` (:func:`sffscan.stages.volume_tasks.uncertainty` on each band,
         from the block's scratch arrays that :meth:`_depth` filled)."""
@@ -541,7 +542,7 @@ class FocusVolume:
         np.copyto(scratch(a, "b_valid", shape), valid)
         self._run_task("uncertainty", {
             "rows": shape[0], "width": shape[1], "n_levels": self.n, "method": self.method,
-            "window": self.spread_size, "bias": bias})
+            "window": self.spread_size, "bias": bias, "locking": locking})
         return scratch(a, "b_unc", shape).copy()
 
     def _run_task(self, task: str, params: dict[str, object]) -> None:

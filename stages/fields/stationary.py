@@ -351,8 +351,9 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
                              f"image, got {floor.size}")
         volume = np.maximum(volume - floor[:, None, None], np.float32(0.0))
     bias: float | None = None  # the default's, from its own pass (its choice included)
+    locking = 0.0
     if settings.method == "shape_select":
-        levels, confidence, bias = shape_select_with_bias(
+        levels, confidence, bias, locking = shape_select_with_bias(
             volume, median_size=settings.median_size, spread_size=settings.window)
     else:
         levels, confidence = depth_from_focus(volume, method=settings.method,
@@ -364,7 +365,7 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
     from sffscan.stages.depth import first_argmax, focus_sums
-    from sffscan.stages.depth_choice import method_bias
+    from sffscan.stages.depth_choice import method_bias, method_locking
     from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
@@ -373,11 +374,15 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     # curves' widths from their sums, as the depth's own choice takes them
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
     if bias is None:
-        bias = method_bias(vol, first_argmax(vol), settings.method,
-                           median_size=settings.median_size, width=width)
+        argmax = first_argmax(vol)
+        bias = method_bias(vol, argmax, settings.method, median_size=settings.median_size,
+                           width=width)
+        locking = method_locking(vol, argmax, settings.method,
+                                 median_size=settings.median_size, width=width)
     unc = height_uncertainty_um(levels, sums, low, method=settings.method,
                                 n_levels=vol.shape[0], focus_heights_um=heights,
-                                window=settings.window, bias_levels=bias)
+                                window=settings.window, bias_levels=bias,
+                                locking_levels=locking)
     unc[~np.isfinite(height)] = np.nan
     return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
                        confidence=confidence, settings=settings, uncertainty_um=unc)

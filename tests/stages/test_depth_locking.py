@@ -77,7 +77,7 @@ def test_each_method_has_its_constants() -> None:
             assert uncertainty_constants(m) == METHOD_CONSTANTS.get(m, OTHER_METHODS_CONSTANTS)
 
 
-@pytest.mark.parametrize("method", ["shape_select", "gauss3"])
+@pytest.mark.parametrize("method", ["shape_select", "gauss3", "adaptive_centroid"])
 def test_shipped_constants_are_the_fit_on_the_training_seeds(method: str) -> None:
     """The shipped constants are what the quantile fit gives on the ten study families'
     training seeds 0, 1, 2 with the method's own errors (a drift test: a change to the
@@ -101,3 +101,29 @@ def test_shipped_constants_are_the_fit_on_the_training_seeds(method: str) -> Non
         groups.append(group)
     fitted = fit_uncertainty(groups)
     np.testing.assert_allclose(fitted, uncertainty_constants(method), rtol=2e-3)
+
+
+def test_locking_is_seen_by_the_relief_where_the_height_runs_through_levels() -> None:
+    """locking_visibility: 1 on a flat, |sinc(k g)| on a plane of gradient g levels a px (0
+    where it runs through a level every k px: the relief's box averages the ripple out);
+    depth_uncertainty adds (L v)^2 to sigma^2 at each pixel, nothing else."""
+    from sffscan.stages.depth_uncertainty import depth_uncertainty, locking_visibility
+
+    y, x = np.mgrid[0:40, 0:40].astype(np.float32)
+    np.testing.assert_array_equal(locking_visibility(np.full((40, 40), 7.0, np.float32),
+                                                     window=9), 1.0)
+    for g in (0.02, 0.05, 1 / 9, 0.2):
+        v = locking_visibility(3.0 + g * x, window=9)
+        np.testing.assert_allclose(v, abs(np.sinc(9 * g)), atol=1e-5)
+    assert locking_visibility(3.0 + x / 9, window=9).max() < 1e-5
+    depth = (5.0 + 0.05 * x + 0.03 * y).astype(np.float32)
+    width = np.full(depth.shape, 2.0, np.float32)
+    share = np.zeros(depth.shape, np.float32)
+    plain = depth_uncertainty(depth, width, share, bias_levels=0.1).astype(np.float64)
+    locked = depth_uncertainty(depth, width, share, bias_levels=0.1,
+                               locking_levels=0.06).astype(np.float64)
+    import cv2
+
+    seen = locking_visibility(cv2.medianBlur(depth, 5), window=9).astype(np.float64)
+    assert 0.3 < seen[20, 20] < 0.9
+    np.testing.assert_allclose(locked ** 2, plain ** 2 + (0.06 * seen) ** 2, rtol=1e-5)

@@ -456,7 +456,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     assert choice.spc and choice.bias == pytest.approx(abs(dep[0])) and choice.bias > 0
     big = focus_measure(family_stack("even-gauss", 0, size_px=160, n_levels=30).images,
                         window=9)  # a block judges every 16th row and 8th column
-    method, bias, floor = block_choice(big, first_argmax(big))
+    method, bias, floor, locking = block_choice(big, first_argmax(big))
+    assert locking == 0.0  # SPC: no peak, no locking
     assert method in SPC_BLOCKS and bias > 0 and floor is not None and floor.width > 0
     # a scan's block gives its filtered argmax at the judged grid (10 x 20 curves here)
     with pytest.raises(ValueError, match=r"judged curves' \(10, 20\) pixels"):
@@ -466,39 +467,47 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     la = first_argmax(lv)
     pull, noise = pull_statistics(lv, la)
     from sffscan.stages.block_depth import block_peak_bias
-    from sffscan.stages.depth_choice import centroid_locking, fallback_bias, method_bias
+    from sffscan.stages.depth_choice import (
+        centroid_locking,
+        fallback_bias,
+        method_bias,
+        method_locking,
+    )
     from sffscan.stages.depth_statistics import sampled_curves
 
-    # the fallback's bias: the size of its curves' centroid pull (fallback_bias) and, where
-    # it takes the 5-level centroid (as here), that centroid's locking at the judged curves'
-    # median width, in quadrature
+    # the fallback's bias: the size of its curves' centroid pull (fallback_bias); where it
+    # takes the 5-level centroid (as here), beside it that centroid's locking at the judged
+    # curves' median width (added where the scatter cannot show it)
     assert takes_centroid(pull, noise=noise)
     locking = centroid_locking(float(np.median(curve_width(lv)[(la >= 2) & (la <= 27)])))
     assert 0.01 < locking < 0.07
     refused = stack_choice(lv, la)
-    assert refused[0] is False and refused[2:4] == (pull, noise) and abs(pull) > 0
-    assert refused.bias == pytest.approx(math.hypot(pull, locking), rel=1e-6)
+    assert refused[:4] == (False, abs(pull), pull, noise) and abs(pull) > 0
+    assert refused.locking == pytest.approx(locking, rel=1e-6)
     assert refused.floor is None
     sample = sampled_curves(lv, la)
     assert sample is not None
     block_pull, block_noise = pull_statistics(*sample)
     assert takes_centroid(block_pull, noise=block_noise)
     judged = (sample[1] >= 2) & (sample[1] <= 27) & np.broadcast_to(sample[2], sample[1].shape)
-    block_bias = math.hypot(block_pull, centroid_locking(
-        float(np.median(curve_width(sample[0])[judged]))))
-    method, bias, floor = block_choice(lv, la)
-    assert method not in SPC_BLOCKS and bias == pytest.approx(block_bias) and bias > 0
+    block_locking = centroid_locking(float(np.median(curve_width(sample[0])[judged])))
+    method, bias, floor, got_locking = block_choice(lv, la)
+    assert method not in SPC_BLOCKS and bias == pytest.approx(abs(block_pull)) and bias > 0
+    assert got_locking == pytest.approx(block_locking, rel=1e-6) and got_locking > 0
     assert floor is None  # the guard's floor only where the block takes SPC
-    assert block_choice(lv, la, method="adaptive_centroid")[1] == pytest.approx(block_bias)
+    assert block_choice(lv, la, method="adaptive_centroid")[1::2] == pytest.approx(
+        (abs(block_pull), block_locking))
     # "adaptive" takes the 3-point Gaussian: no locking (exact on a Gaussian curve)
     assert block_peak_bias(lv, la) == pytest.approx(abs(block_pull))
     assert method_bias(lv, la, "adaptive") == pytest.approx(abs(pull))
-    assert method_bias(lv, la, "adaptive_centroid") == pytest.approx(math.hypot(pull, locking),
-                                                                     rel=1e-6)
+    assert method_locking(lv, la, "adaptive") == 0.0
+    assert method_bias(lv, la, "adaptive_centroid") == pytest.approx(abs(pull))
+    assert method_locking(lv, la, "adaptive_centroid") == pytest.approx(locking, rel=1e-6)
     assert method_bias(lv, la, "shape_select") == pytest.approx(refused.bias)
+    assert method_locking(lv, la, "shape_select") == pytest.approx(locking, rel=1e-6)
     assert method_bias(lv, la, "spc") == 0.0  # no bias term for the other methods
+    assert method_locking(lv, la, "spc") == 0.0
     assert fallback_bias(-0.3) == 0.3 and fallback_bias(float("nan")) == 0.0
-    assert fallback_bias(-0.3, 0.4) == pytest.approx(0.5)
 
 
 def _stack(sse: dict[str, float], count: int, errors: np.ndarray) -> _Scores:

@@ -131,7 +131,7 @@ def test_shape_select_with_bias_is_the_default_and_its_bias_in_one_pass() -> Non
     from sffscan.stages.sim.families import family_stack
 
     vol = focus_measure(family_stack("flat-lens-12bit", 12).images, operator="glvm", window=9)
-    depth, conf, bias = shape_select_with_bias(vol)
+    depth, conf, bias, _ = shape_select_with_bias(vol)
     d0, c0 = depth_from_focus(vol, method="shape_select")
     np.testing.assert_array_equal(depth, d0)
     np.testing.assert_array_equal(conf, c0)
