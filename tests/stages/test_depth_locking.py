@@ -127,3 +127,28 @@ def test_locking_is_seen_by_the_relief_where_the_height_runs_through_levels() ->
     seen = locking_visibility(cv2.medianBlur(depth, 5), window=9).astype(np.float64)
     assert 0.3 < seen[20, 20] < 0.9
     np.testing.assert_allclose(locked ** 2, plain ** 2 + (0.06 * seen) ** 2, rtol=1e-5)
+
+
+def test_a_blocks_uncertainty_with_locking_is_the_same_in_any_bands() -> None:
+    """block_uncertainty of rows [r0, r1) with a locking term (whose visibility reads the
+    depth's median gradient: 3 rows beyond a band) is the whole block's, bit for bit, for
+    any split into bands, and the term adds to it."""
+    from sffscan.stages.block_depth import block_uncertainty
+
+    rng = np.random.default_rng(0)
+    rows, cols, n = 120, 40, 30
+    y, x = np.mgrid[0:rows, 0:cols]
+    depth = (10 + 0.03 * x + 0.01 * y + rng.normal(0, 0.1, (rows, cols))).astype(np.float32)
+    sums = np.stack([np.full((rows, cols), 50.0), rng.random((rows, cols)) * 10,
+                     rng.random((rows, cols)) * 10]).astype(np.float32)
+    low = np.full((rows, cols), 0.5, np.float32)
+    kw = dict(method="shape_select", n_levels=n, focus_heights_um=np.arange(n) * 2.0,
+              window=9, bias_levels=0.05)
+    whole = block_uncertainty(depth, sums, low, (0, rows), locking_levels=0.06, **kw)
+    for k in (2, 3, 7):
+        edges = np.linspace(0, rows, k + 1).astype(int)
+        parts = np.concatenate([block_uncertainty(depth, sums, low, (a, b),
+                                                  locking_levels=0.06, **kw)
+                                for a, b in zip(edges[:-1], edges[1:], strict=True)])
+        assert parts.tobytes() == whole.tobytes()
+    assert (whole > block_uncertainty(depth, sums, low, (0, rows), **kw)).all()
