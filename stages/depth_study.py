@@ -30,7 +30,6 @@ from sffscan.stages.depth import (
     DEPTH_METHODS,
     depth_from_focus,
     first_argmax,
-    focus_sums,
     shape_select_with_bias,
 )
 from sffscan.stages.depth_choice import method_bias, method_locking
@@ -46,7 +45,6 @@ from sffscan.stages.depth_uncertainty import (
     depth_range,
     depth_relief,
     depth_scatter,
-    floor_share,
     locking_visibility,
     width_excess,
 )
@@ -96,7 +94,7 @@ def score_volume(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndarray,
     width = curve_width(volume)
     sse.update(candidate_errors(volume, truth_levels, mask, depth=depth, argmax=a, width=width,
                                 median_size=median_size, spread_size=spread_size))
-    return _uncertainty_terms(volume, default, width, truth_levels, mask, sse=sse,
+    return _uncertainty_terms(default, width, truth_levels, mask, sse=sse,
                               window=spread_size, bias=bias, locking=locking)
 
 
@@ -113,14 +111,12 @@ def _default_depth(volume: np.ndarray, argmax: np.ndarray, *, median_size: int,
                             spread_size=spread_size, argmax=argmax)[0], 0.0, 0.0
 
 
-def _uncertainty_terms(volume: np.ndarray, depth: np.ndarray, width: np.ndarray,
+def _uncertainty_terms(depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
                        sse: dict[str, float], window: int, bias: float,
                        locking: float) -> _Scores:
     scatter = depth_scatter(depth, window=window)
-    sums = focus_sums(np.ascontiguousarray(volume, np.float32))
-    share = floor_share(sums[0], np.min(volume, axis=0), volume.shape[0])
-    excess = width_excess(width, share, depth_range(depth, window=window), window=window)
+    excess = width_excess(width, depth_range(depth, window=window), window=window)
     count = int(mask.sum())
     relief = depth_relief(depth, window=window)
     # b in quadrature with the locking the scatter cannot show, per pixel (depth_uncertainty)
@@ -150,7 +146,7 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
                              spread_size=spread_size, argmax=a)[0]
         bias = method_bias(volume, a, method, median_size=median_size)
         locking = method_locking(volume, a, method, median_size=median_size, width=width)
-    return _uncertainty_terms(volume, d, width, truth_levels, mask, sse={},
+    return _uncertainty_terms(d, width, truth_levels, mask, sse={},
                               window=spread_size, bias=bias, locking=locking)
 
 

@@ -36,10 +36,13 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
   Without the cap a textured continuous surface, whose curves' widths scatter from pixel to
   pixel (about half wider than their neighbours' mean), got 0.5 .. 1 level of sigma from
   that scatter alone (a demo print: a third of a flat part's pixels above a 0.5 level
-  tolerance, its error 0.03 level RMS); the cap leaves a mix its full term. Where most of a
-  curve's mass is its floor (``floor share`` ``N min / H_0``, :func:`floor_share`, noisy
-  curves of a weak texture) the width says more about the noise than about the heights
-  seen: the term is scaled by ``max(0, 1 - 2 floor share)``.
+  tolerance, its error 0.03 level RMS); the cap leaves a mix its full term. Until
+  2026-12-05 evening the term was also scaled by ``max(0, 1 - 2 floor share)`` (``N min /
+  H_0``, :func:`floor_share`: noisy curves of a weak texture, whose width says more about
+  the noise than the heights seen); with the cap it only took the term from noisy step
+  edges, whose peaks are taken on the wrong side most often (steps-lens-noisy's uncovered
+  pixels had no excess left): dropped (held-out sets under the band 8 -> 0 of 180,
+  docs/depth-method-log.md).
 * ``b``: a bias of the whole map. SPC's, where ``"shape_select"`` took SPC for the stack or
   scan block: the median departure of SPC from the peaks the fallback would take
   (:attr:`sffscan.stages.depth_choice.StackChoice.bias`, levels). The choice
@@ -79,7 +82,7 @@ __all__ = ["DEFAULT_CONSTANTS_METHOD", "FLOOR_LEVELS", "METHOD_CONSTANTS", "MIX_
            "height_uncertainty_um", "locking_visibility", "uncertainty_constants",
            "uncertainty_um", "width_excess", "width_from_sums"]
 
-SCATTER_SCALE = 1.5462
+SCATTER_SCALE = 1.4854
 """``a`` of the default depth method (``"shape_select"``): fitted on the training seeds (0, 1,
 2) of all families by :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study
 --families``, the row "fit on every family's training seeds"; docs/depth-study.md), to the
@@ -97,12 +100,14 @@ centroid's peak locking joined ``b``
 (:func:`sffscan.stages.depth_choice.centroid_locking`), 2026-12-05 evening: 1.634, 1.116 and
 0.0406 before, which the methods without constants of their own keep:
 :data:`OTHER_METHODS_CONSTANTS`; and when the locking was added only where the relief cannot
-see it, :func:`locking_visibility`, the same evening: 1.5163, 1.1285 and 0.005432 before)."""
+see it, :func:`locking_visibility`, the same evening: 1.5163, 1.1285 and 0.005432 before;
+and when the excess width's floor-share discount was dropped, that hour: 1.5462, 1.1334 and
+0.005369 before)."""
 
-RELIEF_SCALE = 1.1334
+RELIEF_SCALE = 1.1527
 """``r`` of the default depth method: fitted with :data:`SCATTER_SCALE`."""
 
-FLOOR_LEVELS = 0.005369
+FLOOR_LEVELS = 0.005383
 """``c`` of the default depth method, levels: fitted with :data:`SCATTER_SCALE`."""
 
 DEFAULT_CONSTANTS_METHOD = "shape_select"
@@ -120,11 +125,11 @@ families), which left the 3-point peak of ``"adaptive"`` under-covered on a text
 flat (its 75th percentile 3.05 x the error's RMS)."""
 
 METHOD_CONSTANTS: dict[str, tuple[float, float, float]] = {
-    "argmax": (0.3999, 0.936, 0.1822),
-    "gauss3": (0.9689, 0.9202, 0.075),
-    "quadratic3": (0.7191, 0.9607, 0.0979),
-    "centroid": (20.63, 0.001, 0.0001),
-    "adaptive_centroid": (2.172, 1.101, 0.0001),
+    "argmax": (0.4788, 0.9277, 0.1804),
+    "gauss3": (0.6999, 0.9859, 0.0733),
+    "quadratic3": (0.721, 0.9695, 0.09508),
+    "centroid": (19.98, 0.001, 0.0001),
+    "adaptive_centroid": (2.308, 1.085, 0.0001),
 }
 """``(a, r, c)`` fitted on each method's own errors, as the default's are on its own (the
 ten families' training seeds 0, 1, 2; ``python bench/bench_method_constants.py``,
@@ -136,7 +141,10 @@ over of 20: argmax 1 / 4 / 15 -> 17 / 0 / 3, gauss3 6 / 1 / 13 -> 19 / 1 / 0, qu
 4 / 3 / 13 -> 17 / 1 / 2, centroid 4 / 16 / 0 -> 4 / 4 / 12, adaptive_centroid 13 / 0 / 7
 -> 12 / 0 / 8; bench/results/method_constants_102.md, docs/depth-method-log.md;
 ``"adaptive_centroid"``'s refitted, 2.191, 1.083 and 0.0001 before, when its locking was
-added only where the relief cannot see it: :func:`locking_visibility`).
+added only where the relief cannot see it: :func:`locking_visibility`; all five refitted
+when the excess width's floor-share discount was dropped: argmax 0.3999, 0.936, 0.1822,
+gauss3 0.9689, 0.9202, 0.075, quadratic3 0.7191, 0.9607, 0.0979, centroid 20.63, 0.001,
+0.0001, adaptive_centroid 2.172, 1.101, 0.0001 before).
 ``"centroid"``'s fit lies on the bounds of r and c: its errors, the whole curve's floor
 pulling the centroid, are scatter and little else."""
 
@@ -326,20 +334,18 @@ def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarra
     return np.clip(out, 0.0, 1.0)
 
 
-def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels: np.ndarray,
-                 *, window: int = 9, valid: np.ndarray | None = None) -> np.ndarray:
-    """How much wider each curve is than the curves about it, levels, noise-discounted,
-    at most half the depth's range about it.
+def width_excess(width_levels: np.ndarray, depth_range_levels: np.ndarray, *,
+                 window: int = 9, valid: np.ndarray | None = None) -> np.ndarray:
+    """How much wider each curve is than the curves about it, levels, at most half the
+    depth's range about it.
 
-    ``min(sqrt(max(w^2 - m^2, 0)), R / 2) * max(0, 1 - 2 share)``, ``m`` the mean width
-    over ``2 window + 1`` px square (replicated borders), ``R`` the depth's range there.
+    ``min(sqrt(max(w^2 - m^2, 0)), R / 2)``, ``m`` the mean width over ``2 window + 1`` px
+    square (replicated borders), ``R`` the depth's range there.
 
     Parameters
     ----------
     width_levels : (H, W) ndarray of float
         Each curve's width, levels (:func:`curve_width`, :func:`width_from_sums`).
-    share : (H, W) ndarray of float
-        Each curve's floor share (:func:`floor_share`).
     depth_range_levels : (H, W) ndarray of float
         The depth's range about each pixel, levels (:func:`depth_range`): a mix of two
         heights ``D`` apart widens a curve by at most ``D / 2``.
@@ -361,11 +367,6 @@ def width_excess(width_levels: np.ndarray, share: np.ndarray, depth_range_levels
     np.maximum(ex, np.float32(0.0), out=ex)
     np.sqrt(ex, out=ex)
     np.minimum(ex, np.float32(0.5) * np.asarray(depth_range_levels, np.float32), out=ex)
-    # 1 - 2 share, at least 0
-    f = np.asarray(cv2.addWeighted(np.asarray(share, np.float32), -2.0, ex, 0.0, 1.0),
-                   np.float32)
-    np.maximum(f, np.float32(0.0), out=f)
-    ex *= f
     return ex
 
 
@@ -384,8 +385,8 @@ def _mean_width(w: np.ndarray, k: int, valid: np.ndarray | None) -> np.ndarray:
     return np.asarray(num, np.float32)
 
 
-def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
-                      share: np.ndarray, *, window: int = 9,
+def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray, *,
+                      window: int = 9,
                       scatter_scale: float = SCATTER_SCALE,
                       relief_scale: float = RELIEF_SCALE,
                       floor_levels: float = FLOOR_LEVELS, bias_levels: float = 0.0,
@@ -398,8 +399,6 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
         Depth map, fractional levels, finite.
     width_levels : (H, W) ndarray of float
         Width of each pixel's focus curve, levels (:func:`curve_width`).
-    share : (H, W) ndarray of float
-        Floor share of each curve (:func:`floor_share`).
     window : int, keyword-only
         Focus measure window, px (the scatter's averaging window; the excess width's
         reference and the depth's range are over ``2 window + 1`` px).
@@ -421,7 +420,7 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray,
     """
     d = np.ascontiguousarray(depth_levels, dtype=np.float32)
     med = cv2.medianBlur(d, 5)
-    x = width_excess(width_levels, share, _range(med, window), window=window)
+    x = width_excess(width_levels, _range(med, window), window=window)
     return _combine(_scatter(d, med, window), _relief(d, window), x, scatter_scale,
                     relief_scale, floor_levels, bias_levels,
                     _locking(med, window, locking_levels))
@@ -471,8 +470,7 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
 
     What the streaming depth stage computes per block (and a whole-field stack per field):
     :func:`depth_uncertainty` of ``depth_levels`` with the curves' widths
-    (:func:`width_from_sums`) and floor shares (:func:`floor_share`) from their sums and
-    minima, in µm by :func:`uncertainty_um`.
+    (:func:`width_from_sums`) from their sums and minima, in µm by :func:`uncertainty_um`.
 
     Parameters
     ----------
@@ -519,8 +517,7 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     w *= np.float32(-(n_levels / math.pi) ** 2 / 2.0)  # width^2, levels^2
     np.sqrt(w, out=w)
     med = cv2.medianBlur(d, 5)
-    x = width_excess(w, floor_share(h0, low, n_levels), _range(med, window), window=window,
-                     valid=valid)
+    x = width_excess(w, _range(med, window), window=window, valid=valid)
     sigma = _combine(_scatter(d, med, window), _relief(d, window), x,
                      *uncertainty_constants(method), bias_levels,
                      _locking(med, window, locking_levels))

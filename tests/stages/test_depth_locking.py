@@ -118,9 +118,8 @@ def test_locking_is_seen_by_the_relief_where_the_height_runs_through_levels() ->
     assert locking_visibility(3.0 + x / 9, window=9).max() < 1e-5
     depth = (5.0 + 0.05 * x + 0.03 * y).astype(np.float32)
     width = np.full(depth.shape, 2.0, np.float32)
-    share = np.zeros(depth.shape, np.float32)
-    plain = depth_uncertainty(depth, width, share, bias_levels=0.1).astype(np.float64)
-    locked = depth_uncertainty(depth, width, share, bias_levels=0.1,
+    plain = depth_uncertainty(depth, width, bias_levels=0.1).astype(np.float64)
+    locked = depth_uncertainty(depth, width, bias_levels=0.1,
                                locking_levels=0.06).astype(np.float64)
     import cv2
 

@@ -233,7 +233,6 @@ def test_depth_uncertainty_known_answers() -> None:
         depth_relief,
         depth_scatter,
         depth_uncertainty,
-        floor_share,
         uncertainty_um,
         width_excess,
     )
@@ -249,8 +248,7 @@ def test_depth_uncertainty_known_answers() -> None:
     # white noise about its 9 x 9 mean: sigma sqrt(1 - 1/81), RMS over 81 px
     assert float(np.median(q)) == pytest.approx(0.5 * math.sqrt(80 / 81), rel=0.1)
     width = np.full(smooth.shape, 4.0)
-    clean = np.zeros(smooth.shape)  # curves on a zero floor
-    sig = depth_uncertainty(noisy, width, clean, scatter_scale=2.0, relief_scale=0.5,
+    sig = depth_uncertainty(noisy, width, scatter_scale=2.0, relief_scale=0.5,
                             floor_levels=0.1)
     np.testing.assert_allclose(sig, np.sqrt((2.0 * s) ** 2 + (0.5 * q) ** 2 + 0.1**2),
                                rtol=1e-5)
@@ -271,21 +269,17 @@ def test_depth_uncertainty_known_answers() -> None:
     wide = width.copy()
     wide[20, 20] = 8.0
     far = np.full(smooth.shape, 100.0)  # heights far apart about it: no cap
-    x = width_excess(wide, clean, far, window=9)
+    x = width_excess(wide, far, window=9)
     mean = (8.0 + 360 * 4.0) / 361  # the mean width over 19 x 19 px
     assert x[20, 20] == pytest.approx(math.sqrt(64.0 - mean**2), rel=1e-4)
     assert x[0, 0] == 0.0 and x[20, 21] == 0.0  # narrower than the mean: no excess
     # capped at half the depth's range (a mix of heights D apart widens by <= D / 2)
-    cap = width_excess(wide, clean, np.full(smooth.shape, 2.0), window=9)
+    cap = width_excess(wide, np.full(smooth.shape, 2.0), window=9)
     assert cap[20, 20] == pytest.approx(1.0) and cap.max() == pytest.approx(1.0)
     # the depth map beside it: a plane rising 0.1 level per px (range 3.6 levels)
-    sig = depth_uncertainty(smooth, wide, clean, scatter_scale=2.0, relief_scale=1.0,
+    sig = depth_uncertainty(smooth, wide, scatter_scale=2.0, relief_scale=1.0,
                             floor_levels=0.0)
     assert sig[20, 20] == pytest.approx(MIX_SCALE * min(x[20, 20], 1.8), rel=1e-4)
-    # half the mass in the floor: the width tells the noise, no excess counted
-    assert width_excess(wide, np.full(smooth.shape, 0.5), far, window=9).max() == 0.0
-    np.testing.assert_allclose(
-        width_excess(wide, np.full(smooth.shape, 0.25), far, window=9), x * 0.5, rtol=1e-6)
     np.testing.assert_allclose(floor_share(np.array([10.0, 0.0, 4.0]),
                                            np.array([0.5, 0.0, 0.0]), 10), [0.5, 1.0, 0.0])
     um = uncertainty_um(np.ones((1, 3)), np.array([[0.2, 1.5, 9.0]]),
@@ -301,7 +295,7 @@ def test_height_uncertainty_from_sums_matches_the_volume_path() -> None:
     vol = focus_measure(s.images, window=9)
     d = depth_from_focus(vol, method="adaptive")[0]
     sums = focus_sums(vol)
-    want = depth_uncertainty(d, curve_width(vol), floor_share(sums[0], vol.min(axis=0), 30))
+    want = depth_uncertainty(d, curve_width(vol))
     # depth_uncertainty's constants are the default method's
     got = height_uncertainty_um(d, sums, vol.min(axis=0), method=DEFAULT_METHOD, n_levels=30,
                                 focus_heights_um=s.focus_um)
@@ -435,10 +429,9 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     vol = focus_measure(s.images, window=9)
     a = first_argmax(vol)
     d = depth_from_focus(vol, method="shape_select", argmax=a)[0]
-    share = floor_share(focus_sums(vol)[0], vol.min(axis=0), 30)
     w = curve_width(vol)
-    plain = depth_uncertainty(d, w, share).astype(np.float64)
-    biased = depth_uncertainty(d, w, share, bias_levels=0.4).astype(np.float64)
+    plain = depth_uncertainty(d, w).astype(np.float64)
+    biased = depth_uncertainty(d, w, bias_levels=0.4).astype(np.float64)
     np.testing.assert_allclose(biased ** 2, plain ** 2 + 0.16, rtol=1e-5)
     step = float(s.focus_um[1] - s.focus_um[0])
     um = height_uncertainty_um(d, focus_sums(vol), vol.min(axis=0), method="shape_select",
