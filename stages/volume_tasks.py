@@ -239,7 +239,7 @@ def uncertainty(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[in
                                  method=p["method"], n_levels=p["n_levels"],
                                  focus_heights_um=arrays["heights"],
                                  window=p["window"], bias_levels=p["bias"],
-                                 locking_levels=p.get("locking", 0.0),
+                                 locking_levels=p["locking"],
                                  valid=scratch(arrays, "b_valid", shape) > 0.5)
     scratch(arrays, "b_unc", shape)[r0:r1] = u
 
