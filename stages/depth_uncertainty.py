@@ -77,9 +77,9 @@ import cv2
 import numpy as np
 
 __all__ = ["DEFAULT_CONSTANTS_METHOD", "FLOOR_LEVELS", "METHOD_CONSTANTS", "MIX_SCALE",
-           "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE", "SCATTER_SCALE", "curve_width",
-           "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty", "floor_share",
-           "height_uncertainty_um", "locking_visibility", "uncertainty_constants",
+           "OTHER_METHODS", "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE", "SCATTER_SCALE",
+           "curve_width", "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty",
+           "floor_share", "height_uncertainty_um", "locking_visibility", "uncertainty_constants",
            "uncertainty_um", "width_excess", "width_from_sums"]
 
 SCATTER_SCALE = 1.4854
@@ -149,13 +149,33 @@ gauss3 0.9689, 0.9202, 0.075, quadratic3 0.7191, 0.9607, 0.0979, centroid 20.63,
 pulling the centroid, are scatter and little else."""
 
 
+OTHER_METHODS = ("pc", "spc", "wcentroid", "adaptive")
+"""The depth methods that take :data:`OTHER_METHODS_CONSTANTS`. With
+:data:`DEFAULT_CONSTANTS_METHOD` and :data:`METHOD_CONSTANTS`' keys, every one of
+``sffscan.stages.depth.DEPTH_METHODS`` (which this module cannot import: depth imports it;
+a test holds the lists equal)."""
+
+
 def uncertainty_constants(method: str) -> tuple[float, float, float]:
     """The constants ``(a, r, c)`` of the height uncertainty of a depth taken by ``method``:
     the default method's own fit, another method's own (:data:`METHOD_CONSTANTS`), or
-    :data:`OTHER_METHODS_CONSTANTS`."""
+    :data:`OTHER_METHODS_CONSTANTS` (:data:`OTHER_METHODS`).
+
+    Raises
+    ------
+    ValueError
+        For a name none of those lists holds (a study's candidate method, a typo): its
+        uncertainty was never fitted, and no constants are given in its place.
+    """
     if method == DEFAULT_CONSTANTS_METHOD:
         return SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS
-    return METHOD_CONSTANTS.get(method, OTHER_METHODS_CONSTANTS)
+    if method in METHOD_CONSTANTS:
+        return METHOD_CONSTANTS[method]
+    if method in OTHER_METHODS:
+        return OTHER_METHODS_CONSTANTS
+    known = sorted((DEFAULT_CONSTANTS_METHOD, *METHOD_CONSTANTS, *OTHER_METHODS))
+    raise ValueError(f"method {method!r}: no height uncertainty constants for it; "
+                     f"depth methods with them: {', '.join(known)}")
 
 
 MIX_SCALE = 1.0

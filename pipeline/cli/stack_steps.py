@@ -91,6 +91,9 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
                             settings=replace(settings, filter_size=1, min_confidence=0.0),
                             noise_floor=noise_floor)
     log.info("stack: reconstruction done in %.1f s", time.perf_counter() - t0)
+    if raw.uncertainty_um is None:
+        log.warning("stack: no height uncertainty: method %s is a study's candidate, whose "
+                    "uncertainty was never fitted; the outputs hold none", settings.method)
     if settings.filter_size == 1:
         height = raw.height_um
     else:

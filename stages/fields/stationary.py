@@ -135,7 +135,8 @@ class FieldResult:
     uncertainty_um : (H, W) float32 or None
         The height's uncertainty, µm, one sigma (of the raw height:
         :func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`); NaN where the height
-        is; None where not computed.
+        is; None where not computed (a study's candidate method, whose uncertainty was never
+        fitted: ``sffscan.stages.depth.CANDIDATE_METHODS``).
     """
 
     height_um: np.ndarray
@@ -364,14 +365,26 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
+    unc = None
+    if settings.method not in CANDIDATE_METHODS:  # a candidate's was never fitted: None
+        unc = _uncertainty(volume, levels, heights, settings, bias, locking)
+        unc[~np.isfinite(height)] = np.nan
+    return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
+                       confidence=confidence, settings=settings, uncertainty_um=unc)
+
+
+def _uncertainty(volume: np.ndarray, levels: np.ndarray, heights: np.ndarray,
+                 settings: StackSettings, bias: float | None, locking: float) -> np.ndarray:
+    """The raw height's uncertainty, µm (:func:`sffscan.stages.depth_uncertainty.
+    height_uncertainty_um`), with the bias and locking of the method's depth that its
+    scatter cannot show (``bias`` None: measured here; the default's come from its pass)."""
     from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import method_bias, method_locking
     from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     sums, low = focus_sums(vol), vol.min(axis=0)
-    # the bias of the method's depth its scatter cannot show (depth_uncertainty's b); the
-    # curves' widths from their sums, as the depth's own choice takes them
+    # the curves' widths from their sums, as the depth's own choice takes them
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
     if bias is None:
         argmax = first_argmax(vol)
@@ -379,13 +392,10 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
                            width=width)
         locking = method_locking(vol, argmax, settings.method,
                                  median_size=settings.median_size, width=width)
-    unc = height_uncertainty_um(levels, sums, low, method=settings.method,
-                                n_levels=vol.shape[0], focus_heights_um=heights,
-                                window=settings.window, bias_levels=bias,
-                                locking_levels=locking)
-    unc[~np.isfinite(height)] = np.nan
-    return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
-                       confidence=confidence, settings=settings, uncertainty_um=unc)
+    return height_uncertainty_um(levels, sums, low, method=settings.method,
+                                 n_levels=vol.shape[0], focus_heights_um=heights,
+                                 window=settings.window, bias_levels=bias,
+                                 locking_levels=locking)
 
 
 # ----------------------------------------------------------------------------- reading stacks

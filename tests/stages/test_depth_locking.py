@@ -63,6 +63,7 @@ def test_each_method_has_its_constants() -> None:
         DEFAULT_CONSTANTS_METHOD,
         FLOOR_LEVELS,
         METHOD_CONSTANTS,
+        OTHER_METHODS,
         OTHER_METHODS_CONSTANTS,
         RELIEF_SCALE,
         SCATTER_SCALE,
@@ -72,9 +73,23 @@ def test_each_method_has_its_constants() -> None:
     assert DEFAULT_CONSTANTS_METHOD == DEFAULT_METHOD
     assert uncertainty_constants(DEFAULT_METHOD) == (SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS)
     assert set(METHOD_CONSTANTS) < set(DEPTH_METHODS) - {DEFAULT_METHOD}
+    # every depth method in exactly one list: none left to a silent default
+    lists = [[DEFAULT_CONSTANTS_METHOD], list(METHOD_CONSTANTS), list(OTHER_METHODS)]
+    assert sorted(m for names in lists for m in names) == sorted(DEPTH_METHODS)
     for m in DEPTH_METHODS:
         if m != DEFAULT_METHOD:
             assert uncertainty_constants(m) == METHOD_CONSTANTS.get(m, OTHER_METHODS_CONSTANTS)
+
+
+@pytest.mark.parametrize("method", ["warped_select", "shape-select", ""])
+def test_uncertainty_constants_refuse_a_method_without_them(method: str) -> None:
+    """A name with no fitted constants (a study's candidate, a typo) is an error naming it,
+    not the other methods' constants in its place."""
+    from sffscan.stages.depth_uncertainty import uncertainty_constants
+
+    with pytest.raises(ValueError, match=f"method {method!r}: no height uncertainty") as err:
+        uncertainty_constants(method)
+    assert "shape_select" in str(err.value)
 
 
 @pytest.mark.parametrize("method", ["shape_select", "gauss3", "adaptive_centroid"])

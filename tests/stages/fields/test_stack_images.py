@@ -364,3 +364,25 @@ def test_png_orientation_read_from_its_chunks_wherever_the_exif_lies(tmp_path: P
     assert _png_exif(notpng) is None and read_orientation(notpng) == 1
     assert _png_exif(tmp_path / "gone.png") is None  # Pillow's path, as before: as stored
     assert read_orientation(tmp_path / "gone.png") == 1
+
+
+def test_a_candidate_method_writes_no_uncertainty_and_says_so(
+        pertuz_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A study's candidate (``--method window_pc``) has no fitted uncertainty constants: the
+    stack's mosaic holds its heights and an uncertainty that is unknown (NaN) everywhere,
+    not another method's constants in its place, and stderr says why; the default's is
+    known."""
+    images = [str(pertuz_dir / f"im_{i:02d}.tif") for i in range(1, 31)]
+    common = ["--focus-start", "0", "--focus-step", "10", "--pixel-um", "1",
+              "--filter-size", "1"]
+    assert main(["stack", *images, *common, "--method", "window_pc",
+                 "-o", str(tmp_path / "cand.zarr")]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING" in err and "no height uncertainty" in err and "window_pc" in err
+    g = zarr.open_group(str(tmp_path / "cand.zarr"), mode="r")
+    assert np.isfinite(np.asarray(g["height"])).any()
+    assert np.isnan(np.asarray(g["uncertainty"])).all()
+    assert main(["stack", *images, *common, "-o", str(tmp_path / "default.zarr")]) == 0
+    assert "no height uncertainty" not in capsys.readouterr().err
+    u = np.asarray(zarr.open_group(str(tmp_path / "default.zarr"), mode="r")["uncertainty"])
+    assert np.isfinite(u).any()
