@@ -49,6 +49,7 @@ __all__ = [
     "read_zarr_stack",
     "reconstruct_field",
     "stack_to_unit",
+    "stack_uncertainty_um",
 ]
 
 MIN_WEIGHT = 1e-3
@@ -365,19 +366,47 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
     height = confidence_weighted_median(raw, confidence, size=settings.filter_size)
     if settings.min_confidence > 0:
         height[confidence < settings.min_confidence] = np.nan
-    unc = None
-    if settings.method not in CANDIDATE_METHODS:  # a candidate's was never fitted: None
-        unc = _uncertainty(volume, levels, heights, settings, bias, locking)
+    unc = stack_uncertainty_um(volume, levels, heights, method=settings.method,
+                               median_size=settings.median_size, window=settings.window,
+                               bias_levels=bias, locking_levels=locking)
+    if unc is not None:
         unc[~np.isfinite(height)] = np.nan
     return FieldResult(height_um=height, raw_height_um=raw, levels=levels, texture=texture,
                        confidence=confidence, settings=settings, uncertainty_um=unc)
 
 
-def _uncertainty(volume: np.ndarray, levels: np.ndarray, heights: np.ndarray,
-                 settings: StackSettings, bias: float | None, locking: float) -> np.ndarray:
-    """The raw height's uncertainty, µm (:func:`sffscan.stages.depth_uncertainty.
-    height_uncertainty_um`), with the bias and locking of the method's depth that its
-    scatter cannot show (``bias`` None: measured here; the default's come from its pass)."""
+def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_um: np.ndarray,
+                         *, method: str, median_size: int = 11, window: int = 9,
+                         bias_levels: float | None = None, locking_levels: float = 0.0
+                         ) -> np.ndarray | None:
+    """The uncertainty of a stack's raw height, µm, one sigma
+    (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`), with the bias and the
+    locking of the method's depth that its scatter cannot show.
+
+    Parameters
+    ----------
+    volume : (N, H, W) ndarray of float
+        The focus volume the depth was taken from.
+    levels : (H, W) ndarray of float
+        The method's depth, fractional levels.
+    focus_heights_um : (N,) ndarray of float
+        The focus table, µm.
+    method : str, keyword-only
+        The depth method that took ``levels``.
+    median_size, window : int, keyword-only
+        The depth's argmax median and the focus measure's window, px.
+    bias_levels, locking_levels : keyword-only
+        The default's, from its own pass (:func:`sffscan.stages.depth.shape_select_with_bias`);
+        ``bias_levels`` None: measured here for ``method``.
+
+    Returns
+    -------
+    (H, W) ndarray of float32 or None
+        None for a study's candidate method (:data:`sffscan.stages.depth.CANDIDATE_METHODS`),
+        whose uncertainty was never fitted.
+    """
+    if method in CANDIDATE_METHODS:
+        return None
     from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import method_bias, method_locking
     from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
@@ -386,16 +415,15 @@ def _uncertainty(volume: np.ndarray, levels: np.ndarray, heights: np.ndarray,
     sums, low = focus_sums(vol), vol.min(axis=0)
     # the curves' widths from their sums, as the depth's own choice takes them
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
-    if bias is None:
+    if bias_levels is None:
         argmax = first_argmax(vol)
-        bias = method_bias(vol, argmax, settings.method, median_size=settings.median_size,
-                           width=width)
-        locking = method_locking(vol, argmax, settings.method,
-                                 median_size=settings.median_size, width=width)
-    return height_uncertainty_um(levels, sums, low, method=settings.method,
-                                 n_levels=vol.shape[0], focus_heights_um=heights,
-                                 window=settings.window, bias_levels=bias,
-                                 locking_levels=locking)
+        bias_levels = method_bias(vol, argmax, method, median_size=median_size, width=width)
+        locking_levels = method_locking(vol, argmax, method, median_size=median_size,
+                                        width=width)
+    return height_uncertainty_um(levels, sums, low, method=method, n_levels=vol.shape[0],
+                                 focus_heights_um=np.asarray(focus_heights_um, np.float64),
+                                 window=window, bias_levels=bias_levels,
+                                 locking_levels=locking_levels)
 
 
 # ----------------------------------------------------------------------------- reading stacks

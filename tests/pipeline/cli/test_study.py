@@ -46,6 +46,14 @@ def test_study_scores_a_candidate_by_name(pertuz_dir: Path, tmp_path: Path,
     # not lower, 2026-12-05: the warped stack keeps SPC at more pixels; stages/depth_floor.py)
     assert rmse["shape_select"] == pytest.approx(13.52e3, rel=0.01)
     assert rmse["warped_select"] == pytest.approx(10.04e3, rel=0.01)
+    # the uncertainty checked on the same pixels: the default's (0.994 measured; the height
+    # uncertainty's band is 0.90 .. 0.98), none for a candidate (never fitted)
+    with (out / "study.csv").open() as f:
+        within = {r["method"]: float(r["within_2sigma"]) for r in csv.DictReader(f)}
+    assert 0.9 <= within["shape_select"] <= 1.0 and np.isnan(within["warped_select"])
+    ranking = capsys.readouterr().out
+    assert "| within 2 sigma |" in ranking
+    assert [ln for ln in ranking.splitlines() if "| warped_select |" in ln][0].endswith("| n/a |")
     assert main(["study", "--chapter3", "--methods", "warped", "-o", str(tmp_path)]) == 2
     assert "candidates: gauss_window_fit, window_pc, warped_select" in capsys.readouterr().err
 
@@ -194,3 +202,20 @@ def test_study_without_matplotlib_writes_the_table(tmp_path: Path, monkeypatch: 
     assert (tmp_path / "o" / "study.csv").read_text().startswith("operator,")
     assert not (tmp_path / "o" / "study.png").exists()
     assert "matplotlib is not installed" in capsys.readouterr().err
+
+
+def test_within_2sigma_counts_the_pixels_that_hold_every_value() -> None:
+    """The share of scored pixels with |height - truth| <= 2 sigma, over the pixels where
+    height, truth and sigma are finite; NaN without an uncertainty or without a pixel."""
+    from sffscan.pipeline.cli.study import within_2sigma
+
+    h = np.array([[0.0, 1.0, 2.0, 3.0], [0.0, 5.0, np.nan, 0.0]])
+    t = np.zeros((2, 4))
+    s = np.array([[1.0, 0.5, 1.0, 1.0], [1.0, 1.0, 1.0, np.nan]])
+    mask = np.ones((2, 4), bool)
+    # finite everywhere but (1, 2) and (1, 3): |err| 0, 1, 2, 3, 0, 5 against 2, 1, 2, 2, 2, 2
+    assert within_2sigma(h, t, s, mask) == pytest.approx(4 / 6)
+    mask[0, 3] = False
+    assert within_2sigma(h, t, s, mask) == pytest.approx(4 / 5)
+    assert np.isnan(within_2sigma(h, t, None, mask))
+    assert np.isnan(within_2sigma(h, t, s, np.zeros((2, 4), bool)))
