@@ -37,6 +37,7 @@ from sffscan.stages.depth_levels import (
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
 from sffscan.stages.depth_statistics import (
     SHAPE_SAMPLE_STEP,
+    peak_departure,
     pull_statistics,
     sampled_curves,
     shape_statistics,
@@ -44,8 +45,8 @@ from sffscan.stages.depth_statistics import (
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
-           "judged_centre",
-           "block_method", "block_peak_bias", "block_uncertainty", "depth_rows"]
+           "block_departure_bias", "block_method", "block_peak_bias", "block_uncertainty",
+           "depth_rows", "judged_centre"]
 
 BLOCK_CHOICES = ("shape_select", "adaptive_centroid")
 """The methods that choose once for each block of columns (:func:`block_method`)."""
@@ -162,6 +163,36 @@ def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,
     if sample is None:
         return 0.0
     return fallback_bias(pull_statistics(*sample)[0])
+
+
+def block_departure_bias(levels: np.ndarray, argmax: np.ndarray, depth: np.ndarray,
+                         centre: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """The height uncertainty's bias of a block reconstructed by a method of
+    :data:`sffscan.stages.depth_choice.DEPARTURE_METHODS` (levels): the size of its depth's
+    :func:`~sffscan.stages.depth_statistics.peak_departure` at the curves :func:`block_choice`
+    judges, as a stack's :func:`sffscan.stages.depth_choice.method_bias` (0.0 where none has
+    data).
+
+    Parameters
+    ----------
+    levels, argmax, valid
+        As :func:`block_choice`'s.
+    depth : (rows, block) ndarray of float
+        The block's depth, levels.
+    centre : ndarray of int
+        The filtered argmax the block's depth is taken about at the judged grid's pixels
+        (:func:`judged_centre`: the shape of
+        :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax).
+    """
+    sample = sampled_curves(levels, argmax, valid)
+    if sample is None:
+        return 0.0
+    vol, am, seen = sample
+    if np.shape(centre) != np.shape(am):
+        raise ValueError(f"centre must give the judged curves' {np.shape(am)} pixels, got "
+                         f"shape {np.shape(centre)}")
+    rs, cs = SHAPE_SAMPLE_STEP
+    return fallback_bias(peak_departure(np.asarray(depth)[::rs, ::cs], vol, centre, seen))
 
 
 def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,

@@ -44,6 +44,7 @@ from sffscan.stages.depth_levels import median_filter_levels_at
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     judged_curves,
+    peak_departure,
     pull_statistics,
     sample_step,
     shape_statistics,
@@ -52,8 +53,8 @@ from sffscan.stages.depth_statistics import (
 )
 from sffscan.stages.depth_uncertainty import curve_width
 
-__all__ = ["CENTROID_PULL_LIMIT", "PEAK_METHODS", "SHAPE_SELECT_LIMITS", "SPC_END_REACH",
-           "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "centroid_locking",
+__all__ = ["CENTROID_PULL_LIMIT", "DEPARTURE_METHODS", "PEAK_METHODS", "SHAPE_SELECT_LIMITS",
+           "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT", "StackChoice", "centroid_locking",
            "fallback_bias", "judged_width", "method_bias", "method_locking", "peak_locking",
            "shape_select", "spc_bias", "spc_departure", "spc_in_range", "spc_noise",
            "stack_choice", "takes_centroid", "takes_spc", "takes_wide_centroid", "wide_choice"]
@@ -466,6 +467,16 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     return StackChoice(True, taken[0], pull, noise, taken[1])
 
 
+DEPARTURE_METHODS = ("pc", "spc", "wcentroid")
+"""The methods that read the whole curve (PC, SPC) or a wide window of it (the 9-level
+centroid) and keep the constants fitted to the default's errors
+(:data:`sffscan.stages.depth_uncertainty.OTHER_METHODS_CONSTANTS`): the height uncertainty
+adds the size of their :func:`~sffscan.stages.depth_statistics.peak_departure` as their bias
+(:func:`method_bias`), as ``"shape_select"`` adds SPC's where it takes SPC. Added 2026-12-05
+(night; seeds 6..47, 140 (seed set, family) rows each, under the 90-98 % band / in it:
+wcentroid 25 -> 1 / 105 -> 107, spc 58 -> 3 / 77 -> 89, pc 59 -> 3 / 76 -> 88;
+docs/depth-method-log.md)."""
+
 PEAK_METHODS = ("adaptive", "adaptive_centroid")
 """The methods whose depth is a peak about each curve's filtered argmax (the 3-point
 Gaussian or the 5-level centroid), as ``"shape_select"``'s fallback's is: the height
@@ -541,11 +552,14 @@ def fallback_bias(pull: float) -> float:
 
 
 def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
-                median_size: int = 11, width: np.ndarray | None = None) -> float:
+                median_size: int = 11, width: np.ndarray | None = None,
+                depth: np.ndarray | None = None) -> float:
     """The bias (levels) the height uncertainty of a whole stack reconstructed with
     ``method`` adds: ``"shape_select"``'s :attr:`StackChoice.bias`, a peak method's
-    :func:`fallback_bias` on :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, 0.0 for
-    the other methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
+    :func:`fallback_bias` on :func:`~sffscan.stages.depth_statistics.stack_sample`'s curves, a
+    method of :data:`DEPARTURE_METHODS` the size of its :func:`~sffscan.stages.
+    depth_statistics.peak_departure` there (its ``depth`` needed), 0.0 for the other
+    methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
     :func:`stack_choice`'s (``width`` from the curves' sums, as the depth's choice takes it,
     saves its float64 :func:`~sffscan.stages.depth_uncertainty.curve_width`); ``method`` the
     depth method. For ``"shape_select"`` this is its choice's bias before the
@@ -557,6 +571,16 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
     if method in PEAK_METHODS:
         vol, peak, _ = stack_sample(volume, argmax)
         return fallback_bias(pull_statistics(vol, peak)[0])
+    if method in DEPARTURE_METHODS:
+        if depth is None:
+            raise ValueError(f"method {method!r}: its bias is its depth's departure from the "
+                             "curves' peaks: give the depth")
+        s = sample_step(np.shape(argmax))
+        h, w = np.shape(argmax)
+        centre = median_filter_levels_at(argmax, median_size, np.arange(0, h, s),
+                                         np.arange(0, w, s))
+        vol = stack_sample(volume, argmax)[0]
+        return fallback_bias(peak_departure(np.asarray(depth)[::s, ::s], vol, centre))
     return 0.0
 
 

@@ -10,6 +10,8 @@ method chooses its estimator (the choices are :mod:`sffscan.stages.depth_choice`
   ratio of their harmonic width to their extent above half height;
 * how far the fallback's wide centroid departs from its peak estimator where the focus
   window sees several heights, :func:`wide_departure` (on :func:`sample_step`'s lattice);
+  how far a whole-curve or wide-window method's depth departs from the curves' peaks,
+  :func:`peak_departure`;
 * robust medians and spreads: :func:`median_spread`, :func:`row_median`.
 """
 
@@ -22,7 +24,7 @@ from sffscan.stages.depth_candidates import half_height_count
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
 __all__ = ["SHAPE_SAMPLE_STEP", "SHAPE_STACK_CURVES", "centroid_pull", "curve_skew",
-           "judged_curves", "median_spread", "pull_statistics", "row_median",
+           "judged_curves", "median_spread", "peak_departure", "pull_statistics", "row_median",
            "sample_step", "sampled_curves", "shape_statistics", "stack_sample",
            "wide_departure"]
 
@@ -129,6 +131,41 @@ def wide_departure(wide_depth: np.ndarray, peak_depth: np.ndarray) -> tuple[floa
     if diff.size == 0:
         return math.nan, math.nan
     return median_spread(diff.reshape(-1))
+
+
+def peak_departure(depth: np.ndarray, levels: np.ndarray, centre: np.ndarray,
+                   mask: np.ndarray | None = None) -> float:
+    """How far a depth map departs from the curves' peaks: the median over the judged
+    pixels (:func:`judged_curves` of ``centre``, the ``mask`` ones, finite ``depth``) of
+    ``depth`` minus the 3-point Gaussian at ``centre``, levels; NaN where none is judged.
+
+    On even curves a method that reads the whole curve (SPC, PC) or a wide window of it
+    (the 9-level centroid) finds the peak, and the median is about 0 whatever the noise; on
+    lopsided or flat-topped curves (a thin lens, a pillbox) it is pulled into the longer
+    flank the same way on every curve: a bias of the map that its scatter does not show
+    (SPC's departure in ``"shape_select"``'s test, :func:`~sffscan.stages.depth_choice.
+    spc_departure`, is this against the fallback's peak).
+
+    Parameters
+    ----------
+    depth : (H, W) ndarray of float
+        The method's depth at the judged pixels, levels.
+    levels : (N, H, W) ndarray of float
+        Their focus curves.
+    centre : (H, W) ndarray of int
+        The filtered argmax the peak is read about (the depth's own).
+    mask : (H, W) ndarray of bool, optional
+        The pixels judged (all when None).
+    """
+    am, ok = judged_curves(centre, np.shape(levels)[0], mask)
+    d = np.asarray(depth, np.float32)
+    ok &= np.isfinite(d)
+    if not ok.any():
+        return math.nan
+    cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
+    a = am[ok]
+    peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
+    return float(np.median(d[ok].astype(np.float64) - peak))
 
 
 def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None

@@ -144,7 +144,7 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     else:
         d = depth_from_focus(volume, method=method, median_size=median_size,
                              spread_size=spread_size, argmax=a)[0]
-        bias = method_bias(volume, a, method, median_size=median_size)
+        bias = method_bias(volume, a, method, median_size=median_size, depth=d)
         locking = method_locking(volume, a, method, median_size=median_size, width=width)
     return _uncertainty_terms(d, width, truth_levels, mask, sse={},
                               window=spread_size, bias=bias, locking=locking)

@@ -56,7 +56,12 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
   of the curves' centroid pull (:func:`sffscan.stages.depth_choice.fallback_bias`: two peak
   estimators that disagree the same way on every curve), also as it is (2026-12-04, late
   night: the held-out sets under the band 13 -> 7 over five sets of seeds;
-  docs/depth-method-log.md).
+  docs/depth-method-log.md). Where it is SPC, PC or the 9-level centroid by name
+  (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), ``b`` is the size of the map's
+  departure from the curves' 3-point peaks (:func:`sffscan.stages.depth_statistics.
+  peak_departure`: a whole curve's or a wide window's pull into a lopsided curve's longer
+  flank), as it is (2026-12-05, night: their held-out rows under the band 25 / 58 / 59 ->
+  1 / 3 / 3 of 140; in a streaming scan, whose SPC and PC keep no curves, none).
 * ``c``: a floor, levels (the estimator's sub-level bias on a perfectly smooth surface).
 
 ``a``, ``r`` and ``c`` are fitted on the *training* seeds of the synthetic families

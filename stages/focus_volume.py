@@ -45,7 +45,7 @@ from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
-from sffscan.stages.depth_choice import wide_choice
+from sffscan.stages.depth_choice import DEPARTURE_METHODS, wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
@@ -482,7 +482,8 @@ class FocusVolume:
         Re H_1, Im H_1) and minima (views of the block's scratch arrays), and the bias the
         uncertainty adds (levels: SPC's where the block took it, a peak method's
         :func:`~sffscan.stages.block_depth.block_choice` or
-        :func:`~sffscan.stages.block_depth.block_peak_bias`; else 0.0) and the locking it adds
+        :func:`~sffscan.stages.block_depth.block_peak_bias`, ``"wcentroid"``'s
+        :func:`~sffscan.stages.block_depth.block_departure_bias`; else 0.0) and the locking it adds
         where the scatter cannot show it (:func:`~sffscan.stages.block_depth.block_choice`'s;
         else 0.0): the method chosen
         once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
@@ -521,6 +522,12 @@ class FocusVolume:
                                    valid=valid, strips=WINDOW_STRIPS)
             if hidden is not None:  # the centroid's bias, beside the fallback's
                 bias = math.hypot(bias, hidden)
+        if self.fv is not None and method in DEPARTURE_METHODS and self.uncertainty:
+            # a wide window's pull into lopsided curves' longer flank (a streaming scan's
+            # SPC or PC keeps no curves to read the peaks from: none there)
+            bias = blocks.block_departure_bias(
+                self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1),
+                scratch(a, "b_depth", shape), self._centre(u0, u1), valid)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias, locking)
 

@@ -417,7 +417,8 @@ def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_u
     width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
     if bias_levels is None:
         argmax = first_argmax(vol)
-        bias_levels = method_bias(vol, argmax, method, median_size=median_size, width=width)
+        bias_levels = method_bias(vol, argmax, method, median_size=median_size, width=width,
+                                  depth=levels)
         locking_levels = method_locking(vol, argmax, method, median_size=median_size,
                                         width=width)
     return height_uncertainty_um(levels, sums, low, method=method, n_levels=vol.shape[0],

@@ -166,3 +166,49 @@ def test_a_blocks_uncertainty_with_locking_is_the_same_in_any_bands() -> None:
                                 for a, b in zip(edges[:-1], edges[1:], strict=True)])
         assert parts.tobytes() == whole.tobytes()
     assert (whole > block_uncertainty(depth, sums, low, (0, rows), **kw)).all()
+
+
+def test_peak_departure_is_the_median_offset_from_the_three_point_peak() -> None:
+    """On noise-free Gaussian curves the 3-point Gaussian is exact: a map offset by 0.25
+    level departs by 0.25; curves within 2 levels of an end, masked ones and NaN depths are
+    not judged; none judged is NaN."""
+    from sffscan.stages.depth_statistics import peak_departure
+
+    n, frac = 21, np.linspace(-0.4, 0.4, 9)
+    peaks = np.r_[8.0 + frac, 1.0, 19.5]  # the last two lie near the ends
+    z = np.arange(n, dtype=np.float64)[:, None]
+    vol = np.exp(-((z - peaks[None, :]) ** 2) / (2 * 1.5 ** 2)).astype(np.float32)[:, None, :]
+    centre = np.rint(peaks).astype(np.intp)[None, :]
+    depth = (peaks + 0.25)[None, :]
+    depth[0, -2:] += 5.0  # far off, but not judged
+    assert peak_departure(depth, vol, centre) == pytest.approx(0.25, abs=1e-5)
+    depth[0, :4] = np.nan  # the others still give 0.25
+    assert peak_departure(depth, vol, centre) == pytest.approx(0.25, abs=1e-5)
+    mask = np.zeros(centre.shape, bool)
+    mask[0, 4] = True
+    assert peak_departure(depth - 0.5, vol, centre, mask) == pytest.approx(-0.25, abs=1e-5)
+    assert np.isnan(peak_departure(depth, vol, centre, ~np.ones(centre.shape, bool)))
+
+
+def test_a_block_departure_bias_reads_the_judged_grid() -> None:
+    """A scan block's bias for the 9-level centroid: the size of its depth's departure from
+    the 3-point peaks at the curves block_choice judges (every 16th row, 8th column);
+    0.0 for a block without data; a centre of another shape is refused."""
+    from sffscan.stages.block_depth import block_departure_bias, judged_centre
+
+    rng = np.random.default_rng(3)
+    n, rows, cols = 25, 64, 32
+    peaks = 6.0 + 12.0 * rng.random((rows, cols))
+    z = np.arange(n, dtype=np.float64)[:, None, None]
+    vol = np.exp(-((z - peaks[None]) ** 2) / (2 * 1.8 ** 2)).astype(np.float32)
+    argmax = np.rint(peaks).astype(np.intp)
+    centre = judged_centre(argmax, 1)
+    assert block_departure_bias(vol, argmax, peaks - 0.3, centre) == pytest.approx(0.3,
+                                                                                  abs=1e-4)
+    # only the judged grid counts: the other pixels' depth is not read
+    off = peaks - 0.3
+    off[1::16] += 7.0
+    assert block_departure_bias(vol, argmax, off, centre) == pytest.approx(0.3, abs=1e-4)
+    assert block_departure_bias(np.zeros_like(vol), argmax, peaks, centre) == 0.0
+    with pytest.raises(ValueError, match="judged curves' "):
+        block_departure_bias(vol, argmax, peaks, argmax)

@@ -498,7 +498,18 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     assert method_locking(lv, la, "adaptive_centroid") == pytest.approx(locking, rel=1e-6)
     assert method_bias(lv, la, "shape_select") == pytest.approx(refused.bias)
     assert method_locking(lv, la, "shape_select") == pytest.approx(locking, rel=1e-6)
-    assert method_bias(lv, la, "spc") == 0.0  # no bias term for the other methods
+    # the whole-curve and wide-window methods: the size of their depth's departure from the
+    # curves' peaks (given their depth), pulled into the lopsided curves' longer flank
+    from sffscan.stages.depth_statistics import peak_departure
+
+    centre = median_filter_levels(la, 11, 30)
+    for m in ("spc", "pc", "wcentroid"):
+        dm = depth_from_focus(lv, method=m)[0]
+        got = method_bias(lv, la, m, depth=dm)
+        assert got == pytest.approx(abs(peak_departure(dm, lv, centre))) and got > 0.05
+        with pytest.raises(ValueError, match=f"method '{m}': .* give the depth"):
+            method_bias(lv, la, m)
+    assert method_bias(lv, la, "gauss3") == 0.0  # no bias term for the other methods
     assert method_locking(lv, la, "spc") == 0.0
     assert fallback_bias(-0.3) == 0.3 and fallback_bias(float("nan")) == 0.0
 
