@@ -115,13 +115,15 @@ def strip_region(cfg: Any) -> tuple[int, int, int, int]:
             y + o.height_px - inset)
 
 
-def mosaic_height(path: Path, region: tuple[int, int, int, int]) -> np.ndarray:
-    """The mosaic's height over a world px box, NaN where it has nothing."""
+def mosaic_height(path: Path, region: tuple[int, int, int, int], *,
+                  array: str = "height") -> np.ndarray:
+    """The mosaic's ``array`` (``height``, or ``uncertainty``: µm, one sigma) over a world
+    px box, NaN where it has nothing."""
     g = zarr.open_group(str(path), mode="r")
     origin: Any = g.attrs["origin_px"]
     ox, oy = (int(v) for v in origin)
     x0, y0, x1, y1 = region
-    full = g["height"]
+    full = g[array]
     out = np.full((y1 - y0, x1 - x0), np.nan, np.float32)
     r0, c0 = max(y0 - oy, 0), max(x0 - ox, 0)
     r1 = min(y1 - oy, full.shape[0])  # type: ignore[union-attr]
@@ -160,6 +162,7 @@ def run_seed(seed: int, world: str, args: argparse.Namespace, methods: Sequence[
     x0, y0, x1, y1 = region
     truth = make_world(cfg).height_um(float(x0), float(y0), x1 - x0, y1 - y0)
     heights: dict[tuple[str, str], np.ndarray] = {}
+    sigmas: dict[tuple[str, str], np.ndarray] = {}
     secs: dict[tuple[str, str], float] = {}
     for method in methods:  # interleaved: measured and true of one method back to back
         for kind in ("measured", "true"):
@@ -170,6 +173,7 @@ def run_seed(seed: int, world: str, args: argparse.Namespace, methods: Sequence[
                                        "registration": kind == "measured"})
             secs[kind, method] = time.perf_counter() - t
             heights[kind, method] = mosaic_height(out, region)
+            sigmas[kind, method] = mosaic_height(out, region, array="uncertainty")
             print(f"{tag} {kind:8s} {method:10s} {secs[kind, method]:.1f} s",
                   file=sys.stderr, flush=True)
     common = np.isfinite(truth)
@@ -179,6 +183,12 @@ def run_seed(seed: int, world: str, args: argparse.Namespace, methods: Sequence[
     for (kind, method), h in heights.items():
         own = np.isfinite(h) & np.isfinite(truth)
         err = (h - truth).astype(np.float64)
+        # the mosaic's own uncertainty (issue 24's bar: |error| <= 2 sigma for 90-98 % of
+        # the pixels), on the pixels with a height and a finite sigma (NaN: unknown)
+        sig = sigmas[kind, method].astype(np.float64)
+        rated = own & np.isfinite(sig)
+        within = (float(np.mean(np.abs(err[rated]) <= 2.0 * sig[rated]))
+                  if rated.any() else float("nan"))
         rows.append({
             "world": world, "seed": seed, "kind": kind, "method": method,
             "rmse_um": float(np.sqrt(np.mean(err[common] ** 2))),
@@ -186,6 +196,8 @@ def run_seed(seed: int, world: str, args: argparse.Namespace, methods: Sequence[
             "median_abs_err_um": float(np.median(np.abs(err[common]))),
             "p95_abs_err_um": float(np.percentile(np.abs(err[common]), 95)),
             "coverage": float(own.mean()), "common_pixels": int(common.sum()),
+            "within_2sigma": within, "sigma_unknown": float(np.mean(own & ~rated)),
+            "median_sigma_um": float(np.median(sig[rated])) if rated.any() else float("nan"),
             "region_px": list(region), "replay_s": round(secs[kind, method], 2),
         })
     ref: dict[str, float] = {r["method"]: r["rmse_um"] for r in rows if r["kind"] == "true"}
@@ -203,8 +215,9 @@ def table(rows: list[dict[str, Any]], methods: Sequence[str], default: str) -> s
     by = {(r["seed"], r["kind"], r["method"]): r for r in rows}
     lines = ["| method | seed | RMSE µm (registered) | RMSE µm (true offsets) | "
              "registered / own true-offset ref | registered / best true-offset ref | "
-             "median, p95 \\|err\\| µm (registered) | coverage |",
-             "|---|---|---|---|---|---|---|---|"]
+             "median, p95 \\|err\\| µm (registered) | coverage | within 2 sigma "
+             "(registered) | median sigma µm |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for m in methods:
         for s in seeds:
             a, b = by[s, "measured", m], by[s, "true", m]
@@ -212,7 +225,8 @@ def table(rows: list[dict[str, Any]], methods: Sequence[str], default: str) -> s
             lines.append(f"| {tag} | {s} | {a['rmse_um']:.2f} | {b['rmse_um']:.2f} | "
                          f"{a['ratio_same_method_ref']:.3f} | {a['ratio_best_ref']:.3f} "
                          f"(best: {a['best_ref_method']}) | {a['median_abs_err_um']:.1f}, "
-                         f"{a['p95_abs_err_um']:.0f} | {a['coverage']:.3f} |")
+                         f"{a['p95_abs_err_um']:.0f} | {a['coverage']:.3f} | "
+                         f"{a['within_2sigma']:.3f} | {a['median_sigma_um']:.1f} |")
     lines += ["", "Mean over the seeds:", "",
               "| method | registered / own true-offset ref | registered / best true-offset ref"
               " | its true-offset ref / best true-offset ref |", "|---|---|---|---|"]
