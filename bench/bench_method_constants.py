@@ -57,16 +57,17 @@ TRAINING = tuple(range(6))
 BAND = (0.90, 0.98)
 
 
-def sample(job: tuple[str, int]) -> tuple[tuple[str, int], dict[str, Any]]:
-    """Every method's uncertainty sample on one family stack."""
-    family, seed = job
+def sample(job: tuple[str, int, tuple[str, ...]]
+           ) -> tuple[tuple[str, int], dict[str, Any]]:
+    """The methods' uncertainty samples on one family stack."""
+    family, seed, methods = job
     st = family_stack(family, seed, size_px=64)
     vol = focus_measure(st.images, operator="glvm", window=9)
     mask = np.zeros(st.truth_um.shape, bool)
     mask[4:-4, 4:-4] = True
     truth = (st.truth_um - st.focus_um[0]) / (st.focus_um[1] - st.focus_um[0])
-    return job, {m: uncertainty_sample(vol, truth, mask, spread_size=9, method=m)
-                 for m in DEPTH_METHODS}
+    return (family, seed), {m: uncertainty_sample(vol, truth, mask, spread_size=9, method=m)
+                            for m in methods}
 
 
 def side(coverage: float) -> str:
@@ -91,7 +92,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--held-out", nargs=2, type=int, default=(6, 48), metavar=("FIRST", "END"),
                     help="held-out seeds FIRST .. END - 1, in sets of six (default 6 48)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "method_constants")
+    ap.add_argument("--methods", default="all",
+                    help=f"depth methods, comma separated, or 'all' ({', '.join(DEPTH_METHODS)})")
     args = ap.parse_args(argv)
+    methods = tuple(DEPTH_METHODS) if args.methods == "all" else tuple(args.methods.split(","))
+    for m in methods:
+        if m not in DEPTH_METHODS:
+            ap.error(f"--methods: unknown depth method {m!r}")
     first, end = args.held_out
     if first < len(TRAINING) or end - first < 6:
         raise SystemExit(f"--held-out: at least six seeds from {len(TRAINING)} on, "
@@ -99,12 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     sets = [list(range(a, min(a + 6, end))) for a in range(first, end, 6)]
     names = family_names(crossed=True)
     t0 = time.time()
-    jobs = [(f, s) for f in names for s in (*TRAINING, *range(first, end))]
+    jobs = [(f, s, methods) for f in names for s in (*TRAINING, *range(first, end))]
     with Pool(2) as pool:
         samples = dict(pool.imap_unordered(sample, jobs, chunksize=4))
     print(f"{len(jobs)} stacks sampled in {time.time() - t0:.0f} s", flush=True)
     rows: list[dict[str, Any]] = []
-    for m in DEPTH_METHODS:
+    for m in methods:
         groups = {f: [samples[f, s][m] for s in TRAINING] for f in names}
         own = fit_uncertainty([groups[f] for f in names])
         fold = {f: fit_uncertainty([groups[g] for g in names if g != f]) for f in names}

@@ -33,6 +33,7 @@ __all__ = [
     "focus_confidence",
     "focus_sums",
     "harmonic_table",
+    "pc_depth",
     "spc_depth",
     "strip_sums",
     "volume_strips",
@@ -213,6 +214,20 @@ def _phase_levels(re: np.ndarray, im: np.ndarray, n: int) -> np.ndarray:
     return np.arctan2(im, re) * (-n / (2.0 * math.pi))
 
 
+def pc_depth(re: np.ndarray, im: np.ndarray, *, n_levels: int) -> np.ndarray:
+    """PC's depth (fractional levels in [0, N)) from each curve's first harmonic, as
+    :func:`depth_from_sums` computes it for ``"pc"``: ``-angle(H_1) N / (2 pi) mod N``.
+
+    Parameters
+    ----------
+    re, im : (H, W) ndarray of float
+        Re H_1 and Im H_1 (:func:`harmonic_table`'s last two rows times the curve).
+    n_levels : int, keyword-only
+        N.
+    """
+    return _wrap(_phase_levels(re, im, n_levels), n_levels)
+
+
 def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarray,
                     argmax: np.ndarray | None, *, n_levels: int, method: str,
                     median_size: int) -> np.ndarray:
@@ -225,7 +240,7 @@ def depth_from_sums(h0: np.ndarray, hk: np.ndarray, re: np.ndarray, im: np.ndarr
     n = n_levels
     positive = h0 > 0
     if method == "pc":
-        depth = _wrap(_phase_levels(re, im, n), n)
+        depth = pc_depth(re, im, n_levels=n)
     elif method == "spc":
         assert argmax is not None
         depth = spc_depth(re, im, median_filter_levels(argmax, median_size, n), n_levels=n)

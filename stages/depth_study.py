@@ -30,6 +30,7 @@ from sffscan.stages.depth import (
     DEPTH_METHODS,
     depth_from_focus,
     first_argmax,
+    focus_sums,
     shape_select_with_bias,
 )
 from sffscan.stages.depth_choice import method_bias, method_locking
@@ -41,6 +42,7 @@ from sffscan.stages.depth_study_grid import (
     score_key,
 )
 from sffscan.stages.depth_uncertainty import (
+    centroid_departure,
     curve_width,
     depth_range,
     depth_relief,
@@ -114,7 +116,7 @@ def _default_depth(volume: np.ndarray, argmax: np.ndarray, *, median_size: int,
 def _uncertainty_terms(depth: np.ndarray, width: np.ndarray,
                        truth_levels: np.ndarray, mask: np.ndarray, *,
                        sse: dict[str, float], window: int, bias: float,
-                       locking: float) -> _Scores:
+                       locking: float, pull: np.ndarray | None = None) -> _Scores:
     scatter = depth_scatter(depth, window=window)
     excess = width_excess(width, depth_range(depth, window=window), window=window)
     count = int(mask.sum())
@@ -122,7 +124,8 @@ def _uncertainty_terms(depth: np.ndarray, width: np.ndarray,
     # b in quadrature with the locking the scatter cannot show, per pixel (depth_uncertainty)
     seen = locking_visibility(cv2.medianBlur(np.ascontiguousarray(depth, np.float32), 5),
                               window=window)[mask]
-    b = np.sqrt(np.float32(bias * bias) + (np.float32(locking) * seen) ** 2)
+    b = np.sqrt(np.float32(bias * bias) + (np.float32(locking) * seen) ** 2
+                + (0.0 if pull is None else pull[mask] ** 2))
     return _Scores(sse, count, (depth - truth_levels)[mask], scatter[mask], relief[mask],
                    excess[mask], b.astype(np.float32, copy=False))
 
@@ -146,8 +149,14 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
                              spread_size=spread_size, argmax=a)[0]
         bias = method_bias(volume, a, method, median_size=median_size, depth=d)
         locking = method_locking(volume, a, method, median_size=median_size, width=width)
+    # the whole-curve centroid's departure from its curve's phase, per pixel, as a stack's
+    # or scan's uncertainty adds it (depth_uncertainty.height_uncertainty_um)
+    pull = None
+    if method == "centroid":
+        sums = focus_sums(np.asarray(volume, np.float32))
+        pull = centroid_departure(d, sums[1], sums[2], volume.shape[0])
     return _uncertainty_terms(d, width, truth_levels, mask, sse={},
-                              window=spread_size, bias=bias, locking=locking)
+                              window=spread_size, bias=bias, locking=locking, pull=pull)
 
 
 @dataclass(frozen=True)
