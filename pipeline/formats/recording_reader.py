@@ -118,12 +118,24 @@ def _rebuild_from_headers(headers: zarr.Array, meta: dict[str, np.ndarray], bad:
         if row.size > BASE_COLUMNS and row[BASE_COLUMNS] != i:
             continue
         pos = row[3:5].view(np.float64)
-        values = (row[0], row[1], row[2], pos[0], pos[1], row[5])
-        for name, value in zip(HEADER_COLUMNS[:BASE_COLUMNS], values, strict=True):
+        values = dict(zip(HEADER_COLUMNS[:BASE_COLUMNS],
+                          (row[0], row[1], row[2], pos[0], pos[1], row[5]), strict=True))
+        if not all(_fits(meta[name].dtype, v) for name, v in values.items()):
+            continue  # a value the metadata's column cannot hold: the entry stays lost
+        for name, value in values.items():
             meta[name][i] = value
         bad.discard(i)
         rebuilt += 1
     return rebuilt
+
+
+def _fits(dtype: np.dtype, value: np.integer | np.floating) -> bool:
+    """Whether a header copy's ``value`` fits a metadata column of ``dtype`` (an int32
+    column cannot take a 64-bit copy's 3e9, whatever corrupted it)."""
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        return bool(info.min <= int(value) <= info.max)
+    return True
 
 
 @dataclass
