@@ -95,6 +95,8 @@ class BatchRow:
     frames_lost: int | None = None
     valid_pixels: int | None = None
     rmse_um: float | None = None
+    #: share of the scored pixels within 2 sigma of the truth (the uncertainty's calibration)
+    within_2sigma: float | None = None
     #: valid pixels / pixels the scan's plan measures (:func:`plan_cover`)
     coverage: float | None = None
     wall_s: float | None = None
@@ -209,7 +211,7 @@ def _replay(recording: str, mosaic: str, *, processing: dict[str, Any], evaluate
         group = zarr.open_group(str(mosaic), mode="r", use_consolidated=False)
         acc = stored_accuracy(group.attrs.asdict())
         if acc is not None:
-            row.rmse_um = acc.rmse_um
+            row.rmse_um, row.within_2sigma = acc.rmse_um, acc.within_2sigma
     row.coverage = plan_cover(mosaic)
 
 
@@ -305,6 +307,7 @@ def _kept(recording: Path, mosaic: Path, attrs: dict[str, Any]) -> BatchRow:
                    frames=rec.get("frames"), frames_lost=rec.get("frames_lost"),
                    valid_pixels=attrs.get("valid_pixels"),
                    rmse_um=acc.rmse_um if acc is not None else None,
+                   within_2sigma=acc.within_2sigma if acc is not None else None,
                    coverage=plan_cover(mosaic))
     if attrs.get("status") == "incomplete":
         row.status = "incomplete"
@@ -439,7 +442,9 @@ def is_results_csv(path: Path) -> bool:
             first = f.readline().strip()
     except (OSError, UnicodeDecodeError):
         return False
-    return first == ",".join(f.name for f in fields(BatchRow))
+    names = [f.name for f in fields(BatchRow)]
+    # this version's header, or the one before ``within_2sigma`` (a folder of an older batch)
+    return first in (",".join(names), ",".join(n for n in names if n != "within_2sigma"))
 
 
 def write_csv(rows: Sequence[BatchRow], path: Path) -> None:
@@ -457,7 +462,7 @@ def write_csv(rows: Sequence[BatchRow], path: Path) -> None:
 def format_table(rows: Sequence[BatchRow]) -> str:
     """The results table for a terminal."""
     lines = [f"{'recording':<28} {'status':<10} {'frames':>7} {'lost':>5} {'RMSE µm':>8} "
-             f"{'cover':>6} {'s':>7}  error / note"]
+             f"{'in 2σ':>6} {'cover':>6} {'s':>7}  error / note"]
 
     def num(v: float | int | None, fmt: str) -> str:
         return "-" if v is None else format(v, fmt)
@@ -465,7 +470,8 @@ def format_table(rows: Sequence[BatchRow]) -> str:
     for r in rows:
         lines.append(f"{Path(r.recording).name[:28]:<28} {r.status:<10} "
                      f"{num(r.frames, 'd'):>7} {num(r.frames_lost, 'd'):>5} "
-                     f"{num(r.rmse_um, '.1f'):>8} {num(r.coverage, '.3f'):>6} "
+                     f"{num(r.rmse_um, '.1f'):>8} {num(r.within_2sigma, '.3f'):>6} "
+                     f"{num(r.coverage, '.3f'):>6} "
                      f"{num(r.wall_s, '.1f'):>7}  {'; '.join(t for t in (r.error, r.note) if t)}")
     counts = {s: sum(1 for r in rows if r.status == s) for s in STATUSES}
     lines.append(", ".join(f"{n} {s}" for s, n in counts.items() if n) or "nothing")

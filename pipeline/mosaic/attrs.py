@@ -24,6 +24,12 @@ class MosaicAccuracy(BaseModel):
         description="Peak signal-to-noise ratio, dB, with the focus range as the peak")
     pixels: int = Field(ge=0, description="Pixels compared (finite in the mosaic)")
     coverage: float = Field(ge=0, le=1, description="Finite fraction of the pixels asked")
+    within_2sigma: float | None = Field(
+        default=None, ge=0, le=1,
+        description="Share of the compared pixels with a finite uncertainty whose |error| "
+        "is at most twice it (calibrated: 0.90 .. 0.98); null without an uncertainty")
+    sigma_pixels: int | None = Field(
+        default=None, ge=0, description="Compared pixels with a finite uncertainty")
 
 
 class MosaicAttrs(BaseModel):

@@ -105,6 +105,19 @@ def test_rerun_resumes_an_interrupted_mosaic_keeps_an_incomplete_one_and_shows_s
     assert 0 < float(row["rmse_um"]) < 200 and float(row["rmse_um"]) == acc.rmse_um
     assert float(row["coverage"]) == acc.coverage and acc.pixels == attrs["valid_pixels"]
     assert acc.corr is not None and 0.5 < acc.corr <= 1
+    # and the uncertainty's calibration on that truth, counted again here from the arrays
+    from sffscan.pipeline.config import ScanConfig
+    from sffscan.pipeline.sim_source import make_world
+
+    g = zarr.open_group(str(mosaic), mode="r")
+    h, u = np.asarray(g["height"]), np.asarray(g["uncertainty"])
+    ox, oy = attrs["origin_px"]
+    cfg = ScanConfig.model_validate(attrs["scan_config"])
+    err = h - make_world(cfg).height_um(ox, oy, h.shape[1], h.shape[0])
+    rated = np.isfinite(err) & np.isfinite(u)
+    assert acc.sigma_pixels == int(rated.sum()) > 0
+    assert acc.within_2sigma == pytest.approx(float(np.mean(np.abs(err[rated]) <= 2 * u[rated])))
+    assert float(row["within_2sigma"]) == acc.within_2sigma
     # the recording with a corrupt frame chunk ends incomplete
     g = rows["gappy.zarr"]
     assert (g["status"], g["frames_lost"]) == ("incomplete", "1")

@@ -171,7 +171,8 @@ def test_info_mosaic_is_readable(tmp_path: Path, capsys: pytest.CaptureFixture[s
 
     m = _mosaic(tmp_path)
     store_accuracy(m, Accuracy(rmse_um=3.25, corr=0.9991, psnr_db=48.5, pixels=288,
-                               coverage=0.75), truth="test")
+                               coverage=0.75, within_2sigma=0.9375, sigma_pixels=288),
+                   truth="test")
     assert main(["info", str(m)]) == 0
     out = capsys.readouterr().out
     assert "{'" not in out and "': " not in out, out  # no Python dict
@@ -181,6 +182,7 @@ def test_info_mosaic_is_readable(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert f"height      {np.nanmin(h):.1f} .. {np.nanmax(h):.1f} µm" in out
     assert ("accuracy    RMSE 3.2 µm, CORR 0.9991, PSNR 48.5 dB over 288 px (stored; against "
             "test)") in out
+    assert "uncertainty 93.8 % of 288 px within 2 sigma of that truth (calibrated: 90-98 %)" in out
     assert main(["info", str(m), "--json"]) == 0
     got = json.loads(capsys.readouterr().out)
     assert got["valid_pixels"] == 288 and got["accuracy"]["rmse_um"] == 3.25
