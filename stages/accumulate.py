@@ -51,6 +51,10 @@ class AccumulatorState(NamedTuple):
     low: np.ndarray | None  # float32 (rows, ring): running minimum, or None
     fv: np.ndarray | None  # float32 (N, rows, ring): every level, or None
     level_buf: np.ndarray  # (rows, >= columns of a write), argmax's dtype: scratch, by row
+    #: float32 (N, ceil(rows / grid_step), ring): every level of every grid_step-th row
+    #: (the curves a block's bias is judged on, kept where no N-level ring is), or None
+    grid: np.ndarray | None = None
+    grid_step: int = 16
 
 
 def _update(state: AccumulatorState, w: Write, a: int, b: int) -> None:
@@ -61,6 +65,11 @@ def _update(state: AccumulatorState, w: Write, a: int, b: int) -> None:
     level = w.level
     if state.fv is not None:
         state.fv[level, rows, cs] = f
+    if state.grid is not None:
+        k = state.grid_step
+        g0, g1 = -(-a // k), -(-b // k)  # the grid rows g * k within [a, b)
+        if g1 > g0:
+            state.grid[level, g0:g1, cs] = f[g0 * k - a::k]
     for plane, c in zip(state.sums, state.coef[:len(state.sums), level], strict=True):
         c = float(c)
         view = plane[rows, cs]

@@ -166,7 +166,8 @@ def block_peak_bias(levels: np.ndarray, argmax: np.ndarray,
 
 
 def block_departure_bias(levels: np.ndarray, argmax: np.ndarray, depth: np.ndarray,
-                         centre: np.ndarray, valid: np.ndarray | None = None) -> float:
+                         centre: np.ndarray, valid: np.ndarray | None = None, *,
+                         rows_sampled: bool = False) -> float:
     """The height uncertainty's bias of a block reconstructed by a method of
     :data:`sffscan.stages.depth_choice.DEPARTURE_METHODS` (levels): the size of its depth's
     :func:`~sffscan.stages.depth_statistics.peak_departure` at the curves :func:`block_choice`
@@ -183,8 +184,11 @@ def block_departure_bias(levels: np.ndarray, argmax: np.ndarray, depth: np.ndarr
         The filtered argmax the block's depth is taken about at the judged grid's pixels
         (:func:`judged_centre`: the shape of
         :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax).
+    rows_sampled : bool, keyword-only
+        ``levels`` holds only the judged rows (every ``SHAPE_SAMPLE_STEP[0]``-th, from the
+        first: a streaming scan's grid), ``(N, ceil(rows / step), block)``.
     """
-    sample = sampled_curves(levels, argmax, valid)
+    sample = sampled_curves(levels, argmax, valid, rows_sampled=rows_sampled)
     if sample is None:
         return 0.0
     vol, am, seen = sample

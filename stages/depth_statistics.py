@@ -37,7 +37,7 @@ bench_depth_default.py)."""
 
 
 def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
-                   valid: np.ndarray | None = None
+                   valid: np.ndarray | None = None, *, rows_sampled: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The curves of :data:`SHAPE_SAMPLE_STEP` a shape is judged on: (N, r, c) float32
     levels, their argmax and the mask of those with data, or None where none has.
@@ -53,9 +53,13 @@ def sampled_curves(levels: np.ndarray, argmax: np.ndarray,
         a (rows, columns) one: each pixel's); the others are left out, whatever their
         levels hold (a scan's ring keeps earlier columns' values), and so are the curves
         without data (flat: the rows beyond the frames, kept for wobble).
+    rows_sampled : bool, keyword-only
+        ``levels`` holds only the judged rows already (every ``SHAPE_SAMPLE_STEP[0]``-th
+        row of ``argmax``'s, from the first).
     """
     rs, cs = SHAPE_SAMPLE_STEP
-    vol = np.ascontiguousarray(levels[:, ::rs, ::cs], dtype=np.float32)
+    vol = np.ascontiguousarray(levels[:, :, ::cs] if rows_sampled else levels[:, ::rs, ::cs],
+                               dtype=np.float32)
     seen = vol.max(axis=0) > vol.min(axis=0)
     if valid is not None:
         seen &= np.broadcast_to(np.asarray(valid, bool), argmax.shape)[::rs, ::cs]

@@ -206,6 +206,9 @@ class FocusVolume:
         # the curves' minima: kept as frames arrive where no N-level ring holds the curves
         # (the ring's methods take them from the levels at the reduction)
         self.track_low = uncertainty and self.streaming
+        # the curves a block's departure bias is judged on (every SHAPE_SAMPLE_STEP-th
+        # row), kept where no N-level ring holds them: streaming SPC and PC
+        self.track_grid = uncertainty and self.streaming and method in DEPARTURE_METHODS
         self.median_size = median_size
         self.spread_size = spread_size
         self.halo, self.rows, self.ring = volume_geometry(
@@ -215,6 +218,7 @@ class FocusVolume:
         self.row_slack = row_slack
         self.col_slack = col_slack
         self.fv: np.ndarray | None = None
+        self.grid: np.ndarray | None = None
         self._init_state((self.rows, self.ring), reuse)
         if defer_writes < 1:
             raise ValueError(f"defer_writes must be >= 1, got {defer_writes}")
@@ -224,7 +228,8 @@ class FocusVolume:
         self._pending: list[Write] = []
         self._state = AccumulatorState(
             self.best, self.argmax, self.tex, self.sums, self.coef,
-            self.low if self.track_low else None, self.fv, self._level_buf)
+            self.low if self.track_low else None, self.fv, self._level_buf, self.grid,
+            SHAPE_SAMPLE_STEP[0])
         self.y0: int | None = None  # world row of accumulator row 0
         self.next_u: int | None = None  # first internal column not yet reduced
         self.first_u = 0  # first internal column ever stored
@@ -257,6 +262,13 @@ class FocusVolume:
             else:
                 self.fv = np.empty((self.n, *plane), np.float32)
                 self.fv.fill(0.0)
+        if self.track_grid:  # like the ring, its stale values are never read
+            shape = (self.n, -(-plane[0] // SHAPE_SAMPLE_STEP[0]), plane[1])
+            if reuse is not None and reuse.grid is not None and reuse.grid.shape == shape:
+                reuse._apply_pending()
+                self.grid = reuse.grid
+            else:
+                self.grid = np.zeros(shape, np.float32)
         self._init_bookkeeping()
         self.best = np.full((self.rows, self.ring), -1.0, np.float32)
         # the running minimum of every curve (its floor, for the curve's width)
@@ -266,6 +278,7 @@ class FocusVolume:
         self.arrays = {"best": self.best, "argmax": self.argmax, "tex": self.tex,
                        "sums": self.sums, "low": self.low, "heights": self.heights,
                        **({} if self.fv is None else {"fv": self.fv}),
+                       **({} if self.grid is None else {"grid": self.grid}),
                        **scratch_arrays(self.rows, self.block)}
 
     def _init_bookkeeping(self) -> None:
@@ -522,12 +535,19 @@ class FocusVolume:
                                    valid=valid, strips=WINDOW_STRIPS)
             if hidden is not None:  # the centroid's bias, beside the fallback's
                 bias = math.hypot(bias, hidden)
-        if self.fv is not None and method in DEPARTURE_METHODS and self.uncertainty:
-            # a wide window's pull into lopsided curves' longer flank (a streaming scan's
-            # SPC or PC keeps no curves to read the peaks from: none there)
-            bias = blocks.block_departure_bias(
-                self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1),
-                scratch(a, "b_depth", shape), self._centre(u0, u1), valid)
+        if method in DEPARTURE_METHODS and self.uncertainty:
+            # a wide window's pull into lopsided curves' longer flank, or a truncated
+            # curve's near an end of the range: judged on the ring's curves, or a streaming
+            # scan's SPC or PC on the judged rows it keeps (the grid)
+            if self.fv is not None:
+                bias = blocks.block_departure_bias(
+                    self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1),
+                    scratch(a, "b_depth", shape), self._centre(u0, u1), valid)
+            elif self.grid is not None:
+                bias = blocks.block_departure_bias(
+                    self._gather(self.grid, u0, u1), self._gather(self.argmax, u0, u1),
+                    scratch(a, "b_depth", shape), self._centre(u0, u1), valid,
+                    rows_sampled=True)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias, locking)
 
@@ -586,5 +606,5 @@ class FocusVolume:
     @property
     def nbytes(self) -> int:
         """Bytes held by the per-pixel state (fixed for the life of the volume)."""
-        planes = [self.best, self.low, self.tex, self.argmax, self.sums, self.fv]
+        planes = [self.best, self.low, self.tex, self.argmax, self.sums, self.fv, self.grid]
         return sum(a.nbytes for a in planes if a is not None)

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.stages.bands import BandTasks, row_bands
+from sffscan.stages.depth_choice import DEPARTURE_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
 from sffscan.stages.volume_tasks import RAW_SLOTS, Layout, volume_layout
@@ -70,6 +71,7 @@ class SharedFocusVolume(FocusVolume):
                              frame_shape=frame_shape, block_columns=block_columns,
                              n_sums=(4 if method == "centroid" else 3) if streaming else 0,
                              levels=not streaming, low=uncertainty and streaming,
+                             grid=uncertainty and streaming and method in DEPARTURE_METHODS,
                              raw_dtype=raw_dtype)
 
     def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:
@@ -90,6 +92,9 @@ class SharedFocusVolume(FocusVolume):
         self.fv = a.get("fv")
         if reuse is None and self.fv is not None:  # as a new ring is (FocusVolume)
             self.fv.fill(0.0)
+        self.grid = a.get("grid")
+        if reuse is None and self.grid is not None:
+            self.grid.fill(0.0)
         self.argmax = a["argmax"]
         self.argmax.fill(0)
         self._level_buf = a["level_buf"]

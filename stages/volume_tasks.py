@@ -30,6 +30,7 @@ import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.depth_floor import GuardFloor
+from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 
 __all__ = ["RAW_SLOTS", "TASKS", "gather", "pieces", "run_task", "scratch",
            "scratch_arrays", "volume_layout"]
@@ -40,7 +41,7 @@ Layout = dict[str, tuple[tuple[int, ...], str]]
 
 def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int, int],
                   block_columns: int, n_sums: int, levels: bool, low: bool,
-                  raw_dtype: str = "<u2") -> Layout:
+                  grid: bool = False, raw_dtype: str = "<u2") -> Layout:
     """The arrays a focus volume with band processes keeps in shared memory.
 
     Parameters
@@ -55,6 +56,10 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
         Planes of running sums (0 for the methods that store every level).
     levels, low : bool, keyword-only
         Whether the N-level ring is kept; whether a running minimum is.
+    grid : bool, keyword-only
+        Whether every level of every :data:`~sffscan.stages.depth_statistics.
+        SHAPE_SAMPLE_STEP`-th row is kept (``grid``: the curves a block's departure bias is
+        judged on, for the accumulating methods that have one).
     raw_dtype : str, keyword-only
         The raw frames' dtype (``raw``: :data:`RAW_SLOTS` slots of the columns a frame's
         focus measure reads).
@@ -71,6 +76,8 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
     }
     if levels:
         out["fv"] = ((n_levels, *plane), "<f4")
+    if grid:
+        out["grid"] = ((n_levels, -(-rows // SHAPE_SAMPLE_STEP[0]), ring), "<f4")
     out.update({name: ((planes * rows * block_columns,), "<f4") for name, planes in _SCRATCH})
     return out
 
@@ -117,7 +124,8 @@ def gather(arr: np.ndarray, u0: int, u1: int, ring: int) -> np.ndarray:
 def _state(arrays: dict[str, np.ndarray], p: dict[str, Any]) -> AccumulatorState:
     return AccumulatorState(arrays["best"], arrays["argmax"], arrays["tex"], arrays["sums"],
                             arrays["coef"], arrays["low"] if p["low"] else None,
-                            arrays.get("fv"), arrays["level_buf"])
+                            arrays.get("fv"), arrays["level_buf"], arrays.get("grid"),
+                            SHAPE_SAMPLE_STEP[0])
 
 
 def _band_of_frame(p: dict[str, Any], rows: tuple[int, int]) -> tuple[int, int, int] | None:

@@ -215,7 +215,7 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     the block's edges (its scatter window) it is the whole field's
     height_uncertainty_um of the same depth and curves, with the block's own bias (a peak
     method's centroid pull, the 9-level centroid's departure from the peaks) in quadrature;
-    a streaming scan's SPC keeps no curves to measure its departure on: none. The
+    a streaming scan's SPC measures its departure on the curves of the rows it keeps. The
     whole-curve centroid's departure from its curve's phase, per pixel, from the running
     sums, as the whole field's."""
     from sffscan.stages.depth import focus_sums
@@ -261,7 +261,9 @@ def test_blocks_carry_the_height_uncertainty(method: str) -> None:
     # each block's bias (a peak method's centroid pull, one value a block) in quadrature
     step = float(np.diff(HEIGHTS).mean())
     bias = np.concatenate([np.full(b.height_um.shape[1], b.bias_levels) for b in blocks])
-    assert (bias > 0).any() if method in ("adaptive", "wcentroid") else (bias == 0).all()
+    # a streaming scan's SPC judges its departure on the rows it keeps (the grid): these
+    # curves, 2..9 levels of 12 with a width of 1.5, are cut by the range's ends
+    assert (bias > 0).any() if method in ("adaptive", "wcentroid", "spc") else (bias == 0).all()
     want = np.sqrt(want.astype(np.float64) ** 2 + (bias * step)[None] ** 2)
     np.testing.assert_allclose(got[6:-6][:, core], want[3:-3][:, core], rtol=1e-4, atol=atol)
 
@@ -289,11 +291,40 @@ def wobbly_frames_into(vol: FocusVolume, direction: int) -> list:
     return blocks + vol.finish()
 
 
+@pytest.mark.parametrize("direction", [1, -1])
+@pytest.mark.parametrize("defer", [1, 7])
+@pytest.mark.parametrize("method", ["spc", "pc"])
+def test_a_streaming_scan_keeps_the_judged_rows_of_every_curve(method: str, defer: int,
+                                                              direction: int) -> None:
+    """SPC and PC accumulate sums, not curves; for their block's departure bias they keep
+    every level of every 16th row (``grid``), which holds what the N-level ring of a
+    method that stores every level holds there, slot for slot (wobble across the motion,
+    partial column ranges, a dropped frame, deferred writes); without an uncertainty,
+    nothing."""
+    kw = {"n_levels": N, "frame_shape": (H, W), "focus_heights_um": HEIGHTS, "margin": 3,
+          "direction": direction, "median_size": 3, "block_columns": 16, "row_slack": 3,
+          "spread_size": 3}
+    mine = FocusVolume(method=method, defer_writes=defer, **kw)
+    ring = FocusVolume(method="wcentroid", **kw)  # the same geometry, every level stored
+    assert mine.fv is None and mine.grid is not None and ring.fv is not None
+    assert mine.grid.shape == (N, -(-mine.rows // 16), mine.ring)
+    blocks = wobbly_frames_into(mine, direction)
+    wobbly_frames_into(ring, direction)
+    np.testing.assert_array_equal(mine.grid, ring.fv[:, ::16])
+    assert any(b.bias_levels > 0 for b in blocks)
+    # the next pass takes the grid over, stale values and all, and gives the same blocks
+    again = FocusVolume(method=method, defer_writes=defer, reuse=mine, **kw)
+    assert again.grid is mine.grid
+    assert_same_blocks(wobbly_frames_into(again, direction), blocks)
+    assert FocusVolume(method=method, uncertainty=False, **kw).grid is None
+
+
 def assert_same_blocks(a: list, b: list) -> None:
     """Blocks equal bit for bit: position, complete columns and every array."""
     assert len(a) == len(b)
     for u, v in zip(a, b, strict=True):
-        assert (u.x0, u.y0, u.complete) == (v.x0, v.y0, v.complete)
+        assert (u.x0, u.y0, u.complete, u.bias_levels) == (v.x0, v.y0, v.complete,
+                                                            v.bias_levels)
         for p, q in zip(u[2:5] + (u.uncertainty_um,), v[2:5] + (v.uncertainty_um,),
                         strict=True):
             assert p.dtype == q.dtype and p.shape == q.shape
