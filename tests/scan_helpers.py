@@ -220,12 +220,14 @@ def strip_region(cfg: ScanConfig) -> tuple[int, int, int, int]:
             y + o.height_px - inset)
 
 
-def mosaic_height(path: Path, region: tuple[int, int, int, int]) -> np.ndarray:
-    """The mosaic's height over a world px box (NaN where the mosaic has nothing)."""
+def mosaic_height(path: Path, region: tuple[int, int, int, int], *,
+                  array: str = "height") -> np.ndarray:
+    """The mosaic's height (or another ``array``) over a world px box (NaN where the mosaic
+    has nothing)."""
     g = zarr.open_group(str(path), mode="r")
     ox, oy = (int(v) for v in g.attrs["origin_px"])  # type: ignore[union-attr,arg-type]
     x0, y0, x1, y1 = region
-    return np.asarray(g["height"][y0 - oy:y1 - oy, x0 - ox:x1 - ox])  # type: ignore[index]
+    return np.asarray(g[array][y0 - oy:y1 - oy, x0 - ox:x1 - ox])  # type: ignore[index]
 
 
 def truth(cfg: ScanConfig, region: tuple[int, int, int, int]) -> np.ndarray:

@@ -12,6 +12,7 @@ when the file has neither ``lateral`` nor ``field_curvature``).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -119,7 +120,9 @@ class FrameOpticsStage(Stage):
 
 
 class CurvatureStage(Stage):
-    """Subtracts the field curvature seen by each world pixel from the depth blocks."""
+    """Subtracts the field curvature seen by each world pixel from the depth blocks (their
+    texture, confidence and height uncertainty pass unchanged: the correction is a known
+    offset per pixel)."""
 
     name = "field_curvature"
     unit = "blocks"
@@ -131,8 +134,9 @@ class CurvatureStage(Stage):
         h = item.header
         corr = self.curvature.correction(item.height_um, x0_px=h.x0_px, y0_px=h.y0_px,
                                          pass_index=h.pass_index)
-        yield DepthBlock(h, (item.height_um - corr).astype(np.float32), item.texture,
-                         item.confidence)
+        # every other field as it came: the uncertainty was dropped (unknown in a calibrated
+        # scan's whole mosaic) until 2026-12-05
+        yield dataclasses.replace(item, height_um=(item.height_um - corr).astype(np.float32))
 
 
 def optics_correction_stages(cfg: ScanConfig, focus_heights_um: Sequence[float], *,

@@ -19,7 +19,7 @@ from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets
 
 from sffscan.api import replay
-from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region
+from tests.scan_helpers import mosaic_height, scan, score, small_config, strip_region, truth
 
 ZS = focus_heights(n_levels=50, z_step_um=200.0)
 MID = 0.5 * float(ZS[0] + ZS[-1])
@@ -65,6 +65,14 @@ def test_continuous_scan(tmp_path: Path) -> None:
     a = mosaic_height(tmp_path / "replay.zarr", region)
     b = mosaic_height(tmp_path / "cal.zarr", region)
     np.testing.assert_array_equal(a, b)
+    # the field curvature's correction keeps each pixel's height uncertainty (it had dropped
+    # it: unknown over the whole calibrated mosaic), and it describes the corrected errors
+    u = mosaic_height(tmp_path / "cal.zarr", region, array="uncertainty")
+    np.testing.assert_array_equal(np.isfinite(u), np.isfinite(b))
+    err = np.abs(b - truth(cal_cfg, region))
+    ok = np.isfinite(err)
+    print(f"calibrated scan: {np.mean(err[ok] <= 2 * u[ok]):.3f} of the pixels within 2 sigma")
+    assert np.mean(err[ok] <= 2 * u[ok]) > 0.8
 
 
 def test_scan_refuses_a_missing_calibration(tmp_path: Path) -> None:
