@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -139,6 +140,13 @@ def test_stopgo_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
                  "128", "--levels", "25", "--z-step-um", "400", "-q"]) == 0
     text = capsys.readouterr().out
     assert "RMSE" in text and "coverage 100.0 %" in text
+    # and the height uncertainty's share within 2 sigma of the truth, as the mosaic holds it
+    got = re.search(r"uncertainty (\d+\.\d) % of (\d+) px within 2 sigma", text)
+    assert got is not None, text
+    g: Any = zarr.open_group(str(out), mode="r")
+    u, h = np.asarray(g["uncertainty"]), np.asarray(g["height"])
+    assert int(got.group(2)) == int((np.isfinite(u) & np.isfinite(h)).sum()) > 0
+    assert 50.0 < float(got.group(1)) <= 100.0
     assert main(["stopgo", "-o", str(out), "--field", "10", "10", "-q"]) == 2  # overlap > field
     # refused before anything is written: an area typed in metres (it planned ~1e8 fields
     # and did not end), a stack of two levels (refused at the first field, after the mosaic)
