@@ -108,7 +108,7 @@ def run_study(stack: StudyStack, *, operators: list[str], windows: list[int],
     """
     from sffscan.pipeline.metrology.evaluate import accuracy
     from sffscan.stages.depth import depth_from_focus, levels_to_height, shape_select_with_bias
-    from sffscan.stages.fields.stationary import stack_uncertainty_um
+    from sffscan.stages.fields.stationary import stack_curves, stack_uncertainty_um
     from sffscan.stages.focus_measure import focus_measure
 
     depth_range = float(abs(stack.focus_um[-1] - stack.focus_um[0]))
@@ -119,20 +119,22 @@ def run_study(stack: StudyStack, *, operators: list[str], windows: list[int],
             t0 = time.perf_counter()
             vol = focus_measure(stack.images, operator=op, window=k)
             per_image = (time.perf_counter() - t0) / len(stack.images)
+            curves = stack_curves(vol)  # what every method's uncertainty reads, once
             for m in methods:
                 bias, locking = None, 0.0  # the default's from its own pass
                 if m == "shape_select":
                     d, _, bias, locking = shape_select_with_bias(
-                        vol, median_size=median_size, spread_size=k)
+                        vol, argmax=curves.argmax, median_size=median_size, spread_size=k)
                 else:
                     d, _ = depth_from_focus(vol, method=m, median_size=median_size,
-                                            spread_size=k)
+                                            spread_size=k, argmax=curves.argmax)
                 z = levels_to_height(d, focus_heights_um=stack.focus_um)
                 acc = accuracy(np.where(stack.mask, z, np.nan), truth, max_depth=depth_range,
                                mask=stack.mask)
                 sigma = stack_uncertainty_um(vol, d, stack.focus_um, method=m,
                                              median_size=median_size, window=k,
-                                             bias_levels=bias, locking_levels=locking)
+                                             bias_levels=bias, locking_levels=locking,
+                                             curves=curves)
                 rows.append(StudyRow(op, k, m, float(acc.rmse_um), float(acc.corr),
                                      float(acc.psnr_db), per_image,
                                      within_2sigma(z, truth, sigma, stack.mask)))

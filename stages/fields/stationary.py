@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from sffscan.stages.depth import (
@@ -41,6 +41,7 @@ from sffscan.stages.depth import (
 
 __all__ = [
     "FieldResult",
+    "StackCurves",
     "StackSettings",
     "confidence_weighted_median",
     "default_max_value",
@@ -48,6 +49,7 @@ __all__ = [
     "read_image_stack",
     "read_zarr_stack",
     "reconstruct_field",
+    "stack_curves",
     "stack_to_unit",
     "stack_uncertainty_um",
 ]
@@ -375,10 +377,38 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
                        confidence=confidence, settings=settings, uncertainty_um=unc)
 
 
+class StackCurves(NamedTuple):
+    """What every method's uncertainty reads from one focus volume
+    (:func:`stack_curves`): computed once where several methods reduce the same volume
+    (``sffscan study``)."""
+
+    volume: np.ndarray
+    """(N, H, W) float32, contiguous."""
+    sums: np.ndarray
+    """(3, H, W): H_0, Re H_1, Im H_1 (:func:`sffscan.stages.depth.focus_sums`)."""
+    low: np.ndarray
+    """(H, W): each curve's smallest value."""
+    width: np.ndarray
+    """(H, W): each curve's width from its sums, levels, as the depth's choice takes it."""
+    argmax: np.ndarray
+    """(H, W): each curve's first maximum (:func:`sffscan.stages.depth.first_argmax`)."""
+
+
+def stack_curves(volume: np.ndarray) -> StackCurves:
+    """The :class:`StackCurves` of a focus volume ``(N, H, W)``."""
+    from sffscan.stages.depth import first_argmax, focus_sums
+    from sffscan.stages.depth_uncertainty import width_from_sums
+
+    vol = np.ascontiguousarray(volume, dtype=np.float32)
+    sums, low = focus_sums(vol), vol.min(axis=0)
+    width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
+    return StackCurves(vol, sums, low, width, first_argmax(vol))
+
+
 def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_um: np.ndarray,
                          *, method: str, median_size: int = 11, window: int = 9,
-                         bias_levels: float | None = None, locking_levels: float = 0.0
-                         ) -> np.ndarray | None:
+                         bias_levels: float | None = None, locking_levels: float = 0.0,
+                         curves: StackCurves | None = None) -> np.ndarray | None:
     """The uncertainty of a stack's raw height, µm, one sigma
     (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`), with the bias and the
     locking of the method's depth that its scatter cannot show.
@@ -398,6 +428,9 @@ def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_u
     bias_levels, locking_levels : keyword-only
         The default's, from its own pass (:func:`sffscan.stages.depth.shape_select_with_bias`);
         ``bias_levels`` None: measured here for ``method``.
+    curves : StackCurves, keyword-only
+        ``stack_curves(volume)``, where the caller has it (several methods on one volume);
+        computed here when None.
 
     Returns
     -------
@@ -407,16 +440,16 @@ def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_u
     """
     if method in CANDIDATE_METHODS:
         return None
-    from sffscan.stages.depth import first_argmax, focus_sums
     from sffscan.stages.depth_choice import method_bias, method_locking
-    from sffscan.stages.depth_uncertainty import height_uncertainty_um, width_from_sums
+    from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
-    vol = np.ascontiguousarray(volume, dtype=np.float32)
-    sums, low = focus_sums(vol), vol.min(axis=0)
-    # the curves' widths from their sums, as the depth's own choice takes them
-    width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
+    if curves is None:
+        curves = stack_curves(volume)
+    vol, sums, low, width, argmax = curves
+    if vol.shape != np.shape(volume):
+        raise ValueError(f"curves are of a volume of shape {vol.shape}, not {np.shape(volume)}")
     if bias_levels is None:
-        argmax = first_argmax(vol)
+        # the curves' widths from their sums, as the depth's own choice takes them
         bias_levels = method_bias(vol, argmax, method, median_size=median_size, width=width,
                                   depth=levels)
         locking_levels = method_locking(vol, argmax, method, median_size=median_size,
