@@ -241,3 +241,24 @@ def test_stack_command_names_a_bad_focus_table(sim_stack: tuple[np.ndarray, np.n
     assert main([*base, "--focus-start", "0", "--focus-step", "0"]) == 2
     assert "--focus-step" in capsys.readouterr().err
     assert not (tmp_path / "f.zarr").exists()
+
+
+def test_the_uncertainty_from_shared_curves_is_the_one_computed_alone() -> None:
+    """``stack_curves`` of a volume, given to ``stack_uncertainty_um`` for several methods
+    (``sffscan study``), gives what each computes alone; curves of another volume are
+    refused by name."""
+    from sffscan.stages.fields.stationary import stack_curves, stack_uncertainty_um
+    from sffscan.stages.sim.families import family_stack
+
+    st = family_stack("lens-gauss", 0, size_px=48)
+    vol = focus_measure(st.images, window=5)
+    curves = stack_curves(vol)
+    for method in ("spc", "centroid", "gauss3"):
+        d = depth_from_focus(vol, method=method, spread_size=5)[0]
+        alone = stack_uncertainty_um(vol, d, st.focus_um, method=method, window=5)
+        shared = stack_uncertainty_um(vol, d, st.focus_um, method=method, window=5,
+                                      curves=curves)
+        assert alone is not None and shared is not None
+        np.testing.assert_array_equal(shared, alone)
+    with pytest.raises(ValueError, match="curves are of a volume of shape"):
+        stack_uncertainty_um(vol[:, :10], d[:10], st.focus_um, method="spc", curves=curves)
