@@ -467,15 +467,18 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     return StackChoice(True, taken[0], pull, noise, taken[1])
 
 
-DEPARTURE_METHODS = ("pc", "spc", "wcentroid")
+DEPARTURE_METHODS = ("pc", "spc", "wcentroid", "argmax")
 """The methods that read the whole curve (PC, SPC) or a wide window of it (the 9-level
 centroid) and keep the constants fitted to the default's errors
-(:data:`sffscan.stages.depth_uncertainty.OTHER_METHODS_CONSTANTS`): the height uncertainty
-adds the size of their :func:`~sffscan.stages.depth_statistics.peak_departure` as their bias
+(:data:`sffscan.stages.depth_uncertainty.OTHER_METHODS_CONSTANTS`), and the argmax, whose
+depth is the peak's level without its sub-level offset (a flat's whole quantisation error,
+the same on every pixel, which its scatter does not show): the height uncertainty adds the
+size of their :func:`~sffscan.stages.depth_statistics.peak_departure` as their bias
 (:func:`method_bias`), as ``"shape_select"`` adds SPC's where it takes SPC. Added 2026-12-05
 (night; seeds 6..47, 140 (seed set, family) rows each, under the 90-98 % band / in it:
 wcentroid 25 -> 1 / 105 -> 107, spc 58 -> 3 / 77 -> 89, pc 59 -> 3 / 76 -> 88;
-docs/depth-method-log.md)."""
+docs/depth-method-log.md); the argmax later that night (its constants refitted with it, per
+fold: in / under / over 116 / 6 / 18 -> 135 / 3 / 2)."""
 
 PEAK_METHODS = ("adaptive", "adaptive_centroid")
 """The methods whose depth is a peak about each curve's filtered argmax (the 3-point

@@ -56,12 +56,15 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
   of the curves' centroid pull (:func:`sffscan.stages.depth_choice.fallback_bias`: two peak
   estimators that disagree the same way on every curve), also as it is (2026-12-04, late
   night: the held-out sets under the band 13 -> 7 over five sets of seeds;
-  docs/depth-method-log.md). Where it is SPC, PC or the 9-level centroid by name
-  (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), ``b`` is the size of the map's
-  departure from the curves' 3-point peaks (:func:`sffscan.stages.depth_statistics.
+  docs/depth-method-log.md). Where it is SPC, PC, the 9-level centroid or the argmax by
+  name (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), ``b`` is the size of the
+  map's departure from the curves' 3-point peaks (:func:`sffscan.stages.depth_statistics.
   peak_departure`: a whole curve's or a wide window's pull into a lopsided curve's longer
-  flank), as it is (2026-12-05, night: their held-out rows under the band 25 / 58 / 59 ->
-  1 / 3 / 3 of 140; in a streaming scan, whose SPC and PC keep no curves, none).
+  flank, or the argmax's sub-level offset on a flat), as it is (2026-12-05, night: their
+  held-out rows under the band 25 / 58 / 59 -> 1 / 3 / 3 of 140; a streaming scan's SPC, PC
+  and argmax judge it on the curves of every 16th row, which they keep for it). Where it is
+  the whole-curve centroid, each pixel's departure from its curve's phase
+  (:func:`centroid_departure`).
 * ``c``: a floor, levels (the estimator's sub-level bias on a perfectly smooth surface).
 
 ``a``, ``r`` and ``c`` are fitted on the *training* seeds of the synthetic families
@@ -137,7 +140,7 @@ families), which left the 3-point peak of ``"adaptive"`` under-covered on a text
 flat (its 75th percentile 3.05 x the error's RMS)."""
 
 METHOD_CONSTANTS: dict[str, tuple[float, float, float]] = {
-    "argmax": (0.3489, 0.8799, 0.1928),
+    "argmax": (0.3666, 0.909, 0.1335),
     "gauss3": (0.6347, 0.9797, 0.07076),
     "quadratic3": (0.62, 0.9612, 0.08809),
     "centroid": (4.621, 0.02828, 0.5208),
@@ -162,7 +165,10 @@ All five refitted with the default's when the fit's quantile target went to 0.93
 training set to the twenty families' seeds 0..5 (2026-12-05, night): argmax 0.4788,
 0.9277, 0.1804, gauss3 0.6999, 0.9859, 0.0733, quadratic3 0.721, 0.9695, 0.09508, centroid
 19.98, 0.001, 0.0001, adaptive_centroid 2.308, 1.085, 0.0001 before.
-``"centroid"``'s refitted when its departure from its curves' phase joined ``b`` per pixel
+``"argmax"``'s refitted when its departure from the curves' peaks joined ``b``
+(:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`, 2026-12-05 night: 0.3489, 0.8799,
+0.1928 before). ``"centroid"``'s refitted when its departure from its curves' phase joined
+``b`` per pixel
 (:func:`centroid_departure`, 2026-12-05 night: 20.25, 0.001, 0.0001 before, a fit on the
 bounds of r and c that made the scatter carry the floor's pull). On seeds 6..47, refitted
 per fold, in / under / over 27 / 31 / 82 -> 42 / 18 / 80; with
