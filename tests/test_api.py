@@ -99,6 +99,13 @@ def test_scan_and_replay(tmp_path: Path) -> None:
     assert isinstance(live, sffscan.ScanReport)
     assert live.output == tmp_path / "live.zarr" and live.frames > 0
     assert live.accuracy is not None and live.accuracy.pixels > 0
+    # the uncertainty scored on the same truth: every scored pixel has one
+    assert live.accuracy.sigma_pixels == live.accuracy.pixels
+    assert 0.5 < live.accuracy.within_2sigma <= 1.0
+    from sffscan.pipeline.wiring import format_summary
+
+    line = f"uncertainty {100 * live.accuracy.within_2sigma:.1f} % of {live.accuracy.pixels} px"
+    assert line in format_summary(live)
     again = sffscan.replay(rec, output=tmp_path / "replay.zarr")
     assert again.frames == live.frames and again.extras["recording"]["frames"] == live.frames
     a, b = sffscan.open_mosaic(live.output), sffscan.open_mosaic(again.output)
