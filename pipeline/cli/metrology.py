@@ -371,6 +371,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         compare_height_maps,
         format_report,
         overlap_by_origin,
+        overlap_uncertainty,
         read_height_map,
         region_mask,
     )
@@ -399,7 +400,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
         report = compare_height_maps(a, b, max_depth_um=max_depth, align=args.align,
                                      bins=args.bins, range_um=args.range_um,
                                      max_shift_px=args.max_shift_px, mask=mask,
-                                     names=(str(args.estimate), str(args.reference)))
+                                     names=(str(args.estimate), str(args.reference)),
+                                     sigma=overlap_uncertainty(est, ref))
     except ValueError as err:
         return _fail(str(err))
     print(format_report(report) + note)

@@ -40,6 +40,7 @@ __all__ = [
     "fit_plane",
     "format_report",
     "overlap_by_origin",
+    "overlap_uncertainty",
     "read_height_map",
     "region_mask",
 ]
@@ -56,6 +57,8 @@ class HeightMap:
     pixel_um: float | None = None
     origin_px: tuple[int, int] | None = None
     max_depth_um: float | None = None  # span of the focus table, when the file has one
+    #: the height's uncertainty, µm, one sigma (a mosaic's ``uncertainty``), when it has one
+    uncertainty_um: np.ndarray | None = None
 
 
 class Histogram(BaseModel):
@@ -88,6 +91,14 @@ class CompareReport(BaseModel):
     pixels: int = Field(ge=0, description="Pixels finite in both maps")
     coverage: float = Field(ge=0, le=1, description="pixels / pixels of the compared area")
     histogram: Histogram
+    within_2sigma: float | None = Field(
+        default=None, ge=0, le=1,
+        description="Share of the compared pixels with a finite uncertainty of the estimate "
+        "(a mosaic's 'uncertainty', one sigma) whose |estimate - reference| is at most twice "
+        "it (calibrated: 0.90 .. 0.98 against a reference whose own error is small); null "
+        "without an uncertainty")
+    sigma_pixels: int = Field(
+        default=0, ge=0, description="Compared pixels with a finite uncertainty of the estimate")
 
 
 # ----------------------------------------------------------------------------- reading
@@ -135,6 +146,9 @@ def read_height_map(path: str | Path, *, array: str = "height") -> HeightMap:
             table = attrs.focus_heights_um
             if len(table) >= 2:
                 hm.max_depth_um = float(max(table) - min(table))
+            unc = node.get("uncertainty")
+            if array == "height" and isinstance(unc, zarr.Array) and unc.shape == arr.shape:
+                hm.uncertainty_um = np.asarray(unc[...], dtype=np.float64)
         return hm
     return HeightMap(_as_2d(node[...], p), str(p))
 
@@ -160,13 +174,32 @@ def overlap_by_origin(est: HeightMap, ref: HeightMap
     covering the same pixels: the origin returned is the placed map's (or (0, 0) when
     neither is placed), so a region in world px means the same with either argument order.
     """
+    e, r, origin = _overlap(est, ref)
+    return est.height_um[e], ref.height_um[r], origin
+
+
+def overlap_uncertainty(est: HeightMap, ref: HeightMap) -> np.ndarray | None:
+    """The estimate's uncertainty (µm, one sigma) over :func:`overlap_by_origin`'s pixels;
+    None where ``est`` has none."""
+    if est.uncertainty_um is None:
+        return None
+    return est.uncertainty_um[_overlap(est, ref)[0]]
+
+
+Window = tuple[slice, slice]
+
+
+def _overlap(est: HeightMap, ref: HeightMap) -> tuple[Window, Window, tuple[int, int]]:
+    """The windows of ``est`` and ``ref`` over the world pixels both cover, and the world
+    (x, y) px of their first element (:func:`overlap_by_origin`)."""
+    whole = (slice(None), slice(None))
     if est.origin_px is None or ref.origin_px is None:
         if est.height_um.shape != ref.height_um.shape:
             raise ValueError(f"{est.source} is {est.height_um.shape} and {ref.source} is "
                              f"{ref.height_um.shape}: maps without a world origin must have "
                              "the same shape")
         origin = est.origin_px or ref.origin_px or (0, 0)
-        return est.height_um, ref.height_um, (int(origin[0]), int(origin[1]))
+        return whole, whole, (int(origin[0]), int(origin[1]))
     if est.pixel_um is not None and ref.pixel_um is not None and not math.isclose(
             est.pixel_um, ref.pixel_um, rel_tol=1e-9):
         raise ValueError(f"pixel sizes differ: {est.source} {est.pixel_um} µm, {ref.source} "
@@ -178,8 +211,8 @@ def overlap_by_origin(est: HeightMap, ref: HeightMap
     x1, y1 = min(ex + ew, rx + rw), min(ey + eh, ry + rh)
     if x1 <= x0 or y1 <= y0:
         raise ValueError(f"{est.source} and {ref.source} do not overlap in world pixels")
-    return (est.height_um[y0 - ey:y1 - ey, x0 - ex:x1 - ex],
-            ref.height_um[y0 - ry:y1 - ry, x0 - rx:x1 - rx], (x0, y0))
+    return ((slice(y0 - ey, y1 - ey), slice(x0 - ex, x1 - ex)),
+            (slice(y0 - ry, y1 - ry), slice(x0 - rx, x1 - rx)), (x0, y0))
 
 
 def region_mask(shape: tuple[int, int], origin_px: tuple[int, int],
@@ -279,7 +312,8 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
                         align: str = "none", bins: int = 50,
                         range_um: tuple[float, float] | None = None,
                         mask: np.ndarray | None = None, max_shift_px: int = 10,
-                        names: tuple[str, str] = ("", "")) -> CompareReport:
+                        names: tuple[str, str] = ("", ""),
+                        sigma: np.ndarray | None = None) -> CompareReport:
     """RMSE, CORR, PSNR and the error histogram of ``estimate`` against ``reference``.
 
     Parameters
@@ -298,6 +332,9 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
         Largest lateral shift searched by ``align="shift"``, px.
     names : (str, str), keyword-only
         Sources, for the report.
+    sigma : (H, W) ndarray of float, keyword-only
+        The estimate's uncertainty, µm, one sigma (NaN: unknown), moved with it by a shift:
+        the report's ``within_2sigma``. The reference's own error is not in it.
 
     Returns
     -------
@@ -312,6 +349,9 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
     if est.shape != ref.shape or est.ndim != 2:
         raise ValueError(f"estimate {est.shape} and reference {ref.shape} must be 2-D of the "
                          "same shape")
+    sig = None if sigma is None else np.asarray(sigma, dtype=np.float64)
+    if sig is not None and sig.shape != est.shape:
+        raise ValueError(f"sigma shape {sig.shape} != the estimate's {est.shape}")
     area = np.ones(est.shape, dtype=bool)
     if mask is not None:
         if mask.shape != est.shape:
@@ -322,6 +362,8 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
     if align == "shift":
         shift = _lateral_shift(est, ref, max_shift_px)
         area = _apply_shift(area, area, *shift)[0]
+        if sig is not None:
+            sig = _apply_shift(sig, sig, *shift)[0]
         est, ref = _apply_shift(est, ref, *shift)
     plane = (0.0, 0.0, 0.0)
     diff = est - ref
@@ -334,7 +376,7 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
     if align != "none":
         est = est - _plane(est.shape, plane)
         diff = est - ref
-    acc = accuracy(est, ref, max_depth=max_depth_um)
+    acc = accuracy(est, ref, max_depth=max_depth_um, sigma=sig)
     ok = np.isfinite(diff)
     asked = int(area.sum())
     return CompareReport(
@@ -345,7 +387,8 @@ def compare_height_maps(estimate: np.ndarray, reference: np.ndarray, *, max_dept
         corr=_finite_or_none(acc.corr), psnr_db=_finite_or_none(acc.psnr_db),
         max_depth_um=max_depth_um, pixels=acc.pixels,
         coverage=acc.pixels / asked if asked else 0.0,
-        histogram=error_histogram(diff, bins=bins, range_um=range_um))
+        histogram=error_histogram(diff, bins=bins, range_um=range_um),
+        within_2sigma=_finite_or_none(acc.within_2sigma), sigma_pixels=acc.sigma_pixels)
 
 
 def format_report(r: CompareReport) -> str:
@@ -363,8 +406,11 @@ def format_report(r: CompareReport) -> str:
               f"  RMSE           {f(r.rmse_um, '.3f')} µm",
               f"  mean error     {f(r.mean_error_um, '+.3f')} µm",
               f"  CORR           {f(r.corr, '.5f')}",
-              f"  PSNR           {f(r.psnr_db, '.2f')} dB (MAX_d {r.max_depth_um:g} µm)",
-              "  error histogram (µm):"]
+              f"  PSNR           {f(r.psnr_db, '.2f')} dB (MAX_d {r.max_depth_um:g} µm)"]
+    if r.within_2sigma is not None:
+        lines.append(f"  within 2 sigma {100 * r.within_2sigma:.1f} % of {r.sigma_pixels} px (the "
+                     "estimate's uncertainty; the reference's own error not in it)")
+    lines.append("  error histogram (µm):")
     h = r.histogram
     top = max(h.counts) if h.counts and max(h.counts) > 0 else 1
     if h.below:

@@ -93,13 +93,38 @@ def test_overlap_by_origin() -> None:
         overlap_by_origin(a, HeightMap(np.zeros((2, 2)), "c", 1.0, (100, 100)))
 
 
-def _mosaic(path: Path, height: np.ndarray, origin: tuple[int, int]) -> None:
+def _mosaic(path: Path, height: np.ndarray, origin: tuple[int, int],
+            uncertainty: np.ndarray | None = None) -> None:
     w = MosaicWriter(path, origin_px=origin, shape=height.shape, pixel_um=8.5,
                      attrs={"focus_heights_um": [0.0, 1000.0, 2000.0]})
     one = np.ones(height.shape, np.float32)
-    w.write_region(origin[0], origin[1], {"height": height, "texture": one * 0.5,
-                                          "weight": one, "confidence": one})
+    arrays = {"height": height, "texture": one * 0.5, "weight": one, "confidence": one}
+    if uncertainty is not None:
+        arrays["uncertainty"] = uncertainty
+    w.write_region(origin[0], origin[1], arrays)
     w.set_status("complete")
+
+
+def test_the_estimate_s_uncertainty_is_scored_against_the_reference() -> None:
+    """``within_2sigma``: the share of the compared pixels with a finite sigma whose error
+    is at most 2 sigma, the sigma moved with the estimate by a shift; None without one."""
+    ref = _surface((40, 50), seed=2)
+    err = np.zeros(ref.shape)
+    err[:, :25] = 3.0  # left half 3 µm off, right half exact
+    sigma = np.full(ref.shape, 1.0)
+    sigma[:5] = np.nan  # unknown: not rated
+    r = compare_height_maps(ref + err, ref, max_depth_um=2000.0, sigma=sigma)
+    assert (r.sigma_pixels, r.within_2sigma) == (35 * 50, 0.5)
+    assert compare_height_maps(ref, ref, max_depth_um=2000.0).within_2sigma is None
+    big = _surface((60, 70), seed=4)
+    est = big[2:42, 3:53]  # est[p] = ref[p + (3, 2)]
+    bigsig = np.where(np.arange(70)[None, :] < 30, 1.0, np.nan) * np.ones((60, 1))
+    shifted = compare_height_maps(est, big[:40, :50], max_depth_um=2000.0, align="shift",
+                                  sigma=bigsig[2:42, 3:53])
+    assert shifted.shift_px == (-3, -2)
+    assert shifted.sigma_pixels == (40 - 2) * (30 - 3) and shifted.within_2sigma == 1.0
+    with pytest.raises(ValueError, match="sigma shape"):
+        compare_height_maps(ref, ref, max_depth_um=2000.0, sigma=sigma[1:])
 
 
 def test_compare_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -112,7 +137,19 @@ def test_compare_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     r = CompareReport.model_validate_json((tmp_path / "c.json").read_text())
     assert r.pixels == 60 * 30  # the world overlap x 120..150
     assert r.rmse_um == pytest.approx(5.0) and r.max_depth_um == 2000.0
-    assert "RMSE" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "RMSE" in out and "within 2 sigma" not in out  # no uncertainty in these mosaics
+    assert r.within_2sigma is None
+    # a mosaic with an uncertainty: scored on the world overlap, the sigma cut with it
+    sig = np.full((60, 50), 10.0, np.float32)
+    sig[:, 20:30] = 1.0  # world x 140..150: 2 sigma = 2 µm < the 5 µm offset
+    _mosaic(tmp_path / "c.zarr", ref[:, 20:70] + 5.0, (120, 200), uncertainty=sig)
+    assert main(["compare", str(tmp_path / "c.zarr"), str(tmp_path / "a.zarr"),
+                 "--json", str(tmp_path / "d.json"), "--overwrite"]) == 0
+    r = CompareReport.model_validate_json((tmp_path / "d.json").read_text())
+    assert (r.pixels, r.sigma_pixels) == (60 * 30, 60 * 30)
+    assert r.within_2sigma == pytest.approx(20 / 30)
+    assert "within 2 sigma 66.7 % of 1800 px" in capsys.readouterr().out
     assert main(["compare", str(tmp_path / "a.zarr"), str(tmp_path / "r.npy")]) == 2  # shapes
     assert main(["compare", str(tmp_path / "r.npy"), str(tmp_path / "missing.npy")]) == 2
     capsys.readouterr()
