@@ -40,8 +40,10 @@ scanned strip (``strip_region`` of tests/scan_helpers.py: the planned columns, t
 inside the edge margin and the across wobble), on the pixels finite in *every* run of that
 seed (so all methods are scored on the same pixels; each run's own coverage is reported
 too). Ratios: each run over the true-offset reference with the same method, and over the
-best true-offset reference of the seed. Not a test: nothing here asserts; the table goes to
-``bench/results/noisy_scan_results.md`` (and ``.json``).
+best true-offset reference of the seed. Each run's mosaic is also scored with its own height
+uncertainty: the share of its pixels with a height and a finite sigma whose |error| is at
+most 2 sigma (issue 24's band: 0.90-0.98), and the median sigma. Not a test: nothing here
+asserts; the table goes to ``bench/results/noisy_scan_results.md`` (and ``.json``).
 """
 
 from __future__ import annotations
