@@ -27,6 +27,7 @@ from sffscan.pipeline.metrology.evaluate import (
     Accuracy,
     mosaic_accuracy,
     store_accuracy,
+    uncertainty_line,
 )
 from sffscan.pipeline.mosaic.stage import MosaicStage
 from sffscan.pipeline.mosaic.writer import MosaicWriter
@@ -168,6 +169,5 @@ def format_summary(report: ScanReport) -> str:
                      f"PSNR {a.psnr_db:.1f} dB over {a.pixels} valid pixels "
                      "(against the simulation's true surface)")
         if a.sigma_pixels:
-            lines.append(f"uncertainty {100 * a.within_2sigma:.1f} % of {a.sigma_pixels} px "
-                         "within 2 sigma of the truth (calibrated: 90-98 %)")
+            lines.append(uncertainty_line(a.within_2sigma, a.sigma_pixels, truth="the truth"))
     return "\n".join(lines)

@@ -339,27 +339,13 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
     print(f"wrote {report.path}: {report.fields} fields in {report.seconds:.1f} s; against the "
           f"true surface: RMSE {cmp.rmse_um:.1f} µm, CORR {corr}, PSNR {psnr}, coverage "
           f"{100 * cmp.coverage:.1f} %")
-    _print_within_2sigma(report.path, hm.height_um, truth)
+    if hm.uncertainty_um is not None:  # the mosaic's own, scored as a scan's is
+        from sffscan.pipeline.metrology.evaluate import accuracy, uncertainty_line
+
+        a = accuracy(hm.height_um, truth, max_depth=1.0, sigma=hm.uncertainty_um)
+        if a.sigma_pixels:
+            print(uncertainty_line(a.within_2sigma, a.sigma_pixels, truth="the true surface"))
     return EXIT_OK
-
-
-def _print_within_2sigma(path: str | Path, height_um: np.ndarray, truth_um: np.ndarray) -> None:
-    """The share of a simulated result's pixels within 2 sigma of its height uncertainty
-    (the mosaic's ``uncertainty``), as ``sffscan demo`` prints it; nothing without one."""
-    import zarr
-    from sffscan.pipeline.metrology.evaluate import accuracy
-    from sffscan.pipeline.mosaic.layout import present_arrays
-
-    group = zarr.open_group(str(path), mode="r")
-    if "uncertainty" not in present_arrays(group):
-        return
-    sigma = np.asarray(group["uncertainty"])
-    if sigma.shape != height_um.shape:
-        return
-    a = accuracy(height_um, truth_um, max_depth=1.0, sigma=sigma)
-    if a.sigma_pixels:
-        print(f"uncertainty {100 * a.within_2sigma:.1f} % of {a.sigma_pixels} px within 2 sigma "
-              "of the true surface (calibrated: 90-98 %)")
 
 
 # ----------------------------------------------------------------------------- compare

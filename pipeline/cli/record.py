@@ -235,8 +235,9 @@ def _print_mosaic_info(m: dict[str, Any]) -> None:
               f"{a.get('corr', float('nan')):.4f}, PSNR {a.get('psnr_db', float('nan')):.1f} dB "
               f"over {a.get('pixels')} px (stored; against {a.get('truth', 'a true surface')})")
         if a.get("sigma_pixels") and a.get("within_2sigma") is not None:
-            print(f"uncertainty {100 * a['within_2sigma']:.1f} % of {a['sigma_pixels']} px within "
-                  "2 sigma of that truth (calibrated: 90-98 %)")
+            from sffscan.pipeline.metrology.evaluate import uncertainty_line
+
+            print(uncertainty_line(a["within_2sigma"], a["sigma_pixels"], truth="that truth"))
     else:
         print("accuracy    not stored (scored only against a simulation's true surface: "
               "'sffscan demo', 'replay --evaluate')")

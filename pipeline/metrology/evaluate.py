@@ -142,6 +142,13 @@ def mosaic_accuracy(path: str | Path, world: HeightWorld, *, max_depth: float,
 SIM_TRUTH = "the simulation's true surface"
 
 
+def uncertainty_line(within_2sigma: float, pixels: int, *, truth: str) -> str:
+    """The summary line of an uncertainty scored against ``truth`` (what a scan, ``info``
+    and ``stopgo`` print): the share within 2 sigma and the band it is calibrated to."""
+    return (f"uncertainty {100 * within_2sigma:.1f} % of {pixels} px within 2 sigma of "
+            f"{truth} (calibrated: 90-98 %)")
+
+
 def _finite(v: float, lo: float = -math.inf, hi: float = math.inf) -> float | None:
     return min(max(float(v), lo), hi) if math.isfinite(v) else None
 
