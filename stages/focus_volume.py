@@ -15,9 +15,11 @@ What a column keeps depends on the depth method. argmax, centroid, PC and SPC ne
 curve's sums (H_0, sum k y, Re and Im of the first harmonic,
 :func:`sffscan.stages.depth_harmonics.harmonic_table`) and its argmax, so each frame is
 *accumulated* into per-pixel sums and a running maximum as it arrives (a few passes of
-OpenCV arithmetic, no N-level volume: 6 planes instead of N). The others (3-point fits,
-wcentroid, the adaptive ones) read the levels about a peak known once a column and its
-neighbours are complete: the ring stores all their levels, and the running argmax.
+OpenCV arithmetic, no N-level volume: 6 planes instead of N; SPC, PC and the argmax also
+keep every level of every 16th row, the curves their block's departure bias is judged on).
+The others (3-point fits, wcentroid, the adaptive ones) read the levels about a peak known
+once a column and its neighbours are complete: the ring stores all their levels, and the
+running argmax.
 
 The frames' writes into this state may be held until the next block reduction (at most
 ``defer_writes`` of them; 1, applied at once, by default) and then applied together, strip
@@ -207,7 +209,7 @@ class FocusVolume:
         # (the ring's methods take them from the levels at the reduction)
         self.track_low = uncertainty and self.streaming
         # the curves a block's departure bias is judged on (every SHAPE_SAMPLE_STEP-th
-        # row), kept where no N-level ring holds them: streaming SPC and PC
+        # row), kept where no N-level ring holds them: streaming SPC, PC and argmax
         self.track_grid = uncertainty and self.streaming and method in DEPARTURE_METHODS
         self.median_size = median_size
         self.spread_size = spread_size
@@ -535,19 +537,15 @@ class FocusVolume:
                                    valid=valid, strips=WINDOW_STRIPS)
             if hidden is not None:  # the centroid's bias, beside the fallback's
                 bias = math.hypot(bias, hidden)
-        if method in DEPARTURE_METHODS and self.uncertainty:
-            # a wide window's pull into lopsided curves' longer flank, or a truncated
-            # curve's near an end of the range: judged on the ring's curves, or a streaming
-            # scan's SPC or PC on the judged rows it keeps (the grid)
-            if self.fv is not None:
-                bias = blocks.block_departure_bias(
-                    self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1),
-                    scratch(a, "b_depth", shape), self._centre(u0, u1), valid)
-            elif self.grid is not None:
-                bias = blocks.block_departure_bias(
-                    self._gather(self.grid, u0, u1), self._gather(self.argmax, u0, u1),
-                    scratch(a, "b_depth", shape), self._centre(u0, u1), valid,
-                    rows_sampled=True)
+        # a wide window's pull into lopsided curves' longer flank, a truncated curve's near
+        # an end of the range, the argmax's sub-level offset: judged on the ring's curves, or
+        # a streaming scan's SPC, PC or argmax on the judged rows it keeps (the grid)
+        curves = self.fv if self.fv is not None else self.grid
+        if method in DEPARTURE_METHODS and self.uncertainty and curves is not None:
+            bias = blocks.block_departure_bias(
+                self._gather(curves, u0, u1), self._gather(self.argmax, u0, u1),
+                scratch(a, "b_depth", shape), self._centre(u0, u1), valid,
+                rows_sampled=self.fv is None)
         return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
                 scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias, locking)
 
