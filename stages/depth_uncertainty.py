@@ -85,12 +85,12 @@ import cv2
 import numpy as np
 from sffscan.stages.depth_harmonics import pc_depth
 
-__all__ = ["DEFAULT_CONSTANTS_METHOD", "FLOOR_LEVELS", "METHOD_CONSTANTS", "MIX_SCALE",
-           "OTHER_METHODS", "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE", "SCATTER_SCALE",
-           "centroid_departure", "curve_width", "depth_range", "depth_relief",
+__all__ = ["DEFAULT_CONSTANTS_METHOD", "FITTED_FOCUS_MEASURE", "FLOOR_LEVELS", "METHOD_CONSTANTS",
+           "MIX_SCALE", "OTHER_METHODS", "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE",
+           "SCATTER_SCALE", "centroid_departure", "curve_width", "depth_range", "depth_relief",
            "depth_scatter", "depth_uncertainty", "floor_share", "height_uncertainty_um",
-           "locking_visibility", "uncertainty_constants", "uncertainty_um", "width_excess",
-           "width_from_sums"]
+           "locking_visibility", "uncalibrated_focus_measure", "uncertainty_constants",
+           "uncertainty_um", "width_excess", "width_from_sums"]
 
 SCATTER_SCALE = 0.9841
 """``a`` of the default depth method (``"shape_select"``): fitted on the training seeds 0..5 of
@@ -181,6 +181,26 @@ OTHER_METHODS = ("pc", "spc", "wcentroid", "adaptive")
 :data:`DEFAULT_CONSTANTS_METHOD` and :data:`METHOD_CONSTANTS`' keys, every one of
 ``sffscan.stages.depth.DEPTH_METHODS`` (which this module cannot import: depth imports it;
 a test holds the lists equal)."""
+
+
+FITTED_FOCUS_MEASURE = ("glvm", 9)
+"""The focus measure (operator, window k) every constant here was fitted with: the synthetic
+families' stacks are measured with GLVM 9 (:func:`sffscan.stages.depth_study.uncertainty_sample`
+'s callers, ``bench/bench_method_constants.py``)."""
+
+
+def uncalibrated_focus_measure(operator: str, window: int) -> str | None:
+    """None for the focus measure the uncertainty was fitted with
+    (:data:`FITTED_FOCUS_MEASURE`), else why its uncertainty is not calibrated, for a
+    warning: measured on pertuz-simu02 (``sffscan study``, 2026-12-05), LAPM 5 and 9 put
+    0.75-0.92 of the pixels within 2 sigma for most methods, GLVM 5 0.86 for the default."""
+    op, k = FITTED_FOCUS_MEASURE
+    if operator.lower() == op and window == k:
+        return None
+    return (f"the height uncertainty's constants were fitted with the focus measure "
+            f"{op.upper()} k={k}; with {operator.upper()} k={window} it is not calibrated "
+            "(on pertuz-simu02 LAPM put 0.75-0.92 of the pixels within 2 sigma, GLVM 5 "
+            "0.86): check it on a surface you know with 'sffscan study'")
 
 
 def uncertainty_constants(method: str) -> tuple[float, float, float]:

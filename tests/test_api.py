@@ -235,3 +235,13 @@ def test_reconstruct_stack_errors() -> None:
         sffscan.reconstruct_stack(stack, focus_um, method="nope")
     with pytest.raises(ValueError, match="image 0"):
         sffscan.reconstruct_stack(stack * 2.0, focus_um)  # above the full scale 1.0
+
+
+def test_a_scan_with_another_focus_measure_warns_its_uncertainty_is_not_calibrated(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    cfg = small_config(motion={"x_start_mm": 2.0, "x_end_mm": 3.0})
+    with caplog.at_level("WARNING"):
+        sffscan.scan(cfg, output=tmp_path / "k9.zarr")
+        assert "not calibrated" not in caplog.text  # GLVM 9: what the constants were fitted with
+        sffscan.scan(cfg, output=tmp_path / "k5.zarr", processing={"window": 5})
+    assert "with GLVM k=5 it is not calibrated" in caplog.text

@@ -285,6 +285,11 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
         settings = _settings(args)
         if args.levels < 3:  # before any field: a stack needs three images
             raise ValueError(f"--levels must be >= 3, got {args.levels}")
+        from sffscan.stages.depth_uncertainty import uncalibrated_focus_measure
+
+        why = uncalibrated_focus_measure(settings.operator, settings.window)
+        if why is not None:
+            log.warning("stopgo: %s", why)
         for opt, value, top in (("--pixel-um", args.pixel_um, 10_000.0),  # as [optics] and
                                 ("--plate-length-mm", args.plate_length_mm, 2_000.0),  # [source]
                                 ("--plate-width-mm", args.plate_width_mm, 2_000.0)):

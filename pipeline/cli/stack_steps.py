@@ -94,6 +94,12 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
     if raw.uncertainty_um is None:
         log.warning("stack: no height uncertainty: method %s is a study's candidate, whose "
                     "uncertainty was never fitted; the outputs hold none", settings.method)
+    else:
+        from sffscan.stages.depth_uncertainty import uncalibrated_focus_measure
+
+        why = uncalibrated_focus_measure(settings.operator, settings.window)
+        if why is not None:
+            log.warning("stack: %s", why)
     if settings.filter_size == 1:
         height = raw.height_um
     else:

@@ -147,6 +147,7 @@ def test_stopgo_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     u, h = np.asarray(g["uncertainty"]), np.asarray(g["height"])
     assert int(got.group(2)) == int((np.isfinite(u) & np.isfinite(h)).sum()) > 0
     assert 50.0 < float(got.group(1)) <= 100.0
+    assert "not calibrated" not in text  # GLVM 9, the measure the constants were fitted with
     assert main(["stopgo", "-o", str(out), "--field", "10", "10", "-q"]) == 2  # overlap > field
     # refused before anything is written: an area typed in metres (it planned ~1e8 fields
     # and did not end), a stack of two levels (refused at the first field, after the mosaic)
@@ -159,3 +160,12 @@ def test_stopgo_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     capsys.readouterr()
     assert main(["stopgo", "-o", str(tmp_path / "flat.zarr"), "--pixel-um", "9000", "-q"]) == 0
     assert "CORR n/a (a map without variation)" in capsys.readouterr().out
+
+
+def test_stopgo_warns_that_another_focus_measure_s_uncertainty_is_not_calibrated(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level("WARNING"):
+        assert main(["stopgo", "-o", str(tmp_path / "w.zarr"), "--area-mm", "3", "5", "0", "2",
+                     "--field", "96", "80", "--levels", "12", "--z-step-um", "800",
+                     "--window", "5", "-q"]) == 0
+    assert "with GLVM k=5 it is not calibrated" in caplog.text

@@ -229,3 +229,18 @@ def test_a_block_departure_bias_reads_the_judged_grid() -> None:
     assert block_departure_bias(np.zeros_like(vol), argmax, peaks, centre) == 0.0
     with pytest.raises(ValueError, match="judged curves' "):
         block_departure_bias(vol, argmax, peaks, argmax)
+
+
+def test_a_focus_measure_the_constants_were_not_fitted_with_is_named() -> None:
+    """The constants are fitted with GLVM 9 (the families' stacks): that measure, in any
+    case, passes; any other operator or window gets a reason naming both, for a warning."""
+    from sffscan.stages.depth_uncertainty import (
+        FITTED_FOCUS_MEASURE,
+        uncalibrated_focus_measure,
+    )
+
+    assert FITTED_FOCUS_MEASURE == ("glvm", 9)
+    assert uncalibrated_focus_measure("GLVM", 9) is None
+    for op, k in (("lapm", 9), ("glvm", 5), ("tenv", 11)):
+        why = uncalibrated_focus_measure(op, k)
+        assert why is not None and f"{op.upper()} k={k}" in why and "GLVM k=9" in why
