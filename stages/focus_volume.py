@@ -52,7 +52,15 @@ from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 from sffscan.stages.depth_window import WINDOW_STRIPS, window_choice
-from sffscan.stages.volume_tasks import gather, pieces, run_task, scratch, scratch_arrays
+from sffscan.stages.volume_tasks import (
+    gather,
+    grid_rows,
+    keeps_grid,
+    pieces,
+    run_task,
+    scratch,
+    scratch_arrays,
+)
 
 T = TypeVar("T")
 
@@ -210,7 +218,7 @@ class FocusVolume:
         self.track_low = uncertainty and self.streaming
         # the curves a block's departure bias is judged on (every SHAPE_SAMPLE_STEP-th
         # row), kept where no N-level ring holds them: streaming SPC, PC and argmax
-        self.track_grid = uncertainty and self.streaming and method in DEPARTURE_METHODS
+        self.track_grid = keeps_grid(method, streaming=self.streaming, uncertainty=uncertainty)
         self.median_size = median_size
         self.spread_size = spread_size
         self.halo, self.rows, self.ring = volume_geometry(
@@ -265,7 +273,7 @@ class FocusVolume:
                 self.fv = np.empty((self.n, *plane), np.float32)
                 self.fv.fill(0.0)
         if self.track_grid:  # like the ring, its stale values are never read
-            shape = (self.n, -(-plane[0] // SHAPE_SAMPLE_STEP[0]), plane[1])
+            shape = (self.n, grid_rows(plane[0]), plane[1])
             if reuse is not None and reuse.grid is not None and reuse.grid.shape == shape:
                 reuse._apply_pending()
                 self.grid = reuse.grid

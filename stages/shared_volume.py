@@ -21,10 +21,9 @@ from typing import Any
 
 import numpy as np
 from sffscan.stages.bands import BandTasks, row_bands
-from sffscan.stages.depth_choice import DEPARTURE_METHODS
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
 from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
-from sffscan.stages.volume_tasks import RAW_SLOTS, Layout, volume_layout
+from sffscan.stages.volume_tasks import RAW_SLOTS, Layout, keeps_grid, volume_layout
 
 __all__ = ["SharedFocusVolume"]
 
@@ -71,7 +70,8 @@ class SharedFocusVolume(FocusVolume):
                              frame_shape=frame_shape, block_columns=block_columns,
                              n_sums=(4 if method == "centroid" else 3) if streaming else 0,
                              levels=not streaming, low=uncertainty and streaming,
-                             grid=uncertainty and streaming and method in DEPARTURE_METHODS,
+                             grid=keeps_grid(method, streaming=streaming,
+                                             uncertainty=uncertainty),
                              raw_dtype=raw_dtype)
 
     def _init_state(self, plane: tuple[int, int], reuse: FocusVolume | None) -> None:

@@ -29,11 +29,12 @@ from typing import Any
 import numpy as np
 from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
+from sffscan.stages.depth_choice import DEPARTURE_METHODS
 from sffscan.stages.depth_floor import GuardFloor
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
 
-__all__ = ["RAW_SLOTS", "TASKS", "gather", "pieces", "run_task", "scratch",
-           "scratch_arrays", "volume_layout"]
+__all__ = ["RAW_SLOTS", "TASKS", "gather", "grid_rows", "keeps_grid", "pieces", "run_task",
+           "scratch", "scratch_arrays", "volume_layout"]
 
 Layout = dict[str, tuple[tuple[int, ...], str]]
 """Array name -> (shape, dtype string)."""
@@ -77,9 +78,22 @@ def volume_layout(*, n_levels: int, rows: int, ring: int, frame_shape: tuple[int
     if levels:
         out["fv"] = ((n_levels, *plane), "<f4")
     if grid:
-        out["grid"] = ((n_levels, -(-rows // SHAPE_SAMPLE_STEP[0]), ring), "<f4")
+        out["grid"] = ((n_levels, grid_rows(rows), ring), "<f4")
     out.update({name: ((planes * rows * block_columns,), "<f4") for name, planes in _SCRATCH})
     return out
+
+
+def keeps_grid(method: str, *, streaming: bool, uncertainty: bool) -> bool:
+    """Whether a volume keeps the judged rows' curves (``grid``): a method that accumulates
+    sums (``streaming``) but whose uncertainty's bias is its departure from the curves'
+    peaks (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), when it computes one."""
+    return uncertainty and streaming and method in DEPARTURE_METHODS
+
+
+def grid_rows(rows: int) -> int:
+    """Rows of a volume's ``grid``: every ``SHAPE_SAMPLE_STEP[0]``-th of ``rows``, from the
+    first."""
+    return -(-rows // SHAPE_SAMPLE_STEP[0])
 
 
 RAW_SLOTS = 3
