@@ -145,13 +145,13 @@ def run_study(stack: StudyStack, *, operators: list[str], windows: list[int],
 def within_2sigma(height_um: np.ndarray, truth_um: np.ndarray, sigma_um: np.ndarray | None,
                   mask: np.ndarray) -> float:
     """Share of the ``mask`` pixels with a finite height, truth and uncertainty whose
-    |height - truth| <= 2 ``sigma_um``; NaN where ``sigma_um`` is None or no pixel counts."""
+    |height - truth| <= 2 ``sigma_um``; NaN where ``sigma_um`` is None or no pixel counts
+    (the count :func:`sffscan.pipeline.metrology.evaluate.accuracy` makes for a scan)."""
     if sigma_um is None:
         return math.nan
-    ok = mask & np.isfinite(height_um) & np.isfinite(truth_um) & np.isfinite(sigma_um)
-    if not ok.any():
-        return math.nan
-    return float(np.mean(np.abs(height_um[ok] - truth_um[ok]) <= 2.0 * sigma_um[ok]))
+    from sffscan.pipeline.metrology.evaluate import accuracy
+
+    return accuracy(height_um, truth_um, max_depth=1.0, mask=mask, sigma=sigma_um).within_2sigma
 
 
 def read_imdata(path: Path) -> StudyStack:
