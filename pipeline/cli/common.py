@@ -33,6 +33,13 @@ if TYPE_CHECKING:
     from sffscan.stages.protocol import Sink
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def fail(msg: str) -> int:
+    """Print ``sffscan: msg`` on stderr and return :data:`EXIT_BAD_INPUT` (a command's bad
+    input: the message names the file or option)."""
+    print(f"sffscan: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
 #: the scan ended cleanly but fewer frames than expected were received and processed (the
 #: mosaic's status is 'incomplete'; see sffscan.pipeline.completeness)
 EXIT_INCOMPLETE = 3

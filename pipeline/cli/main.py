@@ -53,9 +53,9 @@ EXIT_PIPE_CLOSED = 141  # 128 + SIGPIPE, what a shell reports for a writer kille
 #: Modules that add sub-commands; each defines ``register(sub)``.
 COMMAND_MODULES: tuple[str, ...] = (
     "sffscan.pipeline.cli.record", "sffscan.pipeline.cli.hardware",
-    "sffscan.pipeline.cli.calibrate", "sffscan.pipeline.cli.metrology",
-    "sffscan.pipeline.cli.batch", "sffscan.pipeline.cli.study", "sffscan.pipeline.cli.job",
-    "sffscan.pipeline.cli.serve")
+    "sffscan.pipeline.cli.calibrate", "sffscan.pipeline.cli.stack",
+    "sffscan.pipeline.cli.metrology", "sffscan.pipeline.cli.batch",
+    "sffscan.pipeline.cli.study", "sffscan.pipeline.cli.job", "sffscan.pipeline.cli.serve")
 
 
 def _run(cfg: ScanConfig, args: argparse.Namespace, *, evaluate: bool, viewer_default: str) -> int:

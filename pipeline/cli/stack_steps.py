@@ -16,7 +16,7 @@ from sffscan.pipeline.cli.common import check_distinct
 if TYPE_CHECKING:
     from sffscan.stages.fields.stationary import FieldResult, StackSettings
 
-log = logging.getLogger("sffscan.pipeline.cli.metrology")
+log = logging.getLogger("sffscan.pipeline.cli.stack")
 
 
 def check_files_exist(paths: list[str]) -> None:

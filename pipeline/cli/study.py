@@ -185,7 +185,7 @@ def user_stack(args: argparse.Namespace) -> StudyStack:
         exceeds the full scale, or the truth's shape differs from the images' (the message
         names the file).
     """
-    from sffscan.pipeline.cli.metrology import read_stack_input
+    from sffscan.pipeline.cli.stack import read_stack_input
     from sffscan.pipeline.metrology.compare import read_height_map
     from sffscan.stages.fields.stationary import stack_to_unit
 
@@ -447,7 +447,7 @@ def register(sub: Any) -> None:
     p = sub.add_parser("study", help="operators x windows x depth methods on a stack with a "
                        "known truth: table (CSV, JSON) and plot (PNG)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    from sffscan.pipeline.cli.metrology import stack_input_options
+    from sffscan.pipeline.cli.stack import stack_input_options
 
     stack_input_options(p)
     p.add_argument("--truth", metavar="FILE",

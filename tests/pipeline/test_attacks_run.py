@@ -179,7 +179,7 @@ def test_stack_and_stop_and_go_refuse_a_mosaic_another_writer_holds(
     import cv2
     import numpy as np
     import zarr
-    from sffscan.pipeline.cli import metrology
+    from sffscan.pipeline.cli import stack as stack_cli
     from sffscan.pipeline.cli.main import main
     from sffscan.pipeline.stopgo import SimFieldCamera, plan_grid, run_stop_and_go
     from sffscan.stages.sim.camera import Optics, focus_heights
@@ -192,14 +192,14 @@ def test_stack_and_stop_and_go_refuse_a_mosaic_another_writer_holds(
         assert cv2.imwrite(files[-1], rng.integers(0, 256, (24, 32), dtype=np.uint8))
     stack = ["stack", *files, "--focus-start", "0", "--focus-step", "10", "--pixel-um", "5"]
     out = tmp_path / "m.zarr"
-    read = metrology.read_images
+    read = stack_cli.read_images
     reads: list[int] = []
 
     def counted(paths: list[str], *, grey: bool, progress: bool = True) -> np.ndarray:
         reads.append(len(paths))
         return read(paths, grey=grey, progress=progress)
 
-    monkeypatch.setattr(metrology, "read_images", counted)  # where cmd_stack reads it
+    monkeypatch.setattr(stack_cli, "read_images", counted)  # where cmd_stack reads it
     with _Holder(out) as holder:
         assert main([*stack, "-o", str(out)]) == 2
         assert f"pid {holder.pid}" in capsys.readouterr().err
