@@ -1,0 +1,48 @@
+"""bench/bench_depth_pooled.py pools what it says: RMSE over the stacks of the seeds given,
+per family and per set of six, and the pooled best method's own worst set."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.bench_modules import load_bench
+
+
+def test_ratios_pool_squared_errors_over_pixels() -> None:
+    b = load_bench("bench_depth_pooled")
+    rows = [(1, ([4.0, 9.0], 1)), (2, ([0.0, 7.0], 3)), (3, ([100.0, 0.0], 1))]
+    np.testing.assert_allclose(b.ratios(rows, [1, 2]), [math.sqrt(4 / 4), math.sqrt(16 / 4)])
+    np.testing.assert_allclose(b.ratios(rows, [3]), [10.0, 0.0])
+
+
+def test_table_from_known_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    b = load_bench("bench_depth_pooled")
+    methods = list(b.DEPTH_METHODS)
+    d, other = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
+
+    def fake_scores(score, seeds, *, imdata, jobs):  # noqa: ANN001, ANN202 - the bench's hook
+        out = []
+        for s in seeds:
+            sse = [100.0] * len(methods)
+            # first set of six: the default 1.21x wcentroid's squared error; second: 0.64x
+            sse[d], sse[other] = (121.0, 100.0) if s < 6 else (64.0, 100.0)
+            out.append((s, (sse, 100)))
+        return {"fam": out}
+
+    monkeypatch.setattr(b, "NAMES", ["fam"])
+    monkeypatch.setattr(b, "score_stacks", fake_scores)
+    out = tmp_path / "t"
+    assert b.main(["--seeds", "0", "12", "--imdata", "", "--out", str(out)]) == 0
+    row = json.loads(out.with_suffix(".json").read_text())["rows"][0]
+    # pooled: the default's sum 6 * 121 + 6 * 64 against wcentroid's (and the others') 1200
+    assert row["best"] == b.DEFAULT_METHOD
+    assert row["default_over_best"] == pytest.approx(1.0)
+    assert row["worst_set"] == pytest.approx(1.1)  # sqrt(121 / 100) on seeds 0..5
+    assert row["sets_over_1_05"] == 1
+    assert row["pooled_best_worst_set"] == pytest.approx(1.1)
+    assert "1 of 2" in out.with_suffix(".md").read_text()
