@@ -26,6 +26,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,14 +78,14 @@ def main(argv: list[str] | None = None) -> int:
     d = methods.index(DEFAULT_METHOD)
     seeds = list(range(first, end))
     sets = [seeds[a:a + SET_SIZE] for a in range(0, len(seeds) - SET_SIZE + 1, SET_SIZE)]
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name in (*NAMES, *([PERTUZ] if PERTUZ in scores else [])):
         own = [0] if name == PERTUZ else seeds
-        r = ratios(scores[name], own)
-        best = int(np.argmin(r))
+        rmse = ratios(scores[name], own)
+        best = int(np.argmin(rmse))
         row = {"family": name, "seeds": len(own),
-               "rmse_levels": dict(zip(methods, r.tolist(), strict=True)),
-               "default_over_best": float(r[d] / r[best]), "best": methods[best]}
+               "rmse_levels": dict(zip(methods, rmse.tolist(), strict=True)),
+               "default_over_best": float(rmse[d] / rmse[best]), "best": methods[best]}
         if name != PERTUZ:
             per_set = [ratios(scores[name], ss) for ss in sets]
             row["worst_set"] = max(float(x[d] / x.min()) for x in per_set)
