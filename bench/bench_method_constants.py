@@ -22,7 +22,8 @@ reconstructed with that method adds it
   training seeds; leave one family out) and scored on that family's held-out seeds.
 
 Held-out seeds in sets of six (``--held-out FIRST END``); each (set, family) is a row of
-the bar: its coverage in the band, under it (the side that misleads) or over it. Not a
+the bar: its coverage in the band, under it (the side that misleads) or over it; and, with
+this tree's constants, each family's coverage over all its held-out seeds pooled. Not a
 test: nothing here asserts; it writes ``<out>.md`` and ``<out>.json``.
 """
 
@@ -116,10 +117,14 @@ def main(argv: list[str] | None = None) -> int:
         own = fit_uncertainty([groups[f] for f in names])
         fold = {f: fit_uncertainty([groups[g] for g in names if g != f]) for f in names}
         here = UncertaintyConstants(*uncertainty_constants(m))
+        held = list(range(first, end))
         rows.append({"method": m, "this_tree": list(here), "own_fit": list(own),
                      "this_tree_held_out": tally(samples, m, sets, names,
                                                  dict.fromkeys(names, here)),
-                     "own_held_out": tally(samples, m, sets, names, fold)})
+                     "own_held_out": tally(samples, m, sets, names, fold),
+                     # each family's coverage over all its held-out seeds pooled
+                     "this_tree_pooled": {f: uncertainty_coverage(
+                         [samples[f, s][m] for s in held], here) for f in names}})
         print(m, rows[-1]["this_tree_held_out"], rows[-1]["own_held_out"], flush=True)
     wall = time.time() - t0
     command = "python bench/bench_method_constants.py " + " ".join(
@@ -144,6 +149,13 @@ def main(argv: list[str] | None = None) -> int:
 
         lines.append(f"| {r['method']} | {fmt(r['this_tree'])} | {fmt(r['own_fit'])} | "
                      f"{cnt(r['this_tree_held_out'])} | {cnt(r['own_held_out'])} |")
+    lines += ["", f"This tree's constants, each family's coverage over its {end - first} "
+              "held-out seeds pooled:", "",
+              "| family | " + " | ".join(r["method"] for r in rows) + " |",
+              "|---|" + "---:|" * len(rows)]
+    for f in names:
+        lines.append(f"| {f} | " + " | ".join(
+            f"{r['this_tree_pooled'][f]:.3f}" for r in rows) + " |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     args.out.with_suffix(".json").write_text(json.dumps(
