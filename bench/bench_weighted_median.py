@@ -1,5 +1,5 @@
 """The stack's confidence-weighted median (issue 26 item 4): the argsort form it replaced
-against the sorted-keys form of :func:`sffscan.stages.fields.stationary.
+against the sorted-keys form of :func:`sffscan.stages.fields.weighted_median.
 confidence_weighted_median`, on the height map of the real PCB photographs
 (``shared/datasets/focus-stack-pcb``, ``--grey``, 15 x 15), interleaved rounds; CPU and wall
 seconds per configuration, and the reconstruction's for scale. Writes
@@ -22,12 +22,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from sffscan.stages.fields.stationary import (
-    StackSettings,
-    confidence_weighted_median,
-    read_image_stack,
-    reconstruct_field,
-)
+from sffscan.stages.fields.stack_io import read_image_stack
+from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
+from sffscan.stages.fields.weighted_median import confidence_weighted_median
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "datasets" / "focus-stack-pcb"

@@ -69,7 +69,7 @@ def _natural_key(name: str) -> list[object]:
 
 def read_stack(path: str | Path, *, grey: bool = False) -> np.ndarray:
     """(N, H, W) stack from a folder of images (natural order) or a Zarr array."""
-    from sffscan.stages.fields.stationary import read_image_stack, read_zarr_stack
+    from sffscan.stages.fields.stack_io import read_image_stack, read_zarr_stack
 
     p = Path(path)
     if p.suffix == ".zarr" or (p / "zarr.json").is_file():

@@ -157,7 +157,7 @@ def within_2sigma(height_um: np.ndarray, truth_um: np.ndarray, sigma_um: np.ndar
 def read_imdata(path: Path) -> StudyStack:
     """A stack in the toolbox's format: ``imdata.mat`` and the images beside it."""
     import scipy.io
-    from sffscan.stages.fields.stationary import read_image_stack
+    from sffscan.stages.fields.stack_io import read_image_stack
 
     try:
         im = scipy.io.loadmat(path, squeeze_me=True, struct_as_record=False)["imdata"]

@@ -15,7 +15,8 @@ import pytest
 import scipy.io
 from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
-from sffscan.stages.fields.stationary import StackSettings, read_image_stack, reconstruct_field
+from sffscan.stages.fields.stack_io import read_image_stack
+from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
 
 OPERATORS = ("glvm", "tenv")  # the table's columns (every operator: test_focus_operators)
 BAR_M = 0.015  # the bar over all ROI pixels

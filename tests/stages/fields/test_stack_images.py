@@ -24,7 +24,7 @@ from sffscan.stages.fields.image_io import (
     read_image,
     read_orientation,
 )
-from sffscan.stages.fields.stationary import read_image_stack
+from sffscan.stages.fields.stack_io import read_image_stack
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -262,7 +262,7 @@ def _weighted_median_by_argsort(z: np.ndarray, w: np.ndarray, size: int) -> np.n
 
 @pytest.mark.parametrize("size", [3, 15])
 def test_weighted_median_equals_the_argsort_form(size: int) -> None:
-    from sffscan.stages.fields.stationary import confidence_weighted_median
+    from sffscan.stages.fields.weighted_median import confidence_weighted_median
 
     rng = np.random.default_rng(size)
     z = (rng.normal(size=(37, 53)) * 100).astype(np.float32)

@@ -13,14 +13,13 @@ import scipy.ndimage
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.stages.depth import depth_from_focus, levels_to_height
-from sffscan.stages.fields.stationary import (
-    StackSettings,
-    confidence_weighted_median,
+from sffscan.stages.fields.stack_io import (
     read_focus_positions,
     read_image_stack,
     read_zarr_stack,
-    reconstruct_field,
 )
+from sffscan.stages.fields.stationary import StackSettings, reconstruct_field
+from sffscan.stages.fields.weighted_median import confidence_weighted_median
 from sffscan.stages.focus_measure import focus_measure, to_unit_float
 from sffscan.stages.sim.camera import Optics, focus_heights, render_stack
 from sffscan.stages.sim.world import sinusoid_world
