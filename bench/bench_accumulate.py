@@ -52,7 +52,7 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: the depth modules, in an order in which each one's imports come before it
 MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_uncertainty",
-           "depth_candidates", "depth_statistics", "depth_floor", "depth_choice",
+           "depth_candidates", "depth_statistics", "depth_floor", "depth_spc", "depth_choice",
            "depth_warp", "depth_window", "depth", "accumulate", "block_depth", "volume_tasks",
            "focus_volume", "depth_stage")
 """The depth modules loaded from the other tree, each after those it imports (until

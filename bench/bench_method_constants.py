@@ -12,7 +12,7 @@ replay and stack: the method's errors and the uncertainty's terms, ``b`` as a st
 reconstructed with that method adds it
 (:func:`sffscan.stages.depth_study.uncertainty_sample`). Per method:
 
-- ``this tree``: the constants :func:`sffscan.stages.depth_uncertainty.uncertainty_constants`
+- ``this tree``: the constants :func:`sffscan.stages.fitted_constants.uncertainty_constants`
   gives it, fixed, scored on the held-out seeds of every family;
 - ``own fit``: (a, r, c) fitted on the method's own errors by
   :func:`sffscan.stages.uncertainty_fit.fit_uncertainty` on the twenty families' training
@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import machine  # noqa: E402
 from sffscan.stages.depth import DEPTH_METHODS  # noqa: E402
 from sffscan.stages.depth_study import uncertainty_sample  # noqa: E402
-from sffscan.stages.depth_uncertainty import uncertainty_constants  # noqa: E402
+from sffscan.stages.fitted_constants import uncertainty_constants  # noqa: E402
 from sffscan.stages.focus_measure import focus_measure  # noqa: E402
 from sffscan.stages.sim.families import family_names, family_stack  # noqa: E402
 from sffscan.stages.uncertainty_fit import (  # noqa: E402

@@ -13,7 +13,7 @@ twice the contrast by a smooth random map of ~10 px patches; the variant was fix
 pooled RMSE (levels) of every selectable method (:data:`sffscan.stages.depth.DEPTH_METHODS`),
 the default's ratio to the best of them, and the share of pixels whose error is within
 2 sigma of the shipped height uncertainty (constants ``SCATTER_SCALE``,
-``RELIEF_SCALE``, ``FLOOR_LEVELS`` of :mod:`sffscan.stages.depth_uncertainty`; the issue's
+``RELIEF_SCALE``, ``FLOOR_LEVELS`` of :mod:`sffscan.stages.fitted_constants`; the issue's
 band is 90-98 %).
 
 64 px stacks, GLVM 9, the focus window's reach left out of the scored pixels, as the
@@ -32,7 +32,7 @@ from pathlib import Path
 
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.depth_study import DEFAULT_METHOD, score_volume
-from sffscan.stages.depth_uncertainty import FLOOR_LEVELS, RELIEF_SCALE, SCATTER_SCALE
+from sffscan.stages.fitted_constants import FLOOR_LEVELS, RELIEF_SCALE, SCATTER_SCALE
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, Family
 from sffscan.stages.uncertainty_fit import UncertaintyConstants, uncertainty_coverage
 

@@ -4,7 +4,8 @@ not the default).
     python bench/bench_roughness_choice.py --seeds 6 12 --seeds 12 18
         # writes bench/results/roughness_choice.md (under a minute a seed range, 2 cores)
 
-The default's per-stack tests (:mod:`sffscan.stages.depth_choice`) weigh SPC and the peak
+The default's per-stack tests (:mod:`sffscan.stages.depth_choice`; SPC's,
+:mod:`sffscan.stages.depth_spc`) weigh SPC and the peak
 methods by noise predicted from each curve's second differences along the levels, which
 assumes noise independent from level to level; where it is not (a thin lens' noisy slope,
 a 12-bit flat plate), the choice goes wrong (docs/depth-method-log.md). This measures each
@@ -42,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 from sffscan.stages import depth_choice as dc
+from sffscan.stages import depth_spc as dspc
 from sffscan.stages import depth_statistics as ds
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
@@ -108,13 +110,13 @@ def choices(vol: np.ndarray, mask: np.ndarray) -> tuple[dict[str, np.ndarray], d
     ch = dc.stack_choice(vol, a, width)
     sample, peak, _ = ds.stack_sample(vol, a, width)
     b5, b9 = peak_biases(sample, peak)
-    centroid = dc.takes_centroid(ch.pull, noise=ch.noise)
-    dep = dc.spc_departure(sample, peak, centroid=False)[0]
+    centroid = ds.takes_centroid(ch.pull, noise=ch.noise)
+    dep = dspc.spc_departure(sample, peak, centroid=False)[0]
     maps = {m: depth_from_focus(vol, method=m, median_size=11, spread_size=9, argmax=a)[0]
             for m in DEPTH_METHODS}
     fb = maps["adaptive_centroid"]
     cand = {"fb": fb, "wc": maps["wcentroid"],
-            "spc": np.where(dc.spc_in_range(maps["spc"], width, vol.shape[0]), maps["spc"], fb)}
+            "spc": np.where(dspc.spc_in_range(maps["spc"], width, vol.shape[0]), maps["spc"], fb)}
     bias = {"fb": b5 if centroid else 0.0, "wc": b9, "spc": dep}
     bias = {k: (v if math.isfinite(v) else math.inf) for k, v in bias.items()}
     whole = {k: float(second_differences(z, mask, lattice=False).mean()) + bias[k] ** 2

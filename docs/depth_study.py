@@ -132,7 +132,7 @@ limit, which the pull limit (`spc-pull`) stops (docs/depth-method-log.md; shippe
 this table's tuning, until 2026-12-05, then at 0.1, the tuning over the twenty families of
 the next table, as the noise ratio's is); and even curves
 under heavy noise take the fallback where SPC's bias and predicted noise add up to more
-than the fallback's noise (`depth_choice.takes_spc`'s departure test, no constant; from
+than the fallback's noise (`depth_spc.takes_spc`'s departure test, no constant; from
 2026-12-02 to 2026-12-04 a tuned limit on the ratio of SPC's predicted noise to the
 pull's, 1.19, did that: `spc-noise`, which now ties in every fold and goes to no limit;
 with either, even-noisy 0.777 -> 0.755 levels, now the best of its row, the other rows
@@ -141,7 +141,7 @@ unchanged). Its fallback
 pixels where the curves' centroid pull is under the limit the protocol tunes on every
 family's training seeds (`centroid-pull`, the pertuz row's setting) or under the pull's own
 noise, the robust spread of the centroid's differences from the 3-point Gaussian: a
-bias-variance comparison without a tuned constant (`depth_choice.takes_centroid`).
+bias-variance comparison without a tuned constant (`depth_statistics.takes_centroid`).
 With the noise term (2026-12-02, against the table before it): slopes 1.13x -> 1.04x,
 flat-fine-8bit 1.00x (0.098 -> 0.076 levels, now the best of the row), lens-pillbox-noisy
 1.036 -> 1.013 levels; no other row moved by more than 0.3 %. The uncertainty's constants
@@ -216,7 +216,7 @@ slopes-lens-pillbox, 1.10x and 1.08x until the wide centroid's test, are 1.00x a
 the tables of seeds {seeds}..{held_last} as they were but for lens-gauss (0.943 -> 0.910
 levels, the best of its row): (1) the departure is taken from the peak the fallback takes
 (the 5-level centroid where the pull is under its noise) and SPC's own predicted noise is
-weighed in (`d^2 + 2 sigma^2 <= s^2`: `depth_choice.takes_spc`; no constant); until then
+weighed in (`d^2 + 2 sigma^2 <= s^2`: `depth_spc.takes_spc`; no constant); until then
 one stack of six of slopes-lens-noisy took SPC (1.32 levels RMSE against the fallback's
 0.58; the row 1.65x), its departure from the 3-point peaks, 1.21 levels, under their
 spread, 1.46, which the 3-point peak's noise widens. The noise ratio's tuning (`spc-noise`)

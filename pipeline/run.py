@@ -359,7 +359,7 @@ def execute(job: Job) -> Run | None:
     live = rec is None and job.frames is None
     preflight(cfg, record=job.record, resume=job.resume, source=job.source, live=live,
               simulated=live and job.source is None and cfg.source.kind == "sim")
-    from sffscan.stages.depth_uncertainty import uncalibrated_focus_measure
+    from sffscan.stages.fitted_constants import uncalibrated_focus_measure
 
     why = uncalibrated_focus_measure(cfg.processing.focus_operator, cfg.processing.window)
     if why is not None and not job.check_only:

@@ -14,14 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 from sffscan.stages.depth import depth_from_focus
-from sffscan.stages.depth_choice import (
-    fallback_bias,
-    judged_width,
-    peak_locking,
-    spc_bias,
-    spc_in_range,
-    takes_centroid,
-)
+from sffscan.stages.depth_choice import fallback_bias, judged_width, peak_locking
 from sffscan.stages.depth_floor import GuardFloor, guard_width
 from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
@@ -35,12 +28,14 @@ from sffscan.stages.depth_levels import (
     median_filter_levels_at,
 )
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
+from sffscan.stages.depth_spc import spc_bias, spc_in_range
 from sffscan.stages.depth_statistics import (
     SHAPE_SAMPLE_STEP,
     peak_departure,
     pull_statistics,
     sampled_curves,
     shape_statistics,
+    takes_centroid,
 )
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
 
@@ -59,7 +54,7 @@ the other ring methods read the halo's columns too, except the blocks of
 SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
 """What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at
 its pixels outside the range SPC holds in
-(:func:`sffscan.stages.depth_choice.spc_in_range`) what ``"adaptive_centroid"`` takes
+(:func:`sffscan.stages.depth_spc.spc_in_range`) what ``"adaptive_centroid"`` takes
 (``adaptive``'s peak refined by the 5-level centroid or by the 3-point Gaussian)."""
 
 
@@ -77,7 +72,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  ) -> tuple[str, float, GuardFloor | None, float]:
     """The method a block takes, the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
-    :func:`sffscan.stages.depth_choice.spc_departure`; where it takes a peak, the
+    :func:`sffscan.stages.depth_spc.spc_departure`; where it takes a peak, the
     :func:`sffscan.stages.depth_choice.fallback_bias` of its curves) and, where it takes
     SPC, what SPC's range guard takes from its curves
     (:func:`sffscan.stages.depth_floor.guard_floor`; None elsewhere: :func:`depth_rows`'
@@ -95,7 +90,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     ``"adaptive_centroid"``: itself where a centroid is not pulled from its curves' maxima
     more than their 3-point Gaussians' noise
     (:func:`sffscan.stages.depth_statistics.pull_statistics`,
-    :func:`~sffscan.stages.depth_choice.takes_centroid`), else ``"adaptive"``.
+    :func:`~sffscan.stages.depth_statistics.takes_centroid`), else ``"adaptive"``.
 
     Parameters
     ----------
@@ -115,7 +110,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         Gives the filtered argmax the block's depth is taken about, at the judged grid's
         pixels (every ``SHAPE_SAMPLE_STEP[0]``-th row and ``[1]``-th column: the shape of
         :func:`~sffscan.stages.depth_statistics.sampled_curves`' argmax), which SPC's
-        departure is measured about (:func:`sffscan.stages.depth_choice.spc_departure`);
+        departure is measured about (:func:`sffscan.stages.depth_spc.spc_departure`);
         called only where the curves pass SPC's other tests. A scan's block passes one
         that filters with its halo's columns (:func:`judged_centre`); when None,
         ``argmax`` filtered over ``median_size`` px within the block.
@@ -319,7 +314,7 @@ def block_uncertainty(depth: np.ndarray, sums: np.ndarray, low: np.ndarray,
 
     ``depth`` (levels, invalid pixels filled), ``sums`` (3, rows, block) and ``low`` hold
     every row of the block; ``method``: the scan's depth method (its constants:
-    :func:`~sffscan.stages.depth_uncertainty.uncertainty_constants`); ``bias_levels``: the
+    :func:`~sffscan.stages.fitted_constants.uncertainty_constants`); ``bias_levels``: the
     block's bias and ``locking_levels`` its locking (:func:`block_choice`);
     ``valid``: the block's pixels whose curves are whole (the others' sums and minima, left
     from earlier columns in the ring, are not read for their neighbours); returns float32

@@ -20,7 +20,8 @@ it also exports the public names of the modules that compute,
 * :mod:`sffscan.stages.depth_peak`: the 3-point fits, the windowed centroid and the
   default, ``adaptive``;
 * :mod:`sffscan.stages.depth_choice`: the statistics by which the default chooses its
-  estimator per stack or block (``shape_select``, ``adaptive_centroid``);
+  estimator per stack or block (``shape_select``, ``adaptive_centroid``; SPC's tests in
+  :mod:`sffscan.stages.depth_spc`);
 * :mod:`sffscan.stages.depth_candidates`: the study's other candidates.
 
 All functions are pure and vectorised (no Python loops over pixels).
@@ -41,7 +42,7 @@ from sffscan.stages.depth_candidates import (
     gauss_window_fit,
     window_pc,
 )
-from sffscan.stages.depth_choice import spc_in_range, stack_choice, takes_centroid, wide_choice
+from sffscan.stages.depth_choice import stack_choice, wide_choice
 from sffscan.stages.depth_floor import guard_width
 from sffscan.stages.depth_harmonics import (
     STREAMING_METHODS,
@@ -74,7 +75,13 @@ from sffscan.stages.depth_peak import (
     three_point_offset,
     windowed_centroid,
 )
-from sffscan.stages.depth_statistics import pull_statistics, sample_step, stack_sample
+from sffscan.stages.depth_spc import spc_in_range
+from sffscan.stages.depth_statistics import (
+    pull_statistics,
+    sample_step,
+    stack_sample,
+    takes_centroid,
+)
 from sffscan.stages.depth_uncertainty import width_from_sums
 from sffscan.stages.depth_warp import lens_asymmetry, unwarp_levels, warp_volume
 from sffscan.stages.depth_window import window_choice
@@ -332,7 +339,7 @@ def depth_from_focus(
             that a centroid is not pulled from their maxima, or the 3-point Gaussian is
             noisier than that pull (the median difference of the two about each curve's
             argmax within the larger of
-            :data:`~sffscan.stages.depth_choice.CENTROID_PULL_LIMIT` and the
+            :data:`~sffscan.stages.depth_statistics.CENTROID_PULL_LIMIT` and the
             differences' robust spread:
             :func:`~sffscan.stages.depth_statistics.pull_statistics`). Five levels, not
             three: less noise. On clean lopsided curves (a thin lens' blur) it is
@@ -363,17 +370,17 @@ def depth_from_focus(
         ``"shape_select"`` (the default of scan, replay and stack)
             One choice for the whole volume: ``"spc"`` where its focus curves are even and
             clean (:func:`sffscan.stages.depth_choice.shape_select` at
-            :data:`~sffscan.stages.depth_choice.SHAPE_SELECT_LIMITS` and a centroid
-            pull under :data:`~sffscan.stages.depth_choice.SPC_PULL_LIMIT`, tuned by
+            :data:`~sffscan.stages.depth_spc.SHAPE_SELECT_LIMITS` and a centroid
+            pull under :data:`~sffscan.stages.depth_spc.SPC_PULL_LIMIT`, tuned by
             the leave-one-family-out study; and SPC's departure from the peaks the
             fallback takes (3-point Gaussian or 5-level centroid) and its predicted
-            noise (:func:`~sffscan.stages.depth_choice.spc_noise`) small enough that
+            noise (:func:`~sffscan.stages.depth_spc.spc_noise`) small enough that
             its mean squared error is predicted no larger than the fallback's,
-            :func:`~sffscan.stages.depth_choice.spc_departure`,
-            :func:`~sffscan.stages.depth_choice.takes_spc`), except at the pixels
+            :func:`~sffscan.stages.depth_spc.spc_departure`,
+            :func:`~sffscan.stages.depth_spc.takes_spc`), except at the pixels
             whose SPC depth lies within
-            :data:`~sffscan.stages.depth_choice.SPC_END_REACH` curve widths of an end
-            of the range (:func:`~sffscan.stages.depth_choice.spc_in_range`); else, and
+            :data:`~sffscan.stages.depth_spc.SPC_END_REACH` curve widths of an end
+            of the range (:func:`~sffscan.stages.depth_spc.spc_in_range`); else, and
             there, ``"adaptive_centroid"``, which a volume that does not take SPC trades for
             ``"wcentroid"`` where that map's scatter about its 5 x 5 median plus its
             departure from the fallback is under the fallback's scatter

@@ -9,7 +9,7 @@ times that: the width comes out too large. On the twenty families' even, noisy s
 ratio of the first two harmonics, which no floor enters (1.00-1.39x on clean ones); on
 Gaussian curves of sigma 2.5 levels in 50, 1.6x at noise 0.005 of the peak, 4.3x at 0.08.
 
-SPC's range guard (:func:`sffscan.stages.depth_choice.spc_in_range`) keeps SPC where it lies
+SPC's range guard (:func:`sffscan.stages.depth_spc.spc_in_range`) keeps SPC where it lies
 a reach of widths from the range's ends: with widths that large it sent 30-50 % of an even,
 noisy stack's pixels to the fallback far from any end (levels 13..58 of 72), where SPC erred
 1.9 against the fallback's 3.0 levels (docs/depth-method-log.md, 2026-12-05). The guard now

@@ -1,11 +1,14 @@
 """The statistics of a stack's or a scan block's focus curves by which the default depth
-method chooses its estimator (the choices are :mod:`sffscan.stages.depth_choice`'s):
+method chooses its estimator (the choices are :mod:`sffscan.stages.depth_choice`'s, SPC's
+tests :mod:`sffscan.stages.depth_spc`'s):
 
 * which curves are judged: :func:`sampled_curves` (a scan's block, and the grid of
   :data:`SHAPE_SAMPLE_STEP`), :func:`stack_sample` (a whole stack,
   :data:`SHAPE_STACK_CURVES`), :func:`judged_curves` (those 2 levels or more from the
   range's ends);
-* the centroid pull and its noise, :func:`pull_statistics` (:func:`centroid_pull`);
+* the centroid pull and its noise, :func:`pull_statistics` (:func:`centroid_pull`), and
+  the test ``adaptive_centroid`` takes the 5-level centroid by, :func:`takes_centroid`
+  (:data:`CENTROID_PULL_LIMIT`);
 * the curves' shape, :func:`shape_statistics`: their skewness (:func:`curve_skew`) and the
   ratio of their harmonic width to their extent above half height;
 * how far the fallback's wide centroid departs from its peak estimator where the focus
@@ -23,10 +26,10 @@ import numpy as np
 from sffscan.stages.depth_candidates import half_height_count
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 
-__all__ = ["SHAPE_SAMPLE_STEP", "SHAPE_STACK_CURVES", "centroid_pull", "curve_skew",
-           "judged_curves", "median_spread", "peak_departure", "pull_statistics", "row_median",
-           "sample_step", "sampled_curves", "shape_statistics", "stack_sample",
-           "wide_departure"]
+__all__ = ["CENTROID_PULL_LIMIT", "SHAPE_SAMPLE_STEP", "SHAPE_STACK_CURVES", "centroid_pull",
+           "curve_skew", "judged_curves", "median_spread", "peak_departure", "pull_statistics",
+           "row_median", "sample_step", "sampled_curves", "shape_statistics", "stack_sample",
+           "takes_centroid", "wide_departure"]
 
 
 SHAPE_SAMPLE_STEP = (16, 8)
@@ -147,7 +150,7 @@ def peak_departure(depth: np.ndarray, levels: np.ndarray, centre: np.ndarray,
     (the 9-level centroid) finds the peak, and the median is about 0 whatever the noise; on
     lopsided or flat-topped curves (a thin lens, a pillbox) it is pulled into the longer
     flank the same way on every curve: a bias of the map that its scatter does not show
-    (SPC's departure in ``"shape_select"``'s test, :func:`~sffscan.stages.depth_choice.
+    (SPC's departure in ``"shape_select"``'s test, :func:`~sffscan.stages.depth_spc.
     spc_departure`, is this against the fallback's peak).
 
     Parameters
@@ -180,7 +183,7 @@ def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | N
     within 2 levels of an end of the range left out), and of those differences the median
     (the *pull*) and the robust standard deviation (1.4826 x their median absolute
     deviation about it: the *noise*). NaN, NaN where no curve is left, which
-    :func:`~sffscan.stages.depth_choice.takes_centroid` refuses.
+    :func:`takes_centroid` refuses.
 
     The pull is about 0 on even curves, whatever their noise (the median of many curves);
     positive where the curves' tails run to higher levels (a thin lens' blur, even in 1/z):
@@ -203,6 +206,33 @@ def pull_statistics(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | N
     diff = (windowed_centroid(vol, am, half_window=2)
             - (am + three_point_offset(vol, am, log=True)))[ok]
     return median_spread(diff)
+
+
+CENTROID_PULL_LIMIT = 0.03
+"""Largest :func:`~sffscan.stages.depth_statistics.centroid_pull` (levels) for which
+``"adaptive_centroid"`` takes the 5-level centroid, tuned by the study on the training seeds of all
+its families (as :data:`~sffscan.stages.depth_candidates.GAUSS_FIT_HALF_WINDOW`;
+docs/depth-study.md)."""
+
+
+def takes_centroid(pull: float, *, noise: float = 0.0,
+                   limit: float = CENTROID_PULL_LIMIT) -> bool:
+    """Whether ``adaptive_centroid`` takes the 5-level centroid for curves of this pull and
+    noise (:func:`~sffscan.stages.depth_statistics.pull_statistics`): ``abs(pull) < max(limit,
+    noise)`` (``limit`` default :data:`CENTROID_PULL_LIMIT`); not for a NaN pull (no curve judged).
+
+    The noise term is a bias-variance comparison, no tuned constant: at a curve's peak the
+    centroid's error is about the pull (a bias) and the 3-point Gaussian's about its own
+    noise, whose spread the differences show; where the pull is smaller than that spread
+    the centroid errs less, even on lopsided curves. Measured with the leave-one-family-out
+    protocol (docs/depth-study.md; the default's held-out RMSE, levels, before -> after):
+    slopes 0.258 -> 0.238 (1.13x -> 1.04x the best fixed method), flat-fine-8bit 0.098 ->
+    0.076, lens-pillbox-noisy 1.036 -> 1.013, the other families and pertuz-simu02 within
+    0.3 %; on ten families crossed from the study's (not in it), noisy slopes under a thin
+    lens' blur 0.508 -> 0.318 (2.02x -> 1.26x), a thin lens' flat 12-bit plate 0.133 ->
+    0.127, the other eight unchanged.
+    """
+    return bool(abs(pull) < max(limit, 0.0 if math.isnan(noise) else noise))
 
 
 def judged_curves(argmax: np.ndarray, n: int, mask: np.ndarray | None

@@ -19,18 +19,17 @@ from sffscan.stages.depth import (
     median_filter_levels,
 )
 from sffscan.stages.depth_candidates import gauss_window_fit, plane_residual, window_pc
-from sffscan.stages.depth_choice import (
+from sffscan.stages.depth_choice import shape_select
+from sffscan.stages.depth_floor import guard_floor, guard_width
+from sffscan.stages.depth_harmonics import curve_moments
+from sffscan.stages.depth_spc import (
     SHAPE_SELECT_LIMITS,
-    shape_select,
     spc_departure,
     spc_in_range,
     spc_noise,
-    takes_centroid,
     takes_spc,
 )
-from sffscan.stages.depth_floor import guard_floor, guard_width
-from sffscan.stages.depth_harmonics import curve_moments
-from sffscan.stages.depth_statistics import pull_statistics, shape_statistics
+from sffscan.stages.depth_statistics import pull_statistics, shape_statistics, takes_centroid
 from sffscan.stages.depth_uncertainty import depth_scatter
 
 __all__ = ["CANDIDATES", "SHAPE_GRID", "THRESHOLDS", "Setting", "candidate_errors",
@@ -58,7 +57,7 @@ PULL_LIMITS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``centroid-pull`` limits (levels) the protocol tunes over: the largest
 :func:`sffscan.stages.depth_statistics.centroid_pull` for which a stack takes the 5-level
 centroid at ``adaptive``'s peak pixels (inf: always), or the pull's noise where that is
-larger (:func:`sffscan.stages.depth_choice.takes_centroid`)."""
+larger (:func:`sffscan.stages.depth_statistics.takes_centroid`)."""
 
 SPC_PULLS = (0.03, 0.05, 0.1, 0.2, math.inf)
 """``spc-pull`` settings the protocol tunes over: the largest centroid pull (levels) of a
@@ -77,7 +76,7 @@ never (first: ties go to it)."""
 SPC_REACHES = (3.0, 2.0, 1.5, 1.0, 0.0)
 """``spc-reach`` settings the protocol tunes over: how many of its widths SPC's depth must lie
 from the range's ends for ``shape_select`` (at its shipped limits) to keep SPC at a pixel
-(:func:`sffscan.stages.depth_choice.spc_in_range`; 0: everywhere). Largest first:
+(:func:`sffscan.stages.depth_spc.spc_in_range`; 0: everywhere). Largest first:
 where settings tie on the training seeds (a stack that takes SPC with no pixel near an end
 cannot tell them apart) the tuning takes the first, the widest guard the tie allows, since
 a curve cut by the range's end biases SPC whatever the data say about the others."""
@@ -85,7 +84,7 @@ a curve cut by the range's end biases SPC whatever the data say about the others
 SPC_NOISE_RATIOS = (math.inf, 2.83, 2.0, 1.68, 1.41, 1.19, 1.0, 0.84, 0.71)
 """``spc-noise`` settings the protocol tunes over (quarter octaves): the largest ratio of
 SPC's predicted noise to the centroid pull's noise
-(:func:`sffscan.stages.depth_choice.spc_noise`) of a stack ``shape_select`` (at its
+(:func:`sffscan.stages.depth_spc.spc_noise`) of a stack ``shape_select`` (at its
 shipped limits, reach and pull limit) gives to SPC (inf: no limit). Largest first: where
 settings tie on the training seeds the tuning takes the first, the loosest the tie allows,
 so the limit changes only what training stacks show."""

@@ -10,71 +10,43 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
 * ``relief``: the depth's RMS about its own k x k box mean over the focus window
   (:func:`depth_relief`). Neighbouring pixels share most of the focus window, so their
   errors are correlated and smooth over a few pixels: a 5 x 5 median follows them and
-  hides them from the scatter (alone, ``a`` had to be ~4 and over-covered smooth maps while
-  under-covering rough ones). The box mean leaves a plane alone (a slope has no relief)
+  hides them from the scatter. The box mean leaves a plane alone (a slope has no relief)
   and leaves an error, a bump or an edge of about the window's size in ``relief``.
-  Added 2026-12-04 (night): held-out coverage in the band on 10 of 11 sets (the study's
-  ten families and pertuz-simu02; 10 before), 13 of 21 with the crossed families (12
-  before) and 17 of 21 on twice the seeds (11 before); the sets under the band (the side
-  that misleads) 1, 3 and 3 against 1, 4 and 6 (docs/depth-study.md).
 * ``excess``: how much wider the pixel's focus curve is than the curves about it
   (:func:`width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``, levels), at most half the range
   of the depth map about it. A focus window that sees two heights (an edge, a step) has a
-  curve with two modes; their variance adds to the curve's: a mix of two heights ``D``
-  apart in shares ``p``, ``1 - p`` widens the curve by ``D sqrt(p (1 - p))`` in quadrature
-  (at most ``D / 2``). The peak the estimator takes is one mode or the other, and the
-  other one (an error of the whole step) about as often as that mode's share: an error of
-  standard deviation ``D sqrt(p (1 - p))``, the excess itself, so ``excess`` is one sigma
-  (this geometry, not a fitted constant). Until 2026-12-05 the estimate was taken to lie
-  anywhere between the two heights, at most ``D / 2`` from its own side, and ``excess / 2``
-  was one sigma; the pixels it left uncovered were step pixels whose peak had taken the
-  other side (steps-lens-noisy, seeds 3..5: every uncovered pixel within 9 px of a true
-  step, their median error 8.9 levels against half the local range 8.4;
-  docs/depth-method-log.md). The two heights are
-  measured beside the mix, within ``2k + 1`` px: ``D`` is at most the range (max - min) of
-  the depth's 5 x 5 median over that square, so the excess is capped at half that range.
-  Without the cap a textured continuous surface, whose curves' widths scatter from pixel to
-  pixel (about half wider than their neighbours' mean), got 0.5 .. 1 level of sigma from
-  that scatter alone (a demo print: a third of a flat part's pixels above a 0.5 level
-  tolerance, its error 0.03 level RMS); the cap leaves a mix its full term. Until
-  2026-12-05 evening the term was also scaled by ``max(0, 1 - 2 floor share)`` (``N min /
-  H_0``, :func:`floor_share`: noisy curves of a weak texture, whose width says more about
-  the noise than the heights seen); with the cap it only took the term from noisy step
-  edges, whose peaks are taken on the wrong side most often (steps-lens-noisy's uncovered
-  pixels had no excess left): dropped (held-out sets under the band 8 -> 0 of 180,
-  docs/depth-method-log.md).
-* ``b``: a bias of the whole map. SPC's, where ``"shape_select"`` took SPC for the stack or
-  scan block: the median departure of SPC from the peaks the fallback would take
-  (:attr:`sffscan.stages.depth_choice.StackChoice.bias`, levels). The choice
-  takes SPC where that departure is small against the noise (``d^2 + 2 sigma^2 <= s^2``),
-  not where it is zero: a lopsided curve's pull on SPC is a bias of the whole map that
-  its scatter cannot show. Added as it is (no constant): on the depth study's
-  leave-one-family-out tables (2026-12-04) the held-out coverage moved into the band on
-  lens-pillbox-noisy (0.869 -> 0.911, seeds 6..11) and toward it on steps-lens-noisy
-  (0.825 -> 0.899), no set out of it. Where the depth is a peak instead (the fallback of
-  ``"shape_select"``, ``"adaptive"`` and ``"adaptive_centroid"`` by name), ``b`` is the size
-  of the curves' centroid pull (:func:`sffscan.stages.depth_choice.fallback_bias`: two peak
-  estimators that disagree the same way on every curve), also as it is (2026-12-04, late
-  night: the held-out sets under the band 13 -> 7 over five sets of seeds;
-  docs/depth-method-log.md). Where it is SPC, PC, the 9-level centroid or the argmax by
-  name (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), ``b`` is the size of the
-  map's departure from the curves' 3-point peaks (:func:`sffscan.stages.depth_statistics.
-  peak_departure`: a whole curve's or a wide window's pull into a lopsided curve's longer
-  flank, or the argmax's sub-level offset on a flat), as it is (2026-12-05, night: their
-  held-out rows under the band 25 / 58 / 59 -> 1 / 3 / 3 of 140; a streaming scan's SPC, PC
-  and argmax judge it on the curves of every 16th row, which they keep for it). Where it is
-  the whole-curve centroid, each pixel's departure from its curve's phase
-  (:func:`centroid_departure`).
+  curve with two modes; a mix of two heights ``D`` apart in shares ``p``, ``1 - p`` widens
+  the curve by ``D sqrt(p (1 - p))`` in quadrature. The peak the estimator takes is one
+  mode or the other, and the other one (an error of the whole step) about as often as that
+  mode's share: an error of standard deviation ``D sqrt(p (1 - p))``, the excess itself, so
+  ``excess`` is one sigma (this geometry, not a fitted constant: :data:`MIX_SCALE`). ``D``
+  is measured beside the mix, within ``2k + 1`` px: at most the range (max - min) of the
+  depth's 5 x 5 median over that square, so the excess is capped at half that range
+  (without the cap a textured surface, whose curves' widths scatter from pixel to pixel,
+  got 0.5 .. 1 level of sigma from that scatter alone).
+* ``b``: a bias of the whole map, which its scatter cannot show. Where ``"shape_select"``
+  took SPC for the stack or scan block, SPC's median departure from the peaks the fallback
+  would take (:attr:`sffscan.stages.depth_choice.StackChoice.bias`; the choice takes SPC
+  where that departure is small against the noise, not where it is zero). Where the depth
+  is a peak instead (the fallback of ``"shape_select"``, ``"adaptive"`` and
+  ``"adaptive_centroid"``), the size of the curves' centroid pull
+  (:func:`sffscan.stages.depth_choice.fallback_bias`: two peak estimators that disagree the
+  same way on every curve), with the 5-level centroid's peak locking where the relief
+  cannot see it (:func:`locking_visibility`). Where it is SPC, PC, the 9-level centroid or
+  the argmax by name (:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`), the size of
+  the map's departure from the curves' 3-point peaks
+  (:func:`sffscan.stages.depth_statistics.peak_departure`; a streaming scan's SPC, PC and
+  argmax judge it on the curves of every 16th row, which they keep for it). Where it is the
+  whole-curve centroid, each pixel's departure from its curve's phase
+  (:func:`centroid_departure`). Each added as it is, no constant.
 * ``c``: a floor, levels (the estimator's sub-level bias on a perfectly smooth surface).
 
-``a``, ``r`` and ``c`` are fitted on the *training* seeds of the synthetic families
-(:mod:`sffscan.stages.sim.families`) by a quantile fit, the 0.94 quantile of
-``|error| / (2 sigma)`` equal to 1 (:func:`sffscan.stages.uncertainty_fit.fit_uncertainty`);
-``sffscan study --families`` fits them without each family in turn and reports the
-coverage (share of |error| <= 2 sigma) on the held-out family (docs/depth-study.md). They
-are the default method's; some other methods have their own, fitted the same way on their
-own errors (:func:`uncertainty_constants`, since 2026-12-05 evening). Nothing here is
-fitted on the repository's data sets.
+``a``, ``r`` and ``c`` are fitted per depth method on the *training* seeds of the synthetic
+families (:mod:`sffscan.stages.fitted_constants`, their home: how, on what, and
+:func:`~sffscan.stages.fitted_constants.uncertainty_constants`). Nothing here is fitted on
+the repository's data sets. Each term's measured effect when it joined, and the forms tried
+before it: docs/depth-method-log.md ("The height uncertainty's model, as its docstring
+told it").
 """
 
 from __future__ import annotations
@@ -84,145 +56,16 @@ import math
 import cv2
 import numpy as np
 from sffscan.stages.depth_harmonics import pc_depth
+from sffscan.stages.fitted_constants import (
+    FLOOR_LEVELS,
+    RELIEF_SCALE,
+    SCATTER_SCALE,
+    uncertainty_constants,
+)
 
-__all__ = ["DEFAULT_CONSTANTS_METHOD", "FITTED_FOCUS_MEASURE", "FLOOR_LEVELS", "METHOD_CONSTANTS",
-           "MIX_SCALE", "OTHER_METHODS", "OTHER_METHODS_CONSTANTS", "RELIEF_SCALE",
-           "SCATTER_SCALE", "centroid_departure", "curve_width", "depth_range", "depth_relief",
+__all__ = ["MIX_SCALE", "centroid_departure", "curve_width", "depth_range", "depth_relief",
            "depth_scatter", "depth_uncertainty", "floor_share", "height_uncertainty_um",
-           "locking_visibility", "uncalibrated_focus_measure", "uncertainty_constants",
-           "uncertainty_um", "width_excess", "width_from_sums"]
-
-SCATTER_SCALE = 0.9841
-"""``a`` of the default depth method (``"shape_select"``): fitted on the training seeds 0..5 of
-the twenty families (the study's and the ten crossed from them; the ten study families'
-seeds 0, 1, 2 until 2026-12-05, night) by
-:func:`sffscan.stages.uncertainty_fit.fit_uncertainty` (``sffscan study --families --crossed
---seeds 6``, the row "fit on every family's training seeds": the constants the protocol's
-held-out rows are fitted like; docs/depth-study.md), to the errors of the default depth
-method (refitted when it became ``adaptive_centroid``: 4.138 and
-0.0602 before; and ``shape_select``: 4.197 and 0.0301 before; and when ``adaptive_centroid``
-weighed the pull against its noise: 3.970 and 0.0001 before; and when ``shape_select``'s
-skewness limit went to 0.2, 2026-12-04: 3.892 and 0.0303 before; and when SPC's bias joined
-the model, the same day: 3.833 and 0.0321 before; and when the relief joined it, that night:
-3.799 and 0.0334 before; and when a peak method's pull joined ``b``, later that night: 1.569,
-1.147 and 0.0477 before; and when ``adaptive_centroid`` began to test its wide centroid,
-2026-12-05: 1.598, 1.138 and 0.0402 before; and when SPC's departure began to be measured
-about the filtered argmax, the same day: 1.605, 1.136 and 0.0402 before; and when the excess
-became one sigma, not a half, that session: 1.606, 1.136 and 0.0401 before; and when the
-centroid's peak locking joined ``b``
-(:func:`sffscan.stages.depth_choice.centroid_locking`), 2026-12-05 evening: 1.634, 1.116 and
-0.0406 before, which the methods without constants of their own keep:
-:data:`OTHER_METHODS_CONSTANTS`; and when the locking was added only where the relief cannot
-see it, :func:`locking_visibility`, the same evening: 1.5163, 1.1285 and 0.005432 before;
-and when the excess width's floor-share discount was dropped, that hour: 1.5462, 1.1334 and
-0.005369 before; and when the fit's quantile target went to 0.935 and its training
-set to the twenty families' seeds 0..5, 2026-12-05 night: 1.4854, 1.1527 and 0.005383
-before)."""
-
-RELIEF_SCALE = 1.1683
-"""``r`` of the default depth method: fitted with :data:`SCATTER_SCALE`."""
-
-FLOOR_LEVELS = 0.006291
-"""``c`` of the default depth method, levels: fitted with :data:`SCATTER_SCALE`."""
-
-DEFAULT_CONSTANTS_METHOD = "shape_select"
-"""The depth method :data:`SCATTER_SCALE`, :data:`RELIEF_SCALE` and :data:`FLOOR_LEVELS` are
-fitted to: the default (``sffscan.stages.depth.DEFAULT_METHOD``; a test holds them equal)."""
-
-OTHER_METHODS_CONSTANTS = (1.634, 1.116, 0.0406)
-"""``(a, r, c)`` of the depth methods without constants of their own
-(:data:`METHOD_CONSTANTS`): the default's before its centroid's peak locking joined ``b``
-(fitted on the default's errors, not on each method's own; ``"pc"``, ``"spc"``,
-``"wcentroid"`` and ``"adaptive"``). With the locking term the default's refitted floor fell
-from 0.0406 to 0.0054 levels (the locking now carries what the floor did on the flat
-families), which left the 3-point peak of ``"adaptive"`` under-covered on a textured flat
-(0.882 within 2 sigma, tests/stages/test_uncertainty_scan.py); its own fit over-covers that
-flat (its 75th percentile 3.05 x the error's RMS)."""
-
-METHOD_CONSTANTS: dict[str, tuple[float, float, float]] = {
-    "argmax": (0.3666, 0.909, 0.1335),
-    "gauss3": (0.6347, 0.9797, 0.07076),
-    "quadratic3": (0.62, 0.9612, 0.08809),
-    "centroid": (4.621, 0.02828, 0.5208),
-    "adaptive_centroid": (1.379, 1.161, 0.0001),
-}
-"""``(a, r, c)`` fitted on each method's own errors, as the default's are on its own (the
-twenty families' training seeds 0..5, the ten's 0, 1, 2 until 2026-12-05 night; ``python
-bench/bench_method_constants.py``, bench/results/method_constants_before.md), for the
-methods whose own constants (refitted without each family in turn) put at least as many
-held-out (seed set, family) rows in the 90-98 % band and no more under it than
-:data:`OTHER_METHODS_CONSTANTS`, on seeds 6..47 (the rule stated after that table,
-2026-12-05 evening; on the clean seeds 102..107, in / under / over of 20: argmax 1 / 4 / 15
--> 17 / 0 / 3, gauss3 6 / 1 / 13 -> 19 / 1 / 0, quadratic3 4 / 3 / 13 -> 17 / 1 / 2,
-centroid 4 / 16 / 0 -> 4 / 4 / 12, adaptive_centroid 13 / 0 / 7 -> 12 / 0 / 8;
-bench/results/method_constants_102.md, docs/depth-method-log.md; ``"adaptive_centroid"``'s
-refitted, 2.191, 1.083 and 0.0001 before, when its locking was added only where the relief
-cannot see it: :func:`locking_visibility`; all five refitted when the excess width's
-floor-share discount was dropped: argmax 0.3999, 0.936, 0.1822, gauss3 0.9689, 0.9202,
-0.075, quadratic3 0.7191, 0.9607, 0.0979, centroid 20.63, 0.001, 0.0001, adaptive_centroid
-2.172, 1.101, 0.0001 before).
-All five refitted with the default's when the fit's quantile target went to 0.935 and its
-training set to the twenty families' seeds 0..5 (2026-12-05, night): argmax 0.4788,
-0.9277, 0.1804, gauss3 0.6999, 0.9859, 0.0733, quadratic3 0.721, 0.9695, 0.09508, centroid
-19.98, 0.001, 0.0001, adaptive_centroid 2.308, 1.085, 0.0001 before.
-``"argmax"``'s refitted when its departure from the curves' peaks joined ``b``
-(:data:`sffscan.stages.depth_choice.DEPARTURE_METHODS`, 2026-12-05 night: 0.3489, 0.8799,
-0.1928 before). ``"centroid"``'s refitted when its departure from its curves' phase joined
-``b`` per pixel
-(:func:`centroid_departure`, 2026-12-05 night: 20.25, 0.001, 0.0001 before, a fit on the
-bounds of r and c that made the scatter carry the floor's pull). On seeds 6..47, refitted
-per fold, in / under / over 27 / 31 / 82 -> 42 / 18 / 80; with
-:data:`OTHER_METHODS_CONSTANTS` and the departure 66 / 45 / 29 (more in the band, but more
-under it, the side that misleads: kept its own)."""
-
-
-OTHER_METHODS = ("pc", "spc", "wcentroid", "adaptive")
-"""The depth methods that take :data:`OTHER_METHODS_CONSTANTS`. With
-:data:`DEFAULT_CONSTANTS_METHOD` and :data:`METHOD_CONSTANTS`' keys, every one of
-``sffscan.stages.depth.DEPTH_METHODS`` (which this module cannot import: depth imports it;
-a test holds the lists equal)."""
-
-
-FITTED_FOCUS_MEASURE = ("glvm", 9)
-"""The focus measure (operator, window k) every constant here was fitted with: the synthetic
-families' stacks are measured with GLVM 9 (:func:`sffscan.stages.depth_study.uncertainty_sample`
-'s callers, ``bench/bench_method_constants.py``)."""
-
-
-def uncalibrated_focus_measure(operator: str, window: int) -> str | None:
-    """None for the focus measure the uncertainty was fitted with
-    (:data:`FITTED_FOCUS_MEASURE`), else why its uncertainty is not calibrated, for a
-    warning: measured on pertuz-simu02 (``sffscan study``, 2026-12-05), LAPM 5 and 9 put
-    0.75-0.92 of the pixels within 2 sigma for most methods, GLVM 5 0.86 for the default."""
-    op, k = FITTED_FOCUS_MEASURE
-    if operator.lower() == op and window == k:
-        return None
-    return (f"the height uncertainty's constants were fitted with the focus measure "
-            f"{op.upper()} k={k}; with {operator.upper()} k={window} it is not calibrated "
-            "(on pertuz-simu02 LAPM put 0.75-0.92 of the pixels within 2 sigma, GLVM 5 "
-            "0.86): check it on a surface you know with 'sffscan study'")
-
-
-def uncertainty_constants(method: str) -> tuple[float, float, float]:
-    """The constants ``(a, r, c)`` of the height uncertainty of a depth taken by ``method``:
-    the default method's own fit, another method's own (:data:`METHOD_CONSTANTS`), or
-    :data:`OTHER_METHODS_CONSTANTS` (:data:`OTHER_METHODS`).
-
-    Raises
-    ------
-    ValueError
-        For a name none of those lists holds (a study's candidate method, a typo): its
-        uncertainty was never fitted, and no constants are given in its place.
-    """
-    if method == DEFAULT_CONSTANTS_METHOD:
-        return SCATTER_SCALE, RELIEF_SCALE, FLOOR_LEVELS
-    if method in METHOD_CONSTANTS:
-        return METHOD_CONSTANTS[method]
-    if method in OTHER_METHODS:
-        return OTHER_METHODS_CONSTANTS
-    known = sorted((DEFAULT_CONSTANTS_METHOD, *METHOD_CONSTANTS, *OTHER_METHODS))
-    raise ValueError(f"method {method!r}: no height uncertainty constants for it; "
-                     f"depth methods with them: {', '.join(known)}")
+           "locking_visibility", "uncertainty_um", "width_excess", "width_from_sums"]
 
 
 MIX_SCALE = 1.0
@@ -593,7 +436,7 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
         Each curve's smallest value.
     method : str, keyword-only
         The depth method that took ``depth_levels``: its constants
-        (:func:`uncertainty_constants`).
+        (:func:`~sffscan.stages.fitted_constants.uncertainty_constants`).
     n_levels : int, keyword-only
         N.
     focus_heights_um : (N,) array_like, keyword-only

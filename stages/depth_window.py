@@ -9,7 +9,7 @@ read from so few levels scatters from pixel to pixel, and the baseline-free cent
 lopsided curves that centroid is pulled into the longer flank: a bias no scatter shows.
 
 :func:`takes_window_centroid` weighs the two with no tuned constant, as the default's other
-tests do (:func:`sffscan.stages.depth_choice.takes_spc`): the wider window's mean squared
+tests do (:func:`sffscan.stages.depth_spc.takes_spc`): the wider window's mean squared
 error, its scatter squared plus its departure from the fallback squared (the fallback's
 peak taken as the reference, as SPC's departure takes it), against the fallback's scatter
 squared. The scatter of a map is measured on the map itself: its RMS about its own 5 x 5

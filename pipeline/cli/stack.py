@@ -81,7 +81,7 @@ def _settings(args: argparse.Namespace):  # noqa: ANN202 - StackSettings, import
 
 
 def _focus_table(args: argparse.Namespace, n: int, from_zarr: np.ndarray | None) -> np.ndarray:
-    from sffscan.stages.fields.stationary import read_focus_positions
+    from sffscan.stages.fields.stack_io import read_focus_positions
 
     scale = UNIT_TO_UM[args.focus_unit]
     if args.focus_file:
@@ -127,7 +127,7 @@ def read_stack_input(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
         If a file cannot be read, or the focus table is missing, not monotonic or of another
         length than the stack (the message names the file or option).
     """
-    from sffscan.stages.fields.stationary import read_zarr_stack
+    from sffscan.stages.fields.stack_io import read_zarr_stack
 
     if args.zarr:
         if args.images:
@@ -264,7 +264,7 @@ def cmd_stopgo(args: argparse.Namespace) -> int:
         settings = _settings(args)
         if args.levels < 3:  # before any field: a stack needs three images
             raise ValueError(f"--levels must be >= 3, got {args.levels}")
-        from sffscan.stages.depth_uncertainty import uncalibrated_focus_measure
+        from sffscan.stages.fitted_constants import uncalibrated_focus_measure
 
         why = uncalibrated_focus_measure(settings.operator, settings.window)
         if why is not None:

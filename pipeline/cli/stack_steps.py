@@ -55,7 +55,7 @@ class _NoDisplay:
 def read_images(paths: list[str], *, grey: bool, progress: bool = True) -> np.ndarray:
     """The images of ``paths`` as an (N, H, W) stack, with a progress display of the files
     read (none without ``progress``); the checks of
-    :func:`sffscan.stages.fields.stationary.read_image_stack`."""
+    :func:`sffscan.stages.fields.stack_io.read_image_stack`."""
     from sffscan.stages.fields.image_io import read_image
 
     if len(paths) < 3:
@@ -83,7 +83,8 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
     of its rows (on large photographs it is the longer part; none without ``progress``)."""
     from dataclasses import replace
 
-    from sffscan.stages.fields.stationary import confidence_weighted_median, reconstruct_field
+    from sffscan.stages.fields.stationary import reconstruct_field
+    from sffscan.stages.fields.weighted_median import confidence_weighted_median
 
     t0 = time.perf_counter()
     log.info("stack: reconstruction (focus measure, depth, all-in-focus image) ...")
@@ -95,7 +96,7 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
         log.warning("stack: no height uncertainty: method %s is a study's candidate, whose "
                     "uncertainty was never fitted; the outputs hold none", settings.method)
     else:
-        from sffscan.stages.depth_uncertainty import uncalibrated_focus_measure
+        from sffscan.stages.fitted_constants import uncalibrated_focus_measure
 
         why = uncalibrated_focus_measure(settings.operator, settings.window)
         if why is not None:

@@ -33,11 +33,9 @@ from sffscan.stages.depth import (
     windowed_centroid,
 )
 from sffscan.stages.depth_peak import adaptive_block
-from sffscan.stages.fields.stationary import (
-    StackSettings,
-    confidence_weighted_median,
-    read_image_stack,
-)
+from sffscan.stages.fields.stack_io import read_image_stack
+from sffscan.stages.fields.stationary import StackSettings
+from sffscan.stages.fields.weighted_median import confidence_weighted_median
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.chapter3 import STEP_UM, chapter3_stack, with_noise
 
@@ -222,10 +220,9 @@ def test_adaptive_centroid_takes_the_centroid_where_its_pull_is_under_the_noise(
     gives adaptive_centroid's depth on both: these noisy curves are not clean enough for
     SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is under its limit, but
     their centroid pull is not (SPC there: 1.29 levels of error against 0.55)."""
-    from sffscan.stages.depth_choice import takes_centroid
     from sffscan.stages.depth_levels import level_spread, median_filter_levels
     from sffscan.stages.depth_peak import adaptive_peak
-    from sffscan.stages.depth_statistics import pull_statistics
+    from sffscan.stages.depth_statistics import pull_statistics, takes_centroid
 
     rng = np.random.default_rng(0)
     n = 40
@@ -262,8 +259,7 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
     """Curves that cannot be judged (every argmax within 2 levels of an end of the range:
     here N = 4) give no pull (NaN), and the default keeps the 3-point Gaussian: adaptive's
     depth bit for bit."""
-    from sffscan.stages.depth_choice import takes_centroid
-    from sffscan.stages.depth_statistics import centroid_pull
+    from sffscan.stages.depth_statistics import centroid_pull, takes_centroid
 
     rng = np.random.default_rng(3)
     vol = rng.random((4, 20, 30), dtype=np.float32) + 0.1
@@ -276,7 +272,7 @@ def test_adaptive_centroid_without_judged_curves_is_adaptive() -> None:
 def test_takes_centroid_compares_the_pull_with_the_larger_of_limit_and_noise() -> None:
     """takes_centroid: abs(pull) under max(limit, noise); a NaN pull never, a NaN noise
     counts as none."""
-    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, takes_centroid
+    from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT, takes_centroid
 
     assert takes_centroid(CENTROID_PULL_LIMIT / 2)
     assert not takes_centroid(0.1)
@@ -327,10 +323,10 @@ def test_the_default_refuses_the_wide_centroid_on_a_slope_it_pulls() -> None:
     for bit) and errs less than with the wide centroid (measured 0.16 against 0.34 levels
     RMS); ``adaptive`` by name keeps it. A scan block of the same curves makes the same
     choice (FocusVolume: judged over the whole block on the sample's grid)."""
-    from sffscan.stages.depth_choice import stack_choice, takes_centroid
+    from sffscan.stages.depth_choice import stack_choice
     from sffscan.stages.depth_levels import median_filter_levels
     from sffscan.stages.depth_peak import adaptive_block
-    from sffscan.stages.depth_statistics import wide_departure
+    from sffscan.stages.depth_statistics import takes_centroid, wide_departure
     from sffscan.stages.sim.families import family_stack
 
     s = family_stack("slopes", 10)
@@ -389,7 +385,8 @@ def test_spc_noise_predicts_the_scatter_of_spc_on_noisy_curves() -> None:
     levels, N = 40) under independent white noise of 0.05 and 0.2 x the peak; the
     predicted sigma within 15 % of the standard deviation of their SPC depths. Noise-free,
     the prediction is the curve's shape alone: under the negligible 0.03 levels."""
-    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, spc_noise
+    from sffscan.stages.depth_spc import spc_noise
+    from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT
 
     n = 40
     k = np.arange(n, dtype=np.float64)[:, None, None]
@@ -410,7 +407,8 @@ def test_takes_spc_weighs_spc_noise_against_the_pull_noise() -> None:
     SPC at most that ratio times the pull's noise, or negligible (under
     CENTROID_PULL_LIMIT); a NaN pull noise passes negligible noise only; an infinite ratio
     (the shipped SPC_NOISE_RATIO since 2026-12-04) turns the test off."""
-    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, SPC_NOISE_RATIO, takes_spc
+    from sffscan.stages.depth_spc import SPC_NOISE_RATIO, takes_spc
+    from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT
 
     even = (0.01, 1.5)  # even and clean curves
     r = 1.19  # the shipped ratio until 2026-12-04
@@ -433,7 +431,7 @@ def test_spc_departure_known_answers() -> None:
     -angle(H_1) N / 2 pi) minus the 3-point Gaussian at the argmax, both by their published
     formulas, with no spread; about 0 on even noisy curves (the median of many); NaN where
     no curve is judged."""
-    from sffscan.stages.depth_choice import spc_departure
+    from sffscan.stages.depth_spc import spc_departure
 
     n = 21
     k = np.arange(n, dtype=np.float64)
@@ -458,7 +456,8 @@ def test_spc_departure_known_answers() -> None:
 def test_takes_spc_refuses_a_departure_larger_than_its_spread() -> None:
     """takes_spc with ``departure`` (median, spread): SPC where abs(median) is at most the
     spread or under CENTROID_PULL_LIMIT; a NaN median refuses."""
-    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, takes_spc
+    from sffscan.stages.depth_spc import takes_spc
+    from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT
 
     even = (0.01, 1.5)
     assert takes_spc(even, pull=0.0, departure=(0.1, 0.2))
@@ -473,7 +472,7 @@ def test_takes_spc_refuses_a_departure_larger_than_its_spread() -> None:
 def test_spc_departure_against_the_centroid_the_fallback_takes() -> None:
     """spc_departure(centroid=True): SPC minus the baseline-free centroid of the 5 levels
     about the argmax (its published formula), not the 3-point Gaussian."""
-    from sffscan.stages.depth_choice import spc_departure
+    from sffscan.stages.depth_spc import spc_departure
 
     n = 21
     k = np.arange(n, dtype=np.float64)
@@ -494,7 +493,8 @@ def test_takes_spc_weighs_the_departure_and_spc_noise_against_the_spread() -> No
     """With SPC's predicted noise sigma given, the departure (d, s) passes where
     d^2 + 2 sigma^2 <= s^2 (SPC's predicted squared error at most the fallback's,
     s^2 - sigma^2); a sigma under CENTROID_PULL_LIMIT counts as 0."""
-    from sffscan.stages.depth_choice import CENTROID_PULL_LIMIT, takes_spc
+    from sffscan.stages.depth_spc import takes_spc
+    from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT
 
     even = (0.01, 1.5)
     inf = float("inf")  # the noise ratio test off: only the departure's decides
@@ -528,8 +528,8 @@ def test_shape_select_refuses_spc_on_a_breathing_thin_lens_stack() -> None:
     thin-lens pillbox family, 1.2 %/frame breathing, seed 0): SPC departs from the curves'
     peaks by more than their spread, and errs over 1.5x as much as adaptive_centroid; the
     stack and a scan block of it take the fallback."""
-    from sffscan.stages.depth_choice import spc_departure
     from sffscan.stages.depth_levels import median_filter_levels
+    from sffscan.stages.depth_spc import spc_departure
     from sffscan.stages.fields.align import align_stack
     from sffscan.stages.fields.aperture import stack_noise_floor
     from sffscan.stages.sim.families import family_stack
@@ -555,9 +555,9 @@ def test_spc_departure_is_measured_about_the_argmax_the_methods_filter() -> None
     of it take the fallback. Since the noise and the spread are mean squares (2026-12-05:
     SPC's noise 0.37 levels RMS, 0.28 the median before) the test refuses SPC about either
     centre (spread 1.61 about the argmax, 1.16 about the filtered one)."""
-    from sffscan.stages.depth_choice import spc_departure, spc_noise, takes_centroid
     from sffscan.stages.depth_levels import median_filter_levels
-    from sffscan.stages.depth_statistics import pull_statistics
+    from sffscan.stages.depth_spc import spc_departure, spc_noise
+    from sffscan.stages.depth_statistics import pull_statistics, takes_centroid
     from sffscan.stages.sim.families import family_stack
 
     st = family_stack("slopes-lens-noisy", 12, size_px=64)
@@ -623,8 +623,13 @@ def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
     """The statistics shape_select and adaptive_centroid take on a 300 x 300 stack's sample
     (every 2nd row and column) are those of all its curves within their noise, and so are
     the choices they make."""
-    from sffscan.stages.depth_choice import spc_noise, takes_centroid, takes_spc
-    from sffscan.stages.depth_statistics import pull_statistics, shape_statistics, stack_sample
+    from sffscan.stages.depth_spc import spc_noise, takes_spc
+    from sffscan.stages.depth_statistics import (
+        pull_statistics,
+        shape_statistics,
+        stack_sample,
+        takes_centroid,
+    )
     from sffscan.stages.depth_uncertainty import curve_width
 
     rng = np.random.default_rng(3)

@@ -146,15 +146,10 @@ def test_every_method_is_selectable_by_name() -> None:
 
     from sffscan.pipeline.config import ProcessingConfig
     from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
-    from sffscan.stages.depth_choice import (
-        SHAPE_SELECT_LIMITS,
-        SPC_END_REACH,
-        shape_select,
-        spc_in_range,
-        stack_choice,
-    )
+    from sffscan.stages.depth_choice import shape_select, stack_choice
     from sffscan.stages.depth_floor import guard_width
     from sffscan.stages.depth_harmonics import curve_moments
+    from sffscan.stages.depth_spc import SHAPE_SELECT_LIMITS, SPC_END_REACH, spc_in_range
     from sffscan.stages.depth_statistics import shape_statistics
     from sffscan.stages.depth_uncertainty import curve_width
 
@@ -243,7 +238,8 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
 def test_spc_is_kept_only_a_reach_of_widths_from_the_range_s_ends() -> None:
     """spc_in_range: margin = reach x width from 0 and from N - 1 (inclusive), NaN out;
     shape_select takes ``other`` outside it, and only where it takes SPC at all."""
-    from sffscan.stages.depth_choice import shape_select, spc_in_range
+    from sffscan.stages.depth_choice import shape_select
+    from sffscan.stages.depth_spc import spc_in_range
 
     d = np.array([2.9, 3.0, 15.0, 26.0, 26.1, np.nan], np.float32)
     w = np.array([2.0, 2.0, 9.0, 2.0, 2.0, 2.0], np.float32)
@@ -265,8 +261,8 @@ def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None
     label) elsewhere, on the same curves; the curves' sums and minimum as the ring methods
     give them, the confidence depth_from_focus's."""
     from sffscan.stages.block_depth import SPC_BLOCKS, depth_rows
-    from sffscan.stages.depth_choice import spc_in_range
     from sffscan.stages.depth_harmonics import focus_sums
+    from sffscan.stages.depth_spc import spc_in_range
     from sffscan.stages.depth_uncertainty import width_from_sums
 
     rng = np.random.default_rng(5)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from sffscan.stages.block_depth import SPC_BLOCKS, block_choice, depth_rows
 from sffscan.stages.depth import depth_from_focus, first_argmax
-from sffscan.stages.depth_choice import spc_in_range, stack_choice
+from sffscan.stages.depth_choice import stack_choice
 from sffscan.stages.depth_floor import (
     GuardFloor,
     expected_extreme,
@@ -19,6 +19,7 @@ from sffscan.stages.depth_floor import (
 )
 from sffscan.stages.depth_harmonics import curve_moments
 from sffscan.stages.depth_levels import median_filter_levels
+from sffscan.stages.depth_spc import spc_in_range
 from sffscan.stages.depth_uncertainty import width_from_sums
 
 

@@ -8,8 +8,9 @@ import math
 
 import numpy as np
 import pytest
-from sffscan.stages.depth_choice import centroid_locking, peak_locking, takes_centroid
+from sffscan.stages.depth_choice import centroid_locking, peak_locking
 from sffscan.stages.depth_peak import windowed_centroid
+from sffscan.stages.depth_statistics import takes_centroid
 
 
 def _gaussians(width: float, fractions: np.ndarray, n: int = 21) -> np.ndarray:
@@ -56,10 +57,10 @@ def test_peak_locking_only_where_the_centroid_is_taken() -> None:
 
 def test_each_method_has_its_constants() -> None:
     """The fitted constants are the default method's; a method with its own fit
-    (depth_uncertainty.METHOD_CONSTANTS) takes it, every other method the ones fitted on
+    (fitted_constants.METHOD_CONSTANTS) takes it, every other method the ones fitted on
     the default's errors before the locking term (OTHER_METHODS_CONSTANTS)."""
     from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
-    from sffscan.stages.depth_uncertainty import (
+    from sffscan.stages.fitted_constants import (
         DEFAULT_CONSTANTS_METHOD,
         FLOOR_LEVELS,
         METHOD_CONSTANTS,
@@ -85,7 +86,7 @@ def test_each_method_has_its_constants() -> None:
 def test_uncertainty_constants_refuse_a_method_without_them(method: str) -> None:
     """A name with no fitted constants (a study's candidate, a typo) is an error naming it,
     not the other methods' constants in its place."""
-    from sffscan.stages.depth_uncertainty import uncertainty_constants
+    from sffscan.stages.fitted_constants import uncertainty_constants
 
     with pytest.raises(ValueError, match=f"method {method!r}: no height uncertainty") as err:
         uncertainty_constants(method)
@@ -128,7 +129,7 @@ def test_shipped_constants_are_the_fit_on_the_training_seeds(
     training seeds 0..5 with the method's own errors (``sffscan study --families --crossed
     --seeds 6``'s fit on every family; a drift test: a change to the depth or to a term of
     the uncertainty must refit them)."""
-    from sffscan.stages.depth_uncertainty import uncertainty_constants
+    from sffscan.stages.fitted_constants import uncertainty_constants
     from sffscan.stages.uncertainty_fit import fit_uncertainty
 
     fitted = fit_uncertainty(training_samples[method])  # type: ignore[arg-type]
@@ -234,10 +235,7 @@ def test_a_block_departure_bias_reads_the_judged_grid() -> None:
 def test_a_focus_measure_the_constants_were_not_fitted_with_is_named() -> None:
     """The constants are fitted with GLVM 9 (the families' stacks): that measure, in any
     case, passes; any other operator or window gets a reason naming both, for a warning."""
-    from sffscan.stages.depth_uncertainty import (
-        FITTED_FOCUS_MEASURE,
-        uncalibrated_focus_measure,
-    )
+    from sffscan.stages.fitted_constants import FITTED_FOCUS_MEASURE, uncalibrated_focus_measure
 
     assert FITTED_FOCUS_MEASURE == ("glvm", 9)
     assert uncalibrated_focus_measure("GLVM", 9) is None

@@ -421,9 +421,10 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     pull (fallback_bias)."""
     from sffscan.stages.block_depth import SPC_BLOCKS, block_choice
     from sffscan.stages.depth import first_argmax, focus_sums
-    from sffscan.stages.depth_choice import spc_departure, stack_choice, takes_centroid
+    from sffscan.stages.depth_choice import stack_choice
     from sffscan.stages.depth_levels import median_filter_levels
-    from sffscan.stages.depth_statistics import pull_statistics
+    from sffscan.stages.depth_spc import spc_departure
+    from sffscan.stages.depth_statistics import pull_statistics, takes_centroid
 
     s = family_stack("even-gauss", 0, size_px=48, n_levels=30)
     vol = focus_measure(s.images, window=9)
