@@ -53,25 +53,17 @@ class _NoDisplay:
 
 
 def read_images(paths: list[str], *, grey: bool, progress: bool = True) -> np.ndarray:
-    """The images of ``paths`` as an (N, H, W) stack, with a progress display of the files
-    read (none without ``progress``); the checks of
-    :func:`sffscan.stages.fields.stack_io.read_image_stack`."""
-    from sffscan.stages.fields.image_io import read_image
+    """The images of ``paths`` as an (N, H, W) stack
+    (:func:`sffscan.stages.fields.stack_io.read_image_stack`, its checks), with a progress
+    display of the files read (none without ``progress``)."""
+    from sffscan.stages.fields.stack_io import read_image_stack
 
-    if len(paths) < 3:
-        raise ValueError(f"a focus stack needs at least 3 images, got {len(paths)}")
-    images: list[np.ndarray] = []
     t0 = time.perf_counter()
     with _display(len(paths), "images", progress) as display:
-        for p in paths:
-            img = read_image(p, grey=grey)
-            if images and (img.shape != images[0].shape or img.dtype != images[0].dtype):
-                raise ValueError(f"{p}: shape {img.shape} {img.dtype} differs from the first "
-                                 f"image's {images[0].shape} {images[0].dtype}")
-            images.append(img)
-            display.update(len(images), time.perf_counter() - t0)
-    log.info("stack: read %d images in %.1f s", len(images), time.perf_counter() - t0)
-    return np.stack(images)
+        stack = read_image_stack(paths, grey=grey, on_image=lambda k: display.update(
+            k, time.perf_counter() - t0))
+    log.info("stack: read %d images in %.1f s", len(stack), time.perf_counter() - t0)
+    return stack
 
 
 def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: StackSettings,

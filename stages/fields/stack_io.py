@@ -5,7 +5,7 @@ or a Zarr array (:func:`read_zarr_stack`), its focus positions from a text file
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,10 +14,12 @@ import numpy as np
 __all__ = ["read_focus_positions", "read_image_stack", "read_zarr_stack"]
 
 
-def read_image_stack(paths: Sequence[str | Path], *, grey: bool = False) -> np.ndarray:
+def read_image_stack(paths: Sequence[str | Path], *, grey: bool = False,
+                     on_image: Callable[[int], None] | None = None) -> np.ndarray:
     """Read grey images (TIFF, PNG, ...) into an (N, H, W) stack, in the order given, each
     turned as its orientation tag says; ``grey`` converts colour images to luma
-    (:func:`sffscan.stages.fields.image_io.read_image`).
+    (:func:`sffscan.stages.fields.image_io.read_image`); ``on_image``, where given, is called
+    with the number of images read after each (a progress display's hook).
 
     Raises
     ------
@@ -36,6 +38,8 @@ def read_image_stack(paths: Sequence[str | Path], *, grey: bool = False) -> np.n
             raise ValueError(f"{p}: shape {img.shape} {img.dtype} differs from the first image's "
                              f"{images[0].shape} {images[0].dtype}")
         images.append(img)
+        if on_image is not None:
+            on_image(len(images))
     return np.stack(images)
 
 
