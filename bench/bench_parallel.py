@@ -139,8 +139,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     if case.get("one_thread", "auto") != "auto":
         force_one_thread(case["one_thread"] == "on")
     from bench_pipeline import load_bank, replay_frames, scan_figures
+    from sffscan.pipeline.formats.recorder_sink import recorder_sink
     from sffscan.pipeline.formats.recording_reader import open_recording
-    from sffscan.pipeline.formats.recording_writer import recorder_sink
     from sffscan.pipeline.wiring import run_scan
 
     cfg = case_config(case)

@@ -67,7 +67,7 @@ def memory_needed_bytes(cfg: ScanConfig, *, recording: bool = False) -> int:
     focus volume's ring (N float32 planes, or the streaming sums); the mosaic's bands
     (four float64 planes of a frame height each); the recorder's queue when recording.
     """
-    from sffscan.pipeline.formats.recording_writer import QUEUE_BYTES, queue_capacity
+    from sffscan.pipeline.formats.recorder_sink import QUEUE_BYTES, queue_capacity
 
     o, p, m = cfg.optics, cfg.processing, cfg.motion
     h, w = o.height_px, o.width_px

@@ -408,7 +408,7 @@ def _run(job: Job, identity: dict[str, Any] | None) -> Run:
         frames, world, account = feed.frames, feed.world, feed.account
     sinks = list(job.sinks() if callable(job.sinks) else job.sinks)
     if job.record is not None:
-        from sffscan.pipeline.formats.recording_writer import recorder_sink
+        from sffscan.pipeline.formats.recorder_sink import recorder_sink
 
         sinks.append(recorder_sink(cfg, str(job.record), account=account))
     out = Run(report=None, world=world, account=account, resumed=resumed,  # type: ignore[arg-type]

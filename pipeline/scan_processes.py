@@ -86,7 +86,7 @@ def focus_group(cfg: dict[str, Any]) -> list[Stage]:
 def hosted_recorder(cfg: dict[str, Any], path: str, codec: str, page_cache: bool = False
                     ) -> Sink:
     """Worker factory: the raw-stream recorder, in its own process."""
-    from sffscan.pipeline.formats.recording_writer import recorder_sink
+    from sffscan.pipeline.formats.recorder_sink import recorder_sink
 
     return recorder_sink(_cfg(cfg), path, codec=codec, page_cache=page_cache)
 
@@ -94,7 +94,7 @@ def hosted_recorder(cfg: dict[str, Any], path: str, codec: str, page_cache: bool
 def _hostable(sink: Sink) -> HostedSink | None:
     """The recorder as a sink for its own process (its writer creates the recording at
     the first frame, so the one built here is never opened); None for other sinks."""
-    from sffscan.pipeline.formats.recording_writer import RecorderSink
+    from sffscan.pipeline.formats.recorder_sink import RecorderSink
 
     if isinstance(sink, RecorderSink) and sink.writer.group is None:
         w = sink.writer

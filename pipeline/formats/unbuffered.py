@@ -23,7 +23,7 @@ The price: each write waits for the device (about 1 ms for a frame on the VM's d
 a disk slower than the stream is no longer hidden for a while by the cache (a short scan
 on a slow disk would fit in the cache): so the recorder goes back to the page cache for the
 rest of a recording when it falls behind while waiting for the disk
-(:class:`~sffscan.pipeline.formats.recording_writer.RecorderSink`); the writer's
+(:class:`~sffscan.pipeline.formats.recorder_sink.RecorderSink`); the writer's
 ``page_cache=True`` writes through it from the start.
 
 How: the file's bytes are copied into a page-aligned buffer that is reused from file to

@@ -44,7 +44,7 @@ def _cfg(passes: int = 1) -> ScanConfig:
 def _ctx() -> Any:
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["tests.crash_children", "sffscan.pipeline.wiring",
-                                "sffscan.pipeline.formats.recording_writer",
+                                "sffscan.pipeline.formats.recorder_sink",
                                 "sffscan.pipeline.cli.record"])
     return ctx
 

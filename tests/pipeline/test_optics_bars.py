@@ -13,7 +13,7 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import REALISTIC_OPTICS, ScanConfig
-from sffscan.pipeline.formats.recording_writer import recorder_sink
+from sffscan.pipeline.formats.recorder_sink import recorder_sink
 from sffscan.pipeline.sim_source import make_optics
 from sffscan.stages.sim.camera import Optics, focus_heights
 from sffscan.stages.sim.optics_targets import calibration_commands, write_optics_targets

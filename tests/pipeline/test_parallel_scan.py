@@ -22,7 +22,7 @@ import pytest
 import zarr
 from sffscan.pipeline.cli.common import run_and_report
 from sffscan.pipeline.config import config_to_toml
-from sffscan.pipeline.formats.recording_writer import recorder_sink
+from sffscan.pipeline.formats.recorder_sink import recorder_sink
 from sffscan.pipeline.runtime import StageFailed
 from sffscan.pipeline.sim_source import simulate_frames
 from sffscan.pipeline.viz.sink import VizOptions, VizSink, viz_sink_for

@@ -175,6 +175,7 @@ def test_a_recorder_behind_because_of_the_disk_goes_back_to_the_page_cache(
     import logging
     import time
 
+    from sffscan.pipeline.formats import recorder_sink
     from sffscan.pipeline.formats import recording_writer as recorder
     from sffscan.pipeline.formats.recording_reader import open_recording
     from sffscan.stages.protocol import Tapped
@@ -207,9 +208,9 @@ def test_a_recorder_behind_because_of_the_disk_goes_back_to_the_page_cache(
     w = recorder.RecordingWriter(tmp_path / "rec.zarr", small_config())
     assert w.unbuffered is not None
     w.unbuffered.min_bytes = 4096  # the frames (256 x 640 px), not the header rows
-    sink = recorder.RecorderSink(w, fps=150.0, capacity=16, behind_share=0.5, window_s=0.05)
+    sink = recorder_sink.RecorderSink(w, fps=150.0, capacity=16, behind_share=0.5, window_s=0.05)
     frames = _sink_frames(40)
-    with caplog.at_level(logging.WARNING, logger=recorder.__name__):
+    with caplog.at_level(logging.WARNING, logger=recorder_sink.__name__):
         for f in frames:
             list(sink.process(Tapped("source", f)))
         list(sink.finish())
