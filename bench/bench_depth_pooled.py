@@ -40,7 +40,12 @@ from family_scores import (  # noqa: E402
     score_stacks,
     write_table,
 )
-from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus  # noqa: E402
+from sffscan.stages.depth import (  # noqa: E402
+    DEFAULT_METHOD,
+    DEPTH_METHODS,
+    depth_from_focus,
+    first_argmax,
+)
 
 SET_SIZE = 6
 """Seeds a held-out set of the depth study has per family."""
@@ -50,8 +55,10 @@ def method_errors(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
                   ) -> tuple[list[float], int]:
     """Every fixed method's sum of squared errors over ``mask`` (levels^2), and the count."""
     sse = []
+    argmax = first_argmax(np.ascontiguousarray(volume, np.float32))  # once for all methods
     for m in DEPTH_METHODS:
-        depth = depth_from_focus(volume, method=m, median_size=11, spread_size=9)[0]
+        depth = depth_from_focus(volume, method=m, median_size=11, spread_size=9,
+                                 argmax=argmax)[0]
         sse.append(float(np.sum((depth - truth)[mask] ** 2)))
     return sse, int(mask.sum())
 
