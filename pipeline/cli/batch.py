@@ -20,7 +20,12 @@ import os
 import sys
 from pathlib import Path
 
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, processing_choices
+from sffscan.pipeline.cli.common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    fail,
+    processing_choices,
+)
 
 log = logging.getLogger(__name__)
 
@@ -57,24 +62,19 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if len(args.recordings) == 1 and (Path(args.recordings[0]) / "manifest.json").is_file():
         # a print job's folder: its layers are reprocessed in place ('sffscan job reprocess')
         if args.output is not None or args.scheduler:
-            print(f"sffscan: {args.recordings[0]} is a job folder: its layers are reprocessed "
-                  "in place, in this process (no -o, no --scheduler)", file=sys.stderr)
-            return EXIT_BAD_INPUT
+            return fail(f"{args.recordings[0]} is a job folder: its layers are reprocessed "
+                  "in place, in this process (no -o, no --scheduler)")
         from sffscan.pipeline.cli.job import run_reprocess
 
         return run_reprocess(args.recordings[0], processing=_processing(args))
     if args.output is None:
-        print("sffscan: batch: -o/--output is required (the folder of the mosaics)",
-              file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail("batch: -o/--output is required (the folder of the mosaics)")
     if args.workers < 1 or args.threads < 1:
-        print("sffscan: --workers and --threads must be >= 1", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail("--workers and --threads must be >= 1")
     try:
         recordings = find_recordings(args.recordings)
     except BatchError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     out = Path(args.output)
     csv_path = Path(args.csv) if args.csv else out / "batch.csv"
     try:  # never into a recording or a mosaic, never over another file
@@ -84,8 +84,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
             raise ConfigError(f"--csv {csv_path}: exists and is not a batch's results table; "
                               "refusing to overwrite it, choose another path")
     except ValueError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     where = args.scheduler or f"a local cluster of {args.workers} worker process(es)"
     log.info("batch: %d recording(s) -> %s on %s, %d thread(s) per task", len(recordings), out,
              where, args.threads)
@@ -101,8 +100,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
                          overwrite=args.overwrite,
                          on_row=None if args.quiet else progress)
     except BatchError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     write_csv(rows, csv_path)
     print(format_table(rows))
     print(f"results: {csv_path}")

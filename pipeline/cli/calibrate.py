@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, seed
+from sffscan.pipeline.cli.common import EXIT_BAD_INPUT, EXIT_OK, fail, seed
 from sffscan.pipeline.metrology.calibration_fit import (
     calibrate_lateral,
     calibrate_z,
@@ -195,14 +195,12 @@ def cmd_restrict(args: argparse.Namespace) -> int:
         prior = prior_from_mosaic(args.prior, uncertainty_um=args.uncertainty_um,
                                   pixel_um=cfg.optics.pixel_um)
     except ValueError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     levels = strip_level_range(cfg, prior, pad_levels=args.pad_levels)
     n = cfg.optics.n_levels
     if levels.size == n:
-        print(f"sffscan: {args.prior} does not cover the planned strip everywhere (or has NaN "
-              "in it): every focus level stays; nothing written", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{args.prior} does not cover the planned strip everywhere (or has NaN "
+              "in it): every focus level stays; nothing written")
     restricted = restrict_scan(cfg, levels)
     o = restricted.optics
     print(f"levels {int(levels[0])}..{int(levels[-1])} of 0..{n - 1} kept ({levels.size} of "

@@ -27,16 +27,15 @@ import argparse
 import logging
 import math
 import re
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from sffscan.pipeline.cli.common import (
-    EXIT_BAD_INPUT,
     EXIT_OK,
     bit_depth,
     check_distinct,
+    fail,
     finite,
     finite_positive,
     seed,
@@ -282,8 +281,7 @@ def _guarded(func):  # noqa: ANN001, ANN202 - argparse handler wrapper
         try:
             return int(func(args))
         except (ValueError, ConfigError, CalibrationError) as err:
-            print(f"sffscan: {err}", file=sys.stderr)
-            return EXIT_BAD_INPUT
+            return fail(str(err))
     return run
 
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 from sffscan.pipeline.cli.common import (
     DEPTH_METHOD_CHOICES,
-    EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
+    fail,
     seed,
 )
 
@@ -60,8 +60,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
-        print(f"sffscan: {out} exists and is not a job folder", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{out} exists and is not a job folder")
     if args.overwrite and out.exists():
         shutil.rmtree(out)
     program = read_gcode(demo_gcode())
@@ -79,8 +78,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             config=demo_config(seed=args.seed), record=args.record,
             on_layer=lambda k, v, t: _print_verdict(k, v, t, n), view=view)
     except (JobError, ConfigError) as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     counts = {s: sum(v.verdict == s for v in verdicts) for s in ("pass", "warn", "fail",
                                                                  "unknown")}
     print(f"{len(verdicts)} layers in {time.perf_counter() - t0:.0f} s: "
@@ -95,8 +93,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     try:
         store = JobStore.open(args.job)
     except JobError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     n = len(store.manifest.layer_z_mm)
     done = store.done_layers()
     print(f"job {store.manifest.job_id} ({store.manifest.printer or 'printer not named'}): "
@@ -127,12 +124,9 @@ def cmd_report(args: argparse.Namespace) -> int:
                                   "report; refusing to overwrite it, choose another path")
         out = write_report(args.job, args.output)
     except (JobError, ConfigError) as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     except OSError as err:  # the output cannot be written
-        print(f"sffscan: {args.output or args.job}: cannot write the report: {err}",
-              file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{args.output or args.job}: cannot write the report: {err}")
     print(f"report written to {out}")
     return EXIT_OK
 
@@ -144,8 +138,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     try:
         c = calibrate_mapping(args.job, layer=args.layer, apply=args.apply)
     except JobError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     (x, y), (dx, dy) = c.new.offset_um, c.change_um
     print(f"layer {c.layer}: printer -> mosaic offset ({x:.1f}, {y:.1f}) µm, rotation "
           f"{c.new.rotation_deg:g}° (kept); change from the manifest's mapping "
@@ -166,8 +159,7 @@ def run_reprocess(job: str, *, layers: str | None = None,
         store = JobStore.open(job)
         todo = parse_layers(layers, len(store.manifest.layer_z_mm))
     except JobError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
 
     def show(r: LayerRedo) -> None:
         new = r.new or ("(kept)" if r.status == "failed" else "-")

@@ -35,6 +35,7 @@ from sffscan.pipeline.cli.common import (
     EXIT_FAILED,
     EXIT_OK,
     describe,
+    fail,
     is_region,
     json_option,
     override,
@@ -107,8 +108,7 @@ def cmd_config(args: argparse.Namespace) -> int:
         try:  # never over a configuration already edited, unless asked
             check_file_output(args.output, "-o", overwrite=args.overwrite)
         except ValueError as err:
-            print(f"sffscan: {err}", file=sys.stderr)
-            return EXIT_BAD_INPUT
+            return fail(str(err))
         Path(args.output).write_text(text, encoding="utf-8")
         log.info("wrote %s", args.output)
     else:

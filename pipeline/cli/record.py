@@ -19,11 +19,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sffscan.pipeline.cli.common import (
-    EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_INCOMPLETE,
     EXIT_OK,
     describe,
+    fail,
     json_option,
     override,
     plain_json,
@@ -79,13 +79,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     try:
         rec = open_recording(args.recording)
     except RecordingError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     _print_report(rec)
     if args.strict and rec.report.defects:
-        print(f"sffscan: {args.recording}: {rec.report.defects} defect(s) and --strict given; "
-              "nothing replayed", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{args.recording}: {rec.report.defects} defect(s) and --strict given; "
+              "nothing replayed")
     if args.resume:
         args.overwrite = False
         if _complete_from(args.output, args.recording):  # nothing wrong, nothing to do
@@ -96,10 +94,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     # the recorded [output] overwrite is the recording's, never this command's
     cfg = override(rec.config, args, own_overwrite=False)
     if not args.resume and not cfg.output.overwrite and Path(cfg.output.path).exists():
-        print(f"sffscan: -o {cfg.output.path}: exists; add --overwrite to replace it (or "
-              "--resume to complete an interrupted mosaic, or choose another path)",
-              file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"-o {cfg.output.path}: exists; add --overwrite to replace it (or "
+              "--resume to complete an interrupted mosaic, or choose another path)")
     log.info(describe(cfg))
     world = None
     if args.evaluate and not args.resume and cfg.source.kind == "sim":
@@ -263,12 +259,9 @@ def _info_mosaic(path: Path, *, as_json: bool = False) -> int:
         m = mosaic_info(path)
     except (ValueError, KeyError) as err:
         where = "" if str(path) in str(err) else f"{path}: unreadable mosaic: "
-        print(f"sffscan: {where}{err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{where}{err}")
     except Exception as err:  # noqa: BLE001 - a corrupt zarr.json or chunk of the mosaic
-        print(f"sffscan: {path}: unreadable mosaic ({type(err).__name__}: {err})",
-              file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(f"{path}: unreadable mosaic ({type(err).__name__}: {err})")
     if as_json:
         print(json.dumps(m))
     else:
@@ -315,8 +308,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         if args.verify:
             bad = rec.verify()
     except RecordingError as err:
-        print(f"sffscan: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail(str(err))
     info = _recording_info(rec)
     if args.json:
         if args.verify:
