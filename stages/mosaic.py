@@ -69,34 +69,38 @@ def blend(
     dict of ndarray, float32
         Updated values of the four arrays.
     """
-    w_old = old["weight"].astype(np.float64)
-    w_new = np.asarray(new["weight"], np.float64)  # a band's sums are float64 already
+    # float32 throughout (issue 28: half the memory traffic of float64), as the incremental
+    # mean previous + (added - previous * w_new) / w: a pixel's first contribution (previous
+    # taken as 0) is added / w and a pixel the contribution does not weigh (w_new = 0,
+    # added = 0) keeps previous, both the same bits as float64 arithmetic rounded once (for
+    # float32 operands, double rounding of one +, * or / is innocuous: 53 >= 2 * 24 + 2);
+    # where both weigh, the result is within float32 round-off of the float64 one
+    w_old = np.asarray(old["weight"], np.float32)
+    w_new = np.asarray(new["weight"], np.float32)
     w = w_old + w_new
     seen, has = w_old > 0, w > 0  # each used by every array below
 
     def mean(previous: np.ndarray, added: np.ndarray) -> np.ndarray:
-        # (where(seen, previous, 0) * w_old + added) / w, NaN where nothing weighs: the
-        # same operations in the same order as written out, in one float64 buffer (a
-        # float64 zero: with Python's 0.0 a float32 ``previous`` would keep float32)
-        acc = np.where(seen, previous, np.float64(0.0))
-        acc *= w_old
-        acc += added
-        acc /= w
+        acc = np.where(seen, previous, np.float32(0.0)).astype(np.float32, copy=False)
+        inc = acc * w_new
+        np.subtract(added, inc, out=inc, casting="same_kind")
+        inc /= w
+        acc += inc
         acc[~has] = np.nan
-        return acc.astype(np.float32)
+        return acc
 
     out: dict[str, np.ndarray] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
         for key in ("height", "texture"):
             out[key] = mean(old[key], new[key])
     out["confidence"] = np.maximum(old["confidence"], new["confidence"]).astype(np.float32)
-    out["weight"] = w.astype(np.float32)
+    out["weight"] = w
     if "uncertainty" in old:  # the weighted mean of the contributions' sigmas (errors of
         # overlapping contributions are not independent: no sqrt(n) gain); a contribution
         # without one makes it unknown (NaN), never 0
         su = new.get("uncertainty")
         if su is None:
-            su = np.where(w_new > 0, np.nan, 0.0)
+            su = np.where(w_new > 0, np.float32(np.nan), np.float32(0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             out["uncertainty"] = mean(old["uncertainty"], su)
     return out
@@ -144,8 +148,8 @@ class BandGatherer:
         if band is None:
             c = self.chunk
             x0 = self.origin_x + cx * c
-            z = np.zeros((rows, c), np.float64)
-            band = Band(x0, y0, z.copy(), z.copy(), z.copy(), z.astype(np.float32), z.copy())
+            z = np.zeros((rows, c), np.float32)
+            band = Band(x0, y0, z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
             self.bands[cx] = band
         return band
 

@@ -36,6 +36,49 @@ def test_blend_is_the_confidence_weighted_mean() -> None:
     assert out["confidence"][0, 1] == pytest.approx(1.5)
 
 
+def _blend_float64(old: dict[str, np.ndarray], new: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The blend as it was written before issue 28's float32 change: float64 arithmetic,
+    rounded to float32 once at the end."""
+    w_old, w_new = old["weight"].astype(np.float64), new["weight"].astype(np.float64)
+    w = w_old + w_new
+    out = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for key in ("height", "texture", "uncertainty"):
+            acc = (np.where(w_old > 0, old[key], 0.0) * w_old + new[key]) / w
+            out[key] = np.where(w > 0, acc, np.nan).astype(np.float32)
+    out["weight"] = w.astype(np.float32)
+    return out
+
+
+def test_float32_blend_is_the_float64_one_for_a_first_contribution_and_near_it_after() -> None:
+    # a pixel's first contribution and a pixel the new one does not weigh are bit-identical
+    # to the float64 blend; an overlap within float32 round-off
+    rng = np.random.default_rng(7)
+    shape = (64, 96)
+    seen = rng.random(shape) < 0.5
+    w_old = np.where(seen, rng.uniform(1e-3, 1.0, shape), 0.0).astype(np.float32)
+    old = {k: np.where(seen, rng.uniform(0.0, s, shape), np.nan).astype(np.float32)
+           for k, s in (("height", 800.0), ("texture", 1.0), ("uncertainty", 5.0))}
+    old |= {"weight": w_old, "confidence": w_old.copy()}
+    w_new = np.where(rng.random(shape) < 0.8, rng.uniform(1e-3, 1.0, shape), 0.0).astype(
+        np.float32)
+    new = {k: (rng.uniform(0.0, s, shape).astype(np.float32) * w_new)
+           for k, s in (("height", 800.0), ("texture", 1.0), ("uncertainty", 5.0))}
+    new |= {"weight": w_new, "confidence": w_new.copy()}
+    got, ref = blend(old, new), _blend_float64(old, new)
+    for key in ("height", "texture", "uncertainty", "weight"):
+        assert got[key].dtype == np.float32
+        first = ~seen
+        assert np.array_equal(got[key][first], ref[key][first], equal_nan=True), key
+        both = seen & (w_new > 0)  # a weighted mean of two values: float32 round-off of
+        # the larger of them
+        scale = np.maximum(np.abs(old[key]), np.abs(new[key] / np.where(w_new > 0, w_new, 1)))
+        assert np.all(np.abs(got[key] - ref[key])[both]
+                      <= 4 * np.finfo(np.float32).eps * scale[both]), key
+        assert np.array_equal(got[key][seen & (w_new == 0)], ref[key][seen & (w_new == 0)],
+                              equal_nan=True), key
+
+
 def test_two_passes_blend_and_attributes(tmp_path: Path) -> None:
     path = tmp_path / "m.zarr"
     writer = MosaicWriter(path, origin_px=(-10, -5), shape=(40, 64), pixel_um=8.5,
