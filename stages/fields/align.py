@@ -56,6 +56,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: a drift of the frames' centres over the stack this large (px) gets a note in
+#: :func:`describe_alignment`: a pixel of misregistration is where a focus window of a few
+#: pixels starts to compare different texture across frames
+DRIFT_NOTE_PX = 1.0
+
 
 @dataclass(frozen=True)
 class Alignment:
@@ -295,6 +300,15 @@ def describe_alignment(al: Alignment) -> str:
         lines.append(f"  frame {k:3d}: scale {al.scale[k]:.5f}{step}, shift "
                      f"({al.shift_px[k, 0]:+.2f}, {al.shift_px[k, 1]:+.2f}) px{rot}, "
                      f"ECC r {al.correlation[k]:.4f}")
+    drift = al.shift_px[-1] - al.shift_px[0]
+    lines.append(f"  the centre's shift from the first frame to the last: ({drift[0]:+.2f}, "
+                 f"{drift[1]:+.2f}) px")
+    if math.hypot(*drift) >= DRIFT_NOTE_PX:
+        lines.append("  a drift like this is what a lens breathing about an off-centre axis "
+                     "shows, and what a tilted part's blurred features show as the focus "
+                     "moves: alignment cannot tell the two apart (docs/limits.md); on a "
+                     "tilted part, measure the breathing on a flat checkerboard instead "
+                     "(`sffscan calibrate lateral`, then `--calibration`)")
     return "\n".join(lines)
 
 

@@ -15,8 +15,11 @@ import zarr
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.metrology.compare import compare_height_maps
 from sffscan.stages.fields.align import (
+    DRIFT_NOTE_PX,
+    Alignment,
     align_stack,
     check_alignment,
+    describe_alignment,
     estimate_alignment,
     mask_uncovered,
 )
@@ -105,6 +108,20 @@ def test_mask_uncovered_removes_the_reach_too() -> None:
     valid[:, :5] = False
     out = mask_uncovered(np.zeros((20, 30)), valid, reach_px=2)
     assert np.isnan(out[:, :7]).all() and np.isfinite(out[:, 7:]).all()
+
+
+def test_description_gives_the_centre_drift_and_notes_a_large_one() -> None:
+    # a steady drift is what a tilted part's blur shows as well as an off-centre axis
+    # (issue 24's held-out tilted stacks): the summary says so from DRIFT_NOTE_PX on
+    base = Alignment.breathing(np.array([0.99, 1.0, 1.01]), (64, 80))
+    for drift, noted in ((0.5 * DRIFT_NOTE_PX, False), (1.5 * DRIFT_NOTE_PX, True)):
+        shifts = np.array([[-drift / 2, 0.0], [0.0, 0.0], [drift / 2, 0.0]])
+        text = describe_alignment(Alignment(base.matrices, base.scale, shifts,
+                                            base.rotation_deg, base.reference,
+                                            base.correlation, base.model))
+        assert f"the first frame to the last: ({drift:+.2f}, +0.00) px" in text
+        assert ("cannot tell the two apart" in text) is noted
+        assert ("calibrate lateral" in text) is noted
 
 
 def test_stack_cli_align_writes_alignment_and_masks(tmp_path: Path,
