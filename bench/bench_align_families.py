@@ -14,8 +14,9 @@ fields.align.align_stack` without the noise floor's correction); ``aligned`` (wh
 focus volume, :mod:`sffscan.stages.fields.aperture`); ``true warp`` (the true transforms,
 the same warp: the estimate's share); the largest error of the estimated scale, %.
 Depth: GLVM 9, the default method (``--method``), levels, over the pixels every aligned
-frame covers less the focus window's reach. Writes bench/align_families_results.md. Not a
-test: nothing here asserts.
+frame covers less the focus window's reach; the breathing stacks measured on the box those
+pixels span (as ``stack --align`` does since 2026-12-06), the twin on the whole field.
+Writes bench/align_families_results.md (``--out``). Not a test: nothing here asserts.
 """
 
 from __future__ import annotations
@@ -59,15 +60,22 @@ def score(family: str, seed: int, *, n: int, size: int, breathing: float,
     true = align_stack(real.images, alignment=true_al)[0]
     true_floor = stack_noise_floor(real.images, true_al, max_value=1.0)[0]
     mask = np.isfinite(mask_uncovered(np.zeros(valid.shape), valid, reach_px=9))
+    # the breathing stacks are measured on the box every aligned frame covers, as ``stack
+    # --align`` measures them (reconstruct_field's ``valid``): beyond it a frame holds its
+    # replicated border, whose curves would take part in the depth method's choice; the
+    # twin, which covers the whole field, on the whole field
+    box = np.ix_(valid.any(axis=1), valid.any(axis=0))
+    whole = np.ix_(np.ones(valid.shape[0], bool), np.ones(valid.shape[1], bool))
 
-    def rmse(stack: np.ndarray, floor: np.ndarray | None = None) -> float:
-        fm = focus_measure(stack, window=9)
+    def rmse(stack: np.ndarray, floor: np.ndarray | None = None, *,
+             region: tuple[np.ndarray, ...] = box) -> float:
+        fm = focus_measure(stack[:, region[0], region[1]], window=9)
         if floor is not None:
             fm = np.maximum(fm - floor[:, None, None].astype(np.float32), np.float32(0.0))
         d = depth_from_focus(fm, method=method)[0]
-        return float(np.sqrt(np.mean((d - truth)[mask] ** 2)))
+        return float(np.sqrt(np.mean((d - truth[region])[mask[region]] ** 2)))
 
-    base = rmse(twin.images)
+    base = rmse(twin.images, region=whole)
     return {"ideal": base, "unaligned": rmse(real.images) / base,
             "Lanczos": rmse(_lanczos(real.images, al)) / base,
             "no aperture": rmse(align_stack(real.images, alignment=al, aperture=False)[0])

@@ -196,7 +196,7 @@ def _stack(args: argparse.Namespace) -> int:
                  f"{settings.filter_size}x{settings.filter_size}")
         t0 = time.perf_counter()
         result = reconstruct_with_progress(stack, table, settings, max_value, floor,
-                                           progress=not args.quiet)
+                                           progress=not args.quiet, valid=covered)
         if correction is not None:
             result = correction.field(result)
         if covered is not None:  # pixels some aligned frame does not cover: not measured

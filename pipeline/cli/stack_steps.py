@@ -69,10 +69,12 @@ def read_images(paths: list[str], *, grey: bool, progress: bool = True) -> np.nd
 def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: StackSettings,
                               max_value: float | None,
                               noise_floor: np.ndarray | None = None, *,
-                              progress: bool = True) -> FieldResult:
+                              progress: bool = True,
+                              valid: np.ndarray | None = None) -> FieldResult:
     """:func:`~sffscan.stages.fields.stationary.reconstruct_field` with what it does said on
     stderr: the reconstruction (its time), then the weighted median with a progress display
-    of its rows (on large photographs it is the longer part; none without ``progress``)."""
+    of its rows (on large photographs it is the longer part; none without ``progress``);
+    ``valid``: an aligned stack's covered pixels (reconstructed on their bounding box)."""
     from dataclasses import replace
 
     from sffscan.stages.fields.stationary import reconstruct_field
@@ -82,7 +84,7 @@ def reconstruct_with_progress(stack: np.ndarray, table: np.ndarray, settings: St
     log.info("stack: reconstruction (focus measure, depth, all-in-focus image) ...")
     raw = reconstruct_field(stack, focus_heights_um=table, max_value=max_value,
                             settings=replace(settings, filter_size=1, min_confidence=0.0),
-                            noise_floor=noise_floor)
+                            noise_floor=noise_floor, valid=valid)
     log.info("stack: reconstruction done in %.1f s", time.perf_counter() - t0)
     if raw.uncertainty_um is None:
         log.warning("stack: no height uncertainty: method %s is a study's candidate, whose "

@@ -169,6 +169,44 @@ def test_reconstruct_rejects_bad_input(sim_stack: tuple[np.ndarray, np.ndarray])
         StackSettings(method="best")
 
 
+def test_valid_pixels_reconstruct_their_box_alone(sim_stack: tuple[np.ndarray, np.ndarray]
+                                                 ) -> None:
+    """With ``valid`` (an aligned stack's covered pixels), the field is the reconstruction of
+    their bounding box alone, whatever lies beyond it (an aligned frame's replicated border,
+    here garbage); NaN and confidence 0 outside; every pixel valid is the plain call."""
+    stack, _ = sim_stack
+    s = StackSettings()  # the default method: its choice is judged on the box's curves
+    valid = np.zeros(stack.shape[1:], bool)
+    valid[10:80, 15:100] = True
+    valid[10, 15] = False  # a corner left out: the box is still 10..80 x 15..100
+    garbage = stack.copy()
+    rng = np.random.default_rng(11)
+    outside = ~np.pad(np.ones((70, 85), bool), ((10, 16), (15, 20)))
+    garbage[:, outside] = rng.integers(0, 1024, (stack.shape[0], int(outside.sum())))
+    got = reconstruct_field(garbage, focus_heights_um=ZS, settings=s, max_value=1023,
+                            valid=valid)
+    ref = reconstruct_field(stack[:, 10:80, 15:100], focus_heights_um=ZS, settings=s,
+                            max_value=1023)
+    for name in ("height_um", "raw_height_um", "levels", "texture", "confidence",
+                 "uncertainty_um"):
+        a, b = getattr(got, name), getattr(ref, name)
+        assert a.shape == stack.shape[1:], name
+        np.testing.assert_array_equal(a[10:80, 15:100], b, err_msg=name)
+        rest = np.ones(stack.shape[1:], bool)
+        rest[10:80, 15:100] = False
+        assert (a[rest] == 0).all() if name == "confidence" else np.isnan(a[rest]).all(), name
+    plain = reconstruct_field(stack, focus_heights_um=ZS, settings=s, max_value=1023)
+    whole = reconstruct_field(stack, focus_heights_um=ZS, settings=s, max_value=1023,
+                              valid=np.ones(stack.shape[1:], bool))
+    np.testing.assert_array_equal(whole.height_um, plain.height_um)
+    with pytest.raises(ValueError, match="valid must have the images' shape"):
+        reconstruct_field(stack, focus_heights_um=ZS, valid=valid[:, :-1])
+    with pytest.raises(ValueError, match="no pixel is covered"):
+        reconstruct_field(stack, focus_heights_um=ZS, valid=np.zeros_like(valid))
+    with pytest.raises(ValueError, match="fewer than 3 x 3"):
+        reconstruct_field(stack, focus_heights_um=ZS, valid=valid & (np.arange(96) < 12)[:, None])
+
+
 # ----------------------------------------------------------------------------- files
 
 
