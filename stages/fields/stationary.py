@@ -25,7 +25,7 @@ Image stacks are read from image files
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -311,7 +311,6 @@ def _valid_box(valid: np.ndarray, shape: tuple[int, ...]) -> tuple[slice, slice]
 def _embed(result: FieldResult, box: tuple[slice, slice], shape: tuple[int, ...]
            ) -> FieldResult:
     """``result`` of the box placed in a field of ``shape``: NaN outside, confidence 0."""
-    from dataclasses import replace
 
     def put(a: np.ndarray, fill: float) -> np.ndarray:
         out = np.full(tuple(shape), fill, dtype=a.dtype)
