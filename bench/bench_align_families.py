@@ -31,6 +31,7 @@ import numpy as np
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus
 from sffscan.stages.fields.align import Alignment, align_stack, mask_uncovered
 from sffscan.stages.fields.aperture import stack_noise_floor
+from sffscan.stages.fields.stationary import valid_box
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import family_stack
 
@@ -64,11 +65,11 @@ def score(family: str, seed: int, *, n: int, size: int, breathing: float,
     # --align`` measures them (reconstruct_field's ``valid``): beyond it a frame holds its
     # replicated border, whose curves would take part in the depth method's choice; the
     # twin, which covers the whole field, on the whole field
-    box = np.ix_(valid.any(axis=1), valid.any(axis=0))
-    whole = np.ix_(np.ones(valid.shape[0], bool), np.ones(valid.shape[1], bool))
+    box = valid_box(valid, valid.shape)
+    whole = (slice(None), slice(None))
 
     def rmse(stack: np.ndarray, floor: np.ndarray | None = None, *,
-             region: tuple[np.ndarray, ...] = box) -> float:
+             region: tuple[slice, slice] = box) -> float:
         fm = focus_measure(stack[:, region[0], region[1]], window=9)
         if floor is not None:
             fm = np.maximum(fm - floor[:, None, None].astype(np.float32), np.float32(0.0))

@@ -50,6 +50,7 @@ __all__ = [
     "stack_curves",
     "stack_to_unit",
     "stack_uncertainty_um",
+    "valid_box",
 ]
 
 
@@ -251,7 +252,7 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
         raise ValueError(f"focus_heights_um has {heights.size} values for {stack.shape[0]} "
                          "images")
     if valid is not None:
-        box = _valid_box(valid, stack.shape[1:])
+        box = valid_box(valid, stack.shape[1:])
         if box != (slice(0, stack.shape[1]), slice(0, stack.shape[2])):
             inner = reconstruct_field(stack[:, box[0], box[1]], focus_heights_um=heights,
                                       settings=settings, max_value=max_value,
@@ -291,9 +292,10 @@ def reconstruct_field(stack: np.ndarray, *, focus_heights_um: Sequence[float] | 
                        confidence=confidence, settings=settings, uncertainty_um=unc)
 
 
-def _valid_box(valid: np.ndarray, shape: tuple[int, ...]) -> tuple[slice, slice]:
-    """The bounding box of ``valid``'s pixels (ValueError where it has the wrong shape or
-    none; the smallest field reconstructed is 3 x 3)."""
+def valid_box(valid: np.ndarray, shape: tuple[int, ...]) -> tuple[slice, slice]:
+    """The bounding box (rows, columns) of ``valid``'s pixels, what
+    :func:`reconstruct_field` reconstructs of an aligned stack (ValueError where ``valid``
+    has the wrong shape or no pixel; the smallest field reconstructed is 3 x 3)."""
     v = np.asarray(valid, dtype=bool)
     if v.shape != tuple(shape):
         raise ValueError(f"valid must have the images' shape {tuple(shape)}, got {v.shape}")
