@@ -37,6 +37,7 @@ from sffscan.stages.fields.align_pairs import (
     invert_step,
     pair_transform,
     reduce_to_model,
+    registration_frame,
     scale_step,
     to_float,
 )
@@ -115,7 +116,7 @@ class Alignment:
 
 
 def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
-                       reference: int | None = None) -> Alignment:
+                       reference: int | None = None, normalise: bool = True) -> Alignment:
     """Each frame's transform onto the reference (middle) frame, chained through neighbours.
 
     Parameters
@@ -126,6 +127,10 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
         Motion model reported and used by :func:`align_stack`.
     reference : int, optional
         Reference frame; default the middle one, ``N // 2``.
+    normalise : bool, keyword-only
+        Register the frames' local contrast (:func:`~sffscan.stages.fields.align_pairs.
+        registration_frame`: a tilted part's moving band of focus does not pull the
+        estimate) rather than the frames as taken. Default True.
 
     Returns an :class:`Alignment`.
     Raises ValueError if the stack is not (N, H, W) or a frame cannot be aligned (named;
@@ -140,6 +145,8 @@ def estimate_alignment(stack: np.ndarray, *, model: Model = "scale",
     ref = n // 2 if reference is None else int(reference)
     if not 0 <= ref < n:
         raise ValueError(f"reference must be in 0..{n - 1}, got {reference}")
+    if normalise:
+        st = np.stack([registration_frame(f) for f in st])
     full = [np.eye(3) for _ in range(n)]
     rho = np.ones(n)
     # "scale": the steps frame k - 1 -> k px (log s, shift x, y), their variances (row k)
@@ -283,7 +290,10 @@ def misalignment(stack: np.ndarray) -> tuple[float, float]:
         return img if f == 1 else cv2.resize(img, (img.shape[1] // f, img.shape[0] // f),
                                               interpolation=cv2.INTER_AREA)
     try:
-        al = estimate_alignment(np.stack([small(0), small(n // 2), small(n - 1)]))
+        # the frames as taken: the check was measured so (registration_frame's window is
+        # in px of the full frames, these are up to 4x smaller)
+        al = estimate_alignment(np.stack([small(0), small(n // 2), small(n - 1)]),
+                                normalise=False)
     except ValueError:
         return math.nan, math.nan
     return (float(np.max(np.abs(al.scale - 1.0))),

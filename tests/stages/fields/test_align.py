@@ -23,6 +23,7 @@ from sffscan.stages.fields.align import (
     estimate_alignment,
     mask_uncovered,
 )
+from sffscan.stages.fields.align_pairs import registration_frame
 from sffscan.stages.fields.stationary import reconstruct_field
 from sffscan.stages.sim.camera import Optics, focus_heights, render_stack
 from sffscan.stages.sim.world import characterisation_plate
@@ -108,6 +109,48 @@ def test_mask_uncovered_removes_the_reach_too() -> None:
     valid[:, :5] = False
     out = mask_uncovered(np.zeros((20, 30)), valid, reach_px=2)
     assert np.isnan(out[:, :7]).all() and np.isfinite(out[:, 7:]).all()
+
+
+def moving_focus_band(seed: int, *, n: int = 15, size: int = 128) -> np.ndarray:
+    """A stack with no motion at all whose band of sharp texture moves 6 px a frame across
+    a coarse texture (grain 4 px, blurred 8 px beyond the band, 12 px wide): a tilted part's
+    stack without breathing."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(np.float32), (0, 0), 4.0)
+    tex = 0.5 + 0.1 * tex / tex.std()
+    blurred = cv2.GaussianBlur(tex, (0, 0), 8.0)
+    x = np.arange(size)[None, :]
+    band = [np.exp(-((x - (20.0 + 6.0 * k)) ** 2) / (2 * 12.0**2)).astype(np.float32)
+            for k in range(n)]
+    return np.stack([w * tex + (1 - w) * blurred for w in band])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_moving_band_of_focus_does_not_pull_the_scale(seed: int) -> None:
+    # the truth: scale 1 in every frame. On the frames as taken, ECC's peak follows the
+    # band's contrast (a few % of scale); on their local contrast it does not
+    st = moving_focus_band(seed)
+    taken = estimate_alignment(st, normalise=False)
+    normalised = estimate_alignment(st)
+    assert np.abs(taken.scale - 1.0).max() > 0.02  # the stack shows the pull
+    assert np.abs(normalised.scale - 1.0).max() < 0.005
+
+
+def test_registration_frame_divides_out_the_local_contrast() -> None:
+    rng = np.random.default_rng(3)
+    tex = cv2.GaussianBlur(rng.standard_normal((96, 384)).astype(np.float32), (0, 0), 1.5)
+    x = np.arange(384)[None, :]
+    # contrast 1 on a quarter of the frame, 2 and 8 on the rest
+    gain = np.where(x < 96, 1.0, np.where(x < 240, 2.0, 8.0)).astype(np.float32)
+    frame = 0.5 + 0.01 * gain * tex / tex.std()
+    out = registration_frame(frame)
+    assert out.dtype == np.float32 and out.shape == (96, 384)
+    # away from the seams, where the windows straddle two parts
+    low, mid, high = (float(out[:, a:b].std()) for a, b in ((10, 50), (150, 190), (300, 340)))
+    assert 0.8 < high / mid < 1.25  # 4x as taken, alike once divided by their contrast
+    assert 0.35 < low / mid < 0.65  # below the median contrast: not raised (half of mid's)
+    # the frame's brightness and gain do not matter
+    np.testing.assert_allclose(registration_frame(3.0 * frame + 0.2), out, atol=1e-3)
 
 
 def test_description_gives_the_centre_drift_and_notes_a_large_one() -> None:
