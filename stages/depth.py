@@ -299,7 +299,7 @@ on 2026-12-02 and before)."""
 
 
 def depth_from_focus(
-    volume: np.ndarray, *, method: str = "spc", median_size: int = 11,
+    volume: np.ndarray, *, method: str = DEFAULT_METHOD, median_size: int = 11,
     argmax: np.ndarray | None = None, spread_size: int = 9,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-level focus peak and its confidence for every pixel of a focus volume.
@@ -310,7 +310,8 @@ def depth_from_focus(
         Focus volume (values >= 0), N >= 3 levels along axis 0; read as float32.
     method : str, keyword-only
         One of :data:`DEPTH_METHODS` or :data:`CANDIDATE_METHODS` (the names of
-        :data:`ESTIMATORS`):
+        :data:`ESTIMATORS`); default :data:`DEFAULT_METHOD` (``"shape_select"``), as scan,
+        replay and stack (``"spc"`` before 2026-12-06):
 
         ``"argmax"``
             Index of the (first) largest value; integer-valued.

@@ -12,6 +12,7 @@ import scipy.io
 from scipy import ndimage
 from sffscan.stages.depth import (
     CANDIDATE_METHODS,
+    DEFAULT_METHOD,
     DEPTH_METHODS,
     ESTIMATORS,
     all_in_focus,
@@ -458,6 +459,21 @@ def test_all_in_focus() -> None:
     np.testing.assert_array_equal(out, np.take_along_axis(stack, best[None], axis=0)[0])
     with pytest.raises(ValueError, match="same shape"):
         all_in_focus(stack[:5], volume)
+
+
+def test_the_function_s_default_is_the_product_s() -> None:
+    # a caller of the numerical API gets what scan, replay and stack take (it was "spc",
+    # which a bench script took for the default once)
+    rng = np.random.default_rng(5)
+    k = np.arange(30)[:, None, None]
+    peak = rng.uniform(8, 22, (1, 24, 24))
+    # lopsided curves (upper flank 2.5x the lower's), which shape_select gives its fallback
+    vol = np.exp(-0.5 * ((k - peak) / np.where(k < peak, 2.0, 5.0)) ** 2) \
+        + 0.05 * rng.random((30, 24, 24))
+    vol = vol.astype(np.float32)
+    default = depth_from_focus(vol)
+    np.testing.assert_array_equal(default[0], depth_from_focus(vol, method=DEFAULT_METHOD)[0])
+    assert not np.array_equal(default[0], depth_from_focus(vol, method="spc")[0])
 
 
 # ----------------------------------------------------------------------------- validation
