@@ -6,7 +6,9 @@ pixel by pixel, as the focus-stack program does. Here:
 
 1. each frame is registered to its neighbour toward the middle frame with OpenCV's ECC
    (:func:`cv2.findTransformECC`, affine model, coarse to fine on an image pyramid, each
-   pair started from the previous pair's result), and the pair transforms are chained to
+   pair started from the previous pair's result), on the frames' local contrast
+   (:func:`~sffscan.stages.fields.align_pairs.registration_frame`: a tilted part's band of
+   focus, moving across the frame, does not pull it), and the pair transforms are chained to
    the middle frame: neighbours differ little in blur, so the correlation holds even where
    the middle frame is sharp and the far frames are not; for ``"scale"``, a step between
    two featureless frames that strays from the others gives way to them (:func:`_smooth_steps`);
