@@ -56,9 +56,11 @@ def registration_frame(img: np.ndarray, *, lowpass_px: float = REGISTRATION_LOWP
     blurred to its width it biased the breathing's scale (the plate of
     ``tests/stages/fields/test_align.py``: 0.07 % -> 1.1 % at 16 px, 0.16 % at 64 px).
 
-    Measured (docs/depth-method-log.md, "Registration on the local contrast"): on seeds
-    204..209 of the twenty families (seen), stacks over the 1.10x alignment bar 7 -> 3 of
-    120 (a 32 px window: 4); the plate's scale error 0.074 % -> 0.053 %.
+    Measured (docs/depth-method-log.md, "Registration on the local contrast"), aligned /
+    breathing-free twin with the default depth method: on fresh seeds 213..215 of the twenty
+    families, stacks over the 1.10x alignment bar 7 -> 6 of 60 (mean 1.027 -> 1.019); on
+    seeds 204..209, which it was chosen on, 10 -> 7 of 120; the plate's scale error 0.074 %
+    -> 0.053 %.
 
     Parameters
     ----------
