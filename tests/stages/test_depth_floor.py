@@ -20,6 +20,7 @@ from sffscan.stages.depth_floor import (
 from sffscan.stages.depth_harmonics import curve_moments
 from sffscan.stages.depth_levels import median_filter_levels
 from sffscan.stages.depth_spc import spc_in_range
+from sffscan.stages.depth_statistics import row_median
 from sffscan.stages.depth_uncertainty import width_from_sums
 
 
@@ -44,6 +45,20 @@ def test_expected_extreme_matches_the_tabulated_normal_order_statistics() -> Non
                      (20, 1.86748), (50, 2.24907)):
         assert expected_extreme(n) == pytest.approx(exact, abs=0.03)
     assert expected_extreme(1) == 0.0 and expected_extreme(0) == 0.0
+
+
+@pytest.mark.parametrize("m", [5, 6, 48, 49])
+def test_row_median_is_numpys_median_of_each_row(m: int) -> None:
+    # odd and even rows, ties (a third of the values 0) and infinities: np.median's values
+    # bit for bit, float32 in, float32 out
+    rng = np.random.default_rng(m)
+    x = rng.standard_normal((200, m)).astype(np.float32)
+    x[rng.random(x.shape) < 0.3] = 0.0
+    x[rng.random(x.shape) < 0.05] = np.inf
+    got = row_median(x)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, np.median(x, axis=1))
+    assert row_median(np.array([[3.0, 1.0, 2.0, 10.0]]))[0] == 2.5
 
 
 def test_level_noise_reads_the_floor_not_the_peak() -> None:
