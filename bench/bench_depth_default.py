@@ -10,16 +10,19 @@ Default mode: what the depth stage does for every frame of a demo scan (1280 x 1
 N = 50, 15 mm/s, the columns the focus stage measures, ~52 % of each frame), for each
 method, *interleaved* in rounds in one process so that all see the same machine load: wall
 and CPU ms per frame including the reduction of the completed blocks, and the bytes each
-keeps per pass. The focus values are random (gamma distributed), so the depth methods'
-data-dependent paths (adaptive's peak fit or centroid) take their share of a textured
-surface's pixels, not a flat plate's. A method written ``NAME/no-unc`` runs without the
+keeps per pass. The focus values are random (gamma distributed): curves with no peak, as
+where nothing is in focus, so the filtered peaks scatter and most pixels take ``adaptive``'s
+wide centroid (88 % of them, measured 2026-12-06), the costly path of the fallback and its
+tests; a scanned surface is the other extreme (98.5 % peak pixels on the demo's recording),
+which ``--e2e`` measures. A method written ``NAME/no-unc`` runs without the
 per-pixel height uncertainty (the depth stage before it had one): the cost of the
 uncertainty is ``NAME`` over ``NAME/no-unc``; ``shape_select/no-window`` is the default
 without its 9-level centroid test (stages/depth_window.py). This mode writes its table to
 ``bench/depth_default_results.md`` (and ``.json``).
 
 ``--e2e``: the whole pipeline over a recording (``sffscan demo --record``), frames read
-into memory first, SPC and the default interleaved: frames/s and CPU ms per frame.
+into memory first, the methods interleaved: frames/s and CPU ms per frame (with ``--out``
+a table too: bench/results/depth_default_e2e_*.md).
 
 ``--accuracy``: every method's RMSE over the recording (replayed, threads) and over the
 ±3 px wobble scan with noise of the end-to-end tests (tests/scan_helpers.py). Not a test:
@@ -31,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -151,7 +155,12 @@ def end_to_end(recording: str, rounds: int, execution: str,
     best = {m: max(v["fps"]) for m, v in out.items()}
     cpu = {m: min(v["process_cpu_ms"]) for m, v in out.items()}
     ref = methods[0]
-    return {"runs": out, "best_fps": best, "least_process_cpu_ms": cpu,
+    c = rec.config
+    scene = (f"{len(frames_in)} frames of a simulated {c.source.world} (seed {c.source.seed}), "
+             f"{c.motion.passes} passes at {c.motion.speed_mm_s:g} mm/s, wobble "
+             f"±{c.motion.wobble_along_px:g} px, field curvature "
+             f"{c.optics.field_curvature_um:g} µm, vignetting {c.optics.vignetting:g}")
+    return {"recording": scene, "runs": out, "best_fps": best, "least_process_cpu_ms": cpu,
             f"fps_over_{ref}": {m: round(best[m] / best[ref], 3) for m in methods},
             f"cpu_over_{ref}": {m: round(cpu[m] / cpu[ref], 3) for m in methods}}
 
@@ -202,6 +211,9 @@ def main() -> int:
     ap.add_argument("--accuracy", metavar="RECORDING",
                     help="every method's RMSE over this recording and the wobble scan")
     ap.add_argument("--execution", default="threads", choices=["threads", "processes"])
+    ap.add_argument("--out", type=Path, metavar="MD",
+                    help="--e2e: also write the runs as a table here (e.g. "
+                         "bench/results/depth_default_e2e.md)")
     args = ap.parse_args()
     keep_freed_memory()  # the heap setting of the scan's focus worker (pipeline/heap.py)
     methods = [m for m in args.methods.split(",") if m]
@@ -212,12 +224,45 @@ def main() -> int:
     if args.accuracy:
         print(json.dumps(accuracy_table(args.accuracy, list(DEPTH_METHODS))))
     elif args.e2e:
-        print(json.dumps(end_to_end(args.e2e, args.rounds, args.execution, methods)))
+        res = end_to_end(args.e2e, args.rounds, args.execution, methods)
+        print(json.dumps(res))
+        if args.out:
+            write_e2e(res, methods, args)
     else:
         res = focus_volume_cost(methods, args.frames, args.rounds)
         print(json.dumps(res))
         write_results(res, methods, args)
     return 0
+
+
+def write_e2e(res: dict[str, Any], methods: list[str], args: argparse.Namespace) -> None:
+    """``--out``: the end-to-end runs as a table (frames/s and the depth stage's CPU per
+    frame, every round; best, least and median, and their ratios to the first method)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_pipeline import write_table  # torch with it: loaded after the measurements
+
+    runs, ref = res["runs"], methods[0]
+    med = {m: {k: statistics.median(v) for k, v in runs[m].items()} for m in methods}
+    lines = [f"Recording `{args.e2e}`: {res['recording']}; execution {args.execution}, "
+             f"{args.rounds} rounds, the "
+             f"methods interleaved in every round ({time.strftime('%Y-%m-%d %H:%M')}). "
+             "Frames/s: the whole pipeline's; depth CPU: the depth stage's (its process's "
+             "CPU a frame).", "",
+             f"| method | frames/s (rounds) | best | median | / {ref} (best, median) | "
+             f"depth CPU ms/frame (rounds) | least | median | / {ref} (least, median) |",
+             "|---|---|---:|---:|---:|---|---:|---:|---:|"]
+    for m in methods:
+        r, d = runs[m], med[m]
+        fps_best, cpu_least = max(r["fps"]), min(r["depth_cpu_ms"])
+        lines.append(
+            f"| {m} | {', '.join(f'{v:.1f}' for v in r['fps'])} | {fps_best:.1f} | "
+            f"{d['fps']:.1f} | {fps_best / max(runs[ref]['fps']):.3f}, "
+            f"{d['fps'] / med[ref]['fps']:.3f} | "
+            f"{', '.join(f'{v:.2f}' for v in r['depth_cpu_ms'])} | {cpu_least:.2f} | "
+            f"{d['depth_cpu_ms']:.2f} | {cpu_least / min(runs[ref]['depth_cpu_ms']):.3f}, "
+            f"{d['depth_cpu_ms'] / med[ref]['depth_cpu_ms']:.3f} |")
+    write_table(args.out, "Depth methods end to end over a recording (bench_depth_default.py "
+                "--e2e)", "bench_depth_default.py", None, lines)
 
 
 def write_results(res: dict[str, Any], methods: list[str], args: argparse.Namespace) -> None:
