@@ -254,11 +254,12 @@ def median_spread(diff: np.ndarray) -> tuple[float, float]:
 
 def row_median(x: np.ndarray) -> np.ndarray:
     """Median of each row of a 2-D array (np.median's with axis=1, bit for bit, where no row
-    holds a NaN, which sorts last here), by sorting each row. np.median took 0.37 ms on a block's (520, 48) second differences; a partition
-    at the middle one or two places 0.06 ms on random values but 0.54 ms on a scan block's
-    (1008, 48) second differences (their many ties and tails), against 0.08 ms sorted
-    (numpy's vectorised sort of short rows; measured 2026-12-06, docs/performance-log.md).
-    The choice of a block takes three of these."""
+    holds a NaN, which sorts last here), by sorting each row. np.median took 0.37 ms on a
+    block's (520, 48) second differences; a partition at the middle one or two places 0.06
+    ms on random values but 0.54 ms on a scan block's (1008, 48) second differences (their
+    many ties and tails), against 0.08 ms sorted (numpy's vectorised sort of short rows;
+    measured 2026-12-06, docs/performance-log.md). The choice of a block takes three of
+    these."""
     m = x.shape[1]
     h = m // 2
     part = np.sort(x, axis=1)
