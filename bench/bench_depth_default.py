@@ -38,6 +38,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -66,7 +67,44 @@ def frames(n: int) -> list[tuple[int, int, int, int, int]]:
     return out
 
 
-def run(spec: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.ndarray],
+class SurfaceCurves:
+    """Focus curves of a scanned surface for the default mode's ``--curves surface``: the
+    demo's characterisation plate (its true heights, world px), each pixel's curve a
+    Gaussian of sigma 2.5 levels about its height, scaled by a fixed texture contrast, over
+    a floor of small gamma noise (7 frames, as the random curves'); made per frame, outside
+    the timed calls."""
+
+    SIGMA_LEVELS = 2.5
+
+    def __init__(self, plan: list[tuple[int, int, int, int, int]]) -> None:
+        from sffscan.pipeline.sim_source import make_world
+
+        cfg = demo_config()
+        o = cfg.optics
+        h, w = o.height_px, o.width_px
+        x0 = min(x for x, *_ in plan)
+        y0 = min(y for _, y, *_ in plan)
+        span = max(x for x, *_ in plan) + w - x0
+        rows = max(y for _, y, *_ in plan) + h - y0
+        z = make_world(cfg).height_um(float(x0), float(y0), span, rows)
+        self.levels = ((z - o.z_min_um) / o.z_step_um).astype(np.float32)
+        rng = np.random.default_rng(1)
+        self.contrast = rng.gamma(2.0, 0.05, (rows, span)).astype(np.float32)
+        self.floor = [rng.gamma(2.0, 0.002, (h, w)).astype(np.float32) for _ in range(7)]
+        self.origin = (x0, y0)
+
+    def __call__(self, i: int, x: int, y: int, level: int, c0: int, c1: int) -> np.ndarray:
+        h = self.floor[0].shape[0]
+        r0, u0 = y - self.origin[1], x - self.origin[0]
+        d = self.levels[r0:r0 + h, u0 + c0:u0 + c1] - np.float32(level)
+        fm = np.exp(d * d * np.float32(-0.5 / self.SIGMA_LEVELS**2))
+        fm *= self.contrast[r0:r0 + h, u0 + c0:u0 + c1]
+        fm += self.floor[i % len(self.floor)][:, c0:c1]
+        return fm
+
+
+def run(spec: str, plan: list[tuple[int, int, int, int, int]],
+        focus: Callable[[int, int, int, int, int, int], np.ndarray],
         tex: np.ndarray) -> tuple[float, float, int]:
     method, _, flag = spec.partition("/")
     cfg = demo_config()
@@ -79,24 +117,36 @@ def run(spec: str, plan: list[tuple[int, int, int, int, int]], bank: list[np.nda
                       uncertainty=flag != "no-unc")
     if flag == "no-window":  # shape_select as before its 9-level centroid test
         vol.window_test = False
-    t0 = time.perf_counter()  # after the volume's start-up (its pages are touched there)
-    c0_cpu = time.process_time()
+    wall = cpu = 0.0  # the volume's calls only, after its start-up (its pages touched there)
     for i, (x, y, level, c0, c1) in enumerate(plan):
-        fm = bank[i % len(bank)][:, c0:c1]
+        fm = focus(i, x, y, level, c0, c1)
+        t0, c0_cpu = time.perf_counter(), time.process_time()
         vol.add(fm, tex[:, c0:c1], x=x, y=y, level=level, col0=c0)
+        wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0_cpu
+    t0, c0_cpu = time.perf_counter(), time.process_time()
     vol.finish()
+    wall += time.perf_counter() - t0
+    cpu += time.process_time() - c0_cpu
     n = len(plan)
-    return (1e3 * (time.perf_counter() - t0) / n, 1e3 * (time.process_time() - c0_cpu) / n,
-            vol.nbytes)
+    return 1e3 * wall / n, 1e3 * cpu / n, vol.nbytes
 
 
-def focus_volume_cost(methods: list[str], n_frames: int, rounds: int) -> dict[str, object]:
-    cfg = demo_config()
-    h, w = cfg.optics.height_px, cfg.optics.width_px
+def random_curves(h: int, w: int) -> Callable[[int, int, int, int, int, int], np.ndarray]:
+    """The default mode's random curves: 7 frames of gamma-distributed focus values, in
+    turn (curves with no peak)."""
     rng = np.random.default_rng(0)
     bank = [rng.gamma(2.0, 0.01, (h, w)).astype(np.float32) for _ in range(7)]
-    tex = rng.random((h, w), dtype=np.float32)
+    return lambda i, x, y, level, c0, c1: bank[i % len(bank)][:, c0:c1]
+
+
+def focus_volume_cost(methods: list[str], n_frames: int, rounds: int,
+                      curves: str = "random") -> dict[str, object]:
+    cfg = demo_config()
+    h, w = cfg.optics.height_px, cfg.optics.width_px
     plan = frames(n_frames)
+    focus = random_curves(h, w) if curves == "random" else SurfaceCurves(plan)
+    tex = np.random.default_rng(0).random((h, w), dtype=np.float32)
     wall: dict[str, list[float]] = {m: [] for m in methods}
     cpu: dict[str, list[float]] = {m: [] for m in methods}
     mem = {}
@@ -107,7 +157,7 @@ def focus_volume_cost(methods: list[str], n_frames: int, rounds: int) -> dict[st
             opencv_thread_limit(opencv_threads(3)):
         for _ in range(rounds):
             for method in methods:
-                ms, cpu_ms, nbytes = run(method, plan, bank, tex)
+                ms, cpu_ms, nbytes = run(method, plan, focus, tex)
                 wall[method].append(round(ms, 3))
                 cpu[method].append(round(cpu_ms, 3))
                 mem[method] = nbytes
@@ -205,6 +255,10 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--methods", default=f"spc,wcentroid,{DEFAULT_METHOD}",
                     help="comma-separated; the first is the reference of the ratios")
+    ap.add_argument("--curves", choices=["random", "surface"], default="random",
+                    help="the default mode's focus curves: random values with no peak "
+                         "(bench/depth_default_results.md) or a scanned plate's "
+                         "(SurfaceCurves; bench/depth_default_surface_results.md)")
     ap.add_argument("--e2e", metavar="RECORDING",
                     help="replay this recording end to end (e.g. one of 'sffscan demo "
                          "--record'), the methods interleaved")
@@ -229,7 +283,7 @@ def main() -> int:
         if args.out:
             write_e2e(res, methods, args)
     else:
-        res = focus_volume_cost(methods, args.frames, args.rounds)
+        res = focus_volume_cost(methods, args.frames, args.rounds, args.curves)
         print(json.dumps(res))
         write_results(res, methods, args)
     return 0
@@ -271,11 +325,16 @@ def write_results(res: dict[str, Any], methods: list[str], args: argparse.Namesp
     from bench_pipeline import machine  # torch with it: loaded after the measurements
     here = Path(__file__).resolve().parent
     ref = methods[0]
+    surface = args.curves == "surface"
     lines = ["# Depth stage: CPU per frame of the demo scan (bench_depth_default.py)", "",
              f"Command: `python bench/bench_depth_default.py --frames {args.frames} --rounds "
-             f"{args.rounds} --methods {','.join(methods)}` ({time.strftime('%Y-%m-%d %H:%M')}"
+             f"{args.rounds} --methods {','.join(methods)}"
+             f"{' --curves surface' if surface else ''}` "
+             f"({time.strftime('%Y-%m-%d %H:%M')}"
              f", {machine()}, methods interleaved in every round; best of the "
-             "rounds).", "",
+             "rounds; the volume's calls timed). Curves: "
+             + ("the demo plate's (Gaussians about its true heights)." if surface
+                else "random values, no peak."), "",
              f"| method | wall ms/frame (rounds) | best | CPU ms/frame best | state MiB | "
              f"wall / {ref} | CPU / {ref} |", "|---|---|---:|---:|---:|---:|---:|"]
     for m in methods:
@@ -283,8 +342,9 @@ def write_results(res: dict[str, Any], methods: list[str], args: argparse.Namesp
                      f"{res['best_ms_per_frame'][m]:.2f} | "
                      f"{res['best_cpu_ms_per_frame'][m]:.2f} | {res['state_MiB'][m]} | "
                      f"{res[f'over_{ref}_wall'][m]:.3f} | {res[f'over_{ref}_cpu'][m]:.3f} |")
-    (here / "depth_default_results.md").write_text("\n".join(lines) + "\n")
-    (here / "depth_default_results.json").write_text(json.dumps(res, indent=1) + "\n")
+    stem = "depth_default_surface_results" if surface else "depth_default_results"
+    (here / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    (here / f"{stem}.json").write_text(json.dumps(res, indent=1) + "\n")
 
 
 if __name__ == "__main__":
