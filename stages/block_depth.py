@@ -28,13 +28,12 @@ from sffscan.stages.depth_levels import (
     median_filter_levels_at,
 )
 from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
-from sffscan.stages.depth_spc import spc_bias, spc_in_range
+from sffscan.stages.depth_spc import spc_bias, spc_in_range, spc_shape
 from sffscan.stages.depth_statistics import (
     SHAPE_SAMPLE_STEP,
     peak_departure,
     pull_statistics,
     sampled_curves,
-    shape_statistics,
     takes_centroid,
 )
 from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
@@ -125,7 +124,7 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
     centroid = takes_centroid(pull, noise=noise)
     width = curve_width(vol)
     if method == "shape_select":
-        stats = shape_statistics(vol, am, width, seen)
+        stats = spc_shape(vol, am, width, seen)
         taken = spc_bias(vol, am, stats, pull, noise, seen,
                          centre=(lambda: judged_centre(argmax, median_size)) if centre is None
                          else centre)

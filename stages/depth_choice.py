@@ -33,13 +33,18 @@ from typing import NamedTuple
 import numpy as np
 from sffscan.stages.depth_floor import GuardFloor
 from sffscan.stages.depth_levels import median_filter_levels_at
-from sffscan.stages.depth_spc import SPC_NOISE_RATIO, SPC_PULL_LIMIT, spc_bias, takes_spc
+from sffscan.stages.depth_spc import (
+    SPC_NOISE_RATIO,
+    SPC_PULL_LIMIT,
+    spc_bias,
+    spc_shape,
+    takes_spc,
+)
 from sffscan.stages.depth_statistics import (
     judged_curves,
     peak_departure,
     pull_statistics,
     sample_step,
-    shape_statistics,
     stack_sample,
     takes_centroid,
     wide_departure,
@@ -195,7 +200,7 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     s = sample_step(np.shape(argmax))
     h, w = np.shape(argmax)
     pull, noise = pull_statistics(vol, peak)
-    taken = spc_bias(vol, peak, shape_statistics(vol, peak, wid), pull, noise,
+    taken = spc_bias(vol, peak, spc_shape(vol, peak, wid), pull, noise,
                      centre=lambda: median_filter_levels_at(argmax, median_size,
                                                             np.arange(0, h, s),
                                                             np.arange(0, w, s)))

@@ -31,10 +31,16 @@ import numpy as np
 from sffscan.stages.depth_floor import GuardFloor, curve_noise, guard_floor, guard_width
 from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
-from sffscan.stages.depth_statistics import CENTROID_PULL_LIMIT, judged_curves, takes_centroid
+from sffscan.stages.depth_statistics import (
+    CENTROID_PULL_LIMIT,
+    judged_curves,
+    skew_statistic,
+    takes_centroid,
+    width_ratio_statistic,
+)
 
 __all__ = ["SHAPE_SELECT_LIMITS", "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
-           "spc_bias", "spc_departure", "spc_in_range", "spc_noise", "takes_spc"]
+           "spc_bias", "spc_departure", "spc_in_range", "spc_noise", "spc_shape", "takes_spc"]
 
 SHAPE_SELECT_LIMITS = (0.2, math.inf)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
@@ -193,7 +199,22 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
     return d, math.sqrt(float(np.mean((diff - d) ** 2)))
 
 
-def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT_LIMITS[0],
+def spc_shape(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
+              mask: np.ndarray | None = None) -> tuple[float, float | None]:
+    """The :func:`~sffscan.stages.depth_statistics.shape_statistics` that :func:`takes_spc`
+    reads at :data:`SHAPE_SELECT_LIMITS`: the width ratio only where its limit is finite,
+    else None (not measured). Finite curves have finite widths
+    (:func:`~sffscan.stages.depth_uncertainty.width_from_sums` clips its ratio), so their
+    width ratio is always under an infinite limit; counting the levels above half height
+    for it cost a scan block 0.35 ms (2026-12-06, docs/performance-log.md). Parameters as
+    :func:`~sffscan.stages.depth_statistics.shape_statistics`'."""
+    ratio = (None if math.isinf(SHAPE_SELECT_LIMITS[1])
+             else width_ratio_statistic(volume, peak, width, mask))
+    return skew_statistic(volume, peak, width, mask), ratio
+
+
+def takes_spc(statistics: tuple[float, float | None], *,
+              max_skew: float = SHAPE_SELECT_LIMITS[0],
               max_ratio: float = SHAPE_SELECT_LIMITS[1], pull: float | None = None,
               max_pull: float = SPC_PULL_LIMIT, noise: tuple[float, float] | None = None,
               max_noise_ratio: float = SPC_NOISE_RATIO,
@@ -247,6 +268,11 @@ def takes_spc(statistics: tuple[float, float], *, max_skew: float = SHAPE_SELECT
         if not (sigma < CENTROID_PULL_LIMIT or sigma <= bound):  # NaN: not shown small
             return False
     skew, ratio = statistics
+    if ratio is None:  # not measured (spc_shape): no finite limit to pass
+        if not math.isinf(max_ratio):
+            raise ValueError(f"a width ratio limit of {max_ratio} needs the width ratio "
+                             "measured (statistics' second number is None)")
+        return skew < max_skew
     return skew < max_skew and ratio < max_ratio
 
 
@@ -272,7 +298,8 @@ def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
     return (spc >= margin) & (spc <= np.float32(n_levels - 1) - margin)
 
 
-def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, float],
+def spc_bias(levels: np.ndarray, argmax: np.ndarray,
+             statistics: tuple[float, float | None],
              pull: float, noise: float, mask: np.ndarray | None = None, *,
              centre: Callable[[], np.ndarray]) -> tuple[float, GuardFloor] | None:
     """``"shape_select"``'s tests on curves of these
@@ -291,8 +318,9 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray, statistics: tuple[float, fl
         The curves judged (a stack's sample or a block's).
     argmax : (H, W) ndarray of int
         Their argmax.
-    statistics : (float, float)
-        Their :func:`~sffscan.stages.depth_statistics.shape_statistics`.
+    statistics : (float, float or None)
+        Their :func:`~sffscan.stages.depth_statistics.shape_statistics` (:func:`spc_shape`:
+        the width ratio None where its limit is infinite).
     pull, noise : float
         Their :func:`~sffscan.stages.depth_statistics.pull_statistics`.
     mask : (H, W) ndarray of bool, optional

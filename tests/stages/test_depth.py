@@ -234,6 +234,17 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
     assert np.array_equal(shape_select(a, b, (0.05, 2.0), max_skew=0.08, max_ratio=6.0), a)
     assert np.array_equal(shape_select(a, b, (0.10, 2.0), max_skew=0.08, max_ratio=6.0), b)
     assert np.array_equal(shape_select(a, b, (0.05, 7.0), max_skew=0.08, max_ratio=6.0), b)
+    # the default's test reads the skewness only while its width limit is infinite: the same
+    # skewness, the ratio not measured, and a finite limit refuses to judge without it
+    from sffscan.stages.depth_spc import SHAPE_SELECT_LIMITS, spc_shape, takes_spc
+
+    assert math.isinf(SHAPE_SELECT_LIMITS[1])
+    for vol in (even, lop, narrow):
+        width = curve_width(vol)
+        assert spc_shape(vol, centre, width) == (shape_statistics(vol, centre, width)[0], None)
+    assert takes_spc((0.05, None)) and not takes_spc((0.5, None))
+    with pytest.raises(ValueError, match="width ratio"):
+        takes_spc((0.05, None), max_ratio=6.0)
 
 
 def test_spc_is_kept_only_a_reach_of_widths_from_the_range_s_ends() -> None:
