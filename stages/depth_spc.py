@@ -206,7 +206,8 @@ def spc_shape(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
     else None (not measured). Finite curves have finite widths
     (:func:`~sffscan.stages.depth_uncertainty.width_from_sums` clips its ratio), so their
     width ratio is always under an infinite limit; counting the levels above half height
-    for it cost a scan block 0.35 ms (2026-12-06, docs/performance-log.md). Parameters as
+    for it cost a scan block's choice 0.45-0.5 ms (3.30-3.49 against 2.85-2.98 ms,
+    2026-12-06, docs/performance-log.md). Parameters as
     :func:`~sffscan.stages.depth_statistics.shape_statistics`'."""
     ratio = (None if math.isinf(SHAPE_SELECT_LIMITS[1])
              else width_ratio_statistic(volume, peak, width, mask))
