@@ -330,7 +330,9 @@ def shape_statistics(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
             width_ratio_statistic(volume, peak, width, mask))
 
 
-def _judged(peak: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+def _selected(peak: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """The ``mask`` pixels, all where None (not :func:`judged_curves`, which also leaves
+    out the curves whose argmax lies near an end)."""
     return np.ones(np.shape(peak), bool) if mask is None else np.asarray(mask, bool)
 
 
@@ -338,7 +340,7 @@ def skew_statistic(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
                    mask: np.ndarray | None = None) -> float:
     """:func:`shape_statistics`' first number: ``abs(median skewness)`` over the ``mask``
     pixels (all when None)."""
-    return abs(float(np.median(curve_skew(volume, peak, width)[_judged(peak, mask)])))
+    return abs(float(np.median(curve_skew(volume, peak, width)[_selected(peak, mask)])))
 
 
 def width_ratio_statistic(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
@@ -347,4 +349,4 @@ def width_ratio_statistic(volume: np.ndarray, peak: np.ndarray, width: np.ndarra
     of the levels above half height over the ``mask`` pixels (all when None)."""
     above = half_height_count(volume, peak).astype(np.float64)
     ratio = np.asarray(width, np.float64) / (above / 2.355)
-    return float(np.median(ratio[_judged(peak, mask)]))
+    return float(np.median(ratio[_selected(peak, mask)]))
