@@ -14,7 +14,11 @@ fixed depth method's squared error (levels^2). Per family, the RMSE over the sta
 - **per set of six**: the same ratio on each set of six consecutive seeds (the study's
   held-out sets are six seeds a family), the worst set per family, and, as a yardstick of
   how far hindsight alone moves a set's ratio, the worst set of the family's *pooled* best
-  method (which no set-size noise favours).
+  method (which no set-size noise favours);
+- **per stack**: the default's RMSE over the best single method's on each stack alone (what
+  a user with one stack of that kind would see against the best method for it, chosen with
+  hindsight): the stacks over 1.10x and the worst stack, with its seed; and, as the
+  yardstick, the stacks over 1.10x of the family's pooled best method.
 
 Nothing is tuned here; a seed set is scored once (docs/depth-method-log.md keeps which).
 Not a test: nothing asserts; it writes ``<out>.md`` and ``<out>.json``.
@@ -98,6 +102,13 @@ def main(argv: list[str] | None = None) -> int:
             row["worst_set"] = max(float(x[d] / x.min()) for x in per_set)
             row["sets_over_1_05"] = sum(float(x[d] / x.min()) > 1.05 for x in per_set)
             row["pooled_best_worst_set"] = max(float(x[best] / x.min()) for x in per_set)
+            per_stack = [ratios(scores[name], [s]) for s in seeds]
+            of = [(float(x[d] / x.min()) if x.min() > 0 else 1.0, s)
+                  for s, x in zip(seeds, per_stack, strict=True)]
+            row["stacks_over_1_10"] = sum(r > 1.10 for r, _ in of)
+            row["worst_stack"], row["worst_stack_seed"] = max(of)
+            row["pooled_best_stacks_over_1_10"] = sum(
+                float(x[best] / x.min()) > 1.10 for x in per_stack if x.min() > 0)
         rows.append(row)
     command = "python bench/bench_depth_pooled.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
@@ -110,19 +121,26 @@ def main(argv: list[str] | None = None) -> int:
              "'pooled best's worst set': the family's pooled best method on its worst set of "
              "six, against that set's best (how far hindsight alone moves a set's ratio).", "",
              "| family | default RMSE | best (pooled) | default / best, pooled | worst set of "
-             "six | sets over 1.05x | pooled best's worst set |",
-             "|---|---:|---|---:|---:|---:|---:|"]
+             "six | sets over 1.05x | pooled best's worst set | stacks over 1.10x | worst "
+             "stack (seed) | pooled best's stacks over 1.10x |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        tail = ("| - | - | - |" if r["family"] == PERTUZ else
+        tail = ("| - | - | - | - | - | - |" if r["family"] == PERTUZ else
                 f"| {r['worst_set']:.3f}x | {r['sets_over_1_05']} of {len(sets)} | "
-                f"{r['pooled_best_worst_set']:.3f}x |")
+                f"{r['pooled_best_worst_set']:.3f}x | {r['stacks_over_1_10']} of {len(seeds)} "
+                f"| {r['worst_stack']:.3f}x ({r['worst_stack_seed']}) | "
+                f"{r['pooled_best_stacks_over_1_10']} of {len(seeds)} |")
         lines.append(f"| {r['family']} | {r['rmse_levels'][DEFAULT_METHOD]:.4f} | {r['best']} | "
                      f"{r['default_over_best']:.3f}x " + tail)
     lines += ["", f"Worst family pooled: {max(r['default_over_best'] for r in fam):.3f}x; "
               f"worst set of six: {max(r['worst_set'] for r in fam):.3f}x; (set, family) rows "
               f"over 1.05x: {sum(r['sets_over_1_05'] for r in fam)} of {len(sets) * len(fam)}; "
               "the pooled best methods' own worst set: "
-              f"{max(r['pooled_best_worst_set'] for r in fam):.3f}x."]
+              f"{max(r['pooled_best_worst_set'] for r in fam):.3f}x; stacks over 1.10x the "
+              f"best method for each alone: {sum(r['stacks_over_1_10'] for r in fam)} of "
+              f"{len(seeds) * len(fam)}, the worst "
+              f"{max(r['worst_stack'] for r in fam):.3f}x (the pooled best methods': "
+              f"{sum(r['pooled_best_stacks_over_1_10'] for r in fam)})."]
     write_table(args.out.with_suffix(".md"), "\n".join(lines) + "\n")
     args.out.with_suffix(".json").write_text(json.dumps(
         {"command": command, "machine": machine(), "seeds": [first, end - 1],

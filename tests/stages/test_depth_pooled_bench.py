@@ -46,3 +46,31 @@ def test_table_from_known_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert row["sets_over_1_05"] == 1
     assert row["pooled_best_worst_set"] == pytest.approx(1.1)
     assert "1 of 2" in out.with_suffix(".md").read_text()
+
+
+def test_per_stack_ratios_against_each_stacks_best(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    b = load_bench("bench_depth_pooled")
+    methods = list(b.DEPTH_METHODS)
+    d, other = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
+    default_sse = {3: 169.0, 4: 125.44}  # 1.3x and 1.12x wcentroid's RMSE; the rest 1.0x
+
+    def fake_scores(score, seeds, *, imdata, jobs):  # noqa: ANN001, ANN202 - the bench's hook
+        out = []
+        for s in seeds:
+            sse = [400.0] * len(methods)
+            sse[d], sse[other] = default_sse.get(s, 100.0), 100.0
+            out.append((s, (sse, 50)))
+        return {"fam": out}
+
+    monkeypatch.setattr(b, "NAMES", ["fam"])
+    monkeypatch.setattr(b, "score_stacks", fake_scores)
+    out = tmp_path / "t"
+    assert b.main(["--seeds", "0", "6", "--imdata", "", "--out", str(out)]) == 0
+    row = json.loads(out.with_suffix(".json").read_text())["rows"][0]
+    assert row["stacks_over_1_10"] == 2
+    assert row["worst_stack"] == pytest.approx(1.3)
+    assert row["worst_stack_seed"] == 3
+    # wcentroid, the pooled best, is each stack's best: none over
+    assert row["best"] == "wcentroid" and row["pooled_best_stacks_over_1_10"] == 0
+    assert "| 2 of 6 | 1.300x (3) | 0 of 6 |" in out.with_suffix(".md").read_text()
