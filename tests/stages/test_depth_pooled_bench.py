@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,57 +21,53 @@ def test_ratios_pool_squared_errors_over_pixels() -> None:
     np.testing.assert_allclose(b.ratios(rows, [3]), [10.0, 0.0])
 
 
-def test_table_from_known_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    b = load_bench("bench_depth_pooled")
+def _run_on(b, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, seeds: int,  # noqa: ANN001
+            default_sse: Callable[[int], float], *, others: float) -> tuple[dict, str]:
+    """bench_depth_pooled's main on one family whose stacks (100 pixels each) give the
+    default ``default_sse(seed)``, wcentroid 100 and every other method ``others``: its row
+    and its table."""
     methods = list(b.DEPTH_METHODS)
-    d, other = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
+    d, wc = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
 
     def fake_scores(score, seeds, *, imdata, jobs):  # noqa: ANN001, ANN202 - the bench's hook
         out = []
         for s in seeds:
-            sse = [100.0] * len(methods)
-            # first set of six: the default 1.21x wcentroid's squared error; second: 0.64x
-            sse[d], sse[other] = (121.0, 100.0) if s < 6 else (64.0, 100.0)
+            sse = [others] * len(methods)
+            sse[d], sse[wc] = default_sse(s), 100.0
             out.append((s, (sse, 100)))
         return {"fam": out}
 
     monkeypatch.setattr(b, "NAMES", ["fam"])
     monkeypatch.setattr(b, "score_stacks", fake_scores)
     out = tmp_path / "t"
-    assert b.main(["--seeds", "0", "12", "--imdata", "", "--out", str(out)]) == 0
+    assert b.main(["--seeds", "0", str(seeds), "--imdata", "", "--out", str(out)]) == 0
     row = json.loads(out.with_suffix(".json").read_text())["rows"][0]
+    return row, out.with_suffix(".md").read_text()
+
+
+def test_table_from_known_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    b = load_bench("bench_depth_pooled")
+    # first set of six: the default 1.21x wcentroid's squared error; second: 0.64x
+    row, table = _run_on(b, tmp_path, monkeypatch, 12, lambda s: 121.0 if s < 6 else 64.0,
+                         others=100.0)
     # pooled: the default's sum 6 * 121 + 6 * 64 against wcentroid's (and the others') 1200
     assert row["best"] == b.DEFAULT_METHOD
     assert row["default_over_best"] == pytest.approx(1.0)
     assert row["worst_set"] == pytest.approx(1.1)  # sqrt(121 / 100) on seeds 0..5
     assert row["sets_over_1_05"] == 1
     assert row["pooled_best_worst_set"] == pytest.approx(1.1)
-    assert "1 of 2" in out.with_suffix(".md").read_text()
+    assert "1 of 2" in table
 
 
 def test_per_stack_ratios_against_each_stacks_best(tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     b = load_bench("bench_depth_pooled")
-    methods = list(b.DEPTH_METHODS)
-    d, other = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
     default_sse = {3: 169.0, 4: 125.44}  # 1.3x and 1.12x wcentroid's RMSE; the rest 1.0x
-
-    def fake_scores(score, seeds, *, imdata, jobs):  # noqa: ANN001, ANN202 - the bench's hook
-        out = []
-        for s in seeds:
-            sse = [400.0] * len(methods)
-            sse[d], sse[other] = default_sse.get(s, 100.0), 100.0
-            out.append((s, (sse, 50)))
-        return {"fam": out}
-
-    monkeypatch.setattr(b, "NAMES", ["fam"])
-    monkeypatch.setattr(b, "score_stacks", fake_scores)
-    out = tmp_path / "t"
-    assert b.main(["--seeds", "0", "6", "--imdata", "", "--out", str(out)]) == 0
-    row = json.loads(out.with_suffix(".json").read_text())["rows"][0]
+    row, table = _run_on(b, tmp_path, monkeypatch, 6, lambda s: default_sse.get(s, 100.0),
+                         others=400.0)
     assert row["stacks_over_1_10"] == 2
     assert row["worst_stack"] == pytest.approx(1.3)
     assert row["worst_stack_seed"] == 3
     # wcentroid, the pooled best, is each stack's best: none over
     assert row["best"] == "wcentroid" and row["pooled_best_stacks_over_1_10"] == 0
-    assert "| 2 of 6 | 1.300x (3) | 0 of 6 |" in out.with_suffix(".md").read_text()
+    assert "| 2 of 6 | 1.300x (3) | 0 of 6 |" in table
