@@ -103,12 +103,11 @@ def main(argv: list[str] | None = None) -> int:
             row["sets_over_1_05"] = sum(float(x[d] / x.min()) > 1.05 for x in per_set)
             row["pooled_best_worst_set"] = max(float(x[best] / x.min()) for x in per_set)
             per_stack = [ratios(scores[name], [s]) for s in seeds]
-            of = [(float(x[d] / x.min()) if x.min() > 0 else 1.0, s)
-                  for s, x in zip(seeds, per_stack, strict=True)]
+            of = [(float(x[d] / x.min()), s) for s, x in zip(seeds, per_stack, strict=True)]
             row["stacks_over_1_10"] = sum(r > 1.10 for r, _ in of)
             row["worst_stack"], row["worst_stack_seed"] = max(of)
-            row["pooled_best_stacks_over_1_10"] = sum(
-                float(x[best] / x.min()) > 1.10 for x in per_stack if x.min() > 0)
+            row["pooled_best_stacks_over_1_10"] = sum(float(x[best] / x.min()) > 1.10
+                                                      for x in per_stack)
         rows.append(row)
     command = "python bench/bench_depth_pooled.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
