@@ -262,8 +262,8 @@ def row_median(x: np.ndarray) -> np.ndarray:
     these."""
     m = x.shape[1]
     h = m // 2
-    part = np.sort(x, axis=1)
-    return part[:, h] if m % 2 else 0.5 * (part[:, h - 1] + part[:, h])
+    rows = np.sort(x, axis=1)
+    return rows[:, h] if m % 2 else 0.5 * (rows[:, h - 1] + rows[:, h])
 
 
 def centroid_pull(levels: np.ndarray, argmax: np.ndarray, mask: np.ndarray | None = None
