@@ -10,10 +10,10 @@ bank (read into memory first), registered once; then in every round, for each tr
 frame's focus measure (this tree's :class:`~sffscan.stages.focus_measure.FocusMeasureStage`,
 fresh output arrays per frame as in the scan) and the depth stage
 (:class:`~sffscan.stages.depth_stage.DepthStage` of that tree). With ``--against`` the
-other tree's depth modules (``stages/depth*.py``, ``focus_volume.py`` and, where it has one,
-``accumulate.py``) are loaded under their own names while its stage is built, so each tree
-runs its own code; trees alternate pass by pass (old first in even rounds), so the
-machine's load hits both alike.
+other tree's depth modules (``stages/depth*.py``, ``focus_volume.py`` and, where it has them,
+``accumulate.py``, ``volume_columns.py`` and ``volume_reduce.py``) are loaded under their
+own names while its stage is built, so each tree runs its own code; trees alternate pass
+by pass (old first in even rounds), so the machine's load hits both alike.
 
 Reported per tree (process CPU time; OpenCV with the focus worker's threads, one on 2
 cores; BLAS one thread; median of ``--rounds``), over the steady-state frames only (from
@@ -54,14 +54,16 @@ ROOT = Path(__file__).resolve().parents[1]
 MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "fitted_constants",
            "depth_uncertainty", "depth_candidates", "depth_statistics", "depth_floor",
            "depth_spc", "depth_choice", "depth_warp", "depth_window", "depth", "accumulate",
-           "block_depth", "volume_tasks", "focus_volume", "depth_stage")
+           "block_depth", "volume_tasks", "volume_columns", "volume_reduce", "focus_volume",
+           "depth_stage")
 """The depth modules loaded from the other tree, each after those it imports (until
 2026-12-04 ``block_depth`` and ``volume_tasks`` were missing: the other tree's volume ran
 this tree's block reduction; until 2026-12-05 ``depth_statistics``, so another tree's
 choice ran on this tree's statistics; ``depth_floor``, ``depth_warp`` and ``depth_window``
 since 2026-12-05 evening, before which another tree's ran this tree's; ``fitted_constants``
 and ``depth_spc`` since they were split from ``depth_uncertainty`` and ``depth_choice``,
-2026-12-06: a tree without them has them inside those)."""
+2026-12-06: a tree without them has them inside those; likewise ``volume_columns`` and
+``volume_reduce``, split from ``focus_volume`` 2026-12-06)."""
 
 
 def load_tree(root: Path) -> ModuleType:

@@ -48,8 +48,9 @@ from sffscan.pipeline.heap import keep_freed_memory
 from sffscan.pipeline.opencv_threads import opencv_thread_limit, opencv_threads
 from sffscan.pipeline.plan import plan_frames
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS
-from sffscan.stages.focus_volume import FocusVolume, new_columns
+from sffscan.stages.focus_volume import FocusVolume
 from sffscan.stages.sim.camera import focus_heights
+from sffscan.stages.volume_columns import new_columns
 from threadpoolctl import threadpool_limits
 
 

@@ -1,6 +1,7 @@
 """A block of the focus volume reduced to depth, a band of rows at a time.
 
-:meth:`sffscan.stages.focus_volume.FocusVolume.reduce` hands each band of rows of a
+:func:`sffscan.stages.volume_reduce.reduce_block` (the core of
+:meth:`sffscan.stages.focus_volume.FocusVolume.reduce`) hands each band of rows of a
 block to :func:`depth_rows`, then to :func:`block_uncertainty`, as band tasks
 (:mod:`sffscan.stages.volume_tasks`, which gather the block's state: the curves' sums or
 levels, the running argmax and minimum). Each reads its rows

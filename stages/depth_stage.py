@@ -11,7 +11,7 @@ from collections.abc import Iterator, Sequence
 
 from sffscan.stages.bands import BAND_CPU_KEY, BandTasks, BandWorkers
 from sffscan.stages.depth_harmonics import STREAMING_METHODS
-from sffscan.stages.focus_volume import BlockResult, FocusVolume
+from sffscan.stages.focus_volume import FocusVolume
 from sffscan.stages.messages import (
     DepthBlock,
     DepthBlockHeader,
@@ -22,6 +22,7 @@ from sffscan.stages.messages import (
 )
 from sffscan.stages.protocol import Stage
 from sffscan.stages.shared_volume import SharedFocusVolume
+from sffscan.stages.volume_reduce import BlockResult
 
 __all__ = ["DepthStage"]
 

@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from sffscan.stages.bands import BandWorkers, row_bands
-from sffscan.stages.focus_volume import new_columns
 from sffscan.stages.messages import FocusFrame, PlacedFrame, RawColumns
 from sffscan.stages.operators import (
     FOCUS_OPERATORS,
@@ -29,6 +28,7 @@ from sffscan.stages.operators import (
 )
 from sffscan.stages.operators.opencv import glvm_cv
 from sffscan.stages.protocol import Stage
+from sffscan.stages.volume_columns import new_columns
 
 if TYPE_CHECKING:  # torch loads with the first use of the torch path
     from sffscan.stages.focus_torch import DeviceFocus
@@ -223,7 +223,7 @@ class FocusMeasureStage(Stage):
     """Scales each placed frame to 0..1 and computes its focus measure.
 
     Only the columns that can still add to the focus volume are measured (see
-    :func:`sffscan.stages.focus_volume.new_columns`), with enough neighbouring columns that the
+    :func:`sffscan.stages.volume_columns.new_columns`), with enough neighbouring columns that the
     result equals the whole frame's focus measure there (the range starting on a multiple
     of :func:`sffscan.stages.operators.operator_alignment`: 2 or 8 px for the wavelet
     operators). This relies on every frame it

@@ -27,100 +27,25 @@ of rows by strip of rows, while each strip's state stays in cache
 (:mod:`sffscan.stages.accumulate`): the same operations on every pixel in the same order,
 so the blocks are those of writing each frame at once.
 
-Every block also carries the height's uncertainty (µm, one sigma,
-:mod:`sffscan.stages.depth_uncertainty`): from the block's depth (its scatter about its
-local median) and each curve's width (its sums and its minimum: from the stored levels at
-the reduction, or for the accumulating methods a running minimum kept like the maximum).
-
 Motion along -x is handled by mirroring: internally columns are numbered so that they
-always complete in increasing order.
+always complete in increasing order. The columns' geometry is
+:mod:`sffscan.stages.volume_columns`'s; the blocks' reduction (with each block's height
+uncertainty) :mod:`sffscan.stages.volume_reduce`'s.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterator, Sequence
-from typing import NamedTuple, TypeVar
+from collections.abc import Iterator, Sequence
 
 import numpy as np
-from sffscan.stages import block_depth as blocks
 from sffscan.stages.accumulate import AccumulatorState, Write, apply_writes
 from sffscan.stages.bands import BandWorkers, row_bands
 from sffscan.stages.depth import DEPTH_METHODS
-from sffscan.stages.depth_choice import DEPARTURE_METHODS, wide_choice
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
-from sffscan.stages.depth_levels import levels_to_height
 from sffscan.stages.depth_statistics import SHAPE_SAMPLE_STEP
-from sffscan.stages.depth_window import WINDOW_STRIPS, window_choice
-from sffscan.stages.volume_tasks import (
-    gather,
-    grid_rows,
-    keeps_grid,
-    pieces,
-    run_task,
-    scratch,
-    scratch_arrays,
-)
-
-T = TypeVar("T")
-
-
-def new_columns(x: int, prev_x: int | None, *, width: int, margin: int, direction: int,
-                slack: int = 4) -> tuple[int, int]:
-    """Frame columns [c0, c1) that can hold (column, level) pairs not yet seen.
-
-    The focus volume keeps the first observation of each world column at each level. The
-    previous frame at the same level (one staircase period earlier, at world x
-    ``prev_x``) already covered the columns the two frames share, so only the columns
-    beyond it along the motion can be new: the focus measure need not be computed for the
-    others (about half of each frame at the default speed). ``slack`` px more are kept for
-    registration corrections. Without a previous frame (start of a pass) every usable
-    column is new.
-
-    Parameters
-    ----------
-    x, prev_x : int or None
-        World x of this frame and of the previous frame at the same level, px.
-    width, margin : int
-        Frame width and the border excluded on each side, px.
-    direction : {+1, -1}
-        Direction of the motion along x.
-    """
-    lo, hi = margin, width - margin
-    if prev_x is not None:
-        if direction == 1:
-            lo = max(lo, prev_x + width - margin - x - slack)
-        else:
-            hi = min(hi, prev_x + margin - x + slack)
-    return lo, max(lo, hi)
-
-
-def volume_geometry(frame_shape: tuple[int, int], *, method: str, median_size: int,
-                    spread_size: int, block_columns: int, row_slack: int, col_slack: int
-                    ) -> tuple[int, int, int]:
-    """A volume's halo of columns, its rows and its ring's columns (see :class:`FocusVolume`)."""
-    # the median's reach (+1), and for "adaptive" the spread window's beyond it, so that a
-    # block's filtered peaks and spreads equal those of the whole volume
-    peak = method in ("adaptive", *blocks.BLOCK_CHOICES)
-    halo = median_size // 2 + 1 + (spread_size // 2 if peak else 0)
-    h, w = frame_shape
-    return halo, h + 2 * row_slack, w + 2 * halo + 2 * block_columns + 2 * col_slack
-
-
-class BlockResult(NamedTuple):
-    """A reduced block of world columns (see :meth:`FocusVolume.reduce`)."""
-
-    x0: int
-    y0: int
-    height_um: np.ndarray
-    texture: np.ndarray
-    confidence: np.ndarray
-    complete: int
-    uncertainty_um: np.ndarray | None
-    bias_levels: float = 0.0
-    """The bias the block's uncertainty holds (levels, ``b`` of
-    :func:`sffscan.stages.depth_uncertainty.depth_uncertainty`: SPC's departure or a peak's
-    centroid pull, one value for the block)."""
+from sffscan.stages.volume_columns import block_ranges, final_end, volume_geometry
+from sffscan.stages.volume_reduce import BlockResult, BlockSource, reduce_block
+from sffscan.stages.volume_tasks import grid_rows, keeps_grid, pieces, run_task, scratch_arrays
 
 
 class FocusVolume:
@@ -420,26 +345,15 @@ class FocusVolume:
                 apply_writes(self._state, self._pending, cache_bytes=self.cache_bytes)
             self._pending.clear()
 
-    def _gather(self, arr: np.ndarray, u0: int, u1: int) -> np.ndarray:
-        """``arr[..., columns u0..u1)`` from the ring: a view unless it wraps."""
-        return gather(arr, u0, u1, self.ring)
-
     def _advance(self, force_to: int | None = None) -> list[tuple[int, int]]:
         """Ranges of columns whose own state and halo are final."""
         assert self.next_u is not None
-        us = np.arange(self.next_u, self.end_u)
-        final = (self.count[us % self.ring] == self.n) | (us < self.dead_below)
-        open_ = np.flatnonzero(~final)
-        final_end = self.next_u + (int(open_[0]) if open_.size else us.size)
-        stop = final_end - self.halo  # columns [next_u, final_end) are complete or dead
+        # columns [next_u, final_end) are complete or dead
+        stop = final_end(self.count, self.next_u, self.end_u, ring=self.ring,
+                         n_levels=self.n, dead_below=self.dead_below) - self.halo
         if force_to is not None:
             stop = max(stop, min(force_to, self.end_u))
-        out = []
-        while stop - self.next_u >= self.block or (force_to is not None and stop > self.next_u):
-            u1 = min(self.next_u + self.block, stop)
-            out.append((self.next_u, u1))
-            self.next_u = u1
-        return out
+        return self._take_blocks(stop, partial=force_to is not None)
 
     def finish(self) -> list[BlockResult]:
         """Reduce every remaining column (end of pass or stream)."""
@@ -448,146 +362,46 @@ class FocusVolume:
 
     def flush(self) -> list[tuple[int, int]]:
         """Ranges of all remaining columns, final now."""
-        if self.next_u is None or self.next_u >= self.end_u:
-            return []
-        out = []
-        while self.next_u < self.end_u:
-            u1 = min(self.next_u + self.block, self.end_u)
-            out.append((self.next_u, u1))
-            self.next_u = u1
+        return [] if self.next_u is None else self._take_blocks(self.end_u, partial=True)
+
+    def _take_blocks(self, stop: int, *, partial: bool) -> list[tuple[int, int]]:
+        """The blocks of columns [next_u, stop)
+        (:func:`~sffscan.stages.volume_columns.block_ranges`); next_u moves past them."""
+        assert self.next_u is not None
+        out = block_ranges(self.next_u, stop, self.block, partial=partial)
+        if out:
+            self.next_u = out[-1][1]
         return out
 
     def reduce(self, u0: int, u1: int) -> BlockResult:
-        """Depth of internal columns [u0, u1), then release the columns left behind.
-
-        Returns
-        -------
-        BlockResult
-            ``x0``, ``y0``: world position of the block's first column and row, px;
-            ``height_um``, ``texture``, ``confidence``: float32 (rows, u1 - u0), NaN height
-            and texture and zero confidence where a pixel's curve lacks levels;
-            ``complete``: columns seen at all N levels; ``uncertainty_um``: the height's
-            uncertainty, µm, one sigma, NaN where invalid
-            (:func:`sffscan.stages.depth_uncertainty.height_uncertainty_um`; the depth's
-            scatter measured within the block, replicated at its edges).
-        """
+        """Depth of internal columns [u0, u1), then release the columns left behind
+        (:func:`sffscan.stages.volume_reduce.reduce_block`, which says what it returns)."""
         assert self.y0 is not None
         self._apply_pending()
-        complete = self._gather(self.count, u0, u1) == self.n  # columns seen at every level
-        lo = self._gather(self.row_lo, u0, u1).max(axis=0)
-        hi = self._gather(self.row_hi, u0, u1).min(axis=0)
-        rows = np.arange(self.rows)[:, None]
-        valid = complete[None, :] & (rows >= lo[None, :]) & (rows < hi[None, :])
-        depth, conf, _, _, bias, locking = self._depth(u0, u1, valid)
-        invalid = ~valid
-        height = levels_to_height(depth, focus_heights_um=self.heights)  # float32, new
-        np.copyto(height, np.float32(np.nan), where=invalid)
-        unc: np.ndarray | None = None
-        if self.uncertainty:
-            # invalid pixels (curves that lack levels) take the block's mean depth, so
-            # that their values do not count as scatter of their valid neighbours
-            fill = float(depth[valid].mean()) if valid.any() else 0.0
-            unc = self._uncertainty(depth, valid, fill, bias, locking)
-            np.copyto(unc, np.nan, where=invalid)
-        conf = np.where(valid, conf, 0.0).astype(np.float32, copy=False)
-        tex = np.where(valid, self._gather(self.tex, u0, u1), np.nan).astype(np.float32,
-                                                                               copy=False)
+        block = reduce_block(self._block_source(self.y0), u0, u1)
         self._release(u0 - self.halo)
-        if self.direction == -1:
-            height, tex, conf = height[:, ::-1], tex[:, ::-1], conf[:, ::-1]
-            unc = None if unc is None else unc[:, ::-1]
-        x0 = u0 if self.direction == 1 else -(u1 - 1)  # world x of the block's first column
-        return BlockResult(x0, self.y0, height, tex, conf, int(complete.sum()), unc, bias)
+        return block
 
-    def _depth(self, u0: int, u1: int, valid: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
-        """Depth (levels) and confidence of columns [u0, u1), their curves' sums (H_0,
-        Re H_1, Im H_1) and minima (views of the block's scratch arrays), and the bias the
-        uncertainty adds (levels: SPC's where the block took it, a peak method's
-        :func:`~sffscan.stages.block_depth.block_choice` or
-        :func:`~sffscan.stages.block_depth.block_peak_bias`, ``"wcentroid"``'s
-        :func:`~sffscan.stages.block_depth.block_departure_bias`; else 0.0) and the locking it adds
-        where the scatter cannot show it (:func:`~sffscan.stages.block_depth.block_choice`'s;
-        else 0.0): the method chosen
-        once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
-        :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
-        method, bias, floor, locking = self.method, 0.0, None, 0.0
-        own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
-        if self.fv is not None and method in blocks.BLOCK_CHOICES:
-            # one choice for the block, whatever its bands
-            method, bias, floor, locking = blocks.block_choice(
-                self._gather(self.fv, u0, u1), self._gather(self.argmax, u0, u1), valid,
-                method=method, centre=lambda: self._centre(u0, u1))
-        elif self.fv is not None and method == "adaptive" and self.uncertainty:
-            bias = blocks.block_peak_bias(self._gather(self.fv, u0, u1),
-                                          self._gather(self.argmax, u0, u1), valid)
-        # the fallback's wide centroid judged on the whole block, whatever its bands
-        wide_test = (self.fv is not None and self.method in blocks.BLOCK_CHOICES
-                     and method not in blocks.SPC_BLOCKS)
-        # and the default's 9-level centroid (depth_window), as a stack's
-        window_test = wide_test and self.window_test
-        self._run_task("depth", {
-            "u0": u0, "u1": u1, "a0": max(u0 - self.halo, self.first_u),
-            "a1": min(u1 + self.halo, self.end_u), "ring": self.ring, "rows": self.rows,
-            "halo": self.halo, "own": own, "method": method, "n_levels": self.n,
-            "median_size": self.median_size, "spread_size": self.spread_size,
-            "uncertainty": self.uncertainty, "wide_test": wide_test,
-            "window_test": window_test,
-            # SPC's range guard (depth_floor): a list of two floats or None, as JSON takes
-            # it to band processes (NaN written as null)
-            "floor": None if floor is None else [None if math.isnan(v) else v for v in floor]})
-        a, shape = self.arrays, (self.rows, u1 - u0)
-        if wide_test:
-            wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),
-                        step=SHAPE_SAMPLE_STEP, valid=valid)
-        if window_test:
-            hidden = window_choice(scratch(a, "b_depth", shape), scratch(a, "b_window", shape),
-                                   valid=valid, strips=WINDOW_STRIPS)
-            if hidden is not None:  # the centroid's bias, beside the fallback's
-                bias = math.hypot(bias, hidden)
-        # a wide window's pull into lopsided curves' longer flank, a truncated curve's near
-        # an end of the range, the argmax's sub-level offset: judged on the ring's curves, or
-        # a streaming scan's SPC, PC or argmax on the judged rows it keeps (the grid)
-        curves = self.fv if self.fv is not None else self.grid
-        if method in DEPARTURE_METHODS and self.uncertainty and curves is not None:
-            bias = blocks.block_departure_bias(
-                self._gather(curves, u0, u1), self._gather(self.argmax, u0, u1),
-                scratch(a, "b_depth", shape), self._centre(u0, u1), valid,
-                rows_sampled=self.fv is None)
-        return (scratch(a, "b_depth", shape), scratch(a, "b_conf", shape),
-                scratch(a, "b_sums", (3, *shape)), scratch(a, "b_low", shape), bias, locking)
-
-    def _centre(self, u0: int, u1: int) -> np.ndarray:
-        """The filtered argmax of columns [u0, u1) as the depth task takes it (the median
-        over ``median_size`` px of the argmax with the halo's columns), at the pixels the
-        block's choice judges (every ``SHAPE_SAMPLE_STEP``-th row and column)."""
-        a0, a1 = max(u0 - self.halo, self.first_u), min(u1 + self.halo, self.end_u)
-        return blocks.judged_centre(self._gather(self.argmax, a0, a1), self.median_size,
-                                    block=(u0 - a0, u1 - a0))
-
-    def _uncertainty(self, depth: np.ndarray, valid: np.ndarray, fill: float,
-                     bias: float, locking: float) -> np.ndarray:
-        """The block's height uncertainty, µm (a new array), its invalid pixels' depth
-        taken as ``fill`` (:func:`sffscan.stages.volume_tasks.uncertainty` on each band,
-        from the block's scratch arrays that :meth:`_depth` filled)."""
-        a, shape = self.arrays, depth.shape
-        np.copyto(scratch(a, "b_filled", shape), np.where(valid, depth, fill))
-        np.copyto(scratch(a, "b_valid", shape), valid)
-        self._run_task("uncertainty", {
-            "rows": shape[0], "width": shape[1], "n_levels": self.n, "method": self.method,
-            "window": self.spread_size, "bias": bias, "locking": locking})
-        return scratch(a, "b_unc", shape).copy()
+    def _block_source(self, y0: int) -> BlockSource:
+        """What :func:`~sffscan.stages.volume_reduce.reduce_block` reads of this volume."""
+        return BlockSource(
+            count=self.count, row_lo=self.row_lo, row_hi=self.row_hi, argmax=self.argmax,
+            tex=self.tex, fv=self.fv, grid=self.grid, arrays=self.arrays,
+            run_task=self._run_task, heights=self.heights, n=self.n, rows=self.rows,
+            ring=self.ring, halo=self.halo, first_u=self.first_u, end_u=self.end_u, y0=y0,
+            direction=self.direction, method=self.method, median_size=self.median_size,
+            spread_size=self.spread_size, uncertainty=self.uncertainty,
+            window_test=self.window_test)
 
     def _run_task(self, task: str, params: dict[str, object]) -> None:
         """Band task ``task`` (:mod:`sffscan.stages.volume_tasks`) on :attr:`arrays`, by the
-        band threads where there are some."""
-        self._by_bands(lambda r0, r1: run_task(self.arrays, task, params, (r0, r1)))
-
-    def _by_bands(self, fn: Callable[[int, int], T]) -> list[T]:
-        """``fn`` on each band of rows (one band, all rows, without band workers)."""
-        if not isinstance(self.workers, BandWorkers) or len(self._bands) < 2:
-            return [fn(0, self.rows)]
-        return self.workers.run(fn, self._bands)
+        band threads where there are some (else on all rows, in the caller's thread)."""
+        def band(r0: int, r1: int) -> None:
+            run_task(self.arrays, task, params, (r0, r1))
+        if isinstance(self.workers, BandWorkers) and len(self._bands) > 1:
+            self.workers.run(band, self._bands)
+        else:
+            band(0, self.rows)
 
     def _release(self, below: int) -> None:
         """Free ring slots of columns below ``below`` (they will not be read again).

@@ -22,7 +22,9 @@ from typing import Any
 import numpy as np
 from sffscan.stages.bands import BandTasks, row_bands
 from sffscan.stages.depth_harmonics import STREAMING_METHODS, harmonic_table
-from sffscan.stages.focus_volume import BlockResult, FocusVolume, volume_geometry
+from sffscan.stages.focus_volume import FocusVolume
+from sffscan.stages.volume_columns import volume_geometry
+from sffscan.stages.volume_reduce import BlockResult
 from sffscan.stages.volume_tasks import RAW_SLOTS, Layout, keeps_grid, volume_layout
 
 __all__ = ["SharedFocusVolume"]

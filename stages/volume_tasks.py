@@ -211,7 +211,7 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
     minima (``b_sums``, ``b_low``) and, with ``wide_test``, the peak estimator's depth where
     the wide centroid was taken (``b_peak``), with ``window_test`` the 9-level centroid
     (``b_window``), rows [r0, r1)
-    (:meth:`sffscan.stages.focus_volume.FocusVolume.reduce`)."""
+    (:func:`sffscan.stages.volume_reduce.reduce_block`)."""
     r0, r1 = rows
     u0, u1, a0, a1, ring = p["u0"], p["u1"], p["a0"], p["a1"], p["ring"]
     n_rows, width, halo = p["rows"], u1 - u0, p["halo"]
