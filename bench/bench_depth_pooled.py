@@ -21,7 +21,9 @@ fixed depth method's squared error (levels^2). Per family, the RMSE over the sta
   yardstick, the stacks over 1.10x of the family's pooled best method.
 
 Nothing is tuned here; a seed set is scored once (docs/depth-method-log.md keeps which).
-Not a test: nothing asserts; it writes ``<out>.md`` and ``<out>.json``.
+Not a test: nothing asserts; it writes ``<out>.md`` and ``<out>.json`` (the JSON also each
+stack's RMSE per method, ``stack_rmse_levels``: two trees' runs on the same seeds compared
+stack by stack).
 """
 
 from __future__ import annotations
@@ -108,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             row["worst_stack"], row["worst_stack_seed"] = max(of)
             row["pooled_best_stacks_over_1_10"] = sum(float(x[best] / x.min()) > 1.10
                                                       for x in per_stack)
+            # each stack's RMSE per method (JSON only): two trees' runs compared stack by
+            # stack, which choices flipped and which way, without scoring them again
+            row["stack_rmse_levels"] = {
+                str(s): dict(zip(methods, x.tolist(), strict=True))
+                for s, x in zip(seeds, per_stack, strict=True)}
         rows.append(row)
     command = "python bench/bench_depth_pooled.py " + " ".join(
         sys.argv[1:] if argv is None else argv)

@@ -57,6 +57,10 @@ def test_table_from_known_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert row["sets_over_1_05"] == 1
     assert row["pooled_best_worst_set"] == pytest.approx(1.1)
     assert "1 of 2" in table
+    # each stack's RMSE per method, for comparing two runs stack by stack
+    assert set(row["stack_rmse_levels"]) == {str(s) for s in range(12)}
+    assert row["stack_rmse_levels"]["0"][b.DEFAULT_METHOD] == pytest.approx(1.1)  # sqrt(121/100)
+    assert row["stack_rmse_levels"]["7"]["wcentroid"] == pytest.approx(1.0)
 
 
 def test_per_stack_ratios_against_each_stacks_best(tmp_path: Path,
