@@ -47,7 +47,7 @@ def family_volume(name: str, seed: int) -> Volume:
 
 def pertuz_volume(path: str) -> Volume:
     """pertuz-simu02 (its ``imdata.mat``): focus volume, truth (levels), ROI."""
-    from sffscan.pipeline.cli.study import read_imdata
+    from sffscan.pipeline.cli.study_stacks import read_imdata
 
     st = read_imdata(Path(path))
     vol = focus_measure(st.images, operator="glvm", window=WINDOW)

@@ -33,7 +33,7 @@ def family_volume(family: str | Family, seed: int, *, size_px: int = 64, window:
 
 def pertuz_volume(path: Path = PERTUZ, *, window: int = 9) -> Scored:
     """pertuz-simu02 (its ROI scored), GLVM ``window`` px."""
-    from sffscan.pipeline.cli.study import read_imdata
+    from sffscan.pipeline.cli.study_stacks import read_imdata
 
     pz = read_imdata(path)
     vol = focus_measure(pz.images, operator="glvm", window=window)
