@@ -29,8 +29,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from sffscan.stages.curve_shape import curve_width, floor_share
 from sffscan.stages.depth import depth_from_focus, first_argmax, focus_sums
-from sffscan.stages.depth_uncertainty import curve_width, depth_scatter, floor_share
+from sffscan.stages.depth_uncertainty import depth_scatter
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, family_stack
 

@@ -45,9 +45,9 @@ import numpy as np
 from sffscan.stages import depth_choice as dc
 from sffscan.stages import depth_spc as dspc
 from sffscan.stages import depth_statistics as ds
+from sffscan.stages.curve_shape import curve_width
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus, first_argmax
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
-from sffscan.stages.depth_uncertainty import curve_width
 from sffscan.stages.sim.families import family_names
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -36,8 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from sffscan.stages.curve_shape import curve_width
 from sffscan.stages.depth import DEPTH_METHODS, depth_from_focus, first_argmax
-from sffscan.stages.depth_uncertainty import curve_width
 from sffscan.stages.sim.families import family_names
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from sffscan.stages.curve_shape import curve_width
 from sffscan.stages.depth import depth_from_focus
 from sffscan.stages.depth_choice import fallback_bias, judged_width, peak_locking
 from sffscan.stages.depth_floor import GuardFloor, guard_width
@@ -37,7 +38,7 @@ from sffscan.stages.depth_statistics import (
     sampled_curves,
     takes_centroid,
 )
-from sffscan.stages.depth_uncertainty import curve_width, height_uncertainty_um
+from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
 __all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
            "block_departure_bias", "block_method", "block_peak_bias", "block_uncertainty",

@@ -36,6 +36,7 @@ from functools import partial
 from typing import NamedTuple
 
 import numpy as np
+from sffscan.stages.curve_shape import width_from_sums
 from sffscan.stages.depth_candidates import (
     GAUSS_FIT_HALF_WINDOW,
     WINDOW_PC_FACTOR,
@@ -82,7 +83,6 @@ from sffscan.stages.depth_statistics import (
     stack_sample,
     takes_centroid,
 )
-from sffscan.stages.depth_uncertainty import width_from_sums
 from sffscan.stages.depth_warp import lens_asymmetry, unwarp_levels, warp_volume
 from sffscan.stages.depth_window import window_choice
 

@@ -31,6 +31,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from sffscan.stages.curve_shape import curve_width
 from sffscan.stages.depth_floor import GuardFloor
 from sffscan.stages.depth_levels import median_filter_levels_at
 from sffscan.stages.depth_spc import (
@@ -49,7 +50,6 @@ from sffscan.stages.depth_statistics import (
     takes_centroid,
     wide_departure,
 )
-from sffscan.stages.depth_uncertainty import curve_width
 
 __all__ = ["DEPARTURE_METHODS", "PEAK_METHODS", "StackChoice", "centroid_locking",
            "fallback_bias", "judged_width", "method_bias", "method_locking", "peak_locking",
@@ -187,7 +187,7 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     argmax : (H, W) ndarray of int
         Their argmax.
     width : (H, W) ndarray of float, optional
-        Their widths (:func:`sffscan.stages.depth_uncertainty.curve_width`; computed when
+        Their widths (:func:`sffscan.stages.curve_shape.curve_width`; computed when
         None).
     median_size : int, keyword-only
         The argmax's median filter, px (odd), as the depth's: SPC's departure is measured
@@ -307,7 +307,7 @@ def method_bias(volume: np.ndarray, argmax: np.ndarray, method: str, *,
     depth_statistics.peak_departure` there (its ``depth`` needed), 0.0 for the other
     methods. ``volume``, ``argmax``, ``width`` and ``median_size`` as
     :func:`stack_choice`'s (``width`` from the curves' sums, as the depth's choice takes it,
-    saves its float64 :func:`~sffscan.stages.depth_uncertainty.curve_width`); ``method`` the
+    saves its float64 :func:`~sffscan.stages.curve_shape.curve_width`); ``method`` the
     depth method. For ``"shape_select"`` this is its choice's bias before the
     fallback's 9-level centroid is weighed (that needs the depth maps):
     :func:`sffscan.stages.depth.shape_select_with_bias` gives the whole of it with the

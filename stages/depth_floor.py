@@ -1,6 +1,6 @@
 """A focus curve's noise, and its width from a floor that noise does not lower.
 
-A curve's width from its sums (:func:`sffscan.stages.depth_uncertainty.width_from_sums`)
+A curve's width from its sums (:func:`sffscan.stages.curve_shape.width_from_sums`)
 takes the curve's minimum as its floor: the area above the floor and the first harmonic
 give a Gaussian's sigma. Under noise the minimum of N levels lies below the floor the curve
 sits on by about the largest of N draws of that noise, and the area above it grows by N
@@ -29,9 +29,9 @@ from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
+from sffscan.stages.curve_shape import width_from_sums
 from sffscan.stages.depth_harmonics import harmonic_table
 from sffscan.stages.depth_statistics import judged_curves, row_median
-from sffscan.stages.depth_uncertainty import width_from_sums
 
 __all__ = ["GuardFloor", "curve_noise", "expected_extreme", "guard_floor", "guard_width",
            "level_noise"]

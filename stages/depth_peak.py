@@ -241,7 +241,7 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
         is exact: tests/stages/test_depth.py).
     sums_out : (3, H, W) ndarray of float32, optional, keyword-only
         Receives H_0, Re H_1 and Im H_1 of every curve (the confidence's sums; the curve's
-        width, :func:`sffscan.stages.depth_uncertainty.width_from_sums`, needs them).
+        width, :func:`sffscan.stages.curve_shape.width_from_sums`, needs them).
     min_out : (H, W) ndarray of float32, optional, keyword-only
         Receives every curve's smallest value (from the same strips, while in cache).
     wide_peak_out : (H, W) ndarray of float32, optional, keyword-only

@@ -5,7 +5,7 @@ statistics (:mod:`sffscan.stages.depth_statistics`):
 * :func:`takes_spc`: SPC for curves that are even (median skewness
   :func:`~sffscan.stages.depth_statistics.curve_skew` near 0: blur even in z) and clean
   (the curves' width from their first harmonic,
-  :func:`sffscan.stages.depth_uncertainty.curve_width`, near the width their levels above
+  :func:`sffscan.stages.curve_shape.curve_width`, near the width their levels above
   half height give: a noisy floor widens the first, not the second;
   :data:`SHAPE_SELECT_LIMITS`) and whose
   :func:`~sffscan.stages.depth_statistics.centroid_pull` is small (:data:`SPC_PULL_LIMIT`),
@@ -204,7 +204,7 @@ def spc_shape(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
     """The :func:`~sffscan.stages.depth_statistics.shape_statistics` that :func:`takes_spc`
     reads at :data:`SHAPE_SELECT_LIMITS`: the width ratio only where its limit is finite,
     else None (not measured). Finite curves have finite widths
-    (:func:`~sffscan.stages.depth_uncertainty.width_from_sums` clips its ratio), so their
+    (:func:`~sffscan.stages.curve_shape.width_from_sums` clips its ratio), so their
     width ratio is always under an infinite limit; counting the levels above half height
     for it cost a scan block's choice 0.45-0.5 ms (3.30-3.49 against 2.85-2.98 ms,
     2026-12-06, docs/performance-log.md). Parameters as
@@ -281,7 +281,7 @@ def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
                  reach: float = SPC_END_REACH) -> np.ndarray:
     """Where SPC's depth (levels) lies at least ``reach`` of the curve's widths (sigma,
     levels: :func:`sffscan.stages.depth_floor.guard_width`, the width from a floor that
-    noise does not lower, since 2026-12-05; :func:`sffscan.stages.depth_uncertainty.
+    noise does not lower, since 2026-12-05; :func:`sffscan.stages.curve_shape.
     curve_width`'s before) from both ends of the range, 0 and N - 1.
 
     SPC reads the phase of the curve's first harmonic over the whole range, as if the

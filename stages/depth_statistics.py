@@ -93,7 +93,7 @@ def stack_sample(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     argmax : (H, W) ndarray of int
         Their argmax.
     width : (H, W) ndarray of float, optional
-        Their widths (:func:`sffscan.stages.depth_uncertainty.curve_width`).
+        Their widths (:func:`sffscan.stages.curve_shape.curve_width`).
 
     Returns
     -------
@@ -283,7 +283,7 @@ def curve_skew(volume: np.ndarray, peak: np.ndarray, width: np.ndarray) -> np.nd
     peak : (H, W) ndarray of int
         Each curve's argmax, levels (where the window is centred).
     width : (H, W) ndarray of float
-        Curve width, levels (:func:`sffscan.stages.depth_uncertainty.curve_width`).
+        Curve width, levels (:func:`sffscan.stages.curve_shape.curve_width`).
 
     Returns
     -------

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from sffscan.stages.curve_shape import centroid_departure, curve_width, width_excess
 from sffscan.stages.depth import (
     DEFAULT_METHOD,
     DEPTH_METHODS,
@@ -42,13 +43,10 @@ from sffscan.stages.depth_study_grid import (
     score_key,
 )
 from sffscan.stages.depth_uncertainty import (
-    centroid_departure,
-    curve_width,
     depth_range,
     depth_relief,
     depth_scatter,
     locking_visibility,
-    width_excess,
 )
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import FAMILIES, SimStack, family_stack

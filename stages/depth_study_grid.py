@@ -176,7 +176,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     argmax : (H, W) ndarray of int, keyword-only
         Each curve's first argmax.
     width : (H, W) ndarray of float, keyword-only
-        Each curve's width (levels, :func:`sffscan.stages.depth_uncertainty.curve_width`).
+        Each curve's width (levels, :func:`sffscan.stages.curve_shape.curve_width`).
     median_size, spread_size : int, keyword-only
         The argmax median's and the peaks' spread window (px), as the fixed methods took.
 

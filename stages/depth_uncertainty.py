@@ -13,17 +13,18 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
   hides them from the scatter. The box mean leaves a plane alone (a slope has no relief)
   and leaves an error, a bump or an edge of about the window's size in ``relief``.
 * ``excess``: how much wider the pixel's focus curve is than the curves about it
-  (:func:`width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``, levels), at most half the range
-  of the depth map about it. A focus window that sees two heights (an edge, a step) has a
-  curve with two modes; a mix of two heights ``D`` apart in shares ``p``, ``1 - p`` widens
-  the curve by ``D sqrt(p (1 - p))`` in quadrature. The peak the estimator takes is one
-  mode or the other, and the other one (an error of the whole step) about as often as that
-  mode's share: an error of standard deviation ``D sqrt(p (1 - p))``, the excess itself, so
-  ``excess`` is one sigma (this geometry, not a fitted constant: :data:`MIX_SCALE`). ``D``
-  is measured beside the mix, within ``2k + 1`` px: at most the range (max - min) of the
-  depth's 5 x 5 median over that square, so the excess is capped at half that range
-  (without the cap a textured surface, whose curves' widths scatter from pixel to pixel,
-  got 0.5 .. 1 level of sigma from that scatter alone).
+  (:func:`~sffscan.stages.curve_shape.width_excess`, ``sqrt(w^2 - mean_(2k+1)(w)^2)``,
+  levels), at most half the range of the depth map about it. A focus window that sees two
+  heights (an edge, a step) has a curve with two modes; a mix of two heights ``D`` apart
+  in shares ``p``, ``1 - p`` widens the curve by ``D sqrt(p (1 - p))`` in quadrature. The
+  peak the estimator takes is one mode or the other, and the other one (an error of the
+  whole step) about as often as that mode's share: an error of standard deviation
+  ``D sqrt(p (1 - p))``, the excess itself, so ``excess`` is one sigma (this geometry, not
+  a fitted constant: :data:`MIX_SCALE`). ``D`` is measured beside the mix, within
+  ``2k + 1`` px: at most the range (max - min) of the depth's 5 x 5 median over that
+  square, so the excess is capped at half that range (without the cap a textured surface,
+  whose curves' widths scatter from pixel to pixel, got 0.5 .. 1 level of sigma from that
+  scatter alone).
 * ``b``: a bias of the whole map, which its scatter cannot show. Where ``"shape_select"``
   took SPC for the stack or scan block, SPC's median departure from the peaks the fallback
   would take (:attr:`sffscan.stages.depth_choice.StackChoice.bias`; the choice takes SPC
@@ -38,7 +39,8 @@ Five terms, added in quadrature (levels; times the local focus step for µm):
   (:func:`sffscan.stages.depth_statistics.peak_departure`; a streaming scan's SPC, PC and
   argmax judge it on the curves of every 16th row, which they keep for it). Where it is the
   whole-curve centroid, each pixel's departure from its curve's phase
-  (:func:`centroid_departure`). Each added as it is, no constant.
+  (:func:`~sffscan.stages.curve_shape.centroid_departure`). Each added as it is, no
+  constant.
 * ``c``: a floor, levels (the estimator's sub-level bias on a perfectly smooth surface).
 
 ``a``, ``r`` and ``c`` are fitted per depth method on the *training* seeds of the synthetic
@@ -55,7 +57,7 @@ import math
 
 import cv2
 import numpy as np
-from sffscan.stages.depth_harmonics import pc_depth
+from sffscan.stages.curve_shape import centroid_departure, width_excess
 from sffscan.stages.fitted_constants import (
     FLOOR_LEVELS,
     RELIEF_SCALE,
@@ -63,49 +65,13 @@ from sffscan.stages.fitted_constants import (
     uncertainty_constants,
 )
 
-__all__ = ["MIX_SCALE", "centroid_departure", "curve_width", "depth_range", "depth_relief",
-           "depth_scatter", "depth_uncertainty", "floor_share", "height_uncertainty_um",
-           "locking_visibility", "uncertainty_um", "width_excess", "width_from_sums"]
+__all__ = ["MIX_SCALE", "depth_range", "depth_relief", "depth_scatter", "depth_uncertainty",
+           "height_uncertainty_um", "locking_visibility", "uncertainty_um"]
 
 
 MIX_SCALE = 1.0
 """The excess width's share of sigma: all of it, from the geometry of a two-height mix whose
 peak is taken on either height (not fitted; 0.5 until 2026-12-05)."""
-
-
-def curve_width(volume: np.ndarray) -> np.ndarray:
-    """Each focus curve's width (levels, one sigma) from its sums and minimum.
-
-    A Gaussian peak of area A and sigma s on a floor b has ``H_0 = N b + A`` and
-    ``|H_1| = A exp(-2 pi^2 s^2 / N^2)``; with b the curve's minimum,
-    ``s = N / (pi sqrt 2) sqrt(-ln(|H_1| / (H_0 - N b)))``. Noise lowers the minimum,
-    which widens the estimate.
-
-    Parameters
-    ----------
-    volume : (N, H, W) ndarray of float
-        Focus volume.
-
-    Returns
-    -------
-    (H, W) ndarray of float64
-        Width in levels (0 for a single-level spike, large for a flat curve).
-    """
-    vol = np.asarray(volume, dtype=np.float64)
-    n = vol.shape[0]
-    k = np.arange(n, dtype=np.float64)
-    h0 = vol.sum(axis=0)
-    re = np.tensordot(np.cos(2 * np.pi * k / n), vol, axes=1)
-    im = np.tensordot(np.sin(2 * np.pi * k / n), vol, axes=1)
-    return width_from_sums(h0, np.hypot(re, im), vol.min(axis=0), n)
-
-
-def width_from_sums(h0: np.ndarray, h1_abs: np.ndarray, minimum: np.ndarray, n: int
-                    ) -> np.ndarray:
-    """:func:`curve_width` from ``H_0``, ``|H_1|`` and the minimum of each curve."""
-    area = np.asarray(h0, np.float64) - n * np.asarray(minimum, np.float64)
-    ratio = np.clip(np.asarray(h1_abs, np.float64) / np.where(area > 0, area, 1.0), 1e-9, 1.0)
-    return n / (math.pi * math.sqrt(2.0)) * np.sqrt(-np.log(ratio))
 
 
 def depth_scatter(depth_levels: np.ndarray, *, window: int = 9) -> np.ndarray:
@@ -220,121 +186,6 @@ def locking_visibility(median_levels: np.ndarray, *, window: int = 9) -> np.ndar
     return np.abs(np.sinc(g)).astype(np.float32, copy=False)
 
 
-def floor_share(h0: np.ndarray, minimum: np.ndarray, n_levels: int) -> np.ndarray:
-    """Share of each focus curve's mass that is its floor: ``N min / H_0`` (0 .. 1).
-
-    Parameters
-    ----------
-    h0 : (H, W) ndarray of float
-        Sum of each curve, ``H_0``.
-    minimum : (H, W) ndarray of float
-        Each curve's smallest value.
-    n_levels : int
-        N.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-        0 for a curve on a zero floor, 1 for a flat curve (and where ``H_0 <= 0``).
-    """
-    h = np.asarray(h0, np.float32)
-    out = np.float32(n_levels) * np.asarray(minimum, np.float32)
-    np.divide(out, h, out=out, where=h > 0)
-    out[~(h > 0)] = 1.0
-    return np.clip(out, 0.0, 1.0)
-
-
-def centroid_departure(depth_levels: np.ndarray, re: np.ndarray, im: np.ndarray,
-                       n_levels: int) -> np.ndarray:
-    """How far each pixel's whole-curve centroid (the depth method ``"centroid"``) lies from
-    the phase of its curve's first harmonic (PC's depth,
-    :func:`sffscan.stages.depth_harmonics.pc_depth`), levels, on the circle of N levels.
-
-    A curve's floor pulls its centroid towards the middle of the range by ``|m - c| s /
-    (1 - s)`` (``s`` the floor's share, ``m`` the middle), a bias of each pixel that moves
-    with the height, smoothly, so that the map's scatter does not show it; a constant floor
-    adds nothing to the first harmonic, so the phase does not move with it. The departure
-    also holds the phase's own noise: an upper bound rather than a lower one. The
-    uncertainty adds it in quadrature, no constant. Measured against the floor's pull
-    computed from the curve's smallest value instead, which a noisy floor lies above
-    (docs/depth-method-log.md): held-out (set, family) rows of seeds 6..47, with the
-    constants refitted per fold, in / under / over the band 27 / 31 / 82 of 140 without
-    either, 34 / 41 / 65 with that pull, 42 / 18 / 80 with this departure.
-
-    Parameters
-    ----------
-    depth_levels : (H, W) ndarray of float
-        The centroid, levels (non-finite values: no departure).
-    re, im : (H, W) ndarray of float
-        Re H_1 and Im H_1 of each curve (:func:`sffscan.stages.depth.focus_sums`' last
-        two).
-    n_levels : int
-        N.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-        Levels, 0 .. N / 2.
-    """
-    c = np.asarray(depth_levels, np.float32)
-    d = np.abs(c - pc_depth(np.asarray(re, np.float32), np.asarray(im, np.float32),
-                            n_levels=n_levels))
-    np.minimum(d, np.float32(n_levels) - d, out=d)
-    d[~np.isfinite(c)] = 0.0
-    return d.astype(np.float32, copy=False)
-
-
-def width_excess(width_levels: np.ndarray, depth_range_levels: np.ndarray, *,
-                 window: int = 9, valid: np.ndarray | None = None) -> np.ndarray:
-    """How much wider each curve is than the curves about it, levels, at most half the
-    depth's range about it.
-
-    ``min(sqrt(max(w^2 - m^2, 0)), R / 2)``, ``m`` the mean width over ``2 window + 1`` px
-    square (replicated borders), ``R`` the depth's range there.
-
-    Parameters
-    ----------
-    width_levels : (H, W) ndarray of float
-        Each curve's width, levels (:func:`curve_width`, :func:`width_from_sums`).
-    depth_range_levels : (H, W) ndarray of float
-        The depth's range about each pixel, levels (:func:`depth_range`): a mix of two
-        heights ``D`` apart widens a curve by at most ``D / 2``.
-    window : int, keyword-only
-        The focus measure's window, px.
-    valid : (H, W) ndarray of bool, optional, keyword-only
-        The pixels whose curves count: the mean width is taken over these only (a curve
-        that lacks levels, whatever its sums hold, widens nobody's reference); where a
-        square holds none, the pixel's own width. Default: every pixel.
-
-    Returns
-    -------
-    (H, W) ndarray of float32
-    """
-    w = np.ascontiguousarray(width_levels, dtype=np.float32)
-    k = 2 * int(window) + 1
-    mean = _mean_width(w, k, valid)
-    ex = np.asarray(cv2.subtract(cv2.multiply(w, w), cv2.multiply(mean, mean)), np.float32)
-    np.maximum(ex, np.float32(0.0), out=ex)
-    np.sqrt(ex, out=ex)
-    np.minimum(ex, np.float32(0.5) * np.asarray(depth_range_levels, np.float32), out=ex)
-    return ex
-
-
-def _mean_width(w: np.ndarray, k: int, valid: np.ndarray | None) -> np.ndarray:
-    """Mean of ``w`` over k x k px (replicated borders), over the ``valid`` pixels only."""
-    if valid is None:
-        return np.asarray(cv2.blur(w, (k, k), borderType=cv2.BORDER_REPLICATE), np.float32)
-    box = (k, k)
-    # the invalid pixels' widths as 0.0 (whatever they hold: NaN too), then / the share
-    num = cv2.blur(np.where(valid, w, np.float32(0.0)), box, borderType=cv2.BORDER_REPLICATE)
-    den = cv2.blur(np.asarray(valid, np.float32), box, borderType=cv2.BORDER_REPLICATE)
-    # a box mean of 0/1 is a multiple of 1 / k^2 up to round-off: below half of it, none
-    some = den > np.float32(0.5 / (k * k))
-    np.divide(num, den, out=num, where=some)
-    np.copyto(num, w, where=~some)
-    return np.asarray(num, np.float32)
-
-
 def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray, *,
                       window: int = 9,
                       scatter_scale: float = SCATTER_SCALE,
@@ -348,7 +199,8 @@ def depth_uncertainty(depth_levels: np.ndarray, width_levels: np.ndarray, *,
     depth_levels : (H, W) ndarray of float
         Depth map, fractional levels, finite.
     width_levels : (H, W) ndarray of float
-        Width of each pixel's focus curve, levels (:func:`curve_width`).
+        Width of each pixel's focus curve, levels
+        (:func:`~sffscan.stages.curve_shape.curve_width`).
     window : int, keyword-only
         Focus measure window, px (the scatter's averaging window; the excess width's
         reference and the depth's range are over ``2 window + 1`` px).
@@ -423,7 +275,8 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
 
     What the streaming depth stage computes per block (and a whole-field stack per field):
     :func:`depth_uncertainty` of ``depth_levels`` with the curves' widths
-    (:func:`width_from_sums`) from their sums and minima, in µm by :func:`uncertainty_um`.
+    (:func:`~sffscan.stages.curve_shape.width_from_sums`) from their sums and minima, in µm
+    by :func:`uncertainty_um`.
 
     Parameters
     ----------
@@ -448,8 +301,8 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     locking_levels : float, keyword-only
         ``L`` of :func:`depth_uncertainty`, levels; default 0.
     valid : (H, W) ndarray of bool, optional, keyword-only
-        The pixels whose curves are whole (:func:`width_excess`): the others' sums and
-        minima are not read for their neighbours. Default: every pixel.
+        The pixels whose curves are whole (:func:`~sffscan.stages.curve_shape.width_excess`):
+        the others' sums and minima are not read for their neighbours. Default: every pixel.
 
     Returns
     -------

@@ -346,8 +346,8 @@ class StackCurves(NamedTuple):
 
 def stack_curves(volume: np.ndarray) -> StackCurves:
     """The :class:`StackCurves` of a focus volume ``(N, H, W)``."""
+    from sffscan.stages.curve_shape import width_from_sums
     from sffscan.stages.depth import first_argmax, focus_sums
-    from sffscan.stages.depth_uncertainty import width_from_sums
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     sums, low = focus_sums(vol), vol.min(axis=0)

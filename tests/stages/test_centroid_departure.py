@@ -1,12 +1,13 @@
 """The whole-curve centroid's departure from its curve's phase
-(``depth_uncertainty.centroid_departure``): known answers on curves built from a peak and a
+(``curve_shape.centroid_departure``): known answers on curves built from a peak and a
 floor, and the uncertainty that carries it."""
 
 from __future__ import annotations
 
 import numpy as np
+from sffscan.stages.curve_shape import centroid_departure
 from sffscan.stages.depth import depth_from_focus, focus_sums
-from sffscan.stages.depth_uncertainty import centroid_departure, height_uncertainty_um
+from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
 N = 40
 LEVELS = np.arange(N, dtype=np.float64)

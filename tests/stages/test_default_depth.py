@@ -623,6 +623,7 @@ def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
     """The statistics shape_select and adaptive_centroid take on a 300 x 300 stack's sample
     (every 2nd row and column) are those of all its curves within their noise, and so are
     the choices they make."""
+    from sffscan.stages.curve_shape import curve_width
     from sffscan.stages.depth_spc import spc_noise, takes_spc
     from sffscan.stages.depth_statistics import (
         pull_statistics,
@@ -630,7 +631,6 @@ def test_a_large_stack_is_judged_on_its_sample_as_on_every_curve() -> None:
         stack_sample,
         takes_centroid,
     )
-    from sffscan.stages.depth_uncertainty import curve_width
 
     rng = np.random.default_rng(3)
     n, h, w = 23, 300, 300

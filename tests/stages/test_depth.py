@@ -146,13 +146,13 @@ def test_every_method_is_selectable_by_name() -> None:
     import typing
 
     from sffscan.pipeline.config import ProcessingConfig
+    from sffscan.stages.curve_shape import curve_width
     from sffscan.stages.depth_candidates import gauss_window_fit, window_pc
     from sffscan.stages.depth_choice import shape_select, stack_choice
     from sffscan.stages.depth_floor import guard_width
     from sffscan.stages.depth_harmonics import curve_moments
     from sffscan.stages.depth_spc import SHAPE_SELECT_LIMITS, SPC_END_REACH, spc_in_range
     from sffscan.stages.depth_statistics import shape_statistics
-    from sffscan.stages.depth_uncertainty import curve_width
 
     assert (*DEPTH_METHODS, *CANDIDATE_METHODS) == tuple(ESTIMATORS)
     assert CANDIDATE_METHODS == ("gauss_window_fit", "window_pc", "warped_select")
@@ -211,9 +211,9 @@ def test_shape_statistics_tell_even_and_clean_curves_from_lopsided_and_noisy_one
     flank is twice as wide as its lower one skews positive (measured 0.18 at least, beyond
     the 0.08 that ``shape_select`` allows); a narrow peak on a noisy floor widens the
     harmonic width, not the run above half height."""
+    from sffscan.stages.curve_shape import curve_width
     from sffscan.stages.depth_choice import shape_select
     from sffscan.stages.depth_statistics import curve_skew, shape_statistics
-    from sffscan.stages.depth_uncertainty import curve_width
 
     n, sigma = 60, 3.0
     k = np.arange(n, dtype=np.float64)[:, None, None]
@@ -273,9 +273,9 @@ def test_a_scan_block_that_takes_spc_falls_back_near_the_ends(peak: str) -> None
     label) elsewhere, on the same curves; the curves' sums and minimum as the ring methods
     give them, the confidence depth_from_focus's."""
     from sffscan.stages.block_depth import SPC_BLOCKS, depth_rows
+    from sffscan.stages.curve_shape import width_from_sums
     from sffscan.stages.depth_harmonics import focus_sums
     from sffscan.stages.depth_spc import spc_in_range
-    from sffscan.stages.depth_uncertainty import width_from_sums
 
     rng = np.random.default_rng(5)
     n, rows, halo, block = 30, 40, 8, 24
@@ -608,8 +608,8 @@ def test_width_from_the_shared_sums_equals_curve_width() -> None:
     """``shape_select`` on a stack takes the curves' widths from the float64 sums every
     estimator shares (no float64 copy of the volume): curve_width's values to float64
     round-off, on curves narrow, wide, lopsided and flat."""
+    from sffscan.stages.curve_shape import curve_width, width_from_sums
     from sffscan.stages.depth_harmonics import curve_moments
-    from sffscan.stages.depth_uncertainty import curve_width, width_from_sums
 
     rng = np.random.default_rng(11)
     n = 50

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from sffscan.stages.block_depth import SPC_BLOCKS, block_choice, depth_rows
+from sffscan.stages.curve_shape import width_from_sums
 from sffscan.stages.depth import depth_from_focus, first_argmax
 from sffscan.stages.depth_choice import stack_choice
 from sffscan.stages.depth_floor import (
@@ -21,7 +22,6 @@ from sffscan.stages.depth_harmonics import curve_moments
 from sffscan.stages.depth_levels import median_filter_levels
 from sffscan.stages.depth_spc import spc_in_range
 from sffscan.stages.depth_statistics import row_median
-from sffscan.stages.depth_uncertainty import width_from_sums
 
 
 def gaussians(peaks: np.ndarray, n: int, sigma: float, floor: float = 0.2) -> np.ndarray:

@@ -10,15 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sffscan.pipeline.cli.main import main
+from sffscan.stages.curve_shape import curve_width, floor_share
 from sffscan.stages.depth import DEFAULT_METHOD, DEPTH_METHODS, depth_from_focus
 from sffscan.stages.depth_study import _Scores, format_table, leave_one_family_out
 from sffscan.stages.depth_study_grid import CANDIDATES, THRESHOLDS, width_switch
-from sffscan.stages.depth_uncertainty import (
-    curve_width,
-    depth_uncertainty,
-    floor_share,
-    height_uncertainty_um,
-)
+from sffscan.stages.depth_uncertainty import depth_uncertainty, height_uncertainty_um
 from sffscan.stages.focus_measure import focus_measure
 from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_names, family_stack
 from sffscan.stages.uncertainty_fit import UncertaintyTerms
@@ -227,6 +223,7 @@ def test_protocol_reports_the_uncertainty_coverage() -> None:
 
 
 def test_depth_uncertainty_known_answers() -> None:
+    from sffscan.stages.curve_shape import width_excess
     from sffscan.stages.depth_uncertainty import (
         MIX_SCALE,
         depth_range,
@@ -234,7 +231,6 @@ def test_depth_uncertainty_known_answers() -> None:
         depth_scatter,
         depth_uncertainty,
         uncertainty_um,
-        width_excess,
     )
 
     smooth = np.add.outer(np.arange(40.0), np.arange(40.0)) * 0.1  # a plane: no scatter
