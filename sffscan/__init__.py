@@ -26,7 +26,8 @@ if not (_HERE / "pipeline").is_dir() and (_HERE.parent / "pipeline" / "__init__.
 
 if _typing.TYPE_CHECKING:
     from sffscan.api import focus_measure, open_mosaic, reconstruct_stack, replay, scan
-    from sffscan.pipeline.batch import BatchError, BatchRow, find_recordings, run_batch
+    from sffscan.pipeline.batch import run_batch
+    from sffscan.pipeline.batch_targets import BatchError, BatchRow, find_recordings
     from sffscan.pipeline.config import (
         ConfigError,
         MotionConfig,
@@ -68,8 +69,9 @@ _LAZY = {
                      "PlacedFrame"), "sffscan.stages.messages"),
     "MosaicAttrs": "sffscan.pipeline.mosaic.attrs",
     **dict.fromkeys(("ArealParameters", "areal_parameters"), "sffscan.pipeline.metrology.areal"),
-    **dict.fromkeys(("BatchError", "BatchRow", "find_recordings", "run_batch"),
-                    "sffscan.pipeline.batch"),
+    **dict.fromkeys(("BatchError", "BatchRow", "find_recordings"),
+                    "sffscan.pipeline.batch_targets"),
+    "run_batch": "sffscan.pipeline.batch",
     **dict.fromkeys(("MosaicRegion", "read_region", "write_ply", "write_x3p"),
                     "sffscan.pipeline.formats.exports"),
     **dict.fromkeys(("FieldResult", "StackSettings"), "sffscan.stages.fields.stationary"),

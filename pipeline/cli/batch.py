@@ -46,16 +46,8 @@ def _processing(args: argparse.Namespace) -> dict[str, object]:
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
-    from sffscan.pipeline.batch import (
-        BatchError,
-        BatchRow,
-        find_recordings,
-        format_table,
-        is_results_csv,
-        mosaic_path,
-        run_batch,
-        write_csv,
-    )
+    from sffscan.pipeline.batch import format_table, is_results_csv, run_batch, write_csv
+    from sffscan.pipeline.batch_targets import BatchError, BatchRow, find_recordings, mosaic_path
     from sffscan.pipeline.config import ConfigError
     from sffscan.pipeline.run import check_file_output
 

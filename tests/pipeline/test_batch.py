@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zarr
-from sffscan.pipeline.batch import BatchError, find_recordings, mosaic_path
+from sffscan.pipeline.batch_targets import BatchError, find_recordings, mosaic_path
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
 
@@ -131,7 +131,8 @@ def test_cover_is_valid_pixels_over_the_planned_area_and_batch_runs_without_torc
         layers: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # issue 26: without torch (the optional extra) every batch row failed (import torch);
     # issue 26 item 5: cover read 1.000 for a layer that lost a fifth of its valid pixels
-    from sffscan.pipeline.batch import plan_targets, process_recording
+    from sffscan.pipeline.batch import process_recording
+    from sffscan.pipeline.batch_targets import plan_targets
     from sffscan.pipeline.config import ScanConfig
     from sffscan.pipeline.cover import plan_cover, planned_box_px
     from sffscan.pipeline.mosaic.layout import mosaic_array

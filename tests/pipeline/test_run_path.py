@@ -15,7 +15,8 @@ from typing import Any
 import pytest
 import zarr
 from sffscan.pipeline import locks
-from sffscan.pipeline.batch import plan_targets, process_recording
+from sffscan.pipeline.batch import process_recording
+from sffscan.pipeline.batch_targets import plan_targets
 from sffscan.pipeline.cli.main import main
 from sffscan.pipeline.config import ConfigError, config_to_toml
 from sffscan.pipeline.formats.recording_writer import RecordingWriter
