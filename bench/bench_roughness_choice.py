@@ -107,7 +107,7 @@ def choices(vol: np.ndarray, mask: np.ndarray) -> tuple[dict[str, np.ndarray], d
     """Every fixed method's map and each variant's, and what each variant took."""
     a = first_argmax(np.ascontiguousarray(vol, np.float32))
     width = curve_width(vol)
-    ch = dc.stack_choice(vol, a, width)
+    ch = dc.stack_choice(vol, a, width, margin=9 // 2)  # as the depth judges (spread 9)
     sample, peak, _ = ds.stack_sample(vol, a, width)
     b5, b9 = peak_biases(sample, peak)
     centroid = ds.takes_centroid(ch.pull, noise=ch.noise)

@@ -41,7 +41,7 @@ def score(volume: np.ndarray, truth: np.ndarray, mask: np.ndarray
     a = first_argmax(vol)
     depth = {m: depth_from_focus(vol, method=m, median_size=11, spread_size=9,
                                  argmax=a)[0] for m in DEPTH_METHODS}
-    spc = stack_choice(vol, a, median_size=11).spc
+    spc = stack_choice(vol, a, median_size=11, margin=9 // 2).spc  # as the depth judges
     depth[BEFORE] = depth[DEFAULT_METHOD] if spc else depth["adaptive_centroid"]
     took = "S" if spc else ("F" if np.array_equal(depth[DEFAULT_METHOD], depth[BEFORE])
                             else "W")

@@ -216,7 +216,9 @@ def _shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float, float]:
     h1, low, n = np.hypot(re, im), c.volume.min(axis=0), c.volume.shape[0]
     width = width_from_sums(h0, h1, low, n)
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
-    choice = stack_choice(c.volume, c.argmax, width, median_size=c.median_size)
+    # SPC's mean-square tests inside the focus window's reach (stack_choice's margin)
+    choice = stack_choice(c.volume, c.argmax, width, median_size=c.median_size,
+                          margin=c.spread_size // 2)
     # a stack that takes SPC keeps the fallback's wide centroid untested, as a scan's SPC
     # block does (the fallback is then read only beyond SPC's range)
     wide = None if choice.spc else np.empty(c.volume.shape[1:], np.float32)

@@ -145,8 +145,10 @@ def uncertainty_sample(volume: np.ndarray, truth_levels: np.ndarray, mask: np.nd
     else:
         d = depth_from_focus(volume, method=method, median_size=median_size,
                              spread_size=spread_size, argmax=a)[0]
-        bias = method_bias(volume, a, method, median_size=median_size, depth=d)
-        locking = method_locking(volume, a, method, median_size=median_size, width=width)
+        bias = method_bias(volume, a, method, median_size=median_size, depth=d,
+                           margin=spread_size // 2)
+        locking = method_locking(volume, a, method, median_size=median_size, width=width,
+                                 margin=spread_size // 2)
     # the whole-curve centroid's departure from its curve's phase, per pixel, as a stack's
     # or scan's uncertainty adds it (depth_uncertainty.height_uncertainty_um)
     pull = None

@@ -400,10 +400,11 @@ def stack_uncertainty_um(volume: np.ndarray, levels: np.ndarray, focus_heights_u
         raise ValueError(f"curves are of a volume of shape {vol.shape}, not {np.shape(volume)}")
     if bias_levels is None:
         # the curves' widths from their sums, as the depth's own choice takes them
+        # judged as the depth's choice (spread_size = window: stack_choice's margin)
         bias_levels = method_bias(vol, argmax, method, median_size=median_size, width=width,
-                                  depth=levels)
+                                  depth=levels, margin=window // 2)
         locking_levels = method_locking(vol, argmax, method, median_size=median_size,
-                                        width=width)
+                                        width=width, margin=window // 2)
     return height_uncertainty_um(levels, sums, low, method=method, n_levels=vol.shape[0],
                                  focus_heights_um=np.asarray(focus_heights_um, np.float64),
                                  window=window, bias_levels=bias_levels,

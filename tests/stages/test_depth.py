@@ -168,7 +168,8 @@ def test_every_method_is_selectable_by_name() -> None:
     stats = shape_statistics(vol, first_argmax(vol), curve_width(vol))
     assert SHAPE_SELECT_LIMITS == (0.2, math.inf) and SPC_END_REACH == 1.5
     # the range guard's widths from the floor raised by the curves' noise (depth_floor)
-    choice = stack_choice(vol, first_argmax(vol))
+    # SPC's mean-square tests inside the focus window's reach, spread_size // 2 (as the depth)
+    choice = stack_choice(vol, first_argmax(vol), margin=4)
     assert choice.spc and choice.floor is not None and choice.floor.noise > 0
     h0, _, re, im = curve_moments(vol)
     guard = guard_width(h0, np.hypot(re, im), vol.min(axis=0), 30, choice.floor)
@@ -643,3 +644,36 @@ def test_the_levels_beyond_the_range_are_those_of_c_plus_j(n: int) -> None:
                 assert not expected.any()
             else:
                 np.testing.assert_array_equal(mask, expected)
+
+
+def test_spc_s_mean_square_tests_leave_out_the_focus_window_s_reach() -> None:
+    """stack_choice(margin=m): SPC's noise, floor and departure (mean squares, which a few
+    wild curves carry) are judged on the curves m px or more from the edges, where the
+    focus measure reads no padding; the depth passes its spread_size // 2. Border curves
+    made wild change the departure judged on every curve, not the one judged inside."""
+    from sffscan.stages.depth_choice import stack_choice
+
+    rng = np.random.default_rng(3)
+    truth = 10.0 + 6.0 * np.sin(np.mgrid[0:40, 0:40][1] / 5.0)
+    vol = gaussian_volume(truth, 30, 2.5) + 0.01 * rng.random((30, 40, 40), dtype=np.float32)
+    wild = vol.copy()
+    edge = np.ones((40, 40), bool)
+    edge[4:-4, 4:-4] = False
+    # a second, lower peak 12 levels off on the border's curves: their argmax (and the
+    # filtered argmax the tests measure about) stays, their first harmonic's phase moves
+    wild[:, edge] += 0.5 * gaussian_volume(truth + 12.0, 30, 2.5)[:, edge]
+    np.testing.assert_array_equal(first_argmax(wild), first_argmax(vol))
+    inside, inside_wild = (stack_choice(v, first_argmax(v), margin=4) for v in (vol, wild))
+    every, every_wild = (stack_choice(v, first_argmax(v)) for v in (vol, wild))
+    assert inside.spc and inside_wild.spc and every.spc
+    assert inside_wild.bias == pytest.approx(inside.bias, abs=1e-6)
+    assert inside_wild.floor is not None and inside.floor is not None
+    assert inside_wild.floor.noise == pytest.approx(inside.floor.noise, rel=1e-6)
+    # judged on every curve, the border moves what SPC's tests read
+    assert every_wild.bias != pytest.approx(every.bias, abs=1e-3) or not every_wild.spc
+    # and the depth judges as stack_choice(margin=spread_size // 2) does
+    from sffscan.stages.depth import shape_select_with_bias
+
+    for v in (vol, wild):
+        bias = shape_select_with_bias(v, spread_size=9)[2]
+        assert bias == pytest.approx(stack_choice(v, first_argmax(v), margin=4).bias)
