@@ -23,7 +23,7 @@ fixed depth method's squared error (levels^2). Per family, the RMSE over the sta
 Nothing is tuned here; a seed set is scored once (docs/depth-method-log.md keeps which).
 Not a test: nothing asserts; it writes ``<out>.md`` and ``<out>.json`` (the JSON also each
 stack's RMSE per method, ``stack_rmse_levels``: two trees' runs on the same seeds compared
-stack by stack).
+stack by stack by ``bench/compare_depth_pooled.py``).
 """
 
 from __future__ import annotations

@@ -75,3 +75,31 @@ def test_per_stack_ratios_against_each_stacks_best(tmp_path: Path,
     # wcentroid, the pooled best, is each stack's best: none over
     assert row["best"] == "wcentroid" and row["pooled_best_stacks_over_1_10"] == 0
     assert "| 2 of 6 | 1.300x (3) | 0 of 6 |" in table
+
+
+def test_compare_reads_two_runs_stack_by_stack(tmp_path: Path) -> None:
+    """compare_depth_pooled: per family the pooled ratios and the stacks over the line in
+    each run, then every stack that crossed it, with both ratios; runs that do not match
+    are refused by name."""
+    c = load_bench("compare_depth_pooled")
+
+    def run(name: str, stacks: dict[str, dict[str, float]], pooled: float) -> Path:
+        path = tmp_path / name
+        path.write_text(json.dumps({"default": "shape_select", "rows": [
+            {"family": "fam", "default_over_best": pooled, "stack_rmse_levels": stacks}]}))
+        return path
+
+    a = run("a.json", {"1": {"shape_select": 2.0, "pc": 1.0},
+                       "2": {"shape_select": 1.0, "pc": 1.05}}, 1.3)
+    b = run("b.json", {"1": {"shape_select": 1.0, "pc": 1.0},
+                       "2": {"shape_select": 1.2, "pc": 1.0}}, 1.1)
+    lines = c.compare(a, b, over=1.10)
+    assert "| fam | 1.300x | 1.100x | 1 -> 1 |" in lines
+    assert "- fam seed 1: 2.000x -> 1.000x" in lines
+    assert "- fam seed 2: 1.000x -> 1.200x" in lines
+    other = run("c.json", {"3": {"shape_select": 1.0, "pc": 1.0}}, 1.0)
+    with pytest.raises(SystemExit, match="fam: the runs hold different seeds"):
+        c.compare(a, other)
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(SystemExit, match="bad.json: not a bench_depth_pooled.py JSON"):
+        c.compare(a, tmp_path / "bad.json")
