@@ -204,7 +204,8 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
         not, and they keep every curve. Since 2026-12-06: on the study's 64 px stacks the
         border is 23 % of the curves; on ``slopes-lens-noisy`` seed 219 the spread of SPC
         minus the peaks was 1.16 levels inside, 3.86 on the border, and the stack took SPC
-        at 2.2x the fallback's error (docs/depth-method-log.md). 0 judges every curve.
+        at 2.2x the fallback's error (docs/depth-method-log.md). 0 judges every curve; a
+        stack of at most ``2 margin`` px a side leaves none for them and takes the fallback.
     """
     if width is None:
         width = curve_width(volume)
