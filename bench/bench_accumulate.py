@@ -51,11 +51,11 @@ from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the depth modules, in an order in which each one's imports come before it
-MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "fitted_constants",
-           "curve_shape", "depth_uncertainty", "depth_candidates", "depth_statistics",
-           "depth_floor", "depth_spc", "depth_choice", "depth_warp", "depth_window", "depth",
-           "accumulate", "block_depth", "volume_tasks", "volume_columns", "volume_reduce",
-           "focus_volume", "depth_stage")
+MODULES = ("depth_levels", "depth_harmonics", "depth_peak", "depth_adaptive",
+           "fitted_constants", "curve_shape", "depth_uncertainty", "depth_candidates",
+           "depth_statistics", "depth_floor", "depth_spc", "depth_choice", "depth_warp",
+           "depth_window", "depth_estimators", "depth", "accumulate", "block_depth",
+           "volume_tasks", "volume_columns", "volume_reduce", "focus_volume", "depth_stage")
 """The depth modules loaded from the other tree, each after those it imports (until
 2026-12-04 ``block_depth`` and ``volume_tasks`` were missing: the other tree's volume ran
 this tree's block reduction; until 2026-12-05 ``depth_statistics``, so another tree's
@@ -63,8 +63,9 @@ choice ran on this tree's statistics; ``depth_floor``, ``depth_warp`` and ``dept
 since 2026-12-05 evening, before which another tree's ran this tree's; ``fitted_constants``
 and ``depth_spc`` since they were split from ``depth_uncertainty`` and ``depth_choice``,
 2026-12-06: a tree without them has them inside those; likewise ``volume_columns`` and
-``volume_reduce``, split from ``focus_volume`` 2026-12-06, and ``curve_shape``, split from
-``depth_uncertainty`` 2026-12-06)."""
+``volume_reduce``, split from ``focus_volume`` 2026-12-06, ``curve_shape``, split from
+``depth_uncertainty`` 2026-12-06, ``depth_adaptive``, split from ``depth_peak``
+2026-12-06, and ``depth_estimators``, split from ``depth`` 2026-12-06)."""
 
 
 def load_tree(root: Path) -> ModuleType:

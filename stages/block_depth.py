@@ -16,6 +16,7 @@ from collections.abc import Callable
 import numpy as np
 from sffscan.stages.curve_shape import curve_width
 from sffscan.stages.depth import depth_from_focus
+from sffscan.stages.depth_adaptive import adaptive_block
 from sffscan.stages.depth_choice import fallback_bias, judged_width, peak_locking
 from sffscan.stages.depth_floor import GuardFloor, guard_width
 from sffscan.stages.depth_harmonics import (
@@ -29,7 +30,7 @@ from sffscan.stages.depth_levels import (
     median_filter_levels,
     median_filter_levels_at,
 )
-from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
+from sffscan.stages.depth_peak import windowed_centroid
 from sffscan.stages.depth_spc import spc_bias, spc_in_range, spc_shape
 from sffscan.stages.depth_statistics import (
     SHAPE_SAMPLE_STEP,
@@ -235,7 +236,7 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
     wide_peak : ndarray of float32, (r1 - r0, block), optional, keyword-only
         For ``"adaptive"`` and ``"adaptive_centroid"`` blocks: receives the peak
         estimator's depth where they took the wide centroid, NaN elsewhere
-        (:func:`~sffscan.stages.depth_peak.adaptive_block`'s ``wide_peak_out``, for
+        (:func:`~sffscan.stages.depth_adaptive.adaptive_block`'s ``wide_peak_out``, for
         :func:`~sffscan.stages.depth_choice.wide_choice` over the whole block); NaN
         everywhere for the other methods.
     window_out : ndarray of float32, (r1 - r0, block), optional, keyword-only

@@ -64,7 +64,7 @@ def takes_wide_centroid(departure: tuple[float, float]) -> bool:
     (:func:`~sffscan.stages.depth_statistics.takes_centroid`'s) is taken at every pixel.
 
     ``"adaptive"`` takes, where the filtered peaks in the focus window span more than
-    :data:`~sffscan.stages.depth_peak.ADAPTIVE_MAX_SPREAD` levels (a slope, an edge, a
+    :data:`~sffscan.stages.depth_adaptive.ADAPTIVE_MAX_SPREAD` levels (a slope, an edge, a
     rough or noisy surface), the baseline-free centroid of 11 levels: the middle of a blend
     of peaks, and less noisy than a peak where noise moved the argmax. On a smooth slope the
     blend is even about the pixel's own height, so its peak is not biased, while the
@@ -94,7 +94,7 @@ def wide_choice(depth: np.ndarray, wide_peak: np.ndarray, *, step: tuple[int, in
     Parameters
     ----------
     depth : (H, W) ndarray of float32
-        The fallback's depth (:func:`sffscan.stages.depth_peak.adaptive_block`), levels;
+        The fallback's depth (:func:`sffscan.stages.depth_adaptive.adaptive_block`), levels;
         changed in place.
     wide_peak : (H, W) ndarray of float32
         The peak estimator's depth where the wide centroid was taken, NaN elsewhere

@@ -143,7 +143,7 @@ def strip_sums(table: np.ndarray, block: np.ndarray, *, out: np.ndarray) -> None
     otherwise (the columns its kernels leave to the end of a product), hence the rule:
     the sums are those of the copied strips either way (another BLAS could round the
     two differently).
-    :func:`focus_sums` and :func:`sffscan.stages.depth_peak.adaptive_block` both take their
+    :func:`focus_sums` and :func:`sffscan.stages.depth_adaptive.adaptive_block` both take their
     sums from here, over the same strips, so they agree bit for bit on any machine.
 
     Parameters

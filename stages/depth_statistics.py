@@ -128,7 +128,7 @@ def wide_departure(wide_depth: np.ndarray, peak_depth: np.ndarray) -> tuple[floa
     wide_depth : ndarray of float
         Depth of the judged pixels by the baseline-free centroid of the 11 levels about the
         filtered argmax (what ``"adaptive"`` takes where the spread of the filtered peaks
-        in the focus window exceeds :data:`~sffscan.stages.depth_peak.ADAPTIVE_MAX_SPREAD`),
+        in the focus window exceeds :data:`~sffscan.stages.depth_adaptive.ADAPTIVE_MAX_SPREAD`),
         levels.
     peak_depth : ndarray of float
         Depth of the same pixels by the peak estimator (the 3-point Gaussian or the 5-level

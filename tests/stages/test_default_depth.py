@@ -32,7 +32,7 @@ from sffscan.stages.depth import (
     levels_to_height,
     windowed_centroid,
 )
-from sffscan.stages.depth_peak import adaptive_block
+from sffscan.stages.depth_adaptive import adaptive_block
 from sffscan.stages.fields.stack_io import read_image_stack
 from sffscan.stages.fields.stationary import StackSettings
 from sffscan.stages.fields.weighted_median import confidence_weighted_median
@@ -220,8 +220,8 @@ def test_adaptive_centroid_takes_the_centroid_where_its_pull_is_under_the_noise(
     gives adaptive_centroid's depth on both: these noisy curves are not clean enough for
     SPC, and at noise 0.1 the lopsided ones' median skewness (0.076) is under its limit, but
     their centroid pull is not (SPC there: 1.29 levels of error against 0.55)."""
+    from sffscan.stages.depth_adaptive import adaptive_peak
     from sffscan.stages.depth_levels import level_spread, median_filter_levels
-    from sffscan.stages.depth_peak import adaptive_peak
     from sffscan.stages.depth_statistics import pull_statistics, takes_centroid
 
     rng = np.random.default_rng(0)
@@ -323,9 +323,9 @@ def test_the_default_refuses_the_wide_centroid_on_a_slope_it_pulls() -> None:
     for bit) and errs less than with the wide centroid (measured 0.16 against 0.34 levels
     RMS); ``adaptive`` by name keeps it. A scan block of the same curves makes the same
     choice (FocusVolume: judged over the whole block on the sample's grid)."""
+    from sffscan.stages.depth_adaptive import adaptive_block
     from sffscan.stages.depth_choice import stack_choice
     from sffscan.stages.depth_levels import median_filter_levels
-    from sffscan.stages.depth_peak import adaptive_block
     from sffscan.stages.depth_statistics import takes_centroid, wide_departure
     from sffscan.stages.sim.families import family_stack
 

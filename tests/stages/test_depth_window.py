@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from sffscan.stages.depth import depth_from_focus, first_argmax
-from sffscan.stages.depth_peak import adaptive_block, windowed_centroid
+from sffscan.stages.depth_adaptive import adaptive_block
+from sffscan.stages.depth_peak import windowed_centroid
 from sffscan.stages.depth_window import (
     WINDOW_STRIPS,
     map_scatter,

@@ -437,8 +437,8 @@ def test_curve_sums_read_in_place_equal_the_copied_strips(n: int, width: int) ->
     """The reduction's curve sums (confidence, the curve's width) from a block of the ring
     read in place equal, bit for bit, the float32 products over strips copied out of it
     (volume_strips), which the sums were before (issue 28); adaptive_block takes the same."""
+    from sffscan.stages.depth_adaptive import adaptive_block
     from sffscan.stages.depth_harmonics import focus_sums, harmonic_table, volume_strips
-    from sffscan.stages.depth_peak import adaptive_block
 
     rng = np.random.default_rng(n + width)
     ring = rng.gamma(2.0, size=(n, 300, 150)).astype(np.float32)
