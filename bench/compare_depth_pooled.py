@@ -20,10 +20,11 @@ from pathlib import Path
 from typing import Any
 
 
-def _rows(path: Path) -> dict[str, dict[str, Any]]:
+def _run(path: Path) -> tuple[str, dict[str, dict[str, Any]]]:
+    """A run's default method and its rows by family."""
     try:
         data = json.loads(path.read_text())
-        return {r["family"]: r for r in data["rows"]}
+        return data["default"], {r["family"]: r for r in data["rows"]}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"{path}: not a bench_depth_pooled.py JSON ({exc})") from exc
 
@@ -40,9 +41,7 @@ def stack_ratios(row: dict[str, Any], default: str) -> dict[str, float]:
 
 def compare(a: Path, b: Path, *, over: float = 1.10) -> list[str]:
     """The comparison's lines (see the module's docstring)."""
-    ra, rb = _rows(a), _rows(b)
-    da = json.loads(a.read_text())["default"]
-    db = json.loads(b.read_text())["default"]
+    (da, ra), (db, rb) = _run(a), _run(b)
     if set(ra) != set(rb):
         raise SystemExit(f"the runs hold different families: {sorted(set(ra) ^ set(rb))}")
     lines = [f"| family | {a.name} pooled | {b.name} pooled | stacks over {over:.2f}x "
