@@ -12,6 +12,7 @@ whatever the bands (:mod:`sffscan.stages.bands`; tested in ``tests/stages/test_b
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.curve_shape import curve_width
@@ -31,7 +32,7 @@ from sffscan.stages.depth_levels import (
     median_filter_levels_at,
 )
 from sffscan.stages.depth_peak import windowed_centroid
-from sffscan.stages.depth_spc import spc_bias, spc_in_range, spc_shape
+from sffscan.stages.depth_spc import spc_bias, spc_in_range, spc_shape, spc_share
 from sffscan.stages.depth_statistics import (
     SHAPE_SAMPLE_STEP,
     peak_departure,
@@ -41,7 +42,7 @@ from sffscan.stages.depth_statistics import (
 )
 from sffscan.stages.depth_uncertainty import height_uncertainty_um
 
-__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "block_choice",
+__all__ = ["BLOCK_CHOICES", "OWN_LEVEL_METHODS", "SPC_BLOCKS", "BlockChoice", "block_choice",
            "block_departure_bias", "block_method", "block_peak_bias", "block_uncertainty",
            "depth_rows", "judged_centre"]
 
@@ -54,10 +55,27 @@ the other ring methods read the halo's columns too, except the blocks of
 :data:`SPC_BLOCKS`, which read their own columns only."""
 
 SPC_BLOCKS = {"spc+centroid": "centroid", "spc+gauss3": "gauss3"}
-"""What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC, and at
-its pixels outside the range SPC holds in
-(:func:`sffscan.stages.depth_spc.spc_in_range`) what ``"adaptive_centroid"`` takes
-(``adaptive``'s peak refined by the 5-level centroid or by the 3-point Gaussian)."""
+"""What :func:`block_method` names a ``"shape_select"`` block that takes SPC: SPC averaged
+with what ``"adaptive_centroid"`` takes (``adaptive``'s peak refined by the 5-level centroid
+or by the 3-point Gaussian) by SPC's share (:func:`sffscan.stages.depth_spc.spc_weight`),
+and at its pixels outside the range SPC holds in
+(:func:`sffscan.stages.depth_spc.spc_in_range`) that fallback alone."""
+
+
+class BlockChoice(NamedTuple):
+    """What a block takes (:func:`block_choice`)."""
+
+    method: str
+    """The block's method (an SPC block is named by :data:`SPC_BLOCKS`)."""
+    bias: float
+    """The bias the height uncertainty adds in quadrature, levels."""
+    floor: GuardFloor | None
+    """What SPC's range guard takes from the block's curves; None but for an SPC block."""
+    locking: float
+    """The 5-level centroid's peak locking the uncertainty adds, levels (0.0 where none)."""
+    weight: float = 0.0
+    """SPC's share of an SPC block's depth where SPC is in range
+    (:func:`sffscan.stages.depth_spc.spc_weight`, 1/2 to 1); 0.0 for the other blocks."""
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,
@@ -71,16 +89,18 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
                  valid: np.ndarray | None = None, *, method: str = "shape_select",
                  median_size: int = 11,
                  centre: Callable[[], np.ndarray] | None = None
-                 ) -> tuple[str, float, GuardFloor | None, float]:
+                 ) -> BlockChoice:
     """The method a block takes, the bias the height uncertainty adds in quadrature
     (levels: where it takes SPC, the departure ``|d|`` of
-    :func:`sffscan.stages.depth_spc.spc_departure`; where it takes a peak, the
-    :func:`sffscan.stages.depth_choice.fallback_bias` of its curves) and, where it takes
-    SPC, what SPC's range guard takes from its curves
+    :func:`sffscan.stages.depth_spc.spc_departure` times SPC's share; where it takes a
+    peak, the :func:`sffscan.stages.depth_choice.fallback_bias` of its curves) and, where
+    it takes SPC, what SPC's range guard takes from its curves
     (:func:`sffscan.stages.depth_floor.guard_floor`; None elsewhere: :func:`depth_rows`'
-    ``floor``) and, where it takes the 5-level centroid, that centroid's peak locking at
-    the judged curves' median width (:func:`sffscan.stages.depth_choice.peak_locking`,
-    levels; 0.0 elsewhere), judged on the curves of
+    ``floor``) and, where the fallback takes the 5-level centroid, that centroid's peak
+    locking at the judged curves' median width
+    (:func:`sffscan.stages.depth_choice.peak_locking`, levels, times the fallback's share
+    of an SPC block; 0.0 elsewhere), and SPC's share of an SPC block
+    (:func:`sffscan.stages.depth_spc.spc_weight`; 0.0 elsewhere), judged on the curves of
     :data:`sffscan.stages.depth_statistics.SHAPE_SAMPLE_STEP`
     (:func:`sffscan.stages.depth_statistics.sampled_curves`).
 
@@ -121,20 +141,23 @@ def block_choice(levels: np.ndarray, argmax: np.ndarray,
         raise ValueError(f"method must be one of {BLOCK_CHOICES}, got {method!r}")
     sample = sampled_curves(levels, argmax, valid)
     if sample is None:
-        return "adaptive", 0.0, None, 0.0
+        return BlockChoice("adaptive", 0.0, None, 0.0)
     vol, am, seen = sample
     pull, noise = pull_statistics(vol, am, seen)
     centroid = takes_centroid(pull, noise=noise)
     width = curve_width(vol)
+    locking = peak_locking(pull, noise, judged_width(width, am, vol.shape[0], seen))
     if method == "shape_select":
         stats = spc_shape(vol, am, width, seen)
         taken = spc_bias(vol, am, stats, pull, noise, seen,
                          centre=(lambda: judged_centre(argmax, median_size)) if centre is None
                          else centre)
         if taken is not None:
-            return ("spc+centroid" if centroid else "spc+gauss3"), taken[0], taken[1], 0.0
-    locking = peak_locking(pull, noise, judged_width(width, am, vol.shape[0], seen))
-    return ("adaptive_centroid" if centroid else "adaptive"), fallback_bias(pull), None, locking
+            w = taken.weight
+            return BlockChoice("spc+centroid" if centroid else "spc+gauss3",
+                               w * taken.departure, taken.floor, (1.0 - w) * locking, w)
+    return BlockChoice("adaptive_centroid" if centroid else "adaptive", fallback_bias(pull),
+                       None, locking)
 
 
 def judged_centre(argmax: np.ndarray, median_size: int, *,
@@ -202,7 +225,8 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
                spread_size: int, streaming: bool, keep_low: bool,
                wide_peak: np.ndarray | None = None,
                window_out: np.ndarray | None = None,
-               floor: GuardFloor | None = None) -> tuple[np.ndarray, np.ndarray]:
+               floor: GuardFloor | None = None,
+               spc_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Depth (levels) and confidence of rows [r0, r1) of a block.
 
     Parameters
@@ -249,6 +273,10 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         curves (:func:`block_choice`'s third element, for
         :func:`sffscan.stages.depth_floor.guard_width`; one for the whole block, whatever
         its bands); None: the curves' minima as their floor.
+    spc_weight : float, keyword-only
+        For the :data:`SPC_BLOCKS`: SPC's share of the depth where it is in range
+        (:func:`block_choice`'s ``weight``; :func:`sffscan.stages.depth_spc.spc_share`), the
+        fallback's the rest; 1.0: SPC alone.
 
     Returns
     -------
@@ -292,12 +320,14 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
             return depth, conf
         # SPC from that pass's float32 sums (the block's own columns) and filtered argmax,
         # not depth_from_focus's float64 sums over the halo's columns too and its own
-        # median (the depths differ by float32 round-off); adaptive_centroid's depth
-        # stands where SPC is out of its range
+        # median (the depths differ by float32 round-off); averaged with
+        # adaptive_centroid's depth by SPC's share, which stands alone where SPC is out of
+        # its range
         spc = spc_depth(sums[1], sums[2], centre[own, inner], n_levels=n_levels)
         width = guard_width(sums[0], np.hypot(sums[1], sums[2]), low, n_levels, floor)
         keep = spc_in_range(spc, width, n_levels)
-        return np.where(keep, spc, depth).astype(np.float32, copy=False), conf
+        return (np.where(keep, spc_share(spc, depth, spc_weight), depth).astype(
+            np.float32, copy=False), conf)
     vol = src[:, wide]
     depth, conf = depth_from_focus(vol, method=method, median_size=median_size, argmax=argmax)
     sums[:] = focus_sums(vol[:, own, inner])

@@ -39,6 +39,8 @@ from sffscan.stages.depth_spc import (
     SPC_PULL_LIMIT,
     spc_bias,
     spc_shape,
+    spc_share,
+    spc_weight,
     takes_spc,
 )
 from sffscan.stages.depth_statistics import (
@@ -129,11 +131,13 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
                  max_noise_ratio: float = SPC_NOISE_RATIO,
                  departure: tuple[float, float] | None = None) -> np.ndarray:
     """SPC's depth map where the stack's curves are even and clean
-    (:func:`~sffscan.stages.depth_spc.takes_spc`), else ``other`` (``adaptive_centroid``'s
-    depth map in ``"shape_select"``); float32 levels. One choice for the whole stack (the
-    streaming depth stage chooses per block:
+    (:func:`~sffscan.stages.depth_spc.takes_spc`), averaged with ``other`` by SPC's share
+    where ``departure`` is given (:func:`~sffscan.stages.depth_spc.spc_weight` of it and
+    SPC's predicted noise, ``noise``'s first number, 0 without it), else ``other``
+    (``adaptive_centroid``'s depth map in ``"shape_select"``); float32 levels. One choice
+    for the whole stack (the streaming depth stage chooses per block:
     :func:`sffscan.stages.block_depth.block_method`); where SPC is taken, ``other`` still
-    stands at the pixels outside ``in_range``
+    stands alone at the pixels outside ``in_range``
     (:func:`~sffscan.stages.depth_spc.spc_in_range`; all inside when None). ``pull``,
     ``max_pull``, ``noise``, ``max_noise_ratio``, ``departure``: as for
     :func:`~sffscan.stages.depth_spc.takes_spc`."""
@@ -142,9 +146,12 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
                         max_noise_ratio=max_noise_ratio, departure=departure)
     if not use_spc:
         return np.asarray(other, np.float32)
+    weight = 1.0 if departure is None else spc_weight(departure,
+                                                      0.0 if noise is None else noise[0])
+    mixed = spc_share(spc, other, weight)
     if in_range is None:
-        return np.asarray(spc, np.float32)
-    return np.where(in_range, spc, other).astype(np.float32, copy=False)
+        return mixed
+    return np.where(in_range, mixed, other).astype(np.float32, copy=False)
 
 
 class StackChoice(NamedTuple):
@@ -154,9 +161,11 @@ class StackChoice(NamedTuple):
     """The stack takes SPC (where it is in range)."""
     bias: float
     """A bias of the depth that its scatter does not show, which the height uncertainty
-    adds in quadrature (:mod:`sffscan.stages.depth_uncertainty`), levels: SPC's departure
-    from the fallback's peaks, ``|d|`` of :func:`~sffscan.stages.depth_spc.spc_departure`,
-    where the stack takes SPC; elsewhere the fallback's own, :func:`fallback_bias`."""
+    adds in quadrature (:mod:`sffscan.stages.depth_uncertainty`), levels: where the stack
+    takes SPC, SPC's departure from the fallback's peaks, ``|d|`` of
+    :func:`~sffscan.stages.depth_spc.spc_departure`, times SPC's share of the depth
+    (:attr:`weight`: the average departs from the peaks by that much); elsewhere the
+    fallback's own, :func:`fallback_bias`."""
     pull: float
     """The curves' centroid pull (:func:`~sffscan.stages.depth_statistics.pull_statistics`),
     levels."""
@@ -169,8 +178,12 @@ class StackChoice(NamedTuple):
     locking: float = 0.0
     """Where the fallback takes the 5-level centroid, its peak locking at the judged curves'
     median width (:func:`peak_locking`, levels), which the height uncertainty adds where the
-    scatter cannot show it (:func:`sffscan.stages.depth_uncertainty.locking_visibility`);
-    0.0 elsewhere."""
+    scatter cannot show it (:func:`sffscan.stages.depth_uncertainty.locking_visibility`),
+    times the fallback's share of the depth (``1 - weight``); 0.0 elsewhere."""
+    weight: float = 0.0
+    """SPC's share of the depth where the stack takes SPC and SPC is in range
+    (:func:`~sffscan.stages.depth_spc.spc_weight`, 1/2 to 1), the fallback's the rest; 0.0
+    where the stack takes the fallback."""
 
 
 def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | None = None,
@@ -220,10 +233,12 @@ def stack_choice(volume: np.ndarray, argmax: np.ndarray, width: np.ndarray | Non
     pull, noise = pull_statistics(vol, peak)
     taken = spc_bias(vol, peak, spc_shape(vol, peak, wid), pull, noise, inner,
                      centre=lambda: median_filter_levels_at(argmax, median_size, rows, cols))
+    locking = peak_locking(pull, noise, judged_width(wid, peak, volume.shape[0]))
     if taken is None:
-        locking = peak_locking(pull, noise, judged_width(wid, peak, volume.shape[0]))
         return StackChoice(False, fallback_bias(pull), pull, noise, None, locking)
-    return StackChoice(True, taken[0], pull, noise, taken[1])
+    w = taken.weight
+    return StackChoice(True, w * taken.departure, pull, noise, taken.floor,
+                       (1.0 - w) * locking, w)
 
 
 DEPARTURE_METHODS = ("pc", "spc", "wcentroid", "argmax")

@@ -34,7 +34,7 @@ from sffscan.stages.depth_floor import guard_width
 from sffscan.stages.depth_harmonics import depth_from_sums
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
-from sffscan.stages.depth_spc import spc_in_range
+from sffscan.stages.depth_spc import spc_in_range, spc_share
 from sffscan.stages.depth_statistics import (
     pull_statistics,
     sample_step,
@@ -169,8 +169,9 @@ def shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float, float]:
     spc = _from_sums(c, method="spc")
     # the range guard's width from a floor the noise does not lower (depth_floor)
     in_range = spc_in_range(spc, guard_width(h0, h1, low, n, choice.floor), n)
-    return (np.where(in_range, spc, other).astype(np.float32, copy=False), choice.bias,
-            choice.locking)
+    # SPC and the fallback averaged by the test's estimates of their errors (spc_weight)
+    return (np.where(in_range, spc_share(spc, other, choice.weight), other).astype(
+        np.float32, copy=False), choice.bias, choice.locking)
 
 
 CURVE_ESTIMATORS: dict[str, Estimator] = {

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.depth_floor import GuardFloor, curve_noise, guard_floor, guard_width
@@ -40,7 +41,8 @@ from sffscan.stages.depth_statistics import (
 )
 
 __all__ = ["SHAPE_SELECT_LIMITS", "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
-           "spc_bias", "spc_departure", "spc_in_range", "spc_noise", "spc_shape", "takes_spc"]
+           "SpcTaken", "spc_bias", "spc_departure", "spc_in_range", "spc_noise", "spc_shape",
+           "spc_share", "spc_weight", "takes_spc"]
 
 SHAPE_SELECT_LIMITS = (0.2, math.inf)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
@@ -277,6 +279,45 @@ def takes_spc(statistics: tuple[float, float | None], *,
     return skew < max_skew and ratio < max_ratio
 
 
+def spc_weight(departure: tuple[float, float], noise: float) -> float:
+    """SPC's share of the depth where :func:`takes_spc`'s departure test takes it: the
+    weight of the least mean squared error of SPC and the fallback averaged, from the
+    test's own estimates, ``w = E_f / (E_f + E_spc)`` with ``E_spc = d^2 + sigma^2`` (SPC's
+    departure and predicted noise) and ``E_f = max(CENTROID_PULL_LIMIT, s)^2 - sigma^2``
+    (the rest of the departures' spread: the fallback's noise); ``sigma`` 0 under
+    :data:`~sffscan.stages.depth_statistics.CENTROID_PULL_LIMIT`, as in the test. The test
+    takes SPC where ``E_spc <= E_f``, so ``w`` is 1/2 to 1 there: 1 where the curves show
+    no departure and no noise of SPC's, 1/2 at the test's boundary (NaN where the test
+    would refuse: ``E_f <= 0`` or a NaN statistic).
+
+    Why not SPC alone (until 2026-12-06): the test is a cliff where the two estimators
+    differ several-fold, and its ``E_f`` is the scatter of the curves' own peaks, which on
+    a thin-lens slope under heavy noise is larger than the fallback's filtered map errs
+    (the identifiability problem, docs/depth-method-log.md): ``slopes-lens-noisy`` stacks
+    took SPC at 1.5-2.9x the fallback's error and failed the held-out family bar on two
+    sets of sixty seeds (1.071x, 1.117x). The average, inverse to the two estimated errors
+    (independent errors, the test's own model), gives the fallback a share where the test
+    is near its boundary. Where the test refuses SPC the fallback stands alone: there the
+    same weight would add SPC's bias where the fallback errs less than ``E_f`` says
+    (measured, seen seeds 144..581: stacks over 1.10x their best method 873 -> 1319)."""
+    d, s = departure
+    sigma = 0.0 if noise < CENTROID_PULL_LIMIT else noise  # NaN stays NaN: refused
+    e_spc = d * d + sigma * sigma
+    e_f = max(CENTROID_PULL_LIMIT, s) ** 2 - sigma * sigma
+    if not (e_f > 0.0 and e_spc <= e_f):  # NaN too: the test refuses SPC
+        return math.nan
+    return e_f / (e_f + e_spc)
+
+
+def spc_share(spc: np.ndarray, other: np.ndarray, weight: float) -> np.ndarray:
+    """``weight * spc + (1 - weight) * other`` in float32 (levels; SPC itself for a weight of
+    1): the default's depth where it takes SPC, ``weight`` from :func:`spc_weight`."""
+    spc = np.asarray(spc, np.float32)
+    if weight >= 1.0:
+        return spc
+    return np.float32(weight) * spc + np.float32(1.0 - weight) * np.asarray(other, np.float32)
+
+
 def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
                  reach: float = SPC_END_REACH) -> np.ndarray:
     """Where SPC's depth (levels) lies at least ``reach`` of the curve's widths (sigma,
@@ -299,19 +340,33 @@ def spc_in_range(spc: np.ndarray, width: np.ndarray, n_levels: int, *,
     return (spc >= margin) & (spc <= np.float32(n_levels - 1) - margin)
 
 
+class SpcTaken(NamedTuple):
+    """What :func:`spc_bias` gives where the curves take SPC."""
+
+    departure: float
+    """SPC's departure ``|d|`` from the fallback's peaks (:func:`spc_departure`), levels."""
+    floor: GuardFloor
+    """What SPC's range guard takes from the curves
+    (:func:`~sffscan.stages.depth_floor.guard_floor`)."""
+    weight: float
+    """SPC's share of the depth where it is in range (:func:`spc_weight`), 1/2 to 1; the
+    fallback's is ``1 - weight``."""
+
+
 def spc_bias(levels: np.ndarray, argmax: np.ndarray,
              statistics: tuple[float, float | None],
              pull: float, noise: float, mask: np.ndarray | None = None, *,
-             centre: Callable[[], np.ndarray]) -> tuple[float, GuardFloor] | None:
+             centre: Callable[[], np.ndarray]) -> SpcTaken | None:
     """``"shape_select"``'s tests on curves of these
     :func:`~sffscan.stages.depth_statistics.shape_statistics` and
     :func:`~sffscan.stages.depth_statistics.pull_statistics`: where they take SPC, SPC's
-    departure ``|d|`` (:func:`spc_departure` against the peak the fallback takes; levels) and
-    what its range guard takes from them (:func:`~sffscan.stages.depth_floor.guard_floor`);
-    None where they do not. SPC's noise and departure are
-    measured only for curves that pass the rest (they cost about as much as the rest). One
-    home for the choice of a stack (:func:`sffscan.stages.depth_choice.stack_choice`) and of
-    a scan block (:func:`sffscan.stages.block_depth.block_choice`).
+    departure ``|d|`` (:func:`spc_departure` against the peak the fallback takes; levels),
+    what its range guard takes from them (:func:`~sffscan.stages.depth_floor.guard_floor`)
+    and SPC's share of the depth (:func:`spc_weight`); None where they do not. SPC's noise
+    and departure are measured only for curves that pass the rest (they cost about as much
+    as the rest). One home for the choice of a stack
+    (:func:`sffscan.stages.depth_choice.stack_choice`) and of a scan block
+    (:func:`sffscan.stages.block_depth.block_choice`).
 
     Parameters
     ----------
@@ -345,5 +400,5 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray,
                               floor=floor)
     if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
         return None
-    return abs(departure[0]), floor
+    return SpcTaken(abs(departure[0]), floor, spc_weight(departure, noises[0]))
 

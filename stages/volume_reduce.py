@@ -136,11 +136,11 @@ def _depth(src: BlockSource, u0: int, u1: int, valid: np.ndarray
     else 0.0): the method chosen
     once for the block on its ``valid`` pixels' curves (rows, u1 - u0), then
     :func:`sffscan.stages.volume_tasks.depth` on each band of rows."""
-    method, bias, floor, locking = src.method, 0.0, None, 0.0
+    method, bias, floor, locking, weight = src.method, 0.0, None, 0.0, 1.0
     own = method in blocks.OWN_LEVEL_METHODS or method in blocks.BLOCK_CHOICES
     if src.fv is not None and method in blocks.BLOCK_CHOICES:
         # one choice for the block, whatever its bands
-        method, bias, floor, locking = blocks.block_choice(
+        method, bias, floor, locking, weight = blocks.block_choice(
             gather(src.fv, u0, u1, src.ring), gather(src.argmax, u0, u1, src.ring), valid,
             method=method, centre=lambda: _centre(src, u0, u1))
     elif src.fv is not None and method == "adaptive" and src.uncertainty:
@@ -160,7 +160,9 @@ def _depth(src: BlockSource, u0: int, u1: int, valid: np.ndarray
         "window_test": window_test,
         # SPC's range guard (depth_floor): a list of two floats or None, as JSON takes
         # it to band processes (NaN written as null)
-        "floor": None if floor is None else [None if math.isnan(v) else v for v in floor]})
+        "floor": None if floor is None else [None if math.isnan(v) else v for v in floor],
+        # an SPC block's share of SPC (spc_weight), the fallback's the rest
+        "spc_weight": weight})
     a, shape = src.arrays, (src.rows, u1 - u0)
     if wide_test:
         wide_choice(scratch(a, "b_depth", shape), scratch(a, "b_peak", shape),

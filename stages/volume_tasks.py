@@ -243,7 +243,8 @@ def depth(arrays: dict[str, np.ndarray], p: dict[str, Any], rows: tuple[int, int
                              if p["window_test"] else None,
                              floor=None if p.get("floor") is None
                              else GuardFloor(*(math.nan if v is None else float(v)
-                                               for v in p["floor"])))
+                                               for v in p["floor"])),
+                             spc_weight=float(p.get("spc_weight", 1.0)))
     scratch(arrays, "b_depth", (n_rows, width))[r0:r1] = d
     scratch(arrays, "b_conf", (n_rows, width))[r0:r1] = c
 

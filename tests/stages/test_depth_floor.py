@@ -133,8 +133,8 @@ def test_a_scan_block_guards_with_its_choices_floor_whatever_its_bands() -> None
     peaks = rng.uniform(8, 42, (128, 40))  # 8 x 5 curves judged (every 16th row, 8th column)
     vol = gaussians(peaks, 50, 2.5) + rng.normal(0.0, 0.08, (50, 128, 40)).astype(np.float32)
     argmax = first_argmax(vol)
-    method, _, floor, _ = block_choice(vol, argmax)
-    assert method in SPC_BLOCKS and floor is not None
+    method, _, floor, _, weight = block_choice(vol, argmax)
+    assert method in SPC_BLOCKS and floor is not None and 0.5 <= weight <= 1.0
     assert floor.noise == pytest.approx(0.08, rel=0.15)
 
     def rows(r0: int, r1: int, floor: GuardFloor | None) -> np.ndarray:

@@ -443,12 +443,17 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     dep = spc_departure(vol, median_filter_levels(a, 11, 30),
                         centroid=takes_centroid(pull, noise=noise))
     assert dep != spc_departure(vol, a, centroid=takes_centroid(pull, noise=noise))
-    assert choice.spc and choice.bias == pytest.approx(abs(dep[0])) and choice.bias > 0
+    # the bias of SPC averaged with the fallback: SPC's share of its departure
+    assert choice.spc and 0.5 <= choice.weight <= 1.0
+    assert choice.bias == pytest.approx(choice.weight * abs(dep[0])) and choice.bias > 0
     big = focus_measure(family_stack("even-gauss", 0, size_px=160, n_levels=30).images,
                         window=9)  # a block judges every 16th row and 8th column
-    method, bias, floor, locking = block_choice(big, first_argmax(big))
-    assert locking == 0.0  # SPC: no peak, no locking
+    method, bias, floor, locking, weight = block_choice(big, first_argmax(big))
+    # SPC's share no peak locking; the fallback's share its own
+    fallback = block_choice(big, first_argmax(big), method="adaptive_centroid")
+    assert locking == pytest.approx((1.0 - weight) * fallback.locking, abs=1e-12)
     assert method in SPC_BLOCKS and bias > 0 and floor is not None and floor.width > 0
+    assert 0.5 <= weight <= 1.0 and fallback.weight == 0.0
     # a scan's block gives its filtered argmax at the judged grid (10 x 20 curves here)
     with pytest.raises(ValueError, match=r"judged curves' \(10, 20\) pixels"):
         block_choice(big, first_argmax(big), centre=lambda: np.zeros((1, 1), np.intp))
@@ -481,7 +486,8 @@ def test_spc_bias_adds_in_quadrature_where_the_default_took_spc() -> None:
     assert takes_centroid(block_pull, noise=block_noise)
     judged = (sample[1] >= 2) & (sample[1] <= 27) & np.broadcast_to(sample[2], sample[1].shape)
     block_locking = centroid_locking(float(np.median(curve_width(sample[0])[judged])))
-    method, bias, floor, got_locking = block_choice(lv, la)
+    method, bias, floor, got_locking, weight = block_choice(lv, la)
+    assert weight == 0.0  # the fallback alone
     assert method not in SPC_BLOCKS and bias == pytest.approx(abs(block_pull)) and bias > 0
     assert got_locking == pytest.approx(block_locking, rel=1e-6) and got_locking > 0
     assert floor is None  # the guard's floor only where the block takes SPC

@@ -487,20 +487,28 @@ def _shaped_scan(method: str, lopsided: bool) -> list[np.ndarray]:
 @pytest.mark.parametrize("lopsided", [False, True])
 def test_shape_select_takes_spc_or_adaptive_for_each_block(lopsided: bool) -> None:
     """``shape_select`` chooses per block from the block's curves: each block is SPC's
-    (the streaming SPC's, to float32 round-off: the levels are summed in another order) or
-    ``adaptive``'s, bit for bit. Even, clean curves (peaks at levels 8 .. 15 of 24) take SPC,
-    curves whose upper flank is twice as wide take adaptive."""
+    averaged with its fallback's (``adaptive_centroid``'s block) by one share of SPC's in
+    1/2 .. 1 (:func:`sffscan.stages.depth_spc.spc_weight`; the streaming SPC's, to float32
+    round-off: the levels are summed in another order) or ``adaptive``'s, bit for bit. Even,
+    clean curves (peaks at levels 8 .. 15 of 24) take SPC, curves whose upper flank is twice
+    as wide take adaptive."""
     from sffscan.stages.block_depth import block_method
 
     chosen = _shaped_scan("shape_select", lopsided)
     spc, adaptive = _shaped_scan("spc", lopsided), _shaped_scan("adaptive", lopsided)
+    fallback = _shaped_scan("adaptive_centroid", lopsided)
     measured = [i for i, a in enumerate(chosen) if np.isfinite(a).any()]
-    assert len(chosen) == len(spc) == len(adaptive) and len(measured) > 8
+    assert len(chosen) == len(spc) == len(adaptive) == len(fallback) and len(measured) > 8
     took_spc = 0
     for i in measured:
         if np.array_equal(chosen[i], adaptive[i], equal_nan=True):
             continue
-        np.testing.assert_allclose(chosen[i], spc[i], atol=1e-2, equal_nan=True)  # µm
+        # one share of SPC's for the block (least squares over its pixels)
+        apart, moved = spc[i] - fallback[i], chosen[i] - fallback[i]
+        ok = np.isfinite(apart)
+        w = float(np.sum(moved[ok] * apart[ok]) / max(float(np.sum(apart[ok] ** 2)), 1e-30))
+        assert 0.5 <= w <= 1.001, w  # SPC and its fallback within 0.1 µm: w to round-off
+        np.testing.assert_allclose(moved[ok], np.float32(w) * apart[ok], atol=1e-2)  # µm
         took_spc += 1
     assert took_spc == (0 if lopsided else len(measured)), (took_spc, len(measured))
     fm = np.stack([_shaped_frame(0, 0, k, lopsided)[0] for k in range(SHAPED_N)])

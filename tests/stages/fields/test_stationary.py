@@ -99,15 +99,25 @@ def test_reconstruct_reuses_the_pipeline_functions(sim_stack: tuple[np.ndarray, 
 def test_stack_takes_shape_select_and_the_study_s_candidates(
         sim_stack: tuple[np.ndarray, np.ndarray], tmp_path: Path) -> None:
     """``shape_select`` chooses once for the field: on this clean stack of even curves
-    (Gaussian blur even in z, light noise) SPC's levels; the command takes it, and the
-    study's candidates, by name."""
+    (Gaussian blur even in z, light noise) SPC's levels, averaged with the fallback's by
+    SPC's share (:func:`sffscan.stages.depth_spc.spc_weight`, nearly all of it here); the
+    command takes it, and the study's candidates, by name."""
     from sffscan.stages.depth import CANDIDATE_METHODS
+    from sffscan.stages.depth_choice import stack_choice
+    from sffscan.stages.depth_levels import first_argmax
 
     stack, _ = sim_stack
     r = {m: reconstruct_field(stack, focus_heights_um=ZS, max_value=1023,
                               settings=StackSettings(method=m, filter_size=1))
-         for m in ("spc", "adaptive", "shape_select", *CANDIDATE_METHODS)}
-    np.testing.assert_array_equal(r["shape_select"].levels, r["spc"].levels)
+         for m in ("spc", "adaptive", "adaptive_centroid", "shape_select", *CANDIDATE_METHODS)}
+    img = np.stack([to_unit_float(i, max_value=1023) for i in stack])
+    vol = focus_measure(img, operator="glvm", window=9)
+    choice = stack_choice(vol, first_argmax(vol), margin=4)
+    assert choice.spc and choice.weight > 0.95
+    apart = float(np.abs(r["spc"].levels - r["adaptive_centroid"].levels).max())
+    np.testing.assert_allclose(r["shape_select"].levels, r["spc"].levels,
+                               atol=(1.0 - choice.weight) * apart + 1e-5)
+    assert not np.array_equal(r["shape_select"].levels, r["spc"].levels)
     assert not np.array_equal(r["spc"].levels, r["adaptive"].levels)
     arr = zarr.create_array(str(tmp_path / "s.zarr"), shape=stack.shape, dtype="uint16")
     arr[...] = stack
