@@ -75,7 +75,7 @@ class BlockChoice(NamedTuple):
     """The 5-level centroid's peak locking the uncertainty adds, levels (0.0 where none)."""
     weight: float = 0.0
     """SPC's share of an SPC block's depth where SPC is in range
-    (:func:`sffscan.stages.depth_spc.spc_weight`, 1/2 to 1); 0.0 for the other blocks."""
+    (:func:`sffscan.stages.depth_spc.spc_weight`, 0 to 1); 0.0 for the other blocks."""
 
 
 def block_method(levels: np.ndarray, argmax: np.ndarray,

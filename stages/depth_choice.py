@@ -40,7 +40,6 @@ from sffscan.stages.depth_spc import (
     spc_bias,
     spc_shape,
     spc_share,
-    spc_weight,
     takes_spc,
 )
 from sffscan.stages.depth_statistics import (
@@ -129,11 +128,11 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
                  pull: float | None = None, max_pull: float = SPC_PULL_LIMIT,
                  noise: tuple[float, float] | None = None,
                  max_noise_ratio: float = SPC_NOISE_RATIO,
-                 departure: tuple[float, float] | None = None) -> np.ndarray:
+                 departure: tuple[float, float] | None = None,
+                 weight: float = 1.0) -> np.ndarray:
     """SPC's depth map where the stack's curves are even and clean
     (:func:`~sffscan.stages.depth_spc.takes_spc`), averaged with ``other`` by SPC's share
-    where ``departure`` is given (:func:`~sffscan.stages.depth_spc.spc_weight` of it and
-    SPC's predicted noise, ``noise``'s first number, 0 without it), else ``other``
+    ``weight`` (:func:`~sffscan.stages.depth_spc.spc_weight`; 1: SPC alone), else ``other``
     (``adaptive_centroid``'s depth map in ``"shape_select"``); float32 levels. One choice
     for the whole stack (the streaming depth stage chooses per block:
     :func:`sffscan.stages.block_depth.block_method`); where SPC is taken, ``other`` still
@@ -146,8 +145,6 @@ def shape_select(spc: np.ndarray, other: np.ndarray, statistics: tuple[float, fl
                         max_noise_ratio=max_noise_ratio, departure=departure)
     if not use_spc:
         return np.asarray(other, np.float32)
-    weight = 1.0 if departure is None else spc_weight(departure,
-                                                      0.0 if noise is None else noise[0])
     mixed = spc_share(spc, other, weight)
     if in_range is None:
         return mixed
@@ -182,7 +179,7 @@ class StackChoice(NamedTuple):
     times the fallback's share of the depth (``1 - weight``); 0.0 elsewhere."""
     weight: float = 0.0
     """SPC's share of the depth where the stack takes SPC and SPC is in range
-    (:func:`~sffscan.stages.depth_spc.spc_weight`, 1/2 to 1), the fallback's the rest; 0.0
+    (:func:`~sffscan.stages.depth_spc.spc_weight`, 0 to 1), the fallback's the rest; 0.0
     where the stack takes the fallback."""
 
 

@@ -41,8 +41,8 @@ from sffscan.stages.depth_statistics import (
 )
 
 __all__ = ["SHAPE_SELECT_LIMITS", "SPC_END_REACH", "SPC_NOISE_RATIO", "SPC_PULL_LIMIT",
-           "SpcTaken", "spc_bias", "spc_departure", "spc_in_range", "spc_noise", "spc_shape",
-           "spc_share", "spc_weight", "takes_spc"]
+           "Departures", "SpcTaken", "spc_bias", "spc_departure", "spc_departures",
+           "spc_in_range", "spc_noise", "spc_shape", "spc_share", "spc_weight", "takes_spc"]
 
 SHAPE_SELECT_LIMITS = (0.2, math.inf)
 """(largest |median skewness|, largest median width ratio) of ``"shape_select"`` by name,
@@ -180,10 +180,32 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
         What the range guard's widths take (:func:`~sffscan.stages.depth_floor.guard_floor`
         of the same curves); None: the curves' minima as their floor.
     """
+    dep = spc_departures(levels, centre, mask, centroid=centroid, floor=floor)
+    return dep.departure, dep.spread
+
+
+class Departures(NamedTuple):
+    """SPC's departure from the fallback's peaks and two spreads of it
+    (:func:`spc_departures`), levels."""
+
+    departure: float
+    """The median of SPC minus the peak, ``d``."""
+    spread: float
+    """Their root mean square about ``d``: what :func:`takes_spc`'s test reads."""
+    robust: float
+    """1.4826 x their median absolute deviation about ``d``: the bulk of the curves, what
+    SPC's share reads (:func:`spc_weight`)."""
+
+
+def spc_departures(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None = None,
+                   *, centroid: bool = False, floor: GuardFloor | None = None) -> Departures:
+    """:func:`spc_departure`'s ``(d, s)`` and the differences' robust spread beside them
+    (1.4826 x their median absolute deviation about ``d``), from one pass; NaN, NaN, NaN
+    where no curve is left. Parameters as :func:`spc_departure`'s."""
     n = levels.shape[0]
     am, ok = judged_curves(centre, n, mask)
     if not ok.any():
-        return math.nan, math.nan
+        return Departures(math.nan, math.nan, math.nan)
     cur = np.ascontiguousarray(np.asarray(levels, np.float32)[:, ok])  # (N, curves)
     a = am[ok]
     h0, _, re, im = harmonic_table(n).astype(np.float32) @ cur
@@ -191,14 +213,15 @@ def spc_departure(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | Non
     width = guard_width(h0, np.hypot(re, im), cur.min(axis=0), n, floor)
     keep = spc_in_range(spc, width, n)
     if not keep.any():
-        return math.nan, math.nan
+        return Departures(math.nan, math.nan, math.nan)
     if centroid:
         peak = windowed_centroid(cur[:, None, :], a[None, :], half_window=2)[0]
     else:
         peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
     diff = (spc - peak)[keep].astype(np.float64)
     d = float(np.median(diff))
-    return d, math.sqrt(float(np.mean((diff - d) ** 2)))
+    return Departures(d, math.sqrt(float(np.mean((diff - d) ** 2))),
+                      1.4826 * float(np.median(np.abs(diff - d))))
 
 
 def spc_shape(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
@@ -280,33 +303,33 @@ def takes_spc(statistics: tuple[float, float | None], *,
 
 
 def spc_weight(departure: tuple[float, float], noise: float) -> float:
-    """SPC's share of the depth where :func:`takes_spc`'s departure test takes it: the
-    weight of the least mean squared error of SPC and the fallback averaged, from the
-    test's own estimates, ``w = E_f / (E_f + E_spc)`` with ``E_spc = d^2 + sigma^2`` (SPC's
-    departure and predicted noise) and ``E_f = max(CENTROID_PULL_LIMIT, s)^2 - sigma^2``
-    (the rest of the departures' spread: the fallback's noise); ``sigma`` 0 under
-    :data:`~sffscan.stages.depth_statistics.CENTROID_PULL_LIMIT`, as in the test. The test
-    takes SPC where ``E_spc <= E_f``, so ``w`` is 1/2 to 1 there: 1 where the curves show
-    no departure and no noise of SPC's, 1/2 at the test's boundary (NaN where the test
-    would refuse: ``E_f <= 0`` or a NaN statistic).
+    """SPC's share of the depth where :func:`takes_spc` takes it: the weight of the least
+    mean squared error average of SPC and the fallback (independent errors), ``w = E_f /
+    (E_f + E_spc)``, with ``E_spc = d^2 + sigma^2`` (SPC's departure and predicted noise, as
+    the test takes them) and ``E_f = max(0, max(CENTROID_PULL_LIMIT, s)^2 - sigma^2)``, ``s``
+    the departures' *robust* spread (:attr:`Departures.robust`, 1.4826 x their median
+    absolute deviation): the fallback's noise over the bulk of the curves. 0 to 1; ``sigma``
+    0 under :data:`~sffscan.stages.depth_statistics.CENTROID_PULL_LIMIT`, as in the test;
+    NaN for a NaN statistic.
 
     Why not SPC alone (until 2026-12-06): the test is a cliff where the two estimators
-    differ several-fold, and its ``E_f`` is the scatter of the curves' own peaks, which on
-    a thin-lens slope under heavy noise is larger than the fallback's filtered map errs
-    (the identifiability problem, docs/depth-method-log.md): ``slopes-lens-noisy`` stacks
-    took SPC at 1.5-2.9x the fallback's error and failed the held-out family bar on two
-    sets of sixty seeds (1.071x, 1.117x). The average, inverse to the two estimated errors
-    (independent errors, the test's own model), gives the fallback a share where the test
-    is near its boundary. Where the test refuses SPC the fallback stands alone: there the
-    same weight would add SPC's bias where the fallback errs less than ``E_f`` says
-    (measured, seen seeds 144..581: stacks over 1.10x their best method 873 -> 1319)."""
+    differ several-fold, and its mean-square spread carries, as if they were the fallback's
+    noise, the few curves where SPC errs far (a thin lens' lopsided flanks under heavy
+    noise, step edges where SPC reads the blend of two heights): ``slopes-lens-noisy`` and
+    ``steps-lens-noisy`` stacks took SPC at 1.5-2.9x the fallback's error. The share from
+    the same mean squares (w of 1/2 to 1) was adopted first (worst held-out family 1.066x ->
+    1.025x on seeds 585..704); from the robust spread, the same day (steps-lens-noisy's
+    stacks over 1.10x their best method 92 -> 38 on seen seeds; adopted by the rule declared
+    before seeds 1008..1127; docs/depth-method-log.md). Where the test refuses SPC the
+    fallback stands alone: there any share would add SPC's bias where the fallback errs less
+    than the test's spread says (measured: stacks over 1.10x 873 -> 1319)."""
     d, s = departure
-    sigma = 0.0 if noise < CENTROID_PULL_LIMIT else noise  # NaN stays NaN: refused
+    sigma = 0.0 if noise < CENTROID_PULL_LIMIT else noise  # NaN stays NaN
     e_spc = d * d + sigma * sigma
-    e_f = max(CENTROID_PULL_LIMIT, s) ** 2 - sigma * sigma
-    if not (e_f > 0.0 and e_spc <= e_f):  # NaN too: the test refuses SPC
+    e_f = max(0.0, max(CENTROID_PULL_LIMIT, s) ** 2 - sigma * sigma)
+    if math.isnan(e_spc) or math.isnan(e_f):
         return math.nan
-    return e_f / (e_f + e_spc)
+    return 1.0 if e_f + e_spc == 0.0 else e_f / (e_f + e_spc)
 
 
 def spc_share(spc: np.ndarray, other: np.ndarray, weight: float) -> np.ndarray:
@@ -349,8 +372,8 @@ class SpcTaken(NamedTuple):
     """What SPC's range guard takes from the curves
     (:func:`~sffscan.stages.depth_floor.guard_floor`)."""
     weight: float
-    """SPC's share of the depth where it is in range (:func:`spc_weight`), 1/2 to 1; the
-    fallback's is ``1 - weight``."""
+    """SPC's share of the depth where it is in range (:func:`spc_weight` of the departure's
+    robust spread), 0 to 1; the fallback's is ``1 - weight``."""
 
 
 def spc_bias(levels: np.ndarray, argmax: np.ndarray,
@@ -396,9 +419,10 @@ def spc_bias(levels: np.ndarray, argmax: np.ndarray,
     if not takes_spc(statistics, pull=pull, noise=noises):
         return None
     floor = guard_floor(levels, grid, mask)
-    departure = spc_departure(levels, grid, mask, centroid=takes_centroid(pull, noise=noise),
-                              floor=floor)
-    if not takes_spc(statistics, pull=pull, noise=noises, departure=departure):
+    dep = spc_departures(levels, grid, mask, centroid=takes_centroid(pull, noise=noise),
+                         floor=floor)
+    if not takes_spc(statistics, pull=pull, noise=noises, departure=dep[:2]):
         return None
-    return SpcTaken(abs(departure[0]), floor, spc_weight(departure, noises[0]))
+    return SpcTaken(abs(dep.departure), floor,
+                    spc_weight((dep.departure, dep.robust), noises[0]))
 

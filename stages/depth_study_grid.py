@@ -24,9 +24,10 @@ from sffscan.stages.depth_floor import guard_floor, guard_width
 from sffscan.stages.depth_harmonics import curve_moments
 from sffscan.stages.depth_spc import (
     SHAPE_SELECT_LIMITS,
-    spc_departure,
+    spc_departures,
     spc_in_range,
     spc_noise,
+    spc_weight,
     takes_spc,
 )
 from sffscan.stages.depth_statistics import pull_statistics, shape_statistics, takes_centroid
@@ -213,29 +214,32 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     # noise and its departure tested as the default tests them (docs/depth-method-log.md,
     # 2026-12-04: before, shape-select, spc-reach and spc-pull left the last two out)
     noises = (spc_noise(volume), noise)
-    departure = spc_departure(volume, centre, centroid=takes_centroid(pull, noise=noise),
-                              floor=floor)
+    deps = spc_departures(volume, centre, centroid=takes_centroid(pull, noise=noise),
+                          floor=floor)
+    departure = (deps.departure, deps.spread)
+    # SPC's share where it is taken, as the default's (spc_weight: the robust spread)
+    share = spc_weight((deps.departure, deps.robust), noises[0])
     for pair in SHAPE_GRID:
         d = shape_select(depth["spc"], depth["adaptive_centroid"], stats, max_skew=pair[0],
                          max_ratio=pair[1], in_range=in_range, pull=pull, noise=noises,
-                         departure=departure)
+                         departure=departure, weight=share)
         sse[score_key("shape-select", pair)] = float(np.sum((d - truth_levels)[mask] ** 2))
     max_skew, max_ratio = SHAPE_SELECT_LIMITS
     spc, other = depth["spc"], depth["adaptive_centroid"]
     for k in SPC_REACHES:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=spc_in_range(spc, guard, n, reach=k), pull=pull,
-                         noise=noises, departure=departure)
+                         noise=noises, departure=departure, weight=share)
         sse[score_key("spc-reach", k)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for t in SPC_PULLS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, max_pull=t, noise=noises,
-                         departure=departure)
+                         departure=departure, weight=share)
         sse[score_key("spc-pull", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     for t in SPC_NOISE_RATIOS:
         d = shape_select(spc, other, stats, max_skew=max_skew, max_ratio=max_ratio,
                          in_range=in_range, pull=pull, noise=noises, max_noise_ratio=t,
-                         departure=departure)
+                         departure=departure, weight=share)
         sse[score_key("spc-noise", t)] = float(np.sum((d - truth_levels)[mask] ** 2))
     took_spc = takes_spc(stats, max_skew=max_skew, max_ratio=max_ratio, pull=pull,
                          noise=noises, departure=departure)
