@@ -35,6 +35,7 @@ from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     CENTROID_PULL_LIMIT,
     judged_curves,
+    median_spread,
     skew_statistic,
     takes_centroid,
     width_ratio_statistic,
@@ -219,9 +220,8 @@ def spc_departures(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | No
     else:
         peak = a + three_point_offset(cur[:, None, :], a[None, :], log=True)[0]
     diff = (spc - peak)[keep].astype(np.float64)
-    d = float(np.median(diff))
-    return Departures(d, math.sqrt(float(np.mean((diff - d) ** 2))),
-                      1.4826 * float(np.median(np.abs(diff - d))))
+    d, robust = median_spread(diff)
+    return Departures(d, math.sqrt(float(np.mean((diff - d) ** 2))), robust)
 
 
 def spc_shape(volume: np.ndarray, peak: np.ndarray, width: np.ndarray,
