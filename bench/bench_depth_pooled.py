@@ -85,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     if end - first < SET_SIZE:
         ap.error(f"--seeds: at least {SET_SIZE} seeds, got {first} .. {end - 1}")
     t0 = time.time()
-    scores = score_stacks(method_errors, range(first, end), imdata=args.imdata, jobs=args.jobs)
+    scores = score_stacks(method_errors, range(first, end), imdata=args.imdata, jobs=args.jobs,
+                          blur_model=args.blur_model)
     wall = time.time() - t0
     methods = list(DEPTH_METHODS)
     d = methods.index(DEFAULT_METHOD)
@@ -122,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"# The default depth method against the best single method, pooled "
              f"({time.strftime('%Y-%m-%d %H:%M')})", "",
              f"`{command}` ({machine()}; {wall:.0f} s)", "",
-             f"Default `{DEFAULT_METHOD}`; seeds {first}..{end - 1} ({len(seeds)} a family, "
+             f"Default `{DEFAULT_METHOD}`; the families' stacks rendered with the "
+             f"`{args.blur_model}` blur model; seeds {first}..{end - 1} ({len(seeds)} a family, "
              f"{len(sets)} sets of {SET_SIZE}); RMSE in levels over the stacks pooled. "
              "'pooled best's worst set': the family's pooled best method on its worst set of "
              "six, against that set's best (how far hindsight alone moves a set's ratio).", "",
@@ -150,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     write_table(args.out.with_suffix(".md"), "\n".join(lines) + "\n")
     args.out.with_suffix(".json").write_text(json.dumps(
         {"command": command, "machine": machine(), "seeds": [first, end - 1],
+         "blur_model": args.blur_model,
          "default": DEFAULT_METHOD, "rows": rows}, indent=1) + "\n")
     return 0
 

@@ -46,7 +46,7 @@ from sffscan.stages.depth import DEPTH_METHODS  # noqa: E402
 from sffscan.stages.depth_study import uncertainty_sample  # noqa: E402
 from sffscan.stages.fitted_constants import uncertainty_constants  # noqa: E402
 from sffscan.stages.focus_measure import focus_measure  # noqa: E402
-from sffscan.stages.sim.families import family_names, family_stack  # noqa: E402
+from sffscan.stages.sim.families import BLUR_MODELS, family_names, family_stack  # noqa: E402
 from sffscan.stages.uncertainty_fit import (  # noqa: E402
     UncertaintyConstants,
     fit_uncertainty,
@@ -58,11 +58,13 @@ TRAINING = tuple(range(6))
 BAND = (0.90, 0.98)
 
 
-def sample(job: tuple[str, int, tuple[str, ...]]
+def sample(job: tuple[str, int, tuple[str, ...]] | tuple[str, int, tuple[str, ...], str]
            ) -> tuple[tuple[str, int], dict[str, Any]]:
-    """The methods' uncertainty samples on one family stack."""
-    family, seed, methods = job
-    st = family_stack(family, seed, size_px=64)
+    """The methods' uncertainty samples on one family stack (``(family, seed, methods)``, and
+    the blur model, :data:`sffscan.stages.sim.families.BLUR_MODELS`, default gather)."""
+    family, seed, methods = job[:3]
+    blur_model = job[3] if len(job) > 3 else "gather"
+    st = family_stack(family, seed, size_px=64, blur_model=blur_model)  # type: ignore[arg-type,misc]
     vol = focus_measure(st.images, operator="glvm", window=9)
     mask = np.zeros(st.truth_um.shape, bool)
     mask[4:-4, 4:-4] = True
@@ -93,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--held-out", nargs=2, type=int, default=(6, 48), metavar=("FIRST", "END"),
                     help="held-out seeds FIRST .. END - 1, in sets of six (default 6 48)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "method_constants")
+    ap.add_argument("--blur-model", choices=BLUR_MODELS, default="gather",
+                    help="how the held-out stacks apply a blur that varies over the image "
+                         "(sffscan.stages.sim.families.BLUR_MODELS; the training stacks the "
+                         "fits use stay gather, the study's; default gather)")
     ap.add_argument("--methods", default="all",
                     help=f"depth methods, comma separated, or 'all' ({', '.join(DEPTH_METHODS)})")
     args = ap.parse_args(argv)
@@ -107,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     sets = [list(range(a, min(a + 6, end))) for a in range(first, end, 6)]
     names = family_names(crossed=True)
     t0 = time.time()
-    jobs = [(f, s, methods) for f in names for s in (*TRAINING, *range(first, end))]
+    jobs = [(f, s, methods, "gather" if s in TRAINING else args.blur_model)
+            for f in names for s in (*TRAINING, *range(first, end))]
     with Pool(2) as pool:
         samples = dict(pool.imap_unordered(sample, jobs, chunksize=4))
     print(f"{len(jobs)} stacks sampled in {time.time() - t0:.0f} s", flush=True)
@@ -132,7 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     n = len(sets) * len(names)
     lines = [f"# Each depth method's own uncertainty constants ({time.strftime('%Y-%m-%d %H:%M')})",
              "", f"`{command}` ({machine()}; {wall:.0f} s)", "",
-             f"Twenty families, held-out seeds {first}..{end - 1} in {len(sets)} sets: "
+             f"Twenty families, held-out seeds {first}..{end - 1} in {len(sets)} sets "
+             f"(rendered with the {args.blur_model} blur model; the training seeds with "
+             "gather): "
              f"{n} (set, family) rows per method, each in / under / over the "
              f"{BAND[0]:.2f}-{BAND[1]:.2f} band of |error| <= 2 sigma. Own fit: the "
              f"method's errors on the twenty families' seeds 0..{len(TRAINING) - 1}; held "

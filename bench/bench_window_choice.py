@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     seeds = range(*args.seeds)
     t0 = time.perf_counter()
     rows = {name: [(seed, *result) for seed, result in got]
-            for name, got in score_stacks(score, seeds, imdata=args.imdata,
-                                          jobs=args.jobs).items()}
+            for name, got in score_stacks(score, seeds, imdata=args.imdata, jobs=args.jobs,
+                                          blur_model=args.blur_model).items()}
     wall = time.perf_counter() - t0
 
     head = ("| family | stacks | " + " | ".join(DEPTH_METHODS) + " | before / best | "

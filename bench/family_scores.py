@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import CROSSED_FAMILIES, FAMILIES, family_stack
+from sffscan.stages.sim.families import BLUR_MODELS, CROSSED_FAMILIES, FAMILIES, family_stack
 
 WINDOW = 9
 """The focus measure's window (GLVM), px."""
@@ -34,9 +34,11 @@ ROOT = Path(__file__).resolve().parents[1]
 Volume = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def family_volume(name: str, seed: int) -> Volume:
-    """A family's stack of ``seed``: its focus volume, truth (levels) and scored pixels."""
-    st = family_stack(name, seed)
+def family_volume(name: str, seed: int, blur_model: str = "gather") -> Volume:
+    """A family's stack of ``seed`` (rendered with ``blur_model``,
+    :data:`sffscan.stages.sim.families.BLUR_MODELS`): its focus volume, truth (levels) and
+    scored pixels."""
+    st = family_stack(name, seed, blur_model=blur_model)  # type: ignore[arg-type]
     vol = focus_measure(st.images, operator="glvm", window=WINDOW)
     m = WINDOW // 2
     mask = np.zeros(st.truth_um.shape, bool)
@@ -57,23 +59,24 @@ def pertuz_volume(path: str) -> Volume:
 
 
 def _job(score: Callable[[np.ndarray, np.ndarray, np.ndarray], Any], name: str,
-         seed: int, imdata: str) -> tuple[str, int, Any]:
-    vol = pertuz_volume(imdata) if name == PERTUZ else family_volume(name, seed)
+         seed: int, imdata: str, blur_model: str = "gather") -> tuple[str, int, Any]:
+    vol = pertuz_volume(imdata) if name == PERTUZ else family_volume(name, seed, blur_model)
     return name, seed, score(*vol)
 
 
 def score_stacks(score: Callable[[np.ndarray, np.ndarray, np.ndarray], Any],
-                 seeds: range, *, imdata: str, jobs: int) -> dict[str, list[tuple[int, Any]]]:
+                 seeds: range, *, imdata: str, jobs: int, blur_model: str = "gather"
+                 ) -> dict[str, list[tuple[int, Any]]]:
     """``score(volume, truth, mask)`` (a module-level function: it goes to worker
-    processes) of every family's stack of every seed, and of pertuz-simu02 where ``imdata``
-    is given (seed 0), in ``jobs`` processes; per family, ``(seed, score)`` in the order
-    they finish. Progress on stderr."""
+    processes) of every family's stack of every seed (rendered with ``blur_model``), and of
+    pertuz-simu02 where ``imdata`` is given (seed 0), in ``jobs`` processes; per family,
+    ``(seed, score)`` in the order they finish. Progress on stderr."""
     tasks = [(n, s) for n in NAMES for s in seeds]
     if imdata:
         tasks.append((PERTUZ, 0))
     rows: dict[str, list[tuple[int, Any]]] = {}
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = [pool.submit(_job, score, n, s, imdata) for n, s in tasks]
+        futures = [pool.submit(_job, score, n, s, imdata, blur_model) for n, s in tasks]
         for i, fut in enumerate(futures, 1):
             name, seed, result = fut.result()
             rows.setdefault(name, []).append((seed, result))
@@ -83,7 +86,8 @@ def score_stacks(score: Callable[[np.ndarray, np.ndarray, np.ndarray], Any],
 
 
 def bench_parser(doc: str, *, seeds: tuple[int, int], out: Path) -> argparse.ArgumentParser:
-    """The benches' common options: ``--seeds FROM TO``, ``--imdata``, ``--jobs``, ``--out``."""
+    """The benches' common options: ``--seeds FROM TO``, ``--imdata``, ``--jobs``, ``--out``,
+    ``--blur-model``."""
     p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--seeds", nargs=2, type=int, metavar=("FROM", "TO"), default=seeds,
                    help=f"seeds FROM .. TO - 1 (default {seeds[0]} {seeds[1]})")
@@ -92,6 +96,10 @@ def bench_parser(doc: str, *, seeds: tuple[int, int], out: Path) -> argparse.Arg
                    help="pertuz-simu02's imdata.mat ('' to leave it out)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes")
     p.add_argument("--out", type=Path, default=out, help=f"the table (default {out})")
+    p.add_argument("--blur-model", choices=BLUR_MODELS, default="gather",
+                   help="how the families' stacks apply a blur that varies over the image "
+                        "(sffscan.stages.sim.families.BLUR_MODELS; default gather, the "
+                        "study's)")
     return p
 
 

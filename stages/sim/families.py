@@ -11,8 +11,13 @@ texture and surface parameters, so a method tuned on some seeds is scored on oth
 
 Rendering is per pixel and exact up to the blur bank: the texture is blurred with a bank
 of PSF radii, and each pixel of the image at level k takes the bank image of its own blur
-radius (linear interpolation between the two nearest radii). Images are small (64 x 64 px
-by default): a stack takes milliseconds.
+radius (linear interpolation between the two nearest radii: ``blur_model="gather"``, every
+figure of the depth study). Images are small (64 x 64 px by default): a stack takes
+milliseconds. ``blur_model="scatter"`` renders the same draws as optics image a surface
+without occlusion: each point of the world spreads its light over its own blur radius, so
+at an edge or on a slope the defocused side's light spills over the focused side and the
+light is conserved (a second generator for the held-out benches; slower, one blur per bank
+radius in use per level).
 """
 
 from __future__ import annotations
@@ -23,8 +28,13 @@ from typing import Literal
 import cv2
 import numpy as np
 
-__all__ = ["CROSSED_FAMILIES", "FAMILIES", "Family", "SimStack", "family_names",
+__all__ = ["BLUR_MODELS", "CROSSED_FAMILIES", "FAMILIES", "Family", "SimStack", "family_names",
            "family_stack"]
+
+BLUR_MODELS = ("gather", "scatter")
+"""How :func:`family_stack` applies a blur that varies over the image: each image pixel takes
+the texture blurred by its own radius (``"gather"``), or each world point spreads its light
+over its own radius (``"scatter"``, the optics of a surface without occlusion)."""
 
 BANK_RADII_PX = np.array([0.0, 0.35, 0.7, 1.0, 1.4, 2.0, 2.8, 3.8, 5.0, 6.5, 8.5, 11.0, 14.0])
 """Blur radii (px) of the bank; larger blurs are clamped to the last (the texture is gone)."""
@@ -194,17 +204,40 @@ def _disc(radius: float) -> np.ndarray:
     return k / k.sum()
 
 
+def _blurred(img: np.ndarray, radius: float, psf: str) -> np.ndarray:
+    """``img`` (float32) blurred by the PSF of ``radius`` px (itself at 0)."""
+    if radius == 0:
+        return img
+    if psf == "gauss":
+        return cv2.GaussianBlur(img, (0, 0), float(radius), borderType=cv2.BORDER_REFLECT)
+    return cv2.filter2D(img, -1, _disc(max(float(radius), 0.5)), borderType=cv2.BORDER_REFLECT)
+
+
 def _bank(tex: np.ndarray, psf: str, q: int = 1) -> np.ndarray:
     """The texture blurred by each radius of :data:`BANK_RADII_PX` (times ``q``, px)."""
     out = np.empty((len(BANK_RADII_PX), *tex.shape), np.float32)
     for i, r in enumerate(BANK_RADII_PX * q):
-        if r == 0:
-            out[i] = tex
-        elif psf == "gauss":
-            out[i] = cv2.GaussianBlur(tex, (0, 0), float(r), borderType=cv2.BORDER_REFLECT)
-        else:
-            out[i] = cv2.filter2D(tex, -1, _disc(max(float(r), 0.5)),
-                                  borderType=cv2.BORDER_REFLECT)
+        out[i] = _blurred(tex, float(r), psf)
+    return out
+
+
+def _bank_weights(r: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For radii ``r`` (px, within the bank's), the lower bank index ``i`` and the weight
+    ``t`` of bank ``i + 1`` (linear in the radius)."""
+    i = np.clip(np.searchsorted(radii, r, side="right") - 1, 0, len(radii) - 2)
+    return i, (r - radii[i]) / (radii[i + 1] - radii[i])
+
+
+def _scatter(tex: np.ndarray, i: np.ndarray, t: np.ndarray, radii: np.ndarray,
+             psf: str) -> np.ndarray:
+    """The image of a texture each of whose points spreads by its own radius: the texture's
+    share at each bank radius (the weights of :func:`_bank_weights`, which sum to 1 at every
+    point) blurred by that radius, summed (float64)."""
+    out = np.zeros(tex.shape, np.float64)
+    for j in range(int(i.min()), int(i.max()) + 2):
+        w = np.where(i == j, 1.0 - t, 0.0) + np.where(i == j - 1, t, 0.0)
+        if w.any():
+            out += _blurred((tex * w).astype(np.float32), float(radii[j]), psf)
     return out
 
 
@@ -279,7 +312,8 @@ def _view(world: np.ndarray, pad: int, size_px: int, mag: float, q: int = 1) -> 
 
 def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
                  n_levels: int | None = None, breathing: float = 0.0,
-                 pad_for_breathing: float | None = None) -> SimStack:
+                 pad_for_breathing: float | None = None,
+                 blur_model: Literal["gather", "scatter"] = "gather") -> SimStack:
     """Render one stack of a family.
 
     Parameters
@@ -304,6 +338,10 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
         The breathing the rendered world's margin is sized for (default ``breathing``): give
         the breathing stack's value with ``breathing=0`` for its breathing-free twin (the
         same world, texture and noise; the two differ by the breathing only).
+    blur_model : {"gather", "scatter"}, keyword-only
+        :data:`BLUR_MODELS`: each image pixel takes the texture blurred by its own height's
+        radius (default; every figure of the depth study), or each world point spreads its
+        light over its own radius (the same draws; slower).
 
     Returns
     -------
@@ -315,6 +353,8 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
     n = int(n_levels if n_levels is not None else rng.integers(20, 101))
     if n < 3:
         raise ValueError(f"n_levels must be >= 3, got {n}")
+    if blur_model not in BLUR_MODELS:
+        raise ValueError(f"blur_model must be one of {BLUR_MODELS}, got {blur_model!r}")
     for name, v in (("breathing", breathing), ("pad_for_breathing", pad_for_breathing)):
         if v is not None and not -0.5 < v < 0.5:
             raise ValueError(f"{name} must be in -0.5 .. 0.5 per level, got {v}")
@@ -334,17 +374,18 @@ def family_stack(family: str | Family, seed: int, *, size_px: int = 64,
     z = _surface(fam, rng, shape, n)
     if fam.texture == "mixed":  # drawn after the uniform families' draws: theirs unchanged
         tex = _mixed_texture(rng, fine, grain * q, contrast, q)
-    bank = _bank(tex, fam.psf, q)
     zf = z if q == 1 else cv2.resize(z, fine[::-1], interpolation=cv2.INTER_LINEAR)
     radii = BANK_RADII_PX * q
-    flat_bank = bank.reshape(len(radii), -1)
-    idx = np.arange(flat_bank.shape[1])
+    flat_bank = _bank(tex, fam.psf, q).reshape(len(radii), -1) if blur_model == "gather" else None
+    idx = np.arange(fine[0] * fine[1])
     images = np.empty((n, size_px, size_px), np.float32)
     for k in range(n):
         r = np.clip(q * _blur_radius(fam, zf, float(k), b, n), 0.0, radii[-1]).reshape(-1)
-        i = np.clip(np.searchsorted(radii, r, side="right") - 1, 0, len(radii) - 2)
-        t = (r - radii[i]) / (radii[i + 1] - radii[i])
-        img = ((1 - t) * flat_bank[i, idx] + t * flat_bank[i + 1, idx]).reshape(fine)
+        i, t = _bank_weights(r, radii)
+        if flat_bank is None:
+            img = _scatter(tex, i.reshape(fine), t.reshape(fine), radii, fam.psf)
+        else:
+            img = ((1 - t) * flat_bank[i, idx] + t * flat_bank[i + 1, idx]).reshape(fine)
         images[k] = _sensor(_view(img, pad, size_px, float(mags[k]), q), fam, rng, bits)
     truth = (z[pad:-pad, pad:-pad] * STEP_UM).astype(np.float32)
     info = {"n_levels": float(n), "grain_px": grain, "contrast": contrast,

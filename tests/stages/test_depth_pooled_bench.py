@@ -29,7 +29,8 @@ def _run_on(b, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, seeds: int,  # n
     methods = list(b.DEPTH_METHODS)
     d, wc = methods.index(b.DEFAULT_METHOD), methods.index("wcentroid")
 
-    def fake_scores(score, seeds, *, imdata, jobs):  # noqa: ANN001, ANN202 - the bench's hook
+    def fake_scores(score, seeds, *, imdata, jobs, blur_model):  # noqa: ANN001, ANN202 - the hook
+        assert blur_model == "gather"  # the bench's default: the study's generator
         out = []
         for s in seeds:
             sse = [others] * len(methods)

@@ -66,6 +66,43 @@ def test_a_mixed_texture_varies_within_the_image_and_leaves_uniform_stacks_alone
         family_stack(replace(FAMILIES[0], texture="mixed"), 5, size_px=32).images, a.images)
 
 
+def test_the_scatter_blur_model_spills_defocused_light_where_gather_does_not() -> None:
+    """``blur_model="scatter"``: each world point spreads its light over its own blur. On a
+    plane the blur is the same everywhere and both models render the same image; at a step
+    whose near side is in focus the far side's light spills over the edge onto the focused
+    side (scatter), where gather leaves the focused side the sharp texture; light is
+    conserved; the draws (truth, noise) are the gather stack's; an unknown model is named."""
+    from dataclasses import replace
+
+    from sffscan.stages.sim.families import Family, _bank, _scatter
+
+    plane = Family("plane", surface="flat", noise="none", bits=(12,))
+    a = family_stack(plane, 2, size_px=32, blur_model="gather")
+    b = family_stack(plane, 2, size_px=32, blur_model="scatter")
+    np.testing.assert_array_equal(a.truth_um, b.truth_um)
+    assert a.images.shape == b.images.shape and not np.array_equal(a.images, b.images)
+    # one radius everywhere (between the bank's 3rd and 4th): the two models agree
+    tex = np.random.default_rng(0).random((48, 32)).astype(np.float32)
+    bank = _bank(tex, "gauss")
+    from sffscan.stages.sim.families import BANK_RADII_PX as radii_all
+    i3, t3 = np.full((48, 32), 3, np.intp), np.full((48, 32), 0.25)
+    gathered = 0.75 * bank[3] + 0.25 * bank[4]
+    np.testing.assert_allclose(_scatter(tex, i3, t3, radii_all, "gauss"), gathered, atol=1e-5)
+    # a step: columns 0..31 radius 0 (in focus), 32..63 radius 4 px
+    radii = np.array([0.0, 4.0])
+    tex = np.random.default_rng(1).random((48, 64)).astype(np.float32)
+    i = np.zeros((48, 64), np.intp)
+    t = np.where(np.arange(64) < 32, 0.0, 1.0)[None, :].repeat(48, axis=0)
+    img = _scatter(tex, i, t, radii, "gauss")
+    near_edge = (slice(16, 32), slice(28, 32))  # focused side, within the blur's reach
+    far_from = (slice(16, 32), slice(0, 12))  # 5 sigma from the edge
+    np.testing.assert_allclose(img[far_from], tex[far_from], atol=1e-5)  # sharp, unchanged
+    assert np.mean(img[near_edge] - tex[near_edge]) > 0.05  # the defocused side's spill
+    np.testing.assert_allclose(img.sum(), tex.sum(), rtol=1e-3)  # light conserved
+    with pytest.raises(ValueError, match="blur_model must be one of"):
+        family_stack(replace(plane), 2, size_px=32, blur_model="splat")  # type: ignore[arg-type]
+
+
 def _mean_curve(name: str) -> tuple[np.ndarray, int]:
     """The mean GLVM curve of a flat plate of ``name``'s optics (60 levels, no noise) and
     the level nearest the plate."""
