@@ -38,8 +38,8 @@ from sffscan.stages.depth_harmonics import (
 from sffscan.stages.depth_peak import (
     WCENTROID_HALF_WINDOW,
     _beyond,
-    _centroid_offset,
     _flat_view,
+    _nested_centroid_offsets,
     _parabola_offset,
     _pixel_offsets,
 )
@@ -233,34 +233,39 @@ def adaptive_block(vol: np.ndarray, centre: np.ndarray, spread: np.ndarray, *,
     win = None if window_out is None else np.empty(c.shape, np.float32)
     if n_peak:
         cp = c[at_peak]
-        five = top[hp - 2:hp + 3]
-        if win is not None:  # the 9-level centroid first: it overwrites what it reads
-            five = five.copy()
-            masks = _outside(cp, hw, n, top, np.inf)
-            win[at_peak] = (cp + _centroid_offset(list(top), masks)).astype(np.float32)
-        if peak_centroid:
-            masks = _outside(cp, 2, n, five, np.inf)
-            depth[at_peak] = (cp + _centroid_offset(list(five), masks)).astype(np.float32)
-        else:
+        if not peak_centroid:  # the 3-point Gaussian's levels, -1 beyond the range
+            five = top[hp - 2:hp + 3].copy() if win is not None else top[hp - 2:hp + 3]
             _outside(cp, 2, n, five, -1.0)
             depth[at_peak] = _gaussian_top(list(five), cp, n)
+        # the 5-level and 9-level centroids in one pass (_nested_centroid_offsets)
+        halves = (2,) * peak_centroid + (hw,) * (win is not None)
+        if halves:
+            masks = _outside(cp, hp, n, top, np.inf)
+            offs = _nested_centroid_offsets(list(top[hp - halves[-1]:hp + halves[-1] + 1]),
+                                            masks[hp - halves[-1]:hp + halves[-1] + 1], halves)
+            if peak_centroid:
+                depth[at_peak] = (cp + offs[0]).astype(np.float32)
+            if win is not None:
+                win[at_peak] = (cp + offs[-1]).astype(np.float32)
     alt = None if wide_peak_out is None else np.full(c.shape, np.nan, np.float32)
     if n_peak < c.size:
         cw = c[~at_peak]
-        if alt is not None:  # the levels c - 2 .. c + 2, before the fill below
+        if alt is not None and not peak_centroid:  # before the fill below
             mid = wide[h - 2:h + 3].copy()
-            if peak_centroid:
-                masks = _outside(cw, 2, n, mid, np.inf)
-                alt[~at_peak] = (cw + _centroid_offset(list(mid), masks)).astype(np.float32)
-            else:
-                _outside(cw, 2, n, mid, -1.0)
-                alt[~at_peak] = _gaussian_top(list(mid), cw, n)
-        if win is not None:
-            nine = wide[h - hw:h + hw + 1].copy()
-            masks = _outside(cw, hw, n, nine, np.inf)
-            win[~at_peak] = (cw + _centroid_offset(list(nine), masks)).astype(np.float32)
+            _outside(cw, 2, n, mid, -1.0)
+            alt[~at_peak] = _gaussian_top(list(mid), cw, n)
+        # the 11-level centroid, and the 9-level and 5-level ones where wanted, in one pass
+        wanted = {h} | ({hw} if win is not None else set()) | (
+            {2} if alt is not None and peak_centroid else set())
         masks = _outside(cw, h, n, wide, np.inf)
-        depth[~at_peak] = (cw + _centroid_offset(list(wide), masks)).astype(np.float32)
+        by_half = dict(zip(sorted(wanted), _nested_centroid_offsets(list(wide), masks,
+                                                                    tuple(sorted(wanted))),
+                           strict=True))
+        if alt is not None and peak_centroid:
+            alt[~at_peak] = (cw + by_half[2]).astype(np.float32)
+        if win is not None:
+            win[~at_peak] = (cw + by_half[hw]).astype(np.float32)
+        depth[~at_peak] = (cw + by_half[h]).astype(np.float32)
     if wide_peak_out is not None and alt is not None:
         wide_peak_out[...] = alt.reshape(height, width)
     if window_out is not None and win is not None:
