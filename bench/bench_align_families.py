@@ -44,7 +44,7 @@ from sffscan.stages.fields.align import (
 from sffscan.stages.fields.aperture import stack_noise_floor
 from sffscan.stages.fields.stationary import valid_box
 from sffscan.stages.focus_measure import focus_measure
-from sffscan.stages.sim.families import family_stack
+from sffscan.stages.sim.families import BLUR_MODELS, family_stack
 
 OUT = Path(__file__).resolve().parent / "align_families_results.md"
 DEFAULT_FAMILIES = ["even-gauss", "even-noisy", "lens-gauss", "pillbox", "lens-pillbox-noisy",
@@ -60,10 +60,12 @@ def _lanczos(stack: np.ndarray, al: Alignment) -> np.ndarray:
 
 
 def score(family: str, seed: int, *, n: int, size: int, breathing: float,
-          method: str = DEFAULT_METHOD) -> dict[str, float]:
-    real = family_stack(family, seed, size_px=size, n_levels=n, breathing=breathing)
+          method: str = DEFAULT_METHOD, blur_model: str = "gather") -> dict[str, float]:
+    real = family_stack(family, seed, size_px=size, n_levels=n, breathing=breathing,
+                        blur_model=blur_model)  # type: ignore[arg-type]
     twin = family_stack(family, seed, size_px=size, n_levels=n, breathing=0.0,
-                        pad_for_breathing=breathing)
+                        pad_for_breathing=breathing,
+                        blur_model=blur_model)  # type: ignore[arg-type]
     truth = real.truth_um / 10.0
     aligned, valid, al = align_stack(real.images)
     floor = stack_noise_floor(real.images, al, max_value=1.0)[0]
@@ -113,12 +115,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--breathing", type=float, default=0.012)
     ap.add_argument("--method", choices=DEPTH_METHODS, default=DEFAULT_METHOD,
                     help=f"depth method (default {DEFAULT_METHOD})")
+    ap.add_argument("--blur-model", choices=BLUR_MODELS, default="gather",
+                    help="how the stacks apply a blur that varies over the image "
+                         "(sffscan.stages.sim.families.BLUR_MODELS; default gather)")
     ap.add_argument("--out", type=Path, default=OUT,
                     help="results file (default: bench/align_families_results.md)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     head = (f"{args.frames} levels of {args.size} x {args.size} px, "
-            f"{100 * args.breathing:g} %/frame breathing, depth method {args.method}; RMSE "
+            f"{100 * args.breathing:g} %/frame breathing, depth method {args.method}, "
+            f"{args.blur_model} blur model; RMSE "
             "(levels) of the no-breathing twin, the others over it")
     cols = ["ideal", "unaligned", "Lanczos", "no aperture", "aperture, no floor", "aligned",
             "as taken", "true warp", "same box", "scale error %"]
@@ -134,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in args.seeds:
             try:
                 r = score(fam, seed, n=args.frames, size=args.size, breathing=args.breathing,
-                          method=args.method)
+                          method=args.method, blur_model=args.blur_model)
             except ValueError as err:  # ECC gave up on a featureless pair: say so, go on
                 line = f"| {fam} | {seed} | alignment failed: {err} |"
             else:
