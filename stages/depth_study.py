@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -248,6 +249,7 @@ def _rmse(scores: Iterable[_Scores], key: str) -> float:
 
 def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 3,
                          held_out_from: int | None = None,
+                         blur_model: Literal["gather", "scatter"] = "gather",
                          size_px: int = 64, operator: str = "glvm", window: int = 9,
                          methods: Sequence[str] = DEPTH_METHODS,
                          third_party: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -264,6 +266,10 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     held_out_from : int, optional, keyword-only
         The first held-out seed (default ``seeds``): held out are ``held_out_from ..
         held_out_from + seeds - 1``, a set no earlier run has seen; at least ``seeds``.
+    blur_model : {"gather", "scatter"}, keyword-only
+        How every stack (training and held out) applies a blur that varies over the image
+        (:data:`sffscan.stages.sim.families.BLUR_MODELS`; default ``"gather"``, the
+        generator every shipped setting and constant was chosen on).
     size_px, operator, window : keyword-only
         Image size, focus measure operator and window.
     methods : sequence of str, keyword-only
@@ -286,7 +292,8 @@ def leave_one_family_out(*, families: Sequence[str] | None = None, seeds: int = 
     def seed(k: int) -> int:  # the k-th seed: training below ``seeds``, held out after
         return k if k < seeds else first + k - seeds
 
-    scores = {(f, s): _stack_scores(family_stack(f, seed(s), size_px=size_px),
+    scores = {(f, s): _stack_scores(family_stack(f, seed(s), size_px=size_px,
+                                                 blur_model=blur_model),
                                     operator=operator, window=window, methods=methods)
               for f in names for s in range(2 * seeds)}
     def tune(train: list[str]) -> dict[str, Setting]:

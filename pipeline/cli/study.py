@@ -255,7 +255,8 @@ def families_study(args: argparse.Namespace) -> int:
                              f"would overlap the training seeds 0 .. {args.seeds - 1}")
         table = leave_one_family_out(families=names, seeds=args.seeds, operator=operator,
                                      window=window, third_party=third,
-                                     held_out_from=args.held_out_from)
+                                     held_out_from=args.held_out_from,
+                                     blur_model=args.blur_model)
     except (ValueError, FileNotFoundError) as err:
         print(f"sffscan study: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -276,6 +277,8 @@ def families_study(args: argparse.Namespace) -> int:
                f"k={window}, {args.seeds} training + {args.seeds} held-out seeds per family"
                + ("" if args.held_out_from is None else
                   f", held out {args.held_out_from} .. {args.held_out_from + args.seeds - 1}")
+               + ("" if args.blur_model == "gather" else
+                  f"; the stacks rendered with the {args.blur_model} blur model")
                + ")")
     cov = ("height uncertainty of the default method, held out:\n\n"
            + format_coverage(table))
@@ -406,5 +409,11 @@ def register(sub: Any) -> None:
     p.add_argument("--held-out-from", type=int, metavar="SEED",
                    help="--families: the first held-out seed (default: --seeds): hold out "
                         "SEED .. SEED + seeds - 1, seeds no earlier run has scored")
+    p.add_argument("--blur-model", choices=("gather", "scatter"), default="gather",
+                   help="--families: how the stacks apply a blur that varies over the image: "
+                        "each pixel takes its own height's blur (gather, the default: the "
+                        "generator the shipped settings were chosen on) or each world point "
+                        "spreads its light over its own blur (scatter: the optics of a "
+                        "surface without occlusion)")
     p.add_argument("-o", "--output", default="sffscan-study", help="output folder")
     p.set_defaults(func=cmd_study)

@@ -205,6 +205,17 @@ def test_study_families_command(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert main(["study", "--families", "--family", "even-gauss,nope", "-o", str(out)]) == 2
     assert "nope" in capsys.readouterr().err
     assert main(["study", "--families", "--seeds", "0", "-o", str(out)]) == 2
+    # the second generator: the same seeds with the blur scattered, said in the summary
+    capsys.readouterr()
+    sc = tmp_path / "sc"
+    assert main(["study", "--families", "--family", "even-gauss,slopes", "--seeds", "1",
+                 "--blur-model", "scatter", "-o", str(sc)]) == 0
+    assert "rendered with the scatter blur model" in capsys.readouterr().out
+    with (sc / "held_out.csv").open() as f:
+        scattered = {(r["set"], r["method"]): r["rmse_levels"] for r in csv.DictReader(f)}
+    assert scattered != {(r["set"], r["method"]): r["rmse_levels"] for r in rows}
+    with pytest.raises(SystemExit):
+        main(["study", "--families", "--blur-model", "splat", "-o", str(sc)])
 
 
 def test_family_names() -> None:
