@@ -33,6 +33,13 @@ The tables are this run's. The prose between them was written beside earlier run
 cites their figures, dated; where a figure in the prose differs from the table below it,
 the table is the current tree's (the depth method log has the history).
 
+Every stack here renders its varying blur by gathering (each image pixel takes the texture
+blurred by its own height's radius). `--blur-model scatter` (2026-12-06) runs the same
+protocol on stacks whose every world point spreads its light over its own blur, as optics
+image a surface without occlusion: on fresh seeds the default stayed within 1.084x the best
+single method per family, but its uncertainty fell under the band on six of twenty families
+(docs/depth-method-log.md, "A second generator").
+
 Protocol (`sffscan.stages.depth_study`): ten synthetic families of focus stacks
 (`sffscan.stages.sim.families`: blur even in z or a thin lens', Gaussian or pillbox PSF,
 shot + read noise none / light / heavy, 8-12 bits, textures of several grains and
