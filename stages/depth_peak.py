@@ -111,9 +111,9 @@ def _nested_centroid_offsets(vals: list[np.ndarray], outside: list[np.ndarray | 
     floor = ref.copy()
     s0 = np.zeros(ref.shape, np.float32)
     s1 = np.zeros(ref.shape, np.float32)
-    levels, level_sum = 1, 0  # the window's levels and their offsets' sum ...
+    levels = 1  # the window's levels (their offsets sum to 0) ...
     missed: np.ndarray | None = None  # ... less those beyond the range, per pixel
-    missed_sum: np.ndarray | None = None
+    missed_sum: np.ndarray | None = None  # (and the sum of their offsets)
     wanted = set(halves)
     result: list[np.ndarray] = []
     for h in range(1, max(halves) + 1):
@@ -128,16 +128,14 @@ def _nested_centroid_offsets(vals: list[np.ndarray], outside: list[np.ndarray | 
                 jo = o * np.float32(j)
                 missed_sum = jo if missed_sum is None else missed_sum + jo
             levels += 1
-            level_sum += j
             s0 += d
             d *= np.float32(j)
             s1 += d
         if h in wanted:
             low = np.subtract(floor, ref)  # <= 0
             k = np.float32(levels) if missed is None else np.float32(levels) - missed
-            js = np.float32(level_sum) if missed_sum is None else np.float32(level_sum) - missed_sum
             w0 = s0 - k * low
-            w1 = s1 - js * low
+            w1 = s1 if missed_sum is None else s1 + missed_sum * low
             good = w0 > 0
             result.append(np.where(good, w1 / np.where(good, w0, np.float32(1.0)),
                                    np.float32(0.0)).astype(np.float32, copy=False))
