@@ -70,8 +70,9 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def scan_config(*, seed: int, length_mm: float, wobble_px: float, world: str,
-                execution: str) -> Any:
-    """The issue's scan as a configuration of the simulator (see the module doc)."""
+                execution: str, blur_model: str = "gather") -> Any:
+    """The issue's scan as a configuration of the simulator (see the module doc); the
+    blur gathered per pixel or scattered from each world point (``optics.blur_model``)."""
     from sffscan.pipeline.config import config_from_dict
 
     x0 = 2.0
@@ -81,7 +82,7 @@ def scan_config(*, seed: int, length_mm: float, wobble_px: float, world: str,
         "optics": {"width_px": 640, "height_px": 256, "pixel_um": 17.0, "bit_depth": 10,
                    "noise_sigma": math.sqrt(NOISE_VARIANCE_FS),
                    "magnification_per_mm": 0.0, "field_curvature_um": 0.0,
-                   "vignetting": 0.0},
+                   "vignetting": 0.0, "blur_model": blur_model},
         "motion": {"x_start_mm": x0, "x_end_mm": x0 + length_mm, "passes": 1,
                    "wobble_along_px": wobble_px, "wobble_across_px": 0.0},
         "processing": {"block_columns": 64, "registration_scale": 2,
@@ -145,7 +146,7 @@ def run_seed(seed: int, world: str, args: argparse.Namespace, methods: Sequence[
     import sffscan
 
     cfg = scan_config(seed=seed, length_mm=args.length_mm, wobble_px=args.wobble_px,
-                      world=world, execution=args.execution)
+                      world=world, execution=args.execution, blur_model=args.blur_model)
     t = time.perf_counter()
     frames = list(simulate_frames(cfg))
     tag = f"{world} seed {seed}"
@@ -290,6 +291,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--methods", default="all",
                     help=f"depth methods, comma separated, or 'all' ({', '.join(DEPTH_METHODS)})")
     ap.add_argument("--execution", choices=("auto", "threads", "processes"), default="threads")
+    ap.add_argument("--blur-model", choices=("gather", "scatter"), default="gather",
+                    help="the simulator's varying blur: each pixel its own height's (gather, "
+                         "the default) or each world point's light spread by its own "
+                         "(scatter; optics.blur_model)")
     ap.add_argument("--out", type=Path, default=RESULTS / "noisy_scan_results",
                     help="results path without suffix (.md and .json are written)")
     ap.add_argument("--work", type=Path, default=None,
@@ -305,7 +310,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ap.error(f"--worlds: unknown world {w!r}")
     seeds = [int(s) for s in args.seeds.split(",")]
     cfg0 = scan_config(seed=seeds[0], length_mm=args.length_mm, wobble_px=args.wobble_px,
-                       world=worlds[0], execution=args.execution)
+                       world=worlds[0], execution=args.execution, blur_model=args.blur_model)
     default = cfg0.processing.depth_method
     tree = source_tree()
     t0 = time.perf_counter()

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from sffscan.stages.depth import DEPTH_METHODS
 from sffscan.stages.operators import FOCUS_OPERATORS, operator_reach
 
@@ -319,6 +319,17 @@ class SimLens(ConfigModel):
         "at the frame corner (quadratic in the radius from the centre), µm; 0 = flat field")
     vignetting: float = Field(0.0, ge=0, lt=1, description="Sim: illumination lost at the "
                               "frame corner (quadratic in the radius), fraction")
+    blur_model: Literal["gather", "scatter"] = Field(
+        "gather", description="Sim: a blur that varies over the frame, each pixel taking its "
+        "own height's (gather) or each world point spreading its light by its own (scatter: "
+        "the optics of a surface without occlusion; slower; not with field curvature)")
+
+    @model_validator(mode="after")
+    def _scatter_without_field_curvature(self) -> SimLens:
+        if self.blur_model == "scatter" and self.field_curvature_um != 0:
+            raise ValueError(f"blur_model 'scatter' is not built with field_curvature_um "
+                             f"(got {self.field_curvature_um})")
+        return self
 
 
 class SimMotion(ConfigModel):

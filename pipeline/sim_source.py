@@ -40,7 +40,8 @@ def make_optics(cfg: ScanConfig) -> Optics:
                   sigma_max_px=o.sigma_max_px, noise_sigma=o.noise_sigma,
                   bit_depth=o.bit_depth, magnification_per_mm=o.magnification_per_mm,
                   magnification_ref_um=o.magnification_reference_um(),
-                  field_curvature_um=o.field_curvature_um, vignetting=o.vignetting)
+                  field_curvature_um=o.field_curvature_um, vignetting=o.vignetting,
+                  blur_model=o.blur_model)
 
 
 def wobble_px(cfg: ScanConfig, travel_px: float) -> tuple[float, float]:

@@ -72,6 +72,11 @@ class Optics:
         (quadratic in the radius from the frame centre). 0: flat field.
     vignetting : float
         Illumination lost at the frame corner, fraction in [0, 1) (quadratic in the radius).
+    blur_model : {"gather", "scatter"}
+        How a blur that varies over the frame is rendered: each pixel takes the texture
+        blurred by its own height's sigma (``"gather"``), or each world point spreads its
+        light by its own sigma (``"scatter"``, :mod:`sffscan.stages.sim.scatter`: the
+        optics of a surface without occlusion; slower; not with field curvature).
     """
 
     width: int = 1280
@@ -88,6 +93,7 @@ class Optics:
     magnification_ref_um: float = 0.0
     field_curvature_um: float = 0.0
     vignetting: float = 0.0
+    blur_model: str = "gather"
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -110,6 +116,12 @@ class Optics:
             v = getattr(self, name)
             if not (ok and math.isfinite(v)):
                 raise ValueError(f"optics.{name} must be {rule}, got {v}")
+        if self.blur_model not in ("gather", "scatter"):
+            raise ValueError(f"optics.blur_model must be 'gather' or 'scatter', "
+                             f"got {self.blur_model!r}")
+        if self.blur_model == "scatter" and self.field_curvature_um != 0:
+            raise ValueError("optics.blur_model 'scatter' is not built with "
+                             f"optics.field_curvature_um (got {self.field_curvature_um})")
         if self.bit_depth not in (8, 10):
             raise ValueError(f"optics.bit_depth must be 8 or 10, got {self.bit_depth}")
         lo, hi = (self.offset + self.gain * r for r in _TEXTURE_RANGE)
@@ -248,18 +260,23 @@ def _render(tex: np.ndarray, heights: np.ndarray, margin: int, focus_um: float,
     return _sensor(_blur(tex, heights, margin, focus_um, optics), optics, rng)
 
 
+def _sigma(heights: np.ndarray, focus_um: float, optics: Optics) -> np.ndarray:
+    """The PSF sigma (px, float32) of each height (µm) at ``focus_um``: the module's law."""
+    sigma = heights - np.float32(focus_um)
+    np.abs(sigma, out=sigma)
+    sigma *= np.float32(optics.psf_c_px_per_um)
+    sigma += np.float32(optics.psf_s0_px)
+    np.minimum(sigma, np.float32(optics.sigma_max_px), out=sigma)
+    return sigma
+
+
 def _blur(tex: np.ndarray, heights: np.ndarray, margin: int, focus_um: float,
           optics: Optics) -> np.ndarray:
     """The space-variant blur of :func:`_render`: (H, W) float32 reflectance."""
     h, w = heights.shape
     he, we = tex.shape
     bank = blur_bank_sigmas(optics)
-    sigma = heights - np.float32(focus_um)
-    np.abs(sigma, out=sigma)
-    sigma *= np.float32(optics.psf_c_px_per_um)
-    sigma += np.float32(optics.psf_s0_px)
-    np.minimum(sigma, np.float32(optics.sigma_max_px), out=sigma)
-    u = _level_coordinate(sigma)
+    u = _level_coordinate(_sigma(heights, focus_um, optics))
     l_lo = max(0, min(len(bank) - 1, math.floor(float(u.min()))))
     l_hi = max(l_lo, min(len(bank) - 1, math.ceil(float(u.max()))))
     n_lev = l_hi - l_lo + 1
@@ -358,6 +375,25 @@ def _margin_for(heights: np.ndarray, focus_um: float, optics: Optics) -> int:
     return 8 * math.ceil((3.0 * top + 1.0) / 8.0)  # multiple of 8: same pyramid grid
 
 
+def _scattered(world: PlateWorld, x0: float, y0: float, focus_um: float, optics: Optics,
+               heights: np.ndarray, pad: int = 0) -> np.ndarray:
+    """The reflectance of the frame grown by ``pad`` px, its light scattered from each world
+    point (:func:`sffscan.stages.sim.scatter.scatter_blur`): the texture and the heights over
+    a margin wide enough for the largest blur of the window's points and the margin's own."""
+    from sffscan.stages.sim.scatter import scatter_blur
+
+    margin = _margin_for(heights, focus_um, optics)
+    for _ in range(2):  # the margin's own points may blur wider than the frame's
+        tex = _texture_window(world, x0 - pad, y0 - pad, optics, margin, pad=pad)
+        ext = world.height_um(x0 - pad - margin, y0 - pad - margin, tex.shape[1], tex.shape[0])
+        wider = _margin_for(ext, focus_um, optics)
+        if wider <= margin:
+            break
+        margin = wider
+    return scatter_blur(tex, _sigma(ext, focus_um, optics), margin, heights.shape,
+                        blur_bank_sigmas(optics))
+
+
 def _lens_frame(world: PlateWorld, x0: float, y0: float, focus_um: float, optics: Optics,
                 rng: np.random.Generator | None) -> np.ndarray:
     """A frame through the real-lens effects (module docstring), sensor included."""
@@ -369,9 +405,12 @@ def _lens_frame(world: PlateWorld, x0: float, y0: float, focus_um: float, optics
     if optics.field_curvature_um != 0:
         heights -= curvature_map_um(shape, field_curvature_um=optics.field_curvature_um,
                                     scale=m, pad=pad)
-    margin = _margin_for(heights, focus_um, optics)
-    tex = _texture_window(world, x0 - pad, y0 - pad, optics, margin, pad=pad)
-    img = _blur(tex, heights, margin, focus_um, optics)
+    if optics.blur_model == "scatter":
+        img = _scattered(world, x0, y0, focus_um, optics, heights, pad)
+    else:
+        margin = _margin_for(heights, focus_um, optics)
+        tex = _texture_window(world, x0 - pad, y0 - pad, optics, margin, pad=pad)
+        img = _blur(tex, heights, margin, focus_um, optics)
     if m != 1.0:
         img = scale_about_centre(img, m, out_shape=shape, pad=pad)
     if optics.vignetting != 0:
@@ -409,6 +448,8 @@ def render_frame(world: PlateWorld, *, x0: float, y0: float, focus_um: float,
     if not optics.ideal:
         return _lens_frame(world, x0, y0, focus_um, optics, rng)
     heights = world.height_um(x0, y0, optics.width, optics.height)
+    if optics.blur_model == "scatter":
+        return _sensor(_scattered(world, x0, y0, focus_um, optics, heights), optics, rng)
     margin = _margin_for(heights, focus_um, optics)
     tex = _texture_window(world, x0, y0, optics, margin)
     return _render(tex, heights, margin, focus_um, optics, rng)
@@ -433,8 +474,9 @@ def render_stack(world: PlateWorld, *, x0: float, y0: float, focus_heights_um: n
     zs = np.asarray(focus_heights_um, dtype=np.float64).reshape(-1)
     if zs.size == 0 or not np.all(np.isfinite(zs)):
         raise ValueError("focus_heights_um must be a non-empty array of finite heights")
-    if not optics.ideal:
-        return np.stack([_lens_frame(world, x0, y0, float(z), optics, rng) for z in zs])
+    if not optics.ideal or optics.blur_model == "scatter":
+        return np.stack([render_frame(world, x0=x0, y0=y0, focus_um=float(z), optics=optics,
+                                      rng=rng) for z in zs])
     heights = world.height_um(x0, y0, optics.width, optics.height)
     margin = max(_margin_for(heights, float(z), optics) for z in zs)
     tex = _texture_window(world, x0, y0, optics, margin)

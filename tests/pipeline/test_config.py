@@ -101,7 +101,7 @@ def test_schemas_match_the_models() -> None:
 # Format version 1 as users' files hold it: the groups of settings (what is measured, how
 # it runs, the simulator's own) are a split of the code and the docs, not of the file.
 #: keys added since, with defaults that keep a version-1 file's meaning
-ADDED_SINCE_V1 = {"processing": {"workers", "bands"}}
+ADDED_SINCE_V1 = {"processing": {"workers", "bands"}, "optics": {"blur_model"}}
 V1_KEYS = {
     "source": {"kind", "address", "idle_timeout_s", "max_bad_messages", "keys_dir", "seed",
                "world", "plate_length_mm", "plate_width_mm"},

@@ -293,3 +293,40 @@ def test_validation_names_the_field() -> None:
         focus_heights(z_step_um=0.0)
     with pytest.raises(ValueError, match="overlap"):
         PlateWorld(features=(Cylinder(0, 0, 100, 10), Cylinder(50, 0, 100, 10)))
+
+
+def test_scattered_light_agrees_on_a_flat_and_spills_at_an_edge(plate: PlateWorld) -> None:
+    """``blur_model="scatter"`` (stages/sim/scatter.py): on a flat part every point has one
+    sigma and the frame is the gathered one (within the gather's level weight, quantised to
+    1/32, and its halving pyramid); focused on the cylinder's top, the base's light spills
+    over the top's edge (gathered, the top is the sharp texture up to its edge); the
+    configuration names the field it refuses."""
+    from sffscan.pipeline.config import ConfigError, config_from_dict
+
+    o = dataclasses.replace(SMALL, noise_sigma=0.0)
+    s = dataclasses.replace(o, blur_model="scatter")
+    w = flat(8, base_um=3000.0)
+    for focus in (3000.0, 3400.0, 5000.0):
+        g = render_frame(w, x0=3.0, y0=2.5, focus_um=focus, optics=o, rng=None).astype(float)
+        c = render_frame(w, x0=3.0, y0=2.5, focus_um=focus, optics=s, rng=None).astype(float)
+        assert float(np.sqrt(np.mean((g - c) ** 2))) < 0.03 * float(g.std()), focus
+    np.testing.assert_array_equal(  # a stack is its frames
+        render_stack(w, x0=3.0, y0=2.5, focus_heights_um=np.array([3000.0, 3400.0]),
+                     optics=s, rng=None)[1],
+        render_frame(w, x0=3.0, y0=2.5, focus_um=3400.0, optics=s, rng=None))
+    cyl = plate.features[3]
+    assert isinstance(cyl, Cylinder)
+    x0 = (cyl.cx_um - cyl.radius_um) / PX - 40.0  # the top's left edge at column 40
+    y0 = cyl.cy_um / PX - 64.0
+    g = render_frame(plate, x0=x0, y0=y0, focus_um=5000.0, optics=o, rng=None).astype(float)
+    c = render_frame(plate, x0=x0, y0=y0, focus_um=5000.0, optics=s, rng=None).astype(float)
+    inside = (slice(48, 80), slice(41, 47))  # the focused top, within the base's blur
+    far = (slice(48, 80), slice(110, 130))  # the focused top, far from its edge
+    assert float(np.mean(np.abs(c[inside] - g[inside]))) > 4.0 * float(
+        np.mean(np.abs(c[far] - g[far])))
+    with pytest.raises(ValueError, match=r"optics\.blur_model"):
+        Optics(blur_model="splat")
+    with pytest.raises(ValueError, match=r"optics\.blur_model 'scatter' .*field_curvature_um"):
+        Optics(blur_model="scatter", field_curvature_um=50.0)
+    with pytest.raises(ConfigError, match="blur_model"):
+        config_from_dict({"optics": {"blur_model": "scatter", "field_curvature_um": 50.0}})
