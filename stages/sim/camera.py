@@ -383,7 +383,7 @@ def _scattered(world: PlateWorld, x0: float, y0: float, focus_um: float, optics:
     from sffscan.stages.sim.scatter import scatter_blur
 
     margin = _margin_for(heights, focus_um, optics)
-    for _ in range(2):  # the margin's own points may blur wider than the frame's
+    while True:  # the margin's own points may blur wider (the margin grows to sigma_max's)
         tex = _texture_window(world, x0 - pad, y0 - pad, optics, margin, pad=pad)
         ext = world.height_um(x0 - pad - margin, y0 - pad - margin, tex.shape[1], tex.shape[0])
         wider = _margin_for(ext, focus_um, optics)
