@@ -27,6 +27,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from sffscan.stages.sim.scatter import scatter_levels
 
 __all__ = ["BLUR_MODELS", "CROSSED_FAMILIES", "FAMILIES", "Family", "SimStack", "family_names",
            "family_stack"]
@@ -231,14 +232,10 @@ def _bank_weights(r: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndar
 def _scatter(tex: np.ndarray, i: np.ndarray, t: np.ndarray, radii: np.ndarray,
              psf: str) -> np.ndarray:
     """The image of a texture each of whose points spreads by its own radius: the texture's
-    share at each bank radius (the weights of :func:`_bank_weights`, which sum to 1 at every
-    point) blurred by that radius, summed (float64)."""
-    out = np.zeros(tex.shape, np.float64)
-    for j in range(int(i.min()), int(i.max()) + 2):
-        w = np.where(i == j, 1.0 - t, 0.0) + np.where(i == j - 1, t, 0.0)
-        if w.any():
-            out += _blurred((tex * w).astype(np.float32), float(radii[j]), psf)
-    return out
+    share at each bank radius (the weights of :func:`_bank_weights`) blurred by that radius,
+    summed (float64; :func:`sffscan.stages.sim.scatter.scatter_levels`)."""
+    return scatter_levels(tex, i, t, lambda src, j: _blurred(src, float(radii[j]), psf),
+                          dtype=np.float64)
 
 
 def _surface(fam: Family, rng: np.random.Generator, shape: tuple[int, int], n: int

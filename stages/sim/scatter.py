@@ -14,11 +14,41 @@ heights. Slower than gathering (one blur of a weighted texture per bank level in
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
 
-__all__ = ["scatter_blur"]
+__all__ = ["scatter_blur", "scatter_levels"]
+
+
+def scatter_levels(tex: np.ndarray, lower: np.ndarray, weight: np.ndarray,
+                   blur: Callable[[np.ndarray, int], np.ndarray], *,
+                   dtype: type[np.floating] = np.float32) -> np.ndarray:
+    """The sum over a blur bank's levels of ``blur(share, level)``, ``share`` the texture's
+    part at that level: each point's weight ``1 - weight`` at its ``lower`` level and
+    ``weight`` at the next (summing to 1). One home for the families' scatter
+    (:func:`sffscan.stages.sim.families.family_stack`) and the camera's (:func:`scatter_blur`).
+
+    Parameters
+    ----------
+    tex : (H, W) ndarray of float32
+    lower : (H, W) ndarray of int
+        Each point's lower bank level.
+    weight : (H, W) ndarray of float
+        The next level's weight, 0..1.
+    blur : callable
+        ``blur(image float32, level)``: the image blurred by the bank's level.
+    dtype : keyword-only
+        The sum's dtype.
+    """
+    out = np.zeros(tex.shape, dtype)
+    for level in range(int(lower.min()), int(lower.max()) + 2):
+        share = np.where(lower == level, 1.0 - weight, 0.0) + np.where(lower == level - 1,
+                                                                       weight, 0.0)
+        if share.any():
+            out += blur((tex * share).astype(np.float32), level)
+    return out
 
 
 def scatter_blur(tex: np.ndarray, sigma_ext: np.ndarray, margin: int,
@@ -49,21 +79,18 @@ def scatter_blur(tex: np.ndarray, sigma_ext: np.ndarray, margin: int,
     he, we = tex.shape
     u = np.clip(_level_coordinate(sigma_ext), 0.0, np.float32(len(bank) - 1))
     lo = np.minimum(np.floor(u).astype(np.intp), len(bank) - 2)
-    t = (u - lo).astype(np.float32)
-    out = np.zeros((he, we), np.float32)
-    for level in range(int(lo.min()), int(lo.max()) + 2):
-        share = np.where(lo == level, 1.0 - t, 0.0) + np.where(lo == level - 1, t, 0.0)
-        if not share.any():
-            continue
-        src = (tex * share).astype(np.float32)
+
+    def blurred(src: np.ndarray, level: int) -> np.ndarray:
         s = float(bank[level])
         d = _factor(s)
         if s == 0:
-            out += src
-        elif d == 1:
-            out += _gauss(src, s)
-        else:  # as the bank's large sigmas: on an area-downsampled copy, upsampled
-            small = cv2.resize(src, (we // d, he // d), interpolation=cv2.INTER_AREA)
-            s_small = math.sqrt(s * s - (d * d - 1) / 12.0 - _upsample_variance(d)) / d
-            out += cv2.resize(_gauss(small, s_small), (we, he), interpolation=cv2.INTER_LINEAR)
+            return src
+        if d == 1:
+            return _gauss(src, s)
+        # as the bank's large sigmas: on an area-downsampled copy, upsampled
+        small = cv2.resize(src, (we // d, he // d), interpolation=cv2.INTER_AREA)
+        s_small = math.sqrt(s * s - (d * d - 1) / 12.0 - _upsample_variance(d)) / d
+        return cv2.resize(_gauss(small, s_small), (we, he), interpolation=cv2.INTER_LINEAR)
+
+    out = scatter_levels(tex, lo, (u - lo).astype(np.float32), blurred)
     return np.ascontiguousarray(out[margin:margin + h, margin:margin + w])
