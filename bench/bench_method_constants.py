@@ -58,13 +58,12 @@ TRAINING = tuple(range(6))
 BAND = (0.90, 0.98)
 
 
-def sample(job: tuple[str, int, tuple[str, ...]] | tuple[str, int, tuple[str, ...], str]
+def sample(job: tuple[str, int, tuple[str, ...], str]
            ) -> tuple[tuple[str, int], dict[str, Any]]:
-    """The methods' uncertainty samples on one family stack (``(family, seed, methods)``, and
-    the blur model, :data:`sffscan.stages.sim.families.BLUR_MODELS`, default gather)."""
-    family, seed, methods = job[:3]
-    blur_model = job[3] if len(job) > 3 else "gather"
-    st = family_stack(family, seed, size_px=64, blur_model=blur_model)  # type: ignore[arg-type,misc]
+    """The methods' uncertainty samples on one family stack: ``(family, seed, methods, blur
+    model)`` (:data:`sffscan.stages.sim.families.BLUR_MODELS`)."""
+    family, seed, methods, blur_model = job
+    st = family_stack(family, seed, size_px=64, blur_model=blur_model)  # type: ignore[arg-type]
     vol = focus_measure(st.images, operator="glvm", window=9)
     mask = np.zeros(st.truth_um.shape, bool)
     mask[4:-4, 4:-4] = True
