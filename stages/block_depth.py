@@ -24,6 +24,7 @@ from sffscan.stages.depth_harmonics import (
     confidence_from_sums,
     depth_from_harmonics,
     focus_sums,
+    magnitude,
     spc_depth,
 )
 from sffscan.stages.depth_levels import (
@@ -324,7 +325,7 @@ def depth_rows(src: np.ndarray, argmax: np.ndarray, low_src: np.ndarray | None,
         # adaptive_centroid's depth by SPC's share, which stands alone where SPC is out of
         # its range
         spc = spc_depth(sums[1], sums[2], centre[own, inner], n_levels=n_levels)
-        width = guard_width(sums[0], np.hypot(sums[1], sums[2]), low, n_levels, floor)
+        width = guard_width(sums[0], magnitude(sums[1], sums[2]), low, n_levels, floor)
         keep = spc_in_range(spc, width, n_levels)
         return (np.where(keep, spc_share(spc, depth, spc_weight), depth).astype(
             np.float32, copy=False), conf)

@@ -15,7 +15,7 @@ import math
 
 import cv2
 import numpy as np
-from sffscan.stages.depth_harmonics import pc_depth
+from sffscan.stages.depth_harmonics import magnitude, pc_depth
 
 __all__ = ["centroid_departure", "curve_width", "floor_share", "width_excess",
            "width_from_sums"]
@@ -45,7 +45,7 @@ def curve_width(volume: np.ndarray) -> np.ndarray:
     h0 = vol.sum(axis=0)
     re = np.tensordot(np.cos(2 * np.pi * k / n), vol, axes=1)
     im = np.tensordot(np.sin(2 * np.pi * k / n), vol, axes=1)
-    return width_from_sums(h0, np.hypot(re, im), vol.min(axis=0), n)
+    return width_from_sums(h0, magnitude(re, im), vol.min(axis=0), n)
 
 
 def width_from_sums(h0: np.ndarray, h1_abs: np.ndarray, minimum: np.ndarray, n: int

@@ -31,7 +31,7 @@ from sffscan.stages.depth_candidates import (
 )
 from sffscan.stages.depth_choice import stack_choice, wide_choice
 from sffscan.stages.depth_floor import guard_width
-from sffscan.stages.depth_harmonics import depth_from_sums
+from sffscan.stages.depth_harmonics import depth_from_sums, magnitude
 from sffscan.stages.depth_levels import level_spread, median_filter_levels
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_spc import spc_in_range, spc_share
@@ -148,7 +148,7 @@ def shape_select_parts(c: FocusCurves) -> tuple[np.ndarray, float, float]:
     # curve_width's formula from the sums the estimators share: no float64 copy of the
     # volume (4x less time on a 50-level stack; equal to float64 round-off)
     h0, _, re, im = c.moments
-    h1, low, n = np.hypot(re, im), c.volume.min(axis=0), c.volume.shape[0]
+    h1, low, n = magnitude(re, im), c.volume.min(axis=0), c.volume.shape[0]
     width = width_from_sums(h0, h1, low, n)
     # judged on a sample of a large stack's curves, as a scan's block is (stack_sample)
     # SPC's mean-square tests inside the focus window's reach (stack_choice's margin)

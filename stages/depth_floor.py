@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.curve_shape import width_from_sums
-from sffscan.stages.depth_harmonics import harmonic_table
+from sffscan.stages.depth_harmonics import harmonic_table, magnitude
 from sffscan.stages.depth_statistics import judged_curves, row_median
 
 __all__ = ["GuardFloor", "curve_noise", "expected_extreme", "guard_floor", "guard_width",
@@ -146,7 +146,7 @@ def guard_floor(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | None 
     noise = _floor_noise(cur)
     n = cur.shape[1]
     h0, _, re, im = harmonic_table(n) @ cur.T  # float64 sums of the float32 curves
-    h1, low = np.hypot(re, im), cur.min(axis=1)
+    h1, low = magnitude(re, im), cur.min(axis=1)
     width, defined = _raised(h0, h1, low, n, _lift(n, noise))
     if defined.any():
         return GuardFloor(noise, float(np.median(width[defined])))

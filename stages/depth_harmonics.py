@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
+import cv2
 import numpy as np
 from sffscan.stages.depth_levels import check_odd_size, median_filter_levels
 
@@ -33,6 +34,7 @@ __all__ = [
     "focus_confidence",
     "focus_sums",
     "harmonic_table",
+    "magnitude",
     "pc_depth",
     "spc_depth",
     "strip_sums",
@@ -46,6 +48,38 @@ STREAMING_METHODS = ("argmax", "centroid", "pc", "spc")
 STRIP_PIXELS = 4096
 """Pixels per strip of :func:`volume_strips`: N = 50 float32 levels of 4096 pixels are
 800 KiB, which stay in cache."""
+
+
+def magnitude(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``sqrt(x^2 + y^2)`` element by element: ``|H_1|`` from Re H_1 and Im H_1, a
+    gradient's size.
+
+    :func:`cv2.magnitude` where ``x`` and ``y`` are float32 or float64 arrays of one shape
+    and dtype, else :func:`numpy.hypot`. Why not ``np.hypot`` everywhere: its float32 loop
+    took 0.73 ms on a scan block's 1040 x 128 values against OpenCV's 0.035 ms (2-core AMD
+    VM, 2026-12-06), three times a block in the depth stage; the two agree within 2 units in
+    the last place (OpenCV squares without ``hypot``'s guard against overflow, which sums of
+    focus values and gradients of levels are far from: float32 overflows past 1.8e19).
+    NaN and infinities as ``np.hypot``.
+
+    Parameters
+    ----------
+    x, y : ndarray of float
+        Same shape.
+
+    Returns
+    -------
+    ndarray
+        Same shape and dtype as ``x`` (a new array).
+    """
+    xa, ya = np.asarray(x), np.asarray(y)
+    if (xa.dtype == ya.dtype and xa.shape == ya.shape and xa.ndim >= 1
+            and xa.dtype in (np.float32, np.float64)):
+        if xa.ndim > 2:  # as 2-D (OpenCV would read a third axis as channels, at most 512)
+            return np.asarray(cv2.magnitude(xa.reshape(-1, xa.shape[-1]),
+                                            ya.reshape(-1, ya.shape[-1]))).reshape(xa.shape)
+        return np.asarray(cv2.magnitude(xa, ya)).reshape(xa.shape)
+    return np.asarray(np.hypot(xa, ya))
 
 
 def harmonic_table(n_levels: int) -> np.ndarray:

@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 from sffscan.stages.depth_floor import GuardFloor, curve_noise, guard_floor, guard_width
-from sffscan.stages.depth_harmonics import harmonic_table, spc_depth
+from sffscan.stages.depth_harmonics import harmonic_table, magnitude, spc_depth
 from sffscan.stages.depth_peak import three_point_offset, windowed_centroid
 from sffscan.stages.depth_statistics import (
     CENTROID_PULL_LIMIT,
@@ -130,7 +130,7 @@ def spc_noise(levels: np.ndarray, mask: np.ndarray | None = None) -> float:
     cur = np.ascontiguousarray(curves.T)  # (curves, N): the medians along rows, in cache
     s = curve_noise(cur)
     re, im = (cur @ harmonic_table(n)[2:].T.astype(np.float32)).T
-    h1 = np.hypot(re, im)
+    h1 = magnitude(re, im)
     sigma = n / (2.0 * np.pi) * math.sqrt(n / 2.0) * s / np.maximum(h1, np.float32(1e-30))
     # a phase error is at most a uniform one on the circle: N / sqrt(12) levels
     sigma = np.minimum(sigma, np.float32(n / math.sqrt(12.0))).astype(np.float64)
@@ -211,7 +211,7 @@ def spc_departures(levels: np.ndarray, centre: np.ndarray, mask: np.ndarray | No
     a = am[ok]
     h0, _, re, im = harmonic_table(n).astype(np.float32) @ cur
     spc = spc_depth(re, im, a, n_levels=n)
-    width = guard_width(h0, np.hypot(re, im), cur.min(axis=0), n, floor)
+    width = guard_width(h0, magnitude(re, im), cur.min(axis=0), n, floor)
     keep = spc_in_range(spc, width, n)
     if not keep.any():
         return Departures(math.nan, math.nan, math.nan)

@@ -21,7 +21,7 @@ from sffscan.stages.depth import (
 from sffscan.stages.depth_candidates import gauss_window_fit, plane_residual, window_pc
 from sffscan.stages.depth_choice import shape_select
 from sffscan.stages.depth_floor import guard_floor, guard_width
-from sffscan.stages.depth_harmonics import curve_moments
+from sffscan.stages.depth_harmonics import curve_moments, magnitude
 from sffscan.stages.depth_spc import (
     SHAPE_SELECT_LIMITS,
     spc_departures,
@@ -206,7 +206,7 @@ def candidate_errors(volume: np.ndarray, truth_levels: np.ndarray, mask: np.ndar
     # lower, the noise of the curves judged (depth_floor)
     floor = guard_floor(volume, centre)
     h0, _, re, im = curve_moments(volume)
-    guard = guard_width(h0, np.hypot(re, im), volume.min(axis=0), n, floor)
+    guard = guard_width(h0, magnitude(re, im), volume.min(axis=0), n, floor)
     in_range = spc_in_range(depth["spc"], guard, n)
     pull, noise = pull_statistics(volume, argmax)  # all the curves, as depth_from_focus judges
     spread = level_spread(centre, spread_size, n)

@@ -58,6 +58,7 @@ import math
 import cv2
 import numpy as np
 from sffscan.stages.curve_shape import centroid_departure, width_excess
+from sffscan.stages.depth_harmonics import magnitude
 from sffscan.stages.fitted_constants import (
     FLOOR_LEVELS,
     RELIEF_SCALE,
@@ -181,7 +182,7 @@ def locking_visibility(median_levels: np.ndarray, *, window: int = 9) -> np.ndar
     if min(m.shape) < 2:
         return np.ones(m.shape, np.float32)
     gy, gx = np.gradient(m)
-    g = np.hypot(gx, gy)
+    g = magnitude(gx, gy)
     g *= np.float32(window)
     return np.abs(np.sinc(g)).astype(np.float32, copy=False)
 
@@ -315,7 +316,7 @@ def height_uncertainty_um(depth_levels: np.ndarray, sums: np.ndarray, minimum: n
     h0, re, im = (np.asarray(v, np.float32) for v in sums)
     low = np.asarray(minimum, np.float32)
     area = h0 - np.float32(n_levels) * low
-    ratio = np.hypot(re, im)
+    ratio = magnitude(re, im)
     np.divide(ratio, area, out=ratio, where=area > 0)
     ratio[area <= 0] = 1.0
     np.clip(ratio, np.float32(1e-9), np.float32(1.0), out=ratio)

@@ -39,6 +39,7 @@ from sffscan.stages.depth import (
     levels_to_height,
     shape_select_with_bias,
 )
+from sffscan.stages.depth_harmonics import magnitude
 from sffscan.stages.fields.weighted_median import confidence_weighted_median
 
 __all__ = [
@@ -351,7 +352,7 @@ def stack_curves(volume: np.ndarray) -> StackCurves:
 
     vol = np.ascontiguousarray(volume, dtype=np.float32)
     sums, low = focus_sums(vol), vol.min(axis=0)
-    width = width_from_sums(sums[0], np.hypot(sums[1], sums[2]), low, vol.shape[0])
+    width = width_from_sums(sums[0], magnitude(sums[1], sums[2]), low, vol.shape[0])
     return StackCurves(vol, sums, low, width, first_argmax(vol))
 
 
