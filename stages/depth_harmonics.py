@@ -21,6 +21,7 @@ from collections.abc import Iterator
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from sffscan.stages.depth_levels import check_odd_size, median_filter_levels
 
 __all__ = [
@@ -50,7 +51,7 @@ STRIP_PIXELS = 4096
 800 KiB, which stay in cache."""
 
 
-def magnitude(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def magnitude(x: npt.ArrayLike, y: npt.ArrayLike) -> np.ndarray:
     """``sqrt(x^2 + y^2)`` element by element: ``|H_1|`` from Re H_1 and Im H_1, a
     gradient's size.
 
@@ -64,7 +65,7 @@ def magnitude(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    x, y : ndarray of float
+    x, y : array_like of float
         Same shape.
 
     Returns
