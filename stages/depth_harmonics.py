@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 from sffscan.stages.depth_levels import check_odd_size, median_filter_levels
@@ -55,32 +54,33 @@ def magnitude(x: npt.ArrayLike, y: npt.ArrayLike) -> np.ndarray:
     """``sqrt(x^2 + y^2)`` element by element: ``|H_1|`` from Re H_1 and Im H_1, a
     gradient's size.
 
-    :func:`cv2.magnitude` where ``x`` and ``y`` are float32 or float64 arrays of one shape
-    and dtype, else :func:`numpy.hypot`. Why not ``np.hypot`` everywhere: its float32 loop
-    took 0.73 ms on a scan block's 1040 x 128 values against OpenCV's 0.035 ms (2-core AMD
-    VM, 2026-12-06), three times a block in the depth stage; the two agree within 2 units in
-    the last place (OpenCV squares without ``hypot``'s guard against overflow, which sums of
-    focus values and gradients of levels are far from: float32 overflows past 1.8e19).
-    NaN and infinities as ``np.hypot``.
+    Squares, a sum and a square root, each numpy's exact elementwise loop, so that a value
+    never depends on where it lies in the array (a scan's block is bit for bit the same
+    whatever its bands, threads or processes). Why not ``np.hypot``: its float32 loop took
+    0.73 ms on a scan block's 1040 x 128 values against 0.095 ms for these three (2-core
+    AMD VM, 2026-12-06), three times a block in the depth stage. ``cv2.magnitude`` (0.035
+    ms) was tried and dropped: its vectorised body and scalar tail round differently, so
+    the same pixel's value changed with the band's rows (tests/pipeline/test_band_processes.py).
+    Within 2 units in the last place of ``np.hypot`` (1 on a block's values, measured),
+    without its guard against overflow,
+    which sums of focus values and gradients of levels are far from (float32 overflows past
+    1.8e19). NaN and infinities as ``np.hypot``, but for an infinity beside a NaN (NaN here).
 
     Parameters
     ----------
     x, y : array_like of float
-        Same shape.
+        Broadcast as numpy does (integers go to ``np.hypot``).
 
     Returns
     -------
     ndarray
-        Same shape and dtype as ``x`` (a new array).
+        Their float type (a new array).
     """
     xa, ya = np.asarray(x), np.asarray(y)
-    if (xa.dtype == ya.dtype and xa.shape == ya.shape and xa.ndim >= 1
-            and xa.dtype in (np.float32, np.float64)):
-        if xa.ndim > 2:  # as 2-D (OpenCV would read a third axis as channels, at most 512)
-            return np.asarray(cv2.magnitude(xa.reshape(-1, xa.shape[-1]),
-                                            ya.reshape(-1, ya.shape[-1]))).reshape(xa.shape)
-        return np.asarray(cv2.magnitude(xa, ya)).reshape(xa.shape)
-    return np.asarray(np.hypot(xa, ya))
+    if not (np.issubdtype(xa.dtype, np.floating) and np.issubdtype(ya.dtype, np.floating)):
+        return np.asarray(np.hypot(xa, ya))
+    out = np.asarray(np.multiply(xa, xa) + np.multiply(ya, ya))
+    return np.sqrt(out, out=out)
 
 
 def harmonic_table(n_levels: int) -> np.ndarray:
