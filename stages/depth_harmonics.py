@@ -117,7 +117,7 @@ def curve_moments(vol: np.ndarray) -> np.ndarray:
 def confidence_from_sums(h0: np.ndarray, re: np.ndarray, im: np.ndarray) -> np.ndarray:
     """``|H_1| / H_0`` clipped to [0, 1], 0 where ``H_0 <= 0``; float32."""
     positive = h0 > 0
-    confidence = np.sqrt(re * re + im * im) / np.where(positive, h0, 1.0)
+    confidence = magnitude(re, im) / np.where(positive, h0, 1.0)
     return np.clip(np.where(positive, confidence, 0.0), 0.0, 1.0).astype(np.float32)
 
 
