@@ -62,9 +62,9 @@ def magnitude(x: npt.ArrayLike, y: npt.ArrayLike) -> np.ndarray:
     ms) was tried and dropped: its vectorised body and scalar tail round differently, so
     the same pixel's value changed with the band's rows (tests/pipeline/test_band_processes.py).
     Within 2 units in the last place of ``np.hypot`` (1 on a block's values, measured),
-    without its guard against overflow,
-    which sums of focus values and gradients of levels are far from (float32 overflows past
-    1.8e19). NaN and infinities as ``np.hypot``, but for an infinity beside a NaN (NaN here).
+    without its guard against overflow, which sums of focus values and gradients of levels
+    are far from (float32 overflows past 1.8e19). NaN and infinities as ``np.hypot``, but
+    for an infinity beside a NaN (NaN here).
 
     Parameters
     ----------
